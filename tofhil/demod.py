@@ -1,0 +1,167 @@
+"""Demodulation: correlation taps -> complex signal -> phase, amplitude, offset, distance.
+
+Canonical tap model: ``c_k = B + A*cos(phi - theta_k)``. For K >= 3 taps equally spaced over
+2*pi the estimator ``S = (2/K) * sum_k c_k * exp(i*theta_k)`` returns ``A*exp(i*phi)``
+exactly (the second harmonic of the sum vanishes). Holmlund's 4-phase AB values
+(theta = 0, 90, 180, 270 deg) and 3-phase devices are special cases.
+
+Two-tap (A/B differential) pixels read two complementary taps per sub-frame: tap A at
+``theta_m``, tap B at ``theta_m + pi``. Their difference ``D_m = a_m - b_m = 2A cos(phi -
+theta_m)`` cancels the offset and the ambient light; ``S = (1/M) sum_m D_m exp(i theta_m)``
+for M >= 2 sub-frames equally spaced over pi.
+
+Device-specific tap order and sign are data (:class:`TapConvention`) converted at the
+driver edge, never folded into the estimator.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from tofhil import C_M_PER_S
+
+
+def ambiguity_range_m(freq_hz: float | np.ndarray) -> float | np.ndarray:
+    """Unambiguous radial range ``c / (2 f)``."""
+    return C_M_PER_S / (2.0 * np.asarray(freq_hz, dtype=np.float64))
+
+
+def equally_spaced_phases(k: int, start_rad: float = 0.0) -> np.ndarray:
+    """``k`` demodulation phases ``start + 2*pi*j/k``."""
+    return start_rad + 2.0 * np.pi * np.arange(k) / k
+
+
+def _check_equally_spaced(theta_rad: np.ndarray, period: float) -> None:
+    k = theta_rad.size
+    steps = np.diff(np.sort(np.mod(theta_rad - theta_rad[0], period)))
+    if k < 2 or not np.allclose(steps, period / k, atol=1e-6):
+        raise ValueError(f"phases {np.degrees(theta_rad).round(3).tolist()} deg are not "
+                         f"{k} equally spaced steps over {np.degrees(period):.0f} deg")
+
+
+def estimator_weights(theta_rad: np.ndarray) -> np.ndarray:
+    """Complex weights ``w_k`` with ``S = sum_k w_k c_k`` (``[K]`` complex128)."""
+    theta = np.asarray(theta_rad, dtype=np.float64)
+    if theta.size < 3:
+        raise ValueError(f"the K-tap estimator needs K >= 3 taps, got {theta.size}; "
+                         "use differential_phasor() for 2-tap A/B readouts")
+    _check_equally_spaced(theta, 2 * np.pi)
+    return (2.0 / theta.size) * np.exp(1j * theta)
+
+
+def phasor(taps: np.ndarray, theta_rad: np.ndarray) -> np.ndarray:
+    """Complex signal ``S = A exp(i phi)`` from taps ``[..., K, H, W]`` -> ``[..., H, W]``.
+
+    Computed as two real weighted sums (one BLAS matrix product), not a complex multiply
+    per tap: this is the hot path of every frame.
+    """
+    w = estimator_weights(theta_rad)
+    taps = np.asarray(taps)
+    k = taps.shape[-3]
+    if k != w.size:
+        raise ValueError(f"taps have K={k}, theta_rad has {w.size} phases")
+    dtype = np.float32 if taps.dtype == np.float32 else np.float64
+    lead, hw = taps.shape[:-3], taps.shape[-2:]
+    flat = taps.reshape(lead + (k, -1)).astype(dtype, copy=False)
+    wmat = np.stack([w.real, w.imag]).astype(dtype)  # [2, K]
+    iq = np.matmul(wmat, flat)  # [..., 2, H*W]
+    s = np.empty(lead + (flat.shape[-1],), dtype=np.complex64 if dtype == np.float32 else np.complex128)
+    s.real = iq[..., 0, :]
+    s.imag = iq[..., 1, :]
+    return s.reshape(lead + hw)
+
+
+def offset(taps: np.ndarray) -> np.ndarray:
+    """Offset ``B`` (mean of equally spaced taps): ``[..., K, H, W]`` -> ``[..., H, W]``."""
+    return np.mean(taps, axis=-3)
+
+
+def taps_from_signal(amplitude: np.ndarray, phase_rad: np.ndarray, offset_b: np.ndarray,
+                     theta_rad: np.ndarray) -> np.ndarray:
+    """Forward model ``c_k = B + A cos(phi - theta_k)``: ``[..., H, W]`` -> ``[..., K, H, W]``."""
+    a = np.asarray(amplitude)[..., None, :, :]
+    p = np.asarray(phase_rad)[..., None, :, :]
+    b = np.asarray(offset_b)[..., None, :, :]
+    th = np.asarray(theta_rad, dtype=np.float64)[:, None, None]
+    return b + a * np.cos(p - th)
+
+
+def differential_phasor(tap_a: np.ndarray, tap_b: np.ndarray, theta_rad: np.ndarray) -> np.ndarray:
+    """2-tap A/B differential readouts -> complex signal.
+
+    ``tap_a[..., M, H, W]`` sampled at ``theta_m``, ``tap_b`` at ``theta_m + pi``; the
+    M >= 2 phases ``theta_m`` are equally spaced over pi (0 and 90 deg for M = 2).
+    Offset and tap-independent ambient light cancel in ``a - b``.
+    """
+    theta = np.asarray(theta_rad, dtype=np.float64)
+    if theta.size < 2:
+        raise ValueError("differential demodulation needs M >= 2 sub-frames")
+    _check_equally_spaced(theta, np.pi)
+    d = np.asarray(tap_a, dtype=np.float64) - np.asarray(tap_b, dtype=np.float64)
+    w = np.exp(1j * theta) / theta.size
+    return np.tensordot(w, d, axes=([0], [-3])) if d.ndim == 3 else np.einsum("m,...mhw->...hw", w, d)
+
+
+def differential_offset(tap_a: np.ndarray, tap_b: np.ndarray) -> np.ndarray:
+    """Offset ``B`` from A/B readouts: mean over sub-frames of ``(a + b) / 2``."""
+    return 0.5 * np.mean(np.asarray(tap_a, dtype=np.float64) + np.asarray(tap_b, dtype=np.float64), axis=-3)
+
+
+def differential_to_taps(tap_a: np.ndarray, tap_b: np.ndarray, theta_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Interleave A/B sub-frames into canonical taps ``[..., 2M, H, W]`` and their phases.
+
+    Sub-frame m gives tap A at ``theta_m`` and tap B at ``theta_m + pi``; the 2M phases
+    are then equally spaced over 2*pi, so :func:`phasor` applies unchanged.
+    """
+    theta = np.asarray(theta_rad, dtype=np.float64)
+    _check_equally_spaced(theta, np.pi)
+    taps = np.concatenate([np.asarray(tap_a), np.asarray(tap_b)], axis=-3)
+    phases = np.concatenate([theta, theta + np.pi])
+    order = np.argsort(np.mod(phases, 2 * np.pi))
+    return np.take(taps, order, axis=-3), np.mod(phases[order], 2 * np.pi)
+
+
+def phase_to_distance(phase_rad: np.ndarray, freq_hz: float | np.ndarray) -> np.ndarray:
+    """Phase in [0, 2*pi) -> radial distance ``d = c*phi/(4*pi*f)`` (wrapped at ``c/2f``)."""
+    return np.asarray(phase_rad) * (C_M_PER_S / (4.0 * np.pi * np.asarray(freq_hz)))
+
+
+def distance_to_phase(distance_m: np.ndarray, freq_hz: float | np.ndarray) -> np.ndarray:
+    """Radial distance -> phase ``phi = 4*pi*f*d/c`` wrapped into [0, 2*pi)."""
+    return np.mod(np.asarray(distance_m) * (4.0 * np.pi * np.asarray(freq_hz) / C_M_PER_S), 2 * np.pi)
+
+
+def wrapped_phase(s: np.ndarray) -> np.ndarray:
+    """Phase of a complex signal in [0, 2*pi)."""
+    p = np.angle(s)
+    p[p < 0] += p.dtype.type(2 * np.pi)
+    return p
+
+
+@dataclass(frozen=True)
+class TapConvention:
+    """How a device's taps map onto the canonical model, declared per device profile.
+
+    ``order[j]`` is the index in the device's tap stack of canonical tap ``j``;
+    ``theta_rad[j]`` its demodulation phase; ``sign`` is +1 when the device reports
+    ``B + A cos(phi - theta)`` and -1 when it reports the negated correlation
+    ``B - A cos(phi - theta)`` (as DCS differences of some sensors do).
+    """
+
+    theta_rad: tuple[float, ...]
+    order: tuple[int, ...] | None = None
+    sign: float = 1.0
+
+    def to_canonical(self, device_taps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Device tap stack ``[..., K, H, W]`` -> canonical taps and their phases."""
+        taps = np.asarray(device_taps)
+        if self.order is not None:
+            taps = np.take(taps, list(self.order), axis=-3)
+        if self.sign < 0:
+            # B - A cos(phi - theta) = B + A cos(phi - (theta + pi)): shift phases, keep data.
+            theta = np.mod(np.asarray(self.theta_rad) + np.pi, 2 * np.pi)
+        else:
+            theta = np.asarray(self.theta_rad, dtype=np.float64)
+        return taps, theta

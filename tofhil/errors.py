@@ -1,0 +1,36 @@
+"""User-facing errors: one clear message naming the file, the field and what was expected."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class TofhilError(Exception):
+    """An error caused by the user's input (a file, an option, a device), not by a bug.
+
+    The CLI prints the message alone (no traceback) and exits with code 2.
+    """
+
+    def __init__(self, message: str, *, file: str | Path | None = None,
+                 field: str | None = None, expected: str | None = None) -> None:
+        self.file = None if file is None else str(file)
+        self.field = field
+        self.expected = expected
+        parts = []
+        if self.file:
+            parts.append(f"{self.file}")
+        if field:
+            parts.append(f"field '{field}'")
+        prefix = ": ".join(parts)
+        text = f"{prefix}: {message}" if prefix else message
+        if expected:
+            text += f" (expected {expected})"
+        super().__init__(text)
+
+
+class InputFileError(TofhilError):
+    """A file is missing, malformed or lacks a field."""
+
+
+class DeviceError(TofhilError):
+    """A camera could not be opened, configured or read."""
