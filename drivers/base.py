@@ -41,7 +41,7 @@ from tofhil.frames import DepthFrame, RawFrame
 __all__ = [
     "CaptureSettings", "DeviceEntry", "DeviceInfo", "DeviceDisconnected", "Driver", "DriverStats",
     "Frame", "FrameDropped", "DRIVER_MODULES", "register_driver", "open_device", "list_devices",
-    "registered_schemes", "parse_spec",
+    "registered_schemes", "parse_spec", "create_driver",
 ]
 
 #: Acquisition modes a driver may support (``CaptureSettings.mode``).
