@@ -14,9 +14,8 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import yaml
-
 from tofhil.errors import InputFileError
+from tofhil.yamlio import load_yaml_file
 
 DistanceKind = Literal["radial", "z"]
 
@@ -269,8 +268,4 @@ def load_camera_preset(name_or_path: str | Path) -> CameraModel:
     if not path.is_file():
         raise InputFileError("no such camera preset", file=path, field="preset",
                              expected="one of " + ", ".join(list_camera_presets()))
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise InputFileError(f"not valid YAML ({exc})", file=path) from None
-    return CameraModel.from_dict(data, source=path)
+    return CameraModel.from_dict(load_yaml_file(path), source=path)
