@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         app(args=argv, prog_name="tofhil")
     except TofhilError as exc:
-        console.print(f"[red]error:[/red] {exc}", highlight=False)
+        console.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
         sys.exit(2)
     except KeyboardInterrupt:
         console.print("interrupted")
