@@ -1,0 +1,308 @@
+"""Azure Kinect recordings (Matroska, as written by k4arecorder) -> depth frames + camera model.
+
+What the file holds (Azure Kinect SDK, ``docs/recording.md`` and ``src/record``):
+* tracks ``DEPTH`` and ``IR``: ``V_MS/VFW/FOURCC`` with fourcc ``b16g`` = 16-bit
+  grey, **big-endian** (verified on the shipped recording: decoding big-endian gives 1 mm
+  steps between neighbours, little-endian gives 256 mm), depth in millimetres, 0 = invalid;
+* tags ``K4A_DEPTH_MODE`` (e.g. ``NFOV_UNBINNED``), serial number, firmware versions and
+  ``K4A_START_OFFSET_NS`` (block timestamps are device timestamps minus this offset);
+* the attachment ``calibration.json``: factory intrinsics of the 1024 x 1024 depth sensor,
+  normalised by the sensor size, in the order of ``k4a_calibration_intrinsic_parameters_t``:
+  ``cx cy fx fy k1 k2 k3 k4 k5 k6 codx cody p2 p1`` (note p2 before p1).
+
+Physics: Azure Kinect depth is **z-depth** (along the optical axis):
+``transformation_unproject`` in the SDK returns ``(x*z, y*z, z)``. tofhil sessions store
+radial distance, so ``radial = z * |(x, y, 1)|`` with ``(x, y)`` the undistorted
+normalised coordinates of each pixel under the full factory model.
+
+Lens model: the factory model is Brown-Conrady with a *rational* radial term
+``(1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)``; OpenCV's 5-parameter model
+(ours) has no denominator. We keep fx, fy, cx, cy and refit ``(k1, k2, p1, p2, k3)`` by linear
+least squares so that the 5-parameter model maps each pixel's true ray back onto that
+pixel, over every pixel inside the calibration's metric radius, and report the largest
+and RMS reprojection residual in pixels. The original calibration is kept verbatim in the
+session's device JSON, and the radial distances are computed with the exact rational
+model, not with the refit.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tofhil.camera import CameraModel
+from tofhil.drivers.mkv import MatroskaFile, Track, open_mkv
+from tofhil.errors import InputFileError
+
+#: Depth modes: (calibration image binned resolution, crop offset, output resolution),
+#: from the SDK's ``transformation_get_mode_specific_depth_camera_calibration``.
+DEPTH_MODES: dict[str, tuple[tuple[int, int], tuple[int, int], tuple[int, int]]] = {
+    "NFOV_2X2BINNED": ((512, 512), (96, 90), (320, 288)),
+    "NFOV_UNBINNED": ((1024, 1024), (192, 180), (640, 576)),
+    "WFOV_2X2BINNED": ((512, 512), (0, 0), (512, 512)),
+    "WFOV_UNBINNED": ((1024, 1024), (0, 0), (1024, 1024)),
+    "PASSIVE_IR": ((1024, 1024), (0, 0), (1024, 1024)),
+}
+
+PARAM_NAMES = ("cx", "cy", "fx", "fy", "k1", "k2", "k3", "k4", "k5", "k6", "codx", "cody", "p2", "p1")
+
+
+@dataclass(frozen=True)
+class K4AIntrinsics:
+    """The factory depth-camera model in pixels of one depth mode (OpenCV pixel centres)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    k: tuple[float, float, float, float, float, float]
+    p1: float
+    p2: float
+    codx: float = 0.0
+    cody: float = 0.0
+    metric_radius: float = math.inf
+
+    def distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Undistorted normalised -> distorted normalised (the SDK's Brown-Conrady projection)."""
+        k1, k2, k3, k4, k5, k6 = self.k
+        xp, yp = x - self.codx, y - self.cody
+        rs = xp * xp + yp * yp
+        d = (1 + rs * (k1 + rs * (k2 + rs * k3))) / (1 + rs * (k4 + rs * (k5 + rs * k6)))
+        xd = xp * d + (rs + 2 * xp * xp) * self.p2 + 2 * xp * yp * self.p1 + self.codx
+        yd = yp * d + (rs + 2 * yp * yp) * self.p1 + 2 * xp * yp * self.p2 + self.cody
+        return xd, yd
+
+    def undistort(self, u: np.ndarray, v: np.ndarray, iters: int = 50) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pixel -> undistorted normalised coordinates and a validity mask.
+
+        Gauss-Newton on the forward model, vectorised over all pixels (numerical 2x2
+        Jacobian); a pixel is valid when it converges to < 1e-3 px and lies inside the
+        calibration's metric radius, as in the SDK.
+        """
+        xd = (np.asarray(u, float) - self.cx) / self.fx
+        yd = (np.asarray(v, float) - self.cy) / self.fy
+        x, y = xd.copy(), yd.copy()
+        h = 1e-6
+        for _ in range(iters):
+            fx_, fy_ = self.distort(x, y)
+            ex, ey = xd - fx_, yd - fy_
+            if np.nanmax(np.abs(ex) + np.abs(ey), initial=0.0) < 1e-12:
+                break  # converged everywhere (Newton: a handful of iterations)
+            ax, ay = self.distort(x + h, y)
+            bx, by = self.distort(x, y + h)
+            j00, j10 = (ax - fx_) / h, (ay - fy_) / h
+            j01, j11 = (bx - fx_) / h, (by - fy_) / h
+            det = j00 * j11 - j01 * j10
+            det = np.where(np.abs(det) < 1e-12, 1e-12, det)
+            x = x + (j11 * ex - j01 * ey) / det
+            y = y + (-j10 * ex + j00 * ey) / det
+        fx_, fy_ = self.distort(x, y)
+        err_px = np.hypot((fx_ - xd) * self.fx, (fy_ - yd) * self.fy)
+        valid = np.isfinite(err_px) & (err_px < 1e-3) & (x * x + y * y <= self.metric_radius ** 2)
+        return x, y, valid
+
+
+@dataclass
+class CameraFit:
+    camera: CameraModel
+    max_residual_px: float
+    rms_residual_px: float
+    n_pixels: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"method": "OpenCV (k1,k2,p1,p2,k3) least-squares refit of the factory rational "
+                          "Brown-Conrady model; fx, fy, cx, cy kept",
+                "max_residual_px": self.max_residual_px, "rms_residual_px": self.rms_residual_px,
+                "pixels_fitted": self.n_pixels}
+
+
+@dataclass
+class K4ARecording:
+    path: Path
+    depth_mode: str
+    intrinsics: K4AIntrinsics
+    fit: CameraFit
+    calibration: dict[str, Any]
+    tags: dict[str, str]
+    #: Per frame: (timestamp_s, depth z in mm uint16 [H, W], IR uint16 [H, W] or None).
+    frames: list[tuple[float, np.ndarray, np.ndarray | None]] = field(default_factory=list)
+    truncated: str = ""
+
+    @property
+    def camera(self) -> CameraModel:
+        return self.fit.camera
+
+    def radial_m(self, z_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """z-depth in mm -> (radial distance in m, valid mask) with the exact factory rays."""
+        norm, ok = self._ray_norm
+        z = z_mm.astype(np.float64) * 1e-3
+        valid = (z_mm > 0) & ok
+        return np.where(valid, z * norm, 0.0), valid
+
+    @property
+    def _ray_norm(self) -> tuple[np.ndarray, np.ndarray]:
+        if not hasattr(self, "_norm_cache"):
+            v, u = np.mgrid[0:self.intrinsics.height, 0:self.intrinsics.width].astype(np.float64)
+            x, y, ok = self.intrinsics.undistort(u, v)
+            self._norm_cache = (np.sqrt(x * x + y * y + 1.0), ok)
+        return self._norm_cache
+
+
+def intrinsics_from_calibration(calib: dict[str, Any], depth_mode: str, *, source: Path) -> K4AIntrinsics:
+    """The depth camera of ``calibration.json`` in pixels of ``depth_mode``."""
+    try:
+        cams = calib["CalibrationInformation"]["Cameras"]
+    except (KeyError, TypeError):
+        raise InputFileError("missing", file=source, field="calibration.json:CalibrationInformation.Cameras",
+                             expected="the Azure Kinect factory calibration") from None
+    depth = [c for c in cams if isinstance(c, dict) and c.get("Purpose") == "CALIBRATION_CameraPurposeDepth"]
+    if not depth:
+        raise InputFileError("no camera with Purpose CALIBRATION_CameraPurposeDepth", file=source,
+                             field="calibration.json:Cameras[].Purpose", expected="a depth camera entry")
+    cam = depth[0]
+    intr = cam.get("Intrinsics", {})
+    params = intr.get("ModelParameters")
+    model = intr.get("ModelType", "")
+    if model != "CALIBRATION_LensDistortionModelBrownConrady":
+        raise InputFileError(f"lens model {model!r}", file=source,
+                             field="calibration.json:Cameras[depth].Intrinsics.ModelType",
+                             expected="CALIBRATION_LensDistortionModelBrownConrady")
+    if not isinstance(params, list) or len(params) < 14:
+        raise InputFileError(f"has {len(params) if isinstance(params, list) else params!r} values",
+                             file=source, field="calibration.json:Cameras[depth].Intrinsics.ModelParameters",
+                             expected="14 numbers (cx cy fx fy k1..k6 codx cody p2 p1)")
+    p = dict(zip(PARAM_NAMES, (float(v) for v in params[:14])))
+    if depth_mode not in DEPTH_MODES:
+        raise InputFileError(f"depth mode {depth_mode!r}", file=source, field="K4A_DEPTH_MODE",
+                             expected=" | ".join(DEPTH_MODES))
+    if (cam.get("SensorWidth"), cam.get("SensorHeight")) != (1024, 1024):
+        raise InputFileError(f"sensor is {cam.get('SensorWidth')}x{cam.get('SensorHeight')}", file=source,
+                             field="calibration.json:Cameras[depth].SensorWidth", expected="1024 x 1024")
+    (bw, bh), (ox, oy), (w, h) = DEPTH_MODES[depth_mode]
+    # Raw calibration is unitised with (0, 0) at the corner of the first pixel; convert to
+    # pixels with (0, 0) at the first pixel's centre, then crop (the SDK's conversion).
+    return K4AIntrinsics(width=w, height=h, fx=p["fx"] * bw, fy=p["fy"] * bh,
+                         cx=p["cx"] * bw - ox - 0.5, cy=p["cy"] * bh - oy - 0.5,
+                         k=(p["k1"], p["k2"], p["k3"], p["k4"], p["k5"], p["k6"]), p1=p["p1"], p2=p["p2"],
+                         codx=p["codx"], cody=p["cody"],
+                         metric_radius=float(cam.get("MetricRadius") or math.inf))
+
+
+def fit_opencv_model(intr: K4AIntrinsics, name: str = "azure_kinect_depth", step: int = 2,
+                     support: np.ndarray | None = None) -> CameraFit:
+    """Refit OpenCV (k1, k2, p1, p2, k3) to the factory model; residuals in pixels.
+
+    For each pixel's true undistorted coordinates (x, y), the 5-parameter forward model is
+    linear in its coefficients: ``xd - x = k1 x r^2 + k2 x r^4 + k3 x r^6 + 2 p1 x y + p2 (r^2 + 2x^2)``
+    (and likewise for y), so the refit is one linear least-squares solve, weighted by the
+    focal lengths so that the residual is in pixels. ``support`` ([H, W] bool, optional)
+    restricts the fit to pixels that can see anything (the NFOV modes have a hexagonal
+    field of view; their image corners never carry depth), when it covers enough pixels.
+    """
+    v, u = np.mgrid[0:intr.height:step, 0:intr.width:step].astype(np.float64)
+    x, y, ok = intr.undistort(u, v)
+    if support is not None and support[::step, ::step].sum() > 1000:
+        ok &= support[::step, ::step]
+    x, y, u, v = x[ok], y[ok], u[ok], v[ok]
+    if x.size < 100:
+        raise InputFileError("the factory lens model leaves fewer than 100 valid pixels",
+                             field="calibration.json", expected="a usable depth camera calibration")
+    xd, yd = (u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy
+    r2 = x * x + y * y
+    # columns: k1, k2, p1, p2, k3
+    ax = np.stack([x * r2, x * r2 ** 2, 2 * x * y, r2 + 2 * x * x, x * r2 ** 3], axis=1) * intr.fx
+    ay = np.stack([y * r2, y * r2 ** 2, r2 + 2 * y * y, 2 * x * y, y * r2 ** 3], axis=1) * intr.fy
+    a = np.concatenate([ax, ay])
+    b = np.concatenate([(xd - x) * intr.fx, (yd - y) * intr.fy])
+    coef, *_ = np.linalg.lstsq(a, b, rcond=None)
+    k1, k2, p1, p2, k3 = (float(c) for c in coef)
+    cam = CameraModel(width=intr.width, height=intr.height, fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy,
+                      dist=(k1, k2, p1, p2, k3), name=name)
+    # Residual: project the true rays with the refit model and compare to the pixel.
+    uv = cam.project(np.stack([x, y, np.ones_like(x)], axis=1))
+    res = np.hypot(uv[:, 0] - u, uv[:, 1] - v)
+    return CameraFit(cam, float(res.max()), float(np.sqrt(np.mean(res ** 2))), int(x.size))
+
+
+def _decode_b16g(mkv: MatroskaFile, track: Track, payload: bytes, what: str) -> np.ndarray:
+    expected = track.width * track.height * 2
+    if len(payload) != expected:
+        raise InputFileError(f"a {what} frame has {len(payload)} bytes", file=mkv.path,
+                             field=f"track {track.name}",
+                             expected=f"{expected} ({track.width} x {track.height} x uint16 big-endian)")
+    # b16g is big-endian; convert to native uint16 in one vectorised step.
+    return np.frombuffer(payload, dtype=">u2").reshape(track.height, track.width).astype(np.uint16)
+
+
+def read_k4a_recording(path: str | Path, *, max_frames: int | None = None,
+                       salvage: bool = False) -> K4ARecording:
+    """Read an Azure Kinect recording: depth (+ IR) frames, tags and the depth camera.
+
+    ``salvage``: a recording cut short keeps its complete frames (otherwise a truncated
+    file is an error).
+    """
+    path = Path(path)
+    with open_mkv(path) as mkv:
+        if mkv.truncated and not salvage:
+            raise InputFileError(f"is truncated: {mkv.truncation}", file=path, field="Segment",
+                                 expected="a complete recording (pass --salvage to import its complete frames)")
+        tags = dict(mkv.tags)
+        for t in mkv.track_tags.values():
+            tags.update(t)
+        depth_t = mkv.track_by_name("DEPTH")
+        if depth_t is None:
+            raise InputFileError("has no track named DEPTH", file=path, field="Tracks.TrackEntry.Name",
+                                 expected="an Azure Kinect recording with a depth track")
+        if depth_t.fourcc != "b16g":
+            raise InputFileError(f"depth codec is {depth_t.codec_id} {depth_t.fourcc!r}", file=path,
+                                 field="DEPTH.CodecPrivate", expected="V_MS/VFW/FOURCC 'b16g' (uint16 big-endian)")
+        ir_t = mkv.track_by_name("IR")
+        if ir_t is not None and ir_t.fourcc != "b16g":
+            ir_t = None  # passive/other IR encodings are not amplitude; leave it out
+        calib_name = tags.get("K4A_CALIBRATION_FILE", "calibration.json")
+        if calib_name not in mkv.attachments:
+            raise InputFileError(f"has no attachment {calib_name!r}", file=path, field="Attachments",
+                                 expected="the factory calibration attachment written by k4arecorder")
+        try:
+            calib = json.loads(mkv.attachments[calib_name].decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise InputFileError(f"is not valid JSON ({exc})", file=path, field=f"attachment {calib_name}",
+                                 expected="JSON text") from None
+        mode = tags.get("K4A_DEPTH_MODE", "")
+        if not mode:
+            mode = {(640, 576): "NFOV_UNBINNED", (320, 288): "NFOV_2X2BINNED", (512, 512): "WFOV_2X2BINNED",
+                    (1024, 1024): "WFOV_UNBINNED"}.get((depth_t.width, depth_t.height), "")
+        intr = intrinsics_from_calibration(calib, mode, source=path)
+        if (intr.width, intr.height) != (depth_t.width, depth_t.height):
+            raise InputFileError(f"depth track is {depth_t.width}x{depth_t.height}", file=path,
+                                 field="DEPTH.Video.PixelWidth",
+                                 expected=f"{intr.width}x{intr.height} for depth mode {mode}")
+        offset_s = float(tags.get("K4A_START_OFFSET_NS", "0") or 0) * 1e-9
+        ir_by_time = {b.timecode: b for b in mkv.frames(ir_t)} if ir_t is not None else {}
+        frames: list[tuple[float, np.ndarray, np.ndarray | None]] = []
+        for blk in mkv.frames(depth_t):
+            if max_frames is not None and len(frames) >= max_frames:
+                break
+            depth = _decode_b16g(mkv, depth_t, mkv.payload(blk), "depth")
+            irb = ir_by_time.get(blk.timecode)
+            ir = _decode_b16g(mkv, ir_t, mkv.payload(irb), "IR") if (irb is not None and ir_t) else None
+            # Block times are device times minus the recording's start offset.
+            frames.append((mkv.time_s(blk) + offset_s, depth, ir))
+        truncation = mkv.truncation
+    if not frames:
+        raise InputFileError("has no complete depth frame", file=path, field="DEPTH",
+                             expected="at least one depth block")
+    # Fit the lens where the sensor sees anything (any frame with depth at that pixel).
+    support = np.zeros(frames[0][1].shape, bool)
+    for _, depth, _ in frames[:50]:
+        support |= depth > 0
+    fit = fit_opencv_model(intr, support=support)
+    return K4ARecording(path=path, depth_mode=mode, intrinsics=intr, fit=fit, calibration=calib,
+                        tags=tags, frames=frames, truncated=truncation)
