@@ -1,0 +1,443 @@
+"""Stray-light correction of complex ToF images: ``S_meas = (delta + h) * S``.
+
+Stray light (lens flare, scattering between lens and sensor) spreads a fraction of every
+pixel's complex signal ``S = A exp(i phi)`` over the sensor. Because it adds phasors, a
+bright near object (a white card close to the lens) pulls the phase of dim far pixels
+toward its own: a dark patch on a wall appears closer than it is. All corrections here
+work on the complex image of one modulation frequency at a time (``[..., H, W]``), since
+the scattering is optical and the same for every frequency.
+
+Three families are implemented:
+
+* **Thesis method 1** (Holmlund, uniform veil): ``S_corr = S - w * sum_p S_p`` -- the
+  stray light is a fixed fraction ``w`` of the sum of all pixels' complex values, the same
+  at every pixel. :func:`subtract_uniform`.
+* **Thesis method 2** (inverse filtering): ``h = w * G(sigma_h, sigma_v)`` with ``G`` a
+  unit-sum Gaussian; ``S_corr = F^-1[ conj(H) F[S] / (|H|^2 + mu) ]`` with
+  ``H = F[delta + h]`` on a zero-padded grid (Wiener-like regularisation ``mu``).
+  :func:`inverse_filter_gaussian`.
+* **Calibrated PSF** (Mure-Dubois and Hügli 2007; Kavli et al. 2008): ``h`` is fitted
+  once from a calibration capture whose stray-light-free signal is known (from the twin,
+  or a bright target on a dark background), as a non-negative combination of a fixed
+  dictionary of shapes -- isotropic Gaussians on a log-spaced grid of widths, a uniform
+  veil, and a ghost mirrored through the principal point -- so the fit is linear (NNLS)
+  and needs no tuning. It is then removed from any other scene by the fixed-point
+  iteration ``S_{k+1} = S_meas - h * S_k`` (a Neumann series, converging because the
+  scattered fraction ``||h||_1 < 1``). :func:`calibrate_psf`, :func:`deconvolve`.
+
+Convolutions are linear (not circular): images are zero-padded to at least
+``H + kh - 1`` by ``W + kw - 1`` before the FFT, so light never wraps around the sensor
+edges.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import fft as sfft
+from scipy.optimize import minimize, nnls
+
+from tofhil.errors import InputFileError
+
+# ---------------------------------------------------------------------------- convolution
+
+
+def _fast_shape(h: int, w: int, kh: int, kw: int) -> tuple[int, int]:
+    return sfft.next_fast_len(h + kh - 1), sfft.next_fast_len(w + kw - 1)
+
+
+def kernel_offsets(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column offsets ``dy[2H-1, 1]``, ``dx[1, 2W-1]`` of a full-size kernel.
+
+    A kernel of shape ``(2H-1, 2W-1)`` centred at ``(H-1, W-1)`` covers every displacement
+    between two pixels of an ``H x W`` sensor.
+    """
+    dy = np.arange(-(height - 1), height, dtype=np.float64)[:, None]
+    dx = np.arange(-(width - 1), width, dtype=np.float64)[None, :]
+    return dy, dx
+
+
+def gaussian_kernel(height: int, width: int, sigma_h: float, sigma_v: float | None = None) -> np.ndarray:
+    """Unit-sum separable Gaussian on the full ``(2H-1, 2W-1)`` offset grid.
+
+    ``sigma_h`` is the horizontal (column) width in pixels, ``sigma_v`` the vertical one.
+    Normalised on the grid, so the scattered fraction is exactly the weight put on it.
+    """
+    sigma_v = sigma_h if sigma_v is None else sigma_v
+    if sigma_h <= 0 or sigma_v <= 0:
+        raise ValueError(f"Gaussian widths must be positive, got sigma_h={sigma_h}, sigma_v={sigma_v}")
+    dy, dx = kernel_offsets(height, width)
+    g = np.exp(-0.5 * (dy / sigma_v) ** 2) * np.exp(-0.5 * (dx / sigma_h) ** 2)
+    return g / g.sum()
+
+
+def uniform_kernel(height: int, width: int) -> np.ndarray:
+    """Constant kernel with unit value: ``uniform * S`` is ``sum_p S_p`` at every pixel."""
+    return np.ones((2 * height - 1, 2 * width - 1))
+
+
+class Convolver:
+    """Linear convolution of ``[..., H, W]`` images with one fixed kernel (padded FFT).
+
+    The kernel's FFT is computed once, so repeated application (fixed-point iterations)
+    costs one forward and one inverse FFT per image.
+    """
+
+    def __init__(self, kernel: np.ndarray, image_shape: tuple[int, int]) -> None:
+        k = np.asarray(kernel)
+        if k.ndim != 2 or k.shape[0] % 2 == 0 or k.shape[1] % 2 == 0:
+            raise ValueError(f"kernel must be 2-D with odd sizes (centred), got {k.shape}")
+        self.image_shape = tuple(image_shape)
+        self.kernel_shape = k.shape
+        h, w = self.image_shape
+        self.fshape = _fast_shape(h, w, *k.shape)
+        self._kf = sfft.fft2(k, s=self.fshape)
+        self._r0, self._c0 = k.shape[0] // 2, k.shape[1] // 2
+
+    def __call__(self, s: np.ndarray) -> np.ndarray:
+        h, w = self.image_shape
+        sf = sfft.fft2(s, s=self.fshape, axes=(-2, -1))
+        out = sfft.ifft2(sf * self._kf, axes=(-2, -1))
+        out = out[..., self._r0:self._r0 + h, self._c0:self._c0 + w]
+        return out if np.iscomplexobj(s) else out.real
+
+
+def fft_convolve(s: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """``kernel * s`` (linear, same size as ``s``; kernel centred at its middle sample)."""
+    return Convolver(kernel, s.shape[-2:])(s)
+
+
+def mirror_through(s: np.ndarray, cx: float, cy: float) -> np.ndarray:
+    """Point reflection of ``[..., H, W]`` through the principal point ``(cx, cy)``.
+
+    A lens ghost (a double reflection between lens surfaces) images a bright object at
+    the opposite side of the optical axis. The pixel at ``(u, v)`` receives the signal of
+    ``(2cx - u, 2cy - v)`` (nearest pixel; zero where that falls off the sensor).
+    """
+    h, w = s.shape[-2:]
+    v = np.rint(2 * cy - np.arange(h)).astype(int)
+    u = np.rint(2 * cx - np.arange(w)).astype(int)
+    vin, uin = (v >= 0) & (v < h), (u >= 0) & (u < w)
+    out = np.zeros_like(s)
+    src = s[..., np.clip(v, 0, h - 1)[:, None], np.clip(u, 0, w - 1)[None, :]]
+    out[...] = src * (vin[:, None] & uin[None, :])
+    return out
+
+
+# ---------------------------------------------------------------------------- thesis methods
+
+
+def subtract_uniform(s: np.ndarray, w: float) -> np.ndarray:
+    """Thesis method 1: ``S_corr = S - w * sum_p S_p`` (sum over the ``H x W`` image).
+
+    ``s`` is ``[..., H, W]`` complex; the sum is taken per leading index (per frequency).
+    """
+    s = np.asarray(s)
+    return s - w * s.sum(axis=(-2, -1), keepdims=True)
+
+
+def inverse_filter_gaussian(s: np.ndarray, sigma_h: float, sigma_v: float, w: float, mu: float) -> np.ndarray:
+    """Thesis method 2: Wiener-like inverse filter of ``delta + w * G(sigma_h, sigma_v)``.
+
+    ``S_corr = F^-1[ conj(H) F[S] / (|H|^2 + mu) ]`` with ``H`` the transfer function of
+    ``delta + w G`` on the zero-padded grid; ``mu = 0`` is the plain inverse (``|H| >= 1 - w``
+    never vanishes for ``w < 1``, so it is always defined). The result is cropped back.
+    """
+    s = np.asarray(s)
+    h, wd = s.shape[-2:]
+    k = w * gaussian_kernel(h, wd, sigma_h, sigma_v)
+    k[h - 1, wd - 1] += 1.0
+    fshape = _fast_shape(h, wd, *k.shape)
+    # Centre the kernel at the origin of the padded grid so the filter has no shift.
+    kp = np.zeros(fshape)
+    kp[:k.shape[0], :k.shape[1]] = k
+    kp = np.roll(kp, (-(h - 1), -(wd - 1)), axis=(0, 1))
+    hf = sfft.fft2(kp)
+    sf = sfft.fft2(s, s=fshape, axes=(-2, -1))
+    out = sfft.ifft2(sf * np.conj(hf) / (np.abs(hf) ** 2 + mu), axes=(-2, -1))
+    return out[..., :h, :wd]
+
+
+# ---------------------------------------------------------------------------- calibrated PSF
+
+
+@dataclass
+class StrayLightPSF:
+    """A stray-light operator ``h``: a shift-invariant kernel plus an optional mirrored ghost.
+
+    ``h * S = kernel (*) S + ghost_weight * mirror(ghost_blur (*) S)``; the kernel lives on
+    the full ``(2H-1, 2W-1)`` offset grid of the sensor it was calibrated on.
+    """
+
+    kernel: np.ndarray
+    cx: float
+    cy: float
+    ghost_weight: float = 0.0
+    ghost_kernel: np.ndarray | None = None
+    #: What the calibration found: basis names and weights, fit residual, source.
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def sensor_shape(self) -> tuple[int, int]:
+        return ((self.kernel.shape[0] + 1) // 2, (self.kernel.shape[1] + 1) // 2)
+
+    @property
+    def scattered_fraction(self) -> float:
+        """Total fraction of a pixel's signal spread elsewhere (``||h||_1`` for h >= 0)."""
+        return float(np.abs(self.kernel).sum() + abs(self.ghost_weight))
+
+    def operator(self, image_shape: tuple[int, int]) -> "PSFOperator":
+        if tuple(image_shape) != self.sensor_shape:
+            raise InputFileError(f"PSF was calibrated for a {self.sensor_shape[0]}x{self.sensor_shape[1]} "
+                                 f"sensor, the images are {image_shape[0]}x{image_shape[1]}",
+                                 field="psf", expected="a PSF calibrated on the same camera")
+        return PSFOperator(self, image_shape)
+
+    def apply(self, s: np.ndarray) -> np.ndarray:
+        """``h * S`` (the stray light alone) for ``[..., H, W]`` images."""
+        return self.operator(s.shape[-2:])(s)
+
+    # ---------------------------------------------------------------- files
+    def save(self, path: str | Path) -> None:
+        import json
+
+        np.savez_compressed(path, kernel=self.kernel, cx=self.cx, cy=self.cy, ghost_weight=self.ghost_weight,
+                            ghost_kernel=np.zeros((1, 1)) if self.ghost_kernel is None else self.ghost_kernel,
+                            has_ghost_kernel=self.ghost_kernel is not None,
+                            info=json.dumps(self.info), format="tofhil.straylight_psf.v1")
+
+    @classmethod
+    def load(cls, path: str | Path) -> "StrayLightPSF":
+        import json
+
+        p = Path(path)
+        if not p.is_file():
+            raise InputFileError("no such file", file=p, expected="a PSF file written by --save-psf (.npz)")
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+        except (OSError, ValueError) as exc:
+            raise InputFileError(f"cannot be read as .npz ({exc})", file=p, expected="a PSF .npz") from None
+        if str(data.get("format", "")) != "tofhil.straylight_psf.v1":
+            raise InputFileError("not a tofhil stray-light PSF", file=p, field="format",
+                                 expected="'tofhil.straylight_psf.v1'")
+        for key in ("kernel", "cx", "cy", "ghost_weight"):
+            if key not in data:
+                raise InputFileError("missing", file=p, field=key, expected="see docs/evaluation.md")
+        k = np.asarray(data["kernel"], dtype=np.float64)
+        if k.ndim != 2 or k.shape[0] % 2 == 0 or k.shape[1] % 2 == 0:
+            raise InputFileError(f"has shape {k.shape}", file=p, field="kernel", expected="(2H-1, 2W-1)")
+        gk = np.asarray(data["ghost_kernel"], dtype=np.float64) if bool(data.get("has_ghost_kernel", False)) else None
+        return cls(kernel=k, cx=float(data["cx"]), cy=float(data["cy"]), ghost_weight=float(data["ghost_weight"]),
+                   ghost_kernel=gk, info=json.loads(str(data.get("info", "{}"))))
+
+
+class PSFOperator:
+    """``S -> h * S`` for one image size, with all FFTs of the kernels precomputed."""
+
+    def __init__(self, psf: StrayLightPSF, image_shape: tuple[int, int]) -> None:
+        self.psf = psf
+        self._conv = Convolver(psf.kernel, image_shape)
+        self._ghost_conv = (Convolver(psf.ghost_kernel, image_shape)
+                            if psf.ghost_kernel is not None and psf.ghost_weight != 0 else None)
+
+    def __call__(self, s: np.ndarray) -> np.ndarray:
+        out = self._conv(s)
+        if self.psf.ghost_weight != 0:
+            g = self._ghost_conv(s) if self._ghost_conv is not None else s
+            out = out + self.psf.ghost_weight * mirror_through(g, self.psf.cx, self.psf.cy)
+        return out
+
+
+def deconvolve(s_meas: np.ndarray, psf: StrayLightPSF, *, iterations: int = 30, tol: float = 1e-7) -> np.ndarray:
+    """Remove stray light: solve ``S + h * S = S_meas`` by ``S_{k+1} = S_meas - h * S_k``.
+
+    The error shrinks by ``||h||_1`` per iteration (Kavli et al. 2008), so a few tens of
+    iterations reach float precision for realistic scattered fractions (< 0.5). Stops
+    early when the update is below ``tol`` of the signal.
+    """
+    if psf.scattered_fraction >= 1.0:
+        raise InputFileError(f"PSF scatters {psf.scattered_fraction:.3f} of the signal; the fixed-point "
+                             "inversion needs < 1", field="psf", expected="||h||_1 < 1")
+    s_meas = np.asarray(s_meas)
+    op = psf.operator(s_meas.shape[-2:])
+    scale = float(np.abs(s_meas).max()) or 1.0
+    s = s_meas.copy()
+    for _ in range(iterations):
+        nxt = s_meas - op(s)
+        done = float(np.abs(nxt - s).max()) <= tol * scale
+        s = nxt
+        if done:
+            break
+    return s
+
+
+def default_sigmas(height: int, width: int) -> np.ndarray:
+    """Log-spaced Gaussian widths (ratio sqrt 2) from 0.7 px to the sensor diagonal / 2."""
+    top = 0.5 * float(np.hypot(height, width))
+    n = int(np.floor(np.log(top / 0.7) / np.log(np.sqrt(2)))) + 1
+    return 0.7 * np.sqrt(2) ** np.arange(n)
+
+
+def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, *,
+                  sigmas: np.ndarray | None = None, veil: bool = True, ghost: bool = True,
+                  weight: np.ndarray | None = None, refine: bool = True) -> StrayLightPSF:
+    """Fit ``h`` so that ``S_true + h * S_true`` matches ``S_meas`` (non-negative least squares).
+
+    ``s_meas`` and ``s_true`` are ``[..., H, W]`` complex (any number of frequencies /
+    frames stacked in front); ``s_true`` is the stray-light-free signal of the calibration
+    scene -- the twin's render without stray light, or the measurement restricted to a
+    bright target on a dark background (:func:`target_only_signal`). The dictionary: one
+    unit-sum Gaussian per width in ``sigmas`` (default :func:`default_sigmas`), a uniform
+    veil, and the ghost mirrored through ``(cx, cy)`` blurred by each of the same widths
+    and unblurred. Each weight is a scattered fraction, so ``||h||_1`` is their sum.
+    ``weight`` (``[H, W]``, optional) weights the pixels in the fit. With ``refine`` the
+    widths of the active Gaussians are then optimised continuously (variable projection),
+    so a PSF whose widths fall between the dictionary's is still matched.
+    """
+    s_meas = np.asarray(s_meas, dtype=np.complex128)
+    s_true = np.asarray(s_true, dtype=np.complex128)
+    if s_meas.shape != s_true.shape:
+        raise ValueError(f"measured {s_meas.shape} and true {s_true.shape} signals differ in shape")
+    h, w = s_true.shape[-2:]
+    sig = default_sigmas(h, w) if sigmas is None else np.asarray(sigmas, dtype=np.float64)
+    kernels: list[tuple[str, np.ndarray | None, float]] = []  # (name, kernel, sigma)
+    basis: list[np.ndarray] = []
+    for sg in sig:
+        k = gaussian_kernel(h, w, sg)
+        kernels.append((f"gauss_{sg:.3g}", k, sg))
+        basis.append(Convolver(k, (h, w))(s_true))
+    if veil:
+        # Unit total fraction spread evenly over the sensor: kernel value 1 / (H W).
+        k = uniform_kernel(h, w) / (h * w)
+        kernels.append(("veil", k, np.inf))
+        basis.append(np.broadcast_to(s_true.sum(axis=(-2, -1), keepdims=True) / (h * w), s_true.shape))
+    n_shift = len(basis)
+    if ghost:
+        kernels.append(("ghost_0", None, 0.0))
+        basis.append(mirror_through(s_true, cx, cy))
+        for sg in sig:
+            k = gaussian_kernel(h, w, sg)
+            kernels.append((f"ghost_{sg:.3g}", k, sg))
+            basis.append(mirror_through(Convolver(k, (h, w))(s_true), cx, cy))
+    resid = s_meas - s_true
+    wt = np.ones((h, w)) if weight is None else np.sqrt(np.asarray(weight, dtype=np.float64))
+    wt = np.broadcast_to(wt, s_true.shape).ravel()
+
+    def column(b: np.ndarray) -> np.ndarray:
+        bw = b.ravel() * wt
+        return np.concatenate([bw.real, bw.imag])
+
+    rhs = column(resid)
+    cols = [column(b) for b in basis]
+    coef, rnorm = _nnls_scaled(np.stack(cols, axis=1), rhs)
+    if refine:
+        # Variable projection: the dictionary found which widths matter; now let each
+        # group of neighbouring active widths become one Gaussian of free width, with the
+        # weights re-solved linearly for every trial set of widths.
+        groups = _active_groups(coef[:len(sig)])
+        if groups:
+            fixed_idx = [i for i in range(len(sig), len(basis)) if coef[i] > 0]
+            fixed_cols = [cols[i] for i in fixed_idx]
+            init = np.array([np.exp(np.average(np.log(sig[g]), weights=coef[g])) for g in groups])
+
+            def solve(log_sig: np.ndarray) -> tuple[np.ndarray, float, list[np.ndarray]]:
+                ks = [gaussian_kernel(h, w, float(np.exp(ls))) for ls in log_sig]
+                a = np.stack([column(Convolver(k, (h, w))(s_true)) for k in ks] + fixed_cols, axis=1)
+                c, r = _nnls_scaled(a, rhs)
+                return c, r, ks
+
+            res = minimize(lambda x: solve(x)[1], np.log(init), method="Nelder-Mead",
+                           options={"xatol": 1e-3, "fatol": 1e-6 * rnorm, "maxfev": 60 * len(init) + 40})
+            c_ref, r_ref, ks = solve(res.x)
+            if r_ref < rnorm:
+                sig_ref = np.exp(res.x)
+                names = [f"gauss_{s:.3g}" for s in sig_ref]
+                kernels = ([(n, k, s) for n, k, s in zip(names, ks, sig_ref)]
+                           + [kernels[i] for i in fixed_idx])
+                n_shift = len(ks) + sum(1 for i in fixed_idx if i < n_shift)
+                coef, rnorm = c_ref, r_ref
+    kernel = np.zeros((2 * h - 1, 2 * w - 1))
+    for (name, k, _), c in zip(kernels[:n_shift], coef[:n_shift]):
+        if c > 0:
+            kernel += c * k
+    g_weight = float(coef[n_shift:].sum()) if ghost else 0.0
+    g_kernel = None
+    if ghost and g_weight > 0:
+        # The ghost's blur is the weighted mix of its dictionary entries (unit sum).
+        g_kernel = np.zeros((2 * h - 1, 2 * w - 1))
+        for (name, k, _), c in zip(kernels[n_shift:], coef[n_shift:]):
+            if k is None:
+                g_kernel[h - 1, w - 1] += c
+            else:
+                g_kernel += c * k
+        g_kernel /= g_weight
+    rel = float(rnorm / (np.linalg.norm(rhs) or 1.0))
+    info = {"basis": [k[0] for k in kernels], "weights": [float(c) for c in coef],
+            "relative_residual": rel, "scattered_fraction": float(kernel.sum() + g_weight)}
+    return StrayLightPSF(kernel=kernel, cx=float(cx), cy=float(cy), ghost_weight=g_weight,
+                         ghost_kernel=g_kernel, info=info)
+
+
+def _nnls_scaled(a: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, float]:
+    """NNLS with unit-norm columns (bases differ by orders of magnitude)."""
+    norms = np.linalg.norm(a, axis=0)
+    norms[norms == 0] = 1.0
+    coef, rnorm = nnls(a / norms, rhs, maxiter=50 * a.shape[1])
+    return coef / norms, float(rnorm)
+
+
+def _active_groups(coef: np.ndarray) -> list[np.ndarray]:
+    """Runs of consecutive positive coefficients -> index arrays."""
+    groups: list[list[int]] = []
+    for i, c in enumerate(coef):
+        if c > 0:
+            if groups and groups[-1][-1] == i - 1:
+                groups[-1].append(i)
+            else:
+                groups.append([i])
+    return [np.array(g) for g in groups]
+
+
+def target_mask(s_meas: np.ndarray, threshold: float = 0.2) -> np.ndarray:
+    """Pixels whose amplitude (max over leading axes) exceeds ``threshold`` of the brightest."""
+    amp = np.abs(np.asarray(s_meas)).reshape((-1,) + np.shape(s_meas)[-2:]).max(axis=0)
+    return amp >= threshold * amp.max()
+
+
+def target_only_signal(s_meas: np.ndarray, threshold: float = 0.2) -> np.ndarray:
+    """Stray-light-free estimate of a bright target on a dark (or far) background.
+
+    Keeps the target's pixels (:func:`target_mask`), zero elsewhere: the background's own
+    signal is assumed negligible. The target's pixels still hold the stray light the
+    target throws on itself; :func:`calibrate_psf_target` removes it iteratively.
+    """
+    return np.where(target_mask(s_meas, threshold), s_meas, 0)
+
+
+def calibrate_psf_target(s_meas: np.ndarray, cx: float, cy: float, *, threshold: float = 0.2,
+                         rounds: int = 4, **kwargs: Any) -> StrayLightPSF:
+    """Calibrate from a bright target on a dark background alone (no twin needed).
+
+    The fit uses the background pixels only (their true signal is zero). Round 0 takes
+    the measured target pixels as the true source, which still holds the stray light the
+    target throws on itself; each further round uses the target pixels of the measurement
+    deconvolved with the previous PSF instead. Scattering that never leaves the target
+    cannot be seen this way (nor does it matter for other pixels).
+    """
+    s_meas = np.asarray(s_meas, dtype=np.complex128)
+    mask = target_mask(s_meas, threshold)
+    # The target's own pixels say nothing about h (their true value is unknown): fit
+    # only the background, where the true signal is known to be zero.
+    kwargs.setdefault("weight", (~mask).astype(np.float64))
+    s_true = np.where(mask, s_meas, 0)
+    psf = calibrate_psf(s_meas, s_true, cx, cy, **kwargs)
+    for _ in range(rounds - 1):
+        s_true = np.where(mask, deconvolve(s_meas, psf), 0)
+        psf = calibrate_psf(s_meas, s_true, cx, cy, **kwargs)
+    psf.info["calibration"] = {"mode": "target", "threshold": threshold, "rounds": rounds,
+                               "target_pixels": int(mask.sum())}
+    return psf

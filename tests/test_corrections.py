@@ -1,0 +1,160 @@
+"""Stray-light corrections on synthetic complex images built here, independently of the code.
+
+Scenes are phasor images ``S = A exp(i 4 pi f d / c)`` of a wall, a dark square on it and a
+bright card near the lens; stray light is applied with scipy's own FFT convolution (not
+the module's), so the corrections are checked against an independent forward model.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.signal import convolve2d, fftconvolve
+
+from tofhil import C_M_PER_S
+from tofhil.errors import InputFileError, TofhilError
+from tofhil.eval import straylight_correction as sl
+
+F_HZ = 20e6  # ambiguity range 7.5 m: no wrapping for the distances used here
+H, W = 48, 64
+
+
+def phasor_of(amplitude: np.ndarray, distance_m: np.ndarray) -> np.ndarray:
+    return amplitude * np.exp(1j * 4 * np.pi * F_HZ * distance_m / C_M_PER_S)
+
+
+def distance_of(s: np.ndarray) -> np.ndarray:
+    return np.mod(np.angle(s), 2 * np.pi) * C_M_PER_S / (4 * np.pi * F_HZ)
+
+
+def scene(square_reflectance: float | None, card: bool, wall: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(S, radial distance, dark-square mask): wall at 2 m, square on it, card at 0.3 m."""
+    amp = np.zeros((H, W))
+    dist = np.full((H, W), 2.0)
+    sq = np.zeros((H, W), bool)
+    sq[18:30, 36:50] = True
+    if wall:
+        amp[:] = 1.0 / 2.0 ** 2  # inverse square law, reflectance 1
+        if square_reflectance is not None:
+            amp[sq] = square_reflectance / 2.0 ** 2
+    if card:
+        c = (slice(8, 22), slice(6, 18))
+        amp[c] = 1.0 / 0.3 ** 2
+        dist[c] = 0.3
+    return phasor_of(amp, dist), dist, sq
+
+
+def gauss(sigma_h: float, sigma_v: float) -> np.ndarray:
+    """Unit-sum Gaussian on the full (2H-1, 2W-1) grid, built independently."""
+    y = np.arange(-(H - 1), H)[:, None]
+    x = np.arange(-(W - 1), W)[None, :]
+    g = np.exp(-x ** 2 / (2 * sigma_h ** 2) - y ** 2 / (2 * sigma_v ** 2))
+    return g / g.sum()
+
+
+# The "true" optics: two Gaussians off the dictionary's widths, a veil and a ghost.
+TRUE_KERNEL = 0.04 * gauss(2.3, 2.3) + 0.05 * gauss(13.0, 13.0) + 0.03 * np.ones((2 * H - 1, 2 * W - 1)) / (H * W)
+GHOST = 0.01
+
+
+def apply_optics(s: np.ndarray) -> np.ndarray:
+    """S_meas = S + k * S + ghost mirrored through the centre (independent implementation)."""
+    scatter = fftconvolve(s, TRUE_KERNEL, mode="full")[H - 1:2 * H - 1, W - 1:2 * W - 1]
+    return s + scatter + GHOST * s[::-1, ::-1]
+
+
+def test_fft_convolve_matches_direct_convolution():
+    rng = np.random.default_rng(1)
+    s = rng.normal(size=(12, 9)) + 1j * rng.normal(size=(12, 9))
+    k = rng.normal(size=(23, 17))
+    direct = convolve2d(s, k, mode="full")[11:23, 8:17]
+    assert np.allclose(sl.fft_convolve(s, k), direct, atol=1e-12)
+
+
+def test_mirror_through_image_centre_is_a_double_flip():
+    s = np.arange(20.0).reshape(4, 5)
+    assert np.array_equal(sl.mirror_through(s, 2.0, 1.5), s[::-1, ::-1])
+    # Off-centre principal point: pixels mirrored off the sensor receive nothing.
+    m = sl.mirror_through(s, 1.0, 1.5)
+    assert np.array_equal(m[:, 0], s[::-1, 2]) and np.all(m[:, 3:] == 0)
+
+
+def test_uniform_subtraction_inverts_a_uniform_veil_exactly():
+    # S_meas = S + v * sum(S): sum(S_meas) = (1 + N v) sum(S), so w = v / (1 + N v) is exact.
+    s, _, _ = scene(0.1, card=True)
+    v = 2e-5
+    meas = s + v * s.sum()
+    corr = sl.subtract_uniform(meas, v / (1 + s.size * v))
+    assert np.allclose(corr, s, atol=1e-12)
+
+
+def test_inverse_gaussian_filter_recovers_a_compact_scene():
+    # A compact object far from the edges: (almost) nothing scatters off the sensor, so
+    # the unregularised inverse of delta + w G is exact.
+    s = np.zeros((H, W), complex)
+    s[20:28, 25:37] = phasor_of(np.ones((8, 12)), np.full((8, 12), 1.3))
+    k = 0.2 * gauss(1.5, 1.0)
+    k[H - 1, W - 1] += 1
+    meas = fftconvolve(s, k, mode="full")[H - 1:2 * H - 1, W - 1:2 * W - 1]
+    corr = sl.inverse_filter_gaussian(meas, 1.5, 1.0, 0.2, 0.0)
+    assert np.abs(corr - s).max() < 1e-9
+    # Regularisation trades exactness for stability: with mu > 0 it no longer inverts.
+    assert np.abs(sl.inverse_filter_gaussian(meas, 1.5, 1.0, 0.2, 0.5) - s).max() > 1e-3
+
+
+def test_deconvolve_inverts_a_known_psf():
+    psf = sl.StrayLightPSF(kernel=TRUE_KERNEL, cx=(W - 1) / 2, cy=(H - 1) / 2, ghost_weight=GHOST)
+    s, _, _ = scene(0.05, card=True)
+    meas = apply_optics(s)
+    assert np.allclose(psf.apply(s), meas - s, atol=1e-12)
+    corr = sl.deconvolve(meas, psf, iterations=60, tol=1e-14)
+    assert np.abs(corr - s).max() < 1e-10 * np.abs(s).max()
+
+
+def test_deconvolve_refuses_a_psf_that_scatters_everything():
+    psf = sl.StrayLightPSF(kernel=1.2 * gauss(3, 3), cx=0, cy=0)
+    with pytest.raises(TofhilError, match="< 1"):
+        sl.deconvolve(np.ones((H, W), complex), psf)
+
+
+def _square_error(s_corr: np.ndarray, dist: np.ndarray, sq: np.ndarray) -> float:
+    return float(np.mean(np.abs(distance_of(s_corr[sq]) - dist[sq])))
+
+
+@pytest.mark.parametrize("target_only", [False, True])
+def test_calibrated_psf_from_one_scene_fixes_dark_squares_of_every_reflectance(target_only):
+    # Calibrate on a card in front of a far/black background (no wall) ...
+    cal_true, _, _ = scene(None, card=True, wall=False)
+    cal_meas = apply_optics(cal_true)
+    if target_only:
+        psf = sl.calibrate_psf_target(cal_meas, cx=(W - 1) / 2, cy=(H - 1) / 2)
+    else:
+        psf = sl.calibrate_psf(cal_meas, cal_true, cx=(W - 1) / 2, cy=(H - 1) / 2)
+    assert psf.scattered_fraction == pytest.approx(TRUE_KERNEL.sum() + GHOST, rel=0.1)
+    # ... and correct wall + dark square + card scenes it never saw.
+    for rho in (0.5, 0.2, 0.05, 0.01):
+        s, dist, sq = scene(rho, card=True)
+        meas = apply_optics(s)
+        before = _square_error(meas, dist, sq)
+        after = _square_error(sl.deconvolve(meas, psf), dist, sq)
+        assert before > 0.005, "the stray light must cause a visible error for the test to mean anything"
+        assert after <= 0.1 * before, (rho, before, after)
+
+
+def test_psf_file_roundtrip_and_bad_files(tmp_path):
+    cal_true, _, _ = scene(None, card=True, wall=False)
+    psf = sl.calibrate_psf(apply_optics(cal_true), cal_true, cx=(W - 1) / 2, cy=(H - 1) / 2)
+    p = tmp_path / "psf.npz"
+    psf.save(p)
+    back = sl.StrayLightPSF.load(p)
+    s, _, _ = scene(0.1, card=True)
+    assert np.allclose(back.apply(s), psf.apply(s))
+    assert back.info["basis"] == psf.info["basis"]
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, kernel=np.ones((3, 3)))
+    with pytest.raises(InputFileError, match="format"):
+        sl.StrayLightPSF.load(bad)
+    with pytest.raises(InputFileError, match="no such file"):
+        sl.StrayLightPSF.load(tmp_path / "missing.npz")
+    with pytest.raises(InputFileError, match="calibrated for a"):
+        back.apply(np.ones((H + 2, W), complex))
