@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from tofhil.demod import offset, phasor, wrapped_phase
+from tofhil.demod import iq, phase_from_iq
 from tofhil.frames import DepthFrame, RawFrame
 from tofhil.unwrap import unwrap
+
+#: Rows processed together: small enough that a block's intermediates stay in the CPU cache.
+_BLOCK_PIXELS = 32768
 
 
 def depth_from_raw(frame: RawFrame, *, min_amplitude: float = 0.0,
@@ -18,16 +21,30 @@ def depth_from_raw(frame: RawFrame, *, min_amplitude: float = 0.0,
     frequencies disagree during unwrapping. The amplitude returned is the mean over
     frequencies; the intensity is the mean offset B.
     """
-    s = phasor(frame.taps, frame.theta_rad)  # [F, H, W]
-    amp = np.abs(s)
-    phase = wrapped_phase(s)
-    res = unwrap(phase, frame.freq_hz, amplitude=amp, margin=margin)
-    amplitude = amp.mean(axis=0)
-    valid = ~res.conflict & (amplitude >= min_amplitude)
+    taps = frame.taps
+    f, k, h, w = taps.shape
+    dtype = np.float32 if taps.dtype == np.float32 else np.float64
+    distance = np.empty((h, w), dtype)
+    amplitude = np.empty((h, w), dtype)
+    intensity = np.empty((h, w), dtype)
+    conflict = np.empty((h, w), bool)
+    rows = max(1, _BLOCK_PIXELS // w)
+    for r0 in range(0, h, rows):
+        block = taps[:, :, r0:r0 + rows]
+        i, q = iq(block, frame.theta_rad)
+        amp = np.sqrt(i * i + q * q)
+        res = unwrap(phase_from_iq(i, q), frame.freq_hz, amplitude=amp, margin=margin)
+        distance[r0:r0 + rows] = res.distance_m
+        conflict[r0:r0 + rows] = res.conflict
+        np.mean(amp, axis=0, out=amplitude[r0:r0 + rows])
+        np.mean(block.reshape((f * k,) + block.shape[2:]), axis=0, out=intensity[r0:r0 + rows])
+    valid = ~conflict
+    if min_amplitude > 0:
+        valid &= amplitude >= min_amplitude
     if saturation_level is not None:
-        valid &= ~(frame.taps >= saturation_level).any(axis=(0, 1))
-    return DepthFrame(distance_m=res.distance_m, kind="radial", camera=frame.camera,
-                      amplitude=amplitude, intensity=offset(frame.taps).mean(axis=0),
+        valid &= ~(taps >= saturation_level).any(axis=(0, 1))
+    return DepthFrame(distance_m=distance, kind="radial", camera=frame.camera,
+                      amplitude=amplitude, intensity=intensity,
                       valid=valid, timestamp_s=frame.timestamp_s, sequence=frame.sequence,
-                      temperature_c=frame.temperature_c, unwrap_conflict=res.conflict,
-                      meta={"unambiguous_range_m": res.unambiguous_range_m})
+                      temperature_c=frame.temperature_c, unwrap_conflict=conflict,
+                      meta={"unambiguous_range_m": float(res.unambiguous_range_m)})
