@@ -1,0 +1,478 @@
+"""Sensor model: optical phasors on the pixels -> correlation taps in DN, as a device reports them.
+
+Chain (per pixel, per modulation frequency f, per tap phase theta_k), all in electrons until
+the ADC:
+
+1. Optical power (W) -> photo-electrons in one tap's integration:
+   ``e_per_W = QE * T_int * lambda / (h_planck * c)``.
+2. Expected tap charge, for waveform correlation harmonics ``h`` with amplitude ``a_h`` and
+   phase ``psi_h`` (the emitter's waveform correlated with the pixel's demodulation gate)::
+
+       mu_k = g_pix * tap_fraction * e_per_W * [ (P_dc + P_ambient)
+              + contrast * sum_h a_h Re(S_h exp(-i h theta_k) exp(i psi_h)) ]
+              + dark_current * T_int
+
+   ``S_h`` is the renderer's phasor ``sum w exp(+i 2 pi h f L / c)`` (watts), ``P_dc`` the
+   emitter power on the pixel (the h = 0 term), ``tap_fraction`` the share of the pixel's
+   photo-electrons one tap collects (0.5 for an A/B two-gate pixel), ``contrast`` the
+   modulation x demodulation contrast, ``g_pix`` the per-pixel photo-response gain (PRNU).
+   With ``a_1 = 1, psi_1 = 0`` and no other harmonics this is ``B + A cos(phi - theta_k)``.
+3. Photon shot noise: exact Poisson for small means, normal with variance = mean above
+   ``POISSON_EXACT_BELOW`` electrons; charge clipped at the full well (saturation).
+4. Readout: + per-pixel, per-tap dark offset (DSNU) + Gaussian read noise (electrons),
+   x conversion gain (DN/e) + black level, rounded and clipped to ``adc_bits``.
+
+The noise-free mode skips shot noise, read noise and ADC rounding, so the taps are the exact
+expectation (still clipped at the full well and the ADC range). Random numbers come from a
+generator seeded with ``(seed, frame_index)``: the same seed gives identical frames.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from tofhil import C_M_PER_S
+from tofhil.camera import CameraModel
+from tofhil.errors import InputFileError
+from tofhil.frames import RawFrame
+
+#: Planck constant, J s (exact, SI definition).
+H_PLANCK = 6.626_070_15e-34
+#: Below this mean (electrons) shot noise is drawn exactly from a Poisson distribution.
+POISSON_EXACT_BELOW = 1000.0
+
+
+# ---------------------------------------------------------------------------------------------
+# Configuration: the scene file's `sensor:` block
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class FixedPatternConfig:
+    """Per-pixel, per-tap fixed-pattern noise of the readout (seeded, identical every frame)."""
+
+    #: Dark-signal non-uniformity: standard deviation of a per-pixel, per-tap offset (electrons).
+    dsnu_e: float = 0.0
+    #: Photo-response non-uniformity: standard deviation of a per-pixel, per-tap relative gain.
+    prnu: float = 0.0
+    #: Seed of the pattern (independent of the per-frame noise seed).
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """The interpreted `sensor:` block of a scene file (see docs/effects.md for the schema)."""
+
+    freq_hz: tuple[float, ...]
+    theta_rad: tuple[float, ...]
+    integration_time_s: float = 1.0e-3
+    frame_period_s: float = 1.0 / 30.0
+    wavelength_m: float = 850.0e-9
+    quantum_efficiency: float = 0.35
+    modulation_contrast: float = 0.8
+    tap_fraction: float = 0.5
+    conversion_gain_dn_per_e: float = 0.2
+    full_well_e: float = 20_000.0
+    read_noise_e: float = 5.0
+    dark_current_e_per_s: float = 100.0
+    adc_bits: int = 12
+    black_level_dn: float = 0.0
+    temperature_c: float = math.nan
+    fixed_pattern: FixedPatternConfig = field(default_factory=FixedPatternConfig)
+
+    @property
+    def taps(self) -> int:
+        return len(self.theta_rad)
+
+    @property
+    def adc_max_dn(self) -> float:
+        return float(2 ** self.adc_bits - 1)
+
+    @property
+    def electrons_per_joule(self) -> float:
+        """Photo-electrons generated per joule of light at the sensor's wavelength."""
+        return self.quantum_efficiency * self.wavelength_m / (H_PLANCK * C_M_PER_S)
+
+    @property
+    def electrons_per_watt(self) -> float:
+        """Photo-electrons generated in one tap's integration per watt on the pixel."""
+        return self.electrons_per_joule * self.integration_time_s
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any] | None, *, source: str | Path = "<scene>",
+                  camera: CameraModel | None = None) -> "SensorConfig":
+        """Validate a `sensor:` mapping; defaults for the frequencies, taps and wavelength come
+        from the camera preset's extra facts. Errors name the file, ``sensor.<field>`` and what
+        was expected."""
+        return _parse_sensor(d, source=source, camera=camera)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The mapping that :meth:`from_dict` reads back to an equal config."""
+        return {
+            "taps": self.taps, "theta_deg": [math.degrees(t) for t in self.theta_rad],
+            "freq_hz": list(self.freq_hz), "integration_time_s": self.integration_time_s,
+            "frame_period_s": self.frame_period_s, "wavelength_m": self.wavelength_m,
+            "quantum_efficiency": self.quantum_efficiency,
+            "modulation_contrast": self.modulation_contrast, "tap_fraction": self.tap_fraction,
+            "conversion_gain_dn_per_e": self.conversion_gain_dn_per_e,
+            "full_well_e": self.full_well_e, "read_noise_e": self.read_noise_e,
+            "dark_current_e_per_s": self.dark_current_e_per_s, "adc_bits": self.adc_bits,
+            "black_level_dn": self.black_level_dn,
+            "temperature_c": None if math.isnan(self.temperature_c) else self.temperature_c,
+            "fixed_pattern": {"dsnu_e": self.fixed_pattern.dsnu_e, "prnu": self.fixed_pattern.prnu,
+                              "seed": self.fixed_pattern.seed},
+        }
+
+
+# name -> (expected text, lower bound, upper bound, lower inclusive, upper inclusive)
+_NUMBERS: dict[str, tuple[str, float, float, bool, bool]] = {
+    "integration_time_s": ("a positive number of seconds", 0.0, math.inf, False, True),
+    "frame_period_s": ("a positive number of seconds", 0.0, math.inf, False, True),
+    "wavelength_m": ("a wavelength in metres between 1e-7 and 1e-5", 1e-7, 1e-5, True, True),
+    "quantum_efficiency": ("a number in (0, 1]", 0.0, 1.0, False, True),
+    "modulation_contrast": ("a number in [0, 1]", 0.0, 1.0, True, True),
+    "tap_fraction": ("a number in (0, 1]", 0.0, 1.0, False, True),
+    "conversion_gain_dn_per_e": ("a positive number (DN per electron)", 0.0, math.inf, False, True),
+    "full_well_e": ("a positive number of electrons", 0.0, math.inf, False, True),
+    "read_noise_e": ("a number of electrons >= 0", 0.0, math.inf, True, True),
+    "dark_current_e_per_s": ("a number of electrons per second >= 0", 0.0, math.inf, True, True),
+    "black_level_dn": ("a number of DN >= 0", 0.0, math.inf, True, True),
+}
+_KNOWN = set(_NUMBERS) | {"taps", "theta_deg", "freq_hz", "adc_bits", "temperature_c", "fixed_pattern"}
+_FP_KNOWN = {"dsnu_e", "prnu", "seed"}
+
+
+def _number(value: Any, *, source: str | Path, fieldname: str, expected: str,
+            lo: float = -math.inf, hi: float = math.inf, lo_incl: bool = True, hi_incl: bool = True) -> float:
+    if isinstance(value, bool):
+        raise InputFileError(f"got {value!r}", file=source, field=fieldname, expected=expected)
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise InputFileError(f"got {value!r}", file=source, field=fieldname, expected=expected) from None
+    ok = math.isfinite(x) or (x == math.inf and hi == math.inf)
+    ok = ok and (x > lo or (lo_incl and x == lo)) and (x < hi or (hi_incl and x == hi))
+    if not ok:
+        raise InputFileError(f"got {value!r}", file=source, field=fieldname, expected=expected)
+    return x
+
+
+def _number_list(value: Any, *, source: str | Path, fieldname: str, expected: str) -> list[float]:
+    items = value if isinstance(value, (list, tuple)) else [value]
+    if not items:
+        raise InputFileError("is empty", file=source, field=fieldname, expected=expected)
+    return [_number(v, source=source, fieldname=fieldname, expected=expected) for v in items]
+
+
+def _parse_sensor(d: Mapping[str, Any] | None, *, source: str | Path,
+                  camera: CameraModel | None) -> SensorConfig:
+    d = {} if d is None else d
+    if not isinstance(d, Mapping):
+        raise InputFileError(f"got {type(d).__name__}", file=source, field="sensor",
+                             expected="a mapping (see docs/effects.md)")
+    unknown = sorted(set(d) - _KNOWN)
+    if unknown:
+        raise InputFileError(f"unknown key {unknown[0]!r}", file=source, field=f"sensor.{unknown[0]}",
+                             expected="one of " + ", ".join(sorted(_KNOWN)))
+    extra = dict(camera.extra) if camera is not None else {}
+    kw: dict[str, Any] = {}
+
+    # Modulation frequencies: the block, else the camera preset's.
+    freq = d.get("freq_hz", extra.get("freq_hz"))
+    if freq is None:
+        raise InputFileError("missing (and the camera preset names none)", file=source,
+                             field="sensor.freq_hz", expected="a list of modulation frequencies in Hz")
+    freqs = _number_list(freq, source=source, fieldname="sensor.freq_hz",
+                         expected="a list of positive modulation frequencies in Hz")
+    if any(f <= 0 for f in freqs):
+        raise InputFileError(f"got {freq!r}", file=source, field="sensor.freq_hz",
+                             expected="a list of positive modulation frequencies in Hz")
+    kw["freq_hz"] = tuple(freqs)
+
+    # Tap phases: explicit, else K equally spaced from 0.
+    k_raw = d.get("taps", None)
+    k: int | None = None
+    if k_raw is not None:
+        if isinstance(k_raw, bool) or not isinstance(k_raw, (int, np.integer)) or k_raw < 3:
+            raise InputFileError(f"got {k_raw!r}", file=source, field="sensor.taps",
+                                 expected="an integer >= 3 (2-tap A/B pixels: give their 2M phases)")
+        k = int(k_raw)
+    if "theta_deg" in d:
+        theta_deg = _number_list(d["theta_deg"], source=source, fieldname="sensor.theta_deg",
+                                 expected="a list of tap phases in degrees")
+        if k is not None and len(theta_deg) != k:
+            raise InputFileError(f"has {len(theta_deg)} phases but taps is {k}", file=source,
+                                 field="sensor.theta_deg", expected=f"{k} phases")
+        theta = np.radians(theta_deg)
+        from tofhil.demod import estimator_weights
+
+        try:
+            estimator_weights(theta)
+        except ValueError as exc:
+            raise InputFileError(str(exc), file=source, field="sensor.theta_deg",
+                                 expected=">= 3 phases equally spaced over 360 deg") from None
+    else:
+        if k is None:
+            k = int(extra.get("taps", 4))
+        theta = 2.0 * np.pi * np.arange(k) / k
+    kw["theta_rad"] = tuple(float(t) for t in theta)
+
+    if "wavelength_m" not in d and "wavelength_m" in extra:
+        d = dict(d) | {"wavelength_m": extra["wavelength_m"]}
+    for name, (expected, lo, hi, lo_incl, hi_incl) in _NUMBERS.items():
+        if name in d and d[name] is not None:
+            kw[name] = _number(d[name], source=source, fieldname=f"sensor.{name}", expected=expected,
+                               lo=lo, hi=hi, lo_incl=lo_incl, hi_incl=hi_incl)
+    if "adc_bits" in d:
+        b = d["adc_bits"]
+        if isinstance(b, bool) or not isinstance(b, (int, np.integer)) or not 1 <= b <= 32:
+            raise InputFileError(f"got {b!r}", file=source, field="sensor.adc_bits",
+                                 expected="an integer from 1 to 32")
+        kw["adc_bits"] = int(b)
+    if d.get("temperature_c") is not None:
+        kw["temperature_c"] = _number(d["temperature_c"], source=source, fieldname="sensor.temperature_c",
+                                      expected="a temperature in degrees Celsius")
+    if "conversion_gain_dn_per_e" not in kw:
+        # Default: the full well maps onto the ADC's full scale.
+        bits = kw.get("adc_bits", SensorConfig.adc_bits)
+        fw = kw.get("full_well_e", SensorConfig.full_well_e)
+        kw["conversion_gain_dn_per_e"] = (2 ** bits - 1 - kw.get("black_level_dn", 0.0)) / fw
+
+    fp = d.get("fixed_pattern")
+    if fp is not None:
+        if not isinstance(fp, Mapping):
+            raise InputFileError(f"got {fp!r}", file=source, field="sensor.fixed_pattern",
+                                 expected="a mapping with dsnu_e, prnu, seed")
+        bad = sorted(set(fp) - _FP_KNOWN)
+        if bad:
+            raise InputFileError(f"unknown key {bad[0]!r}", file=source,
+                                 field=f"sensor.fixed_pattern.{bad[0]}", expected="one of dsnu_e, prnu, seed")
+        seed = fp.get("seed", 0)
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise InputFileError(f"got {seed!r}", file=source, field="sensor.fixed_pattern.seed",
+                                 expected="an integer >= 0")
+        kw["fixed_pattern"] = FixedPatternConfig(
+            dsnu_e=_number(fp.get("dsnu_e", 0.0), source=source, fieldname="sensor.fixed_pattern.dsnu_e",
+                           expected="a number of electrons >= 0", lo=0.0),
+            prnu=_number(fp.get("prnu", 0.0), source=source, fieldname="sensor.fixed_pattern.prnu",
+                         expected="a relative gain spread in [0, 0.5]", lo=0.0, hi=0.5),
+            seed=int(seed))
+    return SensorConfig(**kw)
+
+
+# ---------------------------------------------------------------------------------------------
+# The optical signal handed from the renderer (through the effects) to the sensor
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class OpticalSignal:
+    """Light on the sensor, per pixel: what the sensor model turns into taps.
+
+    ``phasor_w[F, NH, H, W]`` holds ``sum_paths w exp(+i 2 pi h f L / c)`` for each frequency
+    and each harmonic order in ``harmonics`` (watts). ``dc_w`` is the emitter's power on the
+    pixel, ``ambient_w`` the unmodulated ambient light's. ``waveform`` maps harmonic order h to
+    the complex correlation coefficient ``a_h exp(i psi_h)``.
+    """
+
+    freq_hz: np.ndarray
+    harmonics: tuple[int, ...]
+    phasor_w: np.ndarray
+    dc_w: np.ndarray
+    ambient_w: np.ndarray
+    waveform: dict[int, complex] = field(default_factory=lambda: {1: 1.0 + 0.0j})
+
+    def __post_init__(self) -> None:
+        self.freq_hz = np.atleast_1d(np.asarray(self.freq_hz, dtype=np.float64))
+        self.harmonics = tuple(int(h) for h in self.harmonics)
+        self.phasor_w = np.asarray(self.phasor_w, dtype=np.complex128)
+        if self.phasor_w.ndim != 4 or self.phasor_w.shape[:2] != (self.freq_hz.size, len(self.harmonics)):
+            raise ValueError(f"phasor_w must be [F={self.freq_hz.size}, NH={len(self.harmonics)}, H, W], "
+                             f"got {self.phasor_w.shape}")
+        if 1 not in self.harmonics:
+            raise ValueError("the signal must carry the fundamental (harmonic 1)")
+        hw = self.phasor_w.shape[-2:]
+        self.dc_w = np.broadcast_to(np.asarray(self.dc_w, dtype=np.float64), hw)
+        self.ambient_w = np.broadcast_to(np.asarray(self.ambient_w, dtype=np.float64), hw)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.phasor_w.shape[-2:]  # type: ignore[return-value]
+
+    def copy(self) -> "OpticalSignal":
+        return replace(self, phasor_w=self.phasor_w.copy(), dc_w=np.array(self.dc_w),
+                       ambient_w=np.array(self.ambient_w), waveform=dict(self.waveform))
+
+    def harmonic(self, h: int) -> np.ndarray:
+        """``S_h [F, H, W]``; an order the renderer did not compute is synthesised from the
+        fundamental as ``|S_1| exp(i h arg S_1)``, exact for pixels seeing a single path."""
+        if h in self.harmonics:
+            return self.phasor_w[:, self.harmonics.index(h)]
+        s1 = self.phasor_w[:, self.harmonics.index(1)]
+        return np.abs(s1) * np.exp(1j * h * np.angle(s1))
+
+    @classmethod
+    def from_render(cls, result: Any, waveform: Mapping[int, complex] | None = None,
+                    *, multipath_scale: float | None = None) -> "OpticalSignal":
+        """From a renderer ``RenderResult``. With ``multipath_scale`` the phasor is rebuilt as
+        ``direct + scale * indirect`` (needs the render's separate direct/indirect phasors)."""
+        phasor = result.phasor
+        dc = result.power_w
+        if multipath_scale is not None:
+            if getattr(result, "phasor_direct", None) is None or getattr(result, "phasor_indirect", None) is None:
+                raise ValueError("the multipath effect needs a render with separate_direct=True")
+            phasor = result.phasor_direct + multipath_scale * result.phasor_indirect
+            # The DC (h = 0 term) splits the same way: indirect DC is total minus direct DC.
+            dc_direct = getattr(result, "power_direct_w", None)
+            if dc_direct is not None:
+                dc = dc_direct + multipath_scale * (result.power_w - dc_direct)
+            else:
+                dc = _dc_from_phasor_split(result, multipath_scale)
+        ambient = getattr(result, "ambient_power_w", None)
+        return cls(freq_hz=result.freq_hz, harmonics=tuple(result.harmonics), phasor_w=phasor, dc_w=dc,
+                   ambient_w=np.zeros_like(result.power_w) if ambient is None else ambient,
+                   waveform=dict(waveform) if waveform else {1: 1.0 + 0.0j})
+
+
+def _dc_from_phasor_split(result: Any, scale: float) -> np.ndarray:
+    """DC of ``direct + scale * indirect`` when the render gives no separate direct power.
+
+    The modulus of a phasor sum is at most the power sum, with equality for a single path; the
+    direct component of a pixel is (nearly) a single path, so its power is ``|S_direct|`` at the
+    fundamental of the first frequency."""
+    h1 = tuple(result.harmonics).index(1)
+    direct = np.abs(result.phasor_direct[0, h1])
+    return direct + scale * np.clip(result.power_w - direct, 0.0, None)
+
+
+def waveform_from_scene(scene: Any) -> dict[int, complex]:
+    """The emitter's correlation waveform ``{h: a_h exp(i psi_h)}`` from a Scene.
+
+    Accepts ``scene.emitter.waveform`` as a list of ``(h, amplitude, phase_rad)`` or of
+    mappings with those keys, or an object with ``.harmonics``; default: a pure sinusoid."""
+    emitter = getattr(scene, "emitter", None)
+    wf = getattr(emitter, "waveform", None) if emitter is not None else None
+    if wf is None:
+        return {1: 1.0 + 0.0j}
+    items = getattr(wf, "harmonics", wf)
+    out: dict[int, complex] = {}
+    for item in items:
+        if isinstance(item, Mapping):
+            h, a, p = item.get("h", item.get("order")), item.get("amplitude", 1.0), item.get("phase_rad", 0.0)
+        elif hasattr(item, "order"):
+            h, a, p = item.order, item.amplitude, getattr(item, "phase_rad", 0.0)
+        else:
+            h, a, p = item
+        out[int(h)] = complex(float(a) * np.exp(1j * float(p)))
+    if 1 not in out:
+        out[1] = 1.0 + 0.0j
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# The sensor
+# ---------------------------------------------------------------------------------------------
+def frame_rng(seed: int, frame_index: int, stream: int = 0) -> np.random.Generator:
+    """Independent, reproducible generator for one frame (and one use within it)."""
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), int(frame_index), stream])))
+
+
+@dataclass
+class SensorModel:
+    """A configured sensor for one camera: signal -> expected electrons -> noisy DN taps."""
+
+    config: SensorConfig
+    camera: CameraModel
+    _pattern: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False)
+
+    @property
+    def theta_rad(self) -> np.ndarray:
+        return np.asarray(self.config.theta_rad)
+
+    @property
+    def freq_hz(self) -> np.ndarray:
+        return np.asarray(self.config.freq_hz)
+
+    def fixed_pattern(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-pixel, per-tap ``(gain [K,H,W], offset_e [K,H,W])`` from the fixed-pattern seed."""
+        if self._pattern is None:
+            fp = self.config.fixed_pattern
+            shape = (self.config.taps,) + self.camera.shape
+            rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(fp.seed), 0x5eed])))
+            gain = 1.0 + fp.prnu * rng.standard_normal(shape) if fp.prnu > 0 else np.ones(shape)
+            off = fp.dsnu_e * rng.standard_normal(shape) if fp.dsnu_e > 0 else np.zeros(shape)
+            self._pattern = (np.clip(gain, 0.0, None), off)
+        return self._pattern
+
+    def expected_electrons(self, signal: OpticalSignal) -> np.ndarray:
+        """Mean collected charge per tap, ``[F, K, H, W]`` electrons (before saturation)."""
+        cfg = self.config
+        if signal.shape != self.camera.shape:
+            raise ValueError(f"signal is {signal.shape}, camera is {self.camera.shape}")
+        if signal.freq_hz.size != len(cfg.freq_hz) or not np.allclose(signal.freq_hz, cfg.freq_hz, rtol=1e-9):
+            raise ValueError(f"signal frequencies {signal.freq_hz.tolist()} differ from the sensor's "
+                             f"{list(cfg.freq_hz)}")
+        e_w = cfg.tap_fraction * cfg.electrons_per_watt
+        theta = self.theta_rad
+        dc = (signal.dc_w + signal.ambient_w)[None, None]  # [1, 1, H, W]
+        mod = np.zeros((signal.freq_hz.size, theta.size) + signal.shape)
+        for h, coef in signal.waveform.items():
+            if coef == 0:
+                continue
+            s = coef * signal.harmonic(h)  # [F, H, W]
+            # Re(s exp(-i h theta_k)) = Re(s) cos(h theta_k) + Im(s) sin(h theta_k)
+            c, sn = np.cos(h * theta)[None, :, None, None], np.sin(h * theta)[None, :, None, None]
+            mod += s.real[:, None] * c + s.imag[:, None] * sn
+        gain, _ = self.fixed_pattern()
+        photo = e_w * (dc + cfg.modulation_contrast * mod)
+        return gain[None] * np.clip(photo, 0.0, None) + cfg.dark_current_e_per_s * cfg.integration_time_s
+
+    def taps_dn(self, signal: OpticalSignal, *, rng: np.random.Generator | None = None,
+                noise: bool = True) -> np.ndarray:
+        """Taps in DN, float32 ``[F, K, H, W]``: shot noise, full well, offsets, read noise, ADC."""
+        cfg = self.config
+        mu = self.expected_electrons(signal)
+        if noise:
+            if rng is None:
+                raise ValueError("noise=True needs a random generator")
+            q = _shot_noise(mu, rng)
+        else:
+            q = mu
+        q = np.minimum(q, cfg.full_well_e)  # saturation: the well holds no more charge
+        _, offset = self.fixed_pattern()
+        v = q + offset[None]
+        if noise and cfg.read_noise_e > 0:
+            v = v + cfg.read_noise_e * rng.standard_normal(v.shape)  # type: ignore[union-attr]
+        dn = v * cfg.conversion_gain_dn_per_e + cfg.black_level_dn
+        if noise:
+            dn = np.rint(dn)
+        return np.clip(dn, 0.0, cfg.adc_max_dn).astype(np.float32)
+
+    def expose(self, signal: OpticalSignal, *, seed: int = 0, frame_index: int = 0, noise: bool = True,
+               meta: dict[str, Any] | None = None) -> RawFrame:
+        """One raw frame: taps in DN with sequence number and timestamp from the frame period."""
+        cfg = self.config
+        taps = self.taps_dn(signal, rng=frame_rng(seed, frame_index) if noise else None, noise=noise)
+        m = {"units": "DN", "source": "tofhil-sim", "noise": noise, "seed": int(seed),
+             "conversion_gain_dn_per_e": cfg.conversion_gain_dn_per_e, "black_level_dn": cfg.black_level_dn,
+             "saturation_dn": min(cfg.adc_max_dn, cfg.full_well_e * cfg.conversion_gain_dn_per_e
+                                  + cfg.black_level_dn)}
+        m.update(meta or {})
+        return RawFrame(taps=taps, freq_hz=self.freq_hz, theta_rad=self.theta_rad,
+                        integration_time_s=cfg.integration_time_s, camera=self.camera,
+                        timestamp_s=frame_index * cfg.frame_period_s, sequence=int(frame_index),
+                        temperature_c=cfg.temperature_c, meta=m)
+
+
+def _shot_noise(mu: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Poisson draws with mean ``mu``: exact for small means, normal (var = mean) for large."""
+    mu = np.clip(mu, 0.0, None)
+    out = np.empty_like(mu)
+    small = mu < POISSON_EXACT_BELOW
+    out[small] = rng.poisson(mu[small])
+    big = ~small
+    if big.any():
+        m = mu[big]
+        out[big] = m + np.sqrt(m) * rng.standard_normal(m.shape)
+    return out
