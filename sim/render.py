@@ -1,0 +1,436 @@
+"""Embree renderer of the simulator twin: per-pixel complex phasors of the emitter's light.
+
+For every camera sample a path is traced from the camera; at every surface vertex the
+point emitter is connected by a shadow ray (next-event estimation). A connection at vertex
+``k`` carries the optical power ``w`` (W) it delivers onto the pixel and its optical path
+length ``L`` (camera -> x0 -> ... -> xk -> emitter). Per modulation frequency ``f`` and
+harmonic ``h`` the renderer accumulates ``sum w exp(+i 2 pi h f L / c)``.
+
+Radiometry (docs/scene-format.md): ``I(theta) = P p(theta)/norm``; irradiance
+``E = I cos(theta_s)/r^2``; radiance ``L = f_r E``; pixel power by the camera equation
+``P = L A_ap cos^4(alpha) a_pix / f^2`` with ``A_ap = pi (f/2N)^2``. Indirect light:
+cosine-weighted bounce sampling, throughput ``f_r * pi`` per bounce.
+
+Work is split into chunks of whole pixels (all samples of a pixel in one chunk), run on a
+thread pool: embreex and the large numpy operations release the GIL, and chunks write
+disjoint pixel ranges.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from tofhil import C_M_PER_S
+from tofhil.camera import CameraModel
+from tofhil.errors import TofhilError
+from tofhil.sim.geometry import BATCH, RAY_EPSILON_M, Geometry, WorkerPool
+from tofhil.sim.scene import Scene
+
+#: Pixel pitch assumed for the camera equation when the camera model gives none (m).
+DEFAULT_PIXEL_PITCH_M = 10e-6
+
+
+@dataclass
+class RenderResult:
+    """Rendered phasors and ground truth of one view. Arrays are ``[..., H, W]``."""
+
+    freq_hz: np.ndarray
+    harmonics: tuple[int, ...]
+    phasor: np.ndarray                   # complex128 [F, NH, H, W], W (watts) * exp(+i 2 pi h f L/c)
+    power_w: np.ndarray                  # [H, W] emitter power on the pixel (sum of w)
+    ambient_power_w: np.ndarray          # [H, W] ambient light power on the pixel
+    radial_m: np.ndarray                 # [H, W] radial distance of the first hit of the centre ray
+    object_id: np.ndarray                # [H, W] int32 object index, -1 = background
+    phasor_direct: np.ndarray | None = None
+    phasor_indirect: np.ndarray | None = None
+    transient: np.ndarray | None = None  # [T, H, W] power per optical-path-length bin
+    transient_edges_m: np.ndarray | None = None
+    camera: CameraModel | None = None
+    samples_per_pixel: int = 1
+    bounces: int = 0
+
+    def harmonic_index(self, h: int) -> int:
+        return self.harmonics.index(h)
+
+
+# --------------------------------------------------------------------------- set-up
+def _render_setting(scene: Scene, key: str, given: Any, default: Any) -> Any:
+    return given if given is not None else scene.render.get(key, default)
+
+
+def _materials_table(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rho_d = np.array([scene.materials[o.material].reflectance for o in scene.objects])
+    rho_s = np.array([scene.materials[o.material].glossy_reflectance for o in scene.objects])
+    n_s = np.array([scene.materials[o.material].glossy_exponent for o in scene.objects])
+    return rho_d, rho_s, n_s
+
+
+def scene_geometry(scene: Scene) -> Geometry:
+    """The scene's Embree geometry, cached on the scene while its objects are unchanged."""
+    key = tuple((o.type, repr(o.params), o.pose.tobytes(), id(o.mesh)) for o in scene.objects)
+    cached = scene.__dict__.get("_geometry_cache")
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    geom = Geometry.build(scene)
+    scene.__dict__["_geometry_cache"] = (key, geom)
+    return geom
+
+
+def pixel_area_normalized(camera: CameraModel) -> np.ndarray:
+    """|det d(x, y)/d(u, v)| per pixel: the pixel's area in undistorted normalised coordinates.
+
+    The pixel's solid angle is ``cos^3(alpha)`` times this; ``1/(fx fy)`` without distortion.
+    """
+    if not camera.has_distortion:
+        return np.full(camera.shape, 1.0 / (camera.fx * camera.fy))
+    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
+    h = 0.5
+    xu1, yu1 = camera.undistort_normalized(u + h, v)
+    xu0, yu0 = camera.undistort_normalized(u - h, v)
+    xv1, yv1 = camera.undistort_normalized(u, v + h)
+    xv0, yv0 = camera.undistort_normalized(u, v - h)
+    return np.abs((xu1 - xu0) * (yv1 - yv0) - (xv1 - xv0) * (yu1 - yu0)) / (4 * h * h)
+
+
+class _Context:
+    """Everything a chunk worker needs, precomputed once per render call."""
+
+    def __init__(self, scene: Scene, camera: CameraModel, freq_hz: np.ndarray, harmonics: tuple[int, ...],
+                 spp: int, bounces: int, seed: int, separate: bool, transient_edges: np.ndarray | None,
+                 subpixel: bool) -> None:
+        self.scene, self.camera = scene, camera
+        self.geom = scene_geometry(scene)
+        self.spp, self.bounces, self.seed = spp, bounces, seed
+        self.separate = separate
+        self.subpixel = subpixel and spp > 1
+        self.thin_lens = scene.thin_lens
+        self.H, self.W = camera.shape
+        # Phase per metre of optical path for every (f, h), flattened [F*NH].
+        self.k = (2 * np.pi / C_M_PER_S) * (np.asarray(freq_hz)[:, None] *
+                                            np.asarray(harmonics, dtype=np.float64)[None, :]).ravel()
+        self.rho_d, self.rho_s, self.n_s = _materials_table(scene)
+        self.glossy = bool(np.any(self.rho_s > 0))
+        self.textured = [(i, scene.materials[o.material].texture) for i, o in enumerate(scene.objects)
+                         if scene.materials[o.material].texture is not None]
+        self.inv_pose = [np.linalg.inv(o.pose) for o in scene.objects]
+        R, t = scene.camera_pose[:3, :3], scene.camera_pose[:3, 3]
+        self.R, self.t = R, t
+        self.emitter_pos = scene.emitter_position_world()
+        self.emitter_axis = R @ scene.emitter.axis
+        self.emitter = scene.emitter
+        pitch = camera.pixel_pitch_m or DEFAULT_PIXEL_PITCH_M
+        self.focal_m = camera.fx * pitch
+        n_f = scene.radiometric_f_number
+        self.aperture_radius_m = self.focal_m / (2 * n_f)
+        self.aperture_area_m2 = np.pi * self.aperture_radius_m ** 2
+        self.focus_m = scene.focus_distance_m
+        # Per-pixel weight without cos^4: A_ap * pixel area (normalised coords) / spp.
+        self.pix_weight = (self.aperture_area_m2 * pixel_area_normalized(camera) / spp).ravel()
+        self.ambient = scene.ambient_irradiance_w_m2
+        self.edges = transient_edges
+        self.centre_rays = camera.rays.reshape(-1, 3)
+
+    # ------------------------------------------------------------------ shading helpers
+    def reflectance(self, obj: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """Diffuse reflectance at world points ``x`` of objects ``obj`` (textures applied)."""
+        rho = self.rho_d[obj]
+        for i, tex in self.textured:
+            m = obj == i
+            if not np.any(m):
+                continue
+            xl = x[m] @ self.inv_pose[i][:3, :3].T + self.inv_pose[i][:3, 3]
+            if tex.kind == "checker":
+                cell = np.floor(xl / tex.size_m).astype(np.int64).sum(axis=1)
+                rho[m] = np.where(cell % 2 == 0, tex.values[0], tex.values[1])
+            else:
+                lo, hi = self.geom.local_bounds[i]
+                img = tex.image
+                span = np.where(hi - lo > 0, hi - lo, 1.0)
+                col = np.clip(((xl[:, 0] - lo[0]) / span[0] * img.shape[1]).astype(np.int64), 0, img.shape[1] - 1)
+                row = np.clip(((xl[:, 1] - lo[1]) / span[1] * img.shape[0]).astype(np.int64), 0, img.shape[0] - 1)
+                rho[m] = self.rho_d[i] * img[row, col]
+        return rho
+
+    def brdf(self, obj: np.ndarray, rho: np.ndarray, n: np.ndarray, wi: np.ndarray,
+             wo: np.ndarray) -> np.ndarray:
+        """``f_r(wi, wo)`` (1/sr): Lambertian plus normalised Phong lobe."""
+        f = rho / np.pi
+        if self.glossy:
+            rs, ns = self.rho_s[obj], self.n_s[obj]
+            g = rs > 0
+            if np.any(g):
+                cn = np.einsum("ij,ij->i", n[g], wi[g])
+                refl = 2 * cn[:, None] * n[g] - wi[g]
+                ca = np.clip(np.einsum("ij,ij->i", refl, wo[g]), 0.0, 1.0)
+                f[g] += rs[g] * (ns[g] + 2) / (2 * np.pi) * ca ** ns[g]
+        return f
+
+    def connect_emitter(self, x: np.ndarray, n: np.ndarray, ng: np.ndarray, wo: np.ndarray,
+                        obj: np.ndarray, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Next-event estimation: radiance toward ``wo`` from direct emitter light, and r1."""
+        ve = self.emitter_pos - x
+        r1 = np.linalg.norm(ve, axis=1)
+        wi = ve / r1[:, None]
+        cos_s = np.einsum("ij,ij->i", n, wi)
+        cos_e = -(wi @ self.emitter_axis)
+        irr = np.where(cos_s > 0, self.emitter.intensity_w_sr(cos_e) * cos_s / (r1 * r1), 0.0)
+        lit = irr > 0
+        if np.any(lit):
+            origin = x[lit] + RAY_EPSILON_M * ng[lit]
+            blocked = self.geom.occluded(origin, wi[lit], r1[lit] - 2 * RAY_EPSILON_M)
+            idx = np.flatnonzero(lit)[blocked]
+            irr[idx] = 0.0
+        radiance = np.zeros(len(x))
+        if np.any(lit):
+            radiance[lit] = self.brdf(obj[lit], rho[lit], n[lit], wi[lit], wo[lit]) * irr[lit]
+        return radiance, r1
+
+    # ------------------------------------------------------------------ one chunk
+    def run_chunk(self, chunk: int, p0: int, p1: int) -> dict[str, np.ndarray]:
+        rng = np.random.default_rng([self.seed, chunk])
+        npix = p1 - p0
+        spp = self.spp
+        pix = np.repeat(np.arange(p0, p1), spp)
+        u0 = (pix % self.W).astype(np.float64)
+        v0 = (pix // self.W).astype(np.float64)
+        if self.subpixel:
+            uu = u0 + rng.random(len(pix)) - 0.5
+            vv = v0 + rng.random(len(pix)) - 0.5
+            d_cam = self.camera.pixel_rays(uu, vv)
+        else:
+            d_cam = np.repeat(self.centre_rays[p0:p1], spp, axis=0)
+        cos_alpha = d_cam[:, 2]
+        beta = self.pix_weight[pix] * cos_alpha ** 4
+        if self.thin_lens:
+            # Sample the aperture disk; every ray through the same pixel position meets the
+            # pinhole ray on the focal plane. The lens makes optical paths to the focus point
+            # equal, so L_cam = |F| + (t - |F - a|).
+            r = self.aperture_radius_m * np.sqrt(rng.random(len(pix)))
+            phi = 2 * np.pi * rng.random(len(pix))
+            a = np.stack([r * np.cos(phi), r * np.sin(phi), np.zeros_like(r)], axis=1)
+            focus = d_cam * (self.focus_m / d_cam[:, 2])[:, None]
+            to_f = focus - a
+            dist_f = np.linalg.norm(to_f, axis=1)
+            dirs_cam = to_f / dist_f[:, None]
+            path0 = np.linalg.norm(focus, axis=1) - dist_f
+            origins = a @ self.R.T + self.t
+        else:
+            dirs_cam = d_cam
+            path0 = np.zeros(len(pix))
+            origins = np.broadcast_to(self.t, (len(pix), 3)).copy()
+        dirs = dirs_cam @ self.R.T
+
+        nk = len(self.k)
+        out: dict[str, np.ndarray] = {}
+        acc_re = np.zeros((2, nk, npix))     # [direct/indirect, f*h, pixel]
+        acc_im = np.zeros((2, nk, npix))
+        power = np.zeros(npix)
+        tr = None
+        if self.edges is not None:
+            nb = len(self.edges) - 1
+            tr = np.zeros(npix * nb)
+
+        def accumulate(which: int, local: np.ndarray, w: np.ndarray, length: np.ndarray) -> None:
+            nonlocal tr
+            if len(w) == 0:
+                return
+            power[:] += np.bincount(local, w, minlength=npix)
+            phase = self.k[:, None] * length[None, :]
+            for j in range(nk):
+                acc_re[which, j] += np.bincount(local, w * np.cos(phase[j]), minlength=npix)
+                acc_im[which, j] += np.bincount(local, w * np.sin(phase[j]), minlength=npix)
+            if tr is not None:
+                b = np.searchsorted(self.edges, length, side="right") - 1
+                ok = (b >= 0) & (b < nb)
+                tr += np.bincount(local[ok] * nb + b[ok], w[ok], minlength=npix * nb)
+
+        # Primary hits.
+        t, prim, uv = self.geom.intersect(origins, dirs)
+        hit = prim >= 0
+        if not self.subpixel and not self.thin_lens:
+            # Centre rays from the pinhole: the primary hits are the ground truth.
+            radial = t.reshape(npix, spp)[:, 0]
+            oid = np.where(prim >= 0, self.geom.tri_object[np.maximum(prim, 0)], -1).reshape(npix, spp)[:, 0]
+        else:
+            tc, pc, _ = self.geom.intersect(np.broadcast_to(self.t, (npix, 3)).copy(),
+                                            self.centre_rays[p0:p1] @ self.R.T)
+            radial = tc
+            oid = np.where(pc >= 0, self.geom.tri_object[np.maximum(pc, 0)], -1)
+        out["radial"] = radial
+        out["object_id"] = oid.astype(np.int32)
+
+        local = (pix - p0)[hit]
+        beta = beta[hit]
+        path = path0[hit] + t[hit]
+        x = origins[hit] + t[hit, None] * dirs[hit]
+        wo = -dirs[hit]
+        prim, uv = prim[hit], uv[hit]
+        ambient = np.zeros(npix)
+        for bounce in range(self.bounces + 1):
+            if len(prim) == 0:
+                break
+            obj = self.geom.tri_object[prim]
+            ng = self.geom.normal[prim]
+            n = self.geom.shading_normal(prim, uv)
+            flip = np.einsum("ij,ij->i", ng, wo) < 0     # two-sided surfaces
+            ng = np.where(flip[:, None], -ng, ng)
+            n = np.where(flip[:, None], -n, n)
+            n = np.where((np.einsum("ij,ij->i", n, wo) < 0)[:, None], ng, n)
+            rho = self.reflectance(obj, x)
+            if bounce == 0 and self.ambient > 0:
+                ambient = np.bincount(local, beta * (rho + self.rho_s[obj]) * self.ambient / np.pi,
+                                      minlength=npix)
+            radiance, r1 = self.connect_emitter(x, n, ng, wo, obj, rho)
+            w = beta * radiance
+            m = w > 0
+            accumulate(0 if bounce == 0 else 1, local[m], w[m], path[m] + r1[m])
+            if bounce == self.bounces:
+                break
+            # Cosine-weighted bounce: throughput f_r * pi.
+            wi = _cosine_sample(n, rng)
+            ok = np.einsum("ij,ij->i", wi, ng) > 0
+            beta = beta * self.brdf(obj, rho, n, wi, wo) * np.pi
+            ok &= beta > 0
+            o2 = x[ok] + RAY_EPSILON_M * ng[ok]
+            d2 = wi[ok]
+            t2, p2, uv2 = self.geom.intersect(o2, d2)
+            h2 = p2 >= 0
+            local = local[ok][h2]
+            beta = beta[ok][h2]
+            path = path[ok][h2] + t2[h2]
+            x = o2[h2] + t2[h2, None] * d2[h2]
+            wo = -d2[h2]
+            prim, uv = p2[h2], uv2[h2]
+
+        out["re"], out["im"], out["power"], out["ambient"] = acc_re, acc_im, power, ambient
+        if tr is not None:
+            out["transient"] = tr.reshape(npix, -1)
+        return out
+
+
+def _cosine_sample(n: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Cosine-weighted directions about unit normals ``n`` [N, 3] (pdf cos/pi)."""
+    m = len(n)
+    r1, r2 = rng.random(m), rng.random(m)
+    r = np.sqrt(r1)
+    phi = 2 * np.pi * r2
+    lx, ly, lz = r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(0.0, 1 - r1))
+    # Orthonormal basis (Duff et al. 2017, branchless).
+    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + n[:, 2])
+    b = n[:, 0] * n[:, 1] * a
+    t1 = np.stack([1 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
+    t2 = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
+    return lx[:, None] * t1 + ly[:, None] * t2 + lz[:, None] * n
+
+
+def _transient_edges(scene: Scene, geom: Geometry, bins: int | Sequence[float], bounces: int) -> np.ndarray:
+    if np.ndim(bins) == 1:
+        edges = np.asarray(bins, dtype=np.float64)
+        if len(edges) < 2 or np.any(np.diff(edges) <= 0):
+            raise TofhilError("transient bin edges must increase", field="transient_bins",
+                              expected="an integer or >= 2 increasing edges in m")
+        return edges
+    nb = int(bins)
+    if nb < 1:
+        raise TofhilError(f"got {bins!r}", field="transient_bins", expected="a positive integer")
+    # Upper bound of any path: camera -> farthest vertex, bounces x bounding-box diagonal,
+    # farthest vertex -> emitter.
+    lo, hi = geom.world_bounds
+    corners = np.array([[a[0], b[1], c[2]] for a in (lo, hi) for b in (lo, hi) for c in (lo, hi)])
+    reach = np.linalg.norm(corners - scene.camera_pose[:3, 3], axis=1).max()
+    diag = np.linalg.norm(hi - lo)
+    lmax = 2 * reach + np.linalg.norm(scene.emitter.offset_m) + bounces * diag
+    return np.linspace(0.0, lmax * 1.05 + 1e-9, nb + 1)
+
+
+# --------------------------------------------------------------------------- public API
+def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
+           harmonics: Sequence[int] = (1,), samples_per_pixel: int | None = None,
+           bounces: int | None = None, seed: int | None = None, separate_direct: bool = False,
+           transient_bins: int | Sequence[float] | None = None, camera: CameraModel | None = None,
+           progress: bool = False, threads: int | None = None, subpixel: bool | None = None) -> RenderResult:
+    """Render the scene's emitter light as per-pixel phasors (see the module docstring).
+
+    ``freq_hz`` defaults to the scene's sensor frequencies; ``samples_per_pixel``,
+    ``bounces`` and ``subpixel`` to the scene's ``render:`` block (1, 0, true). With more than
+    one sample per pixel and ``subpixel`` the samples are spread uniformly over the pixel
+    (mixed pixels at depth edges); one sample goes through the pixel centre. ``camera``
+    replaces the scene's camera model (the pose stays ``scene.camera_pose``).
+    """
+    cam = camera if camera is not None else scene.camera
+    freq = scene.freq_hz if freq_hz is None else np.atleast_1d(np.asarray(freq_hz, dtype=np.float64))
+    harm = tuple(int(h) for h in harmonics)
+    if not harm or min(harm) < 1:
+        raise TofhilError(f"got {harmonics!r}", field="harmonics", expected="harmonic orders >= 1")
+    spp = int(_render_setting(scene, "samples_per_pixel", samples_per_pixel, 1))
+    nb = int(_render_setting(scene, "bounces", bounces, 0))
+    sub = bool(_render_setting(scene, "subpixel", subpixel, True))
+    seed = int(_render_setting(scene, "seed", seed, 0))
+    if spp < 1:
+        raise TofhilError(f"got {spp}", field="samples_per_pixel", expected="an integer >= 1")
+    if nb < 0:
+        raise TofhilError(f"got {nb}", field="bounces", expected="an integer >= 0")
+    geom = scene_geometry(scene)
+    edges = None if transient_bins is None else _transient_edges(scene, geom, transient_bins, nb)
+    ctx = _Context(scene, cam, freq, harm, spp, nb, seed, separate_direct, edges, sub)
+    H, W = cam.shape
+    npix_total = H * W
+    per_chunk = max(1, BATCH // spp)
+    starts = list(range(0, npix_total, per_chunk))
+    nthreads = threads or int(os.environ.get("TOFHIL_RENDER_THREADS", 0)) or min(2, os.cpu_count() or 1)
+
+    nk = len(ctx.k)
+    acc = np.zeros((2, nk, npix_total), dtype=np.complex128)
+    power = np.zeros(npix_total)
+    ambient = np.zeros(npix_total)
+    radial = np.full(npix_total, np.inf)
+    oid = np.full(npix_total, -1, dtype=np.int32)
+    trans = None if edges is None else np.zeros((npix_total, len(edges) - 1))
+
+    def store(p0: int, p1: int, r: dict[str, np.ndarray]) -> None:
+        acc[:, :, p0:p1] = r["re"] + 1j * r["im"]
+        power[p0:p1] = r["power"]
+        ambient[p0:p1] = r["ambient"]
+        radial[p0:p1] = r["radial"]
+        oid[p0:p1] = r["object_id"]
+        if trans is not None:
+            trans[p0:p1] = r["transient"]
+
+    jobs = [(i, p0, min(p0 + per_chunk, npix_total)) for i, p0 in enumerate(starts)]
+    if nthreads <= 1 or len(jobs) == 1:
+        for job in jobs:
+            store(job[1], job[2], ctx.run_chunk(*job))
+    else:
+        pool = WorkerPool.get(nthreads)
+        futures = [(job, pool.submit(ctx.run_chunk, *job)) for job in jobs]
+        items = futures
+        if progress:
+            from tofhil.cli import progress as bar
+
+            items = bar(futures, total=len(futures), description="render")
+        for job, fut in items:
+            store(job[1], job[2], fut.result())
+
+    shape = (len(freq), len(harm), H, W)
+    direct = acc[0].reshape(shape)
+    indirect = acc[1].reshape(shape)
+    return RenderResult(
+        freq_hz=freq, harmonics=harm, phasor=direct + indirect,
+        power_w=power.reshape(H, W), ambient_power_w=ambient.reshape(H, W),
+        radial_m=radial.reshape(H, W), object_id=oid.reshape(H, W),
+        phasor_direct=direct if separate_direct else None,
+        phasor_indirect=indirect if separate_direct else None,
+        transient=None if trans is None else np.ascontiguousarray(trans.T.reshape(-1, H, W)),
+        transient_edges_m=edges, camera=cam, samples_per_pixel=spp, bounces=nb)
+
+
+def radial_from_phasor(phasor: np.ndarray, freq_hz: float) -> np.ndarray:
+    """Wrapped radial distance ``d = c phi / (4 pi f)`` of a co-located camera/emitter phasor."""
+    phi = np.mod(np.angle(phasor), 2 * np.pi)
+    return phi * C_M_PER_S / (4 * math.pi * freq_hz)
