@@ -1,0 +1,555 @@
+"""DepthAI v3 driver for Luxonis ToF cameras (OAK-D SR PoE / OAK ToF 33D modules).
+
+Device path: a ``dai.node.ToF`` (built on the ToF socket with a ``ToFConfig``: phase
+unwrapping level and error threshold, median filter, FPPN / wiggle / temperature /
+optical / distortion corrections, phase-shuffle temporal filter, burst mode), its outputs
+(``depth``, ``amplitude``, ``intensity``, ``phase``, ``raw`` where the device provides
+them) read through ``createOutputQueue`` queues, the camera model from the device's
+factory calibration.
+
+Host path (CI, no hardware): the same queues fed by a host node
+(:class:`HostToFSource`, a ``dai.node.ThreadedHostNode`` in a
+``dai.Pipeline(createImplicitDevice=False)``) that sends ``ImgFrame`` messages shaped like
+the ToF node's: RAW16 depth in mm, RAW16 amplitude and intensity, float phase, with
+sequence numbers and device timestamps. Decoding, pairing and unit conversion are the
+same code for both paths.
+
+Pairing: every output carries the frame's sequence number; a frame is complete when each
+requested output has delivered that sequence. Incomplete sequences older than the newest
+complete one are dropped and counted (never mixed: depth of frame n is never paired with
+the amplitude of frame n+1). Timestamps are the device clock (``getTimestampDevice``),
+converted to seconds.
+
+Depth kind (Luxonis ToF docs): with ``enableOpticalCorrection`` the node returns a
+z-map (rectified, "distance to depth conversion"); without it, the radial distance along
+each pixel's ray. The driver reads the setting and converts to radial. With
+``enableDistortionCorrection`` (the default) the images are undistorted, so the camera
+model has zero distortion; otherwise the factory coefficients are used.
+
+Specs: ``depthai`` (first device), ``depthai:DEVICE_ID_OR_IP``; ``depthai-sim`` (a host
+pipeline rendering a plane, see :class:`PlaneScene`; ``depthai-sim:DIST_M`` sets the
+plane's distance).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from tofhil import C_M_PER_S
+from tofhil.camera import CameraModel, load_camera_preset
+from tofhil.drivers.base import (CaptureSettings, DeviceDisconnected, DeviceEntry, DeviceError, DeviceInfo,
+                                 Driver, Frame, FrameDropped, register_driver)
+from tofhil.frames import DepthFrame
+
+OUTPUTS = ("depth", "amplitude", "intensity", "phase", "raw")
+DEFAULT_OUTPUTS = ("depth", "amplitude", "intensity")
+MEDIAN = {"off": "MEDIAN_OFF", "3x3": "KERNEL_3x3", "5x5": "KERNEL_5x5", "7x7": "KERNEL_7x7"}
+PROFILES = {"low": "LOW_RANGE", "mid": "MID_RANGE", "high": "HIGH_RANGE"}
+PRESET = "oak_tof_33d"
+#: The 33D module's lower modulation frequency: its single-frequency ambiguity range is
+#: c / (2 * 80 MHz) = 1.87 m (phase unwrapping level 0 in the Luxonis docs).
+BASE_FREQ_HZ = 80e6
+
+
+def _dai() -> Any:
+    try:
+        import depthai as dai
+    except ImportError as exc:  # pragma: no cover - depthai is a dependency
+        raise DeviceError(f"depthai is not installed ({exc})", field="depthai",
+                          expected="pip install depthai>=3") from None
+    return dai
+
+
+# --------------------------------------------------------------------------- settings
+@dataclass
+class ToFSettings:
+    """The ToF node's configuration (``CaptureSettings.extra`` keys of the same names)."""
+
+    phase_unwrapping_level: int = 4
+    phase_unwrap_error_threshold: int = 100
+    median: str = "off"
+    enable_phase_unwrapping: bool = True
+    enable_optical_correction: bool = False   # False: radial distance; True: z-map
+    enable_distortion_correction: bool = True
+    enable_fppn_correction: bool = True
+    enable_wiggle_correction: bool = True
+    enable_temperature_correction: bool = False
+    enable_phase_shuffle_temporal_filter: bool = True
+    enable_burst_mode: bool = False
+    profile: str | None = None                # low | mid | high (a Luxonis preset, applied first)
+    fps: float | None = None
+    outputs: tuple[str, ...] = DEFAULT_OUTPUTS
+
+    @classmethod
+    def from_extra(cls, extra: dict[str, Any]) -> "ToFSettings":
+        known = {f for f in cls.__dataclass_fields__}
+        unknown = sorted(set(extra) - known)
+        if unknown:
+            raise DeviceError(f"unknown DepthAI option(s) {', '.join(unknown)}", field="extra",
+                              expected="one of " + ", ".join(sorted(known)))
+        s = cls(**extra)
+        s.outputs = tuple(s.outputs.split(",") if isinstance(s.outputs, str) else s.outputs)
+        bad = [o for o in s.outputs if o not in OUTPUTS]
+        if bad or "depth" not in s.outputs:
+            raise DeviceError(f"outputs {list(s.outputs)}", field="outputs",
+                              expected=f"'depth' plus any of {', '.join(OUTPUTS)}")
+        if s.median not in MEDIAN:
+            raise DeviceError(f"median {s.median!r}", field="median", expected=" | ".join(MEDIAN))
+        if s.profile is not None and s.profile not in PROFILES:
+            raise DeviceError(f"profile {s.profile!r}", field="profile", expected=" | ".join(PROFILES))
+        if not 0 <= int(s.phase_unwrapping_level) <= 6:
+            raise DeviceError(f"phase unwrapping level {s.phase_unwrapping_level}", field="phase_unwrapping_level",
+                              expected="0..6 (0 = off, 1.87 m range at 80 MHz)")
+        return s
+
+    def to_tof_config(self) -> Any:
+        """A ``dai.ToFConfig`` with these settings."""
+        dai = _dai()
+        cfg = dai.ToFConfig()
+        if self.profile is not None:
+            cfg.setProfilePreset(getattr(dai.ToFConfig.Profile, PROFILES[self.profile]))
+        cfg.phaseUnwrappingLevel = int(self.phase_unwrapping_level)
+        cfg.phaseUnwrapErrorThreshold = int(self.phase_unwrap_error_threshold)
+        cfg.enablePhaseUnwrapping = bool(self.enable_phase_unwrapping)
+        cfg.enableOpticalCorrection = bool(self.enable_optical_correction)
+        cfg.enableDistortionCorrection = bool(self.enable_distortion_correction)
+        cfg.enableFPPNCorrection = bool(self.enable_fppn_correction)
+        cfg.enableWiggleCorrection = bool(self.enable_wiggle_correction)
+        cfg.enableTemperatureCorrection = bool(self.enable_temperature_correction)
+        cfg.enablePhaseShuffleTemporalFilter = bool(self.enable_phase_shuffle_temporal_filter)
+        cfg.enableBurstMode = bool(self.enable_burst_mode)
+        cfg.median = getattr(dai.MedianFilter, MEDIAN[self.median])
+        return cfg
+
+    @property
+    def depth_kind(self) -> str:
+        return "z" if self.enable_optical_correction else "radial"
+
+
+# --------------------------------------------------------------------------- decoding
+def decode_imgframe(msg: Any, name: str) -> np.ndarray:
+    """An ``ImgFrame`` -> ``[H, W]`` array (uint8/uint16, or float32 for float images).
+
+    Reads the raw bytes with the frame's stride, so padded rows decode correctly.
+    """
+    dai = _dai()
+    t = msg.getType()
+    dtypes = {dai.ImgFrame.Type.RAW16: "<u2", dai.ImgFrame.Type.RAW8: "u1", dai.ImgFrame.Type.GRAY8: "u1",
+              dai.ImgFrame.Type.GRAYF16: "<f2", dai.ImgFrame.Type.RAW32: "<f4"}
+    if t not in dtypes:
+        raise FrameDropped(f"{name} frame has type {t.name}", field=name,
+                           expected="RAW16, RAW8, GRAY8, GRAYF16 or RAW32 (float)")
+    dt = np.dtype(dtypes[t])
+    w, h = msg.getWidth(), msg.getHeight()
+    data = np.asarray(msg.getData(), dtype=np.uint8)
+    stride = msg.getStride() or w * dt.itemsize
+    if stride < w * dt.itemsize or data.size < stride * (h - 1) + w * dt.itemsize:
+        raise FrameDropped(f"{name} frame {msg.getSequenceNum()} has {data.size} bytes for {w}x{h} "
+                           f"stride {stride}", field=name, expected=f"{w}x{h} {t.name} pixels")
+    if data.size < stride * h:  # last row unpadded
+        data = np.concatenate([data, np.zeros(stride * h - data.size, np.uint8)])
+    rows = data[:stride * h].reshape(h, stride)[:, :w * dt.itemsize]
+    img = np.ascontiguousarray(rows).view(dt).reshape(h, w)
+    return img.astype(np.float32) if dt.kind == "f" else img
+
+
+def device_time_s(msg: Any) -> float:
+    """The frame's device-clock timestamp in seconds."""
+    return msg.getTimestampDevice().total_seconds()
+
+
+class SequencePairer:
+    """Group messages of several outputs by sequence number.
+
+    ``add(name, seq, item)`` returns the complete ``{name: item}`` set of the oldest
+    sequence that has every output, or None. Incomplete sequences older than a complete
+    one can never complete (queues deliver in order), so they are dropped and reported
+    through ``on_drop(seq, missing)``.
+    """
+
+    def __init__(self, names: tuple[str, ...], on_drop: Callable[[int, list[str]], None],
+                 max_pending: int = 16) -> None:
+        self.names = names
+        self.pending: dict[int, dict[str, Any]] = {}
+        self.on_drop = on_drop
+        self.max_pending = max_pending
+        self.ready: list[tuple[int, dict[str, Any]]] = []
+
+    def add(self, name: str, seq: int, item: Any) -> None:
+        bucket = self.pending.setdefault(seq, {})
+        bucket[name] = item
+        if len(bucket) == len(self.names):
+            del self.pending[seq]
+            for old in sorted(s for s in self.pending if s < seq):
+                missing = [n for n in self.names if n not in self.pending[old]]
+                del self.pending[old]
+                self.on_drop(old, missing)
+            self.ready.append((seq, bucket))
+        while len(self.pending) > self.max_pending:  # a stream went silent: bound memory
+            old = min(self.pending)
+            missing = [n for n in self.names if n not in self.pending.pop(old)]
+            self.on_drop(old, missing)
+
+    def pop(self) -> tuple[int, dict[str, Any]] | None:
+        return self.ready.pop(0) if self.ready else None
+
+
+# --------------------------------------------------------------------------- host source
+@dataclass
+class PlaneScene:
+    """What the host source renders: a Lambertian plane seen by a co-located emitter.
+
+    The plane is ``n . X = distance_m`` in the camera frame, its normal tilted by
+    ``tilt_deg`` about the camera's x axis. Per pixel with unit ray ``r``: radial distance
+    ``d = distance_m / (n . r)``; amplitude (counts) ``= k * albedo * cos(incidence) *
+    cos^4(off-axis angle) / d^2`` (irradiance from an isotropic emitter, Lambertian
+    reflection, the lens's cos^4 law), ``k`` = ``amplitude_at_1m``; intensity = amplitude
+    + ``ambient``; phase = ``2*pi*f*(2d)/c`` wrapped at the 80 MHz base frequency.
+    """
+
+    distance_m: float = 1.0
+    tilt_deg: float = 0.0
+    albedo: float = 0.8
+    amplitude_at_1m: float = 2000.0
+    ambient: float = 50.0
+    fps: float = 30.0
+    #: Fault injection for tests: sequence numbers whose ``amplitude`` message is not sent.
+    drop_amplitude_of: tuple[int, ...] = ()
+    n_frames: int | None = None
+
+    def render(self, camera: CameraModel) -> dict[str, np.ndarray]:
+        t = math.radians(self.tilt_deg)
+        n = np.array([0.0, math.sin(t), math.cos(t)])
+        rays = camera.rays
+        cos_inc = rays @ n
+        if np.any(cos_inc <= 0):
+            raise DeviceError("the plane does not cover the field of view", field="tilt_deg",
+                              expected="a tilt smaller than 90 deg minus half the field of view")
+        d = self.distance_m / cos_inc
+        amp = self.amplitude_at_1m * self.albedo * cos_inc * camera.ray_z ** 4 / d ** 2
+        phase = np.mod(4 * np.pi * BASE_FREQ_HZ * d / C_M_PER_S, 2 * np.pi)
+        return {"radial_m": d, "z_m": d * camera.ray_z, "amplitude": amp, "intensity": amp + self.ambient,
+                "phase": phase}
+
+
+_HOST_SOURCE_CLASS: Any = None
+
+
+def host_source_class() -> Any:
+    """The :class:`HostToFSource` class (defined lazily: it subclasses a depthai type)."""
+    global _HOST_SOURCE_CLASS
+    if _HOST_SOURCE_CLASS is not None:
+        return _HOST_SOURCE_CLASS
+    dai = _dai()
+    import datetime
+
+    class HostToFSource(dai.node.ThreadedHostNode):
+        """Sends ToF-shaped ImgFrames (one per output per frame) from the host."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.outs = {name: self.createOutput() for name in OUTPUTS}
+            self.images: dict[str, np.ndarray] = {}
+            self.scene = PlaneScene()
+            self.sent = 0
+            self.done = threading.Event()
+
+        def setup(self, scene: PlaneScene, camera: CameraModel, settings: ToFSettings) -> None:
+            img = scene.render(camera)
+            depth_m = img["z_m"] if settings.enable_optical_correction else img["radial_m"]
+            # The device's wire formats: RAW16 depth in mm (rounded), RAW16 amplitude/intensity.
+            self.images = {"depth": np.round(depth_m * 1000.0).astype(np.uint16),
+                           "amplitude": np.clip(np.round(img["amplitude"]), 0, 65535).astype(np.uint16),
+                           "intensity": np.clip(np.round(img["intensity"]), 0, 65535).astype(np.uint16),
+                           "phase": img["phase"].astype(np.float32)}
+            self.scene = scene
+            self.wanted = settings.outputs
+
+        def _message(self, name: str, seq: int, t_s: float) -> Any:
+            f = dai.ImgFrame()
+            img = self.images[name]
+            h, w = img.shape
+            if img.dtype == np.float32:
+                f.setData(np.frombuffer(img.tobytes(), dtype=np.uint8))
+                f.setType(dai.ImgFrame.Type.RAW32)
+                f.setStride(w * 4)
+            else:
+                f.setFrame(img)
+                f.setType(dai.ImgFrame.Type.RAW16)
+                f.setStride(w * 2)
+            f.setWidth(w)
+            f.setHeight(h)
+            f.setSequenceNum(seq)
+            f.setTimestampDevice(datetime.timedelta(seconds=t_s))
+            f.setTimestamp(datetime.timedelta(seconds=t_s))
+            return f
+
+        def run(self) -> None:
+            seq = 0
+            period = 1.0 / self.scene.fps
+            while self.isRunning() and (self.scene.n_frames is None or seq < self.scene.n_frames):
+                t_s = 10.0 + seq * period  # device clock: starts at 10 s, ticks at the frame rate
+                for name in self.wanted:
+                    if name == "raw":
+                        continue  # raw tap streams are device-specific; not produced by the host
+                    if name == "amplitude" and seq in self.scene.drop_amplitude_of:
+                        continue
+                    self.outs[name].send(self._message(name, seq, t_s))
+                seq += 1
+                self.sent = seq
+                time.sleep(period)  # the device frame rate
+            self.done.set()
+
+    _HOST_SOURCE_CLASS = HostToFSource
+    return HostToFSource
+
+
+# --------------------------------------------------------------------------- driver
+class DepthAIToF(Driver):
+    """A Luxonis ToF camera (``depthai[:ID]``) or the host-only pipeline (``depthai-sim``)."""
+
+    scheme = "depthai"
+
+    def __init__(self, spec: str = "depthai", *, host_scene: PlaneScene | None = None,
+                 camera: CameraModel | None = None) -> None:
+        super().__init__(spec)
+        scheme, _, rest = spec.partition(":")
+        self.host = scheme.lower() == "depthai-sim" or host_scene is not None
+        if self.host and host_scene is None:
+            try:
+                host_scene = PlaneScene(distance_m=float(rest)) if rest else PlaneScene()
+            except ValueError:
+                raise DeviceError(f"bad spec {spec!r}", field="--device",
+                                  expected="depthai-sim or depthai-sim:DISTANCE_M") from None
+        self.device_id = "" if self.host else rest
+        self.host_scene = host_scene
+        self._camera = camera
+        self.tof = ToFSettings()
+        self.pipeline: Any = None
+        self.device: Any = None
+        self.queues: dict[str, Any] = {}
+        self.config_queue: Any = None
+        self.source: Any = None
+        self.unmatched = 0
+        self._info = DeviceInfo(driver="depthai", model="")
+        self._pairer: SequencePairer | None = None
+        self._dropped: list[str] = []
+
+    # ---- lifecycle ----------------------------------------------------------
+    def _open_device(self) -> None:
+        dai = _dai()
+        if self.host:
+            self._camera = self._camera or load_camera_preset(PRESET)
+            self._info = DeviceInfo(driver="depthai", model="host pipeline (PlaneScene)", vendor="tofhil",
+                                    firmware=f"depthai {dai.__version__}",
+                                    extra={"host_scene": asdict(self.host_scene)})
+            return
+        found = dai.Device.getAllAvailableDevices()
+        if not found:
+            raise DeviceError("no DepthAI device found (USB or PoE)", field="--device",
+                              expected="a Luxonis ToF camera connected and reachable")
+        try:
+            self.device = dai.Device(dai.DeviceInfo(self.device_id)) if self.device_id else dai.Device()
+        except RuntimeError as exc:
+            raise DeviceError(f"cannot open DepthAI device {self.device_id or '(first)'}: {exc}",
+                              field="--device", expected="an available device id or IP") from None
+        socket = self._tof_socket()
+        calib = self.device.readCalibration()
+        self._socket = socket
+        self._calib = calib
+        self._info = DeviceInfo(driver="depthai", model=self.device.getDeviceName(),
+                                serial=self.device.getDeviceId(), vendor="Luxonis",
+                                firmware=f"depthai {dai.__version__}",
+                                extra={"platform": self.device.getPlatformAsString(), "tof_socket": socket.name})
+
+    def _tof_socket(self) -> Any:
+        dai = _dai()
+        for feat in self.device.getConnectedCameraFeatures():
+            if dai.CameraSensorType.TOF in feat.supportedTypes:
+                self._sensor_size = (feat.width, feat.height)
+                return feat.socket
+        raise DeviceError("the device has no ToF sensor", field="--device",
+                          expected="an OAK-D SR PoE or OAK ToF module")
+
+    def _device_camera(self) -> CameraModel:
+        """Intrinsics (and distortion unless the node undistorts) from the factory calibration."""
+        w, h = self._sensor_size
+        k = np.asarray(self._calib.getCameraIntrinsics(self._socket, w, h), dtype=float)
+        dist = [0.0] * 5
+        if not self.tof.enable_distortion_correction:
+            coeffs = list(self._calib.getDistortionCoefficients(self._socket)) + [0.0] * 14
+            dist = coeffs[:5]  # (k1, k2, p1, p2, k3); k4..k6 are left out (noted in info)
+            self._info.extra["rational_terms_dropped"] = coeffs[5:8]
+        return CameraModel(width=w, height=h, fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2], dist=tuple(dist),
+                           name=f"{PRESET} (factory calibration)", extra=dict(load_camera_preset(PRESET).extra))
+
+    def _build(self) -> None:
+        """Create the pipeline, its outputs' queues and start it."""
+        dai = _dai()
+        names = tuple(self.tof.outputs)
+        if self.host:
+            self.pipeline = dai.Pipeline(createImplicitDevice=False)
+            src = self.pipeline.create(host_source_class())
+            src.setup(self.host_scene, self._camera, self.tof)
+            outputs = {n: src.outs[n] for n in names}
+            self.source = src
+        else:
+            self._camera = self._device_camera()
+            self.pipeline = dai.Pipeline(self.device)
+            kwargs: dict[str, Any] = {"boardSocket": self._socket}
+            if self.tof.fps is not None:
+                kwargs["fps"] = float(self.tof.fps)
+            tof = self.pipeline.create(dai.node.ToF).build(**kwargs)
+            tof.setInitialConfig(self.tof.to_tof_config())
+            outputs = {}
+            for n in names:
+                port = getattr(tof, n, None)
+                if port is None:
+                    raise DeviceError(f"this depthai has no ToF output {n!r}", field="outputs",
+                                      expected="depth, amplitude, intensity, phase or raw")
+                outputs[n] = port
+            self.config_queue = tof.inputConfig.createInputQueue()
+        # Host: blocking queues (nothing lost, the producer waits); device: a slow host drops
+        # the oldest frames instead of stalling the camera, and the pairer counts them.
+        self.queues = {n: o.createOutputQueue(maxSize=8, blocking=self.host) for n, o in outputs.items()}
+        self._pairer = SequencePairer(names, self._on_unmatched)
+        self.pipeline.start()
+
+    def _teardown(self) -> None:
+        if self.pipeline is not None:
+            try:
+                self.pipeline.stop()
+                self.pipeline.wait()
+            except RuntimeError:
+                pass
+        self.pipeline = None
+        self.queues = {}
+        self.source = None
+
+    def _close_device(self) -> None:
+        self._teardown()
+        if self.device is not None:
+            try:
+                self.device.close()
+            except RuntimeError:
+                pass
+            self.device = None
+
+    def _apply_settings(self, settings: CaptureSettings) -> None:
+        if settings.mode != "distance":
+            raise DeviceError(f"mode {settings.mode!r} is not available", field="mode",
+                              expected="distance (DepthAI ToF delivers depth; raw taps are device-internal)")
+        for name, value in (("integration_time_s", settings.integration_time_s), ("roi", settings.roi),
+                            ("mod_freq_hz", settings.mod_freq_hz), ("channel", settings.channel)):
+            if value is not None:
+                raise DeviceError(f"{name} cannot be set on a DepthAI ToF camera", field=name,
+                                  expected="leave it unset; use phase_unwrapping_level / profile in extra")
+        new = ToFSettings.from_extra(dict(settings.extra))
+        restart = self.pipeline is not None and (new.outputs != self.tof.outputs or new.fps != self.tof.fps
+                                                 or self.host)
+        self.tof = new
+        if self.pipeline is not None and not restart and self.config_queue is not None:
+            self.config_queue.send(new.to_tof_config())  # runtime change, no restart
+            if not self.host:
+                self._camera = self._device_camera()
+        elif restart:
+            self._teardown()
+
+    @property
+    def camera(self) -> CameraModel:
+        if self._camera is None:
+            if not self.host and self.device is not None:
+                self._camera = self._device_camera()
+            else:
+                self._camera = load_camera_preset(PRESET)
+        return self._camera
+
+    def info(self) -> DeviceInfo:
+        self._info.extra["tof_config"] = {k: (list(v) if isinstance(v, tuple) else v)
+                                          for k, v in asdict(self.tof).items()}
+        self._info.extra["depth_kind_on_wire"] = self.tof.depth_kind
+        return self._info
+
+    # ---- frames -------------------------------------------------------------
+    def _on_unmatched(self, seq: int, missing: list[str]) -> None:
+        self.unmatched += 1
+        self._dropped.append(f"sequence {seq} lacks {', '.join(missing)}")
+
+    def read_frame(self, timeout_s: float = 2.0) -> Frame:
+        self._require_open()
+        if self.pipeline is None:
+            self._build()
+        assert self._pairer is not None
+        deadline = time.monotonic() + timeout_s
+        while True:
+            if self._dropped:
+                raise FrameDropped(self._dropped.pop(0), field="depthai")
+            got = self._pairer.pop()
+            if got is not None:
+                return self._to_frame(*got)
+            progressed = False
+            for name, q in self.queues.items():
+                msg = q.tryGet()
+                while msg is not None:
+                    self._pairer.add(name, msg.getSequenceNum(), msg)
+                    progressed = True
+                    msg = q.tryGet()
+            if progressed:
+                continue
+            if not self.pipeline.isRunning():
+                raise DeviceDisconnected("the DepthAI pipeline stopped", field="depthai")
+            if self.host and self.source is not None and self.source.done.is_set() and not any(
+                    q.has() for q in self.queues.values()):
+                raise DeviceError("the host source has sent all its frames", field="depthai-sim",
+                                  expected="fewer frames than the scene's n_frames")
+            if time.monotonic() > deadline:
+                raise FrameDropped(f"no complete frame within {timeout_s} s", field="depthai")
+            time.sleep(0.001)
+
+    def _to_frame(self, seq: int, msgs: dict[str, Any]) -> Frame:
+        cam = self.camera
+        depth_raw = decode_imgframe(msgs["depth"], "depth")
+        if depth_raw.shape != cam.shape:
+            raise FrameDropped(f"depth frame {seq} is {depth_raw.shape[1]}x{depth_raw.shape[0]}", field="depth",
+                               expected=f"{cam.width}x{cam.height} (the camera model)")
+        valid = depth_raw > 0
+        depth_m = depth_raw.astype(np.float64) * 1e-3  # RAW16 depth is in millimetres
+        radial = cam.z_to_radial(depth_m) if self.tof.depth_kind == "z" else depth_m
+        images = {n: decode_imgframe(m, n) for n, m in msgs.items() if n not in ("depth",)}
+        t = device_time_s(msgs["depth"])
+        amp = images.get("amplitude")
+        inten = images.get("intensity")
+        depth = DepthFrame(distance_m=np.where(valid, radial, 0.0).astype(np.float32), kind="radial", camera=cam,
+                           amplitude=None if amp is None else amp.astype(np.float32),
+                           intensity=None if inten is None else inten.astype(np.float32), valid=valid,
+                           timestamp_s=t, sequence=seq,
+                           meta={"depth_kind_on_wire": self.tof.depth_kind})
+        return Frame(depth=depth, images=images, sequence=seq, timestamp_s=t)
+
+
+# --------------------------------------------------------------------------- registry
+def _list_depthai() -> list[DeviceEntry]:
+    try:
+        dai = _dai()
+        found = dai.Device.getAllAvailableDevices()
+    except (DeviceError, RuntimeError):
+        return []
+    return [DeviceEntry(f"depthai:{d.getDeviceId()}", f"Luxonis DepthAI device {d.name} ({d.state.name})")
+            for d in found]
+
+
+def _list_sim() -> list[DeviceEntry]:
+    return [DeviceEntry("depthai-sim", "DepthAI host-only pipeline rendering a plane at 1 m "
+                        "(depthai-sim:DIST_M)", "emulated")]
+
+
+register_driver("depthai", lambda spec: DepthAIToF(spec), lister=_list_depthai,
+                description="Luxonis ToF camera through DepthAI v3 (depthai[:DEVICE_ID_OR_IP])")
+register_driver("depthai-sim", lambda spec: DepthAIToF(spec), lister=_list_sim,
+                description="DepthAI host-only pipeline (no hardware): a rendered plane through real queues")
