@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 from scipy import fft as sfft
 from scipy.optimize import minimize, nnls
+from scipy.special import erf
 
 from tofhil.errors import InputFileError
 
@@ -70,7 +71,10 @@ def gaussian_kernel(height: int, width: int, sigma_h: float, sigma_v: float | No
     if sigma_h <= 0 or sigma_v <= 0:
         raise ValueError(f"Gaussian widths must be positive, got sigma_h={sigma_h}, sigma_v={sigma_v}")
     dy, dx = kernel_offsets(height, width)
-    g = np.exp(-0.5 * (dy / sigma_v) ** 2) * np.exp(-0.5 * (dx / sigma_h) ** 2)
+    # Integrated over each pixel's area (erf differences): exact for narrow lobes too.
+    gy = erf((dy + 0.5) / (np.sqrt(2) * sigma_v)) - erf((dy - 0.5) / (np.sqrt(2) * sigma_v))
+    gx = erf((dx + 0.5) / (np.sqrt(2) * sigma_h)) - erf((dx - 0.5) / (np.sqrt(2) * sigma_h))
+    g = gy * gx
     return g / g.sum()
 
 
@@ -166,10 +170,13 @@ def inverse_filter_gaussian(s: np.ndarray, sigma_h: float, sigma_v: float, w: fl
 
 @dataclass
 class StrayLightPSF:
-    """A stray-light operator ``h``: a shift-invariant kernel plus an optional mirrored ghost.
+    """A stray-light model ``S_meas = direct * S + h * S``.
 
     ``h * S = kernel (*) S + ghost_weight * mirror(ghost_blur (*) S)``; the kernel lives on
-    the full ``(2H-1, 2W-1)`` offset grid of the sensor it was calibrated on.
+    the full ``(2H-1, 2W-1)`` offset grid of the sensor it was calibrated on. ``direct`` is
+    the fraction of a pixel's light that stays on it: 1 for purely additive stray light,
+    ``1 - scattered`` when the scattering conserves energy (both occur in the literature,
+    so the calibration fits it).
     """
 
     kernel: np.ndarray
@@ -177,6 +184,7 @@ class StrayLightPSF:
     cy: float
     ghost_weight: float = 0.0
     ghost_kernel: np.ndarray | None = None
+    direct: float = 1.0
     #: What the calibration found: basis names and weights, fit residual, source.
     info: dict[str, Any] = field(default_factory=dict)
 
@@ -205,6 +213,7 @@ class StrayLightPSF:
         import json
 
         np.savez_compressed(path, kernel=self.kernel, cx=self.cx, cy=self.cy, ghost_weight=self.ghost_weight,
+                            direct=self.direct,
                             ghost_kernel=np.zeros((1, 1)) if self.ghost_kernel is None else self.ghost_kernel,
                             has_ghost_kernel=self.ghost_kernel is not None,
                             info=json.dumps(self.info), format="tofhil.straylight_psf.v1")
@@ -232,7 +241,8 @@ class StrayLightPSF:
             raise InputFileError(f"has shape {k.shape}", file=p, field="kernel", expected="(2H-1, 2W-1)")
         gk = np.asarray(data["ghost_kernel"], dtype=np.float64) if bool(data.get("has_ghost_kernel", False)) else None
         return cls(kernel=k, cx=float(data["cx"]), cy=float(data["cy"]), ghost_weight=float(data["ghost_weight"]),
-                   ghost_kernel=gk, info=json.loads(str(data.get("info", "{}"))))
+                   ghost_kernel=gk, direct=float(data.get("direct", 1.0)),
+                   info=json.loads(str(data.get("info", "{}"))))
 
 
 class PSFOperator:
@@ -253,21 +263,24 @@ class PSFOperator:
 
 
 def deconvolve(s_meas: np.ndarray, psf: StrayLightPSF, *, iterations: int = 30, tol: float = 1e-7) -> np.ndarray:
-    """Remove stray light: solve ``S + h * S = S_meas`` by ``S_{k+1} = S_meas - h * S_k``.
+    """Remove stray light: solve ``direct * S + h * S = S_meas`` by the fixed point
+    ``S_{k+1} = (S_meas - h * S_k) / direct``.
 
-    The error shrinks by ``||h||_1`` per iteration (Kavli et al. 2008), so a few tens of
-    iterations reach float precision for realistic scattered fractions (< 0.5). Stops
-    early when the update is below ``tol`` of the signal.
+    The error shrinks by ``||h||_1 / direct`` per iteration (Kavli et al. 2008), so a few
+    tens of iterations reach float precision for realistic scattered fractions (< 0.3).
+    Stops early when the update is below ``tol`` of the signal.
     """
-    if psf.scattered_fraction >= 1.0:
-        raise InputFileError(f"PSF scatters {psf.scattered_fraction:.3f} of the signal; the fixed-point "
-                             "inversion needs < 1", field="psf", expected="||h||_1 < 1")
+    ratio = psf.scattered_fraction / psf.direct if psf.direct > 0 else np.inf
+    if ratio >= 1.0:
+        raise InputFileError(f"PSF scatters {psf.scattered_fraction:.3f} of the signal against a direct "
+                             f"part of {psf.direct:.3f}; the fixed-point inversion needs a ratio < 1",
+                             field="psf", expected="||h||_1 / direct < 1")
     s_meas = np.asarray(s_meas)
     op = psf.operator(s_meas.shape[-2:])
     scale = float(np.abs(s_meas).max()) or 1.0
     s = s_meas.copy()
     for _ in range(iterations):
-        nxt = s_meas - op(s)
+        nxt = (s_meas - op(s)) / psf.direct
         done = float(np.abs(nxt - s).max()) <= tol * scale
         s = nxt
         if done:
@@ -284,19 +297,21 @@ def default_sigmas(height: int, width: int) -> np.ndarray:
 
 def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, *,
                   sigmas: np.ndarray | None = None, veil: bool = True, ghost: bool = True,
-                  weight: np.ndarray | None = None, refine: bool = True) -> StrayLightPSF:
-    """Fit ``h`` so that ``S_true + h * S_true`` matches ``S_meas`` (non-negative least squares).
+                  fit_direct: bool = True, weight: np.ndarray | None = None,
+                  refine: bool = True) -> StrayLightPSF:
+    """Fit ``direct`` and ``h`` so that ``direct * S_true + h * S_true`` matches ``S_meas``.
 
-    ``s_meas`` and ``s_true`` are ``[..., H, W]`` complex (any number of frequencies /
-    frames stacked in front); ``s_true`` is the stray-light-free signal of the calibration
-    scene -- the twin's render without stray light, or the measurement restricted to a
-    bright target on a dark background (:func:`target_only_signal`). The dictionary: one
-    unit-sum Gaussian per width in ``sigmas`` (default :func:`default_sigmas`), a uniform
-    veil, and the ghost mirrored through ``(cx, cy)`` blurred by each of the same widths
-    and unblurred. Each weight is a scattered fraction, so ``||h||_1`` is their sum.
-    ``weight`` (``[H, W]``, optional) weights the pixels in the fit. With ``refine`` the
-    widths of the active Gaussians are then optimised continuously (variable projection),
-    so a PSF whose widths fall between the dictionary's is still matched.
+    Non-negative least squares over all pixels (real and imaginary parts). ``s_meas`` and
+    ``s_true`` are ``[..., H, W]`` complex (frequencies / frames stacked in front);
+    ``s_true`` is the stray-light-free signal of the calibration scene -- the twin's
+    render without stray light, or the target of a bright target on a dark background
+    (:func:`calibrate_psf_target`). The dictionary: one unit-sum Gaussian per width in
+    ``sigmas`` (default :func:`default_sigmas`), a uniform veil, the ghost mirrored
+    through ``(cx, cy)`` (sharp and blurred by each width), and, with ``fit_direct``, the
+    loss ``-S_true`` (light scattered away from its pixel). Each weight is a fraction of
+    light. ``weight`` (``[H, W]``) weights pixels in the fit. With ``refine`` the active
+    Gaussians' widths are then optimised continuously and separately in x and y
+    (variable projection), so lobes between the dictionary's widths are matched too.
     """
     s_meas = np.asarray(s_meas, dtype=np.complex128)
     s_true = np.asarray(s_true, dtype=np.complex128)
@@ -304,82 +319,77 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
         raise ValueError(f"measured {s_meas.shape} and true {s_true.shape} signals differ in shape")
     h, w = s_true.shape[-2:]
     sig = default_sigmas(h, w) if sigmas is None else np.asarray(sigmas, dtype=np.float64)
-    kernels: list[tuple[str, np.ndarray | None, float]] = []  # (name, kernel, sigma)
-    basis: list[np.ndarray] = []
-    for sg in sig:
-        k = gaussian_kernel(h, w, sg)
-        kernels.append((f"gauss_{sg:.3g}", k, sg))
-        basis.append(Convolver(k, (h, w))(s_true))
-    if veil:
-        # Unit total fraction spread evenly over the sensor: kernel value 1 / (H W).
-        k = uniform_kernel(h, w) / (h * w)
-        kernels.append(("veil", k, np.inf))
-        basis.append(np.broadcast_to(s_true.sum(axis=(-2, -1), keepdims=True) / (h * w), s_true.shape))
-    n_shift = len(basis)
-    if ghost:
-        kernels.append(("ghost_0", None, 0.0))
-        basis.append(mirror_through(s_true, cx, cy))
-        for sg in sig:
-            k = gaussian_kernel(h, w, sg)
-            kernels.append((f"ghost_{sg:.3g}", k, sg))
-            basis.append(mirror_through(Convolver(k, (h, w))(s_true), cx, cy))
-    resid = s_meas - s_true
     wt = np.ones((h, w)) if weight is None else np.sqrt(np.asarray(weight, dtype=np.float64))
     wt = np.broadcast_to(wt, s_true.shape).ravel()
 
     def column(b: np.ndarray) -> np.ndarray:
-        bw = b.ravel() * wt
+        bw = np.broadcast_to(b, s_true.shape).ravel() * wt
         return np.concatenate([bw.real, bw.imag])
 
-    rhs = column(resid)
-    cols = [column(b) for b in basis]
-    coef, rnorm = _nnls_scaled(np.stack(cols, axis=1), rhs)
-    if refine:
-        # Variable projection: the dictionary found which widths matter; now let each
-        # group of neighbouring active widths become one Gaussian of free width, with the
-        # weights re-solved linearly for every trial set of widths.
-        groups = _active_groups(coef[:len(sig)])
-        if groups:
-            fixed_idx = [i for i in range(len(sig), len(basis)) if coef[i] > 0]
-            fixed_cols = [cols[i] for i in fixed_idx]
-            init = np.array([np.exp(np.average(np.log(sig[g]), weights=coef[g])) for g in groups])
+    # Terms: (kind, label, kernel or None, column). kinds: gauss, veil, ghost, loss.
+    terms: list[tuple[str, str, np.ndarray | None, np.ndarray]] = []
+    for sg in sig:
+        k = gaussian_kernel(h, w, sg)
+        terms.append(("gauss", f"gauss_{sg:.3g}", k, column(Convolver(k, (h, w))(s_true))))
+    if veil:
+        # Unit fraction spread evenly: every pixel gets sum(S) / (H W).
+        terms.append(("veil", "veil", uniform_kernel(h, w) / (h * w),
+                      column(s_true.sum(axis=(-2, -1), keepdims=True) / (h * w))))
+    if ghost:
+        terms.append(("ghost", "ghost_0", None, column(mirror_through(s_true, cx, cy))))
+        for sg in sig:
+            k = gaussian_kernel(h, w, sg)
+            terms.append(("ghost", f"ghost_{sg:.3g}", k,
+                          column(mirror_through(Convolver(k, (h, w))(s_true), cx, cy))))
+    if fit_direct:
+        terms.append(("loss", "loss", None, column(-s_true)))
+    rhs = column(s_meas - s_true)
+    coef, rnorm = _nnls_scaled(np.stack([t[3] for t in terms], axis=1), rhs)
+    n_gauss = len(sig)
+    if refine and np.any(coef[:n_gauss] > 0):
+        # Variable projection: each run of neighbouring active widths becomes one Gaussian
+        # with free (sigma_x, sigma_y); the weights are re-solved linearly for every trial.
+        groups = _active_groups(coef[:n_gauss])
+        fixed = [t for t, c in zip(terms[n_gauss:], coef[n_gauss:]) if c > 0]
+        fixed_a = [t[3] for t in fixed]
+        init = np.array([np.exp(np.average(np.log(sig[g]), weights=coef[g])) for g in groups])
 
-            def solve(log_sig: np.ndarray) -> tuple[np.ndarray, float, list[np.ndarray]]:
-                ks = [gaussian_kernel(h, w, float(np.exp(ls))) for ls in log_sig]
-                a = np.stack([column(Convolver(k, (h, w))(s_true)) for k in ks] + fixed_cols, axis=1)
-                c, r = _nnls_scaled(a, rhs)
-                return c, r, ks
+        def solve(x: np.ndarray) -> tuple[np.ndarray, float, list[tuple[str, str, np.ndarray, np.ndarray]]]:
+            gs = []
+            for sx, sy in np.exp(x).reshape(-1, 2):
+                k = gaussian_kernel(h, w, sx, sy)
+                gs.append(("gauss", f"gauss_{sx:.3g}x{sy:.3g}", k, column(Convolver(k, (h, w))(s_true))))
+            c, r = _nnls_scaled(np.stack([g[3] for g in gs] + fixed_a, axis=1), rhs)
+            return c, r, gs
 
-            res = minimize(lambda x: solve(x)[1], np.log(init), method="Nelder-Mead",
-                           options={"xatol": 1e-3, "fatol": 1e-6 * rnorm, "maxfev": 60 * len(init) + 40})
-            c_ref, r_ref, ks = solve(res.x)
-            if r_ref < rnorm:
-                sig_ref = np.exp(res.x)
-                names = [f"gauss_{s:.3g}" for s in sig_ref]
-                kernels = ([(n, k, s) for n, k, s in zip(names, ks, sig_ref)]
-                           + [kernels[i] for i in fixed_idx])
-                n_shift = len(ks) + sum(1 for i in fixed_idx if i < n_shift)
-                coef, rnorm = c_ref, r_ref
+        x0 = np.log(np.repeat(init, 2))
+        res = minimize(lambda x: solve(x)[1], x0, method="Nelder-Mead",
+                       options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": 80 * x0.size + 40})
+        c_ref, r_ref, gs = solve(res.x)
+        if r_ref < rnorm:
+            terms, coef, rnorm = gs + fixed, c_ref, r_ref
     kernel = np.zeros((2 * h - 1, 2 * w - 1))
-    for (name, k, _), c in zip(kernels[:n_shift], coef[:n_shift]):
-        if c > 0:
+    g_kernel = np.zeros((2 * h - 1, 2 * w - 1))
+    g_weight = loss = 0.0
+    for (kind, _, k, _), c in zip(terms, coef):
+        if c <= 0:
+            continue
+        if kind in ("gauss", "veil"):
             kernel += c * k
-    g_weight = float(coef[n_shift:].sum()) if ghost else 0.0
-    g_kernel = None
-    if ghost and g_weight > 0:
-        # The ghost's blur is the weighted mix of its dictionary entries (unit sum).
-        g_kernel = np.zeros((2 * h - 1, 2 * w - 1))
-        for (name, k, _), c in zip(kernels[n_shift:], coef[n_shift:]):
+        elif kind == "ghost":
+            g_weight += c
             if k is None:
                 g_kernel[h - 1, w - 1] += c
             else:
                 g_kernel += c * k
-        g_kernel /= g_weight
-    rel = float(rnorm / (np.linalg.norm(rhs) or 1.0))
-    info = {"basis": [k[0] for k in kernels], "weights": [float(c) for c in coef],
-            "relative_residual": rel, "scattered_fraction": float(kernel.sum() + g_weight)}
+        else:
+            loss += c
+    info = {"basis": [t[1] for t in terms], "weights": [float(c) for c in coef],
+            "relative_residual": float(rnorm / (np.linalg.norm(rhs) or 1.0)),
+            "scattered_fraction": float(kernel.sum() + g_weight), "direct": 1.0 - loss}
     return StrayLightPSF(kernel=kernel, cx=float(cx), cy=float(cy), ghost_weight=g_weight,
-                         ghost_kernel=g_kernel, info=info)
+                         ghost_kernel=g_kernel / g_weight if g_weight > 0 else None,
+                         direct=1.0 - loss, info=info)
 
 
 def _nnls_scaled(a: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, float]:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.signal import convolve2d, fftconvolve
+from scipy.stats import norm
 
 from tofhil import C_M_PER_S
 from tofhil.errors import InputFileError, TofhilError
@@ -45,10 +46,11 @@ def scene(square_reflectance: float | None, card: bool, wall: bool = True) -> tu
 
 
 def gauss(sigma_h: float, sigma_v: float) -> np.ndarray:
-    """Unit-sum Gaussian on the full (2H-1, 2W-1) grid, built independently."""
+    """Unit-sum Gaussian integrated over each pixel, on the full (2H-1, 2W-1) grid."""
     y = np.arange(-(H - 1), H)[:, None]
     x = np.arange(-(W - 1), W)[None, :]
-    g = np.exp(-x ** 2 / (2 * sigma_h ** 2) - y ** 2 / (2 * sigma_v ** 2))
+    g = (norm.cdf(y + 0.5, scale=sigma_v) - norm.cdf(y - 0.5, scale=sigma_v)) * \
+        (norm.cdf(x + 0.5, scale=sigma_h) - norm.cdf(x - 0.5, scale=sigma_h))
     return g / g.sum()
 
 
@@ -57,10 +59,14 @@ TRUE_KERNEL = 0.04 * gauss(2.3, 2.3) + 0.05 * gauss(13.0, 13.0) + 0.03 * np.ones
 GHOST = 0.01
 
 
-def apply_optics(s: np.ndarray) -> np.ndarray:
-    """S_meas = S + k * S + ghost mirrored through the centre (independent implementation)."""
+def apply_optics(s: np.ndarray, conserve: bool = False) -> np.ndarray:
+    """S_meas = S + k * S + ghost mirrored through the centre (independent implementation).
+
+    With ``conserve`` the scattered light leaves its pixel: S_meas = (1 - W) S + ...
+    """
     scatter = fftconvolve(s, TRUE_KERNEL, mode="full")[H - 1:2 * H - 1, W - 1:2 * W - 1]
-    return s + scatter + GHOST * s[::-1, ::-1]
+    keep = 1.0 - (TRUE_KERNEL.sum() + GHOST) if conserve else 1.0
+    return keep * s + scatter + GHOST * s[::-1, ::-1]
 
 
 def test_fft_convolve_matches_direct_convolution():
@@ -121,20 +127,25 @@ def _square_error(s_corr: np.ndarray, dist: np.ndarray, sq: np.ndarray) -> float
     return float(np.mean(np.abs(distance_of(s_corr[sq]) - dist[sq])))
 
 
-@pytest.mark.parametrize("target_only", [False, True])
-def test_calibrated_psf_from_one_scene_fixes_dark_squares_of_every_reflectance(target_only):
+@pytest.mark.parametrize("target_only,conserve", [(False, False), (False, True), (True, False), (True, True)])
+def test_calibrated_psf_from_one_scene_fixes_dark_squares_of_every_reflectance(target_only, conserve):
     # Calibrate on a card in front of a far/black background (no wall) ...
     cal_true, _, _ = scene(None, card=True, wall=False)
-    cal_meas = apply_optics(cal_true)
+    cal_meas = apply_optics(cal_true, conserve)
     if target_only:
         psf = sl.calibrate_psf_target(cal_meas, cx=(W - 1) / 2, cy=(H - 1) / 2)
     else:
         psf = sl.calibrate_psf(cal_meas, cal_true, cx=(W - 1) / 2, cy=(H - 1) / 2)
-    assert psf.scattered_fraction == pytest.approx(TRUE_KERNEL.sum() + GHOST, rel=0.1)
+    w_true = TRUE_KERNEL.sum() + GHOST
+    if target_only:  # h is found relative to the measured target: h / direct
+        w_true /= (1.0 - w_true) if conserve else 1.0
+    else:
+        assert psf.direct == pytest.approx(1.0 - w_true if conserve else 1.0, abs=0.01)
+    assert psf.scattered_fraction == pytest.approx(w_true, rel=0.05)
     # ... and correct wall + dark square + card scenes it never saw.
     for rho in (0.5, 0.2, 0.05, 0.01):
         s, dist, sq = scene(rho, card=True)
-        meas = apply_optics(s)
+        meas = apply_optics(s, conserve)
         before = _square_error(meas, dist, sq)
         after = _square_error(sl.deconvolve(meas, psf), dist, sq)
         assert before > 0.005, "the stray light must cause a visible error for the test to mean anything"
