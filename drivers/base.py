@@ -306,6 +306,7 @@ DRIVER_MODULES: list[str] = [
     "tofhil.drivers.tofcam635",
     "tofhil.drivers.emulator",
     "tofhil.drivers.depthai_tof",
+    "tofhil.drivers.replay",
 ]
 
 DriverFactory = Callable[[str], Driver]
