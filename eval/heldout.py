@@ -1,0 +1,117 @@
+"""Measured complex signal split into training and held-out data, with its noise.
+
+Diagnosis fits on one part of a session and scores on another. The split is two-fold:
+frames (even frames train, odd frames test: independent noise) and pixels (a checkerboard
+of square blocks: a fit cannot memorise the pixels it is scored on). Both parts are
+averaged over their frames; the noise of each average comes from the frame-to-frame
+scatter of the session itself, pooled over a small neighbourhood so that a handful of
+frames is enough.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import uniform_filter
+
+from tofhil.camera import CameraModel
+from tofhil.demod import phasor
+from tofhil.errors import TofhilError
+from tofhil.session import Session
+
+
+@dataclass
+class HeldOutData:
+    """Mean complex signal of the training and the held-out frames, and their variances."""
+
+    camera: CameraModel
+    freq_hz: np.ndarray
+    theta_rad: np.ndarray
+    integration_time_s: float
+    s_train: np.ndarray  # complex [F, H, W]: mean over training frames
+    s_test: np.ndarray  # complex [F, H, W]: mean over held-out frames
+    var_train: np.ndarray  # float [F, H, W]: variance of s_train (complex, E|noise|^2)
+    var_test: np.ndarray
+    offset_mean: np.ndarray  # float [H, W]: mean tap offset B over all frames
+    usable: np.ndarray  # bool [H, W]: pixels with signal and no saturation
+    train_pixels: np.ndarray  # bool [H, W]: usable pixels of the training blocks
+    test_pixels: np.ndarray  # bool [H, W]: usable pixels of the held-out blocks
+    n_train_frames: int
+    n_test_frames: int
+
+    def chi2(self, prediction: np.ndarray, part: str = "test") -> float:
+        """Sum of |measured - predicted|^2 / variance over one part's pixels and frequencies."""
+        s, var, mask = ((self.s_test, self.var_test, self.test_pixels) if part == "test"
+                        else (self.s_train, self.var_train, self.train_pixels))
+        r = s[:, mask] - prediction[:, mask]
+        return float(np.sum((r.real ** 2 + r.imag ** 2) / var[:, mask]))
+
+    def n_values(self, part: str = "test") -> int:
+        """Real-valued data points in one part (2 per complex value)."""
+        mask = self.test_pixels if part == "test" else self.train_pixels
+        return int(2 * mask.sum() * self.s_test.shape[0])
+
+    def whitened_residual(self, prediction: np.ndarray, part: str = "train") -> np.ndarray:
+        """Real vector of (measured - predicted) / sigma over a part: what least squares minimises."""
+        s, var, mask = ((self.s_train, self.var_train, self.train_pixels) if part == "train"
+                        else (self.s_test, self.var_test, self.test_pixels))
+        r = (s[:, mask] - prediction[:, mask]) / np.sqrt(var[:, mask])
+        return np.concatenate([r.real.ravel(), r.imag.ravel()])
+
+
+def block_checkerboard(shape: tuple[int, int], block: int) -> np.ndarray:
+    """True on the 'training' squares of a checkerboard of ``block`` x ``block`` pixels."""
+    v, u = np.mgrid[0:shape[0], 0:shape[1]]
+    return ((v // block + u // block) % 2) == 0
+
+
+def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: float = 3.0,
+                  saturation_dn: float | None = None, max_frames: int | None = None) -> HeldOutData:
+    """Average a session's frames into training and held-out signals.
+
+    Needs at least 2 frames with raw taps (4 or more recommended). Pixels whose amplitude is
+    below ``min_amplitude_sigma`` noise standard deviations, or whose taps reach
+    ``saturation_dn`` (default: the largest tap value in the session, if several pixels sit
+    there), are left out of both parts.
+    """
+    if not session.has_raw:
+        raise TofhilError("diagnosis needs raw taps (the complex signal); this session has depth only",
+                          file=session.path, field="raw/taps")
+    n = session.n_frames if max_frames is None else min(session.n_frames, max_frames)
+    if n < 2:
+        raise TofhilError(f"has {n} frame(s)", file=session.path, field="raw/taps",
+                          expected="at least 2 frames (training and held-out), 4 or more recommended")
+    frames = [session.raw_frame(i) for i in range(n)]
+    s = np.stack([phasor(f.taps.astype(np.float64), f.theta_rad) for f in frames])  # [N, F, H, W]
+    taps_max = np.stack([f.taps.max(axis=(0, 1)) for f in frames]).max(axis=0)
+    offset_mean = np.mean([f.taps.mean(axis=(0, 1)) for f in frames], axis=0)
+    train_idx = np.arange(0, n, 2)
+    test_idx = np.arange(1, n, 2)
+
+    # Per-pixel noise from the frame-to-frame scatter about each pixel's mean, pooled over
+    # a 5 x 5 neighbourhood (E|noise|^2 of one frame); the mean of m frames has 1/m of it.
+    mean_all = s.mean(axis=0)
+    dev2 = np.abs(s - mean_all[None]) ** 2
+    var_frame = dev2.sum(axis=0) / max(n - 1, 1)
+    var_frame = np.stack([uniform_filter(v, size=5, mode="nearest") for v in var_frame])
+    floor = max(float(np.median(var_frame)) * 1e-3, 1e-12)
+    var_frame = np.maximum(var_frame, floor)
+
+    amp = np.abs(mean_all).min(axis=0)
+    usable = amp > min_amplitude_sigma * np.sqrt(var_frame.max(axis=0))
+    if saturation_dn is None:
+        top = float(taps_max.max())
+        if (taps_max >= top).sum() > 4:  # several pixels pinned at one value: a clipped ADC or full well
+            saturation_dn = top
+    if saturation_dn is not None:
+        usable &= taps_max < saturation_dn
+    board = block_checkerboard(amp.shape, block_px)
+    f0 = frames[0]
+    return HeldOutData(camera=session.camera, freq_hz=f0.freq_hz, theta_rad=f0.theta_rad,
+                       integration_time_s=f0.integration_time_s,
+                       s_train=s[train_idx].mean(axis=0), s_test=s[test_idx].mean(axis=0),
+                       var_train=var_frame / len(train_idx), var_test=var_frame / len(test_idx),
+                       offset_mean=offset_mean, usable=usable,
+                       train_pixels=usable & board, test_pixels=usable & ~board,
+                       n_train_frames=len(train_idx), n_test_frames=len(test_idx))
