@@ -1,0 +1,57 @@
+"""``tofhil ndt``: 3D-NDT scores of a cloud against a reference cloud."""
+
+from __future__ import annotations
+
+import json
+from typing import List, Optional
+
+import typer
+
+from tofhil.cli import app, out
+from tofhil.errors import TofhilError
+
+
+@app.command()
+def ndt(ref: str = typer.Argument(..., help="Reference cloud: PLY, PCD, xyz text, .npy or SESSION.h5[:FRAME]."),
+        cloud: str = typer.Argument(..., help="Cloud to score, same formats."),
+        cell_size: float = typer.Option(0.1, "--cell-size", help="NDT cell side R [m]."),
+        outlier_ratio: float = typer.Option(0.55, "--outlier-ratio", help="Outlier ratio r for d1, d2 (PCL 0.55)."),
+        min_points: int = typer.Option(6, "--min-points", help="Minimum points per cell (PCL 6)."),
+        eig_floor: float = typer.Option(0.01, "--eig-floor", help="Eigenvalue floor, fraction of the largest."),
+        threshold: Optional[List[float]] = typer.Option(None, "--threshold",
+                                                        help="Likelihood threshold for fraction_above (repeatable)."),
+        as_json: bool = typer.Option(False, "--json", help="Print JSON.")) -> None:
+    """Score CLOUD against the NDT of REF: PCL score per point, NVTL, likelihoods."""
+    from tofhil.eval.clouds import load_cloud
+    from tofhil.eval.ndt import DEFAULT_THRESHOLDS, NDTGrid, ndt_score
+
+    if not cell_size > 0:
+        raise TofhilError(f"is {cell_size}", field="--cell-size", expected="a positive length in metres")
+    if not 0 < outlier_ratio < 1:
+        raise TofhilError(f"is {outlier_ratio}", field="--outlier-ratio", expected="a value in (0, 1)")
+    if min_points < 3:
+        raise TofhilError(f"is {min_points}", field="--min-points", expected="at least 3")
+    thresholds = tuple(threshold) if threshold else DEFAULT_THRESHOLDS
+    for t in thresholds:
+        if not 0 <= t <= 1:
+            raise TofhilError(f"is {t}", field="--threshold", expected="a likelihood in [0, 1]")
+    ref_pts = load_cloud(ref)
+    pts = load_cloud(cloud)
+    grid = NDTGrid.from_points(ref_pts, cell_size, min_points=min_points, eig_floor=eig_floor)
+    if grid.cells == 0:
+        raise TofhilError(f"gives no NDT cell with at least {min_points} points at cell size {cell_size} m",
+                          file=ref, expected="a denser reference or a larger --cell-size")
+    s = ndt_score(grid, pts, outlier_ratio=outlier_ratio, thresholds=thresholds)
+    d = s.to_dict()
+    if as_json:
+        out.print_json(json.dumps(d))
+        return
+    out.print(f"reference {ref}: {ref_pts.shape[0]} points, {s.cells} cells of {cell_size:g} m "
+              f"(min {min_points} points)")
+    out.print(f"cloud     {cloud}: {s.n_points} points")
+    out.print(f"score per point (PCL)      {s.score_per_point:.6f}   (d1={s.d1:.5g}, d2={s.d2:.5g})")
+    out.print(f"NVTL (Autoware)            {s.nvtl:.6f}")
+    out.print(f"mean likelihood (cell)     {s.mean_likelihood:.6f}")
+    out.print(f"mean likelihood (trilin.)  {s.mean_likelihood_trilinear:.6f}")
+    for t, v in s.fraction_above.items():
+        out.print(f"fraction above {t:<11g} {v:.4f}")
