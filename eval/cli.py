@@ -1,0 +1,146 @@
+"""``tofhil correct`` and ``tofhil compare``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+
+from tofhil.cli import app, console, out, progress
+from tofhil.errors import TofhilError
+
+_METHOD_HELP = ("uniform (w) | gaussian-inverse (sigma-h, sigma-v, w, mu) | psf (psf or calibration) | "
+                "amplitude (min-amplitude) | jump-angle (angle-deg) | jump-distance (max-step, relative) | "
+                "smooth-gaussian (sigma-px) | smooth-median (size) | smooth-bilateral (sigma-px, sigma-m)")
+
+
+def _calibrate(cal_path: Path, reference: Optional[Path], target_threshold: float) -> Any:
+    """Fit a stray-light PSF from a calibration session (frames averaged in S)."""
+    import numpy as np
+
+    from tofhil.demod import phasor
+    from tofhil.eval import straylight_correction as sl
+    from tofhil.session import open_session
+
+    def mean_s(path: Path) -> tuple[np.ndarray, Any]:
+        with open_session(path) as s:
+            if not s.has_raw:
+                raise TofhilError("stray-light calibration needs raw taps", file=path, field="raw/taps")
+            acc = None
+            for raw in progress(s.raw_frames(), s.n_frames, f"reading {path.name}"):
+                sig = phasor(raw.taps.astype(np.float64), raw.theta_rad)
+                acc = sig if acc is None else acc + sig
+            return acc / max(s.n_frames, 1), s.camera
+
+    s_meas, cam = mean_s(cal_path)
+    if reference is not None:
+        s_true, cam_ref = mean_s(reference)
+        if s_true.shape != s_meas.shape:
+            raise TofhilError(f"has signals of shape {s_true.shape}, the calibration capture {s_meas.shape}",
+                              file=reference, field="raw/taps", expected="the same camera and frequencies")
+        psf = sl.calibrate_psf(s_meas, s_true, cam.cx, cam.cy)
+        psf.info["calibration"] = {"mode": "reference", "capture": str(cal_path), "reference": str(reference)}
+    else:
+        psf = sl.calibrate_psf_target(s_meas, cam.cx, cam.cy, threshold=target_threshold)
+        psf.info["calibration"]["capture"] = str(cal_path)
+    return psf
+
+
+@app.command()
+def correct(session: Path = typer.Argument(..., help="Session to correct (.h5)."),
+            method: str = typer.Option(..., "--method", help=_METHOD_HELP),
+            out_path: Path = typer.Option(..., "--out", help="Corrected session to write."),
+            w: Optional[float] = typer.Option(None, "--w", help="Stray-light weight (uniform, gaussian-inverse)."),
+            sigma_h: Optional[float] = typer.Option(None, "--sigma-h", help="Horizontal Gaussian sigma, pixels."),
+            sigma_v: Optional[float] = typer.Option(None, "--sigma-v", help="Vertical Gaussian sigma, pixels."),
+            mu: Optional[float] = typer.Option(None, "--mu", help="Inverse-filter regularisation."),
+            psf: Optional[Path] = typer.Option(None, "--psf", help="Calibrated PSF (.npz) for --method psf."),
+            calibrate: Optional[Path] = typer.Option(None, "--calibrate",
+                                                     help="Calibration capture (.h5) to fit the PSF from."),
+            reference: Optional[Path] = typer.Option(None, "--reference",
+                                                     help="Stray-light-free twin of the calibration capture; "
+                                                          "without it the capture must be a bright target on a "
+                                                          "dark background."),
+            target_threshold: float = typer.Option(0.2, help="Target pixels: amplitude above this fraction "
+                                                             "of the brightest (calibration without reference)."),
+            save_psf: Optional[Path] = typer.Option(None, "--save-psf", help="Write the calibrated PSF here."),
+            iterations: Optional[int] = typer.Option(None, "--iterations", help="Deconvolution iterations (psf)."),
+            min_amplitude: Optional[float] = typer.Option(None, "--min-amplitude",
+                                                          help="Amplitude threshold (amplitude method; "
+                                                               "invalidation when demodulating)."),
+            angle_deg: Optional[float] = typer.Option(None, "--angle-deg", help="Jump-edge angle, degrees."),
+            max_step: Optional[float] = typer.Option(None, "--max-step", help="Jump-edge distance step, m."),
+            relative: Optional[float] = typer.Option(None, "--relative", help="Jump-edge step per metre."),
+            sigma_px: Optional[float] = typer.Option(None, "--sigma-px", help="Smoothing sigma, pixels."),
+            sigma_m: Optional[float] = typer.Option(None, "--sigma-m", help="Bilateral range sigma, m."),
+            size: Optional[int] = typer.Option(None, "--size", help="Median window size (odd)."),
+            force: bool = typer.Option(False, "--force", help="Overwrite OUT (and --save-psf) if they exist.")) -> None:
+    """Apply one correction to every frame of a session (complex-domain ones need raw taps)."""
+    from tofhil.eval.corrections import correct_session, get_method
+
+    m = get_method(method)
+    given = {"w": w, "sigma_h": sigma_h, "sigma_v": sigma_v, "mu": mu, "iterations": iterations,
+             "min_amplitude": min_amplitude, "angle_deg": angle_deg, "max_step_m": max_step,
+             "relative": relative, "sigma_px": sigma_px, "sigma_m": sigma_m, "size": size}
+    params: dict[str, Any] = {k: v for k, v in given.items() if v is not None and k in m.params}
+    stray = sorted(k for k, v in given.items() if v is not None and k not in m.params and k != "min_amplitude")
+    if stray:
+        raise TofhilError(f"method {method!r} takes no {', '.join('--' + k.replace('_', '-') for k in stray)}",
+                          field="--method", expected="options of that method: " + (", ".join(m.params) or "none"))
+    if method == "psf":
+        if psf is not None and calibrate is not None:
+            raise TofhilError("give either --psf or --calibrate, not both", field="--psf")
+        if calibrate is not None:
+            if save_psf is not None and save_psf.exists() and not force:
+                raise TofhilError("already exists; refusing to overwrite (use --force)", file=save_psf)
+            fitted = _calibrate(calibrate, reference, target_threshold)
+            if save_psf is not None:
+                fitted.save(save_psf)
+                # np.savez adds .npz when missing; report the real name.
+                real = save_psf if save_psf.suffix == ".npz" else Path(str(save_psf) + ".npz")
+                out.print(f"saved PSF (scattered fraction {fitted.scattered_fraction:.4f}, direct "
+                          f"{fitted.direct:.4f}) to {real}")
+            params["psf"] = fitted
+        elif psf is not None:
+            params["psf"] = str(psf)
+        else:
+            raise TofhilError("method 'psf' needs --psf FILE.npz or --calibrate CAL.h5", field="--psf")
+    elif calibrate is not None or reference is not None or save_psf is not None:
+        raise TofhilError("--calibrate, --reference and --save-psf belong to --method psf", field="--method")
+    n = correct_session(session, out_path, method, params, force=force,
+                        min_amplitude=min_amplitude if (min_amplitude is not None and method != "amplitude") else 0.0,
+                        progress=progress)
+    out.print(f"wrote {n} corrected frames ({method}) to {out_path}")
+
+
+@app.command()
+def compare(a: Path = typer.Argument(..., help="Measured session A (.h5)."),
+            b: Path = typer.Argument(..., help="Reference session B (.h5): the twin or a ground truth."),
+            out_dir: Path = typer.Option(..., "--out", help="Directory for metrics.json and report.html."),
+            correct_specs: list[str] = typer.Option([], "--correct",
+                                                    help="Correction applied to A, METHOD[:key=value,...], e.g. "
+                                                         "psf:psf=cal.npz or uniform:w=2e-5; repeatable."),
+            roi: list[str] = typer.Option([], "--roi", help="Region x0,y0,x1,y1 in pixels; repeatable."),
+            frames: int = typer.Option(10, "--frames", help="Frames averaged per session."),
+            cell_size: float = typer.Option(0.1, "--cell-size", help="NDT cell size, m."),
+            threshold: float = typer.Option(0.01, "--threshold", help="F-score distance threshold, m."),
+            min_amplitude: float = typer.Option(0.0, "--min-amplitude",
+                                                help="Invalidate low-amplitude pixels when demodulating."),
+            no_objects: bool = typer.Option(False, "--no-objects",
+                                            help="No per-object regions from the twin's scene."),
+            force: bool = typer.Option(False, "--force", help="Overwrite an existing report.")) -> None:
+    """Pixel-aligned residuals, cloud and NDT metrics of A against B, before and after corrections."""
+    from tofhil.eval.report import compare_sessions
+
+    if frames < 1:
+        raise TofhilError(f"got {frames}", field="--frames", expected="an integer >= 1")
+    m = compare_sessions(a, b, out_dir, corrections=correct_specs, rois=roi, max_frames=frames,
+                         cell_size=cell_size, threshold=threshold, min_amplitude=min_amplitude,
+                         objects=not no_objects, force=force, log=lambda s: console.print(s, highlight=False))
+    for name, v in m["variants"].items():
+        d = v["regions"]["all"]["depth_residual_m"]
+        med = "-" if d["median"] is None else f"{d['median'] * 1000:.2f}"
+        mad = "-" if d["mad"] is None else f"{d['mad'] * 1000:.2f}"
+        out.print(f"{name:32s} median {med} mm  MAD {mad} mm  (n={d['n']})")
+    out.print(f"wrote {out_dir / 'metrics.json'} and {out_dir / 'report.html'}")
