@@ -316,34 +316,32 @@ class OpticalSignal:
     def from_render(cls, result: Any, waveform: Mapping[int, complex] | None = None,
                     *, multipath_scale: float | None = None) -> "OpticalSignal":
         """From a renderer ``RenderResult``. With ``multipath_scale`` the phasor is rebuilt as
-        ``direct + scale * indirect`` (needs the render's separate direct/indirect phasors)."""
-        phasor = result.phasor
+        ``direct + scale * indirect`` (needs the render's separate direct/indirect phasors).
+
+        A rendered modulation frequency of 0 Hz is not a sensor frequency: its phasor is the
+        plain power ``sum w``, which gives the direct/indirect split of the unmodulated part.
+        """
+        freq = np.atleast_1d(np.asarray(result.freq_hz, dtype=np.float64))
+        keep = np.flatnonzero(freq != 0.0)
+        zero = np.flatnonzero(freq == 0.0)
+        h1 = tuple(result.harmonics).index(1)
+        phasor = result.phasor[keep]
         dc = result.power_w
         if multipath_scale is not None:
             if getattr(result, "phasor_direct", None) is None or getattr(result, "phasor_indirect", None) is None:
                 raise ValueError("the multipath effect needs a render with separate_direct=True")
-            phasor = result.phasor_direct + multipath_scale * result.phasor_indirect
-            # The DC (h = 0 term) splits the same way: indirect DC is total minus direct DC.
-            dc_direct = getattr(result, "power_direct_w", None)
-            if dc_direct is not None:
-                dc = dc_direct + multipath_scale * (result.power_w - dc_direct)
+            phasor = result.phasor_direct[keep] + multipath_scale * result.phasor_indirect[keep]
+            if zero.size:
+                dc_direct = result.phasor_direct[zero[0], h1].real
             else:
-                dc = _dc_from_phasor_split(result, multipath_scale)
+                # Fallback: |S_direct| at the fundamental equals the direct power for pixels that
+                # see one direct path (all but mixed pixels at depth edges).
+                dc_direct = np.minimum(np.abs(result.phasor_direct[keep[0], h1]), result.power_w)
+            dc = dc_direct + multipath_scale * np.clip(result.power_w - dc_direct, 0.0, None)
         ambient = getattr(result, "ambient_power_w", None)
-        return cls(freq_hz=result.freq_hz, harmonics=tuple(result.harmonics), phasor_w=phasor, dc_w=dc,
+        return cls(freq_hz=freq[keep], harmonics=tuple(result.harmonics), phasor_w=phasor, dc_w=dc,
                    ambient_w=np.zeros_like(result.power_w) if ambient is None else ambient,
                    waveform=dict(waveform) if waveform else {1: 1.0 + 0.0j})
-
-
-def _dc_from_phasor_split(result: Any, scale: float) -> np.ndarray:
-    """DC of ``direct + scale * indirect`` when the render gives no separate direct power.
-
-    The modulus of a phasor sum is at most the power sum, with equality for a single path; the
-    direct component of a pixel is (nearly) a single path, so its power is ``|S_direct|`` at the
-    fundamental of the first frequency."""
-    h1 = tuple(result.harmonics).index(1)
-    direct = np.abs(result.phasor_direct[0, h1])
-    return direct + scale * np.clip(result.power_w - direct, 0.0, None)
 
 
 def waveform_from_scene(scene: Any) -> dict[int, complex]:

@@ -1,0 +1,551 @@
+"""The effect library: separate, parametric, switchable parts of the twin's forward model.
+
+Every effect has a ``name`` (the vocabulary diagnosis uses), a ``stage`` saying where in the
+forward model it acts, and ``params``: each a :class:`Param` with its "off" value (the value
+for which the effect changes nothing), bounds, unit and meaning. Some effects also take
+structured options (``options``) that are not fitted (a seed, a measured PSF file, per-material
+scales).
+
+Stages, in the order the forward model applies them (``ORDER``):
+
+- ``scene``: changes the Scene before rendering -- ``pose``, ``lens_distortion``,
+  ``reflectance``, ``ambient``. Changing them needs a new render.
+- ``render``: recombines the renderer's separate direct and indirect phasors --
+  ``multipath`` (cheap on a cached render made with ``separate_direct=True``).
+- ``signal``: acts on the light on the sensor (an :class:`OpticalSignal`) before the pixel --
+  ``stray_light`` (optics), ``range_offset``, ``wiggling``, ``amplitude_dependent``.
+- ``pixel``: per-pixel demodulation properties -- ``fixed_pattern``.
+
+Render-, signal- and pixel-stage effects apply to a cached render in milliseconds; that is
+what diagnosis fits. A scene file switches effects on with an ``effects:`` block
+``{name: {param: value}}``; a missing parameter takes its ``default`` (or its off value).
+See docs/effects.md.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from tofhil import C_M_PER_S
+from tofhil.camera import CameraModel
+from tofhil.errors import InputFileError
+from tofhil.sim.sensor import OpticalSignal, SensorConfig
+from tofhil.sim.straylight import StrayLightOperator, StrayLightPSF
+
+STAGES = ("scene", "render", "signal", "pixel")
+
+
+@dataclass(frozen=True)
+class Param:
+    """One fittable parameter: ``off`` leaves the model unchanged; ``[lo, hi]`` are its bounds."""
+
+    off: float
+    lo: float
+    hi: float
+    unit: str
+    doc: str
+    #: Value used when the effect is switched on without this parameter (None: the off value).
+    default: float | None = None
+
+    @property
+    def on_default(self) -> float:
+        return self.off if self.default is None else self.default
+
+
+@dataclass
+class EffectContext:
+    """What signal- and pixel-stage effects may need besides the signal."""
+
+    camera: CameraModel
+    sensor: SensorConfig | None = None
+    source: str = "<effects>"
+    base_dir: Path | None = None
+
+
+class Effect:
+    """Base class. Subclasses set ``name``, ``stage``, ``params``, ``options``, ``doc`` and
+    implement the hook of their stage."""
+
+    name: str = ""
+    stage: str = ""
+    doc: str = ""
+    params: dict[str, Param] = {}
+    #: Structured, non-fitted options: name -> description.
+    options: dict[str, str] = {}
+
+    # -------------------------------------------------------------- values
+    def off_values(self) -> dict[str, float]:
+        return {k: p.off for k, p in self.params.items()}
+
+    def default_values(self) -> dict[str, float]:
+        return {k: p.on_default for k, p in self.params.items()}
+
+    def bounds(self) -> dict[str, tuple[float, float]]:
+        return {k: (p.lo, p.hi) for k, p in self.params.items()}
+
+    def validate(self, values: Mapping[str, Any] | None, *, source: str | Path = "<effects>",
+                 prefix: str | None = None) -> dict[str, Any]:
+        """Check names, types and bounds; fill defaults. Errors name ``effects.<name>.<param>``."""
+        prefix = prefix or f"effects.{self.name}"
+        values = {} if values is None else values
+        if not isinstance(values, Mapping):
+            raise InputFileError(f"got {values!r}", file=source, field=prefix,
+                                 expected="a mapping of parameter values")
+        known = list(self.params) + list(self.options)
+        out: dict[str, Any] = self.default_values()
+        for key, v in values.items():
+            if key in self.options:
+                out[key] = copy.deepcopy(v)
+                continue
+            if key not in self.params:
+                raise InputFileError(f"unknown parameter {key!r}", file=source, field=f"{prefix}.{key}",
+                                     expected="one of " + ", ".join(known))
+            p = self.params[key]
+            try:
+                x = float(v)
+            except (TypeError, ValueError):
+                x = math.nan
+            if isinstance(v, bool) or not (p.lo <= x <= p.hi):
+                raise InputFileError(f"got {v!r}", file=source, field=f"{prefix}.{key}",
+                                     expected=f"a number in [{p.lo:g}, {p.hi:g}] {p.unit}".rstrip())
+            out[key] = x
+        self.check_options(out, source=source, prefix=prefix)
+        return out
+
+    def check_options(self, values: dict[str, Any], *, source: str | Path, prefix: str) -> None:
+        """Validate structured options (subclasses)."""
+
+    def is_off(self, values: Mapping[str, Any]) -> bool:
+        return all(float(values.get(k, p.off)) == p.off for k, p in self.params.items())
+
+    # -------------------------------------------------------------- stage hooks
+    def apply_scene(self, scene: Any, values: Mapping[str, Any]) -> Any:
+        raise NotImplementedError(f"{self.name} is a {self.stage}-stage effect")
+
+    def render_requirements(self, values: Mapping[str, Any], scene: Any) -> dict[str, Any]:
+        """Extra renderer arguments this effect needs (e.g. separate direct/indirect)."""
+        return {}
+
+    def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
+        raise NotImplementedError(f"{self.name} is a {self.stage}-stage effect")
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "stage": self.stage, "doc": self.doc,
+                "params": {k: dataclasses.asdict(p) for k, p in self.params.items()},
+                "options": dict(self.options)}
+
+
+def _rotate_phase(signal: OpticalSignal, path_m: np.ndarray | float) -> OpticalSignal:
+    """Add an optical path ``path_m`` (scalar, ``[H, W]`` or ``[F, H, W]``) to every harmonic:
+    ``S_h *= exp(+i 2 pi h f path / c)``."""
+    out = signal.copy()
+    path = np.asarray(path_m, dtype=np.float64)
+    if path.ndim == 3:
+        path = path[:, None]  # [F, 1, H, W]
+    f = signal.freq_hz[:, None, None, None]
+    h = np.asarray(signal.harmonics, dtype=np.float64)[None, :, None, None]
+    out.phasor_w = signal.phasor_w * np.exp(1j * 2.0 * np.pi * h * f * path / C_M_PER_S)
+    return out
+
+
+# =============================================================================================
+# scene stage
+# =============================================================================================
+class PoseEffect(Effect):
+    name = "pose"
+    stage = "scene"
+    doc = ("Small rigid error of the camera pose, in the camera frame: the twin's camera is moved "
+           "by the rotation vector (rx, ry, rz) and the translation (tx, ty, tz): "
+           "pose' = pose @ [R(r) t; 0 1].")
+    params = {
+        "rx": Param(0.0, -0.2, 0.2, "rad", "rotation about the camera x axis (right)"),
+        "ry": Param(0.0, -0.2, 0.2, "rad", "rotation about the camera y axis (down)"),
+        "rz": Param(0.0, -0.2, 0.2, "rad", "rotation about the optical axis"),
+        "tx": Param(0.0, -0.5, 0.5, "m", "translation along camera x"),
+        "ty": Param(0.0, -0.5, 0.5, "m", "translation along camera y"),
+        "tz": Param(0.0, -0.5, 0.5, "m", "translation along the optical axis"),
+    }
+
+    def apply_scene(self, scene: Any, values: Mapping[str, Any]) -> Any:
+        from scipy.spatial.transform import Rotation
+
+        delta = np.eye(4)
+        delta[:3, :3] = Rotation.from_rotvec([values["rx"], values["ry"], values["rz"]]).as_matrix()
+        delta[:3, 3] = [values["tx"], values["ty"], values["tz"]]
+        return dataclasses.replace(scene, camera_pose=np.asarray(scene.camera_pose) @ delta)
+
+
+class LensDistortionEffect(Effect):
+    name = "lens_distortion"
+    stage = "scene"
+    doc = ("Lens distortion the camera model lacks: OpenCV coefficients added to the camera's "
+           "(k1, k2, p1, p2, k3). The renderer's pixel rays follow the distorted model.")
+    params = {
+        "k1": Param(0.0, -1.0, 1.0, "", "radial r^2 coefficient"),
+        "k2": Param(0.0, -1.0, 1.0, "", "radial r^4 coefficient"),
+        "p1": Param(0.0, -0.05, 0.05, "", "tangential coefficient p1"),
+        "p2": Param(0.0, -0.05, 0.05, "", "tangential coefficient p2"),
+        "k3": Param(0.0, -1.0, 1.0, "", "radial r^6 coefficient"),
+    }
+
+    def apply_scene(self, scene: Any, values: Mapping[str, Any]) -> Any:
+        cam = scene.camera
+        dist = tuple(a + float(values[k]) for a, k in zip(cam.dist, ("k1", "k2", "p1", "p2", "k3")))
+        return dataclasses.replace(scene, camera=dataclasses.replace(cam, dist=dist))
+
+
+class ReflectanceEffect(Effect):
+    name = "reflectance"
+    stage = "scene"
+    doc = ("NIR reflectance different from the scene file's: every material's diffuse and glossy "
+           "reflectance (and checker texture values) times `scale`, and per material or per object "
+           "times the factors in `materials: {name: factor}` / `objects: {name: factor}`.")
+    params = {"scale": Param(1.0, 0.0, 20.0, "", "factor on every material's reflectance")}
+    options = {"materials": "mapping material name -> reflectance factor",
+               "objects": "mapping object name -> reflectance factor (the object gets its own material)"}
+
+    def check_options(self, values: dict[str, Any], *, source: str | Path, prefix: str) -> None:
+        for key in ("materials", "objects"):
+            m = values.get(key)
+            if m is None:
+                continue
+            if not isinstance(m, Mapping):
+                raise InputFileError(f"got {m!r}", file=source, field=f"{prefix}.{key}",
+                                     expected="a mapping name -> factor")
+            for name, fac in m.items():
+                if isinstance(fac, bool) or not isinstance(fac, (int, float)) or not 0 <= fac <= 20:
+                    raise InputFileError(f"got {fac!r}", file=source, field=f"{prefix}.{key}.{name}",
+                                         expected="a factor in [0, 20]")
+
+    def is_off(self, values: Mapping[str, Any]) -> bool:
+        factors = list((values.get("materials") or {}).values()) + list((values.get("objects") or {}).values())
+        return float(values.get("scale", 1.0)) == 1.0 and all(f == 1 for f in factors)
+
+    @staticmethod
+    def _scaled(mat: Any, s: float, name: str | None = None) -> Any:
+        tex = mat.texture
+        if tex is not None and tex.kind == "checker":
+            tex = dataclasses.replace(tex, values=tuple(v * s for v in tex.values))
+        return dataclasses.replace(mat, name=name or mat.name, reflectance=mat.reflectance * s,
+                                   glossy_reflectance=mat.glossy_reflectance * s, texture=tex)
+
+    def apply_scene(self, scene: Any, values: Mapping[str, Any]) -> Any:
+        scale = float(values.get("scale", 1.0))
+        per_mat = dict(values.get("materials") or {})
+        per_obj = dict(values.get("objects") or {})
+        for name in per_mat:
+            if name not in scene.materials:
+                raise InputFileError(f"no material {name!r} in the scene", file=scene.source,
+                                     field=f"effects.reflectance.materials.{name}",
+                                     expected="one of " + ", ".join(scene.materials))
+        names = [o.name for o in scene.objects]
+        for name in per_obj:
+            if name not in names:
+                raise InputFileError(f"no object {name!r} in the scene", file=scene.source,
+                                     field=f"effects.reflectance.objects.{name}",
+                                     expected="one of " + ", ".join(names))
+        mats = {k: self._scaled(m, scale * float(per_mat.get(k, 1.0))) for k, m in scene.materials.items()}
+        objects = list(scene.objects)
+        for i, o in enumerate(objects):
+            if o.name in per_obj:
+                own = f"{o.material}@{o.name}"
+                mats[own] = self._scaled(mats[o.material], float(per_obj[o.name]), own)
+                objects[i] = dataclasses.replace(o, material=own)
+        return dataclasses.replace(scene, materials=mats, objects=objects)
+
+
+class AmbientEffect(Effect):
+    name = "ambient"
+    stage = "scene"
+    doc = ("Unmodulated ambient light (sun, lamps) added to the scene's ambient irradiance on every "
+           "surface; it raises the tap offset and the shot noise, not the phase.")
+    params = {"irradiance_w_m2": Param(0.0, 0.0, 2000.0, "W/m^2", "added ambient irradiance (NIR band)",
+                                       default=1.0)}
+
+    def apply_scene(self, scene: Any, values: Mapping[str, Any]) -> Any:
+        return dataclasses.replace(scene, ambient_irradiance_w_m2=scene.ambient_irradiance_w_m2
+                                   + float(values["irradiance_w_m2"]))
+
+
+# =============================================================================================
+# render stage
+# =============================================================================================
+class MultipathEffect(Effect):
+    name = "multipath"
+    stage = "render"
+    doc = ("Scale of the indirect (multi-bounce) light: S = S_direct + scale * S_indirect. 0 = direct "
+           "only, 1 = physical. Needs a render with separate direct/indirect phasors and bounces > 0 "
+           "(`bounces` option; default the scene's render.bounces, at least 2). A scene without this "
+           "effect uses whatever the renderer computed.")
+    params = {"scale": Param(0.0, 0.0, 3.0, "", "factor on the indirect light", default=1.0)}
+    options = {"bounces": "number of indirect bounces to render (integer >= 1)"}
+
+    def check_options(self, values: dict[str, Any], *, source: str | Path, prefix: str) -> None:
+        b = values.get("bounces")
+        if b is not None and (isinstance(b, bool) or not isinstance(b, int) or b < 1):
+            raise InputFileError(f"got {b!r}", file=source, field=f"{prefix}.bounces",
+                                 expected="an integer >= 1")
+
+    def render_requirements(self, values: Mapping[str, Any], scene: Any) -> dict[str, Any]:
+        b = values.get("bounces") or max(2, int((getattr(scene, "render", None) or {}).get("bounces", 0)))
+        return {"separate_direct": True, "bounces": int(b)}
+
+    def apply_render(self, result: Any, values: Mapping[str, Any],
+                     waveform: Mapping[int, complex] | None = None) -> OpticalSignal:
+        return OpticalSignal.from_render(result, waveform, multipath_scale=float(values["scale"]))
+
+
+# =============================================================================================
+# signal stage
+# =============================================================================================
+class StrayLightEffect(Effect):
+    name = "stray_light"
+    stage = "signal"
+    doc = ("Lens scattering: S_meas = (delta + h) * S on every frequency, harmonic and on the "
+           "unmodulated light (sim/straylight.py). h = a Gaussian (weight, sigma_px) + more Gaussians "
+           "+ a uniform veil + a ghost mirrored through the optical centre, or a measured PSF image; "
+           "each weight is the fraction of light it moves.")
+    params = {
+        "weight": Param(0.0, 0.0, 0.5, "", "fraction of light in the main Gaussian lobe", default=0.02),
+        "sigma_px": Param(20.0, 0.3, 1000.0, "px", "sigma of the main lobe (x, and y unless sigma_y_px)"),
+        "veil": Param(0.0, 0.0, 0.5, "", "fraction spread uniformly over the sensor"),
+        "ghost_weight": Param(0.0, 0.0, 0.2, "", "fraction imaged mirrored through the optical centre"),
+        "ghost_sigma_px": Param(2.0, 0.0, 100.0, "px", "blur of the ghost"),
+    }
+    options = {"sigma_y_px": "sigma of the main lobe along y (default sigma_px)",
+               "gaussians": "more lobes: [[weight, sigma_x_px, sigma_y_px], ...]",
+               "ghost_center_px": "[x, y] the ghost mirrors through (default the principal point)",
+               "psf_file": "measured PSF image (.npy/.png/.tif; its peak pixel is the direct light)",
+               "psf_center_px": "[x, y] of the PSF image's direct pixel (default its maximum)",
+               "psf_scale": "factor on the measured PSF's scattered part (default 1)",
+               "conserve": "true: h moves light (energy conserved); false: h adds light"}
+
+    def validate(self, values: Mapping[str, Any] | None, *, source: str | Path = "<effects>",
+                 prefix: str | None = None) -> dict[str, Any]:
+        out = super().validate(values, source=source, prefix=prefix)
+        given = values or {}
+        if "weight" not in given and (given.get("psf_file") or given.get("gaussians")):
+            out["weight"] = 0.0  # a measured PSF or explicit lobes replace the default lobe
+        self.psf(out, source=source, prefix=prefix or "effects.stray_light", check_file=False)
+        return out
+
+    def is_off(self, values: Mapping[str, Any]) -> bool:
+        extra = values.get("gaussians") or values.get("psf_file")
+        return super().is_off(values) and not extra
+
+    @staticmethod
+    def psf(values: Mapping[str, Any], *, source: str | Path = "<effects>", prefix: str = "effects.stray_light",
+            base_dir: Path | None = None, check_file: bool = True) -> StrayLightPSF:
+        p = dict(values)
+        if not check_file:
+            p.pop("psf_file", None)
+        return StrayLightPSF.from_params(p, source=source, prefix=prefix, base_dir=base_dir)
+
+    def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
+        psf = self.psf(values, source=ctx.source, base_dir=ctx.base_dir)
+        if psf.is_identity:
+            return signal
+        op = StrayLightOperator(psf, signal.shape, (ctx.camera.cx, ctx.camera.cy))
+        out = signal.copy()
+        out.phasor_w = op.apply(signal.phasor_w)
+        both = op.apply(np.stack([signal.dc_w, signal.ambient_w]))  # unmodulated light scatters too
+        out.dc_w, out.ambient_w = both[0], both[1]
+        return out
+
+
+class RangeOffsetEffect(Effect):
+    name = "range_offset"
+    stage = "signal"
+    doc = ("A constant optical-path offset (e.g. an electronic delay between the emitter drive and "
+           "the pixel clock): L -> L + path_m on every pixel, so the radial distance reads "
+           "path_m / 2 farther.")
+    params = {"path_m": Param(0.0, -2.0, 2.0, "m", "optical path length added (radial shift = half)")}
+
+    def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
+        return _rotate_phase(signal, float(values["path_m"]))
+
+
+class WigglingEffect(Effect):
+    name = "wiggling"
+    stage = "signal"
+    doc = ("Non-sinusoidal modulation: odd harmonics of the correlation waveform, added to the "
+           "emitter's. With K taps harmonic h aliases onto the fundamental and gives a cyclic distance "
+           "error (K = 4: the 3rd and 5th give 4 cycles per ambiguity range). Harmonics the render did "
+           "not compute are synthesised from the fundamental (exact for single-path pixels).")
+    params = {
+        "h3_amplitude": Param(0.0, 0.0, 0.5, "", "3rd-harmonic correlation amplitude / fundamental's",
+                              default=0.05),
+        "h3_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "3rd-harmonic phase"),
+        "h5_amplitude": Param(0.0, 0.0, 0.5, "", "5th-harmonic correlation amplitude / fundamental's"),
+        "h5_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "5th-harmonic phase"),
+    }
+
+    def is_off(self, values: Mapping[str, Any]) -> bool:
+        return float(values.get("h3_amplitude", 0)) == 0 and float(values.get("h5_amplitude", 0)) == 0
+
+    @staticmethod
+    def harmonics(values: Mapping[str, Any]) -> tuple[int, ...]:
+        return tuple(h for h in (3, 5) if float(values.get(f"h{h}_amplitude", 0.0)) != 0.0)
+
+    def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
+        out = signal.copy()
+        for h in (3, 5):
+            a = float(values[f"h{h}_amplitude"])
+            if a:
+                out.waveform[h] = out.waveform.get(h, 0.0) + a * np.exp(1j * float(values[f"h{h}_phase_rad"]))
+        return out
+
+
+class AmplitudeDependentEffect(Effect):
+    name = "amplitude_dependent"
+    stage = "signal"
+    doc = ("Range error that grows as the signal weakens (pixel nonlinearity and charge-transfer "
+           "lag at low signal): radial error = error_m * exp(-A / amplitude_e), with A the pixel's "
+           "modulation amplitude in electrons per tap at that frequency (needs the sensor block).")
+    params = {
+        "error_m": Param(0.0, -0.5, 0.5, "m", "radial error at zero amplitude", default=0.01),
+        "amplitude_e": Param(1000.0, 1.0, 1.0e6, "e-", "amplitude scale A0 over which the error decays"),
+    }
+
+    def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
+        if ctx.sensor is None:
+            raise ValueError("amplitude_dependent needs the sensor configuration (electrons per watt)")
+        s = ctx.sensor
+        amp_e = (s.tap_fraction * s.modulation_contrast * s.electrons_per_watt
+                 * np.abs(signal.phasor_w[:, signal.harmonics.index(1)]))  # [F, H, W]
+        err = float(values["error_m"]) * np.exp(-amp_e / float(values["amplitude_e"]))
+        return _rotate_phase(signal, 2.0 * err)  # radial error -> optical path
+
+
+# =============================================================================================
+# pixel stage
+# =============================================================================================
+class FixedPatternEffect(Effect):
+    name = "fixed_pattern"
+    stage = "pixel"
+    doc = ("Per-pixel demodulation delay pattern: linear row and column gradients (the modulation "
+           "clock reaching rows/columns at different times) about the image centre, plus a seeded "
+           "random per-pixel part. tau > 0 reads farther by c tau / 2.")
+    params = {
+        "row_delay_s": Param(0.0, -2e-11, 2e-11, "s/row", "delay per row from the image centre"),
+        "col_delay_s": Param(0.0, -2e-11, 2e-11, "s/column", "delay per column from the image centre"),
+        "random_delay_s": Param(0.0, 0.0, 1e-10, "s", "standard deviation of the random per-pixel delay",
+                                default=5e-12),
+    }
+    options = {"seed": "seed of the random part (integer >= 0, default 0)"}
+
+    def check_options(self, values: dict[str, Any], *, source: str | Path, prefix: str) -> None:
+        s = values.get("seed", 0)
+        if isinstance(s, bool) or not isinstance(s, int) or s < 0:
+            raise InputFileError(f"got {s!r}", file=source, field=f"{prefix}.seed", expected="an integer >= 0")
+
+    @staticmethod
+    def delay_s(values: Mapping[str, Any], shape: tuple[int, int]) -> np.ndarray:
+        h, w = shape
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        tau = float(values["row_delay_s"]) * (v - (h - 1) / 2) + float(values["col_delay_s"]) * (u - (w - 1) / 2)
+        sd = float(values["random_delay_s"])
+        if sd:
+            rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(values.get("seed", 0)), 0xF1])))
+            tau = tau + sd * rng.standard_normal(shape)
+        return tau
+
+    def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
+        return _rotate_phase(signal, C_M_PER_S * self.delay_s(values, signal.shape))
+
+
+# =============================================================================================
+# registry and application
+# =============================================================================================
+#: Forward-model order (optics before the pixel; per-pixel effects after the spatial mixing).
+ORDER = ("pose", "lens_distortion", "reflectance", "ambient", "multipath", "stray_light", "range_offset",
+         "fixed_pattern", "amplitude_dependent", "wiggling")
+
+EFFECTS: dict[str, Effect] = {e.name: e for e in (
+    PoseEffect(), LensDistortionEffect(), ReflectanceEffect(), AmbientEffect(), MultipathEffect(),
+    StrayLightEffect(), RangeOffsetEffect(), FixedPatternEffect(), AmplitudeDependentEffect(),
+    WigglingEffect())}
+assert tuple(sorted(EFFECTS)) == tuple(sorted(ORDER))
+
+
+def parse_effects(block: Mapping[str, Any] | None, *, source: str | Path = "<effects>") -> dict[str, dict[str, Any]]:
+    """Validate an ``effects:`` block into ``{name: values}`` in forward-model order.
+
+    ``{name: null}`` or ``{name: {}}`` switches the effect on with its defaults; ``{name:
+    {enabled: false, ...}}`` keeps it off."""
+    block = {} if block is None else block
+    if not isinstance(block, Mapping):
+        raise InputFileError(f"got {block!r}", file=source, field="effects",
+                             expected="a mapping effect name -> parameters")
+    for name in block:
+        if name not in EFFECTS:
+            raise InputFileError(f"unknown effect {name!r}", file=source, field=f"effects.{name}",
+                                 expected="one of " + ", ".join(ORDER))
+    out: dict[str, dict[str, Any]] = {}
+    for name in ORDER:
+        if name not in block:
+            continue
+        raw = dict(block[name] or {})
+        enabled = raw.pop("enabled", True)
+        if not isinstance(enabled, bool):
+            raise InputFileError(f"got {enabled!r}", file=source, field=f"effects.{name}.enabled",
+                                 expected="true or false")
+        if enabled:
+            out[name] = EFFECTS[name].validate(raw, source=source)
+    return out
+
+
+def effects_by_stage(effects: Mapping[str, Mapping[str, Any]], *stages: str) -> list[tuple[Effect, Mapping[str, Any]]]:
+    return [(EFFECTS[n], effects[n]) for n in ORDER if n in effects and EFFECTS[n].stage in stages]
+
+
+def apply_scene_effects(scene: Any, effects: Mapping[str, Mapping[str, Any]]) -> Any:
+    """The Scene with every scene-stage effect applied (a new Scene; the input is unchanged)."""
+    for eff, values in effects_by_stage(effects, "scene"):
+        if not eff.is_off(values):
+            scene = eff.apply_scene(scene, values)
+    return scene
+
+
+def apply_signal_effects(signal: OpticalSignal, effects: Mapping[str, Mapping[str, Any]],
+                         ctx: EffectContext) -> OpticalSignal:
+    """Signal- and pixel-stage effects in forward-model order."""
+    for eff, values in effects_by_stage(effects, "signal", "pixel"):
+        if not eff.is_off(values):
+            signal = eff.apply_signal(signal, values, ctx)
+    return signal
+
+
+def render_requirements(effects: Mapping[str, Mapping[str, Any]], scene: Any) -> dict[str, Any]:
+    """Renderer arguments the effects need (merged)."""
+    req: dict[str, Any] = {}
+    for eff, values in effects_by_stage(effects, "render"):
+        req.update(eff.render_requirements(values, scene))
+    return req
+
+
+def effects_to_block(effects: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Plain (YAML/JSON-safe) form of parsed effects, for embedding in files."""
+    def plain(v: Any) -> Any:
+        if isinstance(v, Mapping):
+            return {str(k): plain(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [plain(x) for x in v]
+        if isinstance(v, (np.floating, np.integer)):
+            return v.item()
+        return v
+
+    return {n: plain(dict(v)) for n, v in effects.items()}
+
+
+def describe_effects() -> list[dict[str, Any]]:
+    """Every effect's name, stage, meaning, parameters (off, bounds, unit) and options."""
+    return [EFFECTS[n].describe() for n in ORDER]
+
