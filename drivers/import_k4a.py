@@ -178,7 +178,14 @@ def intrinsics_from_calibration(calib: dict[str, Any], depth_mode: str, *, sourc
         raise InputFileError(f"has {len(params) if isinstance(params, list) else params!r} values",
                              file=source, field="calibration.json:Cameras[depth].Intrinsics.ModelParameters",
                              expected="14 numbers (cx cy fx fy k1..k6 codx cody p2 p1)")
-    p = dict(zip(PARAM_NAMES, (float(v) for v in params[:14])))
+    try:
+        p = dict(zip(PARAM_NAMES, (float(v) for v in params[:14])))
+    except (TypeError, ValueError):
+        p = {}
+    if len(p) != 14 or not all(math.isfinite(v) for v in p.values()) or p["fx"] <= 0 or p["fy"] <= 0:
+        raise InputFileError(f"has unusable values {params[:14]!r}", file=source,
+                             field="calibration.json:Cameras[depth].Intrinsics.ModelParameters",
+                             expected="14 finite numbers with fx, fy > 0")
     if depth_mode not in DEPTH_MODES:
         raise InputFileError(f"depth mode {depth_mode!r}", file=source, field="K4A_DEPTH_MODE",
                              expected=" | ".join(DEPTH_MODES))

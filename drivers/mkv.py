@@ -185,7 +185,7 @@ class MatroskaFile:
                     return
                 else:
                     self._fail(f"element 0x{eid:X} at byte {pos} declares {size} bytes but only "
-                               f"{end - data_start} remain", f"0x{eid:X}",
+                               f"{max(0, end - data_start)} remain", f"0x{eid:X}",
                                "a complete file (it looks truncated)")
             yield Element(eid, pos, data_start, size)
             pos = data_start + size
