@@ -1,0 +1,111 @@
+"""Reading clouds from PLY, PCD, text, npy and session frames; clear errors otherwise."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tofhil.camera import CameraModel
+from tofhil.errors import InputFileError
+from tofhil.eval.clouds import load_cloud, parse_session_spec
+from tofhil.frames import DepthFrame
+from tofhil.open3d_loader import open3d
+from tofhil.session import SessionWriter
+
+PTS = np.array([[0.1, -0.2, 1.0], [0.5, 0.25, 2.0], [-1.5, 0.0, 3.25], [0.0, 0.0, 0.5]])
+
+
+def _write_o3d(path: Path, pts: np.ndarray, ascii: bool) -> None:
+    o3d = open3d()
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    assert o3d.io.write_point_cloud(str(path), pc, write_ascii=ascii)
+
+
+@pytest.mark.parametrize("name,ascii", [("c.ply", False), ("c.ply", True), ("c.pcd", False), ("c.pcd", True)])
+def test_ply_pcd(tmp_path, name, ascii):
+    p = tmp_path / name
+    _write_o3d(p, PTS, ascii)
+    np.testing.assert_allclose(load_cloud(p), PTS, atol=1e-6)
+
+
+def test_text_formats(tmp_path):
+    (tmp_path / "a.xyz").write_text("# x y z intensity\n" + "\n".join(f"{x} {y} {z} 7" for x, y, z in PTS))
+    (tmp_path / "b.csv").write_text("\n".join(f"{x},{y},{z}" for x, y, z in PTS))
+    np.save(tmp_path / "c.npy", PTS)
+    for name in ("a.xyz", "b.csv", "c.npy"):
+        np.testing.assert_array_equal(load_cloud(tmp_path / name), PTS)
+
+
+def test_non_finite_points_dropped(tmp_path):
+    np.save(tmp_path / "c.npy", np.vstack([PTS, [np.nan, 0, 1], [np.inf, 1, 1]]))
+    assert load_cloud(tmp_path / "c.npy").shape == (4, 3)
+
+
+def test_session_frame(tmp_path):
+    cam = CameraModel.from_fov(8, 6, 60.0)
+    path = tmp_path / "s.h5"
+    d0 = np.full((6, 8), 1.0)
+    d1 = np.full((6, 8), 2.0)
+    d1[0, 0] = 0.0                       # invalid pixel
+    with SessionWriter(path, cam) as w:
+        w.append(depth=DepthFrame(d0, "radial", cam))
+        w.append(depth=DepthFrame(d1, "radial", cam))
+    p0 = load_cloud(path)
+    p1 = load_cloud(f"{path}:1")
+    assert p0.shape == (48, 3) and p1.shape == (47, 3)
+    np.testing.assert_allclose(np.linalg.norm(p0, axis=1), 1.0)      # radial distance 1 m
+    np.testing.assert_allclose(np.linalg.norm(p1, axis=1), 2.0)
+    np.testing.assert_allclose(load_cloud(f"{path}:-1"), p1)
+    with pytest.raises(InputFileError, match="frame 5"):
+        load_cloud(f"{path}:5")
+
+
+def test_session_spec_parsing():
+    assert parse_session_spec("a/b.h5:3") == (Path("a/b.h5"), 3)
+    assert parse_session_spec("b.hdf5") == (Path("b.hdf5"), 0)
+    assert parse_session_spec("b.ply") is None
+
+
+def test_errors_name_the_file(tmp_path):
+    with pytest.raises(InputFileError, match="nope.ply: does not exist"):
+        load_cloud(tmp_path / "nope.ply")
+    with pytest.raises(InputFileError, match="does not exist"):
+        load_cloud(f"{tmp_path / 'nope.h5'}:2")
+    (tmp_path / "e.xyz").write_text("")
+    with pytest.raises(InputFileError, match="e.xyz: is empty"):
+        load_cloud(tmp_path / "e.xyz")
+    (tmp_path / "two.xyz").write_text("1 2\n3 4\n")
+    with pytest.raises(InputFileError, match="2 columns"):
+        load_cloud(tmp_path / "two.xyz")
+    (tmp_path / "words.txt").write_text("a b c\n")
+    with pytest.raises(InputFileError, match="not numeric"):
+        load_cloud(tmp_path / "words.txt")
+    (tmp_path / "bad.pcd").write_text("hello\n")
+    with pytest.raises(InputFileError, match="bad.pcd: field 'header'"):
+        load_cloud(tmp_path / "bad.pcd")
+    (tmp_path / "bad.ply").write_bytes(b"\x00\x01garbage")
+    with pytest.raises(InputFileError, match="not a PLY"):
+        load_cloud(tmp_path / "bad.ply")
+    (tmp_path / "x.obj").write_text("v 0 0 0\n")
+    with pytest.raises(InputFileError, match="unknown extension"):
+        load_cloud(tmp_path / "x.obj")
+    np.save(tmp_path / "nan.npy", np.full((3, 3), np.nan))
+    with pytest.raises(InputFileError, match="no finite points"):
+        load_cloud(tmp_path / "nan.npy")
+    (tmp_path / "empty.pcd").write_text("VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+                                        "WIDTH 0\nHEIGHT 1\nPOINTS 0\nDATA ascii\n")
+    with pytest.raises(InputFileError, match="empty.pcd"):
+        load_cloud(tmp_path / "empty.pcd")
+
+
+def test_session_without_depth(tmp_path):
+    from tofhil.frames import RawFrame
+
+    cam = CameraModel.from_fov(4, 3, 60.0)
+    path = tmp_path / "raw.h5"
+    with SessionWriter(path, cam) as w:
+        w.append(raw=RawFrame(np.ones((1, 4, 3, 4)), np.array([20e6]), np.arange(4) * np.pi / 2, 1e-3, cam))
+    with pytest.raises(InputFileError, match="no depth"):
+        load_cloud(path)
