@@ -51,30 +51,38 @@ REFERENCE_INTEGRATION_TIME_S = 125e-6
 
 # --------------------------------------------------------------------------- sources
 class ImageSource(ABC):
-    """Noise-free canonical taps (DN) of the full 160 x 60 sensor for a configuration."""
+    """Noise-free canonical taps (DN) of the full 160 x 60 sensor.
+
+    Sources render at :data:`REFERENCE_INTEGRATION_TIME_S`, once per modulation frequency
+    (cached); signal, offset and ambient all grow linearly with the exposure, so other
+    integration times are a scale factor, not a new render.
+    """
 
     camera: CameraModel
     description: str = ""
 
     def __init__(self) -> None:
-        self._cache: dict[tuple[float, float], np.ndarray] = {}
+        self._cache: dict[float, np.ndarray] = {}
         self._lock = threading.Lock()
 
     def taps(self, freq_hz: float, integration_time_s: float, theta_rad: np.ndarray) -> np.ndarray:
-        """``[K, H, W]`` float32 taps ``B + A cos(phi - theta_k)``; cached per configuration."""
-        key = (float(freq_hz), float(integration_time_s))
+        """``[K, H, W]`` float32 taps ``B + A cos(phi - theta_k)`` for this exposure."""
+        key = float(freq_hz)
         with self._lock:
-            hit = self._cache.get(key)
-            if hit is None:
-                a, phi, b = self.signal(freq_hz, integration_time_s)
-                hit = taps_from_signal(a, phi, b, theta_rad).astype(np.float32)
-                hit.setflags(write=False)
-                self._cache[key] = hit
-        return hit
+            ref = self._cache.get(key)
+            if ref is None:
+                a, phi, b = self.signal(freq_hz)
+                ref = taps_from_signal(a, phi, b, theta_rad).astype(np.float32)
+                ref.setflags(write=False)
+                self._cache[key] = ref
+        return ref * np.float32(integration_time_s / REFERENCE_INTEGRATION_TIME_S)
 
     @abstractmethod
-    def signal(self, freq_hz: float, integration_time_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Amplitude (DN), phase (rad) and offset (DN) images ``[H, W]``."""
+    def signal(self, freq_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Amplitude (DN), phase (rad) and offset (DN) images ``[H, W]`` at the reference exposure."""
+
+    def noise_model(self) -> "NoiseModel":
+        return NoiseModel()
 
     def scene_text(self) -> str:
         return ""
@@ -92,8 +100,8 @@ class WallSpec:
 
 class AnalyticWall(ImageSource):
     """Closed form: radial distance ``d = z / ray_z``; amplitude ``A = A1 * ray_z / d^2``
-    (inverse square of the emitter/return path times Lambertian cos of incidence), scaled
-    linearly with integration time; phase ``4 pi f d / c``; offset = ambient + A."""
+    (inverse square of the emitter/return path times Lambertian cos of incidence); phase
+    ``4 pi f d / c``; offset = ambient + A."""
 
     def __init__(self, wall: WallSpec | None = None, camera: CameraModel | None = None) -> None:
         super().__init__()
@@ -104,13 +112,15 @@ class AnalyticWall(ImageSource):
     def radial_m(self) -> np.ndarray:
         return self.wall.distance_m / self.camera.ray_z
 
-    def signal(self, freq_hz: float, integration_time_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def amplitude_dn(self, integration_time_s: float = REFERENCE_INTEGRATION_TIME_S) -> np.ndarray:
         d = self.radial_m()
-        scale = integration_time_s / REFERENCE_INTEGRATION_TIME_S
-        a = self.wall.amplitude_at_1m_dn * scale * self.camera.ray_z / d**2
-        phi = distance_to_phase(d, freq_hz)
-        b = self.wall.ambient_dn * scale + a
-        return a, phi, b
+        return (self.wall.amplitude_at_1m_dn * (integration_time_s / REFERENCE_INTEGRATION_TIME_S)
+                * self.camera.ray_z / d**2)
+
+    def signal(self, freq_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        a = self.amplitude_dn()
+        phi = distance_to_phase(self.radial_m(), freq_hz)
+        return a, phi, self.wall.ambient_dn + a
 
     def scene_text(self) -> str:
         w = self.wall
@@ -118,81 +128,85 @@ class AnalyticWall(ImageSource):
                 f"  amplitude_at_1m_dn: {w.amplitude_at_1m_dn}\n  ambient_dn: {w.ambient_dn}\n")
 
 
-#: The emulated camera's hidden truth: imperfections the twin's scene does not model.
-#: Names and parameters follow tofhil.sim.effects; documented in docs/drivers.md.
+#: The emulated camera's hidden truth: imperfections the twin's scene does not model
+#: (tofhil.sim.effects names; documented in docs/drivers.md). Merged over the scene's own
+#: ``effects:`` block.
 HIDDEN_TRUTH_EFFECTS: dict[str, dict[str, Any]] = {
-    "stray_light": {"fraction": 0.03, "sigma_px": 12.0},
-    "wiggling": {"amplitude_m": 0.015, "harmonic": 4},
-    "fixed_pattern": {"offset_sigma_dn": 4.0, "gain_sigma": 0.01, "seed": 635},
+    "stray_light": {"weight": 0.03, "sigma_px": 12.0, "veil": 0.005},
+    "wiggling": {"h3_amplitude": 0.03, "h3_phase_rad": 0.4},
+    "fixed_pattern": {"row_delay_s": 2e-12, "col_delay_s": -1e-12, "random_delay_s": 5e-12, "seed": 635},
+}
+
+#: What makes the scene's camera a TOFcam635 (ASSUMED where the data sheet is silent): the
+#: epc635 preset, its four 90-degree DCS, an LED illumination brighter than a lab LED ring,
+#: a DN scale that puts a white wall at 1 m near 10 % of the 12-bit DCS range at 125 us, and
+#: a 16-bit single-ended ADC so that only the device's 12-bit differential DCS clip.
+TOFCAM635_OVERRIDES: dict[str, Any] = {
+    "camera": {"preset": "epc635"},
+    "emitter": {"power_w": 2.0},
+    "sensor": {"taps": 4, "theta_deg": [0, 90, 180, 270], "integration_time_s": REFERENCE_INTEGRATION_TIME_S,
+               "conversion_gain_dn_per_e": 0.15, "adc_bits": 16, "full_well_e": 1_000_000},
 }
 
 
 class SimulatedSource(ImageSource):
     """Frames rendered by the simulator twin from a scene file, through the hidden-truth model.
 
-    The twin renders once per (frequency, integration time) with noise off and the
-    hidden-truth effects on; the emulator adds per-frame noise. The rendered taps are
-    re-expressed at the device's tap phases through the complex signal (``phasor``), so the
-    source does not depend on the phases the scene's sensor uses.
+    The scene is loaded with :data:`TOFCAM635_OVERRIDES` (the emulated device is a
+    TOFcam635 whatever camera the scene names) and rendered once per modulation frequency
+    with noise off and the hidden-truth effects on; the emulator adds per-frame noise with
+    the scene sensor's read noise and conversion gain. Rendered taps are re-expressed at the
+    device's tap phases through the complex signal (``phasor``).
     """
 
     def __init__(self, scene_path: str | Path, effects: dict[str, dict[str, Any]] | None = None,
                  seed: int = 635) -> None:
         super().__init__()
         try:
-            from tofhil.sim.pipeline import simulate  # noqa: F401
+            from tofhil.sim.pipeline import resolve_effects  # noqa: F401
             from tofhil.sim.scene import load_scene
         except ImportError as exc:
             raise DeviceError(f"the simulator twin is not available ({exc})", field="--scene",
                               expected="tofhil.sim.pipeline") from None
         self.scene_path = str(scene_path)
-        self.scene = load_scene(scene_path)
-        self.effects = HIDDEN_TRUTH_EFFECTS if effects is None else effects
+        self.scene = load_scene(scene_path, overrides=TOFCAM635_OVERRIDES)
+        self.hidden = HIDDEN_TRUTH_EFFECTS if effects is None else effects
         self.seed = seed
-        self.camera = self.scene.camera if hasattr(self.scene, "camera") else load_camera_preset("epc635")
+        self.camera = self.scene.camera
         if self.camera.shape != (P.SENSOR_HEIGHT, P.SENSOR_WIDTH):
             raise InputFileError(f"camera is {self.camera.width}x{self.camera.height}", file=scene_path,
                                  field="camera", expected=f"{P.SENSOR_WIDTH}x{P.SENSOR_HEIGHT} (preset epc635)")
         self.description = f"simulated scene {self.scene_path}"
+        self.meta: dict[str, Any] = {}
 
-    def signal(self, freq_hz: float, integration_time_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def effects(self) -> dict[str, dict[str, Any]]:
+        from tofhil.sim.pipeline import resolve_effects
+
+        known = resolve_effects(self.scene, None)  # what the twin's scene itself models
+        return resolve_effects(self.scene, {**known, **self.hidden})
+
+    def signal(self, freq_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        import dataclasses
+
         from tofhil.sim.pipeline import simulate
 
-        frames = simulate(self.scene, 1, self.seed, noise=False, effects=self.effects,
-                          **_sim_overrides(simulate, freq_hz, integration_time_s))
-        raw = frames[0]
-        f_idx = int(np.argmin(np.abs(np.asarray(raw.freq_hz) - freq_hz)))
-        taps = np.asarray(raw.taps[f_idx], dtype=np.float64)
+        scene = self.scene
+        if hasattr(scene, "sensor") and isinstance(scene.sensor, dict):
+            scene = dataclasses.replace(scene, sensor={**scene.sensor, "freq_hz": [float(freq_hz)]})
+        raw = simulate(scene, 1, self.seed, noise=False, effects=self.effects())[0]
+        self.meta = dict(raw.meta)
+        taps = np.asarray(raw.taps[0], dtype=np.float64) - float(raw.meta.get("black_level_dn", 0.0))
         s = phasor(taps, raw.theta_rad)
-        b = taps.mean(axis=0)
-        scale = 1.0
-        if not math.isclose(raw.integration_time_s, integration_time_s, rel_tol=1e-6) and raw.integration_time_s > 0:
-            scale = integration_time_s / raw.integration_time_s  # signal and offset grow with exposure
-        phi = wrapped_phase(s)
-        if not math.isclose(float(raw.freq_hz[f_idx]), freq_hz, rel_tol=1e-6):
-            # the scene was rendered at another frequency: carry the path length, not the phase
-            phi = np.mod(phi * freq_hz / float(raw.freq_hz[f_idx]), 2 * np.pi)
-        return np.abs(s) * scale, phi, b * scale
+        scale = REFERENCE_INTEGRATION_TIME_S / raw.integration_time_s if raw.integration_time_s > 0 else 1.0
+        return np.abs(s) * scale, wrapped_phase(s), taps.mean(axis=0) * scale
+
+    def noise_model(self) -> "NoiseModel":
+        sensor = getattr(self.scene, "sensor", None) or {}
+        gain = float(sensor.get("conversion_gain_dn_per_e", 0.15))
+        return NoiseModel(read_noise_dn=float(sensor.get("read_noise_e", 20.0)) * gain, electrons_per_dn=1.0 / gain)
 
     def scene_text(self) -> str:
-        try:
-            return Path(self.scene_path).read_text()
-        except OSError:
-            return f"# scene {self.scene_path}\n"
-
-
-def _sim_overrides(simulate: Any, freq_hz: float, integration_time_s: float) -> dict[str, Any]:
-    """Pass the frequency / integration time to ``simulate`` when it accepts them."""
-    import inspect
-
-    params = inspect.signature(simulate).parameters
-    out: dict[str, Any] = {}
-    for name in ("freq_hz", "frequencies_hz"):
-        if name in params:
-            out[name] = [freq_hz]
-    if "integration_time_s" in params:
-        out["integration_time_s"] = integration_time_s
-    return out
+        return getattr(self.scene, "text", "") or ""
 
 
 def default_source() -> ImageSource:
@@ -201,11 +215,8 @@ def default_source() -> ImageSource:
         from tofhil.sim.scene import bundled_scenes
 
         if "bench_demo" in bundled_scenes():
-            from tofhil.sim.scene import scenes_dir
-
-            path = next(p for p in scenes_dir().glob("bench_demo.*"))
-            return SimulatedSource(path)
-    except (ImportError, StopIteration, DeviceError):
+            return SimulatedSource("bench_demo")
+    except (ImportError, DeviceError):
         pass
     return AnalyticWall()
 
@@ -308,7 +319,7 @@ class Epc635Emulator:
                  frame_interval_s: float = 0.0) -> None:
         self.source = source or AnalyticWall()
         self.profile = profile
-        self.noise = NoiseModel() if noise is None else noise
+        self.noise = self.source.noise_model() if noise is None else noise
         self.faults = faults or FaultPlan()
         self.rng = np.random.default_rng(seed)
         self.frame_interval_s = frame_interval_s

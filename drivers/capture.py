@@ -1,0 +1,84 @@
+"""Capture frames from any driver into a session file, frame by frame.
+
+Every frame that arrives whole is appended (and made durable) before the next is requested;
+corrupt frames are dropped by the driver and only counted; a lost device is retried with
+backoff by the driver and, if it stays away, the session ends cleanly with every completed
+frame saved. A capture killed outright (SIGKILL) loses at most the frame in flight (the
+session writer raises ``n_frames`` only after a frame's data is flushed); SIGINT/SIGTERM
+end it cleanly.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+from tofhil.drivers.base import CaptureSettings, DeviceDisconnected, Driver, Frame
+from tofhil.errors import DeviceError, InputFileError
+from tofhil.session import SessionWriter
+
+
+@dataclass
+class CaptureSummary:
+    """What a capture achieved, for the CLI summary and for tests."""
+
+    path: str
+    requested: int
+    frames_written: int
+    dropped: int
+    reconnects: int
+    elapsed_s: float
+    #: None when all requested frames were written; otherwise why the session ended early.
+    ended_early: str | None = None
+
+    @property
+    def frames_per_s(self) -> float:
+        return self.frames_written / self.elapsed_s if self.elapsed_s > 0 else float("nan")
+
+    def to_dict(self) -> dict[str, object]:
+        return asdict(self) | {"frames_per_s": self.frames_per_s}
+
+
+def capture(driver: Driver, out_path: str | Path, n_frames: int, settings: CaptureSettings, *,
+            force: bool = False, scene_text: str = "",
+            on_frame: Callable[[Frame], None] | None = None) -> CaptureSummary:
+    """Configure an opened ``driver``, stream ``n_frames`` good frames into ``out_path``.
+
+    ``on_frame`` is called after each frame is safely written (progress bars).
+    """
+    if n_frames < 1:
+        raise DeviceError(f"--frames {n_frames}", field="--frames", expected="a positive number of frames")
+    if settings.mode == "grayscale":
+        raise DeviceError("grayscale frames have no place in a session file", field="--mode",
+                          expected="dcs or distance")
+    out_path = Path(out_path)
+    if out_path.exists() and not force:  # fail before touching the device, not after the first frame
+        raise InputFileError("already exists; refusing to overwrite recorded data (use --force to replace it)",
+                             file=out_path)
+    driver.configure(settings)
+    device = driver.info().to_dict() | {"settings": settings.to_dict(), "spec": driver.spec}
+    start = time.monotonic()
+    ended: str | None = None
+    writer: SessionWriter | None = None
+    try:
+        for frame in driver.stream(n_frames):
+            if writer is None:  # the first frame's header tells the true image size (ROI)
+                part = frame.raw if frame.raw is not None else frame.depth
+                assert part is not None
+                writer = SessionWriter(out_path, part.camera, device=device, scene_text=scene_text, force=force)
+            writer.append(raw=frame.raw, depth=frame.depth)
+            if on_frame is not None:
+                on_frame(frame)
+    except DeviceDisconnected as exc:
+        ended = f"device lost: {exc}"
+    except KeyboardInterrupt:
+        ended = "interrupted"
+    finally:
+        written = writer.n_frames if writer is not None else 0
+        if writer is not None:
+            writer.close()
+    return CaptureSummary(path=str(out_path), requested=n_frames, frames_written=written,
+                          dropped=driver.stats.dropped, reconnects=driver.stats.reconnects,
+                          elapsed_s=time.monotonic() - start, ended_early=ended)

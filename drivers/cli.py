@@ -1,0 +1,136 @@
+"""CLI commands of the drivers: ``tofhil devices``, ``tofhil capture``, ``tofhil emulate``."""
+
+from __future__ import annotations
+
+import signal
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from tofhil.cli import app, console, out
+from tofhil.errors import DeviceError
+
+
+def _parse_roi(text: str | None) -> tuple[int, int, int, int] | None:
+    if text is None:
+        return None
+    try:
+        x0, y0, x1, y1 = (int(v) for v in text.split(","))
+    except ValueError:
+        raise DeviceError(f"--roi {text!r}", field="--roi", expected="X0,Y0,X1,Y1 (inclusive pixels)") from None
+    return x0, y0, x1, y1
+
+
+def _sigterm_as_interrupt() -> None:
+    """SIGTERM ends a capture like Ctrl-C: the session is closed with every frame saved."""
+    def handler(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+    signal.signal(signal.SIGTERM, handler)
+
+
+@app.command()
+def devices(as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table.")) -> None:
+    """List connected cameras and emulated devices (specs for --device)."""
+    import json
+
+    from tofhil.drivers.base import list_devices, registered_schemes
+
+    entries = list_devices()
+    if as_json:
+        out.print_json(json.dumps([{"spec": e.spec, "kind": e.kind, "description": e.description}
+                                   for e in entries]))
+        return
+    for e in entries:
+        out.print(f"{e.spec:28s} {e.kind:10s} {e.description}", highlight=False)
+    connected = [e for e in entries if e.kind == "connected" and not e.description.startswith("USB unavailable")]
+    if not connected:
+        out.print("(no camera connected)")
+    out.print("schemes: " + ", ".join(sorted(registered_schemes())), highlight=False)
+
+
+@app.command()
+def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], usb, usb:BUS:ADDR, serial:PORT, ..."),
+            frames: int = typer.Option(10, "--frames", help="Number of good frames to write."),
+            out_path: Path = typer.Option(..., "--out", help="Session file to write (.h5)."),
+            integration_time_us: Optional[float] = typer.Option(None, "--integration-time-us",
+                                                                help="Integration time in microseconds."),
+            mod_freq_hz: Optional[float] = typer.Option(None, "--mod-freq-hz", help="Modulation frequency in Hz."),
+            mode: str = typer.Option("dcs", "--mode", help="dcs (raw taps) or distance (depth + amplitude)."),
+            channel: Optional[int] = typer.Option(None, "--channel", help="Modulation channel (0..15)."),
+            min_amplitude: Optional[float] = typer.Option(None, "--min-amplitude", help="Minimum amplitude (DN)."),
+            roi: Optional[str] = typer.Option(None, "--roi", help="X0,Y0,X1,Y1 inclusive sensor pixels."),
+            faults: Optional[str] = typer.Option(None, "--faults",
+                                                 help="Emulator only: inject faults, e.g. crc@3,disconnect@6."),
+            force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
+    """Capture frames from a device into a session file (progress bar, summary at the end)."""
+    from tofhil.cli import progress
+    from tofhil.drivers.base import CaptureSettings, create_driver
+    from tofhil.drivers.capture import capture as run_capture
+
+    if mode not in ("dcs", "distance"):
+        raise DeviceError(f"--mode {mode!r}", field="--mode", expected="dcs or distance")
+    settings = CaptureSettings(mode=mode, mod_freq_hz=mod_freq_hz, channel=channel, min_amplitude=min_amplitude,
+                               integration_time_s=None if integration_time_us is None else integration_time_us * 1e-6,
+                               roi=_parse_roi(roi))
+    driver = create_driver(device)
+    scene_text = ""
+    emulator = getattr(driver, "emulator", None)
+    if faults:
+        if emulator is None:
+            raise DeviceError("faults can only be injected into the emulator", field="--faults",
+                              expected="--device emulator[:SCENE]")
+        from tofhil.drivers.emulator import FaultPlan
+
+        emulator.faults = FaultPlan.parse(faults)
+    if emulator is not None:
+        scene_text = emulator.source.scene_text()
+    _sigterm_as_interrupt()
+    with driver:
+        ticks = iter(range(frames))
+        bar = progress(ticks, frames, f"capturing {device}")
+        summary = run_capture(driver, out_path, frames, settings, force=force, scene_text=scene_text,
+                              on_frame=lambda _f: next(bar, None))
+        if summary.frames_written == frames:
+            next(bar, None)  # the bar advances on the next request: complete it
+        bar.close()
+    out.print(f"frames written {summary.frames_written}/{summary.requested}, dropped {summary.dropped}, "
+              f"reconnects {summary.reconnects}, {summary.frames_per_s:.1f} frames/s -> {summary.path}",
+              highlight=False)
+    if summary.ended_early:
+        console.print(f"session ended early: {summary.ended_early}", highlight=False)
+        sys.exit(130 if summary.ended_early == "interrupted" else 3)
+
+
+@app.command()
+def emulate(scene: Optional[str] = typer.Option(None, "--scene", help="Scene file/name, or wall:METRES "
+                                                "(default: bundled bench_demo, else a wall at 1 m)."),
+            pty: bool = typer.Option(False, "--pty", help="Serve on a pseudo-terminal (prints PORT=... first)."),
+            faults: Optional[str] = typer.Option(None, "--faults", help="Inject faults, e.g. crc@3,timeout=0.05."),
+            seed: int = typer.Option(0, "--seed", help="Noise seed."),
+            frame_rate: float = typer.Option(0.0, "--frame-rate", help="Limit frames/s (0: as fast as possible).")) -> None:
+    """Run the TOFcam635 emulator until stopped (Ctrl-C or SIGTERM)."""
+    from tofhil.drivers.emulator import Epc635Emulator, FaultPlan, source_from_spec
+    from tofhil.drivers.pty_server import PtyServer
+
+    if not pty:
+        raise DeviceError("only the pseudo-terminal transport can be served from the command line",
+                          field="--pty", expected="--pty (in-process use: --device emulator)")
+    emulator = Epc635Emulator(source_from_spec(scene), faults=FaultPlan.parse(faults) if faults else None,
+                              seed=seed, frame_interval_s=1.0 / frame_rate if frame_rate > 0 else 0.0)
+    # Render the default configuration now, so the first client request is answered in time.
+    emulator.device_dcs()
+    _sigterm_as_interrupt()
+    server = PtyServer(emulator).start()
+    print(f"PORT={server.port}", flush=True)
+    console.print(f"emulating TOFcam635 ({emulator.source.description}) on {server.port}; Ctrl-C to stop",
+                  highlight=False)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
+    if server.error is not None:
+        raise DeviceError(f"pty server failed: {server.error}", field="--pty")
