@@ -1,0 +1,73 @@
+"""``tofhil ndt``: JSON keys, session-frame input, exit code 2 on bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tofhil.camera import CameraModel
+from tofhil.cli import main
+from tofhil.eval.clouds import load_cloud
+from tofhil.eval.ndt import ndt_score
+from tofhil.frames import DepthFrame
+from tofhil.session import SessionWriter
+
+DATA = Path(__file__).resolve().parent / "data" / "pcl"
+
+
+def run(capsys, *args: str) -> tuple[int, str, str]:
+    with pytest.raises(SystemExit) as exc:
+        main(list(args))
+    cap = capsys.readouterr()
+    return int(exc.value.code or 0), cap.out, cap.err
+
+
+def test_json_output(capsys):
+    ref, cloud = DATA / "ref.pcd", DATA / "cloud.pcd"
+    code, out, _ = run(capsys, "ndt", str(ref), str(cloud), "--cell-size", "0.5", "--threshold", "0.2",
+                       "--threshold", "0.6", "--json")
+    assert code == 0
+    d = json.loads(out)
+    assert {"score_per_point", "nvtl", "mean_likelihood", "mean_likelihood_trilinear",
+            "fraction_above", "cells"} <= set(d)
+    assert set(d["fraction_above"]) == {"0.2", "0.6"}
+    s = ndt_score(load_cloud(ref), load_cloud(cloud), cell_size=0.5, thresholds=(0.2, 0.6))
+    assert d["score_per_point"] == pytest.approx(s.score_per_point, rel=1e-12)
+    assert d["cells"] == 62           # PCL 1.13 counts 62 voxels here (tests/data/pcl)
+    assert d["fraction_above"]["0.2"] >= d["fraction_above"]["0.6"]
+
+
+def test_session_frames_and_text(tmp_path, capsys):
+    cam = CameraModel.from_fov(40, 30, 60.0)
+    path = tmp_path / "s.h5"
+    with SessionWriter(path, cam) as w:
+        w.append(depth=DepthFrame(np.full((30, 40), 1.0), "z", cam))
+        w.append(depth=DepthFrame(np.full((30, 40), 1.05), "z", cam))
+    np.savetxt(tmp_path / "same.xyz", load_cloud(f"{path}:0"))
+    code, out, _ = run(capsys, "ndt", f"{path}:0", str(tmp_path / "same.xyz"), "--cell-size", "0.1", "--json")
+    same = json.loads(out)
+    code2, out2, _ = run(capsys, "ndt", f"{path}:0", f"{path}:1", "--cell-size", "0.1", "--json")
+    moved = json.loads(out2)
+    assert code == code2 == 0
+    # A flat wall scored against itself vs 5 cm behind it (normal std floored at 10 % of in-plane).
+    assert same["mean_likelihood"] > 0.2 and moved["mean_likelihood"] < 0.01
+    code3, out3, _ = run(capsys, "ndt", f"{path}:0", f"{path}:1", "--cell-size", "0.1")
+    assert code3 == 0 and "NVTL" in out3
+
+
+@pytest.mark.parametrize("args,msg", [
+    (["missing.pcd", "{cloud}"], "missing.pcd: does not exist"),
+    (["{ref}", "{cloud}", "--cell-size", "-1"], "--cell-size"),
+    (["{ref}", "{cloud}", "--outlier-ratio", "1.5"], "--outlier-ratio"),
+    (["{ref}", "{cloud}", "--threshold", "2"], "--threshold"),
+    (["{ref}", "{cloud}", "--cell-size", "0.01"], "no NDT cell"),
+])
+def test_bad_input_exits_2(capsys, args, msg):
+    a = [x.format(ref=DATA / "ref.pcd", cloud=DATA / "cloud.pcd") for x in args]
+    code, _, err = run(capsys, "ndt", *a)
+    assert code == 2
+    assert msg in err.replace("\n", "")
+    assert "Traceback" not in err
