@@ -331,8 +331,9 @@ class StrayLightEffect(Effect):
                  prefix: str | None = None) -> dict[str, Any]:
         out = super().validate(values, source=source, prefix=prefix)
         given = values or {}
-        if "weight" not in given and (given.get("psf_file") or given.get("gaussians")):
-            out["weight"] = 0.0  # a measured PSF or explicit lobes replace the default lobe
+        components = ("veil", "ghost_weight", "gaussians", "psf_file")
+        if "weight" not in given and any(given.get(c) for c in components):
+            out["weight"] = 0.0  # the default lobe only stands in when no component is named
         self.psf(out, source=source, prefix=prefix or "effects.stray_light", check_file=False)
         return out
 
@@ -366,7 +367,8 @@ class RangeOffsetEffect(Effect):
     doc = ("A constant optical-path offset (e.g. an electronic delay between the emitter drive and "
            "the pixel clock): L -> L + path_m on every pixel, so the radial distance reads "
            "path_m / 2 farther.")
-    params = {"path_m": Param(0.0, -2.0, 2.0, "m", "optical path length added (radial shift = half)")}
+    params = {"path_m": Param(0.0, -2.0, 2.0, "m", "optical path length added (radial shift = half)",
+                              default=0.02)}
 
     def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
         return _rotate_phase(signal, float(values["path_m"]))
