@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -102,10 +103,18 @@ class _Context:
 
     def __init__(self, scene: Scene, camera: CameraModel, freq_hz: np.ndarray, harmonics: tuple[int, ...],
                  spp: int, bounces: int, seed: int, separate: bool, transient_edges: np.ndarray | None,
-                 subpixel: bool) -> None:
+                 subpixel: bool, sampler: str) -> None:
         self.scene, self.camera = scene, camera
         self.geom = scene_geometry(scene)
         self.spp, self.bounces, self.seed = spp, bounces, seed
+        self.sampler = sampler
+        self.dims = 4 + 2 * bounces
+        if sampler == "sobol" and spp > 1:
+            from scipy.stats import qmc
+
+            with warnings.catch_warnings():       # balance is best for 2^m points; any n is valid
+                warnings.simplefilter("ignore")
+                self.sobol = qmc.Sobol(self.dims, scramble=True, seed=seed).random(spp)
         self.separate = separate
         self.subpixel = subpixel and spp > 1
         self.thin_lens = scene.thin_lens
@@ -190,17 +199,29 @@ class _Context:
             radiance[lit] = self.brdf(obj[lit], rho[lit], n[lit], wi[lit], wo[lit]) * irr[lit]
         return radiance, r1
 
+    def uniforms(self, rng: np.random.Generator, npix: int) -> np.ndarray:
+        """Per-sample uniforms in [0, 1)^D for ``npix`` pixels x ``spp`` samples.
+
+        ``random``: independent uniforms (plain Monte Carlo, error ~ 1/sqrt(spp)).
+        ``sobol``: the same scrambled Sobol' points in every pixel, shifted by a random vector
+        per pixel (Cranley-Patterson rotation): unbiased per pixel, and the error of smooth
+        integrands falls faster than 1/sqrt(spp).
+        """
+        if self.sampler == "random" or self.spp == 1:
+            return rng.random((npix * self.spp, self.dims))
+        shift = rng.random((npix, 1, self.dims))
+        return np.mod(self.sobol[None, :, :] + shift, 1.0).reshape(-1, self.dims)
+
     # ------------------------------------------------------------------ one chunk
     def run_chunk(self, chunk: int, p0: int, p1: int) -> dict[str, np.ndarray]:
         rng = np.random.default_rng([self.seed, chunk])
         npix = p1 - p0
         spp = self.spp
         pix = np.repeat(np.arange(p0, p1), spp)
-        u0 = (pix % self.W).astype(np.float64)
-        v0 = (pix // self.W).astype(np.float64)
+        U = self.uniforms(rng, npix)          # [samples, D]: subpixel, lens, 2 per bounce
         if self.subpixel:
-            uu = u0 + rng.random(len(pix)) - 0.5
-            vv = v0 + rng.random(len(pix)) - 0.5
+            uu = (pix % self.W) + U[:, 0] - 0.5
+            vv = (pix // self.W) + U[:, 1] - 0.5
             d_cam = self.camera.pixel_rays(uu, vv)
         else:
             d_cam = np.repeat(self.centre_rays[p0:p1], spp, axis=0)
@@ -210,8 +231,8 @@ class _Context:
             # Sample the aperture disk; every ray through the same pixel position meets the
             # pinhole ray on the focal plane. The lens makes optical paths to the focus point
             # equal, so L_cam = |F| + (t - |F - a|).
-            r = self.aperture_radius_m * np.sqrt(rng.random(len(pix)))
-            phi = 2 * np.pi * rng.random(len(pix))
+            r = self.aperture_radius_m * np.sqrt(U[:, 2])
+            phi = 2 * np.pi * U[:, 3]
             a = np.stack([r * np.cos(phi), r * np.sin(phi), np.zeros_like(r)], axis=1)
             focus = d_cam * (self.focus_m / d_cam[:, 2])[:, None]
             to_f = focus - a
@@ -265,6 +286,7 @@ class _Context:
         out["object_id"] = oid.astype(np.int32)
 
         local = (pix - p0)[hit]
+        sid = np.flatnonzero(hit)             # row of each live path in U
         beta = beta[hit]
         path = path0[hit] + t[hit]
         x = origins[hit] + t[hit, None] * dirs[hit]
@@ -292,7 +314,7 @@ class _Context:
             if bounce == self.bounces:
                 break
             # Cosine-weighted bounce: throughput f_r * pi.
-            wi = _cosine_sample(n, rng)
+            wi = _cosine_sample(n, U[sid, 4 + 2 * bounce], U[sid, 5 + 2 * bounce])
             ok = np.einsum("ij,ij->i", wi, ng) > 0
             beta = beta * self.brdf(obj, rho, n, wi, wo) * np.pi
             ok &= beta > 0
@@ -301,6 +323,7 @@ class _Context:
             t2, p2, uv2 = self.geom.intersect(o2, d2)
             h2 = p2 >= 0
             local = local[ok][h2]
+            sid = sid[ok][h2]
             beta = beta[ok][h2]
             path = path[ok][h2] + t2[h2]
             x = o2[h2] + t2[h2, None] * d2[h2]
@@ -313,10 +336,8 @@ class _Context:
         return out
 
 
-def _cosine_sample(n: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Cosine-weighted directions about unit normals ``n`` [N, 3] (pdf cos/pi)."""
-    m = len(n)
-    r1, r2 = rng.random(m), rng.random(m)
+def _cosine_sample(n: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
+    """Cosine-weighted directions about unit normals ``n`` [N, 3] (pdf cos/pi) from uniforms."""
     r = np.sqrt(r1)
     phi = 2 * np.pi * r2
     lx, ly, lz = r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(0.0, 1 - r1))
@@ -354,7 +375,8 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
            harmonics: Sequence[int] = (1,), samples_per_pixel: int | None = None,
            bounces: int | None = None, seed: int | None = None, separate_direct: bool = False,
            transient_bins: int | Sequence[float] | None = None, camera: CameraModel | None = None,
-           progress: bool = False, threads: int | None = None, subpixel: bool | None = None) -> RenderResult:
+           progress: bool = False, threads: int | None = None, subpixel: bool | None = None,
+           sampler: str | None = None) -> RenderResult:
     """Render the scene's emitter light as per-pixel phasors (see the module docstring).
 
     ``freq_hz`` defaults to the scene's sensor frequencies; ``samples_per_pixel``,
@@ -372,13 +394,16 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     nb = int(_render_setting(scene, "bounces", bounces, 0))
     sub = bool(_render_setting(scene, "subpixel", subpixel, True))
     seed = int(_render_setting(scene, "seed", seed, 0))
+    smp = str(_render_setting(scene, "sampler", sampler, "sobol"))
+    if smp not in ("sobol", "random"):
+        raise TofhilError(f"got {smp!r}", field="sampler", expected="'sobol' or 'random'")
     if spp < 1:
         raise TofhilError(f"got {spp}", field="samples_per_pixel", expected="an integer >= 1")
     if nb < 0:
         raise TofhilError(f"got {nb}", field="bounces", expected="an integer >= 0")
     geom = scene_geometry(scene)
     edges = None if transient_bins is None else _transient_edges(scene, geom, transient_bins, nb)
-    ctx = _Context(scene, cam, freq, harm, spp, nb, seed, separate_direct, edges, sub)
+    ctx = _Context(scene, cam, freq, harm, spp, nb, seed, separate_direct, edges, sub, smp)
     H, W = cam.shape
     npix_total = H * W
     per_chunk = max(1, BATCH // spp)

@@ -667,7 +667,7 @@ class _Validator:
 
     def render(self, r: Any) -> dict[str, Any]:
         r = self.mapping(r, "render")
-        allowed = {"samples_per_pixel": 1, "bounces": 0, "seed": 0, "subpixel": True}
+        allowed = {"samples_per_pixel": 1, "bounces": 0, "seed": 0, "subpixel": True, "sampler": "sobol"}
         for k in r:
             if k not in allowed:
                 raise self.err(f"unknown key {k!r}", f"render.{k}", "one of " + ", ".join(sorted(allowed)))
@@ -680,6 +680,8 @@ class _Validator:
             out["seed"] = self.integer(r["seed"], "render.seed", lo=0)
         if "subpixel" in r and not isinstance(r["subpixel"], bool):
             raise self.err(f"got {r['subpixel']!r}", "render.subpixel", "true or false")
+        if "sampler" in r and r["sampler"] not in ("sobol", "random"):
+            raise self.err(f"got {r['sampler']!r}", "render.sampler", "'sobol' or 'random'")
         return out
 
     def objects(self, objs: Any, materials: dict[str, Material]) -> list[SceneObject]:
