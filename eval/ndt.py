@@ -95,7 +95,8 @@ class NDTGrid:
     _order: np.ndarray = field(repr=False)     # cell number of each sorted key
     _table: np.ndarray | None = field(repr=False, default=None)   # flat dense lookup table or None
     _lo_span: np.ndarray | None = field(repr=False, default=None)  # table origin and extent [6]
-    _icov6: np.ndarray | None = field(repr=False, default=None)    # [M, 6] xx yy zz 2xy 2xz 2yz
+    _icov6_t: np.ndarray | None = field(repr=False, default=None)  # [6, M] xx yy zz 2xy 2xz 2yz
+    _means_t: np.ndarray | None = field(repr=False, default=None)  # [3, M]
 
     @property
     def cells(self) -> int:
@@ -155,7 +156,7 @@ class NDTGrid:
                 lo = np.concatenate([lo, span])
         icov6 = icovs[:, [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]] * np.array([1, 1, 1, 2, 2, 2.0])
         return cls(float(cell_size), int(min_points), float(eig_floor), cell_ijk, counts, means, covs, icovs,
-                   keys, order, table, lo, np.ascontiguousarray(icov6))
+                   keys, order, table, lo, np.ascontiguousarray(icov6.T), np.ascontiguousarray(means.T))
 
     def lookup(self, ijk: np.ndarray) -> np.ndarray:
         """Cell numbers of integer cell indices ``[N, 3]``; -1 where no distribution."""
@@ -212,17 +213,34 @@ def _unpack(keys: np.ndarray) -> np.ndarray:
     return np.stack([(keys >> (2 * _KEY_BITS)) & mask, (keys >> _KEY_BITS) & mask, keys & mask], 1) - _KEY_OFFSET
 
 
-def _quad(icov6: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """``q^T C^-1 q`` from the 6 packed inverse-covariance terms (faster than einsum)."""
-    x, y, z = q[:, 0], q[:, 1], q[:, 2]
-    a = icov6
-    return (a[:, 0] * x * x + a[:, 1] * y * y + a[:, 2] * z * z
-            + a[:, 3] * x * y + a[:, 4] * x * z + a[:, 5] * y * z)
+def _quad(grid: NDTGrid, xyz: tuple[np.ndarray, np.ndarray, np.ndarray], cells: np.ndarray
+          ) -> np.ndarray:
+    """``q^T C^-1 q`` with ``q = p - mean`` for matched (point, cell) rows.
+
+    Works on coordinate columns and row-major per-term cell arrays so every gather is a
+    contiguous 1-D take (several times faster than a batched einsum over [n, 3, 3]).
+    """
+    m = grid._means_t[:, cells]
+    a = grid._icov6_t[:, cells]
+    dx = xyz[0] - m[0]
+    dy = xyz[1] - m[1]
+    dz = xyz[2] - m[2]
+    out = a[0] * dx * dx
+    out += a[1] * dy * dy
+    out += a[2] * dz * dz
+    out += a[3] * dx * dy
+    out += a[4] * dx * dz
+    out += a[5] * dy * dz
+    return out
 
 
-def _mahalanobis2(grid: NDTGrid, points: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """``q^T C^-1 q`` with ``q = p - mean`` for matched (point, cell) rows."""
-    return _quad(grid._icov6[cells], points - grid.means[cells])
+def _columns(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return np.ascontiguousarray(p[:, 0]), np.ascontiguousarray(p[:, 1]), np.ascontiguousarray(p[:, 2])
+
+
+def _take(cols: tuple[np.ndarray, np.ndarray, np.ndarray], sel: np.ndarray
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return cols[0][sel], cols[1][sel], cols[2][sel]
 
 
 def cell_likelihood(grid: NDTGrid, points: np.ndarray) -> np.ndarray:
@@ -231,7 +249,7 @@ def cell_likelihood(grid: NDTGrid, points: np.ndarray) -> np.ndarray:
     cells = grid.lookup(grid.cell_of(p))
     out = np.zeros(p.shape[0])
     sel = np.flatnonzero(cells >= 0)
-    out[sel] = np.exp(-0.5 * _mahalanobis2(grid, p[sel], cells[sel]))
+    out[sel] = np.exp(-0.5 * _quad(grid, _take(_columns(p), sel), cells[sel]))
     return out
 
 
@@ -241,28 +259,44 @@ def trilinear_weights(points: np.ndarray, cell_size: float) -> tuple[np.ndarray,
     Returns ``(ijk [N, 8, 3], weights [N, 8])``; the weights of a point sum to 1, a point at
     a cell centre gives that cell weight 1, a point halfway between two centres 0.5 each.
     """
-    u = np.asarray(points, dtype=np.float64) / cell_size - 0.5   # in units of centre spacing
-    base = np.floor(u)
-    f = u - base
-    ijk = base.astype(np.int64)[:, None, :] + _CORNERS8[None, :, :]
-    w = np.where(_CORNERS8[None, :, :] == 1, f[:, None, :], 1.0 - f[:, None, :]).prod(axis=2)
+    base, f = _trilinear_base(np.asarray(points, dtype=np.float64), cell_size)
+    ijk = base[:, None, :] + _CORNERS8[None, :, :]
+    w = np.stack([_corner_weight(f, c) for c in _CORNERS8], axis=1)
     return ijk, w
+
+
+def _trilinear_base(p: np.ndarray, cell_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """Lowest of the 8 surrounding cells and the fractional position between centres."""
+    u = p / cell_size - 0.5          # in units of centre spacing, centres at integers
+    base = np.floor(u)
+    return base.astype(np.int64), u - base
+
+
+def _corner_weight(f: np.ndarray, corner: np.ndarray) -> np.ndarray:
+    w = f[:, 0] if corner[0] else 1.0 - f[:, 0]
+    w = w * (f[:, 1] if corner[1] else 1.0 - f[:, 1])
+    return w * (f[:, 2] if corner[2] else 1.0 - f[:, 2])
 
 
 def trilinear_likelihood(grid: NDTGrid, points: np.ndarray) -> np.ndarray:
     """Trilinearly interpolated NDT likelihood: ``sum_k w_k exp(-q_k^T C_k^-1 q_k / 2)``.
 
-    Each of the 8 surrounding cells evaluates its own Gaussian at the point; cells without
-    a distribution contribute 0.
+    Each of the 8 cells whose centres surround the point evaluates its own Gaussian at the
+    point, weighted by the trilinear weight of the point relative to those centres; cells
+    without a distribution contribute 0.
     """
     p = _as_points(points)
-    ijk, w = trilinear_weights(p, grid.cell_size)
+    base, f = _trilinear_base(p, grid.cell_size)
+    cols = _columns(p)
     out = np.zeros(p.shape[0])
-    nb = _Neighbours(grid, ijk[:, 0, :])
-    for c in range(8):
-        cells = nb.at(_CORNERS8[c])
+    nb = _Neighbours(grid, base)
+    for corner in _CORNERS8:
+        cells = nb.at(corner)
         sel = np.flatnonzero(cells >= 0)
-        out[sel] += w[sel, c] * np.exp(-0.5 * _mahalanobis2(grid, p[sel], cells[sel]))
+        if sel.size == 0:
+            continue
+        w = _corner_weight(f[sel], corner)
+        out[sel] += w * np.exp(-0.5 * _quad(grid, _take(cols, sel), cells[sel]))
     return out
 
 
@@ -291,6 +325,7 @@ def pcl_point_scores(grid: NDTGrid, points: np.ndarray, outlier_ratio: float = 0
     best = np.zeros(p.shape[0])
     has = np.zeros(p.shape[0], dtype=bool)
     nb = _Neighbours(grid, base)
+    cols = _columns(p)
     for off in _OFFSETS27:
         cells = nb.at(off)
         reach = cells >= 0
@@ -300,10 +335,11 @@ def pcl_point_scores(grid: NDTGrid, points: np.ndarray, outlier_ratio: float = 0
         if sel.size == 0:
             continue
         c = cells[sel]
-        q = p[sel] - grid.means[c]
-        near = np.einsum("ni,ni->n", q, q) <= r2
-        sel, q, c = sel[near], q[near], c[near]
-        e = np.exp(-0.5 * d2 * _quad(grid._icov6[c], q))
+        xyz = _take(cols, sel)
+        m = grid._means_t[:, c]
+        near = (xyz[0] - m[0]) ** 2 + (xyz[1] - m[1]) ** 2 + (xyz[2] - m[2]) ** 2 <= r2
+        sel, c = sel[near], c[near]
+        e = np.exp(-0.5 * d2 * _quad(grid, _take(cols, sel), c))
         term = np.where((d2 * e <= 1.0) & (d2 * e >= 0.0), -d1 * e, 0.0)
         total[sel] += term
         best[sel] = np.maximum(best[sel], term)
