@@ -80,8 +80,21 @@ def read_adi_pair(depth_path: str | Path, ir_path: str | Path, width: int = ADI_
 _DEPTH_NAME = re.compile(r"^(?P<pre>.*_)depth(?P<post>.*)\.bin$", re.IGNORECASE)
 
 
+_IR_NAME = re.compile(r"^(?P<pre>.*_)(ir|ab)(?P<post>.*)\.bin$", re.IGNORECASE)
+
+
 def is_depth_name(path: str | Path) -> bool:
     return _DEPTH_NAME.match(Path(path).name) is not None
+
+
+def partner_depth_path(ir_path: str | Path) -> Path | None:
+    """``near_plane_ir.bin`` -> ``near_plane_depth.bin`` when that file exists, else None."""
+    p = Path(ir_path)
+    m = _IR_NAME.match(p.name)
+    if m is None:
+        return None
+    cand = p.with_name(f"{m['pre']}depth{m['post']}.bin")
+    return cand if cand.is_file() else None
 
 
 def partner_ir_path(depth_path: str | Path) -> Path:

@@ -66,7 +66,7 @@ def detect_format(path: str | Path) -> str:
     size = p.stat().st_size
     frame = import_adi.ADI_WIDTH * import_adi.ADI_HEIGHT
     if p.suffix.lower() == ".bin":
-        if import_adi.is_depth_name(p):
+        if import_adi.is_depth_name(p) or import_adi.partner_depth_path(p) is not None:
             return "adi-pair"
         if size > 0 and size % (frame * import_adi.INTERLEAVED_BYTES_PER_PIXEL) == 0:
             return "adi-interleaved"
@@ -180,6 +180,10 @@ def import_file(path: str | Path, out: str | Path, *, camera: str | Path | Camer
         if fmt == "adi-interleaved":
             frames = import_adi.read_adi_interleaved(src)
         else:
+            depth_src = import_adi.partner_depth_path(src) if not import_adi.is_depth_name(src) else None
+            if depth_src is not None:  # the IR image was named: import its pair
+                src = depth_src
+                device["source_file"], device["source_sha256"] = str(src.resolve()), _sha256(src)
             ir = import_adi.partner_ir_path(src)
             frames = [import_adi.read_adi_pair(src, ir)]
             device["source_ir_file"] = str(ir.resolve())
