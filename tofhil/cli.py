@@ -122,4 +122,8 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    # Run as ``python -m tofhil.cli``: this module is ``__main__``, while command modules
+    # register on ``tofhil.cli.app``; call the canonical module so they are all there.
+    from tofhil.cli import main as _main
+
+    _main()
