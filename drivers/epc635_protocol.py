@@ -234,15 +234,26 @@ class PacketParser:
 
     ``feed`` bytes as they arrive and call :meth:`next_packet`. Garbage before a start
     byte is skipped (counted in ``skipped_bytes``); a packet with a bad CRC is dropped
-    (``crc_errors``) and parsing resumes at the byte after its start byte, so a spurious
-    0xFA inside a corrupted packet cannot swallow the packets that follow it for long.
+    (``crc_errors``) and parsing resumes at the byte after its start byte.
+
+    A stray 0xFA in garbage announces a random length and would make the parser wait for
+    bytes that never come. :meth:`expect` narrows what a start byte may announce (the reply
+    types and the largest payload the host is waiting for), which rejects almost every
+    false start at once; :meth:`salvage` (after a timeout) looks past a false start for a
+    complete packet with a valid CRC further on.
     """
 
     def __init__(self, max_payload: int = MAX_PAYLOAD) -> None:
         self._buf = bytearray()
         self.max_payload = max_payload
+        self.types: frozenset[int] | None = None
         self.skipped_bytes = 0
         self.crc_errors = 0
+
+    def expect(self, types: set[int] | frozenset[int] | None, max_payload: int = MAX_PAYLOAD) -> None:
+        """Accept only packets of ``types`` (None: any) with at most ``max_payload`` bytes."""
+        self.types = None if types is None else frozenset(int(t) for t in types)
+        self.max_payload = max_payload
 
     def feed(self, data: bytes) -> None:
         self._buf += data
@@ -252,13 +263,17 @@ class PacketParser:
         """Bytes received but not yet consumed."""
         return len(self._buf)
 
-    def needed(self) -> int:
-        """Bytes still missing to complete the packet at the head of the buffer (>= 1)."""
-        buf = self._buf
-        if len(buf) < 4 or buf[0] != START_DATA:
-            return max(1, 4 - len(buf))
-        (length,) = struct.unpack_from("<H", buf, 2)
-        return max(1, length + PACKET_OVERHEAD - len(buf))
+    def _plausible(self, buf: bytearray | memoryview, at: int) -> int | None:
+        """Total size of the packet a start byte at ``at`` announces, None if implausible."""
+        dtype = buf[at + 1]
+        (length,) = struct.unpack_from("<H", buf, at + 2)
+        if length > self.max_payload or (self.types is not None and dtype not in self.types):
+            return None
+        return length + PACKET_OVERHEAD
+
+    def _valid_at(self, buf: bytearray, at: int, total: int) -> bool:
+        (crc,) = struct.unpack_from("<I", buf, at + total - 4)
+        return crc == crc32(memoryview(buf)[at: at + total - 4])
 
     def next_packet(self) -> Packet | None:
         """The next valid packet, or None when more bytes are needed."""
@@ -274,21 +289,32 @@ class PacketParser:
                 del buf[:start]
             if len(buf) < 4:
                 return None
-            (length,) = struct.unpack_from("<H", buf, 2)
-            if length > self.max_payload:
+            total = self._plausible(buf, 0)
+            if total is None:
                 self._drop_start()
                 continue
-            total = length + PACKET_OVERHEAD
             if len(buf) < total:
                 return None
-            (crc,) = struct.unpack_from("<I", buf, total - 4)
-            if crc != crc32(memoryview(buf)[: total - 4]):
+            if not self._valid_at(buf, 0, total):
                 self.crc_errors += 1
                 self._drop_start()
                 continue
             pkt = Packet(buf[1], bytes(buf[4: total - 4]))
             del buf[:total]
             return pkt
+
+    def salvage(self) -> Packet | None:
+        """After a timeout: if the head is a false start, find a valid packet behind it."""
+        buf = self._buf
+        at = buf.find(START_DATA, 1)
+        while at >= 0 and at + 4 <= len(buf):
+            total = self._plausible(buf, at)
+            if total is not None and at + total <= len(buf) and self._valid_at(buf, at, total):
+                self.skipped_bytes += at
+                del buf[:at]
+                return self.next_packet()
+            at = buf.find(START_DATA, at + 1)
+        return None
 
     def _drop_start(self) -> None:
         self.skipped_bytes += 1

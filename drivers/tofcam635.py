@@ -453,6 +453,10 @@ class TofCam635(Driver):
                 return pkt
             remaining = deadline - time.monotonic()
             if remaining <= 0:
+                pkt = self._parser.salvage()  # a false start byte may hide a complete reply
+                if pkt is not None:
+                    self._silent = 0
+                    return pkt
                 partial = self._parser.pending
                 self._parser.discard()
                 if got_any or partial:
@@ -482,6 +486,7 @@ class TofCam635(Driver):
     def _exchange(self, cmd: int, params: bytes | list[int], want: int, retries: int = 2) -> P.Packet:
         """Send a command and return its reply of type ``want``; retried on a garbled reply."""
         last: Exception | None = None
+        self._parser.expect({want, P.DataType.NACK, P.DataType.ERROR}, 64)
         for _ in range(retries + 1):
             self._send(cmd, params)
             try:
@@ -511,6 +516,9 @@ class TofCam635(Driver):
         self._require_open()
         dtype, _ = P.IMAGE_REPLY[P.Cmd(cmd)]
         asm = P.ImageAssembler(dtype)
+        largest = P.DCS_MAX_PACKET_PAYLOAD if dtype == P.DataType.DCS else \
+            P.HEADER_SIZE + 4 * P.SENSOR_WIDTH * P.SENSOR_HEIGHT
+        self._parser.expect({dtype, P.DataType.NACK, P.DataType.ERROR}, largest)
         self._send(cmd, [0])  # 0 = single measurement
         deadline = time.monotonic() + self.reply_timeout_s
         try:
