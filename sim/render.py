@@ -154,7 +154,11 @@ class _Context:
                 continue
             xl = x[m] @ self.inv_pose[i][:3, :3].T + self.inv_pose[i][:3, 3]
             if tex.kind == "checker":
-                cell = np.floor(xl / tex.size_m).astype(np.int64).sum(axis=1)
+                # Boundaries at multiples of size_m in local x, y and half-way between them in
+                # z, so a plane (local z = 0) sits mid-cell instead of on a rounding edge.
+                q = xl / tex.size_m
+                q[:, 2] += 0.5
+                cell = np.floor(q).astype(np.int64).sum(axis=1)
                 rho[m] = np.where(cell % 2 == 0, tex.values[0], tex.values[1])
             else:
                 lo, hi = self.geom.local_bounds[i]

@@ -106,7 +106,9 @@ class Texture:
     """Albedo texture: a procedural checkerboard or an image (multiplies the reflectance).
 
     ``checker``: solid 3-D checkerboard in the object's local frame with cells of ``size_m``
-    alternating between ``values[0]`` and ``values[1]`` (absolute diffuse reflectances).
+    alternating between ``values[0]`` and ``values[1]`` (absolute diffuse reflectances); cell
+    boundaries at multiples of ``size_m`` in local x and y and half a cell off in z (so a
+    plane's surface, local z = 0, is mid-cell); the cell containing the origin has ``values[0]``.
     ``image``: grey values in [0, 1] spanning the object's local x-y bounding box (image
     columns along +x, rows along +y), multiplied by the material's reflectance.
     """
