@@ -135,3 +135,20 @@ def test_tof_config_carries_the_settings():
                                   "enable_optical_correction": True}).to_tof_config()
     assert cfg.phaseUnwrappingLevel == 2 and cfg.enableOpticalCorrection
     assert cfg.median == dai.MedianFilter.KERNEL_5x5
+
+
+def test_tofhil_capture_writes_a_session_from_the_host_pipeline(tmp_path):
+    import subprocess
+    import sys
+
+    out = tmp_path / "cap.h5"
+    run = lambda *a: subprocess.run([sys.executable, "-m", "tofhil.cli", "capture", *a],  # noqa: E731
+                                    capture_output=True, text=True, timeout=120)
+    r = run("--device", "depthai-sim:2.0", "--frames", "3", "--out", str(out), "--mode", "distance")
+    assert r.returncode == 0, r.stderr
+    with open_session(out) as s:
+        assert s.n_frames == 3 and s.has_depth and s.device["driver"] == "depthai"
+        d = s.depth_frame(0)
+        np.testing.assert_allclose(d.z_m[d.valid], 2.0, atol=0.6e-3)
+    r = run("--device", "depthai-sim", "--frames", "1", "--out", str(tmp_path / "x.h5"), "--mode", "dcs")
+    assert r.returncode == 2 and "distance" in r.stderr and "Traceback" not in r.stderr
