@@ -293,6 +293,7 @@ def host_source_class() -> Any:
         def run(self) -> None:
             seq = 0
             period = 1.0 / self.scene.fps
+            t_next = time.monotonic()
             while self.isRunning() and (self.scene.n_frames is None or seq < self.scene.n_frames):
                 t_s = 10.0 + seq * period  # device clock: starts at 10 s, ticks at the frame rate
                 for name in self.wanted:
@@ -303,7 +304,8 @@ def host_source_class() -> Any:
                     self.outs[name].send(self._message(name, seq, t_s))
                 seq += 1
                 self.sent = seq
-                time.sleep(period)  # the device frame rate
+                t_next += period  # a fixed frame clock, like the sensor's
+                time.sleep(max(0.0, t_next - time.monotonic()))
             self.done.set()
 
     _HOST_SOURCE_CLASS = HostToFSource
