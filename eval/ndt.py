@@ -448,7 +448,7 @@ def d2d_score(grid_a: NDTGrid, grid_b: NDTGrid, outlier_ratio: float = 0.55) -> 
     mean (the neighbourhood PCL uses for points); a pair adds
     ``-d1 * exp(-d2/2 * mu^T (C_a + C_b)^-1 mu)`` with ``mu = mean_b - mean_a``
     (Stoyanov et al., "Fast and accurate scan registration through minimization of the
-    distance between compact 3D NDT representations", IJRR 2012, eq. 9), ``d1, d2`` from
+    distance between compact 3D NDT representations", IJRR 2012), ``d1, d2`` from
     A's cell size and the outlier ratio.
     """
     d1, d2 = gauss_params(grid_a.cell_size, outlier_ratio)
