@@ -42,11 +42,12 @@ class CaptureSummary:
 
 
 def capture(driver: Driver, out_path: str | Path, n_frames: int, settings: CaptureSettings, *,
-            force: bool = False, scene_text: str = "",
+            force: bool = False, scene_text: str = "", timeout_s: float = 2.0,
             on_frame: Callable[[Frame], None] | None = None) -> CaptureSummary:
     """Configure an opened ``driver``, stream ``n_frames`` good frames into ``out_path``.
 
-    ``on_frame`` is called after each frame is safely written (progress bars).
+    ``on_frame`` is called after each frame is safely written (progress bars); ``timeout_s``
+    bounds the wait for one frame's reply (a frame that misses it is dropped).
     """
     if n_frames < 1:
         raise DeviceError(f"--frames {n_frames}", field="--frames", expected="a positive number of frames")
@@ -63,7 +64,7 @@ def capture(driver: Driver, out_path: str | Path, n_frames: int, settings: Captu
     ended: str | None = None
     writer: SessionWriter | None = None
     try:
-        for frame in driver.stream(n_frames):
+        for frame in driver.stream(n_frames, timeout_s=timeout_s):
             if writer is None:  # the first frame's header tells the true image size (ROI)
                 part = frame.raw if frame.raw is not None else frame.depth
                 assert part is not None
