@@ -136,12 +136,16 @@ class ToFSettings:
 def decode_imgframe(msg: Any, name: str) -> np.ndarray:
     """An ``ImgFrame`` -> ``[H, W]`` array (uint8/uint16, or float32 for float images).
 
-    Reads the raw bytes with the frame's stride, so padded rows decode correctly.
+    Reads the raw bytes with the frame's stride, so padded rows decode correctly. A ``raw``
+    output in a packed format is returned as its bytes (1-D uint8), undecoded.
     """
     dai = _dai()
     t = msg.getType()
     dtypes = {dai.ImgFrame.Type.RAW16: "<u2", dai.ImgFrame.Type.RAW8: "u1", dai.ImgFrame.Type.GRAY8: "u1",
               dai.ImgFrame.Type.GRAYF16: "<f2", dai.ImgFrame.Type.RAW32: "<f4"}
+    if t not in dtypes and name == "raw":
+        # Raw sensor frames come in device-specific packings (RAW10/PACK...): keep the bytes.
+        return np.asarray(msg.getData(), dtype=np.uint8).copy()
     if t not in dtypes:
         raise FrameDropped(f"{name} frame has type {t.name}", field=name,
                            expected="RAW16, RAW8, GRAY8, GRAYF16 or RAW32 (float)")
