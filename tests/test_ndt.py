@@ -286,3 +286,17 @@ def test_real_tof_frame_self_consistency():
     assert s.fraction_above[0.1] > 0.3
     assert moved.score_per_point < 0.6 * s.score_per_point
     assert moved.nvtl < s.nvtl and moved.mean_likelihood_trilinear < s.mean_likelihood_trilinear
+
+
+def test_fused_pass_equals_separate_functions():
+    rng = np.random.default_rng(12)
+    ref = rng.normal(size=(20000, 3)) * [1.0, 0.8, 0.3]
+    cloud = rng.normal(size=(5000, 3)) * [1.1, 0.9, 0.35]
+    g = NDTGrid.from_points(ref, 0.4)
+    s = ndt_score(g, cloud, outlier_ratio=0.4)
+    np.testing.assert_allclose(s.likelihood, cell_likelihood(g, cloud), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(s.likelihood_trilinear, trilinear_likelihood(g, cloud), rtol=0, atol=1e-12)
+    total, best, has = pcl_point_scores(g, cloud, 0.4)
+    np.testing.assert_allclose(s.point_score, total, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(s.nearest_score, best, rtol=0, atol=1e-12)
+    assert s.likelihood_trilinear.max() > 0.5 and s.likelihood.max() > 0.5
