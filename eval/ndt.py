@@ -440,7 +440,9 @@ def ndt_score(reference: NDTGrid | Any, points: Any, cell_size: float | None = N
     ``reference`` is an :class:`NDTGrid` (then ``cell_size`` must be None or equal to its
     cell size) or an [M, 3] array from which a grid is built with ``cell_size``,
     ``min_points`` and ``eig_floor``. ``thresholds`` are likelihood levels in (0, 1] for
-    ``fraction_above`` (on the trilinear likelihood).
+    ``fraction_above`` (on the trilinear likelihood). Non-finite points are ignored by
+    the scores; the per-point arrays keep the input's rows (NaN for those points), so
+    they can be written back into an image as likelihood maps.
     """
     if isinstance(reference, NDTGrid):
         grid = reference
@@ -452,19 +454,33 @@ def ndt_score(reference: NDTGrid | Any, points: Any, cell_size: float | None = N
             raise TofhilError("is required when the reference is a point array", field="cell_size",
                               expected="a positive length in metres")
         grid = NDTGrid.from_points(reference, cell_size, min_points=min_points, eig_floor=eig_floor)
-    p = _as_points(points)
+    raw = np.asarray(points, dtype=np.float64)
+    if raw.ndim != 2 or raw.shape[1] != 3:
+        raise TofhilError(f"has shape {raw.shape}", field="points", expected="an N x 3 array of points")
+    finite = np.all(np.isfinite(raw), axis=1)
+    p = raw[finite]
     d1, d2 = gauss_params(grid.cell_size, outlier_ratio)
     n = p.shape[0]
     lik, tri, total, best, has = _all_point_terms(grid, p, outlier_ratio)
     n_has = int(has.sum())
     frac = {float(t): (float(np.mean(tri > t)) if n else 0.0) for t in thresholds}
+
+    def aligned(x: np.ndarray) -> np.ndarray:
+        # Per-point arrays follow the input rows (for likelihood maps); NaN for non-finite points.
+        if n == raw.shape[0]:
+            return x
+        full = np.full(raw.shape[0], np.nan)
+        full[finite] = x
+        return full
+
     return NDTScore(score_per_point=float(total.sum() / n) if n else 0.0,
                     nvtl=float(best[has].sum() / n_has) if n_has else 0.0,
                     mean_likelihood=float(lik.mean()) if n else 0.0,
                     mean_likelihood_trilinear=float(tri.mean()) if n else 0.0,
                     fraction_above=frac, cells=grid.cells, n_points=n, cell_size=grid.cell_size,
-                    outlier_ratio=float(outlier_ratio), d1=d1, d2=d2, likelihood=lik,
-                    likelihood_trilinear=tri, point_score=total, nearest_score=best)
+                    outlier_ratio=float(outlier_ratio), d1=d1, d2=d2, likelihood=aligned(lik),
+                    likelihood_trilinear=aligned(tri), point_score=aligned(total),
+                    nearest_score=aligned(best))
 
 
 def multi_resolution(reference: Any, points: Any, cell_sizes: Iterable[float] = (0.05, 0.1, 0.2, 0.4),

@@ -300,3 +300,16 @@ def test_fused_pass_equals_separate_functions():
     np.testing.assert_allclose(s.point_score, total, rtol=0, atol=1e-12)
     np.testing.assert_allclose(s.nearest_score, best, rtol=0, atol=1e-12)
     assert s.likelihood_trilinear.max() > 0.5 and s.likelihood.max() > 0.5
+
+
+def test_per_point_arrays_follow_input_rows():
+    rng = np.random.default_rng(13)
+    ref = rng.normal(size=(5000, 3))
+    cloud = ref[:100].copy()
+    cloud[[3, 50]] = np.nan
+    s = ndt_score(ref, cloud, cell_size=0.5)
+    clean = ndt_score(ref, cloud[np.isfinite(cloud).all(1)], cell_size=0.5)
+    assert s.likelihood.shape == (100,) and s.n_points == 98
+    assert np.isnan(s.likelihood_trilinear[[3, 50]]).all()
+    np.testing.assert_array_equal(np.delete(s.likelihood_trilinear, [3, 50]), clean.likelihood_trilinear)
+    assert s.to_dict() == clean.to_dict()
