@@ -24,32 +24,63 @@ RAY_EPSILON_M = 1e-5
 BATCH = 1 << 16
 
 
-def object_trimesh(obj: SceneObject):
-    """The object's triangle mesh in its LOCAL frame and whether it is smooth-shaded."""
-    import trimesh
+_BOX_FACES = np.array([[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6],      # -z, +z
+                       [0, 1, 4], [1, 5, 4], [2, 6, 3], [3, 6, 7],      # -y, +y
+                       [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]])     # -x, +x
 
+
+def object_mesh(obj: SceneObject) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The object's triangles in its LOCAL frame: vertices [n, 3], faces [m, 3] and, for
+    smooth-shaded objects (spheres), unit vertex normals [n, 3] (None: flat facets).
+
+    Planes and boxes are built here (no trimesh import on the common bench scenes).
+    """
     if obj.type == "plane":
         w, h = obj.params["size"]
         verts = np.array([[-w / 2, -h / 2, 0], [w / 2, -h / 2, 0], [w / 2, h / 2, 0], [-w / 2, h / 2, 0]])
-        mesh = trimesh.Trimesh(verts, np.array([[0, 1, 2], [0, 2, 3]]), process=False)
-        smooth = False
-    elif obj.type == "box":
-        mesh = trimesh.creation.box(extents=obj.params["size"])
-        smooth = False
-    elif obj.type == "sphere":
-        mesh = trimesh.creation.icosphere(subdivisions=obj.params["subdivisions"],
-                                          radius=obj.params["radius"])
-        smooth = True
-    elif obj.type == "cylinder":
+        return verts, np.array([[0, 1, 2], [0, 2, 3]]), None
+    if obj.type == "box":
+        half = np.asarray(obj.params["size"], dtype=np.float64) / 2
+        corners = np.array([[x, y, z] for z in (-1, 1) for y in (-1, 1) for x in (-1, 1)], dtype=np.float64)
+        return corners * half, _BOX_FACES.copy(), None
+    import trimesh
+
+    if obj.type == "sphere":
+        mesh = trimesh.creation.icosphere(subdivisions=obj.params["subdivisions"], radius=obj.params["radius"])
+        v = np.asarray(mesh.vertices, dtype=np.float64)
+        return v, np.asarray(mesh.faces), v / np.linalg.norm(v, axis=1, keepdims=True)
+    if obj.type == "cylinder":
+        # Flat facets: caps and side share vertices, smoothing would bend the caps.
         mesh = trimesh.creation.cylinder(radius=obj.params["radius"], height=obj.params["height"],
                                          sections=obj.params["sections"])
-        smooth = False  # caps and side share vertices; flat facets keep the caps exact
-    else:
-        mesh = obj.mesh.copy()
-        scale = np.asarray(obj.params.get("scale", 1.0), dtype=np.float64)
-        mesh.apply_transform(np.diag(np.append(np.broadcast_to(scale, 3), 1.0)))
-        smooth = False
-    return mesh, smooth
+        return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces), None
+    scale = np.broadcast_to(np.asarray(obj.params.get("scale", 1.0), dtype=np.float64), 3)
+    return np.asarray(obj.mesh.vertices, dtype=np.float64) * scale, np.asarray(obj.mesh.faces), None
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot product of [N, 3] arrays."""
+    return np.einsum("ij,ij->i", a, b)
+
+
+@dataclass
+class Hits:
+    """Closest hits of a ray batch, compacted to the rays that hit something."""
+
+    index: np.ndarray | None    # which rays hit (None: all of them)
+    t: np.ndarray               # [M] float64 distance along the ray
+    prim: np.ndarray            # [M] global triangle index
+    ng: np.ndarray              # [M, 3] unit geometric normal (as wound, not yet faced)
+    uv: np.ndarray | None       # [M, 2] barycentrics, for smooth shading only
+    n_rays: int
+
+    def full(self, values: np.ndarray, fill: float | int) -> np.ndarray:
+        """Scatter per-hit ``values`` back to all rays (``fill`` for misses)."""
+        if self.index is None:
+            return values
+        out = np.full(self.n_rays, fill, dtype=np.asarray(values).dtype)
+        out[self.index] = values
+        return out
 
 
 @dataclass
@@ -59,6 +90,7 @@ class Geometry:
     embree: object
     v0: np.ndarray          # [T, 3] float64 first vertex per triangle
     normal: np.ndarray      # [T, 3] float64 unit geometric normal
+    plane_c: np.ndarray     # [T] float64 plane offset: normal . x = plane_c on the triangle
     vnormal: np.ndarray | None   # [T, 3, 3] vertex normals for smooth shading, or None
     tri_object: np.ndarray  # [T] int32 object index
     n_triangles: int
@@ -75,21 +107,21 @@ class Geometry:
         offset = 0
         bounds = []
         for i, obj in enumerate(scene.objects):
-            mesh, smooth = object_trimesh(obj)
-            bounds.append(np.asarray(mesh.bounds, dtype=np.float64))
-            mesh = mesh.copy()
-            mesh.apply_transform(obj.pose)
-            v = np.asarray(mesh.vertices, dtype=np.float64)
-            fc = np.asarray(mesh.faces, dtype=np.int64)
+            v_local, fc, vn_local = object_mesh(obj)
+            fc = np.asarray(fc, dtype=np.int64)
+            bounds.append(np.stack([v_local.min(axis=0), v_local.max(axis=0)]))
+            rot, trans = obj.pose[:3, :3], obj.pose[:3, 3]
+            v = v_local @ rot.T + trans
             verts.append(v)
             faces.append(fc + offset)
             offset += len(v)
             objs.append(np.full(len(fc), i, dtype=np.int32))
-            fn = np.asarray(mesh.face_normals, dtype=np.float64)
-            if smooth:
+            if vn_local is not None:
                 any_smooth = True
-                vnorms.append(np.asarray(mesh.vertex_normals, dtype=np.float64)[fc])
+                vnorms.append((vn_local @ rot.T)[fc])
             else:
+                fn = np.cross(v[fc[:, 1]] - v[fc[:, 0]], v[fc[:, 2]] - v[fc[:, 0]])
+                fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
                 vnorms.append(np.repeat(fn[:, None, :], 3, axis=1))
         V = np.concatenate(verts)
         F = np.concatenate(faces)
@@ -102,32 +134,42 @@ class Geometry:
         vnormal = np.concatenate(vnorms)[keep] if any_smooth else None
         es = rtcs.EmbreeScene()
         TriangleMesh(es, V.astype(np.float32), F.astype(np.int32))
-        return cls(embree=es, v0=np.ascontiguousarray(tri[:, 0]), normal=n / norm, vnormal=vnormal,
+        normal = n / norm
+        return cls(embree=es, v0=np.ascontiguousarray(tri[:, 0]), normal=normal,
+                   plane_c=_dot(tri[:, 0], normal), vnormal=vnormal,
                    tri_object=tri_object, n_triangles=len(F), local_bounds=bounds,
                    world_bounds=np.stack([V.min(axis=0), V.max(axis=0)]))
 
     # ------------------------------------------------------------------ queries
-    def intersect(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Closest hits: (t float64 [N] (inf = miss), triangle index [N] (-1 = miss), barycentric uv [N, 2]).
+    def intersect(self, origins: np.ndarray, dirs: np.ndarray) -> "Hits":
+        """Closest hits of rays ``origins`` ([N, 3], or one shared point [3]) + t ``dirs`` [N, 3].
 
-        ``t`` is re-computed in float64 against the hit triangle's plane.
+        ``t`` is re-computed in float64 against the hit triangle's plane (exact for planar
+        geometry; Embree's float32 value is kept where the ray grazes the plane).
         """
-        r = self.embree.run(np.ascontiguousarray(origins, dtype=np.float32),
+        n_rays = len(dirs)
+        shared = origins.ndim == 1
+        o32 = np.broadcast_to(origins.astype(np.float32), (n_rays, 3)) if shared else origins
+        r = self.embree.run(np.ascontiguousarray(o32, dtype=np.float32),
                             np.ascontiguousarray(dirs, dtype=np.float32), output=1)
-        prim = r["primID"].astype(np.int64)
+        prim = r["primID"]
         hit = prim >= 0
-        t = np.full(len(prim), np.inf)
-        p = prim[hit]
+        index = None if hit.all() else np.flatnonzero(hit)
+        sel = (lambda a: a) if index is None else (lambda a: a[index])
+        p = sel(prim).astype(np.intp)
         n = self.normal[p]
-        denom = np.einsum("ij,ij->i", dirs[hit], n)
-        t_ref = np.einsum("ij,ij->i", self.v0[p] - origins[hit], n) / denom
-        t_emb = r["tfar"][hit].astype(np.float64)
-        # Refinement is exact for the hit plane; keep Embree's value where the ray grazes it.
-        ok = np.isfinite(t_ref) & (np.abs(t_ref - t_emb) < 1e-4 * np.maximum(1.0, t_emb))
-        t[hit] = np.where(ok, t_ref, t_emb)
-        uv = np.stack([r["u"], r["v"]], axis=1).astype(np.float64)
-        prim[~hit] = -1
-        return t, prim, uv
+        d = sel(dirs)
+        dn = _dot(d, n)
+        on = n @ origins if shared else _dot(sel(origins), n)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_ref = (self.plane_c[p] - on) / dn
+        t_emb = sel(r["tfar"]).astype(np.float64)
+        ok = np.abs(t_ref - t_emb) < 1e-4 * np.maximum(1.0, t_emb)   # NaN/inf compare False
+        t = np.where(ok, t_ref, t_emb)
+        uv = None
+        if self.vnormal is not None:
+            uv = np.stack([sel(r["u"]), sel(r["v"])], axis=1).astype(np.float64)
+        return Hits(index=index, t=t, prim=p, ng=n, uv=uv, n_rays=n_rays)
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray, dist: np.ndarray) -> np.ndarray:
         """True where something lies on the segment origin + t dir, 0 < t < dist."""
@@ -136,10 +178,11 @@ class Geometry:
                             dists=np.ascontiguousarray(dist, dtype=np.float32), query="OCCLUDED")
         return r >= 0
 
-    def shading_normal(self, prim: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    def shading_normal(self, hits: "Hits") -> np.ndarray:
         """Unit normal at the hits (vertex-normal interpolation for smooth objects)."""
         if self.vnormal is None:
-            return self.normal[prim]
+            return hits.ng
+        prim, uv = hits.prim, hits.uv
         vn = self.vnormal[prim]
         u, v = uv[:, 0:1], uv[:, 1:2]
         n = (1 - u - v) * vn[:, 0] + u * vn[:, 1] + v * vn[:, 2]

@@ -29,7 +29,7 @@ import numpy as np
 from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel
 from tofhil.errors import TofhilError
-from tofhil.sim.geometry import BATCH, RAY_EPSILON_M, Geometry, WorkerPool
+from tofhil.sim.geometry import BATCH, RAY_EPSILON_M, Geometry, WorkerPool, _dot
 from tofhil.sim.scene import Scene
 
 #: Pixel pitch assumed for the camera equation when the camera model gives none (m).
@@ -172,36 +172,44 @@ class _Context:
     def brdf(self, obj: np.ndarray, rho: np.ndarray, n: np.ndarray, wi: np.ndarray,
              wo: np.ndarray) -> np.ndarray:
         """``f_r(wi, wo)`` (1/sr): Lambertian plus normalised Phong lobe."""
-        f = rho / np.pi
+        f = rho * (1 / np.pi)
         if self.glossy:
             rs, ns = self.rho_s[obj], self.n_s[obj]
-            g = rs > 0
-            if np.any(g):
-                cn = np.einsum("ij,ij->i", n[g], wi[g])
-                refl = 2 * cn[:, None] * n[g] - wi[g]
-                ca = np.clip(np.einsum("ij,ij->i", refl, wo[g]), 0.0, 1.0)
+            g = np.flatnonzero(rs > 0)
+            if len(g):
+                ng_, wig = n[g], wi[g]
+                cn = _dot(ng_, wig)
+                refl = 2 * cn[:, None] * ng_ - wig
+                ca = np.clip(_dot(refl, wo[g]), 0.0, 1.0)
                 f[g] += rs[g] * (ns[g] + 2) / (2 * np.pi) * ca ** ns[g]
         return f
 
-    def connect_emitter(self, x: np.ndarray, n: np.ndarray, ng: np.ndarray, wo: np.ndarray,
-                        obj: np.ndarray, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Next-event estimation: radiance toward ``wo`` from direct emitter light, and r1."""
+    def connect_emitter(self, x: np.ndarray, ng_raw: np.ndarray, sgn: np.ndarray, n: np.ndarray | None,
+                        wo: np.ndarray, obj: np.ndarray, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Next-event estimation: radiance toward ``wo`` from direct emitter light, and r1.
+
+        ``ng_raw * sgn`` is the geometric normal facing ``wo``; ``n`` the faced shading normal
+        (None: flat, equal to the faced geometric normal).
+        """
         ve = self.emitter_pos - x
-        r1 = np.linalg.norm(ve, axis=1)
-        wi = ve / r1[:, None]
-        cos_s = np.einsum("ij,ij->i", n, wi)
-        cos_e = -(wi @ self.emitter_axis)
-        irr = np.where(cos_s > 0, self.emitter.intensity_w_sr(cos_e) * cos_s / (r1 * r1), 0.0)
+        r1 = np.sqrt(_dot(ve, ve))
+        wi = ve
+        wi *= (1.0 / r1)[:, None]
+        cos_s = sgn * _dot(ng_raw, wi) if n is None else _dot(n, wi)
+        cos_e = -(wi[:, 0] * self.emitter_axis[0] + wi[:, 1] * self.emitter_axis[1]
+                  + wi[:, 2] * self.emitter_axis[2])
+        irr = self.emitter.intensity_w_sr(cos_e) * np.maximum(cos_s, 0.0) / (r1 * r1)
         lit = irr > 0
-        if np.any(lit):
-            origin = x[lit] + RAY_EPSILON_M * ng[lit]
-            blocked = self.geom.occluded(origin, wi[lit], r1[lit] - 2 * RAY_EPSILON_M)
-            idx = np.flatnonzero(lit)[blocked]
-            irr[idx] = 0.0
-        radiance = np.zeros(len(x))
-        if np.any(lit):
-            radiance[lit] = self.brdf(obj[lit], rho[lit], n[lit], wi[lit], wo[lit]) * irr[lit]
-        return radiance, r1
+        offset = (RAY_EPSILON_M * sgn)[:, None] * ng_raw
+        if lit.all():
+            blocked = self.geom.occluded(x + offset, wi, r1 - 2 * RAY_EPSILON_M)
+            irr[blocked] = 0.0
+        else:
+            li = np.flatnonzero(lit)
+            if len(li):
+                blocked = self.geom.occluded(x[li] + offset[li], wi[li], r1[li] - 2 * RAY_EPSILON_M)
+                irr[li[blocked]] = 0.0
+        return self.brdf(obj, rho, n, wi, wo) * irr, r1
 
     def uniforms(self, rng: np.random.Generator, npix: int) -> np.ndarray:
         """Per-sample uniforms in [0, 1)^D for ``npix`` pixels x ``spp`` samples.
@@ -228,7 +236,7 @@ class _Context:
             vv = (pix // self.W) + U[:, 1] - 0.5
             d_cam = self.camera.pixel_rays(uu, vv)
         else:
-            d_cam = np.repeat(self.centre_rays[p0:p1], spp, axis=0)
+            d_cam = self.centre_rays[p0:p1] if spp == 1 else np.repeat(self.centre_rays[p0:p1], spp, axis=0)
         cos_alpha = d_cam[:, 2]
         beta = self.pix_weight[pix] * cos_alpha ** 4
         if self.thin_lens:
@@ -243,12 +251,12 @@ class _Context:
             dist_f = np.linalg.norm(to_f, axis=1)
             dirs_cam = to_f / dist_f[:, None]
             path0 = np.linalg.norm(focus, axis=1) - dist_f
-            origins = a @ self.R.T + self.t
+            origins = _rotate(a, self.R) + self.t
         else:
             dirs_cam = d_cam
             path0 = np.zeros(len(pix))
-            origins = np.broadcast_to(self.t, (len(pix), 3)).copy()
-        dirs = dirs_cam @ self.R.T
+            origins = self.t                  # one shared origin: the pinhole
+        dirs = _rotate(dirs_cam, self.R)
 
         nk = len(self.k)
         out: dict[str, np.ndarray] = {}
@@ -260,84 +268,101 @@ class _Context:
             nb = len(self.edges) - 1
             tr = np.zeros(npix * nb)
 
-        def accumulate(which: int, local: np.ndarray, w: np.ndarray, length: np.ndarray) -> None:
+        def accumulate(which: int, local: np.ndarray, w: np.ndarray, length: np.ndarray,
+                       identity: bool = False) -> None:
+            """Add path contributions to their pixels (``identity``: one per pixel, in order)."""
             nonlocal tr
             if len(w) == 0:
                 return
-            power[:] += np.bincount(local, w, minlength=npix)
-            phase = self.k[:, None] * length[None, :]
+
+            def per_pixel(values: np.ndarray) -> np.ndarray:
+                return values if identity else np.bincount(local, values, minlength=npix)
+
+            power[:] += per_pixel(w)
             for j in range(nk):
-                acc_re[which, j] += np.bincount(local, w * np.cos(phase[j]), minlength=npix)
-                acc_im[which, j] += np.bincount(local, w * np.sin(phase[j]), minlength=npix)
+                phase = self.k[j] * length
+                acc_re[which, j] += per_pixel(w * np.cos(phase))
+                acc_im[which, j] += per_pixel(w * np.sin(phase))
             if tr is not None:
                 b = np.searchsorted(self.edges, length, side="right") - 1
                 ok = (b >= 0) & (b < nb)
                 tr += np.bincount(local[ok] * nb + b[ok], w[ok], minlength=npix * nb)
 
         # Primary hits.
-        t, prim, uv = self.geom.intersect(origins, dirs)
-        hit = prim >= 0
+        hits = self.geom.intersect(origins, dirs)
         if not self.subpixel and not self.thin_lens:
             # Centre rays from the pinhole: the primary hits are the ground truth.
-            radial = t.reshape(npix, spp)[:, 0]
-            oid = np.where(prim >= 0, self.geom.tri_object[np.maximum(prim, 0)], -1).reshape(npix, spp)[:, 0]
+            radial = hits.full(hits.t, np.inf)[::spp]
+            oid = hits.full(self.geom.tri_object[hits.prim], -1)[::spp]
         else:
-            tc, pc, _ = self.geom.intersect(np.broadcast_to(self.t, (npix, 3)).copy(),
-                                            self.centre_rays[p0:p1] @ self.R.T)
-            radial = tc
-            oid = np.where(pc >= 0, self.geom.tri_object[np.maximum(pc, 0)], -1)
+            hc = self.geom.intersect(self.t, _rotate(self.centre_rays[p0:p1], self.R))
+            radial = hc.full(hc.t, np.inf)
+            oid = hc.full(self.geom.tri_object[hc.prim], -1)
         out["radial"] = radial
         out["object_id"] = oid.astype(np.int32)
 
-        local = (pix - p0)[hit]
-        sid = np.flatnonzero(hit)             # row of each live path in U
-        beta = beta[hit]
-        path = path0[hit] + t[hit]
-        x = origins[hit] + t[hit, None] * dirs[hit]
-        wo = -dirs[hit]
-        prim, uv = prim[hit], uv[hit]
+        sid = np.arange(len(pix)) if hits.index is None else hits.index   # row of each live path
+        local = pix[sid] - p0
+        if hits.index is not None:
+            beta, path0, dirs = beta[sid], path0[sid], dirs[sid]
+            origins = origins if origins.ndim == 1 else origins[sid]
+        path = path0 + hits.t
+        x = origins + hits.t[:, None] * dirs
+        wo = -dirs
         ambient = np.zeros(npix)
         for bounce in range(self.bounces + 1):
-            if len(prim) == 0:
+            if len(sid) == 0:
                 break
-            obj = self.geom.tri_object[prim]
-            ng = self.geom.normal[prim]
-            n = self.geom.shading_normal(prim, uv)
-            flip = np.einsum("ij,ij->i", ng, wo) < 0     # two-sided surfaces
-            ng = np.where(flip[:, None], -ng, ng)
-            n = np.where(flip[:, None], -n, n)
-            n = np.where((np.einsum("ij,ij->i", n, wo) < 0)[:, None], ng, n)
+            obj = self.geom.tri_object[hits.prim]
+            # Two-sided surfaces: face the normals toward the incoming ray. The flipped vectors
+            # are only built when needed; flat direct light works with the sign alone.
+            sgn = np.where(_dot(hits.ng, wo) < 0, -1.0, 1.0)
+            ng = n = None
+            if self.geom.vnormal is not None or self.glossy or bounce < self.bounces:
+                ng = hits.ng * sgn[:, None]
+                n = ng
+                if self.geom.vnormal is not None:
+                    n = self.geom.shading_normal(hits) * sgn[:, None]
+                    n = np.where((_dot(n, wo) < 0)[:, None], ng, n)
             rho = self.reflectance(obj, x)
             if bounce == 0 and self.ambient > 0:
-                ambient = np.bincount(local, beta * (rho + self.rho_s[obj]) * self.ambient / np.pi,
+                ambient = np.bincount(local, beta * (rho + self.rho_s[obj]) * (self.ambient / np.pi),
                                       minlength=npix)
-            radiance, r1 = self.connect_emitter(x, n, ng, wo, obj, rho)
+            radiance, r1 = self.connect_emitter(x, hits.ng, sgn, n, wo, obj, rho)
             w = beta * radiance
-            m = w > 0
-            accumulate(0 if bounce == 0 else 1, local[m], w[m], path[m] + r1[m])
+            lit = w > 0
+            if bounce == 0 and spp == 1 and len(w) == npix and lit.all():
+                accumulate(0, local, w, path + r1, identity=True)
+            else:
+                m = np.flatnonzero(lit)
+                accumulate(0 if bounce == 0 else 1, local[m], w[m], path[m] + r1[m])
             if bounce == self.bounces:
                 break
             # Cosine-weighted bounce: throughput f_r * pi.
             wi = _cosine_sample(n, U[sid, 4 + 2 * bounce], U[sid, 5 + 2 * bounce])
-            ok = np.einsum("ij,ij->i", wi, ng) > 0
             beta = beta * self.brdf(obj, rho, n, wi, wo) * np.pi
-            ok &= beta > 0
+            ok = np.flatnonzero((_dot(wi, ng) > 0) & (beta > 0))
             o2 = x[ok] + RAY_EPSILON_M * ng[ok]
             d2 = wi[ok]
-            t2, p2, uv2 = self.geom.intersect(o2, d2)
-            h2 = p2 >= 0
-            local = local[ok][h2]
-            sid = sid[ok][h2]
-            beta = beta[ok][h2]
-            path = path[ok][h2] + t2[h2]
-            x = o2[h2] + t2[h2, None] * d2[h2]
-            wo = -d2[h2]
-            prim, uv = p2[h2], uv2[h2]
+            hits = self.geom.intersect(o2, d2)
+            keep = ok if hits.index is None else ok[hits.index]
+            sel2 = (lambda a: a) if hits.index is None else (lambda a: a[hits.index])
+            local, sid, beta, path = local[keep], sid[keep], beta[keep], path[keep] + hits.t
+            o2, d2 = sel2(o2), sel2(d2)
+            x = o2 + hits.t[:, None] * d2
+            wo = -d2
 
         out["re"], out["im"], out["power"], out["ambient"] = acc_re, acc_im, power, ambient
         if tr is not None:
             out["transient"] = tr.reshape(npix, -1)
         return out
+
+
+def _rotate(v: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``v @ R.T`` for [N, 3] rows without BLAS (tiny inner dimension; avoids BLAS threads)."""
+    if np.array_equal(R, np.eye(3)):
+        return v
+    return v[:, 0:1] * R[:, 0] + v[:, 1:2] * R[:, 1] + v[:, 2:3] * R[:, 2]
 
 
 def _cosine_sample(n: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
