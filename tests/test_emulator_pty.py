@@ -1,0 +1,134 @@
+"""``tofhil emulate --pty`` as a real subprocess: a serial client speaking the protocol byte by
+byte, the driver capturing a session over the serial port, and the vendor's own Python client
+(epc-tofcam-toolkit, when installed) initialising the camera and reading every image type."""
+
+from __future__ import annotations
+
+import math
+import selectors
+import struct
+import subprocess
+import sys
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import pytest
+import serial
+
+from tofhil import C_M_PER_S
+from tofhil.camera import load_camera_preset
+from tofhil.depth import depth_from_raw
+from tofhil.drivers import epc635_protocol as P
+from tofhil.drivers.base import CaptureSettings
+from tofhil.drivers.capture import capture
+from tofhil.drivers.tofcam635 import TofCam635
+from tofhil.session import open_session
+
+WALL_M = 1.2
+
+
+def _read_port_line(proc: subprocess.Popen, timeout_s: float) -> str:
+    sel = selectors.DefaultSelector()
+    assert proc.stdout is not None
+    sel.register(proc.stdout, selectors.EVENT_READ)
+    if not sel.select(timeout_s):
+        raise TimeoutError(f"no PORT= line within {timeout_s} s")
+    line = proc.stdout.readline().strip()
+    assert line.startswith("PORT="), line
+    return line.removeprefix("PORT=")
+
+
+@pytest.fixture(scope="module")
+def pty_port() -> Iterator[str]:
+    proc = subprocess.Popen([sys.executable, "-m", "tofhil.cli", "emulate", "--scene", f"wall:{WALL_M}", "--pty"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        yield _read_port_line(proc, 60.0)
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=10)
+
+
+def _read_packet(port: serial.Serial) -> tuple[int, bytes]:
+    head = port.read(4)
+    assert len(head) == 4 and head[0] == 0xFA, head
+    (length,) = struct.unpack_from("<H", head, 2)
+    rest = port.read(length + 4)
+    assert len(rest) == length + 4
+    assert struct.unpack("<I", rest[-4:])[0] == P.crc32(head + rest[:-4])
+    return head[1], rest[:-4]
+
+
+def test_a_serial_client_speaks_the_protocol(pty_port: str) -> None:
+    cam = load_camera_preset("epc635")
+    with serial.Serial(pty_port, 10_000_000, timeout=2.0) as port:
+        port.write(P.encode_command(P.Cmd.GET_FIRMWARE_RELEASE))
+        dtype, payload = _read_packet(port)
+        assert dtype == P.DataType.FIRMWARE_RELEASE and len(payload) == 4
+        port.write(P.encode_command(P.Cmd.SET_MOD_FREQUENCY, [0]))  # 10 MHz
+        assert _read_packet(port) == (P.DataType.ACK, b"")
+        port.write(P.encode_command(P.Cmd.SET_INT_TIME_DIST, [0, 0x2C, 0x01]))  # 300 us (1000 us would clip)
+        assert _read_packet(port) == (P.DataType.ACK, b"")
+        port.write(P.encode_command(P.Cmd.GET_DCS, [0]))
+        first_t, first = _read_packet(port)
+        second_t, second = _read_packet(port)
+        assert first_t == second_t == P.DataType.DCS
+        index0, total = struct.unpack_from("<BI", first)
+        assert (index0, second[0], total) == (0, 1, 4 * 2 * 160 * 60)
+        stream = first[5:] + second[5:]
+        header = P.ImageHeader.unpack(stream)
+        assert (header.width, header.height, header.mod_freq_hz, header.int_time_0) == (160, 60, 10e6, 300)
+        dcs = np.frombuffer(stream[80:], "<i2").reshape(4, 60, 160).astype(float) - 2048
+        phase = np.arctan2(dcs[3] - dcs[1], dcs[2] - dcs[0]) + np.pi  # the vendor's formula
+        dist = phase * C_M_PER_S / (4 * np.pi * 10e6)
+        err = dist - WALL_M / cam.ray_z
+        assert abs(float(np.median(err))) < 5e-3 and float(np.percentile(np.abs(err), 90)) < 0.04  # ~1-2 cm noise
+        port.write(b"\xf5\x20" + bytes(12))  # bad CRC: the camera answers NACK
+        assert _read_packet(port)[0] == P.DataType.NACK
+
+
+def test_driver_captures_a_session_over_the_serial_port(pty_port: str, tmp_path: Path) -> None:
+    out = tmp_path / "serial.h5"
+    with TofCam635(f"serial:{pty_port}") as dev:
+        summary = capture(dev, out, 3, CaptureSettings(mode="dcs", integration_time_s=600e-6))
+        assert "serial port" in dev.info().extra["transport"]
+    assert summary.frames_written == 3 and summary.dropped == 0
+    with open_session(out) as s:
+        assert s.n_frames == 3
+        for raw in s.raw_frames():
+            err = depth_from_raw(raw).radial_m - WALL_M / s.camera.ray_z
+            assert abs(float(np.median(err))) < 5e-3
+
+
+def test_the_vendor_client_reads_every_image_type(pty_port: str) -> None:
+    tofcam = pytest.importorskip("epc.tofCam635", reason="epc-tofcam-toolkit not installed (pip install "
+                                 "--no-deps epc-tofcam-toolkit; see docs/drivers.md)")
+    from epc.tofCam_lib.algorithms import calc_distance_and_amplitude
+
+    cam = tofcam.TOFcam635(pty_port)
+    try:
+        cam.initialize()  # ROI, mode, HDR, 20 MHz, 125 us, filters, amplitude limit 100
+        assert cam.device.get_chip_infos() == (20, 1038)
+        assert float(cam.device.get_fw_version()) == pytest.approx(3.49)
+        assert 20 < cam.device.get_chip_temperature() < 60
+        truth_mm = 1e3 * WALL_M / load_camera_preset("epc635").ray_z
+        distance = np.asarray(cam.get_distance_image(), dtype=float)
+        assert distance.shape == (60, 160)
+        assert abs(float(np.median(distance - truth_mm))) < 5
+        distance2, amplitude = cam.get_distance_and_amplitude_image()
+        assert abs(float(np.median(np.asarray(distance2, float) - truth_mm))) < 5
+        assert 100 < float(np.median(amplitude)) < 2896
+        gray = cam.get_grayscale_image()
+        assert gray.shape == (60, 160) and gray.dtype == np.uint8 and gray.max() > 0
+        dcs = cam.get_raw_dcs_images()
+        assert dcs.shape == (4, 60, 160)
+        dist_v, amp_v = calc_distance_and_amplitude(dcs.astype(float), 20e6)
+        assert abs(float(np.median(dist_v - truth_mm))) < 5
+        assert math.isclose(float(np.median(amp_v)), float(np.median(amplitude)), rel_tol=0.05)
+    finally:
+        cam.interface.com.close()
