@@ -92,6 +92,24 @@ def test_a_serial_client_speaks_the_protocol(pty_port: str) -> None:
         assert _read_packet(port)[0] == P.DataType.NACK
 
 
+# Reply sizes the vendor client reads with a single fixed-length read (its __answer_table).
+VENDOR_ANSWER_SIZES = [(P.Cmd.GET_CHIP_INFORMATION, 12), (P.Cmd.GET_CALIBRATION_INFO, 22), (P.Cmd.READ_REGISTER, 9),
+                       (P.Cmd.GET_FIRMWARE_RELEASE, 12), (P.Cmd.GET_TEMPERATURE, 10), (P.Cmd.IDENTIFY, 12),
+                       (P.Cmd.SET_HDR, 8)]
+
+
+def test_small_replies_have_the_sizes_the_vendor_client_reads(pty_port: str) -> None:
+    with serial.Serial(pty_port, 10_000_000, timeout=1.0) as port:
+        for cmd, size in VENDOR_ANSWER_SIZES:
+            port.write(P.encode_command(cmd))
+            reply = port.read(size)
+            assert len(reply) == size and reply[0] == 0xFA
+            assert struct.unpack("<I", reply[-4:])[0] == P.crc32(reply[:-4])
+            port.timeout = 0.05
+            assert port.read(1) == b""  # nothing more follows
+            port.timeout = 1.0
+
+
 def test_driver_captures_a_session_over_the_serial_port(pty_port: str, tmp_path: Path) -> None:
     out = tmp_path / "serial.h5"
     with TofCam635(f"serial:{pty_port}") as dev:
