@@ -313,3 +313,64 @@ def test_per_point_arrays_follow_input_rows():
     assert np.isnan(s.likelihood_trilinear[[3, 50]]).all()
     np.testing.assert_array_equal(np.delete(s.likelihood_trilinear, [3, 50]), clean.likelihood_trilinear)
     assert s.to_dict() == clean.to_dict()
+
+
+def _brute_grid(pts: np.ndarray, r: float, min_points: int = 6, floor: float = 0.01) -> dict:
+    """Cells from scratch with Python loops (test reference only)."""
+    cells: dict[tuple[int, int, int], list] = {}
+    for p in pts:
+        cells.setdefault(tuple(int(v) for v in np.floor(p / r)), []).append(p)
+    out = {}
+    for k, members in cells.items():
+        x = np.array(members)
+        if len(x) < min_points:
+            continue
+        cov = np.cov(x.T)                     # unbiased, like PCL
+        lam, vec = np.linalg.eigh(cov)
+        lam = np.maximum(lam, floor * lam[2])
+        out[k] = (x.mean(0), np.linalg.inv(vec @ np.diag(lam) @ vec.T))
+    return out
+
+
+def test_trilinear_and_d2d_against_brute_force_loops():
+    rng = np.random.default_rng(21)
+    r = 0.5
+    ref = rng.normal(size=(3000, 3)) * [0.8, 0.8, 0.4]
+    cloud = rng.normal(size=(150, 3)) * [0.8, 0.8, 0.4]
+    brute = _brute_grid(ref, r)
+    g = NDTGrid.from_points(ref, r)
+    assert g.cells == len(brute)
+    want = []
+    for p in cloud:
+        u = p / r - 0.5                       # cell centres at integer u
+        lo = np.floor(u).astype(int)
+        total = 0.0
+        for di in (0, 1):
+            for dj in (0, 1):
+                for dk in (0, 1):
+                    k = (lo[0] + di, lo[1] + dj, lo[2] + dk)
+                    w = 1.0
+                    for a, d in enumerate((di, dj, dk)):
+                        f = u[a] - lo[a]
+                        w *= f if d else 1.0 - f
+                    if k in brute:
+                        mean, icov = brute[k]
+                        q = p - mean
+                        total += w * math.exp(-0.5 * q @ icov @ q)
+        want.append(total)
+    np.testing.assert_allclose(trilinear_likelihood(g, cloud), want, rtol=1e-9, atol=1e-12)
+
+    # D2D: every (a, b) pair with means within R, from scratch.
+    other = rng.normal(size=(3000, 3)) * [0.8, 0.8, 0.4] + [0.05, 0, 0]
+    gb = NDTGrid.from_points(other, r)
+    d1, d2 = gauss_params(r, 0.55)
+    total, pairs = 0.0, 0
+    for mb, cb in zip(gb.means, gb.covs):
+        for ma, ca in zip(g.means, g.covs):
+            mu = mb - ma
+            if mu @ mu <= r * r:
+                total += -d1 * math.exp(-0.5 * d2 * mu @ np.linalg.solve(ca + cb, mu))
+                pairs += 1
+    s = d2d_score(g, gb)
+    assert s.pairs == pairs
+    assert s.score == pytest.approx(total, rel=1e-10)
