@@ -25,6 +25,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -47,8 +48,8 @@ class AdiFrame:
     confidence: np.ndarray | None = None  #: uint8 [H, W] (interleaved frames only)
 
 
-def read_adi_interleaved(path: str | Path, width: int = ADI_WIDTH, height: int = ADI_HEIGHT) -> list[AdiFrame]:
-    """All frames of an interleaved depth/confidence/AB file (vectorised, one structured view)."""
+def count_adi_interleaved(path: str | Path, width: int = ADI_WIDTH, height: int = ADI_HEIGHT) -> int:
+    """Number of frames in an interleaved file; a size that is not whole frames is an error."""
     path = Path(path)
     frame_bytes = width * height * INTERLEAVED_BYTES_PER_PIXEL
     size = path.stat().st_size
@@ -56,9 +57,23 @@ def read_adi_interleaved(path: str | Path, width: int = ADI_WIDTH, height: int =
         raise InputFileError(f"has {size} bytes", file=path, field="interleaved frame size",
                              expected=f"a multiple of {frame_bytes} ({width} x {height} pixels x 5 bytes: "
                                       "depth uint16, confidence uint8, AB uint16)")
-    data = np.fromfile(path, dtype=INTERLEAVED_DTYPE).reshape(-1, height, width)
-    return [AdiFrame(depth_mm=np.ascontiguousarray(f["depth"]), amplitude=np.ascontiguousarray(f["ab"]),
-                     confidence=np.ascontiguousarray(f["conf"])) for f in data]
+    return size // frame_bytes
+
+
+def iter_adi_interleaved(path: str | Path, width: int = ADI_WIDTH,
+                         height: int = ADI_HEIGHT) -> Iterator[AdiFrame]:
+    """Frames of an interleaved depth/confidence/AB file, one at a time (memory-mapped:
+    each frame is split into its three images by one structured-array view)."""
+    n = count_adi_interleaved(path, width, height)
+    data = np.memmap(path, dtype=INTERLEAVED_DTYPE, mode="r", shape=(n, height, width))
+    for f in data:
+        yield AdiFrame(depth_mm=np.array(f["depth"]), amplitude=np.array(f["ab"]),
+                       confidence=np.array(f["conf"]))
+
+
+def read_adi_interleaved(path: str | Path, width: int = ADI_WIDTH, height: int = ADI_HEIGHT) -> list[AdiFrame]:
+    """All frames of an interleaved file (use :func:`iter_adi_interleaved` for long files)."""
+    return list(iter_adi_interleaved(path, width, height))
 
 
 def _read_u16_image(path: Path, width: int, height: int, what: str) -> np.ndarray:

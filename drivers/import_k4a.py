@@ -31,12 +31,12 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
 from tofhil.camera import CameraModel
-from tofhil.drivers.mkv import MatroskaFile, Track, open_mkv
+from tofhil.drivers.mkv import BlockRef, MatroskaFile, Track, open_mkv
 from tofhil.errors import InputFileError
 
 #: Depth modes: (calibration image binned resolution, crop offset, output resolution),
@@ -131,13 +131,47 @@ class K4ARecording:
     fit: CameraFit
     calibration: dict[str, Any]
     tags: dict[str, str]
-    #: Per frame: (timestamp_s, depth z in mm uint16 [H, W], IR uint16 [H, W] or None).
-    frames: list[tuple[float, np.ndarray, np.ndarray | None]] = field(default_factory=list)
+    #: The open file and, per frame, (timestamp_s, depth block, IR block or None); frames are
+    #: decoded only when iterated, so long recordings are not held in memory.
+    mkv: MatroskaFile
+    depth_track: Track
+    ir_track: Track | None
+    refs: list[tuple[float, BlockRef, BlockRef | None]] = field(default_factory=list)
     truncated: str = ""
 
     @property
     def camera(self) -> CameraModel:
         return self.fit.camera
+
+    def __len__(self) -> int:
+        return len(self.refs)
+
+    def frame(self, i: int) -> tuple[float, np.ndarray, np.ndarray | None]:
+        """(timestamp_s, depth z in mm uint16 [H, W], IR uint16 [H, W] or None) of frame ``i``."""
+        t, dblk, iblk = self.refs[i]
+        depth = _decode_b16g(self.mkv, self.depth_track, self.mkv.payload(dblk), "depth")
+        ir = None
+        if iblk is not None and self.ir_track is not None:
+            ir = _decode_b16g(self.mkv, self.ir_track, self.mkv.payload(iblk), "IR")
+        return t, depth, ir
+
+    def iter_frames(self) -> Iterator[tuple[float, np.ndarray, np.ndarray | None]]:
+        for i in range(len(self.refs)):
+            yield self.frame(i)
+
+    @property
+    def frames(self) -> list[tuple[float, np.ndarray, np.ndarray | None]]:
+        """Every frame decoded (convenient for short recordings; use ``iter_frames`` otherwise)."""
+        return list(self.iter_frames())
+
+    def close(self) -> None:
+        self.mkv.close()
+
+    def __enter__(self) -> "K4ARecording":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     def radial_m(self, z_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """z-depth in mm -> (radial distance in m, valid mask) with the exact factory rays."""
@@ -253,63 +287,76 @@ def read_k4a_recording(path: str | Path, *, max_frames: int | None = None,
     """Read an Azure Kinect recording: depth (+ IR) frames, tags and the depth camera.
 
     ``salvage``: a recording cut short keeps its complete frames (otherwise a truncated
-    file is an error).
+    file is an error). The recording keeps the file open (frames are decoded on demand):
+    use it as a context manager or call ``close()``.
     """
     path = Path(path)
-    with open_mkv(path) as mkv:
-        if mkv.truncated and not salvage:
-            raise InputFileError(f"is truncated: {mkv.truncation}", file=path, field="Segment",
-                                 expected="a complete recording (pass --salvage to import its complete frames)")
-        tags = dict(mkv.tags)
-        for t in mkv.track_tags.values():
-            tags.update(t)
-        depth_t = mkv.track_by_name("DEPTH")
-        if depth_t is None:
-            raise InputFileError("has no track named DEPTH", file=path, field="Tracks.TrackEntry.Name",
-                                 expected="an Azure Kinect recording with a depth track")
-        if depth_t.fourcc != "b16g":
-            raise InputFileError(f"depth codec is {depth_t.codec_id} {depth_t.fourcc!r}", file=path,
-                                 field="DEPTH.CodecPrivate", expected="V_MS/VFW/FOURCC 'b16g' (uint16 big-endian)")
-        ir_t = mkv.track_by_name("IR")
-        if ir_t is not None and ir_t.fourcc != "b16g":
-            ir_t = None  # passive/other IR encodings are not amplitude; leave it out
-        calib_name = tags.get("K4A_CALIBRATION_FILE", "calibration.json")
-        if calib_name not in mkv.attachments:
-            raise InputFileError(f"has no attachment {calib_name!r}", file=path, field="Attachments",
-                                 expected="the factory calibration attachment written by k4arecorder")
-        try:
-            calib = json.loads(mkv.attachments[calib_name].decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise InputFileError(f"is not valid JSON ({exc})", file=path, field=f"attachment {calib_name}",
-                                 expected="JSON text") from None
-        mode = tags.get("K4A_DEPTH_MODE", "")
-        if not mode:
-            mode = {(640, 576): "NFOV_UNBINNED", (320, 288): "NFOV_2X2BINNED", (512, 512): "WFOV_2X2BINNED",
-                    (1024, 1024): "WFOV_UNBINNED"}.get((depth_t.width, depth_t.height), "")
-        intr = intrinsics_from_calibration(calib, mode, source=path)
-        if (intr.width, intr.height) != (depth_t.width, depth_t.height):
-            raise InputFileError(f"depth track is {depth_t.width}x{depth_t.height}", file=path,
-                                 field="DEPTH.Video.PixelWidth",
-                                 expected=f"{intr.width}x{intr.height} for depth mode {mode}")
+    mkv = open_mkv(path)
+    try:
+        return _read(mkv, path, max_frames, salvage)
+    except BaseException:
+        mkv.close()
+        raise
+
+
+def _read(mkv: MatroskaFile, path: Path, max_frames: int | None, salvage: bool) -> K4ARecording:
+    if mkv.truncated and not salvage:
+        raise InputFileError(f"is truncated: {mkv.truncation}", file=path, field="Segment",
+                             expected="a complete recording (pass --salvage to import its complete frames)")
+    tags = dict(mkv.tags)
+    for t in mkv.track_tags.values():
+        tags.update(t)
+    depth_t = mkv.track_by_name("DEPTH")
+    if depth_t is None:
+        raise InputFileError("has no track named DEPTH", file=path, field="Tracks.TrackEntry.Name",
+                             expected="an Azure Kinect recording with a depth track")
+    if depth_t.fourcc != "b16g":
+        raise InputFileError(f"depth codec is {depth_t.codec_id} {depth_t.fourcc!r}", file=path,
+                             field="DEPTH.CodecPrivate", expected="V_MS/VFW/FOURCC 'b16g' (uint16 big-endian)")
+    ir_t = mkv.track_by_name("IR")
+    if ir_t is not None and ir_t.fourcc != "b16g":
+        ir_t = None  # passive/other IR encodings are not amplitude; leave it out
+    calib_name = tags.get("K4A_CALIBRATION_FILE", "calibration.json")
+    if calib_name not in mkv.attachments:
+        raise InputFileError(f"has no attachment {calib_name!r}", file=path, field="Attachments",
+                             expected="the factory calibration attachment written by k4arecorder")
+    try:
+        calib = json.loads(mkv.attachments[calib_name].decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputFileError(f"is not valid JSON ({exc})", file=path, field=f"attachment {calib_name}",
+                             expected="JSON text") from None
+    mode = tags.get("K4A_DEPTH_MODE", "")
+    if not mode:
+        mode = {(640, 576): "NFOV_UNBINNED", (320, 288): "NFOV_2X2BINNED", (512, 512): "WFOV_2X2BINNED",
+                (1024, 1024): "WFOV_UNBINNED"}.get((depth_t.width, depth_t.height), "")
+    intr = intrinsics_from_calibration(calib, mode, source=path)
+    if (intr.width, intr.height) != (depth_t.width, depth_t.height):
+        raise InputFileError(f"depth track is {depth_t.width}x{depth_t.height}", file=path,
+                             field="DEPTH.Video.PixelWidth",
+                             expected=f"{intr.width}x{intr.height} for depth mode {mode}")
+    try:
         offset_s = float(tags.get("K4A_START_OFFSET_NS", "0") or 0) * 1e-9
-        ir_by_time = {b.timecode: b for b in mkv.frames(ir_t)} if ir_t is not None else {}
-        frames: list[tuple[float, np.ndarray, np.ndarray | None]] = []
-        for blk in mkv.frames(depth_t):
-            if max_frames is not None and len(frames) >= max_frames:
-                break
-            depth = _decode_b16g(mkv, depth_t, mkv.payload(blk), "depth")
-            irb = ir_by_time.get(blk.timecode)
-            ir = _decode_b16g(mkv, ir_t, mkv.payload(irb), "IR") if (irb is not None and ir_t) else None
-            # Block times are device times minus the recording's start offset.
-            frames.append((mkv.time_s(blk) + offset_s, depth, ir))
-        truncation = mkv.truncation
-    if not frames:
+    except ValueError:
+        raise InputFileError(f"is {tags.get('K4A_START_OFFSET_NS')!r}", file=path, field="K4A_START_OFFSET_NS",
+                             expected="an integer number of nanoseconds") from None
+    ir_by_time = {b.timecode: b for b in mkv.frames(ir_t)} if ir_t is not None else {}
+    refs = []
+    for blk in mkv.frames(depth_t):
+        if max_frames is not None and len(refs) >= max_frames:
+            break
+        # Block times are device times minus the recording's start offset.
+        refs.append((mkv.time_s(blk) + offset_s, blk, ir_by_time.get(blk.timecode)))
+    if not refs:
         raise InputFileError("has no complete depth frame", file=path, field="DEPTH",
                              expected="at least one depth block")
-    # Fit the lens where the sensor sees anything (any frame with depth at that pixel).
-    support = np.zeros(frames[0][1].shape, bool)
-    for _, depth, _ in frames[:50]:
-        support |= depth > 0
-    fit = fit_opencv_model(intr, support=support)
-    return K4ARecording(path=path, depth_mode=mode, intrinsics=intr, fit=fit, calibration=calib,
-                        tags=tags, frames=frames, truncated=truncation)
+    rec = K4ARecording(path=path, depth_mode=mode, intrinsics=intr,
+                       fit=CameraFit(CameraModel(width=intr.width, height=intr.height, fx=intr.fx, fy=intr.fy,
+                                                 cx=intr.cx, cy=intr.cy), math.nan, math.nan, 0),
+                       calibration=calib, tags=tags, mkv=mkv, depth_track=depth_t, ir_track=ir_t, refs=refs,
+                       truncated=mkv.truncation)
+    # Fit the lens where the sensor sees anything (any of the first frames has depth there).
+    support = np.zeros((intr.height, intr.width), bool)
+    for i in range(min(len(refs), 30)):
+        support |= rec.frame(i)[1] > 0
+    rec.fit = fit_opencv_model(intr, support=support)
+    return rec

@@ -136,7 +136,7 @@ def _write(out: Path, camera: CameraModel, device: dict[str, Any], items: Iterab
 
 
 # --------------------------------------------------------------------------- per format
-def _adi_frames(frames: list[import_adi.AdiFrame], camera: CameraModel,
+def _adi_frames(frames: Iterable[import_adi.AdiFrame], camera: CameraModel,
                 max_confidence: int | None) -> Any:
     for i, f in enumerate(frames):
         valid = f.depth_mm > 0
@@ -146,6 +146,41 @@ def _adi_frames(frames: list[import_adi.AdiFrame], camera: CameraModel,
         yield DepthFrame(distance_m=np.where(valid, f.depth_mm * 1e-3, 0.0).astype(np.float32), kind="radial",
                          camera=camera, amplitude=f.amplitude.astype(np.float32), valid=valid,
                          timestamp_s=math.nan, sequence=i)
+
+
+def _import_k4a(rec: Any, src: Path, out: Path, camera: str | Path | CameraModel | None, force: bool,
+                device: dict[str, Any], notes: list[str], on_frame: Callable[[int, int], None] | None) -> ImportResult:
+    fmt = "k4a-mkv"
+    if rec.truncated:
+        notes.append(f"truncated recording: {rec.truncated}; imported its {len(rec)} complete frames")
+    cam, origin = resolve_camera(camera, rec.camera, rec.camera.shape, src)
+    device.update({"vendor": "Microsoft", "model": "Azure Kinect DK",
+                   "serial": rec.tags.get("K4A_DEVICE_SERIAL_NUMBER", ""),
+                   "firmware": rec.tags.get("K4A_DEPTH_FIRMWARE_VERSION", ""),
+                   "depth_mode": rec.depth_mode, "depth_kind_in_file": "z", "depth_unit_in_file": "mm",
+                   "depth_conversion": ("radial = z * |(x, y, 1)| with the factory rational model's rays"
+                                        if camera is None else f"radial = z / ray_z of {origin}"),
+                   "amplitude": "active IR, device counts",
+                   "camera_source": "calibration.json (refit to OpenCV 5-parameter)" if camera is None else origin,
+                   "camera_fit": rec.fit.to_dict(), "k4a_tags": rec.tags, "k4a_calibration": rec.calibration,
+                   "timestamps": "device time = block time + K4A_START_OFFSET_NS"})
+    notes.append(f"lens: rational model refit to OpenCV 5-parameter, max residual "
+                 f"{rec.fit.max_residual_px:.3f} px (rms {rec.fit.rms_residual_px:.3f} px) over "
+                 f"{rec.fit.n_pixels} pixels")
+
+    def k4a_frames() -> Any:
+        for i, (t, z_mm, ir) in enumerate(rec.iter_frames()):
+            if camera is None:
+                radial, valid = rec.radial_m(z_mm)
+            else:
+                valid = z_mm > 0
+                radial = np.where(valid, cam.z_to_radial(z_mm * 1e-3), 0.0)
+            amp = ir.astype(np.float32) if ir is not None else None
+            yield None, DepthFrame(distance_m=radial.astype(np.float32), kind="radial", camera=cam,
+                                   amplitude=amp, valid=valid, timestamp_s=t, sequence=i)
+
+    n = _write(out, cam, device, k4a_frames(), force, len(rec), on_frame)
+    return ImportResult(out, fmt, n, cam, notes)
 
 
 def import_file(path: str | Path, out: str | Path, *, camera: str | Path | CameraModel | None = None,
@@ -178,7 +213,8 @@ def import_file(path: str | Path, out: str | Path, *, camera: str | Path | Camer
 
     if fmt in ("adi-interleaved", "adi-pair"):
         if fmt == "adi-interleaved":
-            frames = import_adi.read_adi_interleaved(src)
+            n_total = import_adi.count_adi_interleaved(src)
+            frames: Iterable[import_adi.AdiFrame] = import_adi.iter_adi_interleaved(src)
         else:
             depth_src = import_adi.partner_depth_path(src) if not import_adi.is_depth_name(src) else None
             if depth_src is not None:  # the IR image was named: import its pair
@@ -186,8 +222,10 @@ def import_file(path: str | Path, out: str | Path, *, camera: str | Path | Camer
                 device["source_file"], device["source_sha256"] = str(src.resolve()), _sha256(src)
             ir = import_adi.partner_ir_path(src)
             frames = [import_adi.read_adi_pair(src, ir)]
+            n_total = 1
             device["source_ir_file"] = str(ir.resolve())
-        cam, origin = resolve_camera(camera, import_adi.ADI_DEFAULT_CAMERA, frames[0].depth_mm.shape, src)
+        cam, origin = resolve_camera(camera, import_adi.ADI_DEFAULT_CAMERA,
+                                     (import_adi.ADI_HEIGHT, import_adi.ADI_WIDTH), src)
         device.update({"vendor": "Analog Devices", "model": "ADI ToF SDK capture (ADSD3500 class, 512x512)",
                        "depth_kind_in_file": "radial", "depth_unit_in_file": "mm",
                        "amplitude": "active brightness (AB / IR), device counts",
@@ -198,43 +236,14 @@ def import_file(path: str | Path, out: str | Path, *, camera: str | Path | Camer
             notes.append(f"camera model is the assumed preset {import_adi.ADI_DEFAULT_CAMERA} "
                          "(no intrinsics in ADI files); pass --camera to use a calibration")
         items = ((None, d) for d in _adi_frames(frames, cam, adi_max_confidence))
-        n = _write(out, cam, device, items, force, len(frames), on_frame)
+        n = _write(out, cam, device, items, force, n_total, on_frame)
         return ImportResult(out, fmt, n, cam, notes)
 
     if fmt == "k4a-mkv":
         from tofhil.drivers.import_k4a import read_k4a_recording
 
-        rec = read_k4a_recording(src, salvage=salvage)
-        if rec.truncated:
-            notes.append(f"truncated recording: {rec.truncated}; imported its {len(rec.frames)} complete frames")
-        cam, origin = resolve_camera(camera, rec.camera, rec.camera.shape, src)
-        device.update({"vendor": "Microsoft", "model": "Azure Kinect DK",
-                       "serial": rec.tags.get("K4A_DEVICE_SERIAL_NUMBER", ""),
-                       "firmware": rec.tags.get("K4A_DEPTH_FIRMWARE_VERSION", ""),
-                       "depth_mode": rec.depth_mode, "depth_kind_in_file": "z", "depth_unit_in_file": "mm",
-                       "depth_conversion": ("radial = z * |(x, y, 1)| with the factory rational model's rays"
-                                            if camera is None else f"radial = z / ray_z of {origin}"),
-                       "amplitude": "active IR, device counts",
-                       "camera_source": "calibration.json (refit to OpenCV 5-parameter)" if camera is None else origin,
-                       "camera_fit": rec.fit.to_dict(), "k4a_tags": rec.tags, "k4a_calibration": rec.calibration,
-                       "timestamps": "device time = block time + K4A_START_OFFSET_NS"})
-        notes.append(f"lens: rational model refit to OpenCV 5-parameter, max residual "
-                     f"{rec.fit.max_residual_px:.3f} px (rms {rec.fit.rms_residual_px:.3f} px) over "
-                     f"{rec.fit.n_pixels} pixels")
-
-        def k4a_frames() -> Any:
-            for i, (t, z_mm, ir) in enumerate(rec.frames):
-                if camera is None:
-                    radial, valid = rec.radial_m(z_mm)
-                else:
-                    valid = z_mm > 0
-                    radial = np.where(valid, cam.z_to_radial(z_mm * 1e-3), 0.0)
-                amp = ir.astype(np.float32) if ir is not None else None
-                yield None, DepthFrame(distance_m=radial.astype(np.float32), kind="radial", camera=cam,
-                                       amplitude=amp, valid=valid, timestamp_s=t, sequence=i)
-
-        n = _write(out, cam, device, k4a_frames(), force, len(rec.frames), on_frame)
-        return ImportResult(out, fmt, n, cam, notes)
+        with read_k4a_recording(src, salvage=salvage) as rec:
+            return _import_k4a(rec, src, out, camera, force, device, notes, on_frame)
 
     # fmt == "session": copy (a replay that also repairs: only complete frames are copied)
     with open_session(src) as s:

@@ -129,3 +129,18 @@ def test_bad_adi_files_are_named_with_what_was_expected(tmp_path):
     with pytest.raises(InputFileError, match="IR image.*524288"):
         import_file(depth, tmp_path / "o.h5")
     assert not (tmp_path / "o.h5").exists()
+
+
+def test_multi_frame_interleaved_files_import_frame_by_frame(tmp_path):
+    a, b = need(ADI / "frame_mode2.bin"), need(ADI / "frame_mode3.bin")
+    both = tmp_path / "two_frames.bin"
+    both.write_bytes(a.read_bytes() + b.read_bytes())
+    res = import_file(both, tmp_path / "two.h5")
+    assert res.n_frames == 2
+    with open_session(res.out) as s:
+        for i, src in enumerate((a, b)):
+            ref = read_adi_interleaved(src)[0]
+            d = s.depth_frame(i)
+            assert d.sequence == i
+            np.testing.assert_array_equal(d.amplitude, ref.amplitude.astype(np.float32))
+            np.testing.assert_array_equal(d.valid, ref.depth_mm > 0)
