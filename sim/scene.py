@@ -25,6 +25,7 @@ import yaml
 
 from tofhil.camera import CameraModel
 from tofhil.errors import InputFileError
+from tofhil.yamlio import load_yaml
 
 #: f-number used for the camera equation when a scene gives none (pinhole geometry, no
 #: defocus). Typical ToF lenses are fast (F/1.0 .. F/1.6).
@@ -279,10 +280,7 @@ def load_scene(path_or_name: str | Path, overrides: dict | None = None) -> Scene
 def scene_from_yaml(text: str, source: str = "<string>", base_dir: str | Path | None = None,
                     overrides: dict | None = None) -> Scene:
     """Parse YAML text into a Scene (relative mesh/texture paths resolve against ``base_dir``)."""
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise InputFileError(f"not valid YAML ({exc})", file=source) from None
+    data = load_yaml(text, source=source)       # reads 44.0e6 as a number (YAML 1.2 style)
     if not isinstance(data, dict):
         raise InputFileError("the file is not a mapping", file=source,
                              expected="a YAML mapping with camera, emitter, materials, objects")

@@ -114,3 +114,64 @@ def test_yaml_errors_name_the_source() -> None:
         scene_from_yaml("camera: [", source="x.yaml")
     with pytest.raises(InputFileError, match="no such bundled scene"):
         load_scene("no_such_scene_name")
+
+
+# --------------------------------------------------------------------------- bundled scenes
+from tofhil.sim.render import render  # noqa: E402
+from tofhil.sim.scene import bundled_scenes  # noqa: E402
+
+THESIS_SCENES = ["wall", "dark_square", "two_squares", "wall_card", "dark_square_card",
+                 "two_squares_card", "corner", "bench_demo"]
+
+
+def test_all_thesis_scenes_are_bundled() -> None:
+    assert set(THESIS_SCENES) <= set(bundled_scenes())
+
+
+@pytest.mark.parametrize("name", THESIS_SCENES)
+def test_bundled_scene_round_trips_and_renders(name: str, tmp_path) -> None:
+    scene = load_scene(name)
+    assert scene.camera.name == "holmlund_thesis" and scene.camera.shape == (120, 160)
+    assert scene.sensor["freq_hz"] == [44.0e6] and scene.sensor["taps"] == 4
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(scene_to_yaml(scene))
+    again = load_scene(path)
+    cam = scene.camera.scaled(0.25)
+    a = render(scene, camera=cam, samples_per_pixel=1, bounces=0)
+    b = render(again, camera=cam, samples_per_pixel=1, bounces=0)
+    np.testing.assert_array_equal(a.phasor, b.phasor)
+    assert np.all(np.isfinite(a.radial_m)) and np.all(a.object_id >= 0)   # the view is filled
+
+
+def test_dark_square_reflectivity_parameter_scales_the_square_only() -> None:
+    cam = load_scene("dark_square").camera.scaled(0.5)
+    bare = render(load_scene("wall"), camera=cam)
+    for rel in (0.5, 0.05, 0.01):
+        scene = load_scene("dark_square", overrides={"params": {"square_reflectance": rel}})
+        res = render(scene, camera=cam)
+        square = res.object_id == scene.object_index("square")
+        assert scene.materials["square"].reflectance == pytest.approx(0.8 * rel)
+        # 0.2 m at 1 m with fx = 58 px: about 11.7 px across.
+        assert 100 <= square.sum() <= 144 and square[30, 40]
+        # Against the bare wall, pixel by pixel: the square's power is the relative reflectivity,
+        # up to being 1 mm nearer (< 0.5 % here); the wall around it is unchanged.
+        np.testing.assert_allclose(res.power_w[square] / bare.power_w[square], rel, rtol=0.005)
+        np.testing.assert_allclose(res.power_w[~square], bare.power_w[~square], rtol=1e-12)
+
+
+def test_card_scenes_put_a_near_card_over_part_of_the_view() -> None:
+    for name in ("wall_card", "dark_square_card", "two_squares_card", "bench_demo"):
+        scene = load_scene(name)
+        cam = scene.camera.scaled(0.5)
+        res = render(scene, camera=cam)
+        card = res.object_id == scene.object_index("card")
+        assert 0.15 < card.mean() < 0.5                     # part of the view, not all of it
+        assert not card[30, 40] and card[:, 60:].any()      # off-centre, on the right
+        np.testing.assert_allclose(cam.radial_to_z(res.radial_m)[card], 0.17, rtol=1e-9)
+
+
+def test_corner_scene_shows_three_walls_meeting_at_the_centre() -> None:
+    scene = load_scene("corner")
+    res = render(scene, camera=scene.camera.scaled(0.25))
+    assert set(np.unique(res.object_id)) == {0, 1, 2}
+    assert res.radial_m[15, 20] == pytest.approx(1.2, abs=0.05)   # the vertex along the axis
