@@ -76,7 +76,7 @@ def permission_error(what: str) -> DeviceError:
     return DeviceError(
         f"permission denied opening {what}. Install the udev rule shipped with tofhil and replug the "
         f"camera: sudo cp {rule} /etc/udev/rules.d/ && sudo udevadm control --reload-rules && "
-        f"sudo udevadm trigger (see configs/udev/README.md)", field="--device",
+        f"sudo udevadm trigger (see docs/drivers.md, USB permissions)", field="--device",
         expected="read/write access to the USB device")
 
 
