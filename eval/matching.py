@@ -104,7 +104,9 @@ def icp(source: Any, target: Any, max_distance: float, kernel: str = "tukey",
     """Point-to-plane ICP of ``source`` onto ``target`` with a robust kernel (Open3D).
 
     ``max_distance`` is the correspondence cut-off [m]; the kernel scale ``kernel_k``
-    defaults to ``max_distance / 2``. Target normals are estimated from neighbours within
+    defaults to ``max_distance / 2`` (safe for convergence from a start up to
+    ``max_distance`` off); to reject near-surface outliers such as multipath ghosts, set it
+    to 2-3 times the noise standard deviation. Target normals are estimated from neighbours within
     ``normal_radius`` (default ``2 * max_distance``, at most 30 points). Fitness and inlier
     RMSE are Open3D's, evaluated at the final transformation.
     """

@@ -138,3 +138,20 @@ def test_icp_on_real_tof_frame():
     assert np.linalg.norm(err[:3, 3]) < 3e-3
     assert math.degrees(math.acos(min(1.0, (np.trace(err[:3, :3]) - 1) / 2))) < 0.2
     assert res.fitness > 0.95
+
+
+def test_tukey_kernel_rejects_ghost_surface_that_biases_l2():
+    # 6000 "multipath ghost" points 3 cm above the floor: least squares is pulled up by
+    # ~2 cm, the Tukey kernel (scale 1 cm) gives them zero weight.
+    rng = np.random.default_rng(4)
+    target = corner_scene(rng, 20000)
+    truth = rigid(1.0, 0.5, [0.01, -0.01, 0.005])
+    ghost = np.c_[rng.uniform(0, 1, 6000), rng.uniform(0, 1, 6000), np.full(6000, 0.03)]
+    src = apply_transform(np.vstack([corner_scene(rng, 15000), ghost]), np.linalg.inv(truth))
+
+    def err(kernel: str) -> float:
+        r = icp(src, target, 0.08, kernel=kernel, kernel_k=0.01)
+        return float(np.linalg.norm((np.linalg.inv(truth) @ r.transformation)[:3, 3]))
+
+    assert err("tukey") < 1e-3
+    assert err("l2") > 5e-3
