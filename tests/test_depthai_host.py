@@ -152,3 +152,16 @@ def test_tofhil_capture_writes_a_session_from_the_host_pipeline(tmp_path):
         np.testing.assert_allclose(d.z_m[d.valid], 2.0, atol=0.6e-3)
     r = run("--device", "depthai-sim", "--frames", "1", "--out", str(tmp_path / "x.h5"), "--mode", "dcs")
     assert r.returncode == 2 and "distance" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_reconfiguring_mid_stream_keeps_the_session_radial():
+    d0 = 1.1
+    dev = DepthAIToF("depthai-sim", host_scene=PlaneScene(distance_m=d0), camera=CAM)
+    with dev:
+        dev.configure(CaptureSettings(mode="distance"))
+        a = next(iter(dev.stream(1, timeout_s=5.0)))
+        dev.configure(CaptureSettings(mode="distance", extra={"enable_optical_correction": True}))
+        b = next(iter(dev.stream(1, timeout_s=5.0)))
+    assert a.depth.meta["depth_kind_on_wire"] == "radial" and b.depth.meta["depth_kind_on_wire"] == "z"
+    for f in (a, b):
+        np.testing.assert_allclose(f.depth.radial_m, d0 / CAM.ray_z, atol=0.6e-3)

@@ -135,3 +135,15 @@ def test_raw_sessions_copy_and_replay_as_taps_or_demodulated_depth(tmp_path):
         depth = next(iter(dev.stream(1))).depth
     # Demodulated from the taps: the plane's closed-form radial distance.
     np.testing.assert_allclose(depth.radial_m, 0.8 / depth.camera.ray_z, atol=1e-4)
+
+
+def test_a_session_cut_short_is_repaired_by_import(tmp_path):
+    import h5py
+
+    src = _raw_plane_session(tmp_path / "raw.h5")
+    with h5py.File(src, "r+") as f:  # as if the writer died after frame 2's data, before its count
+        f.attrs["n_frames"] = 2
+    res = import_file(src, tmp_path / "fixed.h5")
+    assert res.n_frames == 2 and any("partly written" in n for n in res.notes)
+    with open_session(res.out) as s:
+        assert s.n_frames == 2 and s.dataset_lengths["raw/taps"] == 2

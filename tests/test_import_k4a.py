@@ -160,3 +160,19 @@ def test_damaged_headers_give_input_errors_not_crashes(mkv_path, tmp_path, cut, 
             read_k4a_recording(p, salvage=True)
         except InputFileError:
             pass
+
+
+def test_camera_override_converts_z_with_that_cameras_rays(rec, tmp_path, mkv_path):
+    yaml_cam = tmp_path / "k.yaml"
+    yaml_cam.write_text("name: flat\nwidth: 640\nheight: 576\nhfov_deg: 75\nvfov_deg: 65\n")
+    res = import_file(mkv_path, tmp_path / "o.h5", camera=str(yaml_cam))
+    _, z_mm, _ = rec.frames[0]
+    with open_session(res.out) as s:
+        assert s.camera.name == "flat" and s.device["camera_source"].startswith("--camera")
+        d = s.depth_frame(0)
+        # Pinhole without distortion: radial = z * sqrt(1 + ((u-cx)/fx)^2 + ((v-cy)/fy)^2).
+        v, u = np.mgrid[0:576, 0:640]
+        cam = s.camera
+        norm = np.sqrt(1 + ((u - cam.cx) / cam.fx) ** 2 + ((v - cam.cy) / cam.fy) ** 2)
+        ok = z_mm > 0
+        np.testing.assert_allclose(d.radial_m[ok], (z_mm * 1e-3 * norm)[ok], rtol=1e-6)
