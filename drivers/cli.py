@@ -119,8 +119,13 @@ def emulate(scene: Optional[str] = typer.Option(None, "--scene", help="Scene fil
                           field="--pty", expected="--pty (in-process use: --device emulator)")
     emulator = Epc635Emulator(source_from_spec(scene), faults=FaultPlan.parse(faults) if faults else None,
                               seed=seed, frame_interval_s=1.0 / frame_rate if frame_rate > 0 else 0.0)
-    # Render the default configuration now, so the first client request is answered in time.
-    emulator.device_dcs()
+    # Render both modulation frequencies now (a scene render takes seconds), so that no client
+    # request waits for one: the vendor client gives up after 0.2 s.
+    from tofhil.drivers import epc635_protocol as P
+    from tofhil.drivers.tofcam635 import canonical_phases
+
+    for freq in P.MOD_FREQ_CODES.values():
+        emulator.source.taps(freq, 125e-6, canonical_phases(emulator.profile))
     _sigterm_as_interrupt()
     server = PtyServer(emulator).start()
     print(f"PORT={server.port}", flush=True)

@@ -571,7 +571,12 @@ class TofCam635(Driver):
 
 
 class _Unwrapper:
-    """Unwrap a wrapping device counter into a monotonic integer."""
+    """Unwrap a wrapping device counter into a monotonic integer.
+
+    A drop from the top quarter of the range into the bottom quarter is a wrap; any other
+    step backwards is a device restart (after a reconnect), and the count continues from the
+    last value instead of jumping by a whole period.
+    """
 
     def __init__(self, modulus: int) -> None:
         self.modulus = modulus
@@ -579,8 +584,12 @@ class _Unwrapper:
         self._base = 0
 
     def __call__(self, value: int) -> int:
-        if self._last is not None and value < self._last:
-            self._base += self.modulus
+        last = self._last
+        if last is not None and value < last:
+            if last >= 3 * self.modulus // 4 and value < self.modulus // 4:
+                self._base += self.modulus
+            else:
+                self._base += last - value + 1  # restarted: continue right after the last value
         self._last = value
         return self._base + value
 

@@ -70,6 +70,9 @@ def test_disconnect_is_survived_by_reconnecting() -> None:
         assert all(f.raw.integration_time_s == pytest.approx(400e-6) for f in frames)  # type: ignore[union-attr]
         assert dev.usb_backend.kernel_detaches == 4  # cdc_acm detached again after the replug
         _check_wall(frames, 1.1)
+        # the restarted camera's frame counter starts again: sequence numbers stay monotonic, no jump
+        steps = np.diff([f.sequence for f in frames])
+        assert steps.min() >= 1 and steps.max() <= 2
 
 
 def test_a_device_that_stays_away_ends_the_stream() -> None:

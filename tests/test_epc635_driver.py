@@ -169,3 +169,11 @@ def test_no_device_and_unknown_specs_are_clear_errors() -> None:
     with pytest.raises(DeviceError, match="unknown device"):
         open_device("nosuchcamera:1")
     assert any(e.spec == "emulator" and e.kind == "emulated" for e in list_devices())
+
+
+def test_device_counters_unwrap_across_wraps_and_restarts() -> None:
+    from tofhil.drivers.tofcam635 import _Unwrapper
+
+    u = _Unwrapper(1 << 16)
+    assert [u(v) for v in (65534, 65535, 0, 1, 5000)] == [65534, 65535, 65536, 65537, 70536]
+    assert [u(v) for v in (0, 1)] == [70537, 70538]  # a restarted device continues, no 65536 jump
