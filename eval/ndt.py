@@ -144,19 +144,19 @@ class NDTGrid:
         icovs = np.einsum("mij,mj,mkj->mik", evecs, 1.0 / evals, evecs)
         cell_ijk = _unpack(keys)
         order = np.arange(keys.size)
-        table = lo = None
+        table = lo_span = None
         if keys.size:
             # Dense lookup table with a margin of 2 empty cells: a query cell whose
             # neighbourhood leaves the table has no occupied neighbour at all.
             lo = cell_ijk.min(0) - 2
             span = cell_ijk.max(0) + 3 - lo
-            if int(np.prod(span)) <= _DENSE_MAX_CELLS:
+            if int(np.prod(span.astype(np.float64))) <= _DENSE_MAX_CELLS:
                 table = np.full(int(np.prod(span)), -1, dtype=np.int32)
                 table[_linear(cell_ijk - lo, span)] = order
-                lo = np.concatenate([lo, span])
+                lo_span = np.concatenate([lo, span])
         icov6 = icovs[:, [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]] * np.array([1, 1, 1, 2, 2, 2.0])
         return cls(float(cell_size), int(min_points), float(eig_floor), cell_ijk, counts, means, covs, icovs,
-                   keys, order, table, lo, np.ascontiguousarray(icov6.T), np.ascontiguousarray(means.T))
+                   keys, order, table, lo_span, np.ascontiguousarray(icov6.T), np.ascontiguousarray(means.T))
 
     def lookup(self, ijk: np.ndarray) -> np.ndarray:
         """Cell numbers of integer cell indices ``[N, 3]``; -1 where no distribution."""
