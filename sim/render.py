@@ -53,6 +53,7 @@ class RenderResult:
     transient_edges_m: np.ndarray | None = None
     camera: CameraModel | None = None
     samples_per_pixel: int = 1
+    rays_traced: int = 0                 # closest-hit plus shadow rays sent to Embree
     bounces: int = 0
 
     def harmonic_index(self, h: int) -> int:
@@ -201,6 +202,7 @@ class _Context:
         irr = self.emitter.intensity_w_sr(cos_e) * np.maximum(cos_s, 0.0) / (r1 * r1)
         lit = irr > 0
         offset = (RAY_EPSILON_M * sgn)[:, None] * ng_raw
+        n_shadow = int(np.count_nonzero(lit))
         if lit.all():
             blocked = self.geom.occluded(x + offset, wi, r1 - 2 * RAY_EPSILON_M)
             irr[blocked] = 0.0
@@ -209,7 +211,7 @@ class _Context:
             if len(li):
                 blocked = self.geom.occluded(x[li] + offset[li], wi[li], r1[li] - 2 * RAY_EPSILON_M)
                 irr[li[blocked]] = 0.0
-        return self.brdf(obj, rho, n, wi, wo) * irr, r1
+        return self.brdf(obj, rho, n, wi, wo) * irr, r1, n_shadow
 
     def uniforms(self, rng: np.random.Generator, npix: int) -> np.ndarray:
         """Per-sample uniforms in [0, 1)^D for ``npix`` pixels x ``spp`` samples.
@@ -290,12 +292,14 @@ class _Context:
 
         # Primary hits.
         hits = self.geom.intersect(origins, dirs)
+        rays = len(dirs)
         if not self.subpixel and not self.thin_lens:
             # Centre rays from the pinhole: the primary hits are the ground truth.
             radial = hits.full(hits.t, np.inf)[::spp]
             oid = hits.full(self.geom.tri_object[hits.prim], -1)[::spp]
         else:
             hc = self.geom.intersect(self.t, _rotate(self.centre_rays[p0:p1], self.R))
+            rays += npix
             radial = hc.full(hc.t, np.inf)
             oid = hc.full(self.geom.tri_object[hc.prim], -1)
         out["radial"] = radial
@@ -328,7 +332,8 @@ class _Context:
             if bounce == 0 and self.ambient > 0:
                 ambient = np.bincount(local, beta * (rho + self.rho_s[obj]) * (self.ambient / np.pi),
                                       minlength=npix)
-            radiance, r1 = self.connect_emitter(x, hits.ng, sgn, n, wo, obj, rho)
+            radiance, r1, n_shadow = self.connect_emitter(x, hits.ng, sgn, n, wo, obj, rho)
+            rays += n_shadow
             w = beta * radiance
             lit = w > 0
             if bounce == 0 and spp == 1 and len(w) == npix and lit.all():
@@ -345,6 +350,7 @@ class _Context:
             o2 = x[ok] + RAY_EPSILON_M * ng[ok]
             d2 = wi[ok]
             hits = self.geom.intersect(o2, d2)
+            rays += len(d2)
             keep = ok if hits.index is None else ok[hits.index]
             sel2 = (lambda a: a) if hits.index is None else (lambda a: a[hits.index])
             local, sid, beta, path = local[keep], sid[keep], beta[keep], path[keep] + hits.t
@@ -353,6 +359,7 @@ class _Context:
             wo = -d2
 
         out["re"], out["im"], out["power"], out["ambient"] = acc_re, acc_im, power, ambient
+        out["rays"] = np.array(rays)
         if tr is not None:
             out["transient"] = tr.reshape(npix, -1)
         return out
@@ -447,9 +454,12 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     oid = np.full(npix_total, -1, dtype=np.int32)
     trans = None if edges is None else np.zeros((npix_total, len(edges) - 1))
 
+    ray_count = [0]
+
     def store(p0: int, p1: int, r: dict[str, np.ndarray]) -> None:
         acc[:, :, p0:p1] = r["re"] + 1j * r["im"]
         power[p0:p1] = r["power"]
+        ray_count[0] += int(r["rays"])
         ambient[p0:p1] = r["ambient"]
         radial[p0:p1] = r["radial"]
         oid[p0:p1] = r["object_id"]
@@ -481,7 +491,8 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
         phasor_direct=direct if separate_direct else None,
         phasor_indirect=indirect if separate_direct else None,
         transient=None if trans is None else np.ascontiguousarray(trans.T.reshape(-1, H, W)),
-        transient_edges_m=edges, camera=cam, samples_per_pixel=spp, bounces=nb)
+        transient_edges_m=edges, camera=cam, samples_per_pixel=spp, bounces=nb,
+        rays_traced=ray_count[0])
 
 
 def radial_from_phasor(phasor: np.ndarray, freq_hz: float) -> np.ndarray:

@@ -1,0 +1,169 @@
+"""Renderer benchmark: throughput against bare embreex, frame rate, multipath convergence.
+
+Prints, in one run:
+  (a) the renderer's rays per second against bare embreex tracing the same rays (same
+      batches, same threads) -- aim >= 0.5 of bare;
+  (b) a 640 x 480 direct-only frame at 1 sample per pixel (OAK ToF camera geometry on the
+      bench_demo scene) -- aim >= 10 frames/s on 2 cores;
+  (c) the corner at 128 x 128 with multipath: time to reach 1 mm RMS depth error against
+      the converged image.
+
+For (c) the passes are independent (different seeds), so the RMS error of their running
+mean against the converged (infinite-sample) image is sigma/sqrt(m), with sigma the
+per-pixel spread between passes; the renderer is unbiased (tests/test_render_multipath.py),
+so this is the error against the converged reference without paying for one. ``--reference
+SPP`` additionally renders an explicit reference with SPP samples and compares to it.
+
+Run: /work/venv/bin/python benchmarks/bench_render.py [--budget-s 90] [--threads 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import statistics
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from tofhil import C_M_PER_S
+from tofhil.camera import CameraModel, load_camera_preset
+from tofhil.sim.geometry import BATCH, RAY_EPSILON_M
+from tofhil.sim.render import radial_from_phasor, render, scene_geometry
+from tofhil.sim.scene import load_scene
+
+
+def bare_embree_rays_per_s(geom, origins, dirs, shadow_o, shadow_d, shadow_dist, threads: int,
+                           repeats: int = 3) -> float:
+    """Bare embreex: the same closest-hit and shadow rays, same batch size, same threads."""
+    o32 = np.ascontiguousarray(origins, dtype=np.float32)
+    d32 = np.ascontiguousarray(dirs, dtype=np.float32)
+    so32 = np.ascontiguousarray(shadow_o, dtype=np.float32)
+    sd32 = np.ascontiguousarray(shadow_d, dtype=np.float32)
+    sl32 = np.ascontiguousarray(shadow_dist, dtype=np.float32)
+
+    def job(a: int, b: int) -> None:
+        geom.embree.run(o32[a:b], d32[a:b], output=1)
+        geom.embree.run(so32[a:b], sd32[a:b], dists=sl32[a:b], query="OCCLUDED")
+
+    n = len(dirs)
+    spans = [(a, min(a + BATCH, n)) for a in range(0, n, BATCH)]
+    best = math.inf
+    with ThreadPoolExecutor(threads) as pool:
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            list(pool.map(lambda ab: job(*ab), spans))
+            best = min(best, time.perf_counter() - t0)
+    return (n + len(shadow_d)) / best
+
+
+def part_a_and_b(threads: int) -> None:
+    scene = load_scene("bench_demo")
+    cam = load_camera_preset("oak_tof_33d")              # 640 x 480
+    render(scene, camera=cam, samples_per_pixel=1, bounces=0, threads=threads)   # warm-up
+    times, rays = [], 0
+    for _ in range(7):
+        t0 = time.perf_counter()
+        res = render(scene, camera=cam, samples_per_pixel=1, bounces=0, subpixel=False, threads=threads)
+        times.append(time.perf_counter() - t0)
+        rays = res.rays_traced
+    t_frame = statistics.median(times)
+
+    # The same rays for bare embreex: pixel-centre rays from the pinhole, then shadow rays
+    # from the hits to the emitter (as the renderer builds them).
+    geom = scene_geometry(scene)
+    R, t = scene.camera_pose[:3, :3], scene.camera_pose[:3, 3]
+    dirs = cam.rays.reshape(-1, 3) @ R.T
+    origins = np.broadcast_to(t, dirs.shape)
+    hit_t = res.radial_m.reshape(-1)
+    x = origins + hit_t[:, None] * dirs
+    hits = geom.intersect(t, dirs)
+    ng = hits.ng * np.where(np.einsum("ij,ij->i", hits.ng, dirs) > 0, -1.0, 1.0)[:, None]
+    to_e = scene.emitter_position_world() - x
+    dist = np.linalg.norm(to_e, axis=1)
+    bare = bare_embree_rays_per_s(geom, origins, dirs, x + RAY_EPSILON_M * ng, to_e / dist[:, None],
+                                  dist - 2 * RAY_EPSILON_M, threads)
+    ours = rays / t_frame
+    print(f"(a) rays/s, 640x480 direct (closest-hit + shadow): renderer {ours / 1e6:.2f} M/s, "
+          f"bare embreex {bare / 1e6:.2f} M/s on the same rays -> ratio {ours / bare:.2f} (aim >= 0.5)")
+    print(f"(b) 640x480 direct-only frame, 1 spp, {threads} threads: {t_frame * 1e3:.1f} ms median "
+          f"-> {1 / t_frame:.1f} frames/s (aim >= 10); bare ray tracing alone would take "
+          f"{rays / bare * 1e3:.1f} ms")
+
+
+def corner_camera(scene) -> CameraModel:
+    c = scene.camera                                      # same field of view, 128 x 128
+    f = c.fx * 128 / 160
+    return CameraModel(width=128, height=128, fx=f, fy=f, cx=63.5, cy=63.5,
+                       pixel_pitch_m=c.pixel_pitch_m * 160 / 128, name="corner128")
+
+
+def part_c(threads: int, budget_s: float, spp_per_pass: int, reference_spp: int) -> None:
+    scene = load_scene("corner")
+    cam = corner_camera(scene)
+    f = float(scene.freq_hz[0])
+    bounces = int(scene.render.get("bounces", 2))
+    render(scene, camera=cam, samples_per_pixel=1, bounces=bounces, threads=threads)   # warm-up
+    passes: list[np.ndarray] = []
+    t_start = time.perf_counter()
+    reached = None
+    history = []
+    while True:
+        res = render(scene, camera=cam, samples_per_pixel=spp_per_pass, bounces=bounces, seed=1000 + len(passes),
+                     threads=threads)
+        passes.append(res.phasor[0, 0])
+        elapsed = time.perf_counter() - t_start
+        m = len(passes)
+        if m >= 2:
+            d = radial_from_phasor(np.stack(passes), f)
+            d = np.where(np.abs(d - d.mean(axis=0)) > C_M_PER_S / (8 * f), np.nan, d)   # no wrap jumps
+            var = np.nanvar(d, axis=0, ddof=1)
+            rms = float(np.sqrt(np.nanmean(var) / m))
+            history.append((elapsed, rms, m))
+            if rms <= 1e-3 and reached is None:
+                reached = elapsed
+                break
+        if elapsed > budget_s and m >= 4:
+            break
+    t_end, rms_end, m_end = history[-1]
+    paths_per_s = m_end * spp_per_pass * cam.width * cam.height / t_end
+    print(f"(c) corner 128x128, {bounces} bounces, {spp_per_pass} spp/pass: {m_end} passes "
+          f"({m_end * spp_per_pass} spp) in {t_end:.1f} s, RMS depth error {rms_end * 1e3:.2f} mm "
+          f"vs the converged image ({paths_per_s / 1e3:.0f} k paths/s)")
+    if reached is not None:
+        print(f"    time to 1 mm RMS: {reached:.1f} s (measured)")
+    else:
+        # Fit rms = a * t^-alpha on the second half of the passes and extrapolate.
+        h = np.array(history[len(history) // 2:])
+        if len(h) >= 2 and np.ptp(h[:, 0]) > 0:
+            alpha, log_a = np.polyfit(np.log(h[:, 0]), np.log(h[:, 1]), 1)
+            t_1mm = math.exp((math.log(1e-3) - log_a) / alpha)
+            print(f"    time to 1 mm RMS: ~{t_1mm:.0f} s (EXTRAPOLATED, error ~ t^{alpha:.2f}; "
+                  f"raise --budget-s to measure it)")
+    if reference_spp:
+        t0 = time.perf_counter()
+        ref = render(scene, camera=cam, samples_per_pixel=reference_spp, bounces=bounces, seed=7, threads=threads)
+        d_ref = radial_from_phasor(ref.phasor[0, 0], f)
+        d_run = radial_from_phasor(np.mean(passes, axis=0), f)
+        print(f"    explicit reference ({reference_spp} spp, {time.perf_counter() - t0:.0f} s): RMS "
+              f"{np.sqrt(np.mean((d_run - d_ref) ** 2)) * 1e3:.2f} mm (includes the reference's own error)")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--threads", type=int, default=min(2, os.cpu_count() or 1))
+    ap.add_argument("--budget-s", type=float, default=90.0, help="time budget for part (c)")
+    ap.add_argument("--spp-per-pass", type=int, default=16)
+    ap.add_argument("--reference", type=int, default=0, metavar="SPP",
+                    help="also render an explicit reference with SPP samples (slow)")
+    args = ap.parse_args()
+    print(f"bench_render: {args.threads} threads, load average {os.getloadavg()[0]:.1f} "
+          f"on {os.cpu_count()} cores")
+    part_a_and_b(args.threads)
+    part_c(args.threads, args.budget_s, args.spp_per_pass, args.reference)
+
+
+if __name__ == "__main__":
+    main()
