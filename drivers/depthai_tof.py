@@ -28,7 +28,8 @@ model has zero distortion; otherwise the factory coefficients are used.
 
 Specs: ``depthai`` (first device), ``depthai:DEVICE_ID_OR_IP``; ``depthai-sim`` (a host
 pipeline rendering a plane, see :class:`PlaneScene`; ``depthai-sim:DIST_M`` sets the
-plane's distance).
+plane's distance; ``depthai-sim:SCENE`` sends frames of the simulator twin for a scene
+name or file, see :class:`TwinScene`).
 """
 
 from __future__ import annotations
@@ -227,6 +228,12 @@ class PlaneScene:
     drop_amplitude_of: tuple[int, ...] = ()
     n_frames: int | None = None
 
+    def camera_model(self) -> CameraModel:
+        return load_camera_preset(PRESET)
+
+    def render_frames(self, camera: CameraModel) -> list[dict[str, np.ndarray]]:
+        return [self.render(camera)]
+
     def render(self, camera: CameraModel) -> dict[str, np.ndarray]:
         t = math.radians(self.tilt_deg)
         n = np.array([0.0, math.sin(t), math.cos(t)])
@@ -240,6 +247,47 @@ class PlaneScene:
         phase = np.mod(4 * np.pi * BASE_FREQ_HZ * d / C_M_PER_S, 2 * np.pi)
         return {"radial_m": d, "z_m": d * camera.ray_z, "amplitude": amp, "intensity": amp + self.ambient,
                 "phase": phase}
+
+
+@dataclass
+class TwinScene:
+    """What the host source sends: frames of the simulator twin (``tofhil.sim``) for a scene.
+
+    The scene (a bundled name or a YAML path) is rendered once and exposed ``realisations``
+    times with independent noise (``tofhil.sim.pipeline.simulate``); each raw frame is
+    demodulated by the core (``depth_from_raw``) and sent as the device would: depth in mm,
+    amplitude and intensity (offset) in the twin's DN, the wrapped phase of the first
+    frequency. The frames cycle; the camera is the scene's.
+    """
+
+    scene: str
+    realisations: int = 4
+    seed: int = 0
+    fps: float = 30.0
+    drop_amplitude_of: tuple[int, ...] = ()
+    n_frames: int | None = None
+
+    def _load(self) -> Any:
+        from tofhil.sim.scene import load_scene
+
+        return load_scene(self.scene)
+
+    def camera_model(self) -> CameraModel:
+        return self._load().camera
+
+    def render_frames(self, camera: CameraModel) -> list[dict[str, np.ndarray]]:
+        from tofhil.depth import depth_from_raw
+        from tofhil.sim.pipeline import simulate
+
+        out = []
+        for raw in simulate(self._load(), frames=self.realisations, seed=self.seed):
+            d = depth_from_raw(raw)
+            radial = np.where(d.valid, d.radial_m, 0.0)
+            f0 = float(raw.freq_hz[0])
+            out.append({"radial_m": radial, "z_m": radial * camera.ray_z,
+                        "amplitude": np.nan_to_num(d.amplitude), "intensity": np.nan_to_num(d.intensity),
+                        "phase": np.mod(4 * np.pi * f0 * radial / C_M_PER_S, 2 * np.pi)})
+        return out
 
 
 _HOST_SOURCE_CLASS: Any = None
@@ -259,25 +307,27 @@ def host_source_class() -> Any:
         def __init__(self) -> None:
             super().__init__()
             self.outs = {name: self.createOutput() for name in OUTPUTS}
-            self.images: dict[str, np.ndarray] = {}
-            self.scene = PlaneScene()
+            self.frames: list[dict[str, np.ndarray]] = []
+            self.scene: Any = PlaneScene()
             self.sent = 0
             self.done = threading.Event()
 
-        def setup(self, scene: PlaneScene, camera: CameraModel, settings: ToFSettings) -> None:
-            img = scene.render(camera)
-            depth_m = img["z_m"] if settings.enable_optical_correction else img["radial_m"]
-            # The device's wire formats: RAW16 depth in mm (rounded), RAW16 amplitude/intensity.
-            self.images = {"depth": np.round(depth_m * 1000.0).astype(np.uint16),
-                           "amplitude": np.clip(np.round(img["amplitude"]), 0, 65535).astype(np.uint16),
-                           "intensity": np.clip(np.round(img["intensity"]), 0, 65535).astype(np.uint16),
-                           "phase": img["phase"].astype(np.float32)}
+        def setup(self, scene: Any, camera: CameraModel, settings: ToFSettings) -> None:
+            self.frames = []
+            for img in scene.render_frames(camera):
+                depth_m = img["z_m"] if settings.enable_optical_correction else img["radial_m"]
+                # The device's wire formats: RAW16 depth in mm (rounded), RAW16 amplitude/intensity.
+                self.frames.append({
+                    "depth": np.clip(np.round(depth_m * 1000.0), 0, 65535).astype(np.uint16),
+                    "amplitude": np.clip(np.round(img["amplitude"]), 0, 65535).astype(np.uint16),
+                    "intensity": np.clip(np.round(img["intensity"]), 0, 65535).astype(np.uint16),
+                    "phase": img["phase"].astype(np.float32)})
             self.scene = scene
             self.wanted = settings.outputs
 
         def _message(self, name: str, seq: int, t_s: float) -> Any:
             f = dai.ImgFrame()
-            img = self.images[name]
+            img = self.frames[seq % len(self.frames)][name]
             h, w = img.shape
             if img.dtype == np.float32:
                 f.setData(np.frombuffer(img.tobytes(), dtype=np.uint8))
@@ -322,7 +372,7 @@ class DepthAIToF(Driver):
 
     scheme = "depthai"
 
-    def __init__(self, spec: str = "depthai", *, host_scene: PlaneScene | None = None,
+    def __init__(self, spec: str = "depthai", *, host_scene: PlaneScene | TwinScene | None = None,
                  camera: CameraModel | None = None) -> None:
         super().__init__(spec)
         scheme, _, rest = spec.partition(":")
@@ -331,8 +381,10 @@ class DepthAIToF(Driver):
             try:
                 host_scene = PlaneScene(distance_m=float(rest)) if rest else PlaneScene()
             except ValueError:
+                host_scene = TwinScene(scene=rest)  # a scene name or file for the twin
+            if isinstance(host_scene, PlaneScene) and not host_scene.distance_m > 0:
                 raise DeviceError(f"bad spec {spec!r}", field="--device",
-                                  expected="depthai-sim or depthai-sim:DISTANCE_M") from None
+                                  expected="depthai-sim, depthai-sim:DISTANCE_M (> 0) or depthai-sim:SCENE")
         self.device_id = "" if self.host else rest
         self.host_scene = host_scene
         self._camera = camera
@@ -351,8 +403,9 @@ class DepthAIToF(Driver):
     def _open_device(self) -> None:
         dai = _dai()
         if self.host:
-            self._camera = self._camera or load_camera_preset(PRESET)
-            self._info = DeviceInfo(driver="depthai", model="host pipeline (PlaneScene)", vendor="tofhil",
+            self._camera = self._camera or self.host_scene.camera_model()
+            self._info = DeviceInfo(driver="depthai", model=f"host pipeline ({type(self.host_scene).__name__})",
+                                    vendor="tofhil",
                                     firmware=f"depthai {dai.__version__}",
                                     extra={"host_scene": asdict(self.host_scene)})
             return

@@ -17,6 +17,7 @@ from tofhil import C_M_PER_S  # noqa: E402
 from tofhil.camera import load_camera_preset  # noqa: E402
 from tofhil.drivers.base import CaptureSettings, DeviceError, create_driver, open_device  # noqa: E402
 from tofhil.drivers.depthai_tof import DepthAIToF, PlaneScene, SequencePairer, ToFSettings  # noqa: E402
+from tofhil.errors import TofhilError  # noqa: E402
 from tofhil.session import SessionWriter, open_session  # noqa: E402
 
 #: A quarter-resolution OAK ToF camera keeps the tests fast.
@@ -124,8 +125,10 @@ def test_bad_settings_are_refused_with_the_field():
             dev.configure(CaptureSettings(mode="distance", extra={"bogus": 1}))
         with pytest.raises(DeviceError, match="integration_time_s"):
             dev.configure(CaptureSettings(mode="distance", integration_time_s=1e-3))
-    with pytest.raises(DeviceError, match="depthai-sim:DISTANCE_M"):
-        create_driver("depthai-sim:far")
+    with pytest.raises(DeviceError, match="DISTANCE_M"):
+        create_driver("depthai-sim:-1")
+    with pytest.raises(TofhilError, match="no_such_scene"):
+        open_device("depthai-sim:no_such_scene")
 
 
 def test_tof_config_carries_the_settings():
@@ -165,3 +168,29 @@ def test_reconfiguring_mid_stream_keeps_the_session_radial():
     assert a.depth.meta["depth_kind_on_wire"] == "radial" and b.depth.meta["depth_kind_on_wire"] == "z"
     for f in (a, b):
         np.testing.assert_allclose(f.depth.radial_m, d0 / CAM.ray_z, atol=0.6e-3)
+
+
+def test_twin_frames_flow_through_the_queues(tmp_path):
+    """depthai-sim:SCENE sends the simulator twin's frames; what arrives is the twin's depth
+    (demodulated by the core) to the millimetre, and the bundled wall is where the scene says."""
+    from tofhil.depth import depth_from_raw
+    from tofhil.drivers.depthai_tof import TwinScene
+    from tofhil.sim.pipeline import simulate
+    from tofhil.sim.scene import load_scene
+
+    scene = TwinScene(scene="wall", realisations=2, seed=3)
+    dev = DepthAIToF("depthai-sim", host_scene=scene)
+    with dev:
+        dev.configure(CaptureSettings(mode="distance", extra={"enable_optical_correction": True}))
+        frames = list(dev.stream(3, timeout_s=30.0))
+        cam = dev.camera
+    twin = [depth_from_raw(r) for r in simulate(load_scene("wall"), frames=2, seed=3)]
+    for i, f in enumerate(frames):
+        ref = twin[i % 2]
+        ok = ref.valid & f.depth.valid
+        assert ok.mean() > 0.9
+        # z on the wire (mm), back to radial: within the mm rounding of z.
+        assert np.max(np.abs(f.depth.radial_m[ok] - ref.radial_m[ok])) < 0.6e-3 / cam.ray_z.min()
+    # The wall is 1.0 m away along the optical axis (scene file): the centre's z says so.
+    c = frames[0].depth.z_m[cam.height // 2 - 5:cam.height // 2 + 5, cam.width // 2 - 5:cam.width // 2 + 5]
+    assert abs(float(np.median(c)) - 1.0) < 0.05
