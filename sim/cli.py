@@ -58,6 +58,9 @@ def simulate(scene: str = typer.Argument(..., help="A scene file (.yaml) or a bu
             if not isinstance(values, dict):
                 raise TofhilError(f"got {name}={values!r}", field="--effect", expected="EFFECT.PARAM=VALUE")
             effects.setdefault(name, {}).update(values)
+        from tofhil.sim.effects import parse_effects
+
+        parse_effects(effects, source=f"{sc.source} with --effect")  # errors name the option
     path = simulate_session(sc, out_path, frames=frames, seed=seed, noise=not no_noise, force=force,
                             effects=effects, progress=True)
     out.print(f"wrote {frames} simulated frame{'s' if frames != 1 else ''} of {sc.name or scene} to {path}")

@@ -255,35 +255,90 @@ def flip_image(s: np.ndarray) -> np.ndarray:
     return np.asarray(s)[..., ::-1, ::-1]
 
 
+def _pixel_matrix(n: int, sigma: float, *, mirror_about: float | None = None) -> np.ndarray:
+    """``[n, n]`` matrix of the pixel-integrated 1-D Gaussian: ``M[q, p] = g(q - p)`` (Toeplitz),
+    or with ``mirror_about = c`` the ghost's ``M[q, p] = g(q - (2c - p))`` (Hankel)."""
+    q = np.arange(n, dtype=np.float64)[:, None]
+    p = np.arange(n, dtype=np.float64)[None, :]
+    shift = q - p if mirror_about is None else q + p - 2.0 * mirror_about
+    return _pixel_gauss_1d(shift, 0.0, sigma)
+
+
+def _separable(s: np.ndarray, my: np.ndarray, mx: np.ndarray) -> np.ndarray:
+    """``My @ S @ Mx^T`` on images ``[..., H, W]`` (real matrices; complex images done as two
+    real products, which BLAS runs at real speed)."""
+    if np.iscomplexobj(s):
+        out = np.empty(s.shape, dtype=np.complex128)
+        out.real = my @ s.real @ mx.T
+        out.imag = my @ s.imag @ mx.T
+        return out
+    return my @ s @ mx.T
+
+
 class StrayLightOperator:
-    """``S -> (delta + h) * S`` for images of one size; kernels and their FFTs built once.
+    """``S -> (delta + h) * S`` for images of one size; kernels built once.
 
     ``apply`` is the forward model, ``scatter`` the stray light alone (``apply(S) = keep * S +
     scatter(S)``, ``keep = 1 - W`` when conserving), ``adjoint`` the transpose (for
     least-squares corrections).
+
+    ``method``: ``"separable"`` evaluates Gaussian lobes and the ghost as products with
+    ``[H, H]`` and ``[W, W]`` pixel-Gaussian matrices (exact linear convolution, no padding
+    needed) and the veil as a sum; ``"fft"`` (and ``"auto"``) uses the zero-padded FFT with the
+    ``[2H-1, 2W-1]`` kernels. A measured PSF always goes through the FFT. Both give the same
+    operator; the separable form is faster with a single-threaded BLAS, but multi-threaded
+    BLAS on a busy machine makes it unpredictable, so the FFT is the default.
     """
 
     def __init__(self, psf: StrayLightPSF, shape: tuple[int, int],
-                 center_px: tuple[float, float] | None = None, workers: int | None = None) -> None:
+                 center_px: tuple[float, float] | None = None, workers: int | None = None,
+                 method: str = "auto") -> None:
+        if method not in ("auto", "fft", "separable"):
+            raise ValueError(f"method must be auto, fft or separable, got {method!r}")
         self.psf = psf
         self.shape = (int(shape[0]), int(shape[1]))
         h, w = self.shape
         c = psf.ghost_center_px or center_px or ((w - 1) / 2.0, (h - 1) / 2.0)
         self.center_px = (float(c[0]), float(c[1]))
         self.keep = 1.0 - psf.total_weight if psf.conserve else 1.0
-        k = psf_kernel(psf, self.shape)
-        self._conv = PaddedConvolution(k, self.shape, (h - 1, w - 1), workers) if np.any(k) else None
-        self._ghost = (PaddedConvolution(ghost_kernel(psf, self.shape, self.center_px), self.shape,
-                                         (h - 1, w - 1), workers) if psf.ghost_weight else None)
+        self.method = "fft" if method == "auto" else method
+        self._conv = self._ghost = None
+        self._lobes: list[tuple[float, np.ndarray, np.ndarray]] = []
+        self._ghost_mats: tuple[np.ndarray, np.ndarray] | None = None
+        if self.method == "separable":
+            for g in psf.gaussians:
+                if g.weight:
+                    self._lobes.append((g.weight, _pixel_matrix(h, g.sigma_y_px), _pixel_matrix(w, g.sigma_x_px)))
+            if psf.ghost_weight:
+                self._ghost_mats = (_pixel_matrix(h, psf.ghost_sigma_px, mirror_about=self.center_px[1]),
+                                    _pixel_matrix(w, psf.ghost_sigma_px, mirror_about=self.center_px[0]))
+            if psf.measured is not None and psf.measured_scale != 0:
+                # Only the measured part goes through the FFT here.
+                k = psf_kernel(StrayLightPSF(measured=psf.measured, measured_center_px=psf.measured_center_px,
+                                             measured_scale=psf.measured_scale), self.shape)
+                self._conv = PaddedConvolution(k, self.shape, (h - 1, w - 1), workers)
+        else:
+            k = psf_kernel(psf, self.shape)
+            self._conv = PaddedConvolution(k, self.shape, (h - 1, w - 1), workers) if np.any(k) else None
+            self._ghost = (PaddedConvolution(ghost_kernel(psf, self.shape, self.center_px), self.shape,
+                                             (h - 1, w - 1), workers) if psf.ghost_weight else None)
 
     def scatter(self, s: np.ndarray) -> np.ndarray:
         """The stray light only: ``h_scatter * S`` (without the ``-W delta`` term)."""
         s = np.asarray(s)
         out = np.zeros(s.shape, dtype=np.result_type(s.dtype, np.float64))
+        if self.method == "separable":
+            for wgt, my, mx in self._lobes:
+                out += wgt * _separable(s, my, mx)
+            if self._ghost_mats is not None:
+                out += self.psf.ghost_weight * _separable(s, *self._ghost_mats)
+            if self.psf.veil:
+                h, w = self.shape
+                out += (self.psf.veil / (h * w)) * s.sum(axis=(-2, -1), keepdims=True)
+        elif self._ghost is not None:
+            out += self._ghost(flip_image(s))
         if self._conv is not None:
             out += self._conv(s)
-        if self._ghost is not None:
-            out += self._ghost(flip_image(s))
         return out
 
     def apply(self, s: np.ndarray) -> np.ndarray:
@@ -296,10 +351,18 @@ class StrayLightOperator:
         """Transpose of :meth:`apply` (conjugate transpose for complex kernels)."""
         s = np.asarray(s)
         out = self.keep * s.astype(np.result_type(s.dtype, np.float64))
+        if self.method == "separable":
+            for wgt, my, mx in self._lobes:
+                out = out + wgt * _separable(s, my.T, mx.T)
+            if self._ghost_mats is not None:
+                out = out + self.psf.ghost_weight * _separable(s, self._ghost_mats[0].T, self._ghost_mats[1].T)
+            if self.psf.veil:
+                h, w = self.shape
+                out = out + (self.psf.veil / (h * w)) * s.sum(axis=(-2, -1), keepdims=True)
+        elif self._ghost is not None:
+            out = out + flip_image(self._ghost.adjoint(s))
         if self._conv is not None:
             out = out + self._conv.adjoint(s)
-        if self._ghost is not None:
-            out = out + flip_image(self._ghost.adjoint(s))
         return out
 
 
