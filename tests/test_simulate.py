@@ -198,3 +198,20 @@ def test_card_near_the_lens_pulls_the_whole_wall_nearer_the_dark_square_most() -
     square_pull = float(np.median(pull[square]))
     assert square_pull < min(blocks)  # the dark square most
     assert card["square"] < card["wall"] < base["wall"]
+
+
+def test_cli_effects_lists_the_vocabulary_with_off_values_and_bounds() -> None:
+    import json
+
+    from typer.testing import CliRunner
+
+    import tofhil.sim.cli  # noqa: F401  (registers the commands)
+    from tofhil.cli import app
+    from tofhil.sim.effects import EFFECTS
+
+    r = CliRunner().invoke(app, ["effects", "--json"])
+    assert r.exit_code == 0, r.output
+    listed = {e["name"]: e for e in json.loads(r.output)}
+    assert set(listed) == set(EFFECTS)
+    sl = listed["stray_light"]["params"]["weight"]
+    assert sl["off"] == 0.0 and sl["lo"] == 0.0 and sl["hi"] > 0 and listed["stray_light"]["stage"] == "signal"
