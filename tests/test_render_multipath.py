@@ -131,3 +131,13 @@ def test_multipath_estimate_is_unbiased_across_samplers() -> None:
     b = render(scene, camera=cam, samples_per_pixel=1024, bounces=2, subpixel=False, sampler="sobol", seed=6)
     # Whole-image sums average out the per-pixel noise (< 0.5 %).
     assert abs(a.phasor.sum() / b.phasor.sum() - 1) < 0.005
+
+
+def test_renders_are_deterministic_for_a_seed_and_independent_of_threads() -> None:
+    scene = load_scene("corner")
+    cam = scene.camera.scaled(0.5)                     # 80 x 60 at 16 spp: several batches
+    a = render(scene, camera=cam, samples_per_pixel=16, bounces=1, seed=4, threads=1)
+    b = render(scene, camera=cam, samples_per_pixel=16, bounces=1, seed=4, threads=2)
+    c = render(scene, camera=cam, samples_per_pixel=16, bounces=1, seed=5, threads=2)
+    np.testing.assert_array_equal(a.phasor, b.phasor)
+    assert not np.array_equal(a.phasor, c.phasor)
