@@ -29,6 +29,7 @@ def need(path: Path) -> Path:
 
 def robust_plane_rms(points: np.ndarray, keep: float = 80.0, rounds: int = 5) -> float:
     """RMS distance to a plane fitted to the best ``keep`` % of the points (cable excluded)."""
+    points = points[::4]  # every 4th point: ~65k points fit the same plane, 4x faster
     mask = np.ones(len(points), bool)
     for _ in range(rounds):
         c = points[mask].mean(axis=0)
