@@ -162,7 +162,7 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
 
 
 def expected_taps(scene: Any, render_result: Any, effects: Mapping[str, Any] | None = None) -> np.ndarray:
-    """Noise-free taps in DN ``[F, K, H, W]`` (float64 before the float32 frame) for fitting."""
+    """Noise-free taps in DN ``[F, K, H, W]`` (float32, as in a frame) for fitting."""
     eff = resolve_effects(scene, effects)
     cfg = sensor_config(scene)
     camera = getattr(render_result, "camera", None) or scene.camera

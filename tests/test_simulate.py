@@ -111,7 +111,7 @@ def _run_cli(*args: str, cwd) -> subprocess.CompletedProcess:
                           text=True, env=env, timeout=120)
 
 
-def test_cli_simulate_writes_a_session_and_user_errors_exit_2(tmp_path) -> None:
+def test_cli_simulate_writes_a_session(tmp_path) -> None:
     r = _run_cli("simulate", "dark_square", "--out", "s.h5", "--frames", "2", "--seed", "3", "--no-noise",
                  "--param", "square_reflectance=0.1", "--effect", "stray_light.weight=0.03", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
@@ -121,13 +121,29 @@ def test_cli_simulate_writes_a_session_and_user_errors_exit_2(tmp_path) -> None:
         # Parameters are resolved in the embedded text: the square is 0.1 of the wall's 0.8.
         assert yaml.safe_load(s.scene_text)["materials"]["square"]["reflectance"] == pytest.approx(0.08)
         np.testing.assert_array_equal(s.raw_frame(0).taps, s.raw_frame(1).taps)  # noise-free
-    again = _run_cli("simulate", "dark_square", "--out", "s.h5", cwd=tmp_path)
-    assert again.returncode == 2 and "already exists" in again.stderr
-    bad = _run_cli("simulate", "dark_square", "--out", "t.h5", "--effect", "stray_light.wieght=0.1", cwd=tmp_path)
-    assert bad.returncode == 2 and "effects.stray_light.wieght" in bad.stderr and "Traceback" not in bad.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--effect", "stray_light.wieght=0.1"], "effects.stray_light.wieght"),
+    (["--param", "square_reflectance"], "NAME=VALUE"),
+])
+def test_cli_simulate_user_errors_exit_2_without_traceback(tmp_path, capsys, args, message) -> None:
+    from tofhil.cli import main
+
+    with pytest.raises(SystemExit) as ex:
+        main(["simulate", "dark_square", "--out", str(tmp_path / "t.h5"), *args])
+    assert ex.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
     assert not (tmp_path / "t.h5").exists()
-    missing = _run_cli("simulate", "no_such_scene.yaml", "--out", "u.h5", cwd=tmp_path)
-    assert missing.returncode == 2 and "no_such_scene.yaml" in missing.stderr
+    (tmp_path / "t.h5").write_bytes(b"recorded data")
+    with pytest.raises(SystemExit) as ex:
+        main(["simulate", "wall", "--out", str(tmp_path / "t.h5")])
+    assert ex.value.code == 2 and "already exists" in capsys.readouterr().err
+    assert (tmp_path / "t.h5").read_bytes() == b"recorded data"  # never overwritten
+    with pytest.raises(SystemExit) as ex:
+        main(["simulate", str(tmp_path / "no_such_scene.yaml"), "--out", str(tmp_path / "u.h5")])
+    assert ex.value.code == 2 and "no_such_scene.yaml" in capsys.readouterr().err
 
 
 def test_multipath_effect_on_the_corner_reads_farther_and_off_is_direct_only() -> None:
@@ -215,3 +231,25 @@ def test_cli_effects_lists_the_vocabulary_with_off_values_and_bounds() -> None:
     assert set(listed) == set(EFFECTS)
     sl = listed["stray_light"]["params"]["weight"]
     assert sl["off"] == 0.0 and sl["lo"] == 0.0 and sl["hi"] > 0 and listed["stray_light"]["stage"] == "signal"
+
+
+def test_scene_file_effects_block_with_a_measured_psf_next_to_the_scene(tmp_path) -> None:
+    # A measured PSF named relative to the scene file gives the same frames as the parametric
+    # PSF it was measured from.
+    from tofhil.sim.straylight import StrayLightPSF, apply_stray_light
+
+    lobe = {"weight": 0.05, "sigma_px": 3.0}
+    point = np.zeros((31, 31))
+    point[15, 15] = 1.0
+    np.save(tmp_path / "lens_psf.npy", apply_stray_light(point, StrayLightPSF.from_params(lobe)))
+    d = plane(1.0)
+    d["objects"].append({"name": "card", "type": "plane", "size": [0.1, 0.1], "material": "white",
+                         "pose": {"position": [0.05, 0, 0.3]}})
+    d["effects"] = {"stray_light": {"psf_file": "lens_psf.npy"}}
+    (tmp_path / "scene.yaml").write_text(yaml.safe_dump(d))
+    scene = load_scene(tmp_path / "scene.yaml")
+    measured = simulate(scene, noise=False)[0].taps
+    parametric = simulate(scene, noise=False, effects={"stray_light": lobe})[0].taps
+    none = simulate(scene, noise=False, effects={})[0].taps
+    np.testing.assert_allclose(measured, parametric, rtol=1e-5, atol=1e-3)
+    assert np.abs(measured - none).max() > 1.0  # the stray light did something
