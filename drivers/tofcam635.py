@@ -349,6 +349,8 @@ class TofCam635(Driver):
         self.transport = self._make_transport()
         self._parser = P.PacketParser()
         try:
+            # A camera left in auto-repeat/streaming mode keeps sending images: stop it first.
+            self._send(P.Cmd.STOP_STREAM, [])
             self._drain()
             self._info = self._identify()
             # Known state, as the vendor's initialize(): beam A, no HDR, filters off.
