@@ -435,8 +435,8 @@ class TofCam635(Driver):
             self._command(P.Cmd.SET_INT_TIME_GRAYSCALE, [us & 0xFF, us >> 8])
         if s.min_amplitude is not None:
             amp = int(round(s.min_amplitude))
-            if not 0 <= amp < P.LIMIT_VALID:
-                raise DeviceError(f"minimum amplitude {s.min_amplitude}", field="min_amplitude", expected="0..15999 DN")
+            if not 0 <= amp <= 2047:  # the range cam635_driver's dynamic_reconfigure allows
+                raise DeviceError(f"minimum amplitude {s.min_amplitude}", field="min_amplitude", expected="0..2047 DN")
             for index in range(5):  # one limit per HDR integration-time slot, as the vendor client
                 self._command(P.Cmd.SET_AMPLITUDE_LIMIT, [index, amp & 0xFF, amp >> 8])
 
