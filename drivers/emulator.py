@@ -41,7 +41,7 @@ from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel, load_camera_preset
 from tofhil.demod import distance_to_phase, phasor, taps_from_signal, wrapped_phase
 from tofhil.drivers import epc635_protocol as P
-from tofhil.drivers.base import DeviceEntry, register_driver
+from tofhil.drivers.base import DeviceEntry, DeviceInfo, register_driver
 from tofhil.drivers.tofcam635 import TOFCAM635, DeviceProfile, TofCam635, canonical_phases, canonical_to_dcs
 from tofhil.errors import DeviceError, InputFileError
 
@@ -591,7 +591,7 @@ class EmulatedTofCam635(TofCam635):
         super().__init__("usb", backend=self.usb_backend)
         self.spec = spec
 
-    def info(self):  # type: ignore[override]
+    def info(self) -> DeviceInfo:
         info = super().info()
         info.extra = info.extra | {"emulated": True, "source": self.emulator.source.description}
         return info

@@ -22,13 +22,12 @@ import errno
 import math
 import time
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from importlib import resources
 from typing import Any, Callable
 
 import numpy as np
 
-from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel, load_camera_preset
 from tofhil.demod import TapConvention
 from tofhil.drivers import epc635_protocol as P
@@ -636,10 +635,6 @@ def distance_codes_to_frame(dist: np.ndarray, amp: np.ndarray, camera: CameraMod
              "saturation": int(np.count_nonzero(dist == P.CODE_SATURATION))}
     return DepthFrame(distance_m=radial, kind="radial", camera=camera, amplitude=amplitude, valid=valid,
                       timestamp_s=ts, sequence=seq, temperature_c=temperature_c, meta=meta | {"invalid_codes": codes})
-
-
-def max_unambiguous_mm(freq_hz: float) -> float:
-    return C_M_PER_S / (2.0 * freq_hz) * 1e3
 
 
 # --------------------------------------------------------------------------- registry
