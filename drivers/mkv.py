@@ -223,6 +223,9 @@ class MatroskaFile:
 
     # ------------------------------------------------------------------ structure
     def _parse(self) -> None:
+        if self._mm[:4] != EBML.to_bytes(4, "big"):
+            self._fail(f"does not start with an EBML header (starts {self._mm[:4].hex()})", "EBML",
+                       "a Matroska (.mkv) file, magic 1a45dfa3")
         top = list(self._children(0, self._size))
         if not top or top[0].id != EBML:
             self._fail("does not start with an EBML header", "EBML", "a Matroska (.mkv) file")
