@@ -277,12 +277,16 @@ class FaultPlan:
 
     @classmethod
     def parse(cls, text: str) -> "FaultPlan":
-        """``"crc@3,truncate@5,disconnect@8"`` or ``"crc=0.05,timeout=0.01"``."""
+        """``"crc@3,truncate@5,disconnect@8"``, ``"crc=0.05,timeout=0.01"``; ``disconnect_s=2``
+        sets how long a disconnect lasts."""
         at: dict[int, str] = {}
         rates: dict[str, float] = {}
+        away = 0.2
         for item in filter(None, (t.strip() for t in text.split(","))):
             try:
-                if "@" in item:
+                if item.startswith("disconnect_s="):
+                    away = float(item.partition("=")[2])
+                elif "@" in item:
                     kind, idx = item.split("@")
                     at[int(idx)] = kind
                 else:
@@ -291,7 +295,7 @@ class FaultPlan:
             except ValueError:
                 raise DeviceError(f"bad fault item {item!r}", field="--faults",
                                   expected="KIND@FRAME or KIND=PROBABILITY, comma separated") from None
-        return cls(at=at, rates=rates)
+        return cls(at=at, rates=rates, disconnect_s=away)
 
 
 # --------------------------------------------------------------------------- the camera

@@ -97,8 +97,8 @@ def test_endless_corruption_is_reported_not_looped_forever() -> None:
 
 
 def test_fault_plan_text_is_validated() -> None:
-    plan = FaultPlan.parse("crc@3, timeout=0.25")
-    assert plan.at == {3: "crc"} and plan.rates == {"timeout": 0.25}
+    plan = FaultPlan.parse("crc@3, timeout=0.25, disconnect_s=1.5")
+    assert plan.at == {3: "crc"} and plan.rates == {"timeout": 0.25} and plan.disconnect_s == 1.5
     with pytest.raises(DeviceError, match="unknown fault"):
         FaultPlan.parse("melt@1")
     with pytest.raises(DeviceError, match="KIND@FRAME"):

@@ -39,10 +39,9 @@ def _read_port_line(proc: subprocess.Popen, timeout_s: float) -> str:
     return line.removeprefix("PORT=")
 
 
-@pytest.fixture(scope="module")
-def pty_port() -> Iterator[str]:
-    proc = subprocess.Popen([sys.executable, "-m", "tofhil.cli", "emulate", "--scene", f"wall:{WALL_M}", "--pty"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+def _emulator(*extra: str) -> Iterator[str]:
+    proc = subprocess.Popen([sys.executable, "-m", "tofhil.cli", "emulate", "--scene", f"wall:{WALL_M}", "--pty",
+                             *extra], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     try:
         yield _read_port_line(proc, 60.0)
     finally:
@@ -52,6 +51,11 @@ def pty_port() -> Iterator[str]:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def pty_port() -> Iterator[str]:
+    yield from _emulator()
 
 
 def _read_packet(port: serial.Serial) -> tuple[int, bytes]:
@@ -121,6 +125,20 @@ def test_driver_captures_a_session_over_the_serial_port(pty_port: str, tmp_path:
         for raw in s.raw_frames():
             err = depth_from_raw(raw).radial_m - WALL_M / s.camera.ray_z
             assert abs(float(np.median(err))) < 5e-3
+
+
+def test_serial_capture_survives_a_silent_device_and_faults(tmp_path: Path) -> None:
+    """On a pty a disconnect is silence: three silent requests -> reconnect (reopen the port)."""
+    for port in _emulator("--faults", "crc@1,disconnect@3,truncate@5,disconnect_s=1.2"):
+        dev = TofCam635(f"serial:{port}")
+        dev.backoff_s = 0.05
+        with dev:
+            summary = capture(dev, tmp_path / "flaky.h5", 6, CaptureSettings(mode="dcs"), timeout_s=0.3)
+        assert summary.frames_written == 6 and summary.reconnects == 1
+        # crc, the disconnect's lost reply and one more silent request, truncate
+        assert summary.dropped == 4
+        with open_session(tmp_path / "flaky.h5") as s:
+            assert s.n_frames == 6
 
 
 def test_the_vendor_client_reads_every_image_type(pty_port: str) -> None:
