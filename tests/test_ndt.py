@@ -374,3 +374,14 @@ def test_trilinear_and_d2d_against_brute_force_loops():
     s = d2d_score(g, gb)
     assert s.pairs == pairs
     assert s.score == pytest.approx(total, rel=1e-10)
+
+
+def test_trilinear_weights_reproduce_linear_functions():
+    # Trilinear interpolation is exact for affine functions: sum_k w_k centre_k = p,
+    # with non-negative weights summing to 1, anywhere (negative coordinates included).
+    rng = np.random.default_rng(17)
+    p = rng.uniform(-3, 3, size=(2000, 3))
+    ijk, w = trilinear_weights(p, R)
+    assert (w >= 0).all()
+    np.testing.assert_allclose(w.sum(1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.einsum("nk,nkd->nd", w, (ijk + 0.5) * R), p, atol=1e-12)
