@@ -253,3 +253,13 @@ def test_scene_file_effects_block_with_a_measured_psf_next_to_the_scene(tmp_path
     none = simulate(scene, noise=False, effects={})[0].taps
     np.testing.assert_allclose(measured, parametric, rtol=1e-5, atol=1e-3)
     assert np.abs(measured - none).max() > 1.0  # the stray light did something
+
+
+def test_two_frequency_simulation_unwraps_beyond_both_ambiguity_ranges() -> None:
+    # 80 and 100 MHz wrap at 1.87 m and 1.50 m; together they are unambiguous to 7.5 m.
+    scene = scene_from_dict(plane(2.6, freq_hz=[80e6, 100e6]))
+    frame = simulate(scene, frames=1, noise=False)[0]
+    assert frame.taps.shape[:2] == (2, 4)
+    v, u = np.mgrid[0:24, 0:32]
+    truth = 2.6 * np.sqrt(1 + ((u - 15.5) / 26.0) ** 2 + ((v - 11.5) / 26.0) ** 2)
+    np.testing.assert_allclose(depth_from_raw(frame).distance_m, truth, atol=2e-4)
