@@ -145,3 +145,14 @@ def test_multi_frame_interleaved_files_import_frame_by_frame(tmp_path):
             assert d.sequence == i
             np.testing.assert_array_equal(d.amplitude, ref.amplitude.astype(np.float32))
             np.testing.assert_array_equal(d.valid, ref.depth_mm > 0)
+
+
+def test_confidence_threshold_is_opt_in(tmp_path):
+    src = need(ADI / "frame_mode2.bin")
+    frame = read_adi_interleaved(src)[0]
+    res = import_file(src, tmp_path / "c.h5", adi_max_confidence=5)
+    with open_session(res.out) as s:
+        assert s.device["adi_max_confidence"] == 5
+        valid = s.depth_frame(0).valid
+    np.testing.assert_array_equal(valid, (frame.depth_mm > 0) & (frame.confidence <= 5))
+    assert valid.sum() < (frame.depth_mm > 0).sum()
