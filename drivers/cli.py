@@ -34,6 +34,10 @@ def _sigterm_as_interrupt() -> None:
 def devices(as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table.")) -> None:
     """List connected cameras and emulated devices (specs for --device)."""
     import json
+    import os
+
+    if as_json:  # the DepthAI library logs its USB warnings to stdout: keep the JSON clean
+        os.environ.setdefault("DEPTHAI_LEVEL", "error")
 
     from tofhil.drivers.base import list_devices, registered_schemes
 

@@ -110,6 +110,33 @@ def test_cli_capture_prints_the_summary(tmp_path: Path) -> None:
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
 
 
+def test_cli_devices_and_emulate_usage() -> None:
+    r = subprocess.run(_tofhil("devices", "--json"), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    entries = json.loads(r.stdout)
+    assert {"spec": "emulator", "kind": "emulated"}.items() <= next(e for e in entries if e["spec"] == "emulator").items()
+    no_pty = subprocess.run(_tofhil("emulate", "--scene", "wall:1"), capture_output=True, text=True, timeout=120)
+    assert no_pty.returncode == 2 and "--pty" in no_pty.stderr and "Traceback" not in no_pty.stderr
+
+
+@pytest.mark.device
+def test_capture_from_a_real_camera(tmp_path: Path) -> None:
+    """Runs only with a TOFcam635 plugged in (skipped otherwise, also in CI)."""
+    from tofhil.drivers.tofcam635 import TofCam635, default_usb_backend, find_usb_devices
+
+    try:
+        found = find_usb_devices(default_usb_backend())
+    except DeviceError:
+        found = []
+    if not found:
+        pytest.skip("no TOFcam635 connected")
+    with TofCam635("usb") as dev:
+        summary = capture(dev, tmp_path / "real.h5", 3, CaptureSettings(mode="dcs", integration_time_s=500e-6))
+    assert summary.frames_written == 3
+    with open_session(tmp_path / "real.h5") as s:
+        assert s.n_frames == 3 and s.device["chip_type"] == 4
+
+
 def test_sigkill_mid_capture_loses_at_most_the_frame_in_flight(tmp_path: Path) -> None:
     out = tmp_path / "killed.h5"
     proc = subprocess.Popen(_tofhil("capture", "--device", "emulator:wall:1.0", "--frames", "100000",
