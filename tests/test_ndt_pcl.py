@@ -82,3 +82,18 @@ def test_gauss_params_pcl_default():
     s = _summary("r050")
     assert d1 == pytest.approx(float(s["d1"]), abs=1e-14)
     assert d2 == pytest.approx(float(s["d2"]), abs=1e-14)
+
+
+@pytest.mark.parametrize("tag,res,ratio,min_pts", SETTINGS)
+def test_score_equals_pcl_transformation_likelihood_after_align(clouds, tag, res, ratio, min_pts):
+    # PCL registered the cloud itself (align(), several Newton steps) and reported
+    # getTransformationLikelihood() for the cloud it transformed, saved as float32 binary.
+    ref, _ = clouds
+    summ = _summary(tag)
+    assert int(summ["aligned_iterations"]) >= 2
+    aligned = load_cloud(DATA / f"pcl_{tag}_aligned.pcd")
+    grid = NDTGrid.from_points(ref, float(np.float32(res)), min_points=min_pts)
+    s = ndt_score(grid, aligned, outlier_ratio=ratio)
+    assert s.score_per_point == pytest.approx(float(summ["aligned_likelihood"]), abs=TOL)
+    # Registration raised PCL's score above the identity pose's.
+    assert float(summ["aligned_likelihood"]) > float(summ["score_per_point"])
