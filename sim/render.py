@@ -29,7 +29,8 @@ import numpy as np
 from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel
 from tofhil.errors import TofhilError
-from tofhil.sim.geometry import BATCH, RAY_EPSILON_M, Geometry, WorkerPool, _dot
+from tofhil.sim import kernels
+from tofhil.sim.geometry import BATCH, RAY_EPSILON_M, Geometry, WorkerPool
 from tofhil.sim.scene import Scene
 
 #: Pixel pitch assumed for the camera equation when the camera model gives none (m).
@@ -144,6 +145,15 @@ class _Context:
         self.ambient = scene.ambient_irradiance_w_m2
         self.edges = transient_edges
         self.centre_rays = camera.rays.reshape(-1, 3)
+        self.centre_world = np.ascontiguousarray(_rotate(self.centre_rays, R))
+        self.centre_weight = self.pix_weight * self.centre_rays[:, 2] ** 4
+        self.centre_world32 = self.centre_world.astype(np.float32)
+        self.origin32 = np.empty((min(BATCH, camera.width * camera.height) * spp, 3), dtype=np.float32)
+        self.origin32[:] = self.t
+        prof = scene.emitter.profile
+        # Beam profile in the kernel for cos^n (I = i0 cos^n); -1: tabulated, done in numpy.
+        self.cos_n = float(prof.n) if prof.kind == "cos_n" else -1.0
+        self.i0 = scene.emitter.power_w / prof.solid_angle_norm_sr
 
     # ------------------------------------------------------------------ shading helpers
     def reflectance(self, obj: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -170,49 +180,6 @@ class _Context:
                 rho[m] = self.rho_d[i] * img[row, col]
         return rho
 
-    def brdf(self, obj: np.ndarray, rho: np.ndarray, n: np.ndarray, wi: np.ndarray,
-             wo: np.ndarray) -> np.ndarray:
-        """``f_r(wi, wo)`` (1/sr): Lambertian plus normalised Phong lobe."""
-        f = rho * (1 / np.pi)
-        if self.glossy:
-            rs, ns = self.rho_s[obj], self.n_s[obj]
-            g = np.flatnonzero(rs > 0)
-            if len(g):
-                ng_, wig = n[g], wi[g]
-                cn = _dot(ng_, wig)
-                refl = 2 * cn[:, None] * ng_ - wig
-                ca = np.clip(_dot(refl, wo[g]), 0.0, 1.0)
-                f[g] += rs[g] * (ns[g] + 2) / (2 * np.pi) * ca ** ns[g]
-        return f
-
-    def connect_emitter(self, x: np.ndarray, ng_raw: np.ndarray, sgn: np.ndarray, n: np.ndarray | None,
-                        wo: np.ndarray, obj: np.ndarray, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Next-event estimation: radiance toward ``wo`` from direct emitter light, and r1.
-
-        ``ng_raw * sgn`` is the geometric normal facing ``wo``; ``n`` the faced shading normal
-        (None: flat, equal to the faced geometric normal).
-        """
-        ve = self.emitter_pos - x
-        r1 = np.sqrt(_dot(ve, ve))
-        wi = ve
-        wi *= (1.0 / r1)[:, None]
-        cos_s = sgn * _dot(ng_raw, wi) if n is None else _dot(n, wi)
-        cos_e = -(wi[:, 0] * self.emitter_axis[0] + wi[:, 1] * self.emitter_axis[1]
-                  + wi[:, 2] * self.emitter_axis[2])
-        irr = self.emitter.intensity_w_sr(cos_e) * np.maximum(cos_s, 0.0) / (r1 * r1)
-        lit = irr > 0
-        offset = (RAY_EPSILON_M * sgn)[:, None] * ng_raw
-        n_shadow = int(np.count_nonzero(lit))
-        if lit.all():
-            blocked = self.geom.occluded(x + offset, wi, r1 - 2 * RAY_EPSILON_M)
-            irr[blocked] = 0.0
-        else:
-            li = np.flatnonzero(lit)
-            if len(li):
-                blocked = self.geom.occluded(x[li] + offset[li], wi[li], r1[li] - 2 * RAY_EPSILON_M)
-                irr[li[blocked]] = 0.0
-        return self.brdf(obj, rho, n, wi, wo) * irr, r1, n_shadow
-
     def uniforms(self, rng: np.random.Generator, npix: int) -> np.ndarray:
         """Per-sample uniforms in [0, 1)^D for ``npix`` pixels x ``spp`` samples.
 
@@ -231,16 +198,21 @@ class _Context:
         rng = np.random.default_rng([self.seed, chunk])
         npix = p1 - p0
         spp = self.spp
-        pix = np.repeat(np.arange(p0, p1), spp)
-        U = self.uniforms(rng, npix)          # [samples, D]: subpixel, lens, 2 per bounce
+        pix = np.arange(p0, p1) if spp == 1 else np.repeat(np.arange(p0, p1), spp)
+        # [samples, D] uniforms: subpixel, lens, 2 per bounce (none needed for centre rays
+        # through the pinhole without bounces).
+        need_u = self.subpixel or self.thin_lens or self.bounces > 0
+        U = self.uniforms(rng, npix) if need_u else np.zeros((0, self.dims))
         if self.subpixel:
             uu = (pix % self.W) + U[:, 0] - 0.5
             vv = (pix // self.W) + U[:, 1] - 0.5
             d_cam = self.camera.pixel_rays(uu, vv)
         else:
             d_cam = self.centre_rays[p0:p1] if spp == 1 else np.repeat(self.centre_rays[p0:p1], spp, axis=0)
-        cos_alpha = d_cam[:, 2]
-        beta = self.pix_weight[pix] * cos_alpha ** 4
+        if self.subpixel:
+            beta = self.pix_weight[pix] * d_cam[:, 2] ** 4
+        else:
+            beta = self.centre_weight[pix]
         if self.thin_lens:
             # Sample the aperture disk; every ray through the same pixel position meets the
             # pinhole ray on the focal plane. The lens makes optical paths to the focus point
@@ -254,114 +226,116 @@ class _Context:
             dirs_cam = to_f / dist_f[:, None]
             path0 = np.linalg.norm(focus, axis=1) - dist_f
             origins = _rotate(a, self.R) + self.t
+            dirs = _rotate(dirs_cam, self.R)
         else:
-            dirs_cam = d_cam
             path0 = np.zeros(len(pix))
             origins = self.t                  # one shared origin: the pinhole
-        dirs = _rotate(dirs_cam, self.R)
+            if self.subpixel:
+                dirs = _rotate(d_cam, self.R)
+            else:
+                cw = self.centre_world[p0:p1]
+                dirs = cw if spp == 1 else np.repeat(cw, spp, axis=0)
 
         nk = len(self.k)
         out: dict[str, np.ndarray] = {}
         acc_re = np.zeros((2, nk, npix))     # [direct/indirect, f*h, pixel]
         acc_im = np.zeros((2, nk, npix))
         power = np.zeros(npix)
-        tr = None
-        if self.edges is not None:
-            nb = len(self.edges) - 1
-            tr = np.zeros(npix * nb)
-
-        def accumulate(which: int, local: np.ndarray, w: np.ndarray, length: np.ndarray,
-                       identity: bool = False) -> None:
-            """Add path contributions to their pixels (``identity``: one per pixel, in order)."""
-            nonlocal tr
-            if len(w) == 0:
-                return
-
-            def per_pixel(values: np.ndarray) -> np.ndarray:
-                return values if identity else np.bincount(local, values, minlength=npix)
-
-            power[:] += per_pixel(w)
-            for j in range(nk):
-                phase = self.k[j] * length
-                acc_re[which, j] += per_pixel(w * np.cos(phase))
-                acc_im[which, j] += per_pixel(w * np.sin(phase))
-            if tr is not None:
-                b = np.searchsorted(self.edges, length, side="right") - 1
-                ok = (b >= 0) & (b < nb)
-                tr += np.bincount(local[ok] * nb + b[ok], w[ok], minlength=npix * nb)
-
-        # Primary hits.
-        hits = self.geom.intersect(origins, dirs)
-        rays = len(dirs)
-        if not self.subpixel and not self.thin_lens:
-            # Centre rays from the pinhole: the primary hits are the ground truth.
-            radial = hits.full(hits.t, np.inf)[::spp]
-            oid = hits.full(self.geom.tri_object[hits.prim], -1)[::spp]
-        else:
-            hc = self.geom.intersect(self.t, _rotate(self.centre_rays[p0:p1], self.R))
-            rays += npix
-            radial = hc.full(hc.t, np.inf)
-            oid = hc.full(self.geom.tri_object[hc.prim], -1)
-        out["radial"] = radial
-        out["object_id"] = oid.astype(np.int32)
-
-        sid = np.arange(len(pix)) if hits.index is None else hits.index   # row of each live path
-        local = pix[sid] - p0
-        if hits.index is not None:
-            beta, path0, dirs = beta[sid], path0[sid], dirs[sid]
-            origins = origins if origins.ndim == 1 else origins[sid]
-        path = path0 + hits.t
-        x = origins + hits.t[:, None] * dirs
-        wo = -dirs
         ambient = np.zeros(npix)
+        edges = self.edges if self.edges is not None else np.zeros(1)
+        trans = np.zeros((npix, max(len(edges) - 1, 1)))
+        geom = self.geom
+        smooth = geom.vnormal is not None
+        vnormal = geom.vnormal if smooth else np.zeros((1, 3, 3))
+
+        # Live paths: ray origins (one shared pinhole, or one per path), directions, the
+        # path length so far, throughput, pixel (chunk-local) and row in U.
+        org = np.ascontiguousarray(np.atleast_2d(origins), dtype=np.float64)
+        shared = org.shape[0] == 1 and len(dirs) != 1
+        dirs = np.ascontiguousarray(dirs, dtype=np.float64)
+        path_in = path0
+        local = pix - p0
+        sid = np.arange(len(pix))
+        rays = 0
         for bounce in range(self.bounces + 1):
-            if len(sid) == 0:
+            if bounce == 0 and shared and not self.subpixel:
+                o32, d32 = self.origin32[:len(dirs)], self.centre_world32[p0:p1]
+                if spp > 1:
+                    d32 = np.repeat(d32, spp, axis=0)
+            else:
+                o32 = np.ascontiguousarray(np.broadcast_to(org, dirs.shape) if shared else org, dtype=np.float32)
+                d32 = np.ascontiguousarray(dirs, dtype=np.float32)
+            r = geom.embree.run(o32, d32, output=1)
+            rays += len(dirs)
+            prim = r["primID"]
+            idx = np.flatnonzero(prim >= 0)
+            m = len(idx)
+            x, ngf, nf, wo, wi = (np.empty((m, 3)) for _ in range(5))
+            r1, cos_s, cos_e, t_hit, path, irr = (np.empty(m) for _ in range(6))
+            so, sd = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32)
+            sdist = np.empty(m, np.float32)
+            kernels.vertex(idx, prim, r["tfar"], r["u"], r["v"], org, shared, dirs, path_in, geom.plane_c,
+                           geom.normal, vnormal, smooth, self.emitter_pos, self.emitter_axis, RAY_EPSILON_M,
+                           self.cos_n, self.i0, x, ngf, nf, wo, wi, r1, cos_s, cos_e, t_hit, path, irr,
+                           so, sd, sdist)
+            obj = geom.tri_object[prim[idx]]
+            if bounce == 0:
+                if not self.subpixel and not self.thin_lens:
+                    # Centre rays from the pinhole: the primary hits are the ground truth.
+                    t_full = np.full(len(dirs), np.inf)
+                    t_full[idx] = t_hit
+                    o_full = np.full(len(dirs), -1, dtype=np.int32)
+                    o_full[idx] = obj
+                    out["radial"], out["object_id"] = t_full[::spp], o_full[::spp]
+                else:
+                    hc = geom.intersect(self.t, _rotate(self.centre_rays[p0:p1], self.R))
+                    rays += npix
+                    out["radial"] = hc.full(hc.t, np.inf)
+                    out["object_id"] = hc.full(geom.tri_object[hc.prim], -1).astype(np.int32)
+                beta, local, sid = beta[idx], local[idx], sid[idx]
+            else:
+                beta, local, sid = beta[idx], local[idx], sid[idx]
+            if m == 0:
                 break
-            obj = self.geom.tri_object[hits.prim]
-            # Two-sided surfaces: face the normals toward the incoming ray. The flipped vectors
-            # are only built when needed; flat direct light works with the sign alone.
-            sgn = np.where(_dot(hits.ng, wo) < 0, -1.0, 1.0)
-            ng = n = None
-            if self.geom.vnormal is not None or self.glossy or bounce < self.bounces:
-                ng = hits.ng * sgn[:, None]
-                n = ng
-                if self.geom.vnormal is not None:
-                    n = self.geom.shading_normal(hits) * sgn[:, None]
-                    n = np.where((_dot(n, wo) < 0)[:, None], ng, n)
             rho = self.reflectance(obj, x)
             if bounce == 0 and self.ambient > 0:
                 ambient = np.bincount(local, beta * (rho + self.rho_s[obj]) * (self.ambient / np.pi),
                                       minlength=npix)
-            radiance, r1, n_shadow = self.connect_emitter(x, hits.ng, sgn, n, wo, obj, rho)
-            rays += n_shadow
-            w = beta * radiance
-            lit = w > 0
-            if bounce == 0 and spp == 1 and len(w) == npix and lit.all():
-                accumulate(0, local, w, path + r1, identity=True)
+            if self.cos_n < 0:                       # tabulated beam profile
+                irr = self.emitter.intensity_w_sr(cos_e) * np.maximum(cos_s, 0.0) / (r1 * r1)
+            lit = np.flatnonzero(irr > 0)
+            blocked = np.zeros(m, dtype=np.bool_)
+            if len(lit) == m:
+                blocked = geom.embree.run(so, sd, dists=sdist, query="OCCLUDED") >= 0
+            elif len(lit):
+                blocked[lit] = geom.embree.run(so[lit], sd[lit], dists=sdist[lit], query="OCCLUDED") >= 0
+            rays += len(lit)
+            do_bounce = bounce < self.bounces
+            if do_bounce:
+                u1 = np.ascontiguousarray(U[sid, 4 + 2 * bounce])
+                u2 = np.ascontiguousarray(U[sid, 5 + 2 * bounce])
+                nb_org, nb_dir, nb_keep = np.empty((m, 3)), np.empty((m, 3)), np.empty(m, dtype=np.int64)
             else:
-                m = np.flatnonzero(lit)
-                accumulate(0 if bounce == 0 else 1, local[m], w[m], path[m] + r1[m])
-            if bounce == self.bounces:
+                u1 = u2 = np.zeros(0)
+                nb_org = nb_dir = np.zeros((0, 3))
+                nb_keep = np.zeros(0, dtype=np.int64)
+            count = kernels.connect_and_bounce(
+                irr, blocked, rho, self.rho_s[obj], self.n_s[obj], nf, ngf, wo, wi, r1, x, beta, path,
+                local, 0 if bounce == 0 else 1, self.k, acc_re, acc_im, power, edges, trans, do_bounce,
+                u1, u2, RAY_EPSILON_M, nb_org, nb_dir, nb_keep)
+            if not do_bounce or count == 0:
                 break
-            # Cosine-weighted bounce: throughput f_r * pi.
-            wi = _cosine_sample(n, U[sid, 4 + 2 * bounce], U[sid, 5 + 2 * bounce])
-            beta = beta * self.brdf(obj, rho, n, wi, wo) * np.pi
-            ok = np.flatnonzero((_dot(wi, ng) > 0) & (beta > 0))
-            o2 = x[ok] + RAY_EPSILON_M * ng[ok]
-            d2 = wi[ok]
-            hits = self.geom.intersect(o2, d2)
-            rays += len(d2)
-            keep = ok if hits.index is None else ok[hits.index]
-            sel2 = (lambda a: a) if hits.index is None else (lambda a: a[hits.index])
-            local, sid, beta, path = local[keep], sid[keep], beta[keep], path[keep] + hits.t
-            o2, d2 = sel2(o2), sel2(d2)
-            x = o2 + hits.t[:, None] * d2
-            wo = -d2
+            keep = nb_keep[:count]
+            org, dirs, shared = nb_org[:count], nb_dir[:count], False
+            path_in, beta, local, sid = path[keep], beta[keep], local[keep], sid[keep]
 
+        if "radial" not in out:                     # no ray was traced (cannot happen) / safety
+            out["radial"] = np.full(npix, np.inf)
+            out["object_id"] = np.full(npix, -1, dtype=np.int32)
         out["re"], out["im"], out["power"], out["ambient"] = acc_re, acc_im, power, ambient
         out["rays"] = np.array(rays)
-        if tr is not None:
-            out["transient"] = tr.reshape(npix, -1)
+        if self.edges is not None:
+            out["transient"] = trans
         return out
 
 
@@ -370,20 +344,6 @@ def _rotate(v: np.ndarray, R: np.ndarray) -> np.ndarray:
     if np.array_equal(R, np.eye(3)):
         return v
     return v[:, 0:1] * R[:, 0] + v[:, 1:2] * R[:, 1] + v[:, 2:3] * R[:, 2]
-
-
-def _cosine_sample(n: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
-    """Cosine-weighted directions about unit normals ``n`` [N, 3] (pdf cos/pi) from uniforms."""
-    r = np.sqrt(r1)
-    phi = 2 * np.pi * r2
-    lx, ly, lz = r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(0.0, 1 - r1))
-    # Orthonormal basis (Duff et al. 2017, branchless).
-    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
-    a = -1.0 / (sign + n[:, 2])
-    b = n[:, 0] * n[:, 1] * a
-    t1 = np.stack([1 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
-    t2 = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
-    return lx[:, None] * t1 + ly[:, None] * t2 + lz[:, None] * n
 
 
 def _transient_edges(scene: Scene, geom: Geometry, bins: int | Sequence[float], bounces: int) -> np.ndarray:

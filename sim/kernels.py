@@ -1,0 +1,150 @@
+"""Compiled per-ray kernels of the renderer (numba, no GIL).
+
+The renderer's physics is written out in :mod:`tofhil.sim.render`; these loops fuse the
+per-ray arithmetic that numpy would spread over dozens of temporary arrays: hit refinement
+and shadow-ray set-up (:func:`vertex`), and the emitter connection, phasor accumulation and
+bounce sampling (:func:`connect_and_bounce`). Each loop touches every ray once.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_INV_PI = 1.0 / math.pi
+
+
+@njit(nogil=True, cache=True)
+def vertex(idx, prim, tfar, bu, bv, org, shared, dirs, path_in, plane_c, normal, vnormal, smooth,
+           emitter_pos, emitter_axis, eps, cos_n, i0,
+           x, ngf, nf, wo, wi, r1, cos_s, cos_e, t_out, path, irr, so, sd, sdist):  # pragma: no cover
+    """Surface vertex of each hit ray ``idx[j]``: float64 hit point on the triangle's plane,
+    normals faced toward the incoming ray (two-sided surfaces), direction and distance to the
+    emitter, its irradiance ``E = I cos(theta_s) / r^2`` for a cos^n beam (``I = i0 cos^n``;
+    ``cos_n < 0``: left to the caller) and the float32 shadow ray (origin lifted by ``eps``
+    along the normal)."""
+    for j in range(idx.shape[0]):
+        i = idx[j]
+        p = prim[i]
+        if shared:
+            ox, oy, oz = org[0, 0], org[0, 1], org[0, 2]
+        else:
+            ox, oy, oz = org[i, 0], org[i, 1], org[i, 2]
+        dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+        nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
+        dn = dx * nx + dy * ny + dz * nz
+        te = np.float64(tfar[i])
+        t = te
+        if dn != 0.0:
+            tr = (plane_c[p] - (ox * nx + oy * ny + oz * nz)) / dn
+            if abs(tr - te) < 1e-4 * max(1.0, te):
+                t = tr
+        px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
+        x[j, 0], x[j, 1], x[j, 2] = px, py, pz
+        wo[j, 0], wo[j, 1], wo[j, 2] = -dx, -dy, -dz
+        s = 1.0 if dn < 0.0 else -1.0          # face the normal toward -d
+        gx, gy, gz = s * nx, s * ny, s * nz
+        ngf[j, 0], ngf[j, 1], ngf[j, 2] = gx, gy, gz
+        sx, sy, sz = gx, gy, gz
+        if smooth:
+            a, b = np.float64(bu[i]), np.float64(bv[i])
+            c = 1.0 - a - b
+            sx = c * vnormal[p, 0, 0] + a * vnormal[p, 1, 0] + b * vnormal[p, 2, 0]
+            sy = c * vnormal[p, 0, 1] + a * vnormal[p, 1, 1] + b * vnormal[p, 2, 1]
+            sz = c * vnormal[p, 0, 2] + a * vnormal[p, 1, 2] + b * vnormal[p, 2, 2]
+            ln = math.sqrt(sx * sx + sy * sy + sz * sz)
+            sx, sy, sz = s * sx / ln, s * sy / ln, s * sz / ln
+            if -(sx * dx + sy * dy + sz * dz) < 0.0:
+                sx, sy, sz = gx, gy, gz
+        nf[j, 0], nf[j, 1], nf[j, 2] = sx, sy, sz
+        ex, ey, ez = emitter_pos[0] - px, emitter_pos[1] - py, emitter_pos[2] - pz
+        r = math.sqrt(ex * ex + ey * ey + ez * ez)
+        ex, ey, ez = ex / r, ey / r, ez / r
+        wi[j, 0], wi[j, 1], wi[j, 2] = ex, ey, ez
+        r1[j] = r
+        cs = sx * ex + sy * ey + sz * ez
+        ce = -(ex * emitter_axis[0] + ey * emitter_axis[1] + ez * emitter_axis[2])
+        cos_s[j] = cs
+        cos_e[j] = ce
+        if cos_n >= 0.0:
+            irr[j] = i0 * ce ** cos_n * cs / (r * r) if (cs > 0.0 and ce > 0.0) else 0.0
+        t_out[j] = t
+        path[j] = path_in[i] + t
+        so[j, 0], so[j, 1], so[j, 2] = px + eps * gx, py + eps * gy, pz + eps * gz
+        sd[j, 0], sd[j, 1], sd[j, 2] = ex, ey, ez
+        sdist[j] = r - 2.0 * eps
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _brdf(rho, rs, ns, nx, ny, nz, ix, iy, iz, ox, oy, oz):  # pragma: no cover
+    f = rho * _INV_PI
+    if rs > 0.0:
+        cn = nx * ix + ny * iy + nz * iz
+        rx, ry, rz = 2.0 * cn * nx - ix, 2.0 * cn * ny - iy, 2.0 * cn * nz - iz
+        ca = rx * ox + ry * oy + rz * oz
+        if ca > 0.0:
+            f += rs * (ns + 2.0) / (2.0 * math.pi) * min(ca, 1.0) ** ns
+    return f
+
+
+@njit(nogil=True, cache=True)
+def connect_and_bounce(irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, path, local, which,
+                       k, acc_re, acc_im, power, edges, trans, do_bounce, u1, u2, eps,
+                       nb_org, nb_dir, nb_keep):  # pragma: no cover
+    """Add each vertex's emitter connection ``w = beta f_r E`` with path length ``path + r1``
+    to its pixel's phasors (and transient bins), then draw the next direction cosine-weighted
+    about the shading normal (throughput ``f_r pi``). Returns the number of continued paths;
+    their rows go to ``nb_keep`` and their rays to ``nb_org``/``nb_dir``; ``beta`` is updated
+    in place."""
+    nk = k.shape[0]
+    nbins = edges.shape[0] - 1
+    count = 0
+    for j in range(irr.shape[0]):
+        nx, ny, nz = nf[j, 0], nf[j, 1], nf[j, 2]
+        ox, oy, oz = wo[j, 0], wo[j, 1], wo[j, 2]
+        e = irr[j]
+        if e > 0.0 and not blocked[j]:
+            w = beta[j] * e * _brdf(rho[j], rs[j], ns[j], nx, ny, nz, wi[j, 0], wi[j, 1], wi[j, 2], ox, oy, oz)
+            if w > 0.0:
+                q = local[j]
+                length = path[j] + r1[j]
+                power[q] += w
+                for m in range(nk):
+                    ph = k[m] * length
+                    acc_re[which, m, q] += w * math.cos(ph)
+                    acc_im[which, m, q] += w * math.sin(ph)
+                if nbins > 0:
+                    b = np.searchsorted(edges, length, side="right") - 1
+                    if b >= 0 and b < nbins:
+                        trans[q, b] += w
+        if not do_bounce:
+            continue
+        # Cosine-weighted direction in the frame of the shading normal (Duff et al. 2017).
+        a1 = u1[j]
+        rr = math.sqrt(a1)
+        phi = 2.0 * math.pi * u2[j]
+        lx, ly, lz = rr * math.cos(phi), rr * math.sin(phi), math.sqrt(max(0.0, 1.0 - a1))
+        sg = 1.0 if nz >= 0.0 else -1.0
+        aa = -1.0 / (sg + nz)
+        bb = nx * ny * aa
+        t1x, t1y, t1z = 1.0 + sg * nx * nx * aa, sg * bb, -sg * nx
+        t2x, t2y, t2z = bb, sg + ny * ny * aa, -ny
+        dx = lx * t1x + ly * t2x + lz * nx
+        dy = lx * t1y + ly * t2y + lz * ny
+        dz = lx * t1z + ly * t2z + lz * nz
+        gx, gy, gz = ngf[j, 0], ngf[j, 1], ngf[j, 2]
+        if dx * gx + dy * gy + dz * gz <= 0.0:    # below the geometric surface
+            continue
+        nbeta = beta[j] * math.pi * _brdf(rho[j], rs[j], ns[j], nx, ny, nz, dx, dy, dz, ox, oy, oz)
+        beta[j] = nbeta
+        if nbeta <= 0.0:
+            continue
+        nb_org[count, 0] = x[j, 0] + eps * gx
+        nb_org[count, 1] = x[j, 1] + eps * gy
+        nb_org[count, 2] = x[j, 2] + eps * gz
+        nb_dir[count, 0], nb_dir[count, 1], nb_dir[count, 2] = dx, dy, dz
+        nb_keep[count] = j
+        count += 1
+    return count
