@@ -263,6 +263,15 @@ class PacketParser:
         """Bytes received but not yet consumed."""
         return len(self._buf)
 
+    def needed(self) -> int:
+        """Bytes still missing to complete the packet at the head of the buffer (>= 1);
+        4 (a packet head) when the buffer does not start with a plausible packet."""
+        buf = self._buf
+        if len(buf) < 4 or buf[0] != START_DATA:
+            return max(1, 4 - len(buf)) if not buf or buf[0] == START_DATA else 4
+        total = self._plausible(buf, 0)
+        return 4 if total is None else max(1, total - len(buf))
+
     def _plausible(self, buf: bytearray | memoryview, at: int) -> int | None:
         """Total size of the packet a start byte at ``at`` announces, None if implausible."""
         dtype = buf[at + 1]

@@ -89,8 +89,9 @@ class Transport(ABC):
     def write(self, data: bytes) -> None: ...
 
     @abstractmethod
-    def read_some(self, timeout_s: float) -> bytes:
-        """Whatever bytes arrive within ``timeout_s`` (empty on timeout)."""
+    def read_some(self, timeout_s: float, expected: int | None = None) -> bytes:
+        """Whatever bytes arrive within ``timeout_s`` (empty on timeout). ``expected`` is how
+        many bytes the host knows are still coming for the current packet (a hint)."""
 
     @abstractmethod
     def close(self) -> None: ...
@@ -142,6 +143,7 @@ class UsbTransport(Transport):
             if ep_out is None or ep_in is None:
                 raise DeviceError(f"{self.description}: data interface lacks bulk endpoints", field="--device")
             self.ep_out, self.ep_in = ep_out.bEndpointAddress, ep_in.bEndpointAddress
+            self.max_packet = int(ep_in.wMaxPacketSize) or 64
             if comm_intf is not None:
                 self._set_line_state(comm_intf.bInterfaceNumber)
         except usb.core.USBError as exc:
@@ -180,10 +182,15 @@ class UsbTransport(Transport):
         except self._usb.core.USBError as exc:
             raise usb_error(exc, self.description) from None
 
-    def read_some(self, timeout_s: float) -> bytes:
+    def read_some(self, timeout_s: float, expected: int | None = None) -> bytes:
         ms = max(1, int(timeout_s * 1000))
+        # Ask for the rest of the current packet rounded up to whole USB packets: the transfer
+        # then ends on the reply's short last packet or exactly when full, never by a timeout
+        # (libusb discards what a timed-out transfer had received).
+        mps = self.max_packet
+        size = self.READ_SIZE if expected is None else min(self.READ_SIZE, -(-max(expected, 1) // mps) * mps)
         try:
-            return bytes(self.dev.read(self.ep_in, self.READ_SIZE, timeout=ms))
+            return bytes(self.dev.read(self.ep_in, size, timeout=ms))
         except self._usb.core.USBTimeoutError:
             return b""
         except self._usb.core.USBError as exc:
@@ -244,7 +251,7 @@ class SerialTransport(Transport):
         except (self._serial_mod.SerialException, OSError) as exc:
             raise DeviceDisconnected(f"{self.description}: {exc}") from None
 
-    def read_some(self, timeout_s: float) -> bytes:
+    def read_some(self, timeout_s: float, expected: int | None = None) -> bytes:
         try:
             self.ser.timeout = max(timeout_s, 0.001)
             first = self.ser.read(1)
@@ -469,7 +476,7 @@ class TofCam635(Driver):
                     raise DeviceDisconnected(f"{self.transport.description}: no reply to "
                                              f"{self.max_silent} requests in a row")
                 raise FrameDropped(f"{self.transport.description}: no reply within {self.reply_timeout_s:g} s")
-            data = self.transport.read_some(min(remaining, 0.25))
+            data = self.transport.read_some(min(remaining, 0.25), self._parser.needed())
             if data:
                 got_any = True
                 self._parser.feed(data)

@@ -139,6 +139,18 @@ def test_parser_resynchronises_after_garbage_and_a_corrupt_packet() -> None:
     assert blind.salvage() == P.Packet(P.DataType.TEMPERATURE, b"\x10\x20")
 
 
+def test_parser_says_how_many_bytes_the_current_packet_still_needs() -> None:
+    pkt = P.encode_packet(P.DataType.GRAYSCALE, bytes(100))
+    parser = P.PacketParser()
+    assert parser.needed() == 4
+    parser.feed(pkt[:2])
+    assert parser.needed() == 2
+    parser.feed(pkt[2:50])
+    assert parser.needed() == len(pkt) - 50
+    parser.feed(pkt[50:])
+    assert parser.next_packet() == P.Packet(P.DataType.GRAYSCALE, bytes(100))
+
+
 def test_assembler_rejects_inconsistent_images() -> None:
     header, dcs = _image(8, 4)
     pixels = dcs.astype("<i2").tobytes()
