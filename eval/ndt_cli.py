@@ -14,19 +14,27 @@ from tofhil.errors import TofhilError
 @app.command()
 def ndt(ref: str = typer.Argument(..., help="Reference cloud: PLY, PCD, xyz text, .npy or SESSION.h5[:FRAME]."),
         cloud: str = typer.Argument(..., help="Cloud to score, same formats."),
-        cell_size: float = typer.Option(0.1, "--cell-size", help="NDT cell side R [m]."),
+        cell_size: Optional[List[float]] = typer.Option(
+            None, "--cell-size", help="NDT cell side R [m] (default 0.1); repeat for several resolutions."),
         outlier_ratio: float = typer.Option(0.55, "--outlier-ratio", help="Outlier ratio r for d1, d2 (PCL 0.55)."),
         min_points: int = typer.Option(6, "--min-points", help="Minimum points per cell (PCL 6)."),
         eig_floor: float = typer.Option(0.01, "--eig-floor", help="Eigenvalue floor, fraction of the largest."),
         threshold: Optional[List[float]] = typer.Option(None, "--threshold",
                                                         help="Likelihood threshold for fraction_above (repeatable)."),
+        d2d: bool = typer.Option(False, "--d2d", help="Also the D2D score between the two clouds' grids."),
         as_json: bool = typer.Option(False, "--json", help="Print JSON.")) -> None:
-    """Score CLOUD against the NDT of REF: PCL score per point, NVTL, likelihoods."""
-    from tofhil.eval.clouds import load_cloud
-    from tofhil.eval.ndt import DEFAULT_THRESHOLDS, NDTGrid, ndt_score
+    """Score CLOUD against the NDT of REF: PCL score per point, NVTL, likelihoods.
 
-    if not cell_size > 0:
-        raise TofhilError(f"is {cell_size}", field="--cell-size", expected="a positive length in metres")
+    With several --cell-size values the first gives the top-level numbers and JSON gains
+    "resolutions": {R: {...}} for all of them.
+    """
+    from tofhil.eval.clouds import load_cloud
+    from tofhil.eval.ndt import DEFAULT_THRESHOLDS, NDTGrid, d2d_score, ndt_score
+
+    sizes = list(cell_size) if cell_size else [0.1]
+    for r in sizes:
+        if not r > 0:
+            raise TofhilError(f"is {r}", field="--cell-size", expected="a positive length in metres")
     if not 0 < outlier_ratio < 1:
         raise TofhilError(f"is {outlier_ratio}", field="--outlier-ratio", expected="a value in (0, 1)")
     if min_points < 3:
@@ -37,21 +45,35 @@ def ndt(ref: str = typer.Argument(..., help="Reference cloud: PLY, PCD, xyz text
             raise TofhilError(f"is {t}", field="--threshold", expected="a likelihood in [0, 1]")
     ref_pts = load_cloud(ref)
     pts = load_cloud(cloud)
-    grid = NDTGrid.from_points(ref_pts, cell_size, min_points=min_points, eig_floor=eig_floor)
-    if grid.cells == 0:
-        raise TofhilError(f"gives no NDT cell with at least {min_points} points at cell size {cell_size} m",
-                          file=ref, expected="a denser reference or a larger --cell-size")
-    s = ndt_score(grid, pts, outlier_ratio=outlier_ratio, thresholds=thresholds)
-    d = s.to_dict()
+    results = {}
+    for r in sizes:
+        grid = NDTGrid.from_points(ref_pts, r, min_points=min_points, eig_floor=eig_floor)
+        if grid.cells == 0:
+            raise TofhilError(f"gives no NDT cell with at least {min_points} points at cell size {r} m",
+                              file=ref, expected="a denser reference or a larger --cell-size")
+        s = ndt_score(grid, pts, outlier_ratio=outlier_ratio, thresholds=thresholds)
+        d = s.to_dict()
+        if d2d:
+            other = NDTGrid.from_points(pts, r, min_points=min_points, eig_floor=eig_floor)
+            d["d2d"] = d2d_score(grid, other, outlier_ratio=outlier_ratio).to_dict()
+        results[r] = (s, d)
+    first_s, first = results[sizes[0]]
+    payload = dict(first)
+    if len(sizes) > 1:
+        payload["resolutions"] = {repr(float(r)): d for r, (_, d) in results.items()}
     if as_json:
-        out.print_json(json.dumps(d))
+        out.print_json(json.dumps(payload))
         return
-    out.print(f"reference {ref}: {ref_pts.shape[0]} points, {s.cells} cells of {cell_size:g} m "
-              f"(min {min_points} points)")
-    out.print(f"cloud     {cloud}: {s.n_points} points")
-    out.print(f"score per point (PCL)      {s.score_per_point:.6f}   (d1={s.d1:.5g}, d2={s.d2:.5g})")
-    out.print(f"NVTL (Autoware)            {s.nvtl:.6f}")
-    out.print(f"mean likelihood (cell)     {s.mean_likelihood:.6f}")
-    out.print(f"mean likelihood (trilin.)  {s.mean_likelihood_trilinear:.6f}")
-    for t, v in s.fraction_above.items():
-        out.print(f"fraction above {t:<11g} {v:.4f}")
+    out.print(f"reference {ref}: {ref_pts.shape[0]} points")
+    out.print(f"cloud     {cloud}: {pts.shape[0]} points")
+    for r, (s, d) in results.items():
+        out.print(f"[bold]cell size {r:g} m[/bold]: {s.cells} cells (min {min_points} points)")
+        out.print(f"  score per point (PCL)      {s.score_per_point:.6f}   (d1={s.d1:.5g}, d2={s.d2:.5g})")
+        out.print(f"  NVTL (Autoware)            {s.nvtl:.6f}")
+        out.print(f"  mean likelihood (cell)     {s.mean_likelihood:.6f}")
+        out.print(f"  mean likelihood (trilin.)  {s.mean_likelihood_trilinear:.6f}")
+        for t, v in s.fraction_above.items():
+            out.print(f"  fraction above {t:<11g} {v:.4f}")
+        if d2d:
+            out.print(f"  D2D score per cell         {d['d2d']['score_per_cell']:.6f}   "
+                      f"mean similarity {d['d2d']['mean_similarity']:.4f}")

@@ -71,3 +71,17 @@ def test_bad_input_exits_2(capsys, args, msg):
     assert code == 2
     assert msg in err.replace("\n", "")
     assert "Traceback" not in err
+
+
+def test_several_resolutions_and_d2d(capsys):
+    ref, cloud = DATA / "ref.pcd", DATA / "cloud.pcd"
+    code, out, _ = run(capsys, "ndt", str(ref), str(cloud), "--cell-size", "0.5", "--cell-size", "0.25",
+                       "--d2d", "--json")
+    assert code == 0
+    d = json.loads(out)
+    assert set(d["resolutions"]) == {"0.5", "0.25"}
+    assert d["cells"] == d["resolutions"]["0.5"]["cells"] == 62
+    assert d["resolutions"]["0.25"]["cells"] == 223          # PCL's count at 0.25 m
+    assert 0 < d["d2d"]["mean_similarity"] < 1 and d["d2d"]["pairs"] > 0
+    code, out, _ = run(capsys, "ndt", str(ref), str(cloud), "--cell-size", "0.5", "--cell-size", "0.25", "--d2d")
+    assert code == 0 and out.count("NVTL") == 2 and "D2D" in out
