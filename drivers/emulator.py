@@ -9,8 +9,9 @@ Two transports carry it: an in-process pyusb backend
 (:mod:`tofhil.drivers.emulator_backend`), and a pseudo-terminal
 (:mod:`tofhil.drivers.pty_server`).
 
-Images come from an :class:`ImageSource` that returns noise-free canonical taps per
-configuration (rendered once, cached); the emulator adds per-frame noise, converts to the
+Images come from an :class:`ImageSource` that returns noise-free canonical taps, rendered
+once per modulation frequency (cached) and scaled with the integration time; the emulator
+adds per-frame noise, converts to the
 device's DCS (12-bit, mid-scale 2048, differential so the offset cancels) and, like the
 firmware, computes distance and amplitude from them. Sources:
 
