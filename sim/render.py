@@ -145,7 +145,7 @@ class _Context:
         self.ambient = scene.ambient_irradiance_w_m2
         self.edges = transient_edges
         self.centre_rays = camera.rays.reshape(-1, 3)
-        self.centre_world = np.ascontiguousarray(_rotate(self.centre_rays, R))
+        self.centre_world = np.array(_rotate(self.centre_rays, R), dtype=np.float64)  # writable: one kernel type
         self.centre_weight = self.pix_weight * self.centre_rays[:, 2] ** 4
         self.centre_world32 = self.centre_world.astype(np.float32)
         self.origin32 = np.empty((min(BATCH, camera.width * camera.height) * spp, 3), dtype=np.float32)
