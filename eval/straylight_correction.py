@@ -62,20 +62,40 @@ def kernel_offsets(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def gaussian_kernel(height: int, width: int, sigma_h: float, sigma_v: float | None = None) -> np.ndarray:
-    """Unit-sum separable Gaussian on the full ``(2H-1, 2W-1)`` offset grid.
+    """Separable Gaussian on the full ``(2H-1, 2W-1)`` offset grid, integrated over pixels.
 
     ``sigma_h`` is the horizontal (column) width in pixels, ``sigma_v`` the vertical one.
-    Normalised on the grid, so the scattered fraction is exactly the weight put on it.
+    Unit integral over the infinite plane: a weight on it is the fraction of a pixel's
+    light it moves, and what falls beyond the grid (beyond the sensor) is lost.
     """
-    sigma_v = sigma_h if sigma_v is None else sigma_v
-    if sigma_h <= 0 or sigma_v <= 0:
-        raise ValueError(f"Gaussian widths must be positive, got sigma_h={sigma_h}, sigma_v={sigma_v}")
-    dy, dx = kernel_offsets(height, width)
-    # Integrated over each pixel's area (erf differences): exact for narrow lobes too.
-    gy = erf((dy + 0.5) / (np.sqrt(2) * sigma_v)) - erf((dy - 0.5) / (np.sqrt(2) * sigma_v))
-    gx = erf((dx + 0.5) / (np.sqrt(2) * sigma_h)) - erf((dx - 0.5) / (np.sqrt(2) * sigma_h))
-    g = gy * gx
-    return g / g.sum()
+    gy, gx = _gauss_1d(height, sigma_v if sigma_v is not None else sigma_h), _gauss_1d(width, sigma_h)
+    return gy[:, None] * gx[None, :]
+
+
+def _gauss_1d(n: int, sigma: float) -> np.ndarray:
+    """Pixel-integrated unit Gaussian at offsets ``-(n-1) .. n-1`` (erf differences)."""
+    if not sigma > 0:
+        raise ValueError(f"Gaussian widths must be positive, got {sigma}")
+    d = np.arange(-(n - 1), n, dtype=np.float64)
+    s = np.sqrt(2) * sigma
+    return 0.5 * (erf((d + 0.5) / s) - erf((d - 0.5) / s))
+
+
+class _GaussianBlur:
+    """``G(sx, sy) * S`` for one fixed image stack, fast: the image's FFT is computed once
+    and a separable kernel's FFT is the outer product of two 1-D FFTs."""
+
+    def __init__(self, s: np.ndarray) -> None:
+        self.h, self.w = s.shape[-2:]
+        self.fshape = _fast_shape(self.h, self.w, 2 * self.h - 1, 2 * self.w - 1)
+        self._sf = sfft.fft2(s, s=self.fshape, axes=(-2, -1))
+
+    def __call__(self, sx: float, sy: float) -> np.ndarray:
+        fy = sfft.fft(_gauss_1d(self.h, sy), n=self.fshape[0])
+        fx = sfft.fft(_gauss_1d(self.w, sx), n=self.fshape[1])
+        # Inverse along x, crop to the sensor's columns, then along y: half the work.
+        t = sfft.ifft(self._sf * fx, axis=-1)[..., self.w - 1:2 * self.w - 1]
+        return sfft.ifft(t * fy[:, None], axis=-2)[..., self.h - 1:2 * self.h - 1, :]
 
 
 def uniform_kernel(height: int, width: int) -> np.ndarray:
@@ -194,8 +214,14 @@ class StrayLightPSF:
 
     @property
     def scattered_fraction(self) -> float:
-        """Total fraction of a pixel's signal spread elsewhere (``||h||_1`` for h >= 0)."""
-        return float(np.abs(self.kernel).sum() + abs(self.ghost_weight))
+        """Largest fraction of one pixel's light that lands on the sensor's pixels.
+
+        The operator 1-norm of ``h`` restricted to the sensor (its largest column sum):
+        light scattered beyond the sensor edge does not count, so a veil of weight ``v``
+        counts ``v``, not the sum of its full offset grid.
+        """
+        reach = Convolver(np.abs(self.kernel)[::-1, ::-1], self.sensor_shape)(np.ones(self.sensor_shape))
+        return float(reach.max() + abs(self.ghost_weight))
 
     def operator(self, image_shape: tuple[int, int]) -> "PSFOperator":
         if tuple(image_shape) != self.sensor_shape:
@@ -328,9 +354,10 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
 
     # Terms: (kind, label, kernel or None, column). kinds: gauss, veil, ghost, loss.
     terms: list[tuple[str, str, np.ndarray | None, np.ndarray]] = []
+    blur = _GaussianBlur(s_true)
+    blurred = {sg: blur(sg, sg) for sg in sig}
     for sg in sig:
-        k = gaussian_kernel(h, w, sg)
-        terms.append(("gauss", f"gauss_{sg:.3g}", k, column(Convolver(k, (h, w))(s_true))))
+        terms.append(("gauss", f"gauss_{sg:.3g}", gaussian_kernel(h, w, sg), column(blurred[sg])))
     if veil:
         # Unit fraction spread evenly: every pixel gets sum(S) / (H W).
         terms.append(("veil", "veil", uniform_kernel(h, w) / (h * w),
@@ -338,28 +365,30 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     if ghost:
         terms.append(("ghost", "ghost_0", None, column(mirror_through(s_true, cx, cy))))
         for sg in sig:
-            k = gaussian_kernel(h, w, sg)
-            terms.append(("ghost", f"ghost_{sg:.3g}", k,
-                          column(mirror_through(Convolver(k, (h, w))(s_true), cx, cy))))
+            terms.append(("ghost", f"ghost_{sg:.3g}", gaussian_kernel(h, w, sg),
+                          column(mirror_through(blurred[sg], cx, cy))))
     if fit_direct:
         terms.append(("loss", "loss", None, column(-s_true)))
     rhs = column(s_meas - s_true)
-    coef, rnorm = _nnls_scaled(np.stack([t[3] for t in terms], axis=1), rhs)
+    a_all = np.stack([t[3] for t in terms], axis=1)
+    coef, rnorm = _nnls_gram(a_all.T @ a_all, a_all.T @ rhs, float(rhs @ rhs))
     n_gauss = len(sig)
     if refine and np.any(coef[:n_gauss] > 0):
         # Variable projection: each run of neighbouring active widths becomes one Gaussian
         # with free (sigma_x, sigma_y); the weights are re-solved linearly for every trial.
         groups = _active_groups(coef[:n_gauss])
         fixed = [t for t, c in zip(terms[n_gauss:], coef[n_gauss:]) if c > 0]
-        fixed_a = [t[3] for t in fixed]
+        fixed_a = np.stack([t[3] for t in fixed], axis=1) if fixed else np.zeros((rhs.size, 0))
+        # Gram blocks of the fixed columns are computed once; per trial only the new ones.
+        g_ff, c_f, bb = fixed_a.T @ fixed_a, fixed_a.T @ rhs, float(rhs @ rhs)
         init = np.array([np.exp(np.average(np.log(sig[g]), weights=coef[g])) for g in groups])
 
         def solve(x: np.ndarray) -> tuple[np.ndarray, float, list[tuple[str, str, np.ndarray, np.ndarray]]]:
-            gs = []
-            for sx, sy in np.exp(x).reshape(-1, 2):
-                k = gaussian_kernel(h, w, sx, sy)
-                gs.append(("gauss", f"gauss_{sx:.3g}x{sy:.3g}", k, column(Convolver(k, (h, w))(s_true))))
-            c, r = _nnls_scaled(np.stack([g[3] for g in gs] + fixed_a, axis=1), rhs)
+            gs = [("gauss", f"gauss_{sx:.3g}x{sy:.3g}", None, column(blur(sx, sy)))
+                  for sx, sy in np.exp(np.clip(x, -3.0, 8.0)).reshape(-1, 2)]
+            a_g = np.stack([g[3] for g in gs], axis=1)
+            gram = np.block([[a_g.T @ a_g, a_g.T @ fixed_a], [fixed_a.T @ a_g, g_ff]])
+            c, r = _nnls_gram(gram, np.concatenate([a_g.T @ rhs, c_f]), bb)
             return c, r, gs
 
         x0 = np.log(np.repeat(init, 2))
@@ -367,6 +396,8 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
                        options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": 80 * x0.size + 40})
         c_ref, r_ref, gs = solve(res.x)
         if r_ref < rnorm:
+            sxy = np.exp(np.clip(res.x, -3.0, 8.0)).reshape(-1, 2)
+            gs = [(kind, name, gaussian_kernel(h, w, sx, sy), col) for (kind, name, _, col), (sx, sy) in zip(gs, sxy)]
             terms, coef, rnorm = gs + fixed, c_ref, r_ref
     kernel = np.zeros((2 * h - 1, 2 * w - 1))
     g_kernel = np.zeros((2 * h - 1, 2 * w - 1))
@@ -386,18 +417,32 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
             loss += c
     info = {"basis": [t[1] for t in terms], "weights": [float(c) for c in coef],
             "relative_residual": float(rnorm / (np.linalg.norm(rhs) or 1.0)),
-            "scattered_fraction": float(kernel.sum() + g_weight), "direct": 1.0 - loss}
-    return StrayLightPSF(kernel=kernel, cx=float(cx), cy=float(cy), ghost_weight=g_weight,
-                         ghost_kernel=g_kernel / g_weight if g_weight > 0 else None,
-                         direct=1.0 - loss, info=info)
+            "direct": 1.0 - loss}
+    psf = StrayLightPSF(kernel=kernel, cx=float(cx), cy=float(cy), ghost_weight=g_weight,
+                        ghost_kernel=g_kernel / g_weight if g_weight > 0 else None,
+                        direct=1.0 - loss, info=info)
+    info["scattered_fraction"] = psf.scattered_fraction
+    return psf
 
 
-def _nnls_scaled(a: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, float]:
-    """NNLS with unit-norm columns (bases differ by orders of magnitude)."""
-    norms = np.linalg.norm(a, axis=0)
-    norms[norms == 0] = 1.0
-    coef, rnorm = nnls(a / norms, rhs, maxiter=50 * a.shape[1])
-    return coef / norms, float(rnorm)
+def _nnls_gram(gram: np.ndarray, atb: np.ndarray, btb: float) -> tuple[np.ndarray, float]:
+    """NNLS ``min ||A x - b||, x >= 0`` from the normal equations alone.
+
+    With ``A^T A = R^T R`` (Cholesky of the column-scaled Gram matrix) the problem equals
+    ``min ||R x - R^-T A^T b||`` up to a constant, a k x k NNLS instead of one with a row
+    per pixel. Returns the coefficients and ``||A x - b||``.
+    """
+    d = np.sqrt(np.clip(np.diag(gram), 0, None))
+    d[d == 0] = 1.0
+    g = gram / np.outer(d, d)
+    c = atb / d
+    k = g.shape[0]
+    r = np.linalg.cholesky(g + 1e-12 * np.eye(k))
+    y = np.linalg.solve(r, c)  # r lower-triangular: R^T = r, so R^-T c = r^-1 c
+    coef, _ = nnls(r.T, y, maxiter=50 * k)
+    coef = coef / d
+    res2 = btb - 2 * coef @ atb + coef @ gram @ coef
+    return coef, float(np.sqrt(max(res2, 0.0)))
 
 
 def _active_groups(coef: np.ndarray) -> list[np.ndarray]:
