@@ -1,6 +1,9 @@
 """Measured complex signal split into training and held-out data, with its noise.
 
-Diagnosis fits on one part of a session and scores on another. The split is two-fold:
+Diagnosis fits on one part of a session and scores on another. The data are channels of
+complex images ``[C, H, W]``: the signal ``S`` of each modulation frequency, and (when the
+device reports a physical tap offset) the offset ``B`` as a last, real-valued channel: the
+only place unmodulated light such as ambient shows. The split is two-fold:
 frames (even frames train, odd frames test: independent noise) and pixels (a checkerboard
 of square blocks: a fit cannot memorise the pixels it is scored on). Both parts are
 averaged over their frames; the noise of each average comes from the frame-to-frame
@@ -29,9 +32,9 @@ class HeldOutData:
     freq_hz: np.ndarray
     theta_rad: np.ndarray
     integration_time_s: float
-    s_train: np.ndarray  # complex [F, H, W]: mean over training frames
-    s_test: np.ndarray  # complex [F, H, W]: mean over held-out frames
-    var_train: np.ndarray  # float [F, H, W]: variance of s_train (complex, E|noise|^2)
+    s_train: np.ndarray  # complex [C, H, W]: mean over training frames (C = F, or F + 1 with the offset)
+    s_test: np.ndarray  # complex [C, H, W]: mean over held-out frames
+    var_train: np.ndarray  # float [C, H, W]: noise variance of s_train per real component
     var_test: np.ndarray
     offset_mean: np.ndarray  # float [H, W]: mean tap offset B over all frames
     usable: np.ndarray  # bool [H, W]: pixels with signal and no saturation
@@ -39,18 +42,24 @@ class HeldOutData:
     test_pixels: np.ndarray  # bool [H, W]: usable pixels of the held-out blocks
     n_train_frames: int
     n_test_frames: int
+    offset_channel: bool = False
+
+    @property
+    def n_freq(self) -> int:
+        return int(self.freq_hz.size)
 
     def chi2(self, prediction: np.ndarray, part: str = "test") -> float:
-        """Sum of |measured - predicted|^2 / variance over one part's pixels and frequencies."""
+        """Sum of |measured - predicted|^2 / variance over one part's pixels and channels
+        (about one per real value when the model is right)."""
         s, var, mask = ((self.s_test, self.var_test, self.test_pixels) if part == "test"
                         else (self.s_train, self.var_train, self.train_pixels))
         r = s[:, mask] - prediction[:, mask]
         return float(np.sum((r.real ** 2 + r.imag ** 2) / var[:, mask]))
 
     def n_values(self, part: str = "test") -> int:
-        """Real-valued data points in one part (2 per complex value)."""
+        """Real-valued data points in one part (2 per complex signal value, 1 per offset)."""
         mask = self.test_pixels if part == "test" else self.train_pixels
-        return int(2 * mask.sum() * self.s_test.shape[0])
+        return int(mask.sum() * (2 * self.n_freq + (1 if self.offset_channel else 0)))
 
     def whitened_residual(self, prediction: np.ndarray, part: str = "train") -> np.ndarray:
         """Real vector of (measured - predicted) / sigma over a part: what least squares minimises."""
@@ -67,13 +76,16 @@ def block_checkerboard(shape: tuple[int, int], block: int) -> np.ndarray:
 
 
 def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: float = 3.0,
-                  saturation_dn: float | None = None, max_frames: int | None = None) -> HeldOutData:
+                  saturation_dn: float | None = None, max_frames: int | None = None,
+                  offset_channel: bool | None = None) -> HeldOutData:
     """Average a session's frames into training and held-out signals.
 
     Needs at least 2 frames with raw taps (4 or more recommended). Pixels whose amplitude is
     below ``min_amplitude_sigma`` noise standard deviations, or whose taps reach
     ``saturation_dn`` (default: the largest tap value in the session, if several pixels sit
-    there), are left out of both parts.
+    there), are left out of both parts. ``offset_channel=None`` adds the tap offset as a
+    channel when it carries information: it varies over the image by more than its noise
+    (differential devices such as the epc635 report a constant offset).
     """
     if not session.has_raw:
         raise TofhilError("diagnosis needs raw taps (the complex signal); this session has depth only",
@@ -84,8 +96,15 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
                           expected="at least 2 frames (training and held-out), 4 or more recommended")
     frames = [session.raw_frame(i) for i in range(n)]
     s = np.stack([phasor(f.taps.astype(np.float64), f.theta_rad) for f in frames])  # [N, F, H, W]
+    b = np.stack([f.taps.astype(np.float64).mean(axis=(0, 1)) for f in frames])  # [N, H, W]
     taps_max = np.stack([f.taps.max(axis=(0, 1)) for f in frames]).max(axis=0)
-    offset_mean = np.mean([f.taps.mean(axis=(0, 1)) for f in frames], axis=0)
+    offset_mean = b.mean(axis=0)
+    if offset_channel is None:
+        noise_b = float(np.median(b.std(axis=0, ddof=1))) if n > 1 else 0.0
+        spread = float(np.std(offset_mean))
+        offset_channel = spread > max(3.0 * noise_b, 0.01 * abs(float(np.mean(offset_mean))))
+    if offset_channel:
+        s = np.concatenate([s, b[:, None].astype(np.complex128)], axis=1)
     train_idx = np.arange(0, n, 2)
     test_idx = np.arange(1, n, 2)
 
@@ -97,9 +116,13 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
     var_frame = np.stack([uniform_filter(v, size=5, mode="nearest") for v in var_frame])
     floor = max(float(np.median(var_frame)) * 1e-3, 1e-12)
     var_frame = np.maximum(var_frame, floor)
+    # Per real component: a complex channel's E|noise|^2 splits evenly into its real and
+    # imaginary parts, so chi2 counts one unit per real value (what the BIC penalty assumes).
+    nf = frames[0].freq_hz.size
+    var_frame[:nf] /= 2.0
 
-    amp = np.abs(mean_all).min(axis=0)
-    usable = amp > min_amplitude_sigma * np.sqrt(var_frame.max(axis=0))
+    amp = np.abs(mean_all[:frames[0].freq_hz.size]).min(axis=0)
+    usable = amp > min_amplitude_sigma * np.sqrt(var_frame[:frames[0].freq_hz.size].max(axis=0))
     if saturation_dn is None:
         top = float(taps_max.max())
         if (taps_max >= top).sum() > 4:  # several pixels pinned at one value: a clipped ADC or full well
@@ -114,4 +137,5 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
                        var_train=var_frame / len(train_idx), var_test=var_frame / len(test_idx),
                        offset_mean=offset_mean, usable=usable,
                        train_pixels=usable & board, test_pixels=usable & ~board,
-                       n_train_frames=len(train_idx), n_test_frames=len(test_idx))
+                       n_train_frames=len(train_idx), n_test_frames=len(test_idx),
+                       offset_channel=bool(offset_channel))

@@ -33,13 +33,22 @@ class FitParam:
     lo: float
     hi: float
     scale: float
-    #: Extra starting points (besides "off") for a multi-start fit: needed where "off" sits on
-    #: a flat spot of the misfit (an amplitude of zero makes its phase irrelevant).
-    starts: tuple[float, ...] = ()
+
+
+@dataclass(frozen=True)
+class EffectSpec:
+    """The fitted parameters of one effect and extra starting points for a multi-start fit.
+
+    Starting points matter where "off" sits on a flat spot of the misfit: at zero weight a
+    stray-light lobe's width is irrelevant, at zero amplitude a harmonic's phase is.
+    """
+
+    params: tuple[FitParam, ...]
+    starts: tuple[dict[str, float], ...] = ()
 
 
 class ForwardModel(Protocol):
-    def library(self) -> Mapping[str, Sequence[FitParam]]: ...
+    def library(self) -> Mapping[str, EffectSpec]: ...
 
     def predict(self, active: EffectParams) -> np.ndarray: ...
 
@@ -71,16 +80,16 @@ class Selection:
         return self.rounds[0] if self.rounds else []
 
 
-def _pack(active: Sequence[str], lib: Mapping[str, Sequence[FitParam]], values: EffectParams) -> np.ndarray:
-    return np.array([values.get(e, {}).get(p.name, p.off) for e in active for p in lib[e]], dtype=float)
+def _pack(active: Sequence[str], lib: Mapping[str, EffectSpec], values: EffectParams) -> np.ndarray:
+    return np.array([values.get(e, {}).get(p.name, p.off) for e in active for p in lib[e].params], dtype=float)
 
 
-def _unpack(active: Sequence[str], lib: Mapping[str, Sequence[FitParam]], x: np.ndarray) -> EffectParams:
+def _unpack(active: Sequence[str], lib: Mapping[str, EffectSpec], x: np.ndarray) -> EffectParams:
     out: EffectParams = {}
     i = 0
     for e in active:
         out[e] = {}
-        for p in lib[e]:
+        for p in lib[e].params:
             out[e][p.name] = float(x[i])
             i += 1
     return out
@@ -94,7 +103,7 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
     from each of its parameters' extra starting points; keeps the best training fit.
     """
     lib = model.library()
-    params = [p for e in active for p in lib[e]]
+    params = [p for e in active for p in lib[e].params]
     if not params:
         pred = model.predict({e: {} for e in active})
         return {e: {} for e in active}, data.chi2(pred, "train")
@@ -108,18 +117,19 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
 
     starts = [x0]
     if new_effect is not None:
-        offset = sum(len(lib[e]) for e in active[:list(active).index(new_effect)])
-        for j, p in enumerate(lib[new_effect]):
-            for s in p.starts:
-                x = x0.copy()
-                x[offset + j] = s
-                starts.append(np.clip(x, lo, hi))
+        for extra in lib[new_effect].starts:
+            trial = {e: dict(start.get(e, {})) for e in active}
+            trial[new_effect].update(extra)
+            starts.append(np.clip(_pack(active, lib, trial), lo, hi))
+    # Screen every starting point with one evaluation; optimise from the best two.
+    inner = [np.clip(x, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo)) for x in starts]
+    if len(inner) > 2:
+        costs = [float(np.sum(residual(x) ** 2)) for x in inner]
+        inner = [inner[i] for i in np.argsort(costs)[:2]]
     best_x, best_cost = x0, np.inf
-    for x_start in starts:
-        # keep strictly inside the bounds: the trust-region solver needs an interior point
-        x_start = np.clip(x_start, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+    for x_start in inner:
         res = least_squares(residual, x_start, bounds=(lo, hi), x_scale=scale, method="trf",
-                            max_nfev=max_nfev, diff_step=1e-3)
+                            max_nfev=max_nfev, diff_step=1e-3, ftol=1e-5, xtol=1e-6)
         if res.cost < best_cost:
             best_x, best_cost = res.x, res.cost
     return _unpack(active, lib, best_x), 2.0 * best_cost
@@ -146,7 +156,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     selection = Selection(causes=[], params={}, baseline_chi2_test=baseline, final_chi2_test=baseline,
                           n_test=n_test)
     while len(active) < max_effects:
-        current_k = sum(len(lib[e]) for e in active)
+        current_k = sum(len(lib[e].params) for e in active)
         current_score = current_chi2 + current_k * penalty
         excess = max(current_chi2 - n_test, 0.0)
         round_: list[Candidate] = []
@@ -158,7 +168,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
             trial = active + [name]
             fitted, chi2_train = fit(model, data, trial, params, new_effect=name)
             chi2_test = data.chi2(model.predict(fitted), "test")
-            k = current_k + len(lib[name])
+            k = current_k + len(lib[name].params)
             score = chi2_test + k * penalty
             gain = current_chi2 - chi2_test
             cand = Candidate(effect=name, params=fitted[name], chi2_train=chi2_train, chi2_test=chi2_test,
@@ -166,7 +176,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                              relative_gain=gain / current_chi2 if current_chi2 > 0 else 0.0,
                              significant=bool(current_score - score > 0 and excess > 0
                                               and gain > min_relative_gain * excess),
-                             n_params=len(lib[name]))
+                             n_params=len(lib[name].params))
             cand._all_params = fitted  # type: ignore[attr-defined]
             round_.append(cand)
         round_.sort(key=lambda c: c.score)
