@@ -15,23 +15,32 @@ _METHOD_HELP = ("uniform (w) | gaussian-inverse (sigma-h, sigma-v, w, mu) | psf 
                 "smooth-gaussian (sigma-px) | smooth-median (size) | smooth-bilateral (sigma-px, sigma-m)")
 
 
-def _calibrate(cal_path: Path, reference: Optional[Path], target_threshold: float) -> Any:
+def _mean_taps(path: Path) -> tuple[Any, Any]:
+    """Mean raw taps ``[F, K, H, W]`` of a session and the session's camera and phases."""
+    import numpy as np
+
+    from tofhil.session import open_session
+
+    with open_session(path) as s:
+        if not s.has_raw or s.n_frames == 0:
+            raise TofhilError("needs raw taps (at least one frame)", file=path, field="raw/taps")
+        acc = None
+        for raw in progress(s.raw_frames(), s.n_frames, f"reading {path.name}"):
+            acc = raw.taps.astype(np.float64) if acc is None else acc + raw.taps
+        return acc / s.n_frames, (s.camera, s.theta_rad)
+
+
+def _calibrate(cal_path: Path, reference: Optional[Path], target_threshold: float, flat: Any = None) -> Any:
     """Fit a stray-light PSF from a calibration session (frames averaged in S)."""
     import numpy as np
 
     from tofhil.demod import phasor
     from tofhil.eval import straylight_correction as sl
-    from tofhil.session import open_session
-
     def mean_s(path: Path) -> tuple[np.ndarray, Any]:
-        with open_session(path) as s:
-            if not s.has_raw:
-                raise TofhilError("stray-light calibration needs raw taps", file=path, field="raw/taps")
-            acc = None
-            for raw in progress(s.raw_frames(), s.n_frames, f"reading {path.name}"):
-                sig = phasor(raw.taps.astype(np.float64), raw.theta_rad)
-                acc = sig if acc is None else acc + sig
-            return acc / max(s.n_frames, 1), s.camera
+        taps, (camera, theta) = _mean_taps(path)
+        if flat is not None:
+            taps = flat.apply(taps)  # the same pre-processing as the sessions it will correct
+        return phasor(taps, theta), camera
 
     s_meas, cam = mean_s(cal_path)
     if reference is not None:
@@ -65,6 +74,9 @@ def correct(session: Path = typer.Argument(..., help="Session to correct (.h5)."
             target_threshold: float = typer.Option(0.2, help="Target pixels: amplitude above this fraction "
                                                              "of the brightest (calibration without reference)."),
             save_psf: Optional[Path] = typer.Option(None, "--save-psf", help="Write the calibrated PSF here."),
+            flat: Optional[Path] = typer.Option(None, "--flat", help="Tap calibration (.npz from calibrate-taps) "
+                                                                     "applied to the taps first (taps, uniform, "
+                                                                     "gaussian-inverse, psf)."),
             iterations: Optional[int] = typer.Option(None, "--iterations", help="Deconvolution iterations (psf)."),
             min_amplitude: Optional[float] = typer.Option(None, "--min-amplitude",
                                                           help="Amplitude threshold (amplitude method; "
@@ -82,7 +94,8 @@ def correct(session: Path = typer.Argument(..., help="Session to correct (.h5)."
     m = get_method(method)
     given = {"w": w, "sigma_h": sigma_h, "sigma_v": sigma_v, "mu": mu, "iterations": iterations,
              "min_amplitude": min_amplitude, "angle_deg": angle_deg, "max_step_m": max_step,
-             "relative": relative, "sigma_px": sigma_px, "sigma_m": sigma_m, "size": size}
+             "relative": relative, "sigma_px": sigma_px, "sigma_m": sigma_m, "size": size,
+             "flat": None if flat is None else str(flat)}
     params: dict[str, Any] = {k: v for k, v in given.items() if v is not None and k in m.params}
     stray = sorted(k for k, v in given.items() if v is not None and k not in m.params and k != "min_amplitude")
     if stray:
@@ -94,7 +107,10 @@ def correct(session: Path = typer.Argument(..., help="Session to correct (.h5)."
         if calibrate is not None:
             if save_psf is not None and save_psf.exists() and not force:
                 raise TofhilError("already exists; refusing to overwrite (use --force)", file=save_psf)
-            fitted = _calibrate(calibrate, reference, target_threshold)
+            from tofhil.eval.fixed_pattern import TapCalibration
+
+            fitted = _calibrate(calibrate, reference, target_threshold,
+                                None if flat is None else TapCalibration.load(flat))
             if save_psf is not None:
                 fitted.save(save_psf)
                 # np.savez adds .npz when missing; report the real name.
@@ -144,3 +160,30 @@ def compare(a: Path = typer.Argument(..., help="Measured session A (.h5)."),
         mad = "-" if d["mad"] is None else f"{d['mad'] * 1000:.2f}"
         out.print(f"{name:32s} median {med} mm  MAD {mad} mm  (n={d['n']})")
     out.print(f"wrote {out_dir / 'metrics.json'} and {out_dir / 'report.html'}")
+
+
+@app.command("calibrate-taps")
+def calibrate_taps_cmd(flat: Path = typer.Option(..., "--flat", help="Capture with the emitter off, lit by "
+                                                                     "unmodulated light on a surface filling the view."),
+                       dark: Optional[Path] = typer.Option(None, "--dark", help="Capture with no light at all."),
+                       out_path: Path = typer.Option(..., "--out", help="Tap calibration to write (.npz)."),
+                       no_pixel_gain: bool = typer.Option(False, "--no-pixel-gain",
+                                                          help="Balance the taps of each pixel only."),
+                       force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
+    """Per-tap offsets (dark) and gains (flat) for --flat of tofhil correct."""
+    from tofhil.eval.fixed_pattern import calibrate_taps
+
+    if out_path.exists() and not force:
+        raise TofhilError("already exists; refusing to overwrite (use --force)", file=out_path)
+    f_taps, (cam, theta) = _mean_taps(flat)
+    d_taps = None
+    if dark is not None:
+        d_taps, _ = _mean_taps(dark)
+    try:
+        cal = calibrate_taps(f_taps, theta, d_taps, pixel_gain=not no_pixel_gain)
+    except TofhilError as exc:
+        raise TofhilError(str(exc), file=flat) from None
+    cal.info.update({"flat": str(flat), "dark": None if dark is None else str(dark)})
+    cal.save(out_path)
+    out.print(f"wrote tap calibration to {out_path} (tap gain spread {cal.info['tap_gain_spread']:.4f}, "
+              f"pixel gain spread {cal.info['pixel_gain_spread']:.4f})")

@@ -9,9 +9,11 @@ smoothing) work on depth frames, computing them from taps first when needed.
 
 Methods and parameters (see ``docs/evaluation.md``)::
 
-    uniform            w                       thesis method 1: S - w * sum_p S_p
+    taps               flat                    tap offset/gain calibration only
+    uniform            w [flat]                thesis method 1: S - w * sum_p S_p
     gaussian-inverse   sigma_h sigma_v w mu    thesis method 2: Wiener inverse of delta + w G
-    psf                psf iterations          calibrated PSF, fixed-point deconvolution
+                       [flat]
+    psf                psf iterations [flat]   calibrated PSF, fixed-point deconvolution
     amplitude          min_amplitude           invalidate low-amplitude pixels
     jump-angle         angle_deg               jump-edge filter, angle criterion (8 neighbours)
     jump-distance      max_step_m relative     jump-edge filter, distance criterion
@@ -33,6 +35,7 @@ from tofhil.depth import depth_from_raw
 from tofhil.errors import TofhilError
 from tofhil.eval import depth_filters as df
 from tofhil.eval import straylight_correction as sl
+from tofhil.eval.fixed_pattern import TapCalibration
 from tofhil.frames import DepthFrame, RawFrame
 
 
@@ -46,6 +49,22 @@ class Method:
     summary: str
     #: complex: f(S[F,H,W], **p) -> S; depth: f(DepthFrame, **p) -> DepthFrame
     func: Callable[..., Any]
+
+
+def _flat_param(value: Any) -> TapCalibration | None:
+    if isinstance(value, TapCalibration) or value is None:
+        return value
+    return TapCalibration.load(value) if value else None
+
+
+def load_params(method: str, params: dict[str, Any]) -> dict[str, Any]:
+    """Resolved parameters with calibration files (psf, flat) loaded once."""
+    p = resolve_params(method, params)
+    if "psf" in p:
+        p["psf"] = _psf_param(p["psf"])
+    if "flat" in p:
+        p["flat"] = _flat_param(p["flat"])
+    return p
 
 
 def _psf_param(value: Any) -> sl.StrayLightPSF:
@@ -100,13 +119,16 @@ def _depth_bilateral(d: DepthFrame, sigma_px: float, sigma_m: float) -> DepthFra
 
 
 METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("uniform", "complex", {"w": (float, None)},
+    Method("taps", "complex", {"flat": (str, None)},
+           "per-tap offset and gain calibration (tofhil calibrate-taps)", lambda s: s),
+    Method("uniform", "complex", {"w": (float, None), "flat": (str, "")},
            "thesis method 1: S - w * sum of all pixels' S", sl.subtract_uniform),
     Method("gaussian-inverse", "complex",
-           {"sigma_h": (float, None), "sigma_v": (float, None), "w": (float, None), "mu": (float, 0.0)},
+           {"sigma_h": (float, None), "sigma_v": (float, None), "w": (float, None), "mu": (float, 0.0),
+            "flat": (str, "")},
            "thesis method 2: inverse filter of delta + w*Gaussian(sigma_h, sigma_v), regularisation mu",
            sl.inverse_filter_gaussian),
-    Method("psf", "complex", {"psf": (str, None), "iterations": (int, 30)},
+    Method("psf", "complex", {"psf": (str, None), "iterations": (int, 30), "flat": (str, "")},
            "calibrated stray-light PSF removed by fixed-point deconvolution", _complex_psf),
     Method("amplitude", "depth", {"min_amplitude": (float, None)},
            "invalidate pixels with amplitude below min_amplitude", _depth_amplitude),
@@ -143,7 +165,7 @@ def resolve_params(method: str | Method, params: dict[str, Any] | None) -> dict[
             value = params[key]
             if typ is not str or isinstance(value, str):
                 try:
-                    value = typ(value) if not isinstance(value, sl.StrayLightPSF) else value
+                    value = typ(value)
                 except (TypeError, ValueError):
                     raise TofhilError(f"got {value!r}", field=key, expected=f"a {typ.__name__}") from None
             out[key] = value
@@ -177,7 +199,11 @@ def correct_signal(s: np.ndarray, method: str, params: dict[str, Any] | None = N
     m = get_method(method)
     if m.domain != "complex":
         raise TofhilError(f"method {method!r} works on depth, not on complex signals", field="method")
-    return m.func(np.asarray(s), **resolve_params(m, params))
+    p = resolve_params(m, params)
+    if p.pop("flat", None):
+        raise TofhilError("a tap calibration (flat) applies to raw taps, not to a complex signal", field="flat",
+                          expected="correct_raw() or a session with raw taps")
+    return m.func(np.asarray(s), **p)
 
 
 def correct_raw(raw: RawFrame, method: str, params: dict[str, Any] | None = None, *,
@@ -189,9 +215,13 @@ def correct_raw(raw: RawFrame, method: str, params: dict[str, Any] | None = None
     m = get_method(method)
     p = resolve_params(m, params)
     if m.domain == "complex":
-        s = phasor(raw.taps.astype(np.float64), raw.theta_rad)
+        taps = raw.taps.astype(np.float64)
+        flat = _flat_param(p.pop("flat", None))
+        if flat is not None:
+            taps = flat.apply(taps)
+        s = phasor(taps, raw.theta_rad)
         sc = m.func(s, **p)
-        taps = taps_from_signal(np.abs(sc), np.angle(sc), offset(raw.taps.astype(np.float64)), raw.theta_rad)
+        taps = taps_from_signal(np.abs(sc), np.angle(sc), offset(taps), raw.theta_rad)
         out = replace(raw, taps=taps.astype(np.float32), meta=dict(raw.meta, corrected=method))
         return out, depth_from_raw(out, min_amplitude=min_amplitude)
     depth = depth_from_raw(raw, min_amplitude=min_amplitude)
@@ -219,15 +249,13 @@ def correct_session(in_path: str | Path, out_path: str | Path, method: str, para
     if out_path.exists() and out_path.resolve() == in_path.resolve():
         raise TofhilError("the output must differ from the input", file=out_path)
     m = get_method(method)
-    p = resolve_params(m, params)
-    if m.name == "psf":
-        p["psf"] = _psf_param(p["psf"])  # load once, not per frame
+    p = load_params(m.name, params or {})  # calibration files loaded once, not per frame
     wrap = progress or (lambda it, n, desc: it)
     with open_session(in_path) as s:
         if m.domain == "complex" and not s.has_raw:
             correct_depth(s.depth_frame(0) if s.n_frames else None, method, p)  # raises the clear error
-        note = f"{method} " + " ".join(f"{k}={v if not isinstance(v, sl.StrayLightPSF) else 'calibrated'}"
-                                       for k, v in p.items())
+        note = f"{method} " + " ".join(f"{k}={v if isinstance(v, (int, float, str)) else 'calibrated'}"
+                                       for k, v in p.items() if v is not None)
         w = copy_session_header(s, out_path, force=force, note=f"corrected: {note.strip()}")
         try:
             with w:

@@ -16,6 +16,7 @@ import html
 import io
 import json
 import math
+import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -25,7 +26,7 @@ import numpy as np
 from tofhil import __version__
 from tofhil.errors import TofhilError
 from tofhil.eval import compare as cmp
-from tofhil.eval.corrections import correct_depth, correct_raw, get_method, parse_method_spec, resolve_params
+from tofhil.eval.corrections import correct_depth, correct_raw, get_method, load_params, parse_method_spec, resolve_params
 from tofhil.frames import DepthFrame
 
 MEASURED = "measured"
@@ -141,12 +142,13 @@ def _fig_uri(fig: Any) -> str:
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
-def _grid(n: int, width: float = 3.6, height: float = 3.0) -> tuple[Any, np.ndarray]:
+def _grid(n: int, width: float = 4.2, height: float = 3.4) -> tuple[Any, np.ndarray]:
     import matplotlib.pyplot as plt
 
-    cols = min(n, 4)
+    cols = min(n, 3)
     rows = math.ceil(n / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(width * cols, height * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(width * cols, height * rows), squeeze=False,
+                             layout="constrained")
     for ax in axes.ravel()[n:]:
         ax.axis("off")
     return fig, axes.ravel()
@@ -155,7 +157,7 @@ def _grid(n: int, width: float = 3.6, height: float = 3.0) -> tuple[Any, np.ndar
 def _image_panel(fig: Any, ax: Any, img: np.ndarray, title: str, cmap: str, vmin: float, vmax: float,
                  unit: str) -> None:
     im = ax.imshow(img, cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
-    ax.set_title(title, fontsize=9)
+    ax.set_title("\n".join(textwrap.wrap(title, 38)), fontsize=9)
     ax.set_xlabel("pixel column", fontsize=8)
     ax.set_ylabel("pixel row", fontsize=8)
     ax.tick_params(labelsize=7)
@@ -364,11 +366,7 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
         fa, std = cmp.mean_depth_frame(_session_depth_frames(sa, max_frames, min_amplitude=min_amplitude))
         variants.append(Variant(MEASURED, fa, std))
         for (name, params), label in zip(specs, labels):
-            p = resolve_params(name, params)
-            if name == "psf":
-                from tofhil.eval.straylight_correction import StrayLightPSF
-
-                p["psf"] = p["psf"] if isinstance(p["psf"], StrayLightPSF) else StrayLightPSF.load(p["psf"])
+            p = load_params(name, params)
             say(f"correcting A with {label}")
             f, s = cmp.mean_depth_frame(_session_depth_frames(sa, max_frames, name, p, min_amplitude))
             variants.append(Variant(label, f, s, name, {k: v for k, v in params.items()}))
