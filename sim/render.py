@@ -195,14 +195,13 @@ class _Context:
 
     # ------------------------------------------------------------------ one chunk
     def run_chunk(self, chunk: int, p0: int, p1: int) -> dict[str, np.ndarray]:
-        rng = np.random.default_rng([self.seed, chunk])
         npix = p1 - p0
         spp = self.spp
         pix = np.arange(p0, p1) if spp == 1 else np.repeat(np.arange(p0, p1), spp)
         # [samples, D] uniforms: subpixel, lens, 2 per bounce (none needed for centre rays
         # through the pinhole without bounces).
         need_u = self.subpixel or self.thin_lens or self.bounces > 0
-        U = self.uniforms(rng, npix) if need_u else np.zeros((0, self.dims))
+        U = self.uniforms(np.random.default_rng([self.seed, chunk]), npix) if need_u else np.zeros((0, self.dims))
         if self.subpixel:
             uu = (pix % self.W) + U[:, 0] - 0.5
             vv = (pix // self.W) + U[:, 1] - 0.5
@@ -258,7 +257,7 @@ class _Context:
         sid = np.arange(len(pix))
         rays = 0
         for bounce in range(self.bounces + 1):
-            if bounce == 0 and shared and not self.subpixel:
+            if bounce == 0 and shared and not self.subpixel and len(dirs) <= len(self.origin32):
                 o32, d32 = self.origin32[:len(dirs)], self.centre_world32[p0:p1]
                 if spp > 1:
                     d32 = np.repeat(d32, spp, axis=0)
@@ -402,7 +401,10 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     ctx = _Context(scene, cam, freq, harm, spp, nb, seed, separate_direct, edges, sub, smp)
     H, W = cam.shape
     npix_total = H * W
-    per_chunk = max(1, BATCH // spp)
+    # An even number of equal chunks of at most BATCH samples: balanced on two threads, and
+    # independent of the thread count (each chunk has its own random stream).
+    n_chunks = 2 * math.ceil(npix_total * spp / (2 * BATCH))
+    per_chunk = max(1, math.ceil(npix_total / n_chunks))
     starts = list(range(0, npix_total, per_chunk))
     nthreads = threads or int(os.environ.get("TOFHIL_RENDER_THREADS", 0)) or min(2, os.cpu_count() or 1)
 
