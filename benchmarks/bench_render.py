@@ -155,7 +155,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--threads", type=int, default=min(2, os.cpu_count() or 1))
     ap.add_argument("--budget-s", type=float, default=90.0, help="time budget for part (c)")
-    ap.add_argument("--spp-per-pass", type=int, default=16)
+    ap.add_argument("--spp-per-pass", type=int, default=64)
     ap.add_argument("--reference", type=int, default=0, metavar="SPP",
                     help="also render an explicit reference with SPP samples (slow)")
     args = ap.parse_args()
