@@ -153,7 +153,7 @@ def best_uniform(cap: Capture, region: str = "square") -> tuple[float, float]:
     return (float(10 ** r.x), float(r.fun)) if r.fun < errs[i] else (float(10 ** grid[i]), float(errs[i]))
 
 
-def best_gaussian(cap: Capture, sigmas: Sequence[float] = (2, 4, 8, 16, 32, 64), mu: float = 0.0,
+def best_gaussian(cap: Capture, sigmas: Sequence[float] = tuple(2.0 * np.sqrt(2) ** np.arange(11)), mu: float = 0.0,
                   region: str = "square") -> tuple[float, float, float]:
     """Thesis method 2 at its best (sigma, w) for this case (sigma_h = sigma_v): (sigma, w, error)."""
     best = (float("nan"), float("nan"), float("inf"))

@@ -1,0 +1,77 @@
+"""Stray-light corrections side by side on the twin's dark-square cases.
+
+    /work/venv/bin/python benchmarks/straylight_methods.py [--markdown docs/straylight_table.md] [--json out.json]
+
+For each square reflectance (50 % .. 1 % of the wall) of the bundled ``dark_square_card``
+scene rendered with a stray-light PSF, prints the stray-light depth error in the dark
+square before correction (the baseline, measured in the same run) and the fraction of it
+each method removes:
+
+- calibrated PSF, ONE calibration on ``wall_card`` with its stray-light-free twin;
+- calibrated PSF, ONE calibration on a card in front of a black wall (no twin needed);
+- the same twin calibration without the tap (fixed-pattern) calibration;
+- thesis method 1 (uniform subtraction) at its best w FOR EACH CASE;
+- thesis method 2 (Gaussian inverse filter) at its best sigma and w FOR EACH CASE;
+- thesis method 1 with the one w that is best on average over all cases.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def _table(r: dict) -> list[str]:
+    head = ("| square / wall | error before (mm) | PSF, twin cal. | PSF, card-on-black cal. | "
+            "PSF, twin cal., no tap cal. | thesis 1, best w per case | thesis 2, best sigma, w per case | "
+            "thesis 1, one w for all |")
+    lines = [head, "|" + "---|" * 8]
+    single = r.get("uniform_single_w", {}).get("removed", [None] * len(r["cases"]))
+    for c, s1 in zip(r["cases"], single):
+        def pct(key: str) -> str:
+            v = c.get(key)
+            return "–" if v is None else f"{100 * v['removed']:.1f} %"
+        u, g = c.get("uniform_best"), c.get("gaussian_best")
+        lines.append(
+            f"| {100 * c['square_reflectance']:g} % | {1000 * c['error_before_m']:.1f} | {pct('psf_reference')} | "
+            f"{pct('psf_target')} | {pct('psf_reference_without_tap_calibration')} | "
+            + (f"{100 * u['removed']:.1f} % (w={u['w']:.3g}) | " if u else "– | ")
+            + (f"{100 * g['removed']:.1f} % (sigma={g['sigma_px']:g} px, w={g['w']:.3f}) | " if g else "– | ")
+            + (f"{100 * s1:.1f} % |" if s1 is not None else "– |"))
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--markdown", type=Path, help="also write the table (Markdown) here")
+    ap.add_argument("--json", type=Path, help="also write all numbers (JSON) here")
+    ap.add_argument("--quick", action="store_true", help="three reflectances, no thesis search")
+    args = ap.parse_args(argv)
+
+    from tofhil.eval import straylight_study as st
+
+    t0 = time.perf_counter()
+    refl = (0.5, 0.05, 0.01) if args.quick else st.REFLECTANCES
+    r = st.run_study(refl, thesis=not args.quick, log=lambda s: print(f"[{time.perf_counter() - t0:6.1f} s] {s}",
+                                                                       file=sys.stderr))
+    r["seconds"] = time.perf_counter() - t0
+    lines = _table(r)
+    print(f"stray-light PSF of the study: {json.dumps(r['psf'])}; sensor overrides {r['sensor_overrides']}")
+    print("fraction of the stray-light depth error in the dark square removed (baseline: the error before "
+          "correction, same run):")
+    print("\n".join(lines))
+    if "uniform_single_w" in r:
+        print(f"thesis method 1 with one w for all cases: w = {r['uniform_single_w']['w']:.3g}")
+    print(f"({r['seconds']:.0f} s)")
+    if args.markdown:
+        args.markdown.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    if args.json:
+        args.json.write_text(json.dumps(r, indent=2, default=float), encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
