@@ -194,6 +194,12 @@ class Scene:
     source: str = "<dict>"
     text: str = ""
 
+    def __getstate__(self) -> dict[str, Any]:
+        # Copies and pickles leave out the renderer's cached Embree scene (not copyable).
+        state = self.__dict__.copy()
+        state.pop("_geometry_cache", None)
+        return state
+
     @property
     def radiometric_f_number(self) -> float:
         """The f-number used in the camera equation (``DEFAULT_F_NUMBER`` if none is given)."""

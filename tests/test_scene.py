@@ -175,3 +175,14 @@ def test_corner_scene_shows_three_walls_meeting_at_the_centre() -> None:
     res = render(scene, camera=scene.camera.scaled(0.25))
     assert set(np.unique(res.object_id)) == {0, 1, 2}
     assert res.radial_m[15, 20] == pytest.approx(1.2, abs=0.05)   # the vertex along the axis
+
+
+def test_rendered_scenes_can_be_copied_and_pickled() -> None:
+    import copy
+    import pickle
+
+    scene = load_scene("wall")
+    cam = scene.camera.scaled(0.1)
+    first = render(scene, camera=cam)                     # caches the Embree scene
+    for other in (copy.deepcopy(scene), pickle.loads(pickle.dumps(scene))):
+        np.testing.assert_array_equal(render(other, camera=cam).phasor, first.phasor)
