@@ -117,7 +117,6 @@ class _Context:
             with warnings.catch_warnings():       # balance is best for 2^m points; any n is valid
                 warnings.simplefilter("ignore")
                 self.sobol = qmc.Sobol(self.dims, scramble=True, seed=seed).random(spp)
-        self.separate = separate
         self.subpixel = subpixel and spp > 1
         self.thin_lens = scene.thin_lens
         self.H, self.W = camera.shape
@@ -125,7 +124,6 @@ class _Context:
         self.k = (2 * np.pi / C_M_PER_S) * (np.asarray(freq_hz)[:, None] *
                                             np.asarray(harmonics, dtype=np.float64)[None, :]).ravel()
         self.rho_d, self.rho_s, self.n_s = _materials_table(scene)
-        self.glossy = bool(np.any(self.rho_s > 0))
         self.textured = [(i, scene.materials[o.material].texture) for i, o in enumerate(scene.objects)
                          if scene.materials[o.material].texture is not None]
         self.inv_pose = [np.linalg.inv(o.pose) for o in scene.objects]
@@ -148,7 +146,8 @@ class _Context:
         self.centre_world = np.array(_rotate(self.centre_rays, R), dtype=np.float64)  # writable: one kernel type
         self.centre_weight = self.pix_weight * self.centre_rays[:, 2] ** 4
         self.centre_world32 = self.centre_world.astype(np.float32)
-        self.origin32 = np.empty((min(BATCH, camera.width * camera.height) * spp, 3), dtype=np.float32)
+        # Float32 pinhole origins for one chunk's primary rays (a chunk holds <= BATCH + spp).
+        self.origin32 = np.empty((min(camera.width * camera.height * spp, BATCH + spp), 3), dtype=np.float32)
         self.origin32[:] = self.t
         prof = scene.emitter.profile
         # Beam profile in the kernel for cos^n (I = i0 cos^n); -1: tabulated, done in numpy.
