@@ -100,6 +100,21 @@ def pixel_area_normalized(camera: CameraModel) -> np.ndarray:
     return np.abs((xu1 - xu0) * (yv1 - yv0) - (xv1 - xv0) * (yu1 - yu0)) / (4 * h * h)
 
 
+def _view_arrays(scene: Scene, camera: CameraModel) -> dict[str, np.ndarray]:
+    """Per-pixel arrays of a camera at the scene's camera pose, cached on the scene (repeated
+    renders of one view, e.g. while fitting, skip them)."""
+    key = (camera, scene.camera_pose.tobytes())
+    cached = scene.__dict__.get("_view_cache")
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    rays = camera.rays.reshape(-1, 3)
+    world = np.array(_rotate(rays, scene.camera_pose[:3, :3]), dtype=np.float64)  # writable: one kernel type
+    view = {"rays": rays, "world": world, "world32": world.astype(np.float32),
+            "area": pixel_area_normalized(camera).ravel(), "cos4": rays[:, 2] ** 4}
+    scene.__dict__["_view_cache"] = (key, view)
+    return view
+
+
 class _Context:
     """Everything a chunk worker needs, precomputed once per render call."""
 
@@ -138,14 +153,15 @@ class _Context:
         self.aperture_radius_m = self.focal_m / (2 * n_f)
         self.aperture_area_m2 = np.pi * self.aperture_radius_m ** 2
         self.focus_m = scene.focus_distance_m
+        view = _view_arrays(scene, camera)
         # Per-pixel weight without cos^4: A_ap * pixel area (normalised coords) / spp.
-        self.pix_weight = (self.aperture_area_m2 * pixel_area_normalized(camera) / spp).ravel()
+        self.pix_weight = (self.aperture_area_m2 / spp) * view["area"]
         self.ambient = scene.ambient_irradiance_w_m2
         self.edges = transient_edges
-        self.centre_rays = camera.rays.reshape(-1, 3)
-        self.centre_world = np.array(_rotate(self.centre_rays, R), dtype=np.float64)  # writable: one kernel type
-        self.centre_weight = self.pix_weight * self.centre_rays[:, 2] ** 4
-        self.centre_world32 = self.centre_world.astype(np.float32)
+        self.centre_rays = view["rays"]
+        self.centre_world = view["world"]
+        self.centre_weight = self.pix_weight * view["cos4"]
+        self.centre_world32 = view["world32"]
         # Float32 pinhole origins for one chunk's primary rays (a chunk holds <= BATCH + spp).
         self.origin32 = np.empty((min(camera.width * camera.height * spp, BATCH + spp), 3), dtype=np.float32)
         self.origin32[:] = self.t

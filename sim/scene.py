@@ -198,6 +198,7 @@ class Scene:
         # Copies and pickles leave out the renderer's cached Embree scene (not copyable).
         state = self.__dict__.copy()
         state.pop("_geometry_cache", None)
+        state.pop("_view_cache", None)
         return state
 
     @property
