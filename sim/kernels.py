@@ -16,6 +16,19 @@ from numba import njit
 _INV_PI = 1.0 / math.pi
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _pow(c, n):  # pragma: no cover
+    """c**n, by multiplication for small integer n (the usual cos^n beams; pow() is slow)."""
+    if n == 0.0:
+        return 1.0
+    if n <= 16.0 and n == math.floor(n):
+        p = c
+        for _ in range(int(n) - 1):
+            p *= c
+        return p
+    return c ** n
+
+
 @njit(nogil=True, cache=True)
 def vertex(idx, prim, tfar, bu, bv, org, shared, dirs, path_in, plane_c, normal, vnormal, smooth,
            emitter_pos, emitter_axis, eps, cos_n, i0,
@@ -69,7 +82,7 @@ def vertex(idx, prim, tfar, bu, bv, org, shared, dirs, path_in, plane_c, normal,
         cos_s[j] = cs
         cos_e[j] = ce
         if cos_n >= 0.0:
-            irr[j] = i0 * ce ** cos_n * cs / (r * r) if (cs > 0.0 and ce > 0.0) else 0.0
+            irr[j] = i0 * _pow(ce, cos_n) * cs / (r * r) if (cs > 0.0 and ce > 0.0) else 0.0
         t_out[j] = t
         path[j] = path_in[i] + t
         so[j, 0], so[j, 1], so[j, 2] = px + eps * gx, py + eps * gy, pz + eps * gz

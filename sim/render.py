@@ -139,6 +139,7 @@ class _Context:
         self.k = (2 * np.pi / C_M_PER_S) * (np.asarray(freq_hz)[:, None] *
                                             np.asarray(harmonics, dtype=np.float64)[None, :]).ravel()
         self.rho_d, self.rho_s, self.n_s = _materials_table(scene)
+        self.glossy = bool(np.any(self.rho_s > 0))
         self.textured = [(i, scene.materials[o.material].texture) for i, o in enumerate(scene.objects)
                          if scene.materials[o.material].texture is not None]
         self.inv_pose = [np.linalg.inv(o.pose) for o in scene.objects]
@@ -306,8 +307,7 @@ class _Context:
                     rays += npix
                     out["radial"] = hc.full(hc.t, np.inf)
                     out["object_id"] = hc.full(geom.tri_object[hc.prim], -1).astype(np.int32)
-                beta, local, sid = beta[idx], local[idx], sid[idx]
-            else:
+            if m < len(prim):                        # drop the paths that left the scene
                 beta, local, sid = beta[idx], local[idx], sid[idx]
             if m == 0:
                 break
@@ -318,6 +318,7 @@ class _Context:
             if self.cos_n < 0:                       # tabulated beam profile
                 irr = self.emitter.intensity_w_sr(cos_e) * np.maximum(cos_s, 0.0) / (r1 * r1)
             lit = np.flatnonzero(irr > 0)
+            rs, ns = (self.rho_s[obj], self.n_s[obj]) if self.glossy else (np.zeros(m), np.zeros(m))
             blocked = np.zeros(m, dtype=np.bool_)
             if len(lit) == m:
                 blocked = geom.embree.run(so, sd, dists=sdist, query="OCCLUDED") >= 0
@@ -334,7 +335,7 @@ class _Context:
                 nb_org = nb_dir = np.zeros((0, 3))
                 nb_keep = np.zeros(0, dtype=np.int64)
             count = kernels.connect_and_bounce(
-                irr, blocked, rho, self.rho_s[obj], self.n_s[obj], nf, ngf, wo, wi, r1, x, beta, path,
+                irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, path,
                 local, 0 if bounce == 0 else 1, self.k, acc_re, acc_im, power, edges, trans, do_bounce,
                 u1, u2, RAY_EPSILON_M, nb_org, nb_dir, nb_keep)
             if not do_bounce or count == 0:
@@ -424,7 +425,8 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     nthreads = threads or int(os.environ.get("TOFHIL_RENDER_THREADS", 0)) or min(2, os.cpu_count() or 1)
 
     nk = len(ctx.k)
-    acc = np.zeros((2, nk, npix_total), dtype=np.complex128)
+    acc_re = np.zeros((2, nk, npix_total))        # [direct/indirect, f*h, pixel]
+    acc_im = np.zeros((2, nk, npix_total))
     power = np.zeros(npix_total)
     ambient = np.zeros(npix_total)
     radial = np.full(npix_total, np.inf)
@@ -434,7 +436,8 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     ray_count = [0]
 
     def store(p0: int, p1: int, r: dict[str, np.ndarray]) -> None:
-        acc[:, :, p0:p1] = r["re"] + 1j * r["im"]
+        acc_re[:, :, p0:p1] = r["re"]
+        acc_im[:, :, p0:p1] = r["im"]
         power[p0:p1] = r["power"]
         ray_count[0] += int(r["rays"])
         ambient[p0:p1] = r["ambient"]
@@ -459,10 +462,22 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
             store(job[1], job[2], fut.result())
 
     shape = (len(freq), len(harm), H, W)
-    direct = acc[0].reshape(shape)
-    indirect = acc[1].reshape(shape)
+
+    def as_complex(re: np.ndarray, im: np.ndarray) -> np.ndarray:
+        c = np.empty(shape, dtype=np.complex128)
+        c.real = re.reshape(shape)
+        c.imag = im.reshape(shape)
+        return c
+
+    direct = as_complex(acc_re[0], acc_im[0])
+    if nb == 0:                                      # no indirect light was traced
+        indirect = np.zeros(shape, dtype=np.complex128) if separate_direct else None
+        total = direct.copy() if separate_direct else direct
+    else:
+        indirect = as_complex(acc_re[1], acc_im[1])
+        total = direct + indirect
     return RenderResult(
-        freq_hz=freq, harmonics=harm, phasor=direct + indirect,
+        freq_hz=freq, harmonics=harm, phasor=total,
         power_w=power.reshape(H, W), ambient_power_w=ambient.reshape(H, W),
         radial_m=radial.reshape(H, W), object_id=oid.reshape(H, W),
         phasor_direct=direct if separate_direct else None,
