@@ -53,6 +53,11 @@ def _calibrate(cal_path: Path, reference: Optional[Path], target_threshold: floa
     else:
         psf = sl.calibrate_psf_target(s_meas, cam.cx, cam.cy, threshold=target_threshold)
         psf.info["calibration"]["capture"] = str(cal_path)
+    if psf.direct <= 0.1 + 1e-9 or psf.scattered_fraction >= psf.direct:
+        raise TofhilError(f"the PSF fit is degenerate (direct {psf.direct:.3f}, scattered "
+                          f"{psf.scattered_fraction:.3f})", file=reference or cal_path,
+                          expected="a noise-free twin reference (tofhil simulate --no-noise) or more frames "
+                                   "averaged, and a capture whose stray light is visible")
     return psf
 
 

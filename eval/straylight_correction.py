@@ -38,10 +38,14 @@ from typing import Any
 
 import numpy as np
 from scipy import fft as sfft
-from scipy.optimize import minimize, nnls
+from scipy.optimize import lsq_linear, minimize, nnls
 from scipy.special import erf
 
 from tofhil.errors import InputFileError
+
+#: Narrowest lobe fitted (pixels); see :func:`default_sigmas`.
+MIN_SIGMA_PX = 1.0
+LOG_SIGMA_RANGE = (float(np.log(0.8)), float(np.log(3000.0)))
 
 # ---------------------------------------------------------------------------- convolution
 
@@ -315,10 +319,15 @@ def deconvolve(s_meas: np.ndarray, psf: StrayLightPSF, *, iterations: int = 30, 
 
 
 def default_sigmas(height: int, width: int) -> np.ndarray:
-    """Log-spaced Gaussian widths (ratio sqrt 2) from 0.7 px to the sensor diagonal / 2."""
+    """Log-spaced Gaussian widths (ratio sqrt 2) from 1 px to the sensor diagonal / 2.
+
+    Narrower lobes keep almost all light in the pixel: they are indistinguishable from the
+    ``direct`` factor, and with a noisy reference a narrow lobe minus the loss term is a
+    high-pass filter that fits the noise instead of the optics.
+    """
     top = 0.5 * float(np.hypot(height, width))
-    n = int(np.floor(np.log(top / 0.7) / np.log(np.sqrt(2)))) + 1
-    return 0.7 * np.sqrt(2) ** np.arange(n)
+    n = int(np.floor(np.log(top / MIN_SIGMA_PX) / np.log(np.sqrt(2)))) + 1
+    return MIN_SIGMA_PX * np.sqrt(2) ** np.arange(n)
 
 
 def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, *,
@@ -371,13 +380,19 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
         terms.append(("loss", "loss", None, column(-s_true)))
     rhs = column(s_meas - s_true)
     a_all = np.stack([t[3] for t in terms], axis=1)
-    coef, rnorm = _nnls_gram(a_all.T @ a_all, a_all.T @ rhs, float(rhs @ rhs))
+    # Every weight is a fraction of light in [0, 1]; the loss at most 0.9 (a lens that
+    # keeps less than a tenth of the light on its pixel is not a camera). The bounds keep
+    # an ill-posed fit (a noisy reference: average frames, render the twin noise-free)
+    # from trading a huge loss against huge lobes.
+    upper = np.array([0.9 if t[0] == "loss" else 1.0 for t in terms])
+    coef, rnorm = _nnls_gram(a_all.T @ a_all, a_all.T @ rhs, float(rhs @ rhs), upper)
     n_gauss = len(sig)
     if refine and np.any(coef[:n_gauss] > 0):
         # Variable projection: each run of neighbouring active widths becomes one Gaussian
         # with free (sigma_x, sigma_y); the weights are re-solved linearly for every trial.
         groups = _active_groups(coef[:n_gauss])
         fixed = [t for t, c in zip(terms[n_gauss:], coef[n_gauss:]) if c > 0]
+        upper_f = np.array([0.9 if t[0] == "loss" else 1.0 for t in fixed])
         fixed_a = np.stack([t[3] for t in fixed], axis=1) if fixed else np.zeros((rhs.size, 0))
         # Gram blocks of the fixed columns are computed once; per trial only the new ones.
         g_ff, c_f, bb = fixed_a.T @ fixed_a, fixed_a.T @ rhs, float(rhs @ rhs)
@@ -385,10 +400,11 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
 
         def solve(x: np.ndarray) -> tuple[np.ndarray, float, list[tuple[str, str, np.ndarray, np.ndarray]]]:
             gs = [("gauss", f"gauss_{sx:.3g}x{sy:.3g}", None, column(blur(sx, sy)))
-                  for sx, sy in np.exp(np.clip(x, -3.0, 8.0)).reshape(-1, 2)]
+                  for sx, sy in np.exp(np.clip(x, LOG_SIGMA_RANGE[0], LOG_SIGMA_RANGE[1])).reshape(-1, 2)]
             a_g = np.stack([g[3] for g in gs], axis=1)
             gram = np.block([[a_g.T @ a_g, a_g.T @ fixed_a], [fixed_a.T @ a_g, g_ff]])
-            c, r = _nnls_gram(gram, np.concatenate([a_g.T @ rhs, c_f]), bb)
+            c, r = _nnls_gram(gram, np.concatenate([a_g.T @ rhs, c_f]), bb,
+                              np.concatenate([np.ones(len(gs)), upper_f]))
             return c, r, gs
 
         x0 = np.log(np.repeat(init, 2))
@@ -396,7 +412,7 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
                        options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": 80 * x0.size + 40})
         c_ref, r_ref, gs = solve(res.x)
         if r_ref < rnorm:
-            sxy = np.exp(np.clip(res.x, -3.0, 8.0)).reshape(-1, 2)
+            sxy = np.exp(np.clip(res.x, LOG_SIGMA_RANGE[0], LOG_SIGMA_RANGE[1])).reshape(-1, 2)
             gs = [(kind, name, gaussian_kernel(h, w, sx, sy), col) for (kind, name, _, col), (sx, sy) in zip(gs, sxy)]
             terms, coef, rnorm = gs + fixed, c_ref, r_ref
     kernel = np.zeros((2 * h - 1, 2 * w - 1))
@@ -425,8 +441,9 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     return psf
 
 
-def _nnls_gram(gram: np.ndarray, atb: np.ndarray, btb: float) -> tuple[np.ndarray, float]:
-    """NNLS ``min ||A x - b||, x >= 0`` from the normal equations alone.
+def _nnls_gram(gram: np.ndarray, atb: np.ndarray, btb: float,
+               upper: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """Bounded least squares ``min ||A x - b||, 0 <= x <= upper`` from the normal equations.
 
     With ``A^T A = R^T R`` (Cholesky of the column-scaled Gram matrix) the problem equals
     ``min ||R x - R^-T A^T b||`` up to a constant, a k x k NNLS instead of one with a row
@@ -441,6 +458,9 @@ def _nnls_gram(gram: np.ndarray, atb: np.ndarray, btb: float) -> tuple[np.ndarra
     y = np.linalg.solve(r, c)  # r lower-triangular: R^T = r, so R^-T c = r^-1 c
     coef, _ = nnls(r.T, y, maxiter=50 * k)
     coef = coef / d
+    if upper is not None and np.any(coef > upper):
+        res = lsq_linear(r.T, y, bounds=(np.zeros(k), np.asarray(upper) * d), method="bvls")
+        coef = res.x / d
     res2 = btb - 2 * coef @ atb + coef @ gram @ coef
     return coef, float(np.sqrt(max(res2, 0.0)))
 
