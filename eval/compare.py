@@ -122,6 +122,7 @@ def compare_frames(a: DepthFrame, b: DepthFrame, regions: Iterable[Region] = ())
                 "valid_fraction_b": float(np.asarray(b.valid)[r.mask].mean()) if r.mask.any() else float("nan"),
                 "depth_residual_m": robust_stats(maps["depth_residual_m"][m]),
                 "amplitude_ratio_median": float(np.median(ratio)) if ratio.size else float("nan"),
+                "amplitude_ratio": robust_stats(ratio),
             }
     return out
 

@@ -45,6 +45,7 @@ def test_compare_frames_per_region():
     assert r["right"]["depth_residual_m"]["median"] == pytest.approx(0.05)
     assert r["right"]["depth_residual_m"]["n"] == 9 * 10  # the invalid row is left out
     assert r["right"]["amplitude_ratio_median"] == pytest.approx(0.5)
+    assert r["all"]["amplitude_ratio"]["mean"] == pytest.approx(0.75)  # half at 1, half at 0.5
     assert r["box"]["pixels"] == 50 and r["box"]["depth_residual_m"]["mad"] == pytest.approx(0.0, abs=1e-12)
     assert r["all"]["valid_fraction_a"] == pytest.approx(0.9)
     # Half the pixels are off by 5 cm: the RMSE of the whole image is 5 cm / sqrt(2).
