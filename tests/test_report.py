@@ -164,3 +164,25 @@ def test_tap_calibration_removes_tap_gains(tmp_path):
     assert err_raw > 0.05 and err_cal < 0.02 * err_raw
     # A modulated "flat" capture is refused.
     assert run("calibrate-taps", "--flat", tmp_path / "scene.h5", "--out", tmp_path / "bad.npz") == 2
+
+
+def test_compare_twin_sessions_has_per_object_regions(tmp_path):
+    pytest.importorskip("tofhil.sim.pipeline")
+    from tofhil.sim.pipeline import simulate_session
+    from tofhil.sim.scene import load_scene
+
+    scene = load_scene("dark_square_card", overrides={"params": {"square_reflectance": 0.2}})
+    stray = {"stray_light": {"weight": 0.03, "sigma_px": 15.0, "veil": 0.01}}
+    simulate_session(scene, tmp_path / "a.h5", frames=1, noise=False, effects=stray)
+    simulate_session(scene, tmp_path / "b.h5", frames=1, noise=False, effects={})
+    assert run("compare", tmp_path / "a.h5", tmp_path / "b.h5", "--out", tmp_path / "r", "--frames", "1") == 0
+    m = json.loads((tmp_path / "r" / "metrics.json").read_text())
+    assert m["settings"]["object_regions_from"] == "B"
+    regions = m["variants"]["measured"]["regions"]
+    assert {"all", "wall", "square", "card"} <= set(regions)
+    # The near card's stray light pulls the far, dark square nearer; the card itself,
+    # bright and near, hardly moves.
+    sq = regions["square"]["depth_residual_m"]["median"]
+    assert sq < -0.05
+    assert abs(regions["card"]["depth_residual_m"]["median"]) < 0.1 * abs(sq)
+    assert regions["square"]["pixels"] > 100
