@@ -114,3 +114,15 @@ def test_emitter_offset_path_length_and_harmonics() -> None:
         got = np.mod(np.angle(res.phasor[0, i]), 2 * np.pi)
         err = np.angle(np.exp(1j * (got - expect)))
         assert np.abs(err).max() < 1e-9
+
+
+def test_several_frequencies_and_harmonics_keep_their_axes() -> None:
+    scene = scene_from_dict(plane_scene(2.0, camera=small_camera()))
+    freqs = [20e6, 80e6, 100e6]
+    res = render(scene, freq_hz=freqs, harmonics=(1, 2))
+    truth = exact_radial(scene.camera, 2.0)
+    assert res.phasor.shape == (3, 2, 30, 40)
+    for i, f in enumerate(freqs):
+        for j, h in enumerate((1, 2)):
+            expect = np.exp(1j * 4 * np.pi * h * f * truth / C_M_PER_S)
+            np.testing.assert_allclose(res.phasor[i, j] / np.abs(res.phasor[i, j]), expect, atol=1e-9)
