@@ -162,6 +162,10 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                           file=session_path, field="raw/taps")
     model = TwinModel(scene, data, render_kwargs=render_kwargs)
     base_pred = model.predict({})
+    if candidates is None or "pose" in candidates:
+        if progress:
+            progress("aligning the twin (ICP)")
+        model.align_pose()
     selection = greedy_select(model, data, candidates=candidates, max_effects=max_effects,
                               min_relative_gain=min_relative_gain, progress=progress)
     params = {e: to_effect_values(e, v) for e, v in selection.params.items()}

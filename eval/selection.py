@@ -19,7 +19,7 @@ from typing import Callable, Mapping, Protocol, Sequence
 import numpy as np
 from scipy.optimize import least_squares
 
-from tofhil.eval.heldout import HeldOutData
+from tofhil.eval.heldout import HUBER_SIGMA, HeldOutData, huber
 
 EffectParams = dict[str, dict[str, float]]
 
@@ -96,54 +96,66 @@ def _unpack(active: Sequence[str], lib: Mapping[str, EffectSpec], x: np.ndarray)
 
 
 def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: EffectParams,
-        new_effect: str | None = None, max_nfev: int = 60) -> tuple[EffectParams, float]:
-    """Least-squares fit of all active effects' parameters on the training data.
+        new_effect: str | None = None, max_nfev: int = 60,
+        free: Sequence[str] | None = None) -> tuple[EffectParams, float]:
+    """Least-squares fit of the active effects' parameters on the training data.
 
-    Starts from ``start`` (earlier fits; "off" for the rest) and, for ``new_effect``, also
-    from each of its parameters' extra starting points; keeps the best training fit.
+    Only the effects in ``free`` (default: all active ones) move; the others keep their
+    values in ``start``. Starts from ``start`` ("off" where it is silent) and, for
+    ``new_effect``, also from its extra starting points; keeps the best training fit.
     """
     lib = model.library()
-    params = [p for e in active for p in lib[e].params]
+    free = list(active if free is None else free)
+    fixed = {e: dict(start.get(e, {})) for e in active if e not in free}
+    for e in fixed:
+        for p in lib[e].params:
+            fixed[e].setdefault(p.name, p.off)
+    params = [p for e in free for p in lib[e].params]
+
+    def full(x: np.ndarray) -> EffectParams:
+        return {e: fixed[e] if e in fixed else _unpack(free, lib, x)[e] for e in active}
+
     if not params:
-        pred = model.predict({e: {} for e in active})
-        return {e: {} for e in active}, data.chi2(pred, "train")
+        return full(np.zeros(0)), data.chi2(model.predict(full(np.zeros(0))), "train")
     lo = np.array([p.lo for p in params])
     hi = np.array([p.hi for p in params])
     scale = np.array([p.scale for p in params])
-    x0 = np.clip(_pack(active, lib, start), lo, hi)
+    x0 = np.clip(_pack(free, lib, start), lo, hi)
 
     def residual(x: np.ndarray) -> np.ndarray:
-        return data.whitened_residual(model.predict(_unpack(active, lib, x)), "train")
+        return data.whitened_residual(model.predict(full(x)), "train")
 
     starts = [x0]
-    if new_effect is not None:
+    if new_effect is not None and new_effect in free:
         for extra in lib[new_effect].starts:
-            trial = {e: dict(start.get(e, {})) for e in active}
+            trial = {e: dict(start.get(e, {})) for e in free}
             trial[new_effect].update(extra)
-            starts.append(np.clip(_pack(active, lib, trial), lo, hi))
+            starts.append(np.clip(_pack(free, lib, trial), lo, hi))
     # Screen every starting point with one evaluation; optimise from the best two.
     inner = [np.clip(x, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo)) for x in starts]
     if len(inner) > 2:
-        costs = [float(np.sum(residual(x) ** 2)) for x in inner]
+        costs = [float(np.sum(huber(residual(x)))) for x in inner]
         inner = [inner[i] for i in np.argsort(costs)[:2]]
     best_x, best_cost = x0, np.inf
     for x_start in inner:
         res = least_squares(residual, x_start, bounds=(lo, hi), x_scale=scale, method="trf",
-                            max_nfev=max_nfev, diff_step=1e-3, ftol=1e-5, xtol=1e-6)
+                            max_nfev=max_nfev, diff_step=1e-3, ftol=1e-5, xtol=1e-6,
+                            loss="huber", f_scale=HUBER_SIGMA)
         if res.cost < best_cost:
             best_x, best_cost = res.x, res.cost
-    return _unpack(active, lib, best_x), 2.0 * best_cost
+    return full(best_x), 2.0 * best_cost
 
 
 def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequence[str] | None = None,
-                  max_effects: int = 3, min_relative_gain: float = 0.02,
+                  max_effects: int = 3, min_relative_gain: float = 0.02, min_gain_per_value: float = 0.02,
                   progress: Callable[[str], None] | None = None) -> Selection:
     """Add effects one by one while each brings a significant held-out gain.
 
     An effect is significant when its held-out score beats the current model's (the BIC-like
     penalty included) and it removes at least ``min_relative_gain`` of the current held-out
-    misfit in excess of noise (chi2 - n): a margin against chasing Monte Carlo noise or
-    tiny model differences that no bench user would call a cause.
+    misfit in excess of noise (chi2 - n), and at least ``min_gain_per_value`` per held-out
+    value (chi2 is about 1 per value for pure noise): margins against chasing Monte Carlo
+    noise or tiny model differences that no bench user would call a cause.
     """
     lib = model.library()
     names = list(candidates if candidates is not None else lib)
@@ -166,7 +178,9 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
             if progress:
                 progress(f"fitting {name}")
             trial = active + [name]
-            fitted, chi2_train = fit(model, data, trial, params, new_effect=name)
+            # forward stagewise: the new effect is fitted with the earlier ones held; the
+            # chosen set is refitted jointly below
+            fitted, chi2_train = fit(model, data, trial, params, new_effect=name, free=[name])
             chi2_test = data.chi2(model.predict(fitted), "test")
             k = current_k + len(lib[name].params)
             score = chi2_test + k * penalty
@@ -175,7 +189,8 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                              score=score, delta_score=current_score - score,
                              relative_gain=gain / current_chi2 if current_chi2 > 0 else 0.0,
                              significant=bool(current_score - score > 0 and excess > 0
-                                              and gain > min_relative_gain * excess),
+                                              and gain > min_relative_gain * excess
+                                              and gain > min_gain_per_value * n_test),
                              n_params=len(lib[name].params))
             cand._all_params = fitted  # type: ignore[attr-defined]
             round_.append(cand)
@@ -187,6 +202,14 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         active.append(best.effect)
         params = best._all_params  # type: ignore[attr-defined]
         current_chi2 = best.chi2_test
+        # Refit the chosen set jointly (for one effect: more iterations from its best start;
+        # geometric effects often need them).
+        if progress:
+            progress("refitting " + " + ".join(active) + " jointly")
+        joint, _ = fit(model, data, active, params)
+        joint_chi2 = data.chi2(model.predict(joint), "test")
+        if joint_chi2 < current_chi2:
+            params, current_chi2 = joint, joint_chi2
     selection.causes = active
     selection.params = {e: params[e] for e in active}
     selection.final_chi2_test = current_chi2

@@ -43,7 +43,8 @@ DIAGNOSIS_LIBRARY: dict[str, tuple[_P, tuple[dict[str, float], ...]]] = {
     "amplitude_dependent": ({"error_m": (-0.5, 0.5, 0.01), "log10_amplitude_e": (0.0, 6.0, 0.2)},
                             ({"error_m": 0.02, "log10_amplitude_e": 2.5}, {"error_m": 0.02, "log10_amplitude_e": 3.5},
                              {"error_m": -0.02, "log10_amplitude_e": 3.0})),
-    "lens_distortion": ({"k1": (-0.5, 0.5, 0.01), "k2": (-0.5, 0.5, 0.01)}, ()),
+    "lens_distortion": ({"k1": (-0.5, 0.5, 0.01), "k2": (-0.5, 0.5, 0.01)},
+                        ({"k1": -0.1}, {"k1": 0.1}, {"k1": -0.25}, {"k1": 0.25})),
     "ambient": ({"irradiance_w_m2": (0.0, 2000.0, 1.0)}, ({"irradiance_w_m2": 5.0},)),
     "reflectance": ({"scale": (0.05, 20.0, 0.02)}, ()),
     "pose": ({"rx": (-0.05, 0.05, 1e-3), "ry": (-0.05, 0.05, 1e-3), "rz": (-0.05, 0.05, 1e-3),
@@ -67,6 +68,13 @@ def to_effect_values(effect: str, fitted: Mapping[str, float]) -> dict[str, floa
         else:
             out[k] = float(v)
     return out
+
+
+def _depth(s: np.ndarray, freq_hz: np.ndarray) -> np.ndarray:
+    from tofhil.demod import wrapped_phase
+    from tofhil.unwrap import unwrap
+
+    return unwrap(wrapped_phase(s), freq_hz, amplitude=np.abs(s)).distance_m
 
 
 def session_scene(scene: Any, data: HeldOutData) -> Any:
@@ -97,6 +105,7 @@ class TwinModel:
         # one sensor for all predictions (its fixed pattern is drawn once)
         self.sensor = SensorModel(sensor_config(self.scene), self.scene.camera)
         self._unit_ambient: np.ndarray | None = None
+        self.extra_starts: dict[str, list[dict[str, float]]] = {}
         self.evaluations = 0
 
     # ---------------------------------------------------------------- library
@@ -108,8 +117,39 @@ class TwinModel:
             for pname, (lo, hi, scale) in ranges.items():
                 off = self._base_value(name, pname)
                 params.append(FitParam(pname, off, lo, hi, scale))
-            lib[name] = EffectSpec(tuple(params), starts)
+            lib[name] = EffectSpec(tuple(params), tuple(starts) + tuple(self.extra_starts.get(name, ())))
         return lib
+
+    def align_pose(self, max_distance_m: float = 0.05) -> dict[str, float] | None:
+        """A starting pose from point-to-plane ICP of the measured cloud onto the twin's.
+
+        With the twin camera at P and the real one at P @ D, a point seen by both satisfies
+        p_twin = D p_meas, so the ICP transform (measured -> twin) is the pose effect's D.
+        Pixel-residual fits alone stall here: at depth edges the misfit changes in steps as
+        samples cross the edge, and rotations trade off against translations.
+        """
+        from scipy.spatial.transform import Rotation
+
+        from tofhil.eval.matching import icp
+
+        nf = self.data.n_freq
+        pred = self.predict({})
+        mask = self.data.usable
+        d_meas = _depth(self.data.s_train[:nf], self.data.freq_hz)
+        d_twin = _depth(pred[:nf], self.data.freq_hz)
+        cam = self.data.camera
+        p_meas, p_twin = cam.points(d_meas, valid=mask), cam.points(d_twin, valid=mask)
+        if len(p_meas) < 50 or len(p_twin) < 50:
+            return None
+        t = icp(p_meas, p_twin, max_distance_m).transformation
+        rv = Rotation.from_matrix(t[:3, :3]).as_rotvec()
+        start = {"rx": rv[0], "ry": rv[1], "rz": rv[2], "tx": t[0, 3], "ty": t[1, 3], "tz": t[2, 3]}
+        lo_hi = DIAGNOSIS_LIBRARY["pose"][0]
+        start = {k: float(np.clip(v, lo_hi[k][0], lo_hi[k][1])) for k, v in start.items()}
+        # ICP's lateral components (x, y, roll) are poorly constrained when the view is mostly
+        # one plane facing the camera; offer the start without them too and let the fit choose.
+        self.extra_starts["pose"] = [start, dict(start, tx=0.0, ty=0.0, rz=0.0)]
+        return start
 
     def _base_value(self, effect: str, pname: str) -> float:
         """Where a parameter starts: the base scene's value if it models the effect, else off."""
