@@ -12,8 +12,8 @@ Radiometry (docs/scene-format.md): ``I(theta) = P p(theta)/norm``; irradiance
 cosine-weighted bounce sampling, throughput ``f_r * pi`` per bounce.
 
 Work is split into chunks of whole pixels (all samples of a pixel in one chunk), run on a
-thread pool: embreex and the large numpy operations release the GIL, and chunks write
-disjoint pixel ranges.
+thread pool: embreex and the compiled per-ray kernels (:mod:`tofhil.sim.kernels`) release
+the GIL, and chunks write disjoint pixel ranges.
 """
 
 from __future__ import annotations
@@ -344,9 +344,6 @@ class _Context:
             org, dirs, shared = nb_org[:count], nb_dir[:count], False
             path_in, beta, local, sid = path[keep], beta[keep], local[keep], sid[keep]
 
-        if "radial" not in out:                     # no ray was traced (cannot happen) / safety
-            out["radial"] = np.full(npix, np.inf)
-            out["object_id"] = np.full(npix, -1, dtype=np.int32)
         out["re"], out["im"], out["power"], out["ambient"] = acc_re, acc_im, power, ambient
         out["rays"] = np.array(rays)
         if self.edges is not None:
