@@ -49,6 +49,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--markdown", type=Path, help="also write the table (Markdown) here")
     ap.add_argument("--json", type=Path, help="also write all numbers (JSON) here")
     ap.add_argument("--quick", action="store_true", help="three reflectances, no thesis search")
+    ap.add_argument("--noise", type=int, default=0, metavar="N",
+                    help="noisy captures, each the mean of N frames (references stay the noise-free twin)")
     ap.add_argument("--bundled-sensor", action="store_true",
                     help="keep the scenes' sensor as bundled (no ADC pedestal: dark taps clip at 0 DN)")
     args = ap.parse_args(argv)
@@ -57,11 +59,13 @@ def main(argv: list[str] | None = None) -> int:
 
     t0 = time.perf_counter()
     refl = (0.5, 0.05, 0.01) if args.quick else st.REFLECTANCES
-    r = st.run_study(refl, thesis=not args.quick, sensor=None if args.bundled_sensor else st.STUDY_SENSOR, log=lambda s: print(f"[{time.perf_counter() - t0:6.1f} s] {s}",
+    r = st.run_study(refl, thesis=not args.quick, sensor=None if args.bundled_sensor else st.STUDY_SENSOR,
+                     noise=args.noise > 0, frames=max(args.noise, 1), log=lambda s: print(f"[{time.perf_counter() - t0:6.1f} s] {s}",
                                                                        file=sys.stderr))
     r["seconds"] = time.perf_counter() - t0
     lines = _table(r)
-    print(f"stray-light PSF of the study: {json.dumps(r['psf'])}; sensor overrides {r['sensor_overrides']}")
+    print(f"stray-light PSF of the study: {json.dumps(r['psf'])}; sensor overrides {r['sensor_overrides']}; "
+          + (f"noisy captures, mean of {r['frames']} frames" if r["noise"] else "noise-free"))
     print("fraction of the stray-light depth error in the dark square removed (baseline: the error before "
           "correction, same run):")
     print("\n".join(lines))

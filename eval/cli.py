@@ -148,6 +148,9 @@ def compare(a: Path = typer.Argument(..., help="Measured session A (.h5)."),
             threshold: float = typer.Option(0.01, "--threshold", help="F-score distance threshold, m."),
             min_amplitude: float = typer.Option(0.0, "--min-amplitude",
                                                 help="Invalidate low-amplitude pixels when demodulating."),
+            min_relative_amplitude: float = typer.Option(1e-3, "--min-relative-amplitude",
+                                                         help="Invalidate pixels below this fraction of the "
+                                                              "99th-percentile amplitude (shadows)."),
             no_objects: bool = typer.Option(False, "--no-objects",
                                             help="No per-object regions from the twin's scene."),
             force: bool = typer.Option(False, "--force", help="Overwrite an existing report.")) -> None:
@@ -158,6 +161,7 @@ def compare(a: Path = typer.Argument(..., help="Measured session A (.h5)."),
         raise TofhilError(f"got {frames}", field="--frames", expected="an integer >= 1")
     m = compare_sessions(a, b, out_dir, corrections=correct_specs, rois=roi, max_frames=frames,
                          cell_size=cell_size, threshold=threshold, min_amplitude=min_amplitude,
+                         min_relative_amplitude=min_relative_amplitude,
                          objects=not no_objects, force=force, log=lambda s: console.print(s, highlight=False))
     for name, v in m["variants"].items():
         d = v["regions"]["all"]["depth_residual_m"]

@@ -330,12 +330,14 @@ def _json_safe(x: Any) -> Any:
 def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path, *,
                      corrections: Sequence[str] = (), rois: Sequence[str] = (), max_frames: int = 10,
                      cell_size: float = 0.1, threshold: float = 0.01, min_amplitude: float = 0.0,
-                     objects: bool = True, force: bool = False,
+                     min_relative_amplitude: float = 1e-3, objects: bool = True, force: bool = False,
                      log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Compare session A with reference B, write ``metrics.json`` and ``report.html``.
 
     ``corrections`` are method specs (``"psf:psf=cal.npz"``, ``"uniform:w=2e-5"``), each
-    applied to A; ``rois`` are ``"x0,y0,x1,y1"`` pixel boxes. Returns the metrics.
+    applied to A; ``rois`` are ``"x0,y0,x1,y1"`` pixel boxes. Pixels whose mean amplitude
+    is below ``min_relative_amplitude`` of the frame's 99th percentile are invalid (no
+    light reaches them -- a shadow -- so their phase means nothing). Returns the metrics.
     """
     import matplotlib
 
@@ -370,6 +372,10 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
             say(f"correcting A with {label}")
             f, s = cmp.mean_depth_frame(_session_depth_frames(sa, max_frames, name, p, min_amplitude))
             variants.append(Variant(label, f, s, name, {k: v for k, v in params.items()}))
+        for f in [ref] + [v.frame for v in variants]:
+            if f.amplitude is not None and np.isfinite(f.amplitude).any() and min_relative_amplitude > 0:
+                top = np.nanpercentile(f.amplitude, 99)
+                f.valid = f.valid & (np.nan_to_num(f.amplitude) >= min_relative_amplitude * top)
         regions: list[cmp.Region] = []
         obj_source = None
         if objects:
@@ -389,6 +395,7 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
         "inputs": {"a": str(a_path), "b": str(b_path), "a_device": a_label, "b_device": b_label},
         "frames": {"a": n_a, "b": n_b},
         "settings": {"cell_size_m": cell_size, "threshold_m": threshold, "min_amplitude": min_amplitude,
+                     "min_relative_amplitude": min_relative_amplitude,
                      "object_regions_from": obj_source, "rois": list(rois)},
         "reference_temporal_std_m_median": float(np.nanmedian(ref_std)) if np.isfinite(ref_std).any() else None,
         "variants": {},

@@ -91,7 +91,11 @@ def _mean_taps(scene: Any, result: Any, effects: Mapping[str, Any], *, noise: bo
 def simulate_capture(scene_name: str, params: Mapping[str, Any] | None = None,
                      psf: Mapping[str, Any] | None = None, *, noise: bool = False, frames: int = 1,
                      seed: int = 0, sensor: Mapping[str, Any] | None = STUDY_SENSOR) -> Capture:
-    """Render a bundled scene once and expose it with and without the stray-light effect."""
+    """Render a bundled scene once and expose it with and without the stray-light effect.
+
+    The measurement (with stray light) is the mean of ``frames`` exposures, noisy when
+    ``noise``; the stray-light-free reference is the twin's noise-free expectation.
+    """
     from tofhil.sim.pipeline import prepare_render
     from tofhil.sim.scene import load_scene
 
@@ -102,7 +106,7 @@ def simulate_capture(scene_name: str, params: Mapping[str, Any] | None = None,
     scene2, result = prepare_render(scene, {})
     eff = {"stray_light": dict(STUDY_PSF if psf is None else psf)}
     t_meas, theta = _mean_taps(scene2, result, eff, noise=noise, frames=frames, seed=seed)
-    t_ref, _ = _mean_taps(scene2, result, {}, noise=noise, frames=frames, seed=seed + 1000)
+    t_ref, _ = _mean_taps(scene2, result, {}, noise=False, frames=1, seed=seed)
     cam = result.camera or scene2.camera
     return Capture(scene_name, t_meas, t_ref, theta, np.asarray(scene2.freq_hz), np.asarray(result.object_id),
                    [o.name for o in scene2.objects], float(cam.cx), float(cam.cy), dict(params or {}))
@@ -171,7 +175,8 @@ def best_gaussian(cap: Capture, sigmas: Sequence[float] = tuple(2.0 * np.sqrt(2)
 
 
 def calibrate(kind: str = "reference", psf: Mapping[str, Any] | None = None,
-              flat: TapCalibration | None = None, sensor: Mapping[str, Any] | None = STUDY_SENSOR) -> sl.StrayLightPSF:
+              flat: TapCalibration | None = None, sensor: Mapping[str, Any] | None = STUDY_SENSOR,
+              noise: bool = False, frames: int = 1) -> sl.StrayLightPSF:
     """The one calibration used for every case, on scenes that are NOT the test cases.
 
     ``reference``: ``wall_card`` (wall and card, no square) with its stray-light-free twin.
@@ -179,12 +184,13 @@ def calibrate(kind: str = "reference", psf: Mapping[str, Any] | None = None,
     moved to the other side of the view, with no twin at all.
     """
     if kind == "reference":
-        cap = simulate_capture("wall_card", None, psf, sensor=sensor)
+        cap = simulate_capture("wall_card", None, psf, sensor=sensor, noise=noise, frames=frames, seed=11)
         cap.flat = flat
         return sl.calibrate_psf(cap.s_meas, cap.s_ref, cap.cx, cap.cy)
     if kind == "target":
         cap = simulate_capture("wall_card", {"wall_reflectance": 0.0, "card_offset_x_m": -0.05,
-                                             "card_distance_m": 0.3}, psf, sensor=sensor)
+                                             "card_distance_m": 0.3}, psf, sensor=sensor, noise=noise,
+                               frames=frames, seed=12)
         cap.flat = flat
         return sl.calibrate_psf_target(cap.s_meas, cap.cx, cap.cy)
     raise ValueError(f"unknown calibration kind {kind!r}")
@@ -192,29 +198,32 @@ def calibrate(kind: str = "reference", psf: Mapping[str, Any] | None = None,
 
 def run_study(reflectances: Sequence[float] = REFLECTANCES, calibrations: Sequence[str] = ("reference", "target"),
               thesis: bool = True, psf: Mapping[str, Any] | None = None, flat: bool = True,
-              sensor: Mapping[str, Any] | None = STUDY_SENSOR,
+              sensor: Mapping[str, Any] | None = STUDY_SENSOR, noise: bool = False, frames: int = 1,
               log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Every case, every method: errors in the square (m) and the fraction removed.
 
     With ``flat`` every signal (calibration, cases, references) is tap-calibrated first
     (:func:`calibrate_flat`); the calibrated PSF is then also reported without it, to show
-    what the tap gains cost.
+    what the tap gains cost. With ``noise`` every capture (tap calibration, PSF calibration,
+    cases) is the mean of ``frames`` noisy exposures; references stay the noise-free twin.
     """
     say = log or (lambda s: None)
     tapcal = None
     if flat:
         say("tap calibration (dark + flat captures of the wall, emitter off)")
-        tapcal = calibrate_flat(sensor=sensor)
+        tapcal = calibrate_flat(sensor=sensor, noise=noise, frames=frames, seed=13)
     psfs = {}
     for kind in calibrations:
         say(f"calibrating the PSF ({kind})")
-        psfs[kind] = calibrate(kind, psf, tapcal, sensor)
-    raw_psf = calibrate("reference", psf, None, sensor) if flat and "reference" in calibrations else None
+        psfs[kind] = calibrate(kind, psf, tapcal, sensor, noise, frames)
+    raw_psf = (calibrate("reference", psf, None, sensor, noise, frames)
+               if flat and "reference" in calibrations else None)
     rows = []
     caps = []
     for rho in reflectances:
         say(f"case: square reflectance {rho:g} of the wall")
-        cap = simulate_capture("dark_square_card", {"square_reflectance": rho}, psf, sensor=sensor)
+        cap = simulate_capture("dark_square_card", {"square_reflectance": rho}, psf, sensor=sensor, noise=noise,
+                               frames=frames, seed=int(1000 * rho))
         if raw_psf is not None:
             before_raw = square_error(cap, cap.s_meas)
             e = square_error(cap, sl.deconvolve(cap.s_meas, raw_psf))
@@ -236,7 +245,7 @@ def run_study(reflectances: Sequence[float] = REFLECTANCES, calibrations: Sequen
         rows.append(row)
         caps.append(cap)
     out: dict[str, Any] = {"psf": dict(STUDY_PSF if psf is None else psf), "tap_calibration": flat,
-                           "sensor_overrides": dict(sensor or {}),
+                           "sensor_overrides": dict(sensor or {}), "noise": noise, "frames": frames,
                            "cases": rows, "calibrations": {k: p.info for k, p in psfs.items()}}
     if thesis:
         # One weight for all cases, as a user of method 1 would have to choose it.
