@@ -339,8 +339,9 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     Non-negative least squares over all pixels (real and imaginary parts). ``s_meas`` and
     ``s_true`` are ``[..., H, W]`` complex (frequencies / frames stacked in front);
     ``s_true`` is the stray-light-free signal of the calibration scene -- the twin's
-    render without stray light, or the target of a bright target on a dark background
-    (:func:`calibrate_psf_target`). The dictionary: one unit-sum Gaussian per width in
+    render without stray light, or the target pixels of a bright target on a dark
+    background (:func:`calibrate_psf_target`). The dictionary: one pixel-integrated
+    Gaussian of unit integral per width in
     ``sigmas`` (default :func:`default_sigmas`), a uniform veil, the ghost mirrored
     through ``(cx, cy)`` (sharp and blurred by each width), and, with ``fit_direct``, the
     loss ``-S_true`` (light scattered away from its pixel). Each weight is a fraction of
