@@ -100,15 +100,15 @@ def pixel_area_normalized(camera: CameraModel) -> np.ndarray:
     return np.abs((xu1 - xu0) * (yv1 - yv0) - (xv1 - xv0) * (yu1 - yu0)) / (4 * h * h)
 
 
-def _view_arrays(scene: Scene, camera: CameraModel) -> dict[str, np.ndarray]:
+def _view_arrays(scene: Scene, camera: CameraModel, pose: np.ndarray) -> dict[str, np.ndarray]:
     """Per-pixel arrays of a camera at the scene's camera pose, cached on the scene (repeated
     renders of one view, e.g. while fitting, skip them)."""
-    key = (camera, scene.camera_pose.tobytes())
+    key = (camera, pose.tobytes())
     cached = scene.__dict__.get("_view_cache")
     if cached is not None and cached[0] == key:
         return cached[1]
     rays = camera.rays.reshape(-1, 3)
-    world = np.array(_rotate(rays, scene.camera_pose[:3, :3]), dtype=np.float64)  # writable: one kernel type
+    world = np.array(_rotate(rays, pose[:3, :3]), dtype=np.float64)  # writable: one kernel type
     view = {"rays": rays, "world": world, "world32": world.astype(np.float32),
             "area": pixel_area_normalized(camera).ravel(), "cos4": rays[:, 2] ** 4}
     scene.__dict__["_view_cache"] = (key, view)
@@ -120,7 +120,7 @@ class _Context:
 
     def __init__(self, scene: Scene, camera: CameraModel, freq_hz: np.ndarray, harmonics: tuple[int, ...],
                  spp: int, bounces: int, seed: int, separate: bool, transient_edges: np.ndarray | None,
-                 subpixel: bool, sampler: str) -> None:
+                 subpixel: bool, sampler: str, pose: np.ndarray) -> None:
         self.scene, self.camera = scene, camera
         self.geom = scene_geometry(scene)
         self.spp, self.bounces, self.seed = spp, bounces, seed
@@ -143,9 +143,9 @@ class _Context:
         self.textured = [(i, scene.materials[o.material].texture) for i, o in enumerate(scene.objects)
                          if scene.materials[o.material].texture is not None]
         self.inv_pose = [np.linalg.inv(o.pose) for o in scene.objects]
-        R, t = scene.camera_pose[:3, :3], scene.camera_pose[:3, 3]
+        R, t = pose[:3, :3], pose[:3, 3]
         self.R, self.t = R, t
-        self.emitter_pos = scene.emitter_position_world()
+        self.emitter_pos = R @ scene.emitter.offset_m + t
         self.emitter_axis = R @ scene.emitter.axis
         self.emitter = scene.emitter
         pitch = camera.pixel_pitch_m or DEFAULT_PIXEL_PITCH_M
@@ -154,7 +154,7 @@ class _Context:
         self.aperture_radius_m = self.focal_m / (2 * n_f)
         self.aperture_area_m2 = np.pi * self.aperture_radius_m ** 2
         self.focus_m = scene.focus_distance_m
-        view = _view_arrays(scene, camera)
+        view = _view_arrays(scene, camera, pose)
         # Per-pixel weight without cos^4: A_ap * pixel area (normalised coords) / spp.
         self.pix_weight = (self.aperture_area_m2 / spp) * view["area"]
         self.ambient = scene.ambient_irradiance_w_m2
@@ -358,7 +358,8 @@ def _rotate(v: np.ndarray, R: np.ndarray) -> np.ndarray:
     return v[:, 0:1] * R[:, 0] + v[:, 1:2] * R[:, 1] + v[:, 2:3] * R[:, 2]
 
 
-def _transient_edges(scene: Scene, geom: Geometry, bins: int | Sequence[float], bounces: int) -> np.ndarray:
+def _transient_edges(scene: Scene, geom: Geometry, bins: int | Sequence[float], bounces: int,
+                     pose: np.ndarray) -> np.ndarray:
     if np.ndim(bins) == 1:
         edges = np.asarray(bins, dtype=np.float64)
         if len(edges) < 2 or np.any(np.diff(edges) <= 0):
@@ -372,7 +373,7 @@ def _transient_edges(scene: Scene, geom: Geometry, bins: int | Sequence[float], 
     # farthest vertex -> emitter.
     lo, hi = geom.world_bounds
     corners = np.array([[a[0], b[1], c[2]] for a in (lo, hi) for b in (lo, hi) for c in (lo, hi)])
-    reach = np.linalg.norm(corners - scene.camera_pose[:3, 3], axis=1).max()
+    reach = np.linalg.norm(corners - pose[:3, 3], axis=1).max()
     diag = np.linalg.norm(hi - lo)
     lmax = 2 * reach + np.linalg.norm(scene.emitter.offset_m) + bounces * diag
     return np.linspace(0.0, lmax * 1.05 + 1e-9, nb + 1)
@@ -384,14 +385,15 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
            bounces: int | None = None, seed: int | None = None, separate_direct: bool = False,
            transient_bins: int | Sequence[float] | None = None, camera: CameraModel | None = None,
            progress: bool = False, threads: int | None = None, subpixel: bool | None = None,
-           sampler: str | None = None) -> RenderResult:
+           sampler: str | None = None, camera_pose: np.ndarray | None = None) -> RenderResult:
     """Render the scene's emitter light as per-pixel phasors (see the module docstring).
 
     ``freq_hz`` defaults to the scene's sensor frequencies; ``samples_per_pixel``,
     ``bounces`` and ``subpixel`` to the scene's ``render:`` block (1, 0, true). With more than
     one sample per pixel and ``subpixel`` the samples are spread uniformly over the pixel
     (mixed pixels at depth edges); one sample goes through the pixel centre. ``camera``
-    replaces the scene's camera model (the pose stays ``scene.camera_pose``).
+    replaces the scene's camera model and ``camera_pose`` (4x4 camera-to-world) its pose, e.g.
+    a distorted or re-posed camera while fitting; the scene itself is not changed.
     """
     cam = camera if camera is not None else scene.camera
     freq = scene.freq_hz if freq_hz is None else np.atleast_1d(np.asarray(freq_hz, dtype=np.float64))
@@ -410,8 +412,12 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     if nb < 0:
         raise TofhilError(f"got {nb}", field="bounces", expected="an integer >= 0")
     geom = scene_geometry(scene)
-    edges = None if transient_bins is None else _transient_edges(scene, geom, transient_bins, nb)
-    ctx = _Context(scene, cam, freq, harm, spp, nb, seed, separate_direct, edges, sub, smp)
+    pose = scene.camera_pose if camera_pose is None else np.asarray(camera_pose, dtype=np.float64)
+    if pose.shape != (4, 4) or not np.allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-6):
+        raise TofhilError("not a rigid 4x4 transform", field="camera_pose",
+                          expected="a 4x4 camera-to-world matrix with an orthonormal rotation")
+    edges = None if transient_bins is None else _transient_edges(scene, geom, transient_bins, nb, pose)
+    ctx = _Context(scene, cam, freq, harm, spp, nb, seed, separate_direct, edges, sub, smp, pose)
     H, W = cam.shape
     npix_total = H * W
     # An even number of equal chunks of at most BATCH samples: balanced on two threads, and
