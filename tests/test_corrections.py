@@ -171,3 +171,24 @@ def test_psf_file_roundtrip_and_bad_files(tmp_path):
         sl.StrayLightPSF.load(tmp_path / "missing.npz")
     with pytest.raises(InputFileError, match="calibrated for a"):
         back.apply(np.ones((H + 2, W), complex))
+
+
+def test_correct_raw_resynthesises_taps_with_the_corrected_signal_and_the_same_offset():
+    from tofhil.camera import CameraModel
+    from tofhil.demod import equally_spaced_phases, offset, phasor, taps_from_signal
+    from tofhil.eval.corrections import correct_raw
+    from tofhil.frames import RawFrame
+
+    cam = CameraModel.from_fov(W, H, 60.0)
+    theta = equally_spaced_phases(4)
+    s, dist, sq = scene(0.05, card=True)
+    meas = s + 3e-5 * s.sum()  # a uniform veil
+    b = np.full((1, H, W), 40.0)
+    raw = RawFrame(taps=taps_from_signal(np.abs(meas)[None], np.angle(meas)[None], b, theta),
+                   freq_hz=[F_HZ], theta_rad=theta, integration_time_s=1e-3, camera=cam)
+    w = 3e-5 / (1 + s.size * 3e-5)
+    out, depth = correct_raw(raw, "uniform", {"w": w})
+    s_out = phasor(out.taps.astype(np.float64), theta)[0]
+    assert np.allclose(s_out, s, atol=1e-4)  # float32 taps
+    assert np.allclose(offset(out.taps), 40.0, atol=1e-4)
+    assert np.abs(depth.radial_m[sq] - dist[sq]).max() < 1e-3
