@@ -117,7 +117,8 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
     if offset_channel is None:
         noise_b = float(np.median(b.std(axis=0, ddof=1))) if n > 1 else 0.0
         spread = float(np.std(offset_mean))
-        offset_channel = spread > max(3.0 * noise_b, 0.01 * abs(float(np.mean(offset_mean))))
+        # a differential readout reports a fixed (zero) offset: no frame-to-frame noise at all
+        offset_channel = noise_b > 0 and spread > 3.0 * noise_b
     if offset_channel:
         s = np.concatenate([s, b[:, None].astype(np.complex128)], axis=1)
     train_idx = np.arange(0, n, 2)

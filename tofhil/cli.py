@@ -29,7 +29,8 @@ out = Console()
 T = TypeVar("T")
 
 #: Modules that register further commands on ``app`` when imported.
-COMMAND_MODULES: list[str] = ["tofhil.drivers.import_cli", "tofhil.eval.ndt_cli", "tofhil.eval.cli", "tofhil.sim.cli", "tofhil.drivers.cli"]
+COMMAND_MODULES: list[str] = ["tofhil.drivers.import_cli", "tofhil.eval.ndt_cli", "tofhil.eval.cli", "tofhil.sim.cli", "tofhil.drivers.cli",
+                              "tofhil.eval.diagnose_cli"]
 
 
 def progress(items: Iterable[T], total: int, description: str) -> Iterator[T]:

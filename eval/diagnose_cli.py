@@ -1,0 +1,114 @@
+"""``tofhil diagnose`` and ``tofhil demo``."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from tofhil.cli import app, console, out
+from tofhil.errors import TofhilError
+
+
+def _progress_printer() -> callable:
+    start = time.monotonic()
+
+    def show(message: str) -> None:
+        console.print(f"[dim]{time.monotonic() - start:6.1f} s[/dim]  {message}", highlight=False)
+
+    return show
+
+
+def _summary(res, report: Path) -> None:
+    g = res.gain
+    if res.causes:
+        out.print(f"[bold]cause:[/bold] {' + '.join(res.causes)}")
+        for e, p in res.params.items():
+            out.print(f"  {e}: " + ", ".join(f"{k} = {v:.4g}" for k, v in p.items()), highlight=False)
+    else:
+        out.print("[bold]cause:[/bold] none -- no significant effect is missing from the twin")
+    out.print(f"held-out gain: depth RMSE {g['depth_rmse_m']['before'] * 1e3:.1f} -> {g['depth_rmse_m']['after'] * 1e3:.1f} mm, "
+              f"amplitude RMSE {g['amplitude_rmse']['before']:.3g} -> {g['amplitude_rmse']['after']:.3g}, "
+              f"misfit {res.chi2_per_value['before']:.2f} -> {res.chi2_per_value['after_extended_scene']:.2f} per value "
+              f"(1.0 = noise)", highlight=False)
+    if "ndt_score_per_point" in g:
+        out.print(f"NDT score per point {g['ndt_score_per_point']['before']:.4g} -> {g['ndt_score_per_point']['after']:.4g}, "
+                  f"ICP inlier RMSE {g['icp_inlier_rmse_m']['before'] * 1e3:.2f} -> {g['icp_inlier_rmse_m']['after'] * 1e3:.2f} mm",
+                  highlight=False)
+    out.print(f"report: {report}")
+
+
+@app.command()
+def diagnose(session: Path = typer.Argument(..., help="A session with raw taps (2 frames or more)."),
+             scene: str = typer.Option(..., "--scene", help="The twin's base scene (file or bundled name)."),
+             out_dir: Path = typer.Option(..., "--out", help="Directory for diagnosis.json, report.html, extended_scene.yaml."),
+             max_effects: int = typer.Option(3, help="Most effects to add."),
+             candidates: Optional[str] = typer.Option(None, help="Comma-separated effects to try (default: all)."),
+             force: bool = typer.Option(False, "--force", help="Overwrite an earlier diagnosis in OUT.")) -> None:
+    """Find what the twin gets wrong, fit it, write the extended scene and the held-out gain."""
+    from tofhil.eval.diagnose import run_diagnosis
+    from tofhil.sim.effects import ORDER
+
+    names = None
+    if candidates:
+        names = [c.strip() for c in candidates.split(",") if c.strip()]
+        unknown = [c for c in names if c not in ORDER]
+        if unknown:
+            raise TofhilError(f"unknown effect(s) {', '.join(unknown)}", field="--candidates",
+                              expected="names from " + ", ".join(ORDER))
+    res = run_diagnosis(session, scene, out_dir, force=force, progress=_progress_printer(),
+                        max_effects=max_effects, candidates=names)
+    _summary(res, out_dir / "report.html")
+
+
+@app.command()
+def demo(out_dir: Path = typer.Option(Path("demo-out"), "--out", help="Directory for the demo's files."),
+         frames: int = typer.Option(8, help="Frames to capture from the emulated camera."),
+         scene: str = typer.Option("bench_demo", help="Bundled scene or file the emulated camera looks at."),
+         force: bool = typer.Option(False, "--force", help="Reuse OUT even if it holds an earlier demo.")) -> None:
+    """The main job on the embedded default: capture from the emulated TOFcam635 (whose hidden
+    truth differs from the twin), simulate the twin, compare, diagnose, extend the model, report."""
+    from tofhil.drivers.base import CaptureSettings
+    from tofhil.drivers.capture import capture
+    from tofhil.drivers.emulator import TOFCAM635_OVERRIDES, EmulatedTofCam635, Epc635Emulator, SimulatedSource
+    from tofhil.eval.diagnose import run_diagnosis
+    from tofhil.eval.report import compare_sessions
+    from tofhil.sim.pipeline import simulate_session
+    from tofhil.sim.scene import load_scene, scene_to_yaml
+
+    if frames < 2:
+        raise TofhilError(f"is {frames}", field="--frames", expected="at least 2 (training and held-out frames)")
+    names = ["capture.h5", "twin.h5", "twin_scene.yaml", "compare", "diagnosis"]
+    if out_dir.exists() and any((out_dir / n).exists() for n in names) and not force:
+        raise TofhilError("already holds a demo; refusing to overwrite it (use --force or another --out)",
+                          file=out_dir, expected="an empty or new directory")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    show = _progress_printer()
+
+    show(f"1/5 capturing {frames} frames from the emulated TOFcam635 looking at '{scene}' "
+         "(its hidden truth: stray light, wiggling, a clock-skew pattern)")
+    emulator = Epc635Emulator(SimulatedSource(scene))
+    with EmulatedTofCam635("emulator", emulator=emulator) as dev:
+        summary = capture(dev, out_dir / "capture.h5", frames, CaptureSettings(mode="dcs"), force=True)
+    show(f"    {summary.frames_written} frames written, {summary.dropped} dropped, {summary.reconnects} reconnects")
+
+    show("2/5 the twin: the same scene and camera model, without the hidden imperfections")
+    twin = load_scene(scene, overrides=TOFCAM635_OVERRIDES)
+    twin_path = out_dir / "twin_scene.yaml"
+    twin_path.write_text(scene_to_yaml(twin))
+    twin = load_scene(twin_path)
+    simulate_session(twin, out_dir / "twin.h5", frames=frames, seed=1, noise=True, force=True)
+
+    show("3/5 comparing capture and twin (pixels, point clouds, NDT)")
+    compare_sessions(out_dir / "capture.h5", out_dir / "twin.h5", out_dir / "compare", force=True)
+
+    show("4/5 diagnosing: fitting every effect of the library on training data, scoring on held-out data")
+    res = run_diagnosis(out_dir / "capture.h5", twin_path, out_dir / "diagnosis", force=True, progress=show)
+    show("5/5 done")
+    _summary(res, out_dir / "diagnosis" / "report.html")
+    out.print(f"comparison report: {out_dir / 'compare' / 'report.html'}")
+    (out_dir / "summary.json").write_text(json.dumps({"cause": res.cause, "causes": res.causes, "params": res.params,
+                                                      "gain": res.gain}, indent=2, default=float))
