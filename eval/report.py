@@ -211,6 +211,23 @@ def figure_residual_maps(variants: list[Variant], ref: DepthFrame) -> str:
     return _fig_uri(fig)
 
 
+def figure_amplitude_ratio_maps(variants: list[Variant], ref: DepthFrame) -> str | None:
+    """Per-pixel amplitude ratio A/B (log2 scale: 0 = equal); None without amplitudes."""
+    maps = []
+    for v in variants:
+        r = cmp.residual_maps(v.frame, ref)
+        maps.append((v.label, np.where(r["valid_both"], r["amplitude_ratio"], np.nan)))
+    if not any(np.isfinite(m).any() for _, m in maps):
+        return None
+    logs = [(t, np.where(m > 0, np.log2(np.where(m > 0, m, 1.0)), np.nan)) for t, m in maps]
+    _, hi = _robust_range([np.abs(m) for _, m in logs], 0, 98)
+    hi = max(hi, 0.05)
+    fig, axes = _grid(len(logs))
+    for ax, (t, m) in zip(axes, logs):
+        _image_panel(fig, ax, m, f"amplitude ratio A/B: {t}", "PuOr_r", -hi, hi, "log2(A/B)")
+    return _fig_uri(fig)
+
+
 def figure_row_profile(variants: list[Variant], ref: DepthFrame, ref_label: str, column: int) -> str:
     """Distance against pixel row through the image centre (the thesis's 2-D plots)."""
     import matplotlib.pyplot as plt
@@ -424,11 +441,15 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
          "Amplitude |S| (mean over frequencies); each panel on its own scale."),
         ("Residual maps", figure_residual_maps(variants, ref),
          "Depth residual A - B in millimetres (red: A farther, blue: A nearer); shared symmetric scale."),
+        ("Amplitude ratio maps", figure_amplitude_ratio_maps(variants, ref),
+         "Amplitude of A over amplitude of B per pixel, log2 (0: equal; +1: A twice as bright). "
+         "A device's and the twin's amplitude units differ by a constant: look at the pattern."),
         ("Distance against pixel row", figure_row_profile(variants, ref, "reference", col),
          f"Radial distance along pixel column {col} through the image centre."),
         ("Residual histograms", figure_histograms(variants, ref),
          "Distribution of the depth residual over all pixels valid in A and B (log scale)."),
     ]
+    figures = [f for f in figures if f[1] is not None]
     if ndt_maps:
         figures.append(("NDT likelihood maps", figure_ndt_maps(ndt_maps),
                         f"Trilinear NDT likelihood of each pixel's point of A on B's NDT grid "

@@ -83,7 +83,7 @@ def test_calibrate_correct_and_compare(sessions, tmp_path, capsys):
 
     html = (out / "report.html").read_text()
     pngs = re.findall(r"src='data:image/png;base64,([^']+)'", html)
-    assert len(pngs) == 6  # depth, amplitude, residual, row profile, histogram, NDT maps
+    assert len(pngs) == 7  # depth, amplitude, residual, amplitude ratio, row profile, histogram, NDT maps
     for p in pngs:
         assert base64.b64decode(p)[:8] == b"\x89PNG\r\n\x1a\n"
     # Self-contained: nothing is fetched from anywhere.
