@@ -186,3 +186,24 @@ def test_compare_twin_sessions_has_per_object_regions(tmp_path):
     assert sq < -0.05
     assert abs(regions["card"]["depth_residual_m"]["median"]) < 0.1 * abs(sq)
     assert regions["square"]["pixels"] > 100
+
+
+def test_calibration_against_a_twin_reference_recovers_the_psf(tmp_path):
+    # Calibration scene: wall + card (no square), measured with stray light, and its twin.
+    s, _ = syn.scene_signal(None, card=True)
+    syn.write_session(tmp_path / "cal.h5", syn.with_stray_light(s))
+    syn.write_session(tmp_path / "twin.h5", s)
+    psf_path = tmp_path / "psf.npz"
+    assert run("correct", tmp_path / "cal.h5", "--method", "psf", "--calibrate", tmp_path / "cal.h5",
+               "--reference", tmp_path / "twin.h5", "--save-psf", psf_path, "--out", tmp_path / "c.h5") == 0
+    from tofhil.eval.straylight_correction import StrayLightPSF
+
+    psf = StrayLightPSF.load(psf_path)
+    w = {k: v for k, v in zip(psf.info["basis"], psf.info["weights"]) if v > 1e-4}
+    # syn.psf_kernel(): a 9 px Gaussian of weight 0.08 plus a veil of 0.03, additive.
+    lobes = {k: v for k, v in w.items() if k.startswith("gauss")}
+    assert len(lobes) == 1 and sum(lobes.values()) == pytest.approx(0.08, rel=0.02)
+    sx, sy = (float(x) for x in next(iter(lobes)).removeprefix("gauss_").split("x"))
+    assert sx == pytest.approx(9.0, rel=0.03) and sy == pytest.approx(9.0, rel=0.03)
+    assert w["veil"] == pytest.approx(0.03, rel=0.05)
+    assert psf.direct == pytest.approx(1.0, abs=0.005)
