@@ -100,6 +100,13 @@ class TwinModel:
         self.base_effects = parse_effects(self.scene.effects or {}, source=self.scene.source)
         self.base_bounces = int((self.scene.render or {}).get("bounces", 0))
         self.render_kwargs = dict(render_kwargs or {})
+        if "harmonics" not in self.render_kwargs:
+            # Render the 3rd harmonic explicitly: synthesising it from the fundamental is exact
+            # only for single-path pixels, and wrong once stray light or multipath mixes paths
+            # (the harmonic of a mixture is not the mixture of harmonics).
+            from tofhil.sim.sensor import waveform_from_scene
+
+            self.render_kwargs["harmonics"] = tuple(sorted(set(waveform_from_scene(scene)) | {1, 3}))
         self._renders: OrderedDict[tuple, tuple[Any, Any]] = OrderedDict()
         self._cache_size = cache_size
         # one sensor for all predictions (its fixed pattern is drawn once)
