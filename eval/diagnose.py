@@ -66,15 +66,28 @@ class DiagnosisResult:
                 "seconds": round(self.seconds, 2)}
 
 
-def heldout_metrics(data: HeldOutData, prediction: np.ndarray, *, ndt_cell_m: float = 0.05,
+def distance_defined(data: HeldOutData, *predictions: np.ndarray, sigmas: float = 3.0) -> np.ndarray:
+    """Pixels where every prediction has a signal above the noise, so that its distance means
+    something (a twin pixel in a shadow has no phase to compare)."""
+    nf = data.n_freq
+    floor = sigmas * np.sqrt(2.0 * data.var_test[:nf]).max(axis=0)
+    ok = np.ones(data.usable.shape, bool)
+    for p in predictions:
+        ok &= np.abs(p[:nf]).min(axis=0) > floor
+    return ok
+
+
+def heldout_metrics(data: HeldOutData, prediction: np.ndarray, mask: np.ndarray, *, ndt_cell_m: float = 0.05,
                     icp_max_distance_m: float = 0.05) -> tuple[dict[str, float], dict[str, np.ndarray]]:
-    """Residual, point-cloud and NDT figures of a prediction against the held-out data."""
+    """Residual, point-cloud and NDT figures of a prediction against the held-out data, on the
+    held-out pixels in ``mask`` (the same for every prediction compared)."""
     from tofhil.eval.matching import icp
     from tofhil.eval.ndt import ndt_score
 
     nf = data.n_freq
     s_meas, s_pred = data.s_test[:nf], prediction[:nf]
-    mask = data.test_pixels
+    shown = data.usable & mask
+    mask = data.test_pixels & mask
     from tofhil.unwrap import frequency_plan
 
     period = frequency_plan(data.freq_hz).unambiguous_range_m
@@ -100,13 +113,13 @@ def heldout_metrics(data: HeldOutData, prediction: np.ndarray, *, ndt_cell_m: fl
         metrics["ndt_mean_likelihood_trilinear"] = nd.mean_likelihood_trilinear
         valid = cam.valid_mask(d_meas, mask)
         lik_map[valid] = nd.likelihood_trilinear
-    maps = {"depth_measured": d_meas, "depth_twin": d_pred, "depth_residual": np.where(data.usable, dres, np.nan),
+    maps = {"depth_measured": d_meas, "depth_twin": d_pred, "depth_residual": np.where(shown, dres, np.nan),
             "amplitude_residual": np.where(data.usable, ares, np.nan), "ndt_likelihood": lik_map}
     return metrics, maps
 
 
 def region_metrics(data: HeldOutData, prediction: np.ndarray, object_id: np.ndarray,
-                   names: list[str]) -> dict[str, dict[str, float]]:
+                   names: list[str], mask: np.ndarray) -> dict[str, dict[str, float]]:
     """Depth and amplitude residual RMSE per object (held-out pixels)."""
     from tofhil.unwrap import frequency_plan
 
@@ -117,7 +130,7 @@ def region_metrics(data: HeldOutData, prediction: np.ndarray, object_id: np.ndar
     ares = (np.abs(data.s_test[:nf]) - np.abs(prediction[:nf])).mean(axis=0)
     out = {}
     for i, name in enumerate(names):
-        m = data.test_pixels & (object_id == i)
+        m = data.test_pixels & mask & (object_id == i)
         if m.sum() < 5:
             continue
         out[name] = {"pixels": int(m.sum()), "depth_rmse_m": float(np.sqrt(np.mean(dres[m] ** 2))),
@@ -186,13 +199,14 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     after_model = TwinModel(reloaded, data, render_kwargs=render_kwargs)
     after_pred = after_model.predict({})
 
-    before, maps_before = heldout_metrics(data, base_pred)
-    after, maps_after = heldout_metrics(data, after_pred)
+    defined = distance_defined(data, base_pred, after_pred)
+    before, maps_before = heldout_metrics(data, base_pred, defined)
+    after, maps_after = heldout_metrics(data, after_pred, defined)
     gain = {k: {"before": before[k], "after": after.get(k, float("nan"))} for k in before}
     result = model.base_render()
     names = [o.name for o in model.scene.objects]
-    regions = {"before": region_metrics(data, base_pred, result.object_id, names),
-               "after": region_metrics(data, after_pred, result.object_id, names)}
+    regions = {"before": region_metrics(data, base_pred, result.object_id, names, defined),
+               "after": region_metrics(data, after_pred, result.object_id, names, defined)}
     ranked = [{"effect": c.effect, "params": to_effect_values(c.effect, c.params), "score": c.score,
                "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,
                "chi2_test": c.chi2_test, "n_params": c.n_params} for c in selection.first_round]
@@ -208,9 +222,9 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         from tofhil.unwrap import frequency_plan
 
         period = frequency_plan(data.freq_hz).unambiguous_range_m
-        maps[f"signature_depth_{e}"] = wrapped_difference(depth_from_signal(p_with[:data.n_freq], data.freq_hz),
+        maps[f"signature_depth_{e}"] = np.where(distance_defined(data, p_with, p_without), wrapped_difference(depth_from_signal(p_with[:data.n_freq], data.freq_hz),
                                                           depth_from_signal(p_without[:data.n_freq], data.freq_hz),
-                                                          period)
+                                                          period), np.nan)
         maps[f"signature_amplitude_{e}"] = (np.abs(p_with[:data.n_freq]) - np.abs(p_without[:data.n_freq])).mean(axis=0)
     n = max(data.n_values("test"), 1)
     return DiagnosisResult(cause=selection.causes[0] if selection.causes else None, causes=list(selection.causes),

@@ -113,6 +113,7 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
     s = np.stack([phasor(f.taps.astype(np.float64), f.theta_rad) for f in frames])  # [N, F, H, W]
     b = np.stack([f.taps.astype(np.float64).mean(axis=(0, 1)) for f in frames])  # [N, H, W]
     taps_max = np.stack([f.taps.max(axis=(0, 1)) for f in frames]).max(axis=0)
+    taps_min = np.stack([f.taps.min(axis=(0, 1)) for f in frames]).min(axis=0)
     offset_mean = b.mean(axis=0)
     if offset_channel is None:
         noise_b = float(np.median(b.std(axis=0, ddof=1))) if n > 1 else 0.0
@@ -145,6 +146,10 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
             saturation_dn = top
     if saturation_dn is not None:
         usable &= taps_max < saturation_dn
+    # A differential readout (signed taps) clips at its negative end too.
+    bottom = float(taps_min.min())
+    if bottom < 0 and (taps_min <= bottom).sum() > 4:
+        usable &= taps_min > bottom
     board = block_checkerboard(amp.shape, block_px)
     f0 = frames[0]
     return HeldOutData(camera=session.camera, freq_hz=f0.freq_hz, theta_rad=f0.theta_rad,
