@@ -113,3 +113,35 @@ def test_depth_from_raw_plane_single_frequency():
     np.testing.assert_allclose(depth.amplitude, 100.0, rtol=1e-5)
     np.testing.assert_allclose(depth.intensity, 500.0, rtol=1e-5)
     assert depth.valid.all() and depth.kind == "radial"
+
+
+@pytest.mark.parametrize("freqs", [[44e6], [80e6, 100e6], [10e6, 20e6]])
+@pytest.mark.parametrize("start_deg", [0.0, 37.0])
+def test_fused_path_agrees_with_general_path(freqs, start_deg):
+    """The fused 4-tap kernel (approximate arctangent) against the numpy path (np.arctan2)."""
+    from tofhil.unwrap import frequency_plan
+
+    rng = np.random.default_rng(3)
+    cam = CameraModel.from_fov(64, 48, 60.0)
+    theta = equally_spaced_phases(4, np.radians(start_deg))
+    rmax = frequency_plan(freqs).unambiguous_range_m
+    d = rng.uniform(0.0, rmax, cam.shape)
+    amp = rng.uniform(20, 400, (len(freqs),) + cam.shape)
+    phase = np.stack([distance_to_phase(d, f) for f in freqs])
+    taps = taps_from_signal(amp, phase, np.full(amp.shape, 900.0), theta)
+    taps = (taps + rng.normal(0, 3.0, taps.shape)).astype(np.float32)
+    frame = RawFrame(taps=taps, freq_hz=freqs, theta_rad=theta, integration_time_s=1e-3, camera=cam)
+    fast = depth_from_raw(frame)
+    slow = depth_from_raw(frame, fused=False)
+    diff = np.abs(fast.distance_m - slow.distance_m)
+    diff = np.minimum(diff, rmax - diff)
+    same = ~(fast.unwrap_conflict | slow.unwrap_conflict)
+    assert same.mean() > 0.95
+    assert np.quantile(diff[same], 0.999) < 2e-6 * rmax  # arctangent to ~2e-7 rad + float32 rounding
+    np.testing.assert_allclose(fast.amplitude, slow.amplitude, rtol=1e-5, atol=1e-3)
+    np.testing.assert_allclose(fast.intensity, slow.intensity, rtol=1e-6)
+    assert (fast.unwrap_conflict != slow.unwrap_conflict).mean() < 0.002
+    # and the fused result is the truth within the noise
+    err = np.abs(fast.distance_m - d)
+    err = np.minimum(err, rmax - err)
+    assert np.median(err[same]) < 0.01

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from tofhil.demod import iq, phase_from_iq
+from tofhil.fastdepth import fused_depth, fused_supported
 from tofhil.frames import DepthFrame, RawFrame
 from tofhil.unwrap import unwrap
 
@@ -13,16 +14,21 @@ _BLOCK_PIXELS = 32768
 
 
 def depth_from_raw(frame: RawFrame, *, min_amplitude: float = 0.0,
-                   saturation_level: float | None = None, margin: float = 0.5) -> DepthFrame:
+                   saturation_level: float | None = None, margin: float = 0.5, fused: bool = True) -> DepthFrame:
     """Demodulate and unwrap a raw frame into radial distance.
 
     A pixel is invalid where its amplitude (the mean over frequencies) is below
     ``min_amplitude``, where any tap reaches ``saturation_level`` (if given), or where the
     frequencies disagree during unwrapping. The amplitude returned is the mean over
-    frequencies; the intensity is the mean offset B.
+    frequencies; the intensity is the mean offset B. Four in-order float32 taps at one or two
+    frequencies take the fused path (:mod:`tofhil.fastdepth`); ``fused=False`` forces the
+    general numpy path (any K >= 3, any number of frequencies).
     """
     taps = frame.taps
     f, k, h, w = taps.shape
+    if fused and fused_supported(taps, frame.theta_rad):
+        distance, amplitude, intensity, conflict, rng = fused_depth(taps, frame.theta_rad, frame.freq_hz, margin)
+        return _depth_frame(frame, distance, amplitude, intensity, conflict, rng, min_amplitude, saturation_level)
     dtype = np.float32 if taps.dtype == np.float32 else np.float64
     distance = np.empty((h, w), dtype)
     amplitude = np.empty((h, w), dtype)
@@ -38,6 +44,14 @@ def depth_from_raw(frame: RawFrame, *, min_amplitude: float = 0.0,
         conflict[r0:r0 + rows] = res.conflict
         np.mean(amp, axis=0, out=amplitude[r0:r0 + rows])
         np.mean(block.reshape((f * k,) + block.shape[2:]), axis=0, out=intensity[r0:r0 + rows])
+    return _depth_frame(frame, distance, amplitude, intensity, conflict, float(res.unambiguous_range_m),
+                        min_amplitude, saturation_level)
+
+
+def _depth_frame(frame: RawFrame, distance: np.ndarray, amplitude: np.ndarray, intensity: np.ndarray,
+                 conflict: np.ndarray, unambiguous_range_m: float, min_amplitude: float,
+                 saturation_level: float | None) -> DepthFrame:
+    taps = frame.taps
     valid = ~conflict
     if min_amplitude > 0:
         valid &= amplitude >= min_amplitude
@@ -47,4 +61,4 @@ def depth_from_raw(frame: RawFrame, *, min_amplitude: float = 0.0,
                       amplitude=amplitude, intensity=intensity,
                       valid=valid, timestamp_s=frame.timestamp_s, sequence=frame.sequence,
                       temperature_c=frame.temperature_c, unwrap_conflict=conflict,
-                      meta={"unambiguous_range_m": float(res.unambiguous_range_m)})
+                      meta={"unambiguous_range_m": float(unambiguous_range_m)})
