@@ -20,18 +20,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from tofhil.demod import wrapped_phase
 from tofhil.errors import TofhilError
-from tofhil.eval.heldout import HeldOutData, split_session
+from tofhil.eval.heldout import HeldOutData, depth_from_signal, split_session
 from tofhil.eval.selection import Selection, greedy_select
 from tofhil.eval.twin_model import TwinModel, to_effect_values
 from tofhil.session import open_session
-from tofhil.unwrap import unwrap
-
-
-def depth_from_signal(s: np.ndarray, freq_hz: np.ndarray) -> np.ndarray:
-    """Radial distance from the complex signal of each frequency ``[F, H, W]``."""
-    return unwrap(wrapped_phase(s), freq_hz, amplitude=np.abs(s)).distance_m
 
 
 def wrapped_difference(a: np.ndarray, b: np.ndarray, period: float) -> np.ndarray:
@@ -88,9 +81,7 @@ def heldout_metrics(data: HeldOutData, prediction: np.ndarray, mask: np.ndarray,
     s_meas, s_pred = data.s_test[:nf], prediction[:nf]
     shown = data.usable & mask
     mask = data.test_pixels & mask
-    from tofhil.unwrap import frequency_plan
-
-    period = frequency_plan(data.freq_hz).unambiguous_range_m
+    period = data.unambiguous_range_m
     d_meas = depth_from_signal(s_meas, data.freq_hz)
     d_pred = depth_from_signal(s_pred, data.freq_hz)
     dres = wrapped_difference(d_meas, d_pred, period)
@@ -121,10 +112,8 @@ def heldout_metrics(data: HeldOutData, prediction: np.ndarray, mask: np.ndarray,
 def region_metrics(data: HeldOutData, prediction: np.ndarray, object_id: np.ndarray,
                    names: list[str], mask: np.ndarray) -> dict[str, dict[str, float]]:
     """Depth and amplitude residual RMSE per object (held-out pixels)."""
-    from tofhil.unwrap import frequency_plan
-
     nf = data.n_freq
-    period = frequency_plan(data.freq_hz).unambiguous_range_m
+    period = data.unambiguous_range_m
     dres = wrapped_difference(depth_from_signal(data.s_test[:nf], data.freq_hz),
                               depth_from_signal(prediction[:nf], data.freq_hz), period)
     ares = (np.abs(data.s_test[:nf]) - np.abs(prediction[:nf])).mean(axis=0)
@@ -165,7 +154,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
              render_kwargs: dict[str, Any] | None = None, progress: Callable[[str], None] | None = None,
              extended_scene_path: str | Path | None = None) -> DiagnosisResult:
     """Run the diagnosis loop on a session against a base scene (a Scene object)."""
-    from tofhil.sim.scene import load_scene, scene_to_yaml
+    from tofhil.sim.scene import load_scene, scene_from_yaml, scene_to_yaml
 
     t0 = time.perf_counter()
     with open_session(session_path) as s:
@@ -184,8 +173,6 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     params = {e: to_effect_values(e, v) for e, v in selection.params.items()}
 
     # The extended scene: written, read back and re-rendered, so the gain is that of the file.
-    extended_text = ""
-    after_pred = base_pred
     ext_path = Path(extended_scene_path) if extended_scene_path else None
     ext_scene = dataclasses.replace(model.scene, effects=model.extended_effects_block(selection.params))
     extended_text = scene_to_yaml(ext_scene)
@@ -193,8 +180,6 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         ext_path.write_text(extended_text)
         reloaded = load_scene(ext_path)
     else:
-        from tofhil.sim.scene import scene_from_yaml
-
         reloaded = scene_from_yaml(extended_text)
     after_model = TwinModel(reloaded, data, render_kwargs=render_kwargs)
     after_pred = after_model.predict({})
@@ -215,17 +200,14 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     maps = {f"{k}_before": v for k, v in maps_before.items()} | {f"{k}_after": v for k, v in maps_after.items()}
     maps["object_id"] = result.object_id
     # Each selected effect's signature: how it changes the twin's depth and amplitude.
-    for i, e in enumerate(selection.causes):
-        without = {k: v for k, v in selection.params.items() if k != e}
-        p_without = model.predict(without)
-        p_with = model.predict(selection.params)
-        from tofhil.unwrap import frequency_plan
-
-        period = frequency_plan(data.freq_hz).unambiguous_range_m
-        maps[f"signature_depth_{e}"] = np.where(distance_defined(data, p_with, p_without), wrapped_difference(depth_from_signal(p_with[:data.n_freq], data.freq_hz),
-                                                          depth_from_signal(p_without[:data.n_freq], data.freq_hz),
-                                                          period), np.nan)
-        maps[f"signature_amplitude_{e}"] = (np.abs(p_with[:data.n_freq]) - np.abs(p_without[:data.n_freq])).mean(axis=0)
+    nf = data.n_freq
+    p_with = model.predict(selection.params)
+    for e in selection.causes:
+        p_without = model.predict({k: v for k, v in selection.params.items() if k != e})
+        change = wrapped_difference(depth_from_signal(p_with[:nf], data.freq_hz),
+                                    depth_from_signal(p_without[:nf], data.freq_hz), data.unambiguous_range_m)
+        maps[f"signature_depth_{e}"] = np.where(distance_defined(data, p_with, p_without), change, np.nan)
+        maps[f"signature_amplitude_{e}"] = (np.abs(p_with[:nf]) - np.abs(p_without[:nf])).mean(axis=0)
     n = max(data.n_values("test"), 1)
     return DiagnosisResult(cause=selection.causes[0] if selection.causes else None, causes=list(selection.causes),
                            ranked=ranked, rounds=rounds, gain=gain, regions=regions,

@@ -19,9 +19,10 @@ import numpy as np
 from scipy.ndimage import uniform_filter
 
 from tofhil.camera import CameraModel
-from tofhil.demod import phasor
+from tofhil.demod import phasor, wrapped_phase
 from tofhil.errors import TofhilError
 from tofhil.session import Session
+from tofhil.unwrap import frequency_plan, unwrap
 
 
 @dataclass
@@ -48,6 +49,10 @@ class HeldOutData:
     def n_freq(self) -> int:
         return int(self.freq_hz.size)
 
+    @property
+    def unambiguous_range_m(self) -> float:
+        return frequency_plan(self.freq_hz).unambiguous_range_m
+
     def chi2(self, prediction: np.ndarray, part: str = "test") -> float:
         """Robust misfit: sum over one part's pixels and channels of Huber's rho of each
         whitened residual component (``r^2`` up to ``HUBER_SIGMA``, linear beyond).
@@ -72,6 +77,11 @@ class HeldOutData:
                         else (self.s_test, self.var_test, self.test_pixels))
         r = (s[:, mask] - prediction[:, mask]) / np.sqrt(var[:, mask])
         return np.concatenate([r.real.ravel(), r.imag.ravel()])
+
+
+def depth_from_signal(s: np.ndarray, freq_hz: np.ndarray) -> np.ndarray:
+    """Radial distance from the complex signal of each frequency ``[F, H, W]``."""
+    return unwrap(wrapped_phase(s), freq_hz, amplitude=np.abs(s)).distance_m
 
 
 #: Whitened residual (noise standard deviations) beyond which the misfit grows linearly.

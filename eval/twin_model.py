@@ -22,7 +22,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from tofhil.demod import phasor
-from tofhil.eval.heldout import HeldOutData
+from tofhil.eval.heldout import HeldOutData, depth_from_signal
 from tofhil.eval.selection import EffectParams, EffectSpec, FitParam
 from tofhil.sim.effects import EFFECTS, ORDER, parse_effects
 
@@ -68,13 +68,6 @@ def to_effect_values(effect: str, fitted: Mapping[str, float]) -> dict[str, floa
         else:
             out[k] = float(v)
     return out
-
-
-def _depth(s: np.ndarray, freq_hz: np.ndarray) -> np.ndarray:
-    from tofhil.demod import wrapped_phase
-    from tofhil.unwrap import unwrap
-
-    return unwrap(wrapped_phase(s), freq_hz, amplitude=np.abs(s)).distance_m
 
 
 def session_scene(scene: Any, data: HeldOutData) -> Any:
@@ -142,8 +135,8 @@ class TwinModel:
         nf = self.data.n_freq
         pred = self.predict({})
         mask = self.data.usable
-        d_meas = _depth(self.data.s_train[:nf], self.data.freq_hz)
-        d_twin = _depth(pred[:nf], self.data.freq_hz)
+        d_meas = depth_from_signal(self.data.s_train[:nf], self.data.freq_hz)
+        d_twin = depth_from_signal(pred[:nf], self.data.freq_hz)
         cam = self.data.camera
         p_meas, p_twin = cam.points(d_meas, valid=mask), cam.points(d_twin, valid=mask)
         if len(p_meas) < 50 or len(p_twin) < 50:
