@@ -130,11 +130,11 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
     block, so the session says exactly what was simulated."""
     from tofhil import __version__
     from tofhil.depth import depth_from_raw
-    from tofhil.session import SessionWriter, _check_new_path
+    from tofhil.session import SessionWriter, check_new_path
     from tofhil.sim.scene import scene_to_yaml
 
     out_path = Path(out_path)
-    _check_new_path(out_path, force)  # fail before the (slow) render
+    check_new_path(out_path, force)  # fail before the (slow) render
     eff = resolve_effects(scene, effects)
     scene2, result = prepare_render(scene, eff, render_kwargs=render_kwargs, progress=progress)
     camera = getattr(result, "camera", None) or scene2.camera

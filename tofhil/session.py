@@ -28,7 +28,8 @@ FORMAT = "tofhil.session"
 FORMAT_VERSION = 1
 
 
-def _check_new_path(path: Path, force: bool) -> None:
+def check_new_path(path: Path, force: bool) -> None:
+    """Refuse to replace an existing file unless forced; the directory must exist."""
     if path.exists() and not force:
         raise InputFileError("already exists; refusing to overwrite recorded data "
                              "(use --force to replace it)", file=path)
@@ -46,7 +47,7 @@ class SessionWriter:
     def __init__(self, path: str | Path, camera: CameraModel, *, device: dict[str, Any] | None = None,
                  scene_text: str = "", force: bool = False, extra_attrs: dict[str, Any] | None = None) -> None:
         self.path = Path(path)
-        _check_new_path(self.path, force)
+        check_new_path(self.path, force)
         self.camera = camera
         self.n_frames = 0
         self._raw_shape: tuple[int, ...] | None = None
