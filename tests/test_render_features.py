@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 
-from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel
 from tofhil.sim.render import pixel_area_normalized, radial_from_phasor, render
 from tofhil.sim.scene import load_scene, scene_from_dict

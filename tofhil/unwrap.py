@@ -104,7 +104,6 @@ def unwrap(phase_rad: np.ndarray, freq_hz: np.ndarray | list[float],
     if phase.shape[0] != nf:
         raise ValueError(f"phase has {phase.shape[0]} frequencies, freq_hz has {nf}")
     rng = plan.unambiguous_range_m
-    two_pi = dtype(2 * np.pi)
     if nf == 2:
         return _unwrap_two(phase, plan, amplitude, margin, dtype)
     wrapped = [phase[i].astype(dtype, copy=False) * dtype(plan.wrap_range_m(i) / (2 * np.pi)) for i in range(nf)]
