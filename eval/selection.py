@@ -64,6 +64,8 @@ class Candidate:
     relative_gain: float  # (chi2_test(current) - chi2_test(with it)) / chi2_test(current)
     significant: bool
     n_params: int
+    #: Every active effect's parameters in this trial (the earlier ones and this one).
+    all_params: EffectParams = field(default_factory=dict, repr=False)
 
 
 @dataclass
@@ -210,8 +212,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                              significant=bool(current_score - score > 0 and excess > 0
                                               and gain > min_relative_gain * excess
                                               and gain > min_gain_per_value * n_test),
-                             n_params=len(lib[name].params))
-            cand._all_params = fitted  # type: ignore[attr-defined]
+                             n_params=len(lib[name].params), all_params=fitted)
             round_.append(cand)
         round_.sort(key=lambda c: c.score)
         selection.rounds.append(round_)
@@ -219,7 +220,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
             break
         best = round_[0]
         active.append(best.effect)
-        params = best._all_params  # type: ignore[attr-defined]
+        params = best.all_params
         current_chi2 = best.chi2_test
         # Refit the chosen set jointly (for one effect: more iterations from its best start;
         # geometric effects often need them).
