@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from tofhil.camera import CameraModel
 from tofhil.eval import depth_filters as df
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "adi_tof"
+from real_data import ADI, need
+
 CAM = CameraModel.from_fov(64, 48, 60.0)
 
 
@@ -115,12 +113,7 @@ def test_bilateral_keeps_the_step_and_smooths_the_flat_parts():
 
 
 def _real(name: str) -> np.ndarray:
-    p = REAL / name
-    if not p.is_file():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"missing real data {p}")
-        pytest.skip(f"missing real data {p}")
-    return np.fromfile(p, "<u2").reshape(512, 512).astype(np.float64)
+    return np.fromfile(need(ADI / name), "<u2").reshape(512, 512).astype(np.float64)
 
 
 def test_real_adi_plane_jump_edges_sit_on_the_cable_and_smoothing_reduces_roughness():

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import os
 import struct
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,16 +13,7 @@ from tofhil.drivers.importers import detect_format, import_file
 from tofhil.errors import InputFileError
 from tofhil.session import open_session
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-ADI = REAL / "adi_tof"
-
-
-def need(path: Path) -> Path:
-    if not path.is_file():
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(f"real capture missing in CI: {path}")
-        pytest.skip(f"real capture not present: {path}")
-    return path
+from real_data import ADI, need
 
 
 def robust_plane_rms(points: np.ndarray, keep: float = 80.0, rounds: int = 5) -> float:

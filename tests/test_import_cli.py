@@ -16,15 +16,7 @@ from tofhil.drivers.importers import import_file
 from tofhil.errors import InputFileError
 from tofhil.session import open_session
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-
-
-def need(path: Path) -> Path:
-    if not path.is_file():
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(f"real capture missing in CI: {path}")
-        pytest.skip(f"real capture not present: {path}")
-    return path
+from real_data import REAL, need
 
 
 def cli(*args: str) -> subprocess.CompletedProcess:

@@ -16,16 +16,12 @@ from tofhil.drivers.mkv import open_mkv
 from tofhil.errors import InputFileError
 from tofhil.session import open_session
 
-MKV = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "azure_kinect" / "recording.mkv"
+from real_data import AZURE_KINECT_MKV, need
 
 
 @pytest.fixture(scope="module")
 def mkv_path() -> Path:
-    if not MKV.is_file():
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(f"real capture missing in CI: {MKV}")
-        pytest.skip(f"real capture not present: {MKV}")
-    return MKV
+    return need(AZURE_KINECT_MKV)
 
 
 @pytest.fixture(scope="module")

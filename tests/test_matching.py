@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +10,8 @@ import pytest
 from tofhil.errors import TofhilError
 from tofhil.eval.matching import (apply_transform, chamfer, cloud_metrics, fscore, hausdorff, icp,
                                   precision_recall)
+
+from real_data import adi_office_points
 
 
 def grid_plane(n: int = 40, z: float = 0.0, step: float = 0.01) -> np.ndarray:
@@ -116,21 +116,8 @@ def test_cloud_metrics_bundle_and_alignment():
     np.testing.assert_allclose(after["icp"]["transformation"], truth, atol=1e-5)
 
 
-def _real_office(step: int = 6) -> np.ndarray:
-    path = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "adi_tof" / "frame_mode2.bin"
-    if not path.exists():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"missing real data {path}")
-        pytest.skip(f"missing real data {path}")
-    from tofhil.camera import CameraModel
-
-    rec = np.fromfile(path, dtype=np.dtype([("d", "<u2"), ("c", "u1"), ("ab", "<u2")])).reshape(512, 512)
-    z = rec["d"].astype(np.float64) / 1000.0
-    return CameraModel.from_fov(512, 512, 75.0).points(z, kind="z", valid=z > 0)[::step]
-
-
 def test_icp_on_real_tof_frame():
-    pts = _real_office()
+    pts = adi_office_points(step=6)
     target, source0 = pts[0::2], pts[1::2]       # interleaved halves: no shared points
     truth = rigid(1.5, -1.0, [0.03, -0.02, 0.02])
     res = icp(apply_transform(source0, np.linalg.inv(truth)), target, max_distance=0.1)

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +10,8 @@ import pytest
 from tofhil.errors import TofhilError
 from tofhil.eval.ndt import (NDTGrid, cell_likelihood, d2d_score, gauss_params, multi_resolution,
                              ndt_score, pcl_point_scores, trilinear_likelihood, trilinear_weights)
+
+from real_data import adi_office_points
 
 R = 0.5   # cell size used by the hand-made grids
 
@@ -254,27 +254,8 @@ def test_d2d_identical_grids_and_shift():
 
 
 # ---------------------------------------------------------------- real data
-def _real_dir() -> Path:
-    return Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-
-
-def _adi_office_points(step: int = 4) -> np.ndarray:
-    path = _real_dir() / "adi_tof" / "frame_mode2.bin"
-    if not path.exists():
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"missing real data {path}")
-        pytest.skip(f"missing real data {path}")
-    from tofhil.camera import CameraModel
-
-    rec = np.fromfile(path, dtype=np.dtype([("d", "<u2"), ("c", "u1"), ("ab", "<u2")])).reshape(512, 512)
-    z = rec["d"].astype(np.float64) / 1000.0
-    cam = CameraModel.from_fov(512, 512, 75.0)   # no intrinsics shipped; geometry only needs consistency
-    pts = cam.points(z, kind="z", valid=z > 0)
-    return pts[::step]
-
-
 def test_real_tof_frame_self_consistency():
-    pts = _adi_office_points()
+    pts = adi_office_points(step=4)
     assert pts.shape[0] > 10000
     ref, cloud = pts[0::2], pts[1::2]          # two interleaved halves of the same frame
     s = ndt_score(ref, cloud, cell_size=0.1)
