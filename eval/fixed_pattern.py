@@ -30,6 +30,7 @@ import numpy as np
 
 from tofhil.demod import phasor
 from tofhil.errors import InputFileError, TofhilError
+from tofhil.eval.tagged_npz import load_tagged_npz
 
 FORMAT = "tofhil.tap_calibration.v1"
 
@@ -55,15 +56,7 @@ class TapCalibration:
     @classmethod
     def load(cls, path: str | Path) -> "TapCalibration":
         p = Path(path)
-        if not p.is_file():
-            raise InputFileError("no such file", file=p, expected="a tap calibration (.npz) from tofhil calibrate-taps")
-        try:
-            with np.load(p, allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as exc:
-            raise InputFileError(f"cannot be read as .npz ({exc})", file=p) from None
-        if str(data.get("format", "")) != FORMAT:
-            raise InputFileError("not a tofhil tap calibration", file=p, field="format", expected=repr(FORMAT))
+        data = load_tagged_npz(p, FORMAT, "tofhil tap calibration", "a tap calibration (.npz) from tofhil calibrate-taps")
         for key in ("offset_dn", "gain"):
             if key not in data or np.asarray(data[key]).ndim != 4:
                 raise InputFileError("missing or not [F, K, H, W]", file=p, field=key, expected="a 4-D array")

@@ -42,6 +42,10 @@ from scipy.optimize import lsq_linear, minimize, nnls
 from scipy.special import erf
 
 from tofhil.errors import InputFileError
+from tofhil.eval.tagged_npz import load_tagged_npz
+
+#: The ``format`` tag of a saved stray-light PSF file.
+PSF_FORMAT = "tofhil.straylight_psf.v1"
 
 #: Narrowest lobe fitted (pixels); see :func:`default_sigmas`.
 MIN_SIGMA_PX = 1.0
@@ -246,23 +250,14 @@ class StrayLightPSF:
                             direct=self.direct,
                             ghost_kernel=np.zeros((1, 1)) if self.ghost_kernel is None else self.ghost_kernel,
                             has_ghost_kernel=self.ghost_kernel is not None,
-                            info=json.dumps(self.info), format="tofhil.straylight_psf.v1")
+                            info=json.dumps(self.info), format=PSF_FORMAT)
 
     @classmethod
     def load(cls, path: str | Path) -> "StrayLightPSF":
         import json
 
         p = Path(path)
-        if not p.is_file():
-            raise InputFileError("no such file", file=p, expected="a PSF file written by --save-psf (.npz)")
-        try:
-            with np.load(p, allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as exc:
-            raise InputFileError(f"cannot be read as .npz ({exc})", file=p, expected="a PSF .npz") from None
-        if str(data.get("format", "")) != "tofhil.straylight_psf.v1":
-            raise InputFileError("not a tofhil stray-light PSF", file=p, field="format",
-                                 expected="'tofhil.straylight_psf.v1'")
+        data = load_tagged_npz(p, PSF_FORMAT, "tofhil stray-light PSF", "a PSF file written by --save-psf (.npz)")
         for key in ("kernel", "cx", "cy", "ghost_weight"):
             if key not in data:
                 raise InputFileError("missing", file=p, field=key, expected="see docs/evaluation.md")
