@@ -109,17 +109,14 @@ def heldout_metrics(data: HeldOutData, prediction: np.ndarray, mask: np.ndarray,
     return metrics, maps
 
 
-def region_metrics(data: HeldOutData, prediction: np.ndarray, object_id: np.ndarray,
-                   names: list[str], mask: np.ndarray) -> dict[str, dict[str, float]]:
-    """Depth and amplitude residual RMSE per object (held-out pixels)."""
-    nf = data.n_freq
-    period = data.unambiguous_range_m
-    dres = wrapped_difference(depth_from_signal(data.s_test[:nf], data.freq_hz),
-                              depth_from_signal(prediction[:nf], data.freq_hz), period)
-    ares = (np.abs(data.s_test[:nf]) - np.abs(prediction[:nf])).mean(axis=0)
+def region_metrics(maps: dict[str, np.ndarray], pixels: np.ndarray, object_id: np.ndarray,
+                   names: list[str]) -> dict[str, dict[str, float]]:
+    """Depth and amplitude residual RMSE per object over ``pixels``, from the residual maps
+    of :func:`heldout_metrics`."""
+    dres, ares = maps["depth_residual"], maps["amplitude_residual"]
     out = {}
     for i, name in enumerate(names):
-        m = data.test_pixels & mask & (object_id == i)
+        m = pixels & (object_id == i)
         if m.sum() < 5:
             continue
         out[name] = {"pixels": int(m.sum()), "depth_rmse_m": float(np.sqrt(np.mean(dres[m] ** 2))),
@@ -190,15 +187,16 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     gain = {k: {"before": before[k], "after": after.get(k, float("nan"))} for k in before}
     result = model.base_render()
     names = [o.name for o in model.scene.objects]
-    regions = {"before": region_metrics(data, base_pred, result.object_id, names, defined),
-               "after": region_metrics(data, after_pred, result.object_id, names, defined)}
+    # the maps hold the residuals on every usable pixel where distance is defined
+    held_out = data.test_pixels & defined
+    regions = {"before": region_metrics(maps_before, held_out, result.object_id, names),
+               "after": region_metrics(maps_after, held_out, result.object_id, names)}
     ranked = [{"effect": c.effect, "params": to_effect_values(c.effect, c.params), "score": c.score,
                "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,
                "chi2_test": c.chi2_test, "n_params": c.n_params} for c in selection.first_round]
     rounds = [[{"effect": c.effect, "delta_score": c.delta_score, "relative_gain": c.relative_gain,
                 "significant": c.significant} for c in rnd] for rnd in selection.rounds]
     maps = {f"{k}_before": v for k, v in maps_before.items()} | {f"{k}_after": v for k, v in maps_after.items()}
-    maps["object_id"] = result.object_id
     # Each selected effect's signature: how it changes the twin's depth and amplitude.
     nf = data.n_freq
     p_with = model.predict(selection.params)

@@ -37,7 +37,6 @@ class HeldOutData:
     s_test: np.ndarray  # complex [C, H, W]: mean over held-out frames
     var_train: np.ndarray  # float [C, H, W]: noise variance of s_train per real component
     var_test: np.ndarray
-    offset_mean: np.ndarray  # float [H, W]: mean tap offset B over all frames
     usable: np.ndarray  # bool [H, W]: pixels with signal and no saturation
     train_pixels: np.ndarray  # bool [H, W]: usable pixels of the training blocks
     test_pixels: np.ndarray  # bool [H, W]: usable pixels of the held-out blocks
@@ -166,7 +165,7 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
                        integration_time_s=f0.integration_time_s,
                        s_train=s[train_idx].mean(axis=0), s_test=s[test_idx].mean(axis=0),
                        var_train=var_frame / len(train_idx), var_test=var_frame / len(test_idx),
-                       offset_mean=offset_mean, usable=usable,
+                       usable=usable,
                        train_pixels=usable & board, test_pixels=usable & ~board,
                        n_train_frames=len(train_idx), n_test_frames=len(test_idx),
                        offset_channel=bool(offset_channel))
