@@ -15,6 +15,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from tofhil.frames import RawFrame
+from tofhil.progress import Progress
 from tofhil.sim.effects import (EFFECTS, EffectContext, WigglingEffect, apply_scene_effects,
                                 apply_signal_effects, effects_to_block, parse_effects, render_requirements)
 from tofhil.sim.sensor import OpticalSignal, SensorConfig, SensorModel, waveform_from_scene
@@ -54,7 +55,7 @@ def render_arguments(scene: Any, effects: Effects, render_kwargs: Mapping[str, A
 
 
 def prepare_render(scene: Any, effects: Mapping[str, Any] | None = None, *,
-                   render_kwargs: Mapping[str, Any] | None = None, progress: bool = False) -> tuple[Any, Any]:
+                   render_kwargs: Mapping[str, Any] | None = None, progress: Progress | None = None) -> tuple[Any, Any]:
     """Apply scene-stage effects and render: ``(scene_with_effects, RenderResult)``."""
     from tofhil.sim.render import render
 
@@ -105,7 +106,7 @@ def frames_from_signal(scene: Any, signal: OpticalSignal, camera: Any, frames: i
 
 def simulate(scene: Any, frames: int = 1, seed: int = 0, noise: bool = True,
              effects: Mapping[str, Any] | None = None, render_kwargs: Mapping[str, Any] | None = None,
-             progress: bool = False) -> list[RawFrame]:
+             progress: Progress | None = None) -> list[RawFrame]:
     """Render once, apply the effects, and expose ``frames`` raw frames with independent noise.
 
     The same ``seed`` gives identical frames; the render's Monte Carlo seed is the scene's
@@ -122,7 +123,7 @@ def simulate(scene: Any, frames: int = 1, seed: int = 0, noise: bool = True,
 
 def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: int = 0, noise: bool = True,
                      force: bool = False, effects: Mapping[str, Any] | None = None,
-                     render_kwargs: Mapping[str, Any] | None = None, progress: bool = False) -> Path:
+                     render_kwargs: Mapping[str, Any] | None = None, progress: Progress | None = None) -> Path:
     """Write a session file (same layout as a capture): raw taps and depth per frame, the scene's
     YAML text embedded, ``device = {"model": "tofhil-sim", ...}``.
 
@@ -150,10 +151,8 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
               "samples_per_pixel": int(getattr(result, "samples_per_pixel", 1)),
               "bounces": int(getattr(result, "bounces", 0))}
     it = frames_from_signal(scene2, signal, camera, frames, seed=seed, noise=noise)
-    if progress:
-        from tofhil.cli import progress as bar
-
-        it = bar(it, total=frames, description="simulate")
+    if progress is not None:
+        it = progress(it, frames, "simulate")
     # The session records the camera as the scene file states it (what a user's calibration
     # says); a lens_distortion effect is a deviation of the real lens from that model, so it
     # shows in the data, not in the recorded camera.

@@ -29,6 +29,7 @@ import numpy as np
 from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel
 from tofhil.errors import TofhilError
+from tofhil.progress import Progress, no_progress
 from tofhil.sim import kernels
 from tofhil.sim.geometry import BATCH, RAY_EPSILON_M, Geometry, WorkerPool
 from tofhil.sim.scene import Scene
@@ -384,7 +385,7 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
            harmonics: Sequence[int] = (1,), samples_per_pixel: int | None = None,
            bounces: int | None = None, seed: int | None = None, separate_direct: bool = False,
            transient_bins: int | Sequence[float] | None = None, camera: CameraModel | None = None,
-           progress: bool = False, threads: int | None = None, subpixel: bool | None = None,
+           progress: Progress | None = None, threads: int | None = None, subpixel: bool | None = None,
            sampler: str | None = None, camera_pose: np.ndarray | None = None) -> RenderResult:
     """Render the scene's emitter light as per-pixel phasors (see the module docstring).
 
@@ -456,12 +457,7 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     else:
         pool = WorkerPool.get(nthreads)
         futures = [(job, pool.submit(ctx.run_chunk, *job)) for job in jobs]
-        items = futures
-        if progress:
-            from tofhil.cli import progress as bar
-
-            items = bar(futures, total=len(futures), description="render")
-        for job, fut in items:
+        for job, fut in (progress or no_progress)(futures, len(futures), "render"):
             store(job[1], job[2], fut.result())
 
     shape = (len(freq), len(harm), H, W)

@@ -221,7 +221,7 @@ def test_cli_effects_lists_the_vocabulary_with_off_values_and_bounds() -> None:
 
     from typer.testing import CliRunner
 
-    import tofhil.sim.cli  # noqa: F401  (registers the commands)
+    import tofhil.cli.simulate  # noqa: F401  (registers the commands)
     from tofhil.cli import app
     from tofhil.sim.effects import EFFECTS
 

@@ -2,7 +2,7 @@
 
 The core package holds what every part shares: frame types (`tofhil.frames`), the camera
 model (`tofhil.camera`), demodulation and phase unwrapping (`tofhil.demod`,
-`tofhil.unwrap`), bench session files (`tofhil.session`) and the CLI (`tofhil.cli`).
+`tofhil.unwrap`), bench session files (`tofhil.session`) and the CLI (the `tofhil.cli` package).
 Drivers, the simulator twin and evaluation live in `tofhil.drivers`, `tofhil.sim` and
 `tofhil.eval`.
 """

@@ -9,7 +9,7 @@ from typing import List, Optional
 import typer
 import yaml
 
-from tofhil.cli import app, out
+from tofhil.cli import app, out, progress
 from tofhil.errors import TofhilError
 
 
@@ -62,7 +62,7 @@ def simulate(scene: str = typer.Argument(..., help="A scene file (.yaml) or a bu
 
         parse_effects(effects, source=f"{sc.source} with --effect")  # errors name the option
     path = simulate_session(sc, out_path, frames=frames, seed=seed, noise=not no_noise, force=force,
-                            effects=effects, progress=True)
+                            effects=effects, progress=progress)
     out.print(f"wrote {frames} simulated frame{'s' if frames != 1 else ''} of {sc.name or scene} to {path}")
 
 

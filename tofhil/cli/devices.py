@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from tofhil.cli import app, console, out
+from tofhil.cli import app, console, out, progress
 from tofhil.errors import DeviceError
 
 
@@ -69,7 +69,6 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
                                                  help="Emulator only: inject faults, e.g. crc@3,disconnect@6."),
             force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
     """Capture frames from a device into a session file (progress bar, summary at the end)."""
-    from tofhil.cli import progress
     from tofhil.drivers.base import CaptureSettings, create_driver
     from tofhil.drivers.capture import capture as run_capture
 
