@@ -10,7 +10,7 @@ Prints, in one run:
 
 For (c) the passes are independent (different seeds), so the RMS error of their running
 mean against the converged (infinite-sample) image is sigma/sqrt(m), with sigma the
-per-pixel spread between passes; the renderer is unbiased (tests/test_render_multipath.py),
+per-pixel spread between passes; the renderer is unbiased (tests/sim/test_render_multipath.py),
 so this is the error against the converged reference without paying for one. ``--reference
 SPP`` additionally renders an explicit reference with SPP samples and compares to it.
 

@@ -1,6 +1,6 @@
 """Detection rate and held-out gain of diagnosis over several seeds.
 
-For every effect of the library (the hidden-parameter draws of tests/test_diagnose.py) and
+For every effect of the library (the hidden-parameter draws of tests/eval/test_diagnose.py) and
 for "nothing hidden", render measured sessions with several seeds, diagnose them against the
 base twin, and print: how often the hidden effect was named alone, the misfit per held-out
 value before and after, the depth RMSE before and after, and the time per diagnosis.
@@ -25,7 +25,7 @@ from tofhil.sim.scene import load_scene
 
 
 def load_cases() -> dict:
-    path = Path(__file__).resolve().parents[1] / "tests" / "test_diagnose.py"
+    path = Path(__file__).resolve().parents[1] / "tests" / "eval" / "test_diagnose.py"
     spec = importlib.util.spec_from_file_location("test_diagnose_cases", path)
     module = importlib.util.module_from_spec(spec)
     assert spec.loader is not None

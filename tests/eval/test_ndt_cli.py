@@ -15,7 +15,7 @@ from tofhil.eval.ndt import ndt_score
 from tofhil.frames import DepthFrame
 from tofhil.session import SessionWriter
 
-DATA = Path(__file__).resolve().parent / "data" / "pcl"
+DATA = Path(__file__).resolve().parents[1] / "data" / "pcl"
 
 
 def run(capsys, *args: str) -> tuple[int, str, str]:

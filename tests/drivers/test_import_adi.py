@@ -13,7 +13,7 @@ from tofhil.drivers.importers import detect_format, import_file
 from tofhil.errors import InputFileError
 from tofhil.session import open_session
 
-from real_data import ADI, need
+from tests.real_data import ADI, need
 
 
 def robust_plane_rms(points: np.ndarray, keep: float = 80.0, rounds: int = 5) -> float:

@@ -16,7 +16,7 @@ from tofhil.drivers.importers import import_file
 from tofhil.errors import InputFileError
 from tofhil.session import open_session
 
-from real_data import REAL, need
+from tests.real_data import REAL, need
 
 
 def cli(*args: str) -> subprocess.CompletedProcess:

@@ -5,14 +5,12 @@ from __future__ import annotations
 import base64
 import json
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import straylight_synthetic as syn  # noqa: E402
+from tests import straylight_synthetic as syn  # noqa: E402
 
 from tofhil.cli import main  # noqa: E402
 from tofhil.frames import DepthFrame  # noqa: E402

@@ -11,7 +11,7 @@ from tofhil.errors import TofhilError
 from tofhil.eval.matching import (apply_transform, chamfer, cloud_metrics, fscore, hausdorff, icp,
                                   precision_recall)
 
-from real_data import adi_office_points
+from tests.real_data import adi_office_points
 
 
 def grid_plane(n: int = 40, z: float = 0.0, step: float = 0.01) -> np.ndarray:

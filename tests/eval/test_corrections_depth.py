@@ -8,7 +8,7 @@ import pytest
 from tofhil.camera import CameraModel
 from tofhil.eval import depth_filters as df
 
-from real_data import ADI, need
+from tests.real_data import ADI, need
 
 CAM = CameraModel.from_fov(64, 48, 60.0)
 

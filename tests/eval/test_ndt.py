@@ -11,7 +11,7 @@ from tofhil.errors import TofhilError
 from tofhil.eval.ndt import (NDTGrid, cell_likelihood, d2d_score, gauss_params, multi_resolution,
                              ndt_score, pcl_point_scores, trilinear_likelihood, trilinear_weights)
 
-from real_data import adi_office_points
+from tests.real_data import adi_office_points
 
 R = 0.5   # cell size used by the hand-made grids
 

@@ -16,7 +16,7 @@ from tofhil.drivers.mkv import open_mkv
 from tofhil.errors import InputFileError
 from tofhil.session import open_session
 
-from real_data import AZURE_KINECT_MKV, need
+from tests.real_data import AZURE_KINECT_MKV, need
 
 
 @pytest.fixture(scope="module")

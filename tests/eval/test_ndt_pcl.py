@@ -15,7 +15,7 @@ import pytest
 from tofhil.eval.clouds import load_cloud
 from tofhil.eval.ndt import NDTGrid, gauss_params, ndt_score
 
-DATA = Path(__file__).resolve().parent / "data" / "pcl"
+DATA = Path(__file__).resolve().parents[1] / "data" / "pcl"
 SETTINGS = [("r050", 0.5, 0.55, 6), ("r025", 0.25, 0.55, 6), ("r030", 0.3, 0.3, 10)]
 TOL = 1e-9   # absolute, on scores and likelihoods in [0, ~1]; measured ~1e-12
 

@@ -1,0 +1,25 @@
+"""Shared fixtures. Tests mirror the packages: tests/core (tofhil), tests/drivers, tests/sim,
+tests/eval, tests/cli; shared test data helpers are ``tests.real_data`` and
+``tests.straylight_synthetic``."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+from typing import Callable
+
+import pytest
+
+
+def run_tofhil(*args: str | Path, cwd: str | Path | None = None, timeout: float = 300,
+               input_text: str | None = None) -> subprocess.CompletedProcess:
+    """Run the ``tofhil`` CLI in a fresh process, as a user would (``python -m tofhil.cli``)."""
+    return subprocess.run([sys.executable, "-m", "tofhil.cli", *map(str, args)], cwd=cwd, capture_output=True,
+                          text=True, timeout=timeout, input=input_text)
+
+
+@pytest.fixture
+def tofhil_cli() -> Callable[..., subprocess.CompletedProcess]:
+    """``tofhil_cli("info", path)`` runs the CLI in a subprocess and returns the completed process."""
+    return run_tofhil
