@@ -64,7 +64,8 @@ class CaptureSettings:
 
     ``mode``: ``"dcs"`` (raw correlation taps -> RawFrame), ``"distance"`` (distance and
     amplitude -> DepthFrame) or ``"grayscale"`` (intensity only -> ``Frame.images``).
-    ``roi`` is ``(x0, y0, x1, y1)`` in sensor pixels, inclusive, as the device counts them.
+    ``roi`` is ``(x0, y0, x1, y1)`` in sensor pixels, half-open (x1, y1 exclusive, as numpy slices
+    and the TOFcam635 firmware: ``(4, 4, 156, 12)`` is 152 x 8 pixels).
     ``extra`` holds device-specific options (documented by each driver).
     """
 

@@ -341,7 +341,7 @@ class Epc635Emulator:
 
     # ---- state --------------------------------------------------------------
     def reset(self) -> None:
-        self.roi = (0, 0, P.SENSOR_WIDTH - 1, P.SENSOR_HEIGHT - 1)
+        self.roi = P.FULL_ROI
         self.int_time_us = [125, 0, 0, 0, 0, 0, 0, 0]
         self.int_time_gray_us = 50
         self.mod_code = 1
@@ -427,11 +427,10 @@ class Epc635Emulator:
             self.int_time_gray_us = max(1, u16(0))
             return ack
         if cmd == C.SET_ROI:
-            x0, y0, x1, y1 = struct.unpack_from("<4H", p, 0)
-            x1, y1 = min(x1, P.SENSOR_WIDTH - 1), min(y1, P.SENSOR_HEIGHT - 1)  # vendor sends 160/60
-            if x0 > x1 or y0 > y1:
-                return P.encode_packet(D.NACK)
-            self.roi = (x0, y0, x1, y1)
+            roi = struct.unpack_from("<4H", p, 0)
+            if P.roi_problem(roi) is not None:
+                return P.encode_packet(D.NACK)  # the camera keeps its previous ROI
+            self.roi = roi
             return ack
         if cmd == C.SET_MOD_FREQUENCY:
             if p[0] not in P.MOD_FREQ_CODES:
@@ -487,7 +486,7 @@ class Epc635Emulator:
         return P.ImageHeader(
             version=1, frame_counter=self.frame_counter & 0xFFFF, timestamp=ms,
             firmware_version=self.FIRMWARE[0] << 16 | self.FIRMWARE[1], hardware_version=self.HW_VERSION,
-            chip_id=self.CHIP_ID, width=x1 - x0 + 1, height=y1 - y0 + 1, origin_x=x0, origin_y=y0,
+            chip_id=self.CHIP_ID, width=x1 - x0, height=y1 - y0, origin_x=x0, origin_y=y0,
             current_int_time_3d_wf=it[0], current_int_time_grayscale=self.int_time_gray_us,
             int_time_grayscale=self.int_time_gray_us, int_time_0=it[0], int_time_1=it[1], int_time_2=it[2],
             amplitude_limit_0=self.amp_limits[0], amplitude_limit_1=self.amp_limits[1],
@@ -501,7 +500,7 @@ class Epc635Emulator:
         theta = canonical_phases(self.profile)
         clean = self.source.taps(self.freq_hz, t_int, theta)
         x0, y0, x1, y1 = self.roi
-        c = self.noise.apply(clean[:, y0:y1 + 1, x0:x1 + 1], self.rng) if self.noise else clean[:, y0:y1 + 1, x0:x1 + 1]
+        c = self.noise.apply(clean[:, y0:y1, x0:x1], self.rng) if self.noise else clean[:, y0:y1, x0:x1]
         # epc635 pixels read the difference of their two storage gates: DCS_k ~ (c_k - c_{k+2}) / 2
         # = A cos(phi - theta_k); offset and ambient cancel, noise of both gates remains.
         diff = 0.5 * (c - np.roll(c, 2, axis=0))
@@ -539,7 +538,7 @@ class Epc635Emulator:
         theta = canonical_phases(self.profile)
         clean = self.source.taps(self.freq_hz, self.int_time_gray_us * 1e-6, theta)
         x0, y0, x1, y1 = self.roi
-        b = clean[:, y0:y1 + 1, x0:x1 + 1].mean(axis=0)
+        b = clean[:, y0:y1, x0:x1].mean(axis=0)
         b = self.noise.apply(b[None], self.rng)[0] if self.noise else b
         return np.clip(np.rint(b / 16.0), 0, 255).astype(np.uint8)
 

@@ -317,7 +317,7 @@ class TofCam635(Driver):
         self.transport: Transport | None = None
         self._parser = P.PacketParser()
         self._info: DeviceInfo | None = None
-        self._roi = (0, 0, P.SENSOR_WIDTH - 1, P.SENSOR_HEIGHT - 1)
+        self._roi = P.FULL_ROI
         self._sensor_camera = load_camera_preset(self.profile.camera_preset)
         self._camera = self._sensor_camera
         self._seq_unwrap = _Unwrapper(1 << 16)
@@ -409,16 +409,15 @@ class TofCam635(Driver):
         if s.mode not in ("dcs", "distance", "grayscale"):
             raise DeviceError(f"mode {s.mode!r} not supported", field="mode", expected="dcs | distance | grayscale")
         if s.roi is not None:
-            x0, y0, x1, y1 = (int(v) for v in s.roi)
-            if not (0 <= x0 <= x1 < P.SENSOR_WIDTH and 0 <= y0 <= y1 < P.SENSOR_HEIGHT):
-                raise DeviceError(f"ROI {s.roi}", field="roi",
-                                  expected=f"x0 <= x1 < {P.SENSOR_WIDTH}, y0 <= y1 < {P.SENSOR_HEIGHT} (inclusive)")
-            roi = (x0, y0, x1, y1)
+            roi = tuple(int(v) for v in s.roi)
+            problem = P.roi_problem(roi)
+            if problem is not None:  # refused here, as the camera would (it answers NACK)
+                raise DeviceError(f"ROI {tuple(s.roi)}: {problem}", field="roi", expected=P.ROI_EXPECTED)
         else:
-            roi = (0, 0, P.SENSOR_WIDTH - 1, P.SENSOR_HEIGHT - 1)
+            roi = P.FULL_ROI
         self._command(P.Cmd.SET_ROI, b"".join(P.u16(v) for v in roi))
         self._roi = roi
-        # The header reports the real size; until a frame arrives assume the inclusive ROI.
+        # The header reports the real size; until a frame arrives assume the ROI's.
         self._camera = crop_camera(self._sensor_camera, roi)
         if s.mod_freq_hz is not None:
             codes = {f: c for c, f in P.MOD_FREQ_CODES.items()}
@@ -569,9 +568,9 @@ class TofCam635(Driver):
         return Frame(images={"grayscale": gray.copy()}, sequence=seq, timestamp_s=ts)
 
     def _camera_for(self, h: P.ImageHeader) -> CameraModel:
-        roi = (h.origin_x, h.origin_y, h.origin_x + h.width - 1, h.origin_y + h.height - 1)
+        roi = (h.origin_x, h.origin_y, h.origin_x + h.width, h.origin_y + h.height)
         if self._camera.shape != (h.height, h.width) or roi != self._roi:
-            if roi[2] >= P.SENSOR_WIDTH or roi[3] >= P.SENSOR_HEIGHT:
+            if roi[2] > P.SENSOR_WIDTH or roi[3] > P.SENSOR_HEIGHT:
                 raise FrameDropped(f"header ROI {roi} exceeds the sensor")
             self._roi = roi
             self._camera = crop_camera(self._sensor_camera, roi)
@@ -603,11 +602,11 @@ class _Unwrapper:
 
 
 def crop_camera(camera: CameraModel, roi: tuple[int, int, int, int]) -> CameraModel:
-    """The camera model of an inclusive ROI ``(x0, y0, x1, y1)`` of the sensor."""
+    """The camera model of a half-open ROI ``(x0, y0, x1, y1)`` of the sensor (x1, y1 exclusive)."""
     x0, y0, x1, y1 = roi
-    if (x0, y0, x1, y1) == (0, 0, camera.width - 1, camera.height - 1):
+    if (x0, y0, x1, y1) == (0, 0, camera.width, camera.height):
         return camera
-    return replace(camera, width=x1 - x0 + 1, height=y1 - y0 + 1, cx=camera.cx - x0, cy=camera.cy - y0)
+    return replace(camera, width=x1 - x0, height=y1 - y0, cx=camera.cx - x0, cy=camera.cy - y0)
 
 
 def dcs_to_canonical(dcs: np.ndarray, profile: DeviceProfile = TOFCAM635) -> tuple[np.ndarray, np.ndarray]:

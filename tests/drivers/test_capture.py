@@ -56,7 +56,7 @@ def test_distance_session_with_roi_and_faults(tmp_path: Path) -> None:
     out = tmp_path / "d.h5"
     plan = FaultPlan(at={0: "crc", 2: "truncate", 4: "disconnect"}, disconnect_s=0.1)
     with device(0.9, plan) as dev:
-        summary = capture(dev, out, 5, CaptureSettings(mode="distance", roi=(0, 10, 159, 49), min_amplitude=0),
+        summary = capture(dev, out, 5, CaptureSettings(mode="distance", roi=(0, 8, 160, 48), min_amplitude=0),
                           timeout_s=0.4)
     assert (summary.frames_written, summary.dropped, summary.reconnects) == (5, 2, 1)
     with open_session(out) as s:

@@ -19,7 +19,7 @@ def _parse_roi(text: str | None) -> tuple[int, int, int, int] | None:
     try:
         x0, y0, x1, y1 = (int(v) for v in text.split(","))
     except ValueError:
-        raise DeviceError(f"--roi {text!r}", field="--roi", expected="X0,Y0,X1,Y1 (inclusive pixels)") from None
+        raise DeviceError(f"--roi {text!r}", field="--roi", expected="X0,Y0,X1,Y1 (four integers; X1, Y1 exclusive)") from None
     return x0, y0, x1, y1
 
 
@@ -64,7 +64,7 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
             mode: str = typer.Option("dcs", "--mode", help="dcs (raw taps) or distance (depth + amplitude)."),
             channel: Optional[int] = typer.Option(None, "--channel", help="Modulation channel (0..15)."),
             min_amplitude: Optional[float] = typer.Option(None, "--min-amplitude", help="Minimum amplitude (DN)."),
-            roi: Optional[str] = typer.Option(None, "--roi", help="X0,Y0,X1,Y1 inclusive sensor pixels."),
+            roi: Optional[str] = typer.Option(None, "--roi", help="X0,Y0,X1,Y1 sensor pixels, half-open (X1, Y1 exclusive; TOFcam635: multiples of 4)."),
             faults: Optional[str] = typer.Option(None, "--faults",
                                                  help="Emulator only: inject faults, e.g. crc@3,disconnect@6."),
             force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
