@@ -304,10 +304,10 @@ class Driver(ABC):
 #: Modules imported (in order) before a spec is resolved; each registers its schemes.
 #: A module that is not present is skipped, so back-ends can land independently.
 DRIVER_MODULES: list[str] = [
-    "tofhil.drivers.tofcam635",
-    "tofhil.drivers.emulator",
-    "tofhil.drivers.depthai_tof",
-    "tofhil.drivers.replay",
+    "tofhil.drivers.tofcam635.driver",
+    "tofhil.drivers.tofcam635.emulator",
+    "tofhil.drivers.depthai.driver",
+    "tofhil.drivers.importers.replay",
 ]
 
 DriverFactory = Callable[[str], Driver]

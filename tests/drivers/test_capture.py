@@ -18,7 +18,9 @@ import pytest
 from tofhil.depth import depth_from_raw
 from tofhil.drivers.base import CaptureSettings
 from tofhil.drivers.capture import capture
-from tofhil.drivers.emulator import AnalyticWall, EmulatedTofCam635, Epc635Emulator, FaultPlan, NoiseModel, WallSpec
+from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
+from tofhil.drivers.tofcam635.faults import FaultPlan
+from tofhil.drivers.tofcam635.sources import AnalyticWall, NoiseModel, WallSpec
 from tofhil.errors import DeviceError, InputFileError
 from tofhil.session import open_session
 
@@ -122,7 +124,8 @@ def test_cli_devices_and_emulate_usage() -> None:
 @pytest.mark.device
 def test_capture_from_a_real_camera(tmp_path: Path) -> None:
     """Runs only with a TOFcam635 plugged in (skipped otherwise, also in CI)."""
-    from tofhil.drivers.tofcam635 import TofCam635, default_usb_backend, find_usb_devices
+    from tofhil.drivers.tofcam635.driver import TofCam635
+    from tofhil.drivers.tofcam635.transport import default_usb_backend, find_usb_devices
 
     try:
         found = find_usb_devices(default_usb_backend())

@@ -11,7 +11,9 @@ import pytest
 
 from tofhil.depth import depth_from_raw
 from tofhil.drivers.base import CaptureSettings, DeviceDisconnected
-from tofhil.drivers.emulator import AnalyticWall, EmulatedTofCam635, Epc635Emulator, FaultPlan, NoiseModel, WallSpec
+from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
+from tofhil.drivers.tofcam635.faults import FaultPlan
+from tofhil.drivers.tofcam635.sources import AnalyticWall, NoiseModel, WallSpec
 from tofhil.errors import DeviceError
 
 NO_NOISE = NoiseModel(read_noise_dn=0.0, electrons_per_dn=math.inf)

@@ -16,10 +16,10 @@ import serial
 from tofhil import C_M_PER_S
 from tofhil.camera import load_camera_preset
 from tofhil.depth import depth_from_raw
-from tofhil.drivers import epc635_protocol as P
+from tofhil.drivers.tofcam635 import protocol as P
 from tofhil.drivers.base import CaptureSettings
 from tofhil.drivers.capture import capture
-from tofhil.drivers.tofcam635 import TofCam635
+from tofhil.drivers.tofcam635.driver import TofCam635
 from tofhil.session import open_session
 
 from tests.drivers.pty_emulator import emulator_pty

@@ -14,11 +14,12 @@ import pytest
 from tofhil import C_M_PER_S
 from tofhil.demod import phasor
 from tofhil.depth import depth_from_raw
-from tofhil.drivers import epc635_protocol as P
+from tofhil.drivers.tofcam635 import protocol as P
 from tofhil.drivers.base import CaptureSettings, list_devices, open_device
-from tofhil.drivers.emulator import AnalyticWall, EmulatedTofCam635, Epc635Emulator, NoiseModel, WallSpec
-from tofhil.drivers.emulator_backend import EmulatorBackend
-from tofhil.drivers.tofcam635 import TofCam635
+from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
+from tofhil.drivers.tofcam635.sources import AnalyticWall, NoiseModel, WallSpec
+from tofhil.drivers.tofcam635.usb_backend import EmulatorBackend
+from tofhil.drivers.tofcam635.driver import TofCam635
 from tofhil.errors import DeviceError
 
 NO_NOISE = NoiseModel(read_noise_dn=0.0, electrons_per_dn=math.inf)
@@ -228,7 +229,7 @@ def test_no_device_and_unknown_specs_are_clear_errors() -> None:
 
 
 def test_device_counters_unwrap_across_wraps_and_restarts() -> None:
-    from tofhil.drivers.tofcam635 import _Unwrapper
+    from tofhil.drivers.tofcam635.driver import _Unwrapper
 
     u = _Unwrapper(1 << 16)
     assert [u(v) for v in (65534, 65535, 0, 1, 5000)] == [65534, 65535, 65536, 65537, 70536]

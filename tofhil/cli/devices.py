@@ -84,7 +84,7 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
         if emulator is None:
             raise DeviceError("faults can only be injected into the emulator", field="--faults",
                               expected="--device emulator[:SCENE]")
-        from tofhil.drivers.emulator import FaultPlan
+        from tofhil.drivers.tofcam635.faults import FaultPlan
 
         emulator.faults = FaultPlan.parse(faults)
     if emulator is not None:
@@ -114,8 +114,10 @@ def emulate(scene: Optional[str] = typer.Option(None, "--scene", help="Scene fil
             seed: int = typer.Option(0, "--seed", help="Noise seed."),
             frame_rate: float = typer.Option(0.0, "--frame-rate", help="Limit frames/s (0: as fast as possible).")) -> None:
     """Run the TOFcam635 emulator until stopped (Ctrl-C or SIGTERM)."""
-    from tofhil.drivers.emulator import Epc635Emulator, FaultPlan, source_from_spec
-    from tofhil.drivers.pty_server import PtyServer
+    from tofhil.drivers.tofcam635.emulator import Epc635Emulator
+    from tofhil.drivers.tofcam635.faults import FaultPlan
+    from tofhil.drivers.tofcam635.sources import source_from_spec
+    from tofhil.drivers.tofcam635.pty import PtyServer
 
     if not pty:
         raise DeviceError("only the pseudo-terminal transport can be served from the command line",
@@ -124,8 +126,8 @@ def emulate(scene: Optional[str] = typer.Option(None, "--scene", help="Scene fil
                               seed=seed, frame_interval_s=1.0 / frame_rate if frame_rate > 0 else 0.0)
     # Render both modulation frequencies now (a scene render takes seconds), so that no client
     # request waits for one: the vendor client gives up after 0.2 s.
-    from tofhil.drivers import epc635_protocol as P
-    from tofhil.drivers.tofcam635 import canonical_phases
+    from tofhil.drivers.tofcam635 import protocol as P
+    from tofhil.drivers.tofcam635.profile import canonical_phases
 
     for freq in P.MOD_FREQ_CODES.values():
         emulator.source.taps(freq, 125e-6, canonical_phases(emulator.profile))

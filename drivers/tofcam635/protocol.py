@@ -564,12 +564,6 @@ def decode_dcs(img: Image) -> np.ndarray:
     return np.frombuffer(img.pixels, dtype="<i2").reshape(4, h.height, h.width)
 
 
-def decode_distance(img: Image) -> np.ndarray:
-    """Distance image -> uint16 ``[H, W]`` codes (mm below 16000, confidence bits masked)."""
-    h = img.header
-    return (np.frombuffer(img.pixels, dtype="<u2") & MASK_VALUE).reshape(h.height, h.width)
-
-
 def decode_distance_amplitude(img: Image) -> tuple[np.ndarray, np.ndarray]:
     """Distance + amplitude image -> two uint16 ``[H, W]`` arrays (interleaved on the wire)."""
     h = img.header
