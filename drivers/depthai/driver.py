@@ -35,6 +35,7 @@ name or file, see :class:`TwinScene`).
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
 from dataclasses import asdict, dataclass
@@ -59,6 +60,10 @@ BASE_FREQ_HZ = 80e6
 
 
 def _dai() -> Any:
+    # depthai logs warnings to stdout at import (e.g. "USB protocol not available - If running in
+    # a container..." on every listing without USB): only its errors are news to a user. An
+    # explicit DEPTHAI_LEVEL still wins.
+    os.environ.setdefault("DEPTHAI_LEVEL", "error")
     try:
         import depthai as dai
     except ImportError as exc:  # pragma: no cover - depthai is a dependency

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import signal
 import sys
 from pathlib import Path
@@ -34,10 +35,6 @@ def _sigterm_as_interrupt() -> None:
 def devices(as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table.")) -> None:
     """List connected cameras and emulated devices (specs for --device)."""
     import json
-    import os
-
-    if as_json:  # the DepthAI library logs its USB warnings to stdout: keep the JSON clean
-        os.environ.setdefault("DEPTHAI_LEVEL", "error")
 
     from tofhil.drivers.base import list_devices, registered_schemes
 
@@ -101,9 +98,13 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
     out.print(f"frames written {summary.frames_written}/{summary.requested}, dropped {summary.dropped}, "
               f"reconnects {summary.reconnects}, {summary.frames_per_s:.1f} frames/s -> {summary.path}",
               highlight=False)
+    if summary.ended_early == "interrupted":
+        kept = f"kept in {summary.path}" if summary.frames_written else "kept (no file written)"
+        console.print(f"interrupted: {summary.frames_written} frames {kept}", highlight=False, markup=False, soft_wrap=True)
+        sys.exit(130)
     if summary.ended_early:
-        console.print(f"session ended early: {summary.ended_early}", highlight=False)
-        sys.exit(130 if summary.ended_early == "interrupted" else 3)
+        console.print(f"session ended early: {summary.ended_early}", highlight=False, markup=False, soft_wrap=True)
+        sys.exit(3)
 
 
 @app.command()
@@ -112,18 +113,22 @@ def emulate(scene: Optional[str] = typer.Option(None, "--scene", help="Scene fil
             pty: bool = typer.Option(False, "--pty", help="Serve on a pseudo-terminal (prints PORT=... first)."),
             faults: Optional[str] = typer.Option(None, "--faults", help="Inject faults, e.g. crc@3,timeout=0.05."),
             seed: int = typer.Option(0, "--seed", help="Noise seed."),
-            frame_rate: float = typer.Option(0.0, "--frame-rate", help="Limit frames/s (0: as fast as possible).")) -> None:
+            frame_rate: Optional[float] = typer.Option(None, "--frame-rate",
+                                                       help="Limit frames/s (> 0; default: as fast as possible).")) -> None:
     """Run the TOFcam635 emulator until stopped (Ctrl-C or SIGTERM)."""
     from tofhil.drivers.tofcam635.emulator import Epc635Emulator
     from tofhil.drivers.tofcam635.faults import FaultPlan
     from tofhil.drivers.tofcam635.sources import source_from_spec
     from tofhil.drivers.tofcam635.pty import PtyServer
 
+    if frame_rate is not None and not (math.isfinite(frame_rate) and frame_rate > 0):
+        raise DeviceError(f"--frame-rate {frame_rate:g}", field="--frame-rate",
+                          expected="a finite number of frames per second > 0 (omit it for as fast as possible)")
     if not pty:
         raise DeviceError("only the pseudo-terminal transport can be served from the command line",
                           field="--pty", expected="--pty (in-process use: --device emulator)")
     emulator = Epc635Emulator(source_from_spec(scene), faults=FaultPlan.parse(faults) if faults else None,
-                              seed=seed, frame_interval_s=1.0 / frame_rate if frame_rate > 0 else 0.0)
+                              seed=seed, frame_interval_s=1.0 / frame_rate if frame_rate else 0.0)
     # Render both modulation frequencies now (a scene render takes seconds), so that no client
     # request waits for one: the vendor client gives up after 0.2 s.
     from tofhil.drivers.tofcam635 import protocol as P
