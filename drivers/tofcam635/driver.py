@@ -195,10 +195,13 @@ class TofCam635(Driver):
                     self._silent = 0
                     return pkt
                 partial = self._parser.pending
+                missing = self._parser.needed() if partial else 0
                 self._parser.discard()
                 if got_any or partial:
                     self._silent = 0
-                    raise P.TruncatedPacket(f"reply incomplete after timeout ({partial} bytes buffered)")
+                    raise P.TruncatedPacket(f"{self.transport.description}: truncated reply, {partial} bytes "
+                                            f"received, {missing} more announced, none within "
+                                            f"{self.reply_timeout_s:g} s", expected="a complete packet")
                 self._silent += 1
                 if self._silent >= self.max_silent:
                     self._silent = 0
