@@ -43,8 +43,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel, load_camera_preset
+from tofhil.demod import distance_to_phase
 from tofhil.drivers.base import (CaptureSettings, DeviceDisconnected, DeviceEntry, DeviceError, DeviceInfo,
                                  Driver, Frame, FrameDropped, register_driver)
 from tofhil.frames import DepthFrame
@@ -249,7 +249,7 @@ class PlaneScene:
                               expected="a tilt smaller than 90 deg minus half the field of view")
         d = self.distance_m / cos_inc
         amp = self.amplitude_at_1m * self.albedo * cos_inc * camera.ray_z ** 4 / d ** 2
-        phase = np.mod(4 * np.pi * BASE_FREQ_HZ * d / C_M_PER_S, 2 * np.pi)
+        phase = distance_to_phase(d, BASE_FREQ_HZ)
         return {"radial_m": d, "z_m": d * camera.ray_z, "amplitude": amp, "intensity": amp + self.ambient,
                 "phase": phase}
 
@@ -291,7 +291,7 @@ class TwinScene:
             f0 = float(raw.freq_hz[0])
             out.append({"radial_m": radial, "z_m": radial * camera.ray_z,
                         "amplitude": np.nan_to_num(d.amplitude), "intensity": np.nan_to_num(d.intensity),
-                        "phase": np.mod(4 * np.pi * f0 * radial / C_M_PER_S, 2 * np.pi)})
+                        "phase": distance_to_phase(radial, f0)})
         return out
 
 

@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import math
 import threading
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
@@ -215,11 +216,17 @@ def source_from_spec(scene: str | None) -> ImageSource:
 # --------------------------------------------------------------------------- noise
 @dataclass
 class NoiseModel:
-    """Per-frame noise of one tap in DN: read noise plus shot noise ``var = c / gain``."""
+    """Per-frame noise of one tap, in DN: the simulator's sensor noise (``tofhil.sim.sensor``:
+    shot noise of the collected electrons, then read noise), with the electrons counted at
+    ``electrons_per_dn`` (``inf``: no shot noise) and the read noise given in DN."""
 
     read_noise_dn: float = 1.5
     electrons_per_dn: float = 8.0
 
     def apply(self, taps: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        var = self.read_noise_dn**2 + np.maximum(taps, 0.0) / self.electrons_per_dn
-        return taps + rng.standard_normal(taps.shape, dtype=np.float32) * np.sqrt(var, dtype=np.float32)
+        from tofhil.sim.sensor import read_noise, shot_noise
+
+        out = np.asarray(taps, dtype=np.float64)
+        if math.isfinite(self.electrons_per_dn):
+            out = shot_noise(out * self.electrons_per_dn, rng) / self.electrons_per_dn
+        return read_noise(out, self.read_noise_dn, rng).astype(np.float32)

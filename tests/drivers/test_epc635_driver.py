@@ -234,3 +234,14 @@ def test_device_counters_unwrap_across_wraps_and_restarts() -> None:
     u = _Unwrapper(1 << 16)
     assert [u(v) for v in (65534, 65535, 0, 1, 5000)] == [65534, 65535, 65536, 65537, 70536]
     assert [u(v) for v in (0, 1)] == [70537, 70538]  # a restarted device continues, no 65536 jump
+
+
+def test_emulator_noise_is_the_sensor_models_shot_plus_read_noise() -> None:
+    """Variance in DN = read^2 + mean / (electrons per DN): Poisson electrons, Gaussian read noise."""
+    rng = np.random.default_rng(5)
+    taps = np.full((4, 200, 200), 300.0, dtype=np.float32)
+    noisy = NoiseModel(read_noise_dn=2.0, electrons_per_dn=4.0).apply(taps, rng)
+    assert noisy.dtype == np.float32
+    assert float(noisy.mean()) == pytest.approx(300.0, abs=0.1)
+    assert float(noisy.var()) == pytest.approx(2.0**2 + 300.0 / 4.0, rel=0.02)
+    np.testing.assert_array_equal(NO_NOISE.apply(taps, rng), taps)
