@@ -226,7 +226,8 @@ class NoiseModel:
     def apply(self, taps: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         from tofhil.sim.sensor import read_noise, shot_noise
 
-        out = np.asarray(taps, dtype=np.float64)
+        out = np.asarray(taps, dtype=np.float32)
         if math.isfinite(self.electrons_per_dn):
-            out = shot_noise(out * self.electrons_per_dn, rng) / self.electrons_per_dn
-        return read_noise(out, self.read_noise_dn, rng).astype(np.float32)
+            e_per_dn = np.float32(self.electrons_per_dn)
+            out = shot_noise(out * e_per_dn, rng) / e_per_dn
+        return read_noise(out, np.float32(self.read_noise_dn), rng).astype(np.float32, copy=False)
