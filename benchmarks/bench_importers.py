@@ -32,7 +32,7 @@ def timed(fn, repeats: int) -> float:
 
 
 def bench_mkv(repeats: int) -> None:
-    from tofhil.drivers.mkv import open_mkv
+    from tofhil.drivers.importers.mkv import open_mkv
 
     path = REAL / "azure_kinect" / "recording.mkv"
     if not path.is_file():
@@ -54,7 +54,7 @@ def bench_mkv(repeats: int) -> None:
 
 
 def bench_adi(repeats: int) -> None:
-    from tofhil.drivers.import_adi import read_adi_interleaved
+    from tofhil.drivers.importers.adi import read_adi_interleaved
 
     path = REAL / "adi_tof" / "frame_mode2.bin"
     if not path.is_file():
@@ -81,7 +81,7 @@ def bench_depthai(n: int) -> None:
         print("depthai not installed, skipped")
         return
     from tofhil.drivers.base import CaptureSettings
-    from tofhil.drivers.depthai_tof import DepthAIToF, PlaneScene
+    from tofhil.drivers.depthai.driver import DepthAIToF, PlaneScene
 
     def rate(fps: float) -> float:
         dev = DepthAIToF("depthai-sim", host_scene=PlaneScene(fps=fps))

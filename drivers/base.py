@@ -64,7 +64,8 @@ class CaptureSettings:
 
     ``mode``: ``"dcs"`` (raw correlation taps -> RawFrame), ``"distance"`` (distance and
     amplitude -> DepthFrame) or ``"grayscale"`` (intensity only -> ``Frame.images``).
-    ``roi`` is ``(x0, y0, x1, y1)`` in sensor pixels, inclusive, as the device counts them.
+    ``roi`` is ``(x0, y0, x1, y1)`` in sensor pixels, half-open (x1, y1 exclusive, as numpy slices
+    and the TOFcam635 firmware: ``(4, 4, 156, 12)`` is 152 x 8 pixels).
     ``extra`` holds device-specific options (documented by each driver).
     """
 
@@ -303,10 +304,10 @@ class Driver(ABC):
 #: Modules imported (in order) before a spec is resolved; each registers its schemes.
 #: A module that is not present is skipped, so back-ends can land independently.
 DRIVER_MODULES: list[str] = [
-    "tofhil.drivers.tofcam635",
-    "tofhil.drivers.emulator",
-    "tofhil.drivers.depthai_tof",
-    "tofhil.drivers.replay",
+    "tofhil.drivers.tofcam635.driver",
+    "tofhil.drivers.tofcam635.emulator",
+    "tofhil.drivers.depthai.driver",
+    "tofhil.drivers.importers.replay",
 ]
 
 DriverFactory = Callable[[str], Driver]

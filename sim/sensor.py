@@ -434,14 +434,14 @@ class SensorModel:
         if noise:
             if rng is None:
                 raise ValueError("noise=True needs a random generator")
-            q = _shot_noise(mu, rng)
+            q = shot_noise(mu, rng)
         else:
             q = mu
         q = np.minimum(q, cfg.full_well_e)  # saturation: the well holds no more charge
         _, offset = self.fixed_pattern()
         v = q + offset[None]
-        if noise and cfg.read_noise_e > 0:
-            v = v + cfg.read_noise_e * rng.standard_normal(v.shape)  # type: ignore[union-attr]
+        if noise:
+            v = read_noise(v, cfg.read_noise_e, rng)  # type: ignore[arg-type]
         dn = v * cfg.conversion_gain_dn_per_e + cfg.black_level_dn
         if noise:
             dn = np.rint(dn)
@@ -463,11 +463,23 @@ class SensorModel:
                         temperature_c=cfg.temperature_c, meta=m)
 
 
-def _shot_noise(mu: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def read_noise(v_e: np.ndarray, read_noise_e: float, rng: np.random.Generator) -> np.ndarray:
+    """``v_e`` plus Gaussian read noise of ``read_noise_e`` electrons rms."""
+    return v_e + read_noise_e * rng.standard_normal(v_e.shape, dtype=_draw_dtype(v_e)) if read_noise_e > 0 else v_e
+
+
+def _draw_dtype(a: np.ndarray) -> type:
+    """float32 draws for float32 data (the emulator's frames), float64 otherwise (the sim's)."""
+    return np.float32 if a.dtype == np.float32 else np.float64
+
+
+def shot_noise(mu: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Poisson draws with mean ``mu``: exact for small means, normal (var = mean) for large."""
     mu = np.clip(mu, 0.0, None)
-    out = np.empty_like(mu)
     small = mu < POISSON_EXACT_BELOW
+    if not small.any():  # bright frames: no masked copies (same draws as below)
+        return mu + np.sqrt(mu) * rng.standard_normal(mu.shape, dtype=_draw_dtype(mu))
+    out = np.empty_like(mu)
     out[small] = rng.poisson(mu[small])
     big = ~small
     if big.any():

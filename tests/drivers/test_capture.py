@@ -18,7 +18,9 @@ import pytest
 from tofhil.depth import depth_from_raw
 from tofhil.drivers.base import CaptureSettings
 from tofhil.drivers.capture import capture
-from tofhil.drivers.emulator import AnalyticWall, EmulatedTofCam635, Epc635Emulator, FaultPlan, NoiseModel, WallSpec
+from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
+from tofhil.drivers.tofcam635.faults import FaultPlan
+from tofhil.drivers.tofcam635.sources import AnalyticWall, NoiseModel, WallSpec
 from tofhil.errors import DeviceError, InputFileError
 from tofhil.session import open_session
 
@@ -56,7 +58,7 @@ def test_distance_session_with_roi_and_faults(tmp_path: Path) -> None:
     out = tmp_path / "d.h5"
     plan = FaultPlan(at={0: "crc", 2: "truncate", 4: "disconnect"}, disconnect_s=0.1)
     with device(0.9, plan) as dev:
-        summary = capture(dev, out, 5, CaptureSettings(mode="distance", roi=(0, 10, 159, 49), min_amplitude=0),
+        summary = capture(dev, out, 5, CaptureSettings(mode="distance", roi=(0, 8, 160, 48), min_amplitude=0),
                           timeout_s=0.4)
     assert (summary.frames_written, summary.dropped, summary.reconnects) == (5, 2, 1)
     with open_session(out) as s:
@@ -122,7 +124,8 @@ def test_cli_devices_and_emulate_usage() -> None:
 @pytest.mark.device
 def test_capture_from_a_real_camera(tmp_path: Path) -> None:
     """Runs only with a TOFcam635 plugged in (skipped otherwise, also in CI)."""
-    from tofhil.drivers.tofcam635 import TofCam635, default_usb_backend, find_usb_devices
+    from tofhil.drivers.tofcam635.driver import TofCam635
+    from tofhil.drivers.tofcam635.transport import default_usb_backend, find_usb_devices
 
     try:
         found = find_usb_devices(default_usb_backend())
@@ -155,3 +158,60 @@ def test_sigkill_mid_capture_loses_at_most_the_frame_in_flight(tmp_path: Path) -
         for raw in s.raw_frames():  # every counted frame is complete (default noise: ~1 cm per pixel)
             err = depth_from_raw(raw).radial_m - 1.0 / s.camera.ray_z
             assert abs(float(np.median(err))) < 3e-3 and float(np.percentile(np.abs(err), 99)) < 0.05
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_an_interrupted_capture_says_how_many_frames_it_kept(tmp_path: Path, sig: signal.Signals) -> None:
+    """Ctrl-C or SIGTERM: "interrupted: N frames kept in FILE", exit 130, the file opens with N frames."""
+    out = tmp_path / "interrupted.h5"
+    proc = subprocess.Popen(_tofhil("capture", "--device", "emulator:wall:1.0", "--frames", "100000",
+                                    "--out", str(out)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and (not out.exists() or out.stat().st_size < 8 * 4 * 60 * 160 * 4):
+            time.sleep(0.05)
+        assert out.exists(), "capture never started"
+        proc.send_signal(sig)
+        stdout, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr
+    lines = [line for line in (stdout + stderr).splitlines() if line.startswith("interrupted:")]
+    assert len(lines) == 1, stdout + stderr
+    n = int(lines[0].split()[1])
+    assert lines[0] == f"interrupted: {n} frames kept in {out}"
+    with open_session(out) as s:
+        assert s.n_frames == n >= 5
+
+
+def test_emulate_refuses_a_frame_rate_that_is_not_positive() -> None:
+    for rate in ("-1", "0", "nan", "inf"):
+        r = subprocess.run(_tofhil("emulate", "--pty", f"--frame-rate={rate}"), capture_output=True, text=True,
+                           timeout=120)
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+        assert r.stderr.strip().count("\n") == 0 and "--frame-rate" in r.stderr and "> 0" in r.stderr
+
+
+def test_devices_prints_no_library_warning() -> None:
+    """depthai's container warning ("USB protocol not available ...") is not news to a user."""
+    r = subprocess.run(_tofhil("devices"), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "[warning]" not in r.stdout + r.stderr and "emulator" in r.stdout
+
+
+def test_cli_roi_is_half_open(tmp_path: Path) -> None:
+    """--roi X0,Y0,X1,Y1 with X1, Y1 exclusive: 4,4,156,12 is 152 x 8 pixels; unaligned is refused."""
+    out = tmp_path / "roi.h5"
+    r = subprocess.run(_tofhil("capture", "--device", "emulator:wall:1.0", "--frames", "1", "--out", str(out),
+                               "--roi", "4,4,156,12"), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    with open_session(out) as s:
+        assert s.camera.shape == (8, 152)
+    bad = subprocess.run(_tofhil("capture", "--device", "emulator:wall:1.0", "--frames", "1",
+                                 "--out", str(tmp_path / "bad.h5"), "--roi", "4,4,155,12"),
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr and "roi" in bad.stderr
+    assert not (tmp_path / "bad.h5").exists()

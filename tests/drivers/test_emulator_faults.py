@@ -11,7 +11,10 @@ import pytest
 
 from tofhil.depth import depth_from_raw
 from tofhil.drivers.base import CaptureSettings, DeviceDisconnected
-from tofhil.drivers.emulator import AnalyticWall, EmulatedTofCam635, Epc635Emulator, FaultPlan, NoiseModel, WallSpec
+from tofhil.drivers.tofcam635 import protocol as P
+from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
+from tofhil.drivers.tofcam635.faults import FaultPlan
+from tofhil.drivers.tofcam635.sources import AnalyticWall, NoiseModel, WallSpec
 from tofhil.errors import DeviceError
 
 NO_NOISE = NoiseModel(read_noise_dn=0.0, electrons_per_dn=math.inf)
@@ -103,3 +106,13 @@ def test_fault_plan_text_is_validated() -> None:
         FaultPlan.parse("melt@1")
     with pytest.raises(DeviceError, match="KIND@FRAME"):
         FaultPlan.parse("crc@x")
+
+
+def test_a_truncated_usb_frame_is_a_clear_device_error() -> None:
+    """Through pyusb: the reply stops mid-packet; the driver says so, with the transport and sizes."""
+    emu = Epc635Emulator(AnalyticWall(), faults=FaultPlan(at={0: "truncate"}))
+    with EmulatedTofCam635("emulator", emulator=emu) as dev:
+        dev.reply_timeout_s = 0.3
+        with pytest.raises(DeviceError, match=r"USB 0483:5740 .*truncated reply, \d+ bytes received, \d+ more"):
+            dev.acquire(P.Cmd.GET_DCS)
+        assert dev.acquire(P.Cmd.GET_DCS).header.width == 160  # the next frame is whole

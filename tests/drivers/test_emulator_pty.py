@@ -5,10 +5,7 @@ byte, the driver capturing a session over the serial port, and the vendor's own 
 from __future__ import annotations
 
 import math
-import selectors
 import struct
-import subprocess
-import sys
 from pathlib import Path
 from typing import Iterator
 
@@ -19,38 +16,20 @@ import serial
 from tofhil import C_M_PER_S
 from tofhil.camera import load_camera_preset
 from tofhil.depth import depth_from_raw
-from tofhil.drivers import epc635_protocol as P
+from tofhil.drivers.tofcam635 import protocol as P
 from tofhil.drivers.base import CaptureSettings
 from tofhil.drivers.capture import capture
-from tofhil.drivers.tofcam635 import TofCam635
+from tofhil.drivers.tofcam635.driver import TofCam635
 from tofhil.session import open_session
+
+from tests.drivers.pty_emulator import emulator_pty
 
 WALL_M = 1.2
 
 
-def _read_port_line(proc: subprocess.Popen, timeout_s: float) -> str:
-    sel = selectors.DefaultSelector()
-    assert proc.stdout is not None
-    sel.register(proc.stdout, selectors.EVENT_READ)
-    if not sel.select(timeout_s):
-        raise TimeoutError(f"no PORT= line within {timeout_s} s")
-    line = proc.stdout.readline().strip()
-    assert line.startswith("PORT="), line
-    return line.removeprefix("PORT=")
-
-
 def _emulator(*extra: str) -> Iterator[str]:
-    proc = subprocess.Popen([sys.executable, "-m", "tofhil.cli", "emulate", "--scene", f"wall:{WALL_M}", "--pty",
-                             *extra], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    try:
-        yield _read_port_line(proc, 60.0)
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=10)
+    with emulator_pty("--scene", f"wall:{WALL_M}", *extra) as port:
+        yield port
 
 
 @pytest.fixture(scope="module")
@@ -93,6 +72,22 @@ def test_a_serial_client_speaks_the_protocol(pty_port: str) -> None:
         err = dist - WALL_M / cam.ray_z
         assert abs(float(np.median(err))) < 5e-3 and float(np.percentile(np.abs(err), 90)) < 0.04  # ~1-2 cm noise
         port.write(b"\xf5\x20" + bytes(12))  # bad CRC: the camera answers NACK
+        assert _read_packet(port)[0] == P.DataType.NACK
+
+
+def test_a_roi_over_the_pty_gives_images_of_its_size(pty_port: str) -> None:
+    """The vendor test's ROI (4, 4, 156, 12), half-open: 152 x 8 distance + amplitude pairs."""
+    with serial.Serial(pty_port, 10_000_000, timeout=2.0) as port:
+        for roi, shape in (((4, 4, 156, 12), (8, 152)), ((0, 0, 160, 60), (60, 160))):
+            port.write(P.encode_command(P.Cmd.SET_ROI, b"".join(P.u16(v) for v in roi)))
+            assert _read_packet(port) == (P.DataType.ACK, b"")
+            port.write(P.encode_command(P.Cmd.GET_DISTANCE_AMPLITUDE, [0]))
+            dtype, payload = _read_packet(port)
+            header = P.ImageHeader.unpack(payload)
+            assert dtype == P.DataType.DISTANCE_AMPLITUDE
+            assert (header.origin_x, header.origin_y, header.height, header.width) == (roi[0], roi[1], *shape)
+            assert len(payload) - P.HEADER_SIZE == 2 * 2 * shape[0] * shape[1]
+        port.write(P.encode_command(P.Cmd.SET_ROI, b"".join(P.u16(v) for v in (4, 4, 157, 12))))
         assert _read_packet(port)[0] == P.DataType.NACK
 
 

@@ -14,11 +14,12 @@ import pytest
 from tofhil import C_M_PER_S
 from tofhil.demod import phasor
 from tofhil.depth import depth_from_raw
-from tofhil.drivers import epc635_protocol as P
+from tofhil.drivers.tofcam635 import protocol as P
 from tofhil.drivers.base import CaptureSettings, list_devices, open_device
-from tofhil.drivers.emulator import AnalyticWall, EmulatedTofCam635, Epc635Emulator, NoiseModel, WallSpec
-from tofhil.drivers.emulator_backend import EmulatorBackend
-from tofhil.drivers.tofcam635 import TofCam635
+from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
+from tofhil.drivers.tofcam635.sources import AnalyticWall, NoiseModel, WallSpec
+from tofhil.drivers.tofcam635.usb_backend import EmulatorBackend
+from tofhil.drivers.tofcam635.driver import TofCam635
 from tofhil.errors import DeviceError
 
 NO_NOISE = NoiseModel(read_noise_dn=0.0, electrons_per_dn=math.inf)
@@ -107,7 +108,7 @@ def test_roi_crops_image_and_camera_model() -> None:
     with wall_device(1.0) as dev:
         dev.configure(CaptureSettings(mode="dcs", integration_time_s=300e-6))
         full = next(dev.stream(1)).raw
-        dev.configure(roi=(8, 4, 87, 43))
+        dev.configure(roi=(8, 4, 88, 44))
         roi = next(dev.stream(1)).raw
         assert full is not None and roi is not None
         assert roi.taps.shape == (1, 4, 40, 80)
@@ -115,7 +116,63 @@ def test_roi_crops_image_and_camera_model() -> None:
         np.testing.assert_array_equal(roi.taps, full.taps[..., 4:44, 8:88])  # noise off: same pixels
         np.testing.assert_allclose(roi.camera.ray_z, full.camera.ray_z[4:44, 8:88])
         with pytest.raises(DeviceError, match="roi"):
-            dev.configure(roi=(0, 0, 160, 59))
+            dev.configure(roi=(0, 0, 160, 61))
+
+
+# Every ROI the camera accepts (multiples of 4, half-open, at least 4 x 4): the vendor test's
+# (4, 4, 156, 12) = 152 x 8, the smallest in each corner, full width and full height strips.
+ACCEPTED_ROIS = [(0, 0, 160, 60), (4, 4, 156, 12), (0, 0, 4, 4), (156, 56, 160, 60), (0, 28, 160, 32),
+                 (76, 0, 80, 60), (8, 4, 88, 44)]
+
+
+@pytest.mark.parametrize("mode", ["dcs", "distance", "grayscale"])
+def test_every_accepted_roi_gives_images_of_its_size(mode: str) -> None:
+    """Through pyusb (the in-process backend): the image is (y1 - y0) x (x1 - x0), its pixels
+    are the full frame's at [y0:y1, x0:x1] (noise off) and the camera model is cropped to it."""
+    with wall_device(1.0) as dev:
+        dev.configure(CaptureSettings(mode=mode, integration_time_s=300e-6, min_amplitude=0))
+        full = next(dev.stream(1))
+        for x0, y0, x1, y1 in ACCEPTED_ROIS:
+            dev.configure(roi=(x0, y0, x1, y1))
+            frame = next(dev.stream(1))
+            crop = (Ellipsis, slice(y0, y1), slice(x0, x1))
+            if mode == "dcs":
+                assert frame.raw is not None and full.raw is not None
+                assert frame.raw.taps.shape == (1, 4, y1 - y0, x1 - x0)
+                np.testing.assert_array_equal(frame.raw.taps, full.raw.taps[crop])
+                camera = frame.raw.camera
+            elif mode == "distance":
+                assert frame.depth is not None and full.depth is not None
+                assert frame.depth.radial_m.shape == frame.depth.amplitude.shape == (y1 - y0, x1 - x0)
+                np.testing.assert_array_equal(frame.depth.radial_m, full.depth.radial_m[crop])
+                camera = frame.depth.camera
+            else:
+                gray = frame.images["grayscale"]
+                assert gray.shape == (y1 - y0, x1 - x0)
+                np.testing.assert_array_equal(gray, full.images["grayscale"][crop])
+                camera = dev.camera
+            assert camera.shape == (y1 - y0, x1 - x0)
+            assert (camera.cx, camera.cy) == (dev._sensor_camera.cx - x0, dev._sensor_camera.cy - y0)
+
+
+REFUSED_ROIS = [(1, 0, 160, 60), (0, 0, 158, 60), (4, 4, 4, 12), (8, 4, 4, 12), (0, 0, 164, 60), (0, 0, 160, 64)]
+
+
+@pytest.mark.parametrize("roi", REFUSED_ROIS)
+def test_the_camera_refuses_what_the_vendor_client_cannot_send(roi: tuple[int, int, int, int]) -> None:
+    """Unaligned, empty or reversed, or past the sensor: the emulated firmware answers NACK and
+    keeps its ROI; the driver refuses it first with a DeviceError naming the field."""
+    emu = Epc635Emulator(AnalyticWall(), noise=NO_NOISE)
+    parser = P.PacketParser()
+    for sent, answer in (((4, 4, 156, 12), P.DataType.ACK), (roi, P.DataType.NACK)):
+        emu.receive(P.encode_command(P.Cmd.SET_ROI, b"".join(P.u16(v) for v in sent)))
+        parser.feed(emu.transmit())
+        reply = parser.next_packet()
+        assert reply is not None and reply.dtype == answer
+    assert emu.roi == (4, 4, 156, 12)
+    with wall_device(1.0) as dev:
+        with pytest.raises(DeviceError, match="roi.*multiples of 4"):
+            dev.configure(roi=roi)
 
 
 def test_grayscale_mode_and_device_information() -> None:
@@ -172,8 +229,19 @@ def test_no_device_and_unknown_specs_are_clear_errors() -> None:
 
 
 def test_device_counters_unwrap_across_wraps_and_restarts() -> None:
-    from tofhil.drivers.tofcam635 import _Unwrapper
+    from tofhil.drivers.tofcam635.driver import _Unwrapper
 
     u = _Unwrapper(1 << 16)
     assert [u(v) for v in (65534, 65535, 0, 1, 5000)] == [65534, 65535, 65536, 65537, 70536]
     assert [u(v) for v in (0, 1)] == [70537, 70538]  # a restarted device continues, no 65536 jump
+
+
+def test_emulator_noise_is_the_sensor_models_shot_plus_read_noise() -> None:
+    """Variance in DN = read^2 + mean / (electrons per DN): Poisson electrons, Gaussian read noise."""
+    rng = np.random.default_rng(5)
+    taps = np.full((4, 200, 200), 300.0, dtype=np.float32)
+    noisy = NoiseModel(read_noise_dn=2.0, electrons_per_dn=4.0).apply(taps, rng)
+    assert noisy.dtype == np.float32
+    assert float(noisy.mean()) == pytest.approx(300.0, abs=0.1)
+    assert float(noisy.var()) == pytest.approx(2.0**2 + 300.0 / 4.0, rel=0.02)
+    np.testing.assert_array_equal(NO_NOISE.apply(taps, rng), taps)

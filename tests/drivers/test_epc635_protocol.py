@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tofhil.drivers import epc635_protocol as P
+from tofhil.drivers.tofcam635 import protocol as P
 
 # Byte sequences printed in the TOF>cam 635 operation manual (chapter 11), CRC included.
 MANUAL_EXAMPLES = [

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from tofhil.camera import CameraModel, load_camera_preset
-from tofhil.drivers.import_adi import read_adi_interleaved, read_adi_pair
-from tofhil.drivers.importers import detect_format, import_file
+from tofhil.drivers.importers.adi import read_adi_interleaved, read_adi_pair
+from tofhil.drivers.importers.dispatch import detect_format, import_file
 from tofhil.errors import InputFileError
 from tofhil.session import open_session
 

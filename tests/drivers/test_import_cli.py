@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from tofhil.drivers.base import DeviceError, open_device
-from tofhil.drivers.importers import import_file
+from tofhil.drivers.importers.dispatch import import_file
 from tofhil.errors import InputFileError
 from tofhil.session import open_session
 

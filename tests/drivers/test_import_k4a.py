@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from tofhil.drivers.import_k4a import read_k4a_recording
-from tofhil.drivers.importers import detect_format, import_file
-from tofhil.drivers.mkv import open_mkv
+from tofhil.drivers.importers.k4a import read_k4a_recording
+from tofhil.drivers.importers.dispatch import detect_format, import_file
+from tofhil.drivers.importers.mkv import open_mkv
 from tofhil.errors import InputFileError
 from tofhil.session import open_session
 

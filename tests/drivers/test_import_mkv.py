@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tofhil.drivers import mkv as M
+from tofhil.drivers.importers import mkv as M
 from tofhil.errors import InputFileError
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import signal
 import sys
 from pathlib import Path
@@ -19,7 +20,7 @@ def _parse_roi(text: str | None) -> tuple[int, int, int, int] | None:
     try:
         x0, y0, x1, y1 = (int(v) for v in text.split(","))
     except ValueError:
-        raise DeviceError(f"--roi {text!r}", field="--roi", expected="X0,Y0,X1,Y1 (inclusive pixels)") from None
+        raise DeviceError(f"--roi {text!r}", field="--roi", expected="X0,Y0,X1,Y1 (four integers; X1, Y1 exclusive)") from None
     return x0, y0, x1, y1
 
 
@@ -34,10 +35,6 @@ def _sigterm_as_interrupt() -> None:
 def devices(as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table.")) -> None:
     """List connected cameras and emulated devices (specs for --device)."""
     import json
-    import os
-
-    if as_json:  # the DepthAI library logs its USB warnings to stdout: keep the JSON clean
-        os.environ.setdefault("DEPTHAI_LEVEL", "error")
 
     from tofhil.drivers.base import list_devices, registered_schemes
 
@@ -64,7 +61,7 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
             mode: str = typer.Option("dcs", "--mode", help="dcs (raw taps) or distance (depth + amplitude)."),
             channel: Optional[int] = typer.Option(None, "--channel", help="Modulation channel (0..15)."),
             min_amplitude: Optional[float] = typer.Option(None, "--min-amplitude", help="Minimum amplitude (DN)."),
-            roi: Optional[str] = typer.Option(None, "--roi", help="X0,Y0,X1,Y1 inclusive sensor pixels."),
+            roi: Optional[str] = typer.Option(None, "--roi", help="X0,Y0,X1,Y1 sensor pixels, half-open (X1, Y1 exclusive; TOFcam635: multiples of 4)."),
             faults: Optional[str] = typer.Option(None, "--faults",
                                                  help="Emulator only: inject faults, e.g. crc@3,disconnect@6."),
             force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
@@ -84,7 +81,7 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
         if emulator is None:
             raise DeviceError("faults can only be injected into the emulator", field="--faults",
                               expected="--device emulator[:SCENE]")
-        from tofhil.drivers.emulator import FaultPlan
+        from tofhil.drivers.tofcam635.faults import FaultPlan
 
         emulator.faults = FaultPlan.parse(faults)
     if emulator is not None:
@@ -101,9 +98,13 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
     out.print(f"frames written {summary.frames_written}/{summary.requested}, dropped {summary.dropped}, "
               f"reconnects {summary.reconnects}, {summary.frames_per_s:.1f} frames/s -> {summary.path}",
               highlight=False)
+    if summary.ended_early == "interrupted":
+        kept = f"kept in {summary.path}" if summary.frames_written else "kept (no file written)"
+        console.print(f"interrupted: {summary.frames_written} frames {kept}", highlight=False, markup=False, soft_wrap=True)
+        sys.exit(130)
     if summary.ended_early:
-        console.print(f"session ended early: {summary.ended_early}", highlight=False)
-        sys.exit(130 if summary.ended_early == "interrupted" else 3)
+        console.print(f"session ended early: {summary.ended_early}", highlight=False, markup=False, soft_wrap=True)
+        sys.exit(3)
 
 
 @app.command()
@@ -112,20 +113,26 @@ def emulate(scene: Optional[str] = typer.Option(None, "--scene", help="Scene fil
             pty: bool = typer.Option(False, "--pty", help="Serve on a pseudo-terminal (prints PORT=... first)."),
             faults: Optional[str] = typer.Option(None, "--faults", help="Inject faults, e.g. crc@3,timeout=0.05."),
             seed: int = typer.Option(0, "--seed", help="Noise seed."),
-            frame_rate: float = typer.Option(0.0, "--frame-rate", help="Limit frames/s (0: as fast as possible).")) -> None:
+            frame_rate: Optional[float] = typer.Option(None, "--frame-rate",
+                                                       help="Limit frames/s (> 0; default: as fast as possible).")) -> None:
     """Run the TOFcam635 emulator until stopped (Ctrl-C or SIGTERM)."""
-    from tofhil.drivers.emulator import Epc635Emulator, FaultPlan, source_from_spec
-    from tofhil.drivers.pty_server import PtyServer
+    from tofhil.drivers.tofcam635.emulator import Epc635Emulator
+    from tofhil.drivers.tofcam635.faults import FaultPlan
+    from tofhil.drivers.tofcam635.sources import source_from_spec
+    from tofhil.drivers.tofcam635.pty import PtyServer
 
+    if frame_rate is not None and not (math.isfinite(frame_rate) and frame_rate > 0):
+        raise DeviceError(f"--frame-rate {frame_rate:g}", field="--frame-rate",
+                          expected="a finite number of frames per second > 0 (omit it for as fast as possible)")
     if not pty:
         raise DeviceError("only the pseudo-terminal transport can be served from the command line",
                           field="--pty", expected="--pty (in-process use: --device emulator)")
     emulator = Epc635Emulator(source_from_spec(scene), faults=FaultPlan.parse(faults) if faults else None,
-                              seed=seed, frame_interval_s=1.0 / frame_rate if frame_rate > 0 else 0.0)
+                              seed=seed, frame_interval_s=1.0 / frame_rate if frame_rate else 0.0)
     # Render both modulation frequencies now (a scene render takes seconds), so that no client
     # request waits for one: the vendor client gives up after 0.2 s.
-    from tofhil.drivers import epc635_protocol as P
-    from tofhil.drivers.tofcam635 import canonical_phases
+    from tofhil.drivers.tofcam635 import protocol as P
+    from tofhil.drivers.tofcam635.profile import canonical_phases
 
     for freq in P.MOD_FREQ_CODES.values():
         emulator.source.taps(freq, 125e-6, canonical_phases(emulator.profile))

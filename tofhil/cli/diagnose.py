@@ -73,7 +73,8 @@ def demo(out_dir: Path = typer.Option(Path("demo-out"), "--out", help="Directory
     truth differs from the twin), simulate the twin, compare, diagnose, extend the model, report."""
     from tofhil.drivers.base import CaptureSettings
     from tofhil.drivers.capture import capture
-    from tofhil.drivers.emulator import TOFCAM635_OVERRIDES, EmulatedTofCam635, Epc635Emulator, SimulatedSource
+    from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
+    from tofhil.drivers.tofcam635.sources import TOFCAM635_OVERRIDES, SimulatedSource
     from tofhil.eval.diagnose import run_diagnosis
     from tofhil.eval.report import compare_sessions
     from tofhil.sim.pipeline import simulate_session

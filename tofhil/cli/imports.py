@@ -24,7 +24,7 @@ def import_(file: Path = typer.Argument(..., help="The capture: ADI .bin (interl
                                                              "pixels whose confidence byte exceeds N invalid."),
             force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
     """Turn a real capture into a session: radial depth (m), amplitude, validity, camera model."""
-    from tofhil.drivers.importers import import_file
+    from tofhil.drivers.importers.dispatch import import_file
 
     def on_frame(i: int, n: int) -> None:
         if console.is_terminal and (i == n or i % 10 == 0):

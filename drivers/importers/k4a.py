@@ -36,7 +36,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from tofhil.camera import CameraModel
-from tofhil.drivers.mkv import BlockRef, MatroskaFile, Track, open_mkv
+from tofhil.drivers.importers.mkv import BlockRef, MatroskaFile, Track, open_mkv
 from tofhil.errors import InputFileError
 
 #: Depth modes: (calibration image binned resolution, crop offset, output resolution),

@@ -3,7 +3,7 @@
 ``PtyServer(emulator).start()`` opens a pty pair, keeps the slave end open itself (so the
 pty survives clients opening and closing it), puts it in raw mode (no echo, no CR/LF
 translation, no signal characters: the protocol is binary), and pumps bytes between the
-master end and :class:`~tofhil.drivers.emulator.Epc635Emulator` on a background thread.
+master end and :class:`~tofhil.drivers.tofcam635.emulator.Epc635Emulator` on a background thread.
 Clients open :attr:`port` (``/dev/pts/N``) with pyserial or the vendor's client.
 
 A disconnect fault on a pty cannot unplug anything; the emulator simply stays silent and
@@ -17,7 +17,7 @@ import select
 import threading
 import tty
 
-from tofhil.drivers.emulator import Epc635Emulator
+from tofhil.drivers.tofcam635.emulator import Epc635Emulator
 
 
 class PtyServer:

@@ -31,7 +31,7 @@ import h5py
 import numpy as np
 
 from tofhil.camera import CameraModel, load_camera_preset
-from tofhil.drivers import import_adi
+from tofhil.drivers.importers import adi
 from tofhil.errors import InputFileError, TofhilError
 from tofhil.frames import DepthFrame
 from tofhil.session import SessionWriter, open_session, remove_partial
@@ -64,11 +64,11 @@ def detect_format(path: str | Path) -> str:
     if head == _HDF5_MAGIC or h5py.is_hdf5(p):
         return "session"
     size = p.stat().st_size
-    frame = import_adi.ADI_WIDTH * import_adi.ADI_HEIGHT
+    frame = adi.ADI_WIDTH * adi.ADI_HEIGHT
     if p.suffix.lower() == ".bin":
-        if import_adi.is_depth_name(p) or import_adi.partner_depth_path(p) is not None:
+        if adi.is_depth_name(p) or adi.partner_depth_path(p) is not None:
             return "adi-pair"
-        if size > 0 and size % (frame * import_adi.INTERLEAVED_BYTES_PER_PIXEL) == 0:
+        if size > 0 and size % (frame * adi.INTERLEAVED_BYTES_PER_PIXEL) == 0:
             return "adi-interleaved"
         if size == frame * 2:
             raise InputFileError("looks like a single ADI uint16 image but its name does not say depth",
@@ -136,13 +136,13 @@ def _write(out: Path, camera: CameraModel, device: dict[str, Any], items: Iterab
 
 
 # --------------------------------------------------------------------------- per format
-def _adi_frames(frames: Iterable[import_adi.AdiFrame], camera: CameraModel,
+def _adi_frames(frames: Iterable[adi.AdiFrame], camera: CameraModel,
                 max_confidence: int | None) -> Any:
     for i, f in enumerate(frames):
         valid = f.depth_mm > 0
         if max_confidence is not None and f.confidence is not None:
             valid &= f.confidence <= max_confidence
-        # ADI depth is radial (see import_adi): store it as is, in metres.
+        # ADI depth is radial (see importers.adi): store it as is, in metres.
         yield DepthFrame(distance_m=np.where(valid, f.depth_mm * 1e-3, 0.0).astype(np.float32), kind="radial",
                          camera=camera, amplitude=f.amplitude.astype(np.float32), valid=valid,
                          timestamp_s=math.nan, sequence=i)
@@ -213,19 +213,19 @@ def import_file(path: str | Path, out: str | Path, *, camera: str | Path | Camer
 
     if fmt in ("adi-interleaved", "adi-pair"):
         if fmt == "adi-interleaved":
-            n_total = import_adi.count_adi_interleaved(src)
-            frames: Iterable[import_adi.AdiFrame] = import_adi.iter_adi_interleaved(src)
+            n_total = adi.count_adi_interleaved(src)
+            frames: Iterable[adi.AdiFrame] = adi.iter_adi_interleaved(src)
         else:
-            depth_src = import_adi.partner_depth_path(src) if not import_adi.is_depth_name(src) else None
+            depth_src = adi.partner_depth_path(src) if not adi.is_depth_name(src) else None
             if depth_src is not None:  # the IR image was named: import its pair
                 src = depth_src
                 device["source_file"], device["source_sha256"] = str(src.resolve()), _sha256(src)
-            ir = import_adi.partner_ir_path(src)
-            frames = [import_adi.read_adi_pair(src, ir)]
+            ir = adi.partner_ir_path(src)
+            frames = [adi.read_adi_pair(src, ir)]
             n_total = 1
             device["source_ir_file"] = str(ir.resolve())
-        cam, origin = resolve_camera(camera, import_adi.ADI_DEFAULT_CAMERA,
-                                     (import_adi.ADI_HEIGHT, import_adi.ADI_WIDTH), src)
+        cam, origin = resolve_camera(camera, adi.ADI_DEFAULT_CAMERA,
+                                     (adi.ADI_HEIGHT, adi.ADI_WIDTH), src)
         device.update({"vendor": "Analog Devices", "model": "ADI ToF SDK capture (ADSD3500 class, 512x512)",
                        "depth_kind_in_file": "radial", "depth_unit_in_file": "mm",
                        "amplitude": "active brightness (AB / IR), device counts",
@@ -233,14 +233,14 @@ def import_file(path: str | Path, out: str | Path, *, camera: str | Path | Camer
         if adi_max_confidence is not None:
             device["adi_max_confidence"] = int(adi_max_confidence)
         if origin.endswith("(assumed)"):
-            notes.append(f"camera model is the assumed preset {import_adi.ADI_DEFAULT_CAMERA} "
+            notes.append(f"camera model is the assumed preset {adi.ADI_DEFAULT_CAMERA} "
                          "(no intrinsics in ADI files); pass --camera to use a calibration")
         items = ((None, d) for d in _adi_frames(frames, cam, adi_max_confidence))
         n = _write(out, cam, device, items, force, n_total, on_frame)
         return ImportResult(out, fmt, n, cam, notes)
 
     if fmt == "k4a-mkv":
-        from tofhil.drivers.import_k4a import read_k4a_recording
+        from tofhil.drivers.importers.k4a import read_k4a_recording
 
         with read_k4a_recording(src, salvage=salvage) as rec:
             return _import_k4a(rec, src, out, camera, force, device, notes, on_frame)

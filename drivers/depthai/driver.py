@@ -35,6 +35,7 @@ name or file, see :class:`TwinScene`).
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
 from dataclasses import asdict, dataclass
@@ -42,8 +43,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel, load_camera_preset
+from tofhil.demod import distance_to_phase
 from tofhil.drivers.base import (CaptureSettings, DeviceDisconnected, DeviceEntry, DeviceError, DeviceInfo,
                                  Driver, Frame, FrameDropped, register_driver)
 from tofhil.frames import DepthFrame
@@ -59,6 +60,10 @@ BASE_FREQ_HZ = 80e6
 
 
 def _dai() -> Any:
+    # depthai logs warnings to stdout at import (e.g. "USB protocol not available - If running in
+    # a container..." on every listing without USB): only its errors are news to a user. An
+    # explicit DEPTHAI_LEVEL still wins.
+    os.environ.setdefault("DEPTHAI_LEVEL", "error")
     try:
         import depthai as dai
     except ImportError as exc:  # pragma: no cover - depthai is a dependency
@@ -244,7 +249,7 @@ class PlaneScene:
                               expected="a tilt smaller than 90 deg minus half the field of view")
         d = self.distance_m / cos_inc
         amp = self.amplitude_at_1m * self.albedo * cos_inc * camera.ray_z ** 4 / d ** 2
-        phase = np.mod(4 * np.pi * BASE_FREQ_HZ * d / C_M_PER_S, 2 * np.pi)
+        phase = distance_to_phase(d, BASE_FREQ_HZ)
         return {"radial_m": d, "z_m": d * camera.ray_z, "amplitude": amp, "intensity": amp + self.ambient,
                 "phase": phase}
 
@@ -286,7 +291,7 @@ class TwinScene:
             f0 = float(raw.freq_hz[0])
             out.append({"radial_m": radial, "z_m": radial * camera.ray_z,
                         "amplitude": np.nan_to_num(d.amplitude), "intensity": np.nan_to_num(d.intensity),
-                        "phase": np.mod(4 * np.pi * f0 * radial / C_M_PER_S, 2 * np.pi)})
+                        "phase": distance_to_phase(radial, f0)})
         return out
 
 

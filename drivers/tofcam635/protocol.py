@@ -63,6 +63,11 @@ MASK_VALUE = 0x3FFF  # bits 14-15 carry a confidence code
 #: Amplitudes above this are error codes (vendor client: DEFAULT_MAX_AMPLITUDE).
 MAX_AMPLITUDE = 2896
 
+#: ROI coordinates are multiples of this (epc-tofcam-toolkit rounds to it; its GUI steps by it).
+ROI_STEP = 4
+#: The whole sensor as a ROI: half-open ``(x0, y0, x1, y1)``, x1 and y1 exclusive.
+FULL_ROI = (0, 0, SENSOR_WIDTH, SENSOR_HEIGHT)
+
 #: Modulation frequency codes of COMMAND_SET_MODULATION_FREQUENCY.
 MOD_FREQ_CODES = {0: 10.0e6, 1: 20.0e6}
 
@@ -145,6 +150,27 @@ IMAGE_REPLY = {
     Cmd.GET_GRAYSCALE: (DataType.GRAYSCALE, 1),
     Cmd.GET_DCS: (DataType.DCS, 8),
 }
+
+
+def roi_problem(roi: tuple[int, ...]) -> str | None:
+    """Why the camera refuses ``roi`` (half-open ``x0, y0, x1, y1``), or None if it accepts it.
+
+    The rules of the vendor client (epc-tofcam-toolkit 0.13 ``set_roi`` and its ROI widget):
+    every coordinate a multiple of :data:`ROI_STEP`, ``x1``/``y1`` exclusive, at least one
+    step wide and high, inside the 160 x 60 sensor. ``(4, 4, 156, 12)`` is 152 x 8 pixels.
+    """
+    if len(roi) != 4:
+        return f"{len(roi)} values"
+    x0, y0, x1, y1 = roi
+    if any(v % ROI_STEP for v in roi):
+        return f"not multiples of {ROI_STEP}"
+    if not (0 <= x0 < x1 <= SENSOR_WIDTH and 0 <= y0 < y1 <= SENSOR_HEIGHT):
+        return "empty or outside the sensor"
+    return None
+
+
+ROI_EXPECTED = (f"X0,Y0,X1,Y1 half-open (X1, Y1 exclusive), multiples of {ROI_STEP}, "
+                f"0 <= X0 < X1 <= {SENSOR_WIDTH}, 0 <= Y0 < Y1 <= {SENSOR_HEIGHT}")
 
 
 # --------------------------------------------------------------------------- errors
@@ -536,12 +562,6 @@ def decode_dcs(img: Image) -> np.ndarray:
     """DCS image -> int16 ``[4, H, W]`` device values (12-bit, mid-scale 2048)."""
     h = img.header
     return np.frombuffer(img.pixels, dtype="<i2").reshape(4, h.height, h.width)
-
-
-def decode_distance(img: Image) -> np.ndarray:
-    """Distance image -> uint16 ``[H, W]`` codes (mm below 16000, confidence bits masked)."""
-    h = img.header
-    return (np.frombuffer(img.pixels, dtype="<u2") & MASK_VALUE).reshape(h.height, h.width)
 
 
 def decode_distance_amplitude(img: Image) -> tuple[np.ndarray, np.ndarray]:

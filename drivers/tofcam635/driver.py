@@ -4,301 +4,31 @@ The camera is a USB CDC device (STMicroelectronics VID 0x0483, STM32 virtual COM
 0x5740). The driver talks to the bulk endpoints of its CDC *data* interface through pyusb
 (detaching the kernel's cdc_acm driver when it is attached), or -- same protocol, same
 code -- to a serial port (``serial:/dev/ttyACM0``, or the pseudo-terminal of
-``tofhil emulate --pty``). Protocol details: :mod:`tofhil.drivers.epc635_protocol`.
+``tofhil emulate --pty``). Protocol details: :mod:`tofhil.drivers.tofcam635.protocol`.
 
 Device specs: ``usb`` (first TOFcam635), ``usb:BUS:ADDR`` (that one), ``serial:PORT``.
 
-Tap convention (the device profile): the vendor computes the phase as
-``atan2(DCS3 - DCS1, DCS2 - DCS0) + pi`` after removing the 2048 mid-scale offset, i.e.
-``phi = atan2(DCS1 - DCS3, DCS0 - DCS2)``. That is exactly the canonical estimator for
-``DCS_k = A cos(phi - theta_k)`` with ``theta_k = 0, 90, 180, 270 deg`` and sign +1, so the
-profile declares those phases; the driver subtracts the offset and applies the
-:class:`tofhil.demod.TapConvention` at the edge.
+Transports: :mod:`.transport`; device profile and tap conversion: :mod:`.profile`.
 """
 
 from __future__ import annotations
 
-import errno
 import math
 import time
-from abc import ABC, abstractmethod
-from dataclasses import dataclass, replace
-from importlib import resources
+from dataclasses import replace
 from typing import Any, Callable
 
 import numpy as np
 
 from tofhil.camera import CameraModel, load_camera_preset
-from tofhil.demod import TapConvention
-from tofhil.drivers import epc635_protocol as P
 from tofhil.drivers.base import (CaptureSettings, DeviceDisconnected, DeviceEntry, DeviceInfo, Driver, Frame,
                                  FrameDropped, parse_spec, register_driver)
+from tofhil.drivers.tofcam635 import protocol as P
+from tofhil.drivers.tofcam635.profile import TOFCAM635, dcs_to_canonical
+from tofhil.drivers.tofcam635.transport import (USB_PID, USB_VID, SerialTransport, Transport, UsbTransport,
+                                                default_usb_backend, find_usb_devices)
 from tofhil.errors import DeviceError
 from tofhil.frames import DepthFrame, RawFrame
-
-USB_VID = 0x0483
-USB_PID = 0x5740  # STM32 virtual COM port, as enumerated by the TOFcam635
-CDC_DATA_CLASS = 0x0A
-CDC_COMM_CLASS = 0x02
-
-
-@dataclass(frozen=True)
-class DeviceProfile:
-    """What tofhil needs to know about a device model to convert its data at the edge."""
-
-    model: str
-    camera_preset: str
-    taps: TapConvention
-    dcs_offset: int
-    mod_freqs_hz: tuple[float, ...]
-    #: Default integration time when the user gives none (vendor initialize(): 125 us).
-    default_integration_time_s: float = 125e-6
-    max_integration_time_s: float = 65535e-6
-
-
-TOFCAM635 = DeviceProfile(
-    model="TOFcam635",
-    camera_preset="epc635",
-    taps=TapConvention(theta_rad=(0.0, 0.5 * math.pi, math.pi, 1.5 * math.pi), order=None, sign=1.0),
-    dcs_offset=P.DCS_OFFSET,
-    mod_freqs_hz=(10.0e6, 20.0e6),
-)
-
-
-def udev_rule_path() -> str:
-    """Where the shipped udev rule lives (inside the installed package)."""
-    return str(resources.files("tofhil.configs").joinpath("udev", "99-tofcam635.rules"))
-
-
-def permission_error(what: str) -> DeviceError:
-    rule = udev_rule_path()
-    return DeviceError(
-        f"permission denied opening {what}. Install the udev rule shipped with tofhil and replug the "
-        f"camera: sudo cp {rule} /etc/udev/rules.d/ && sudo udevadm control --reload-rules && "
-        f"sudo udevadm trigger (see docs/drivers.md, USB permissions)", field="--device",
-        expected="read/write access to the USB device")
-
-
-# --------------------------------------------------------------------------- transports
-class Transport(ABC):
-    """A byte pipe to the camera."""
-
-    description = ""
-
-    @abstractmethod
-    def write(self, data: bytes) -> None: ...
-
-    @abstractmethod
-    def read_some(self, timeout_s: float, expected: int | None = None) -> bytes:
-        """Whatever bytes arrive within ``timeout_s`` (empty on timeout). ``expected`` is how
-        many bytes the host knows are still coming for the current packet (a hint)."""
-
-    @abstractmethod
-    def close(self) -> None: ...
-
-    def reset_input(self) -> None:
-        """Forget bytes already received but not read (best effort)."""
-
-
-class UsbTransport(Transport):
-    """Bulk endpoints of the CDC data interface, through pyusb."""
-
-    READ_SIZE = 16384  # a multiple of every bulk max packet size: no libusb overflow
-
-    def __init__(self, dev: Any) -> None:
-        import usb.core
-        import usb.util
-
-        self._usb = usb
-        self.dev = dev
-        self.description = f"USB {dev.idVendor:04x}:{dev.idProduct:04x} bus {dev.bus} address {dev.address}"
-        self._detached: list[int] = []
-        try:
-            cfg = self._configuration()
-            data_intf = comm_intf = None
-            for intf in cfg:
-                if intf.bInterfaceClass == CDC_DATA_CLASS and data_intf is None:
-                    data_intf = intf
-                elif intf.bInterfaceClass == CDC_COMM_CLASS and comm_intf is None:
-                    comm_intf = intf
-            if data_intf is None:
-                raise DeviceError(f"{self.description} has no CDC data interface", field="--device",
-                                  expected="a TOFcam635 (USB CDC device)")
-            for intf in (comm_intf, data_intf):
-                if intf is None:
-                    continue
-                n = intf.bInterfaceNumber
-                try:
-                    if dev.is_kernel_driver_active(n):
-                        dev.detach_kernel_driver(n)  # cdc_acm holds it as /dev/ttyACM*
-                        self._detached.append(n)
-                except NotImplementedError:  # backends without kernel drivers (Windows, emulator)
-                    pass
-            self._intf = data_intf.bInterfaceNumber
-            usb.util.claim_interface(dev, self._intf)
-            ep_out = usb.util.find_descriptor(data_intf, custom_match=lambda e: usb.util.endpoint_direction(
-                e.bEndpointAddress) == usb.util.ENDPOINT_OUT)
-            ep_in = usb.util.find_descriptor(data_intf, custom_match=lambda e: usb.util.endpoint_direction(
-                e.bEndpointAddress) == usb.util.ENDPOINT_IN)
-            if ep_out is None or ep_in is None:
-                raise DeviceError(f"{self.description}: data interface lacks bulk endpoints", field="--device")
-            self.ep_out, self.ep_in = ep_out.bEndpointAddress, ep_in.bEndpointAddress
-            self.max_packet = int(ep_in.wMaxPacketSize) or 64
-            if comm_intf is not None:
-                self._set_line_state(comm_intf.bInterfaceNumber)
-        except usb.core.USBError as exc:
-            self._release()
-            raise usb_error(exc, self.description) from None
-        except Exception:
-            self._release()
-            raise
-
-    def _configuration(self) -> Any:
-        try:
-            return self.dev.get_active_configuration()
-        except self._usb.core.USBError as exc:
-            if exc.errno == errno.EACCES:
-                raise
-            self.dev.set_configuration()
-            return self.dev.get_active_configuration()
-
-    def _set_line_state(self, comm: int) -> None:
-        # CDC SET_LINE_CODING (10 Mbaud 8N1, what the vendor client opens) and
-        # SET_CONTROL_LINE_STATE (DTR|RTS); some STM32 VCP firmwares only send after DTR.
-        line = (10_000_000).to_bytes(4, "little") + bytes([0, 0, 8])
-        try:
-            self.dev.ctrl_transfer(0x21, 0x20, 0, comm, line, timeout=200)
-            self.dev.ctrl_transfer(0x21, 0x22, 0x03, comm, None, timeout=200)
-        except self._usb.core.USBError as exc:
-            if exc.errno in (errno.ENODEV, errno.EACCES):
-                raise
-            # a device that rejects the class requests still streams: not fatal
-
-    def write(self, data: bytes) -> None:
-        try:
-            self.dev.write(self.ep_out, data, timeout=1000)
-        except self._usb.core.USBTimeoutError:
-            raise FrameDropped(f"{self.description}: write timed out") from None
-        except self._usb.core.USBError as exc:
-            raise usb_error(exc, self.description) from None
-
-    def read_some(self, timeout_s: float, expected: int | None = None) -> bytes:
-        ms = max(1, int(timeout_s * 1000))
-        # Ask for the rest of the current packet rounded up to whole USB packets: the transfer
-        # then ends on the reply's short last packet or exactly when full, never by a timeout
-        # (libusb discards what a timed-out transfer had received).
-        mps = self.max_packet
-        size = self.READ_SIZE if expected is None else min(self.READ_SIZE, -(-max(expected, 1) // mps) * mps)
-        try:
-            return bytes(self.dev.read(self.ep_in, size, timeout=ms))
-        except self._usb.core.USBTimeoutError:
-            return b""
-        except self._usb.core.USBError as exc:
-            if exc.errno == errno.EPIPE:  # endpoint halted (stall): clear it, lose this transfer
-                try:
-                    self.dev.clear_halt(self.ep_in)
-                except self._usb.core.USBError:
-                    pass
-                raise FrameDropped(f"{self.description}: endpoint stalled (cleared)") from None
-            raise usb_error(exc, self.description) from None
-
-    def _release(self) -> None:
-        usb = self._usb
-        try:
-            usb.util.dispose_resources(self.dev)
-        except Exception:  # a vanished device cannot be released; nothing to do
-            pass
-        for n in self._detached:
-            try:
-                self.dev.attach_kernel_driver(n)  # give /dev/ttyACM* back
-            except Exception:
-                pass
-        self._detached = []
-
-    def close(self) -> None:
-        self._release()
-
-
-def usb_error(exc: Exception, what: str) -> DeviceError:
-    """Map a pyusb error to the driver's vocabulary."""
-    code = getattr(exc, "errno", None)
-    if code == errno.EACCES:
-        return permission_error(what)
-    if code in (errno.ENODEV, errno.EIO, errno.ENOENT, errno.ESHUTDOWN, errno.EPROTO):
-        return DeviceDisconnected(f"{what}: {exc}")
-    return DeviceDisconnected(f"{what}: USB error {exc}")
-
-
-class SerialTransport(Transport):
-    """The same protocol over a serial port (the CDC tty, or a pseudo-terminal)."""
-
-    def __init__(self, port: str) -> None:
-        import serial
-
-        self._serial_mod = serial
-        self.description = f"serial port {port}"
-        try:
-            self.ser = serial.Serial(port, baudrate=10_000_000, timeout=0.2, write_timeout=2.0)
-        except serial.SerialException as exc:
-            if isinstance(exc.__context__, PermissionError) or "Permission denied" in str(exc):
-                raise permission_error(port) from None
-            raise DeviceDisconnected(f"cannot open {port}: {exc}", field="--device",
-                                     expected="an existing serial port") from None
-
-    def write(self, data: bytes) -> None:
-        try:
-            self.ser.write(data)
-        except (self._serial_mod.SerialException, OSError) as exc:
-            raise DeviceDisconnected(f"{self.description}: {exc}") from None
-
-    def read_some(self, timeout_s: float, expected: int | None = None) -> bytes:
-        try:
-            self.ser.timeout = max(timeout_s, 0.001)
-            first = self.ser.read(1)
-            if not first:
-                return b""
-            n = self.ser.in_waiting
-            return first + (self.ser.read(n) if n else b"")
-        except (self._serial_mod.SerialException, OSError, TypeError) as exc:
-            raise DeviceDisconnected(f"{self.description}: {exc}") from None
-
-    def reset_input(self) -> None:
-        try:
-            self.ser.reset_input_buffer()
-        except (self._serial_mod.SerialException, OSError):
-            pass
-
-    def close(self) -> None:
-        try:
-            self.ser.close()
-        except Exception:
-            pass
-
-
-# --------------------------------------------------------------------------- device lookup
-def default_usb_backend() -> Any:
-    """libusb-1.0 from the libusb-package wheel (works without a system libusb)."""
-    import libusb_package
-
-    backend = libusb_package.get_libusb1_backend()
-    if backend is None:
-        raise DeviceError("no libusb backend could be loaded", field="--device",
-                          expected="libusb-1.0 (pip install libusb-package)")
-    return backend
-
-
-def find_usb_devices(backend: Any, bus: int | None = None, address: int | None = None) -> list[Any]:
-    import usb.core
-
-    def match(d: Any) -> bool:
-        if bus is not None:
-            return d.bus == bus and d.address == address
-        return d.idProduct == USB_PID
-
-    try:
-        return list(usb.core.find(find_all=True, idVendor=USB_VID, backend=backend, custom_match=match))
-    except usb.core.USBError as exc:
-        raise usb_error(exc, "USB bus") from None
 
 
 # --------------------------------------------------------------------------- driver
@@ -317,7 +47,7 @@ class TofCam635(Driver):
         self.transport: Transport | None = None
         self._parser = P.PacketParser()
         self._info: DeviceInfo | None = None
-        self._roi = (0, 0, P.SENSOR_WIDTH - 1, P.SENSOR_HEIGHT - 1)
+        self._roi = P.FULL_ROI
         self._sensor_camera = load_camera_preset(self.profile.camera_preset)
         self._camera = self._sensor_camera
         self._seq_unwrap = _Unwrapper(1 << 16)
@@ -409,16 +139,15 @@ class TofCam635(Driver):
         if s.mode not in ("dcs", "distance", "grayscale"):
             raise DeviceError(f"mode {s.mode!r} not supported", field="mode", expected="dcs | distance | grayscale")
         if s.roi is not None:
-            x0, y0, x1, y1 = (int(v) for v in s.roi)
-            if not (0 <= x0 <= x1 < P.SENSOR_WIDTH and 0 <= y0 <= y1 < P.SENSOR_HEIGHT):
-                raise DeviceError(f"ROI {s.roi}", field="roi",
-                                  expected=f"x0 <= x1 < {P.SENSOR_WIDTH}, y0 <= y1 < {P.SENSOR_HEIGHT} (inclusive)")
-            roi = (x0, y0, x1, y1)
+            roi = tuple(int(v) for v in s.roi)
+            problem = P.roi_problem(roi)
+            if problem is not None:  # refused here, as the camera would (it answers NACK)
+                raise DeviceError(f"ROI {tuple(s.roi)}: {problem}", field="roi", expected=P.ROI_EXPECTED)
         else:
-            roi = (0, 0, P.SENSOR_WIDTH - 1, P.SENSOR_HEIGHT - 1)
+            roi = P.FULL_ROI
         self._command(P.Cmd.SET_ROI, b"".join(P.u16(v) for v in roi))
         self._roi = roi
-        # The header reports the real size; until a frame arrives assume the inclusive ROI.
+        # The header reports the real size; until a frame arrives assume the ROI's.
         self._camera = crop_camera(self._sensor_camera, roi)
         if s.mod_freq_hz is not None:
             codes = {f: c for c, f in P.MOD_FREQ_CODES.items()}
@@ -466,10 +195,13 @@ class TofCam635(Driver):
                     self._silent = 0
                     return pkt
                 partial = self._parser.pending
+                missing = self._parser.needed() if partial else 0
                 self._parser.discard()
                 if got_any or partial:
                     self._silent = 0
-                    raise P.TruncatedPacket(f"reply incomplete after timeout ({partial} bytes buffered)")
+                    raise P.TruncatedPacket(f"{self.transport.description}: truncated reply, {partial} bytes "
+                                            f"received, {missing} more announced, none within "
+                                            f"{self.reply_timeout_s:g} s", expected="a complete packet")
                 self._silent += 1
                 if self._silent >= self.max_silent:
                     self._silent = 0
@@ -569,9 +301,9 @@ class TofCam635(Driver):
         return Frame(images={"grayscale": gray.copy()}, sequence=seq, timestamp_s=ts)
 
     def _camera_for(self, h: P.ImageHeader) -> CameraModel:
-        roi = (h.origin_x, h.origin_y, h.origin_x + h.width - 1, h.origin_y + h.height - 1)
+        roi = (h.origin_x, h.origin_y, h.origin_x + h.width, h.origin_y + h.height)
         if self._camera.shape != (h.height, h.width) or roi != self._roi:
-            if roi[2] >= P.SENSOR_WIDTH or roi[3] >= P.SENSOR_HEIGHT:
+            if roi[2] > P.SENSOR_WIDTH or roi[3] > P.SENSOR_HEIGHT:
                 raise FrameDropped(f"header ROI {roi} exceeds the sensor")
             self._roi = roi
             self._camera = crop_camera(self._sensor_camera, roi)
@@ -603,32 +335,12 @@ class _Unwrapper:
 
 
 def crop_camera(camera: CameraModel, roi: tuple[int, int, int, int]) -> CameraModel:
-    """The camera model of an inclusive ROI ``(x0, y0, x1, y1)`` of the sensor."""
+    """The camera model of a half-open ROI ``(x0, y0, x1, y1)`` of the sensor (x1, y1 exclusive)."""
     x0, y0, x1, y1 = roi
-    if (x0, y0, x1, y1) == (0, 0, camera.width - 1, camera.height - 1):
+    if (x0, y0, x1, y1) == (0, 0, camera.width, camera.height):
         return camera
-    return replace(camera, width=x1 - x0 + 1, height=y1 - y0 + 1, cx=camera.cx - x0, cy=camera.cy - y0)
+    return replace(camera, width=x1 - x0, height=y1 - y0, cx=camera.cx - x0, cy=camera.cy - y0)
 
-
-def dcs_to_canonical(dcs: np.ndarray, profile: DeviceProfile = TOFCAM635) -> tuple[np.ndarray, np.ndarray]:
-    """Device DCS ``[4, H, W]`` (12-bit around 2048) -> canonical taps (DN, offset removed) and phases."""
-    taps = np.asarray(dcs, dtype=np.float32) - np.float32(profile.dcs_offset)
-    return profile.taps.to_canonical(taps)
-
-
-def canonical_phases(profile: DeviceProfile = TOFCAM635) -> np.ndarray:
-    """Phases of the canonical taps the driver delivers (what an emulator must render)."""
-    _, theta = profile.taps.to_canonical(np.zeros((len(profile.taps.theta_rad), 1, 1)))
-    return theta
-
-
-def canonical_to_dcs(taps: np.ndarray, profile: DeviceProfile = TOFCAM635) -> np.ndarray:
-    """Inverse of :func:`dcs_to_canonical` (for the emulator): taps at :func:`canonical_phases`
-    -> device stack order, plus the mid-scale offset. Not quantised or clipped."""
-    t = np.asarray(taps)
-    if profile.taps.order is not None:
-        t = np.take(t, np.argsort(np.asarray(profile.taps.order)), axis=-3)
-    return t + profile.dcs_offset
 
 
 def distance_codes_to_frame(dist: np.ndarray, amp: np.ndarray, camera: CameraModel, ts: float, seq: int,

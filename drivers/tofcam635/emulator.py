@@ -4,22 +4,17 @@
 parses 14-byte commands, keeps the settings (ROI, integration time, modulation frequency
 and channel, amplitude limit...), and answers with ACKs, identification, chip info,
 firmware release, temperature and images (DCS, distance, distance + amplitude,
-grayscale) framed exactly as the real camera does (:mod:`tofhil.drivers.epc635_protocol`).
+grayscale) framed exactly as the real camera does (:mod:`tofhil.drivers.tofcam635.protocol`).
 Two transports carry it: an in-process pyusb backend
-(:mod:`tofhil.drivers.emulator_backend`), and a pseudo-terminal
-(:mod:`tofhil.drivers.pty_server`).
+(:mod:`tofhil.drivers.tofcam635.usb_backend`), and a pseudo-terminal
+(:mod:`tofhil.drivers.tofcam635.pty`).
 
 Images come from an :class:`ImageSource` that returns noise-free canonical taps, rendered
 once per modulation frequency (cached) and scaled with the integration time; the emulator
 adds per-frame noise, converts to the
 device's DCS (12-bit, mid-scale 2048, differential so the offset cancels) and, like the
-firmware, computes distance and amplitude from them. Sources:
-
-* :class:`AnalyticWall` -- a flat wall at a known distance with a closed-form amplitude,
-  for fast tests that must not depend on the renderer;
-* :class:`SimulatedSource` -- the simulator twin (``tofhil.sim.pipeline.simulate``) run
-  with a hidden-truth effects set the twin's scene does not contain
-  (:data:`HIDDEN_TRUTH_EFFECTS`).
+firmware, computes distance and amplitude from them. Sources and noise:
+:mod:`tofhil.drivers.tofcam635.sources`; faults: :mod:`tofhil.drivers.tofcam635.faults`.
 
 :class:`FaultPlan` injects CRC errors, truncated replies, garbage between packets, silent
 timeouts, USB stalls and disconnects (with reconnection) on image replies.
@@ -31,272 +26,17 @@ import math
 import struct
 import threading
 import time
-from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from tofhil import C_M_PER_S
-from tofhil.camera import CameraModel, load_camera_preset
-from tofhil.demod import distance_to_phase, phasor, taps_from_signal, wrapped_phase
-from tofhil.drivers import epc635_protocol as P
+from tofhil.demod import phase_to_distance, phasor, wrapped_phase
 from tofhil.drivers.base import DeviceEntry, DeviceInfo, register_driver
-from tofhil.drivers.tofcam635 import TOFCAM635, DeviceProfile, TofCam635, canonical_phases, canonical_to_dcs
-from tofhil.errors import DeviceError, InputFileError
-
-#: Integration time all source amplitudes are quoted at (the vendor initialize() value).
-REFERENCE_INTEGRATION_TIME_S = 125e-6
-
-
-# --------------------------------------------------------------------------- sources
-class ImageSource(ABC):
-    """Noise-free canonical taps (DN) of the full 160 x 60 sensor.
-
-    Sources render at :data:`REFERENCE_INTEGRATION_TIME_S`, once per modulation frequency
-    (cached); signal, offset and ambient all grow linearly with the exposure, so other
-    integration times are a scale factor, not a new render.
-    """
-
-    camera: CameraModel
-    description: str = ""
-
-    def __init__(self) -> None:
-        self._cache: dict[float, np.ndarray] = {}
-        self._lock = threading.Lock()
-
-    def taps(self, freq_hz: float, integration_time_s: float, theta_rad: np.ndarray) -> np.ndarray:
-        """``[K, H, W]`` float32 taps ``B + A cos(phi - theta_k)`` for this exposure."""
-        key = float(freq_hz)
-        with self._lock:
-            ref = self._cache.get(key)
-            if ref is None:
-                a, phi, b = self.signal(freq_hz)
-                ref = taps_from_signal(a, phi, b, theta_rad).astype(np.float32)
-                ref.setflags(write=False)
-                self._cache[key] = ref
-        return ref * np.float32(integration_time_s / REFERENCE_INTEGRATION_TIME_S)
-
-    @abstractmethod
-    def signal(self, freq_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Amplitude (DN), phase (rad) and offset (DN) images ``[H, W]`` at the reference exposure."""
-
-    def noise_model(self) -> "NoiseModel":
-        return NoiseModel()
-
-    def scene_text(self) -> str:
-        return ""
-
-
-@dataclass
-class WallSpec:
-    """A flat Lambertian wall facing the camera (normal along -z) at depth ``distance_m``."""
-
-    distance_m: float = 1.0
-    #: Amplitude (DN) on the optical axis for a wall at 1 m, at the reference integration time.
-    amplitude_at_1m_dn: float = 600.0
-    ambient_dn: float = 150.0
-
-
-class AnalyticWall(ImageSource):
-    """Closed form: radial distance ``d = z / ray_z``; amplitude ``A = A1 * ray_z / d^2``
-    (inverse square of the emitter/return path times Lambertian cos of incidence); phase
-    ``4 pi f d / c``; offset = ambient + A."""
-
-    def __init__(self, wall: WallSpec | None = None, camera: CameraModel | None = None) -> None:
-        super().__init__()
-        self.wall = wall or WallSpec()
-        self.camera = camera or load_camera_preset("epc635")
-        self.description = f"analytic wall at {self.wall.distance_m:g} m"
-
-    def radial_m(self) -> np.ndarray:
-        return self.wall.distance_m / self.camera.ray_z
-
-    def amplitude_dn(self, integration_time_s: float = REFERENCE_INTEGRATION_TIME_S) -> np.ndarray:
-        d = self.radial_m()
-        return (self.wall.amplitude_at_1m_dn * (integration_time_s / REFERENCE_INTEGRATION_TIME_S)
-                * self.camera.ray_z / d**2)
-
-    def signal(self, freq_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        a = self.amplitude_dn()
-        phi = distance_to_phase(self.radial_m(), freq_hz)
-        return a, phi, self.wall.ambient_dn + a
-
-    def scene_text(self) -> str:
-        w = self.wall
-        return (f"# tofhil emulator analytic source\nwall:\n  distance_m: {w.distance_m}\n"
-                f"  amplitude_at_1m_dn: {w.amplitude_at_1m_dn}\n  ambient_dn: {w.ambient_dn}\n")
-
-
-#: The emulated camera's hidden truth: imperfections the twin's scene does not model
-#: (tofhil.sim.effects names; documented in docs/drivers.md). Merged over the scene's own
-#: ``effects:`` block.
-HIDDEN_TRUTH_EFFECTS: dict[str, dict[str, Any]] = {
-    "stray_light": {"weight": 0.03, "sigma_px": 12.0, "veil": 0.005},
-    "wiggling": {"h3_amplitude": 0.03, "h3_phase_rad": 0.4},
-    "fixed_pattern": {"row_delay_s": 2e-12, "col_delay_s": -1e-12, "random_delay_s": 5e-12, "seed": 635},
-}
-
-#: What makes the scene's camera a TOFcam635 (ASSUMED where the data sheet is silent): the
-#: epc635 preset, its four 90-degree DCS, an LED illumination brighter than a lab LED ring,
-#: a DN scale that puts a white wall at 1 m near 10 % of the 12-bit DCS range at 125 us, and
-#: a 16-bit single-ended ADC so that only the device's 12-bit differential DCS clip.
-TOFCAM635_OVERRIDES: dict[str, Any] = {
-    "camera": {"preset": "epc635"},
-    "emitter": {"power_w": 2.0},
-    "sensor": {"taps": 4, "theta_deg": [0, 90, 180, 270], "integration_time_s": REFERENCE_INTEGRATION_TIME_S,
-               "conversion_gain_dn_per_e": 0.15, "adc_bits": 16, "full_well_e": 1_000_000},
-}
-
-
-class SimulatedSource(ImageSource):
-    """Frames rendered by the simulator twin from a scene file, through the hidden-truth model.
-
-    The scene is loaded with :data:`TOFCAM635_OVERRIDES` (the emulated device is a
-    TOFcam635 whatever camera the scene names) and rendered once per modulation frequency
-    with noise off and the hidden-truth effects on; the emulator adds per-frame noise with
-    the scene sensor's read noise and conversion gain. Rendered taps are re-expressed at the
-    device's tap phases through the complex signal (``phasor``).
-    """
-
-    def __init__(self, scene_path: str | Path, effects: dict[str, dict[str, Any]] | None = None,
-                 seed: int = 635) -> None:
-        super().__init__()
-        try:
-            from tofhil.sim.pipeline import resolve_effects  # noqa: F401
-            from tofhil.sim.scene import load_scene
-        except ImportError as exc:
-            raise DeviceError(f"the simulator twin is not available ({exc})", field="--scene",
-                              expected="tofhil.sim.pipeline") from None
-        self.scene_path = str(scene_path)
-        self.scene = load_scene(scene_path, overrides=TOFCAM635_OVERRIDES)
-        self.hidden = HIDDEN_TRUTH_EFFECTS if effects is None else effects
-        self.seed = seed
-        self.camera = self.scene.camera
-        if self.camera.shape != (P.SENSOR_HEIGHT, P.SENSOR_WIDTH):
-            raise InputFileError(f"camera is {self.camera.width}x{self.camera.height}", file=scene_path,
-                                 field="camera", expected=f"{P.SENSOR_WIDTH}x{P.SENSOR_HEIGHT} (preset epc635)")
-        self.description = f"simulated scene {self.scene_path}"
-        self.meta: dict[str, Any] = {}
-
-    def effects(self) -> dict[str, dict[str, Any]]:
-        from tofhil.sim.pipeline import resolve_effects
-
-        known = resolve_effects(self.scene, None)  # what the twin's scene itself models
-        return resolve_effects(self.scene, {**known, **self.hidden})
-
-    def signal(self, freq_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        import dataclasses
-
-        from tofhil.sim.pipeline import simulate
-
-        scene = self.scene
-        if hasattr(scene, "sensor") and isinstance(scene.sensor, dict):
-            scene = dataclasses.replace(scene, sensor={**scene.sensor, "freq_hz": [float(freq_hz)]})
-        raw = simulate(scene, 1, self.seed, noise=False, effects=self.effects())[0]
-        self.meta = dict(raw.meta)
-        taps = np.asarray(raw.taps[0], dtype=np.float64) - float(raw.meta.get("black_level_dn", 0.0))
-        s = phasor(taps, raw.theta_rad)
-        scale = REFERENCE_INTEGRATION_TIME_S / raw.integration_time_s if raw.integration_time_s > 0 else 1.0
-        return np.abs(s) * scale, wrapped_phase(s), taps.mean(axis=0) * scale
-
-    def noise_model(self) -> "NoiseModel":
-        sensor = getattr(self.scene, "sensor", None) or {}
-        gain = float(sensor.get("conversion_gain_dn_per_e", 0.15))
-        return NoiseModel(read_noise_dn=float(sensor.get("read_noise_e", 20.0)) * gain, electrons_per_dn=1.0 / gain)
-
-    def scene_text(self) -> str:
-        return getattr(self.scene, "text", "") or ""
-
-
-def default_source() -> ImageSource:
-    """The bundled ``bench_demo`` scene when the twin and the scene exist, else an analytic wall."""
-    try:
-        from tofhil.sim.scene import bundled_scenes
-
-        if "bench_demo" in bundled_scenes():
-            return SimulatedSource("bench_demo")
-    except (ImportError, DeviceError):
-        pass
-    return AnalyticWall()
-
-
-def source_from_spec(scene: str | None) -> ImageSource:
-    """``None`` -> :func:`default_source`; ``wall:1.5`` -> analytic wall at 1.5 m; else a scene file/name."""
-    if scene is None or scene == "":
-        return default_source()
-    if scene.startswith("wall"):
-        _, _, dist = scene.partition(":")
-        try:
-            return AnalyticWall(WallSpec(distance_m=float(dist) if dist else 1.0))
-        except ValueError:
-            raise DeviceError(f"bad wall distance {dist!r}", field="--scene", expected="wall:METRES") from None
-    return SimulatedSource(scene)
-
-
-# --------------------------------------------------------------------------- noise and faults
-@dataclass
-class NoiseModel:
-    """Per-frame noise of one tap in DN: read noise plus shot noise ``var = c / gain``."""
-
-    read_noise_dn: float = 1.5
-    electrons_per_dn: float = 8.0
-
-    def apply(self, taps: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        var = self.read_noise_dn**2 + np.maximum(taps, 0.0) / self.electrons_per_dn
-        return taps + rng.standard_normal(taps.shape, dtype=np.float32) * np.sqrt(var, dtype=np.float32)
-
-
-FAULT_KINDS = ("crc", "truncate", "garbage", "timeout", "stall", "disconnect")
-
-
-@dataclass
-class FaultPlan:
-    """Which image replies go wrong: ``at`` maps the image-request index (0-based) to a
-    fault; ``rates`` gives per-request probabilities. ``disconnect_s`` is how long a
-    disconnected device stays away."""
-
-    at: dict[int, str] = field(default_factory=dict)
-    rates: dict[str, float] = field(default_factory=dict)
-    seed: int = 0
-    disconnect_s: float = 0.2
-
-    def __post_init__(self) -> None:
-        for kind in list(self.at.values()) + list(self.rates):
-            if kind not in FAULT_KINDS:
-                raise DeviceError(f"unknown fault {kind!r}", field="faults", expected=" | ".join(FAULT_KINDS))
-        self._rng = np.random.default_rng(self.seed)
-
-    def fault_for(self, index: int) -> str | None:
-        if index in self.at:
-            return self.at[index]
-        for kind, p in self.rates.items():
-            if self._rng.random() < p:
-                return kind
-        return None
-
-    @classmethod
-    def parse(cls, text: str) -> "FaultPlan":
-        """``"crc@3,truncate@5,disconnect@8"``, ``"crc=0.05,timeout=0.01"``; ``disconnect_s=2``
-        sets how long a disconnect lasts."""
-        at: dict[int, str] = {}
-        rates: dict[str, float] = {}
-        away = 0.2
-        for item in filter(None, (t.strip() for t in text.split(","))):
-            try:
-                if item.startswith("disconnect_s="):
-                    away = float(item.partition("=")[2])
-                elif "@" in item:
-                    kind, idx = item.split("@")
-                    at[int(idx)] = kind
-                else:
-                    kind, p = item.split("=")
-                    rates[kind] = float(p)
-            except ValueError:
-                raise DeviceError(f"bad fault item {item!r}", field="--faults",
-                                  expected="KIND@FRAME or KIND=PROBABILITY, comma separated") from None
-        return cls(at=at, rates=rates, disconnect_s=away)
+from tofhil.drivers.tofcam635 import protocol as P
+from tofhil.drivers.tofcam635.driver import TofCam635
+from tofhil.drivers.tofcam635.faults import FaultPlan
+from tofhil.drivers.tofcam635.profile import TOFCAM635, DeviceProfile, canonical_phases, canonical_to_dcs
+from tofhil.drivers.tofcam635.sources import AnalyticWall, ImageSource, NoiseModel, source_from_spec
 
 
 # --------------------------------------------------------------------------- the camera
@@ -341,7 +81,7 @@ class Epc635Emulator:
 
     # ---- state --------------------------------------------------------------
     def reset(self) -> None:
-        self.roi = (0, 0, P.SENSOR_WIDTH - 1, P.SENSOR_HEIGHT - 1)
+        self.roi = P.FULL_ROI
         self.int_time_us = [125, 0, 0, 0, 0, 0, 0, 0]
         self.int_time_gray_us = 50
         self.mod_code = 1
@@ -427,11 +167,10 @@ class Epc635Emulator:
             self.int_time_gray_us = max(1, u16(0))
             return ack
         if cmd == C.SET_ROI:
-            x0, y0, x1, y1 = struct.unpack_from("<4H", p, 0)
-            x1, y1 = min(x1, P.SENSOR_WIDTH - 1), min(y1, P.SENSOR_HEIGHT - 1)  # vendor sends 160/60
-            if x0 > x1 or y0 > y1:
-                return P.encode_packet(D.NACK)
-            self.roi = (x0, y0, x1, y1)
+            roi = struct.unpack_from("<4H", p, 0)
+            if P.roi_problem(roi) is not None:
+                return P.encode_packet(D.NACK)  # the camera keeps its previous ROI
+            self.roi = roi
             return ack
         if cmd == C.SET_MOD_FREQUENCY:
             if p[0] not in P.MOD_FREQ_CODES:
@@ -487,7 +226,7 @@ class Epc635Emulator:
         return P.ImageHeader(
             version=1, frame_counter=self.frame_counter & 0xFFFF, timestamp=ms,
             firmware_version=self.FIRMWARE[0] << 16 | self.FIRMWARE[1], hardware_version=self.HW_VERSION,
-            chip_id=self.CHIP_ID, width=x1 - x0 + 1, height=y1 - y0 + 1, origin_x=x0, origin_y=y0,
+            chip_id=self.CHIP_ID, width=x1 - x0, height=y1 - y0, origin_x=x0, origin_y=y0,
             current_int_time_3d_wf=it[0], current_int_time_grayscale=self.int_time_gray_us,
             int_time_grayscale=self.int_time_gray_us, int_time_0=it[0], int_time_1=it[1], int_time_2=it[2],
             amplitude_limit_0=self.amp_limits[0], amplitude_limit_1=self.amp_limits[1],
@@ -501,7 +240,7 @@ class Epc635Emulator:
         theta = canonical_phases(self.profile)
         clean = self.source.taps(self.freq_hz, t_int, theta)
         x0, y0, x1, y1 = self.roi
-        c = self.noise.apply(clean[:, y0:y1 + 1, x0:x1 + 1], self.rng) if self.noise else clean[:, y0:y1 + 1, x0:x1 + 1]
+        c = self.noise.apply(clean[:, y0:y1, x0:x1], self.rng) if self.noise else clean[:, y0:y1, x0:x1]
         # epc635 pixels read the difference of their two storage gates: DCS_k ~ (c_k - c_{k+2}) / 2
         # = A cos(phi - theta_k); offset and ambient cancel, noise of both gates remains.
         diff = 0.5 * (c - np.roll(c, 2, axis=0))
@@ -539,7 +278,7 @@ class Epc635Emulator:
         theta = canonical_phases(self.profile)
         clean = self.source.taps(self.freq_hz, self.int_time_gray_us * 1e-6, theta)
         x0, y0, x1, y1 = self.roi
-        b = clean[:, y0:y1 + 1, x0:x1 + 1].mean(axis=0)
+        b = clean[:, y0:y1, x0:x1].mean(axis=0)
         b = self.noise.apply(b[None], self.rng)[0] if self.noise else b
         return np.clip(np.rint(b / 16.0), 0, 255).astype(np.uint8)
 
@@ -548,7 +287,7 @@ class Epc635Emulator:
         taps = dcs.astype(np.float32) - self.profile.dcs_offset
         s = phasor(taps, canonical_phases(self.profile))
         amp = np.abs(s)
-        dist_mm = wrapped_phase(s) * (C_M_PER_S / (4 * np.pi * self.freq_hz)) * 1e3
+        dist_mm = phase_to_distance(wrapped_phase(s), self.freq_hz) * 1e3
         dist = np.minimum(np.rint(dist_mm), P.LIMIT_VALID - 1).astype(np.uint16)
         dist[amp < self.amp_limits[0]] = P.CODE_LOW_AMPLITUDE
         overflow = ((dcs <= 0) | (dcs >= P.DCS_MAX)).any(axis=0)
@@ -588,7 +327,7 @@ class EmulatedTofCam635(TofCam635):
     scheme = "emulator"
 
     def __init__(self, spec: str = "emulator", *, emulator: Epc635Emulator | None = None) -> None:
-        from tofhil.drivers.emulator_backend import EmulatorBackend
+        from tofhil.drivers.tofcam635.usb_backend import EmulatorBackend
 
         _, scene = spec.partition(":")[::2]
         self.emulator = emulator or Epc635Emulator(source_from_spec(scene or None))

@@ -25,8 +25,8 @@ from typing import Any
 import usb.backend
 import usb.core
 
-from tofhil.drivers.emulator import Epc635Emulator
-from tofhil.drivers.tofcam635 import USB_PID, USB_VID
+from tofhil.drivers.tofcam635.emulator import Epc635Emulator
+from tofhil.drivers.tofcam635.transport import USB_PID, USB_VID
 
 EP_OUT = 0x01
 EP_IN = 0x81

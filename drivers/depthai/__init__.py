@@ -1,0 +1,1 @@
+"""Luxonis ToF cameras through DepthAI v3 (device and host-only pipelines)."""
