@@ -109,11 +109,10 @@ def object_id_map(session: Any) -> tuple[np.ndarray | None, dict[int, str]]:
 
 
 def _mask_shadows(frame: DepthFrame, min_relative_amplitude: float) -> None:
-    """Invalidate pixels below a fraction of the frame's 99th-percentile amplitude: no light
-    reaches them (a shadow), so their phase means nothing."""
-    if frame.amplitude is not None and np.isfinite(frame.amplitude).any() and min_relative_amplitude > 0:
-        top = np.nanpercentile(frame.amplitude, 99)
-        frame.valid = frame.valid & (np.nan_to_num(frame.amplitude) >= min_relative_amplitude * top)
+    """Invalidate unlit pixels (:func:`tofhil.eval.metrics.lit_pixels`)."""
+    lit = M.lit_pixels(frame.amplitude, min_relative_amplitude)
+    if lit is not None:
+        frame.valid = frame.valid & lit
 
 
 # ---------------------------------------------------------------------------- report
@@ -189,7 +188,7 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
                      corrections: Sequence[str] = (), rois: Sequence[str] = (), masks: Sequence[str | Path] = (),
                      row: int | None = None, column: int | None = None, max_frames: int = 10,
                      cell_size: float = 0.1, threshold: float = 0.01, min_amplitude: float = 0.0,
-                     min_relative_amplitude: float = 1e-3, objects: bool = True, force: bool = False,
+                     min_relative_amplitude: float = M.MIN_RELATIVE_AMPLITUDE, objects: bool = True, force: bool = False,
                      log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Compare session A with reference B, write ``metrics.json`` and ``report.html``.
 
@@ -267,6 +266,11 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
         "reference_temporal_std_m_median": float(np.nanmedian(ref_std)) if np.isfinite(ref_std).any() else None,
         "variants": {},
     }
+    for f, h, path in ((ref, health_b, b_path), (fa, health_a, a_path)):
+        if not M.frame_validity(f, h).any():
+            raise TofhilError(f"has no valid pixel in the {min(max_frames, n_a if path == a_path else n_b)} frame(s) "
+                              "compared (NaN, saturated, unlit or flagged invalid everywhere)", file=path,
+                              field="depth/valid", expected="a capture with valid pixels in common with the other")
     for v in variants:
         say(f"metrics: {v.label}")
         v.evaluation = M.evaluate(v.frame, ref, regions, wrap_m=wrap_m, health_a=health_a, health_b=health_b,

@@ -71,20 +71,26 @@ def distance_defined(data: HeldOutData, *predictions: np.ndarray, sigmas: float 
 
 #: The region of the held-out pixels (the gain is measured there).
 HELD_OUT = "held-out"
+#: The pixels the held-out figures use, written next to the report: ``tofhil compare
+#: --mask`` with it gives the same figures for the capture against the twin.
+HELD_OUT_MASK = "heldout_pixels.npy"
 
 
 def heldout_frames(data: HeldOutData, prediction: np.ndarray, defined: np.ndarray) -> tuple[DepthFrame, DepthFrame]:
     """The held-out measurement and a prediction as depth frames (radial distance and mean
     amplitude from the complex signal): measured pixels are valid where usable (signal above
-    noise, no clipped tap), predicted ones where ``defined``."""
+    noise, no clipped tap), predicted ones where ``defined``; both only where lit
+    (:func:`tofhil.eval.metrics.lit_pixels`)."""
     nf = data.n_freq
     cam = data.camera
     s_meas, s_pred = data.s_test[:nf], prediction[:nf]
-    measured = DepthFrame(distance_m=depth_from_signal(s_meas, data.freq_hz), kind="radial", camera=cam,
-                          amplitude=np.abs(s_meas).mean(axis=0), valid=data.usable)
-    twin = DepthFrame(distance_m=depth_from_signal(s_pred, data.freq_hz), kind="radial", camera=cam,
-                      amplitude=np.abs(s_pred).mean(axis=0), valid=defined)
-    return measured, twin
+    frames = []
+    for s, valid in ((s_meas, data.usable), (s_pred, defined)):
+        amp = np.abs(s).mean(axis=0)
+        lit = M.lit_pixels(amp)  # the rule compare applies: unlit pixels have no phase to compare
+        frames.append(DepthFrame(distance_m=depth_from_signal(s, data.freq_hz), kind="radial", camera=cam,
+                                 amplitude=amp, valid=valid if lit is None else valid & lit))
+    return frames[0], frames[1]
 
 
 def heldout_metrics(data: HeldOutData, prediction: np.ndarray, defined: np.ndarray,
@@ -209,7 +215,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,
                   progress: Callable[[str], None] | None = None, **kwargs: Any) -> DiagnosisResult:
-    """``tofhil diagnose``: diagnose and write diagnosis.json, extended_scene.yaml, report.html.
+    """``tofhil diagnose``: diagnose and write diagnosis.json, extended_scene.yaml, report.html
+    and the held-out pixels (:data:`HELD_OUT_MASK`).
 
     A run that fails leaves nothing behind: the files it wrote are removed, and the output
     directory too when this run created it.
@@ -218,7 +225,7 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
     from tofhil.eval.diagnose_report import write_report
     from tofhil.sim.scene import load_scene
 
-    names = ("diagnosis.json", "report.html", "extended_scene.yaml")
+    names = ("diagnosis.json", "report.html", "extended_scene.yaml", HELD_OUT_MASK)
     try:
         out = H.prepare_output_dir(out_dir, names, force=force)
     except TofhilError as exc:
@@ -236,6 +243,9 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
                        **kwargs)
         written.append(out / "diagnosis.json")
         H.write_json(out / "diagnosis.json", res.to_json())
+        written.append(out / HELD_OUT_MASK)
+        ev = res.evaluations["before"]
+        np.save(out / HELD_OUT_MASK, ev.maps.valid_both & res.data.test_pixels)
         written.append(out / "report.html")
         write_report(res, out / "report.html", session_path=str(session_path), scene_path=str(scene_path))
     except BaseException:

@@ -185,8 +185,8 @@ def clipped_pixels(taps_max: np.ndarray, taps_min: np.ndarray | None = None,
     finite = np.isfinite(tmax)
     out = np.zeros(tmax.shape, dtype=bool)
     if level is not None:
-        return finite & (tmax >= level)
-    if finite.any():
+        out |= finite & (tmax >= level)
+    elif finite.any():
         top = float(tmax[finite].max())
         if (tmax >= top).sum() >= MIN_CLIPPED_PIXELS:
             out |= tmax >= top
@@ -271,6 +271,21 @@ class ResidualMaps:
     @property
     def valid_both(self) -> np.ndarray:
         return self.valid_a & self.valid_b
+
+
+#: Pixels below this fraction of the image's 99th-percentile amplitude are unlit (a shadow).
+MIN_RELATIVE_AMPLITUDE = 1e-3
+
+
+def lit_pixels(amplitude: np.ndarray | None, min_relative: float = MIN_RELATIVE_AMPLITUDE) -> np.ndarray | None:
+    """Pixels whose amplitude reaches ``min_relative`` of the image's 99th percentile: where
+    no light arrives (a shadow) the phase means nothing. ``None`` without amplitudes."""
+    if amplitude is None or min_relative <= 0:
+        return None
+    a = np.asarray(amplitude, np.float64)
+    if not np.isfinite(a).any():
+        return None
+    return np.nan_to_num(a) >= min_relative * np.nanpercentile(a, 99)
 
 
 def frame_validity(frame: DepthFrame, health: TapHealth | None = None) -> np.ndarray:
