@@ -149,7 +149,8 @@ def figures(variants: list[Variant], ref: DepthFrame, section: H.CrossSection,
          "A device's and the twin's amplitude units differ by a constant: look at the pattern."),
         ("Cross-section", H.figure_cross_section(section, ("reference (B)", dist[0][1]),
                                                  [(t, d) for t, d in dist[1:]], res),
-         f"Radial distance and residual A - B along {section.describe()} (choose with --row or --column)."),
+         f"Radial distance and residual A - B along {section.describe()} (choose with --row or --column); "
+         "the residual axis spans the line's 1-99 % range, values beyond it are drawn at its edge."),
         ("Residual histograms", H.figure_histogram(res),
          "Distribution of the depth residual over all pixels valid in A and B (log scale)."),
     ]

@@ -264,12 +264,13 @@ def figure_cross_section(section: CrossSection, reference: tuple[str, np.ndarray
     ax.legend(fontsize=8)
     if residuals:
         ax = axes[0, 1]
-        for label, img in residuals:
-            ax.plot(x, section.take(img) * 1e3, lw=1.2, label=label)
-        ax.axhline(0, color="0.5", lw=0.5)
         vals = [section.take(img) * 1e3 for _, img in residuals]
         lo, hi = symmetric_range(vals, floor=1e-3, percentiles=(1.0, 99.0))
-        ax.set_ylim(1.15 * lo, 1.15 * hi)  # robust: a jump edge does not flatten the rest
+        lo, hi = 1.15 * lo, 1.15 * hi  # robust: a jump edge does not flatten the rest; it is drawn at the edge
+        for (label, _), v in zip(residuals, vals):
+            ax.plot(x, np.clip(v, lo, hi), lw=1.2, label=label)
+        ax.axhline(0, color="0.5", lw=0.5)
+        ax.set_ylim(lo, hi)
         ax.set_xlabel(section.along)
         ax.set_ylabel("A - B (mm)")
         ax.set_title(f"residual along {section.describe()}")

@@ -455,7 +455,8 @@ class RegionMetrics:
             return None
         line = f"{self.name}: " + ", ".join(parts) + f" (excluded; {100 * self.valid_both_fraction:.1f} % compared)"
         if self.saturation_dominated:
-            line += " -- dominated by saturation: its figures describe the few unsaturated pixels"
+            line += (" -- dominated by saturation: no pixel left to compare" if self.valid_both_fraction == 0
+                     else " -- dominated by saturation: its figures describe the few unsaturated pixels")
         return line
 
     def to_json(self) -> dict[str, Any]:
