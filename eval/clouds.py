@@ -7,13 +7,17 @@ Accepted sources:
 - a session frame ``SESSION.h5[:FRAME]`` (``.h5``/``.hdf5``; frame default 0, negative
   counts from the end): the camera-frame points of the frame's valid depth pixels.
 
-Non-finite points are dropped. Every failure raises :class:`InputFileError` naming the
-file (and the field) and what was expected.
+NaN points (the holes of an organised cloud) are dropped; an infinite coordinate or one
+beyond :data:`MAX_COORDINATE_M` is refused with the file and the point's row. A PLY file's
+data must hold as many vertices as its header declares (Open3D reads a truncated file
+leniently, filling the missing points with garbage). Every failure raises
+:class:`InputFileError` naming the file (and the field) and what was expected.
 """
 
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +26,12 @@ from tofhil.errors import InputFileError
 
 TEXT_SUFFIXES = (".xyz", ".txt", ".csv", ".pts")
 SESSION_SUFFIXES = (".h5", ".hdf5")
+#: Largest accepted |coordinate| [m]: a ToF cloud spans metres, not thousands of kilometres.
+MAX_COORDINATE_M = 1.0e6
+
+_PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
+              "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
 _SESSION_SPEC = re.compile(r"^(?P<path>.+\.(?:h5|hdf5))(?::(?P<frame>-?\d+))?$", re.IGNORECASE)
 
 
@@ -34,7 +44,15 @@ def parse_session_spec(spec: str) -> tuple[Path, int] | None:
 
 
 def _finite(points: np.ndarray, source: str | Path) -> np.ndarray:
-    p = points[np.all(np.isfinite(points), axis=1)]
+    """Drop NaN points (holes); refuse infinite or absurd coordinates, naming the row."""
+    with np.errstate(invalid="ignore"):
+        bad = np.isinf(points).any(axis=1) | (np.abs(np.nan_to_num(points)) > MAX_COORDINATE_M).any(axis=1)
+    if bad.any():
+        row = int(np.flatnonzero(bad)[0])
+        raise InputFileError(f"point {row} (0-based data row) is {points[row].tolist()}; {int(bad.sum())} point(s) "
+                             "like it", file=source, field=f"point {row}",
+                             expected=f"finite coordinates in metres, |x|, |y|, |z| <= {MAX_COORDINATE_M:g}")
+    p = points[~np.isnan(points).any(axis=1)]
     if p.shape[0] == 0:
         raise InputFileError("contains no finite points", file=source, expected="a non-empty point cloud")
     return p
@@ -52,8 +70,7 @@ def _read_open3d(path: Path) -> np.ndarray:
             raise InputFileError("is not a PCD file", file=path, field="header",
                                  expected="a PCD header with FIELDS ... and DATA lines")
     else:
-        if not path.read_bytes()[:3] == b"ply":
-            raise InputFileError("is not a PLY file", file=path, field="header", expected="a file starting with 'ply'")
+        _check_ply(path)
     cloud = o3d.io.read_point_cloud(str(path))
     pts = np.asarray(cloud.points, dtype=np.float64)
     if pts.shape[0] == 0:
@@ -62,11 +79,82 @@ def _read_open3d(path: Path) -> np.ndarray:
     return pts
 
 
+def _ply_header(path: Path, raw: bytes) -> tuple[str, list[tuple[str, int, list[str] | None]], int]:
+    """The PLY header: format, elements ``(name, count, property types or None if a list
+    property makes the size variable)`` and the offset where the data start."""
+    if raw[:3] != b"ply":
+        raise InputFileError("is not a PLY file", file=path, field="header", expected="a file starting with 'ply'")
+    m = re.search(rb"end_header\r?\n", raw[:65536])
+    if m is None:
+        raise InputFileError("has no end_header line", file=path, field="header", expected="a complete PLY header")
+    fmt = ""
+    elements: list[tuple[str, int, list[str] | None]] = []
+    for line in raw[:m.start()].decode("ascii", errors="replace").splitlines():
+        t = line.split()
+        if not t:
+            continue
+        if t[0] == "format" and len(t) >= 2:
+            fmt = t[1]
+        elif t[0] == "element" and len(t) == 3:
+            try:
+                count = int(t[2])
+            except ValueError:
+                raise InputFileError(f"declares {line.strip()!r}", file=path, field="header",
+                                     expected="element NAME COUNT with an integer count") from None
+            elements.append((t[1], count, []))
+        elif t[0] == "property" and elements:
+            name, count, props = elements[-1]
+            if len(t) >= 2 and t[1] == "list" or props is None:
+                elements[-1] = (name, count, None)
+            elif len(t) >= 3 and t[1] in _PLY_SIZES:
+                props.append(t[1])
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise InputFileError(f"has format {fmt!r}", file=path, field="header",
+                             expected="ascii, binary_little_endian or binary_big_endian")
+    return fmt, elements, m.end()
+
+
+def _check_ply(path: Path) -> None:
+    """Refuse a PLY whose data hold fewer vertices than its header declares."""
+    raw = path.read_bytes()
+    fmt, elements, start = _ply_header(path, raw)
+    names = [e[0] for e in elements]
+    if "vertex" not in names:
+        raise InputFileError("declares no vertex element", file=path, field="element vertex",
+                             expected="element vertex N with x, y, z properties")
+    body = raw[start:]
+    declared = elements[names.index("vertex")][1]
+    if fmt == "ascii":
+        # one line per element item; the vertices follow the items of earlier elements
+        skip = sum(c for _, c, _ in elements[:names.index("vertex")])
+        lines = [ln for ln in body.splitlines() if ln.strip()]
+        have = max(0, min(len(lines) - skip, declared))
+        nprops = len(elements[names.index("vertex")][2] or [])
+        if have == declared and nprops:
+            short = [i for i, ln in enumerate(lines[skip:skip + declared]) if len(ln.split()) < nprops]
+            have = short[0] if short else declared
+    else:
+        before = elements[:names.index("vertex") + 1]
+        if any(p is None for _, _, p in before):
+            return  # variable-size items before the vertices: Open3D's own checks must do
+        sizes = [c * sum(_PLY_SIZES[t] for t in p) for _, c, p in before]
+        stride = sum(_PLY_SIZES[t] for t in before[-1][2])
+        if stride == 0:
+            return
+        have = min(declared, max(0, (len(body) - sum(sizes[:-1])) // stride))
+    if have < declared:
+        raise InputFileError(f"declares {declared} vertices in its header but its data hold only {have} "
+                             "(truncated file?)", file=path, field="element vertex",
+                             expected=f"{declared} complete vertices")
+
+
 def _read_text(path: Path) -> np.ndarray:
     text = path.read_text(errors="replace")
     delim = "," if path.suffix.lower() == ".csv" or ("," in text.split("\n", 1)[0]) else None
     try:
-        arr = np.loadtxt(path, delimiter=delim, comments="#", ndmin=2, dtype=np.float64)
+        with warnings.catch_warnings():  # an empty file is reported below, without numpy's warning
+            warnings.simplefilter("ignore", UserWarning)
+            arr = np.loadtxt(path, delimiter=delim, comments="#", ndmin=2, dtype=np.float64)
     except ValueError as exc:
         raise InputFileError(f"is not numeric text ({exc})", file=path,
                              expected="rows of at least 3 numbers x y z in metres") from None

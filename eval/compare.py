@@ -1,162 +1,293 @@
-"""Pixel-aligned comparison of two depth frames taken with the same camera model.
+"""``tofhil compare``: A against B, before and after corrections; a layout over :mod:`metrics`.
 
-Residual = A - B per pixel (A the measurement or corrected measurement, B the reference:
-the twin's render or a ground truth), on radial distance, over regions: all pixels valid
-in both, one region per object id when the twin provides an object-id map, and user ROIs.
-Statistics are robust (median, MAD) next to the classical ones (mean, RMSE), because
-jump-edge pixels and stray-light outliers make the error distribution heavy-tailed.
+A is the measurement (a bench or emulated session), B the reference (the twin's render or
+a ground truth) taken with the same camera model. Each variant of A -- as measured, and
+after each requested correction -- is reduced to the temporal mean of its frames and
+evaluated against B's mean by :func:`tofhil.eval.metrics.evaluate` (residual maps,
+regions, cloud and NDT metrics); the page is drawn by :mod:`tofhil.eval.html`.
+``metrics.json`` holds every number; ``report.html`` is one self-contained file.
+
+Pixels with a clipped (saturated) or non-finite tap in any averaged frame are invalid, and
+each region reports how many it lost that way.
 """
 
 from __future__ import annotations
 
-import warnings
-from dataclasses import dataclass
-from typing import Any, Iterable
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from tofhil import __version__
 from tofhil.errors import TofhilError
+from tofhil.eval import html as H
+from tofhil.eval import metrics as M
+from tofhil.eval.corrections import correct_depth, correct_raw, get_method, load_params, parse_method_spec, resolve_params
 from tofhil.frames import DepthFrame
 
-#: MAD -> standard deviation for a Gaussian distribution.
-MAD_TO_SIGMA = 1.4826
+MEASURED = "measured"
+OUTPUTS = ("metrics.json", "report.html")
 
 
 @dataclass
-class Region:
-    """A named pixel mask ``[H, W]``."""
+class Variant:
+    """One version of A: its label, mean depth frame, per-pixel temporal std and evaluation."""
 
-    name: str
-    mask: np.ndarray
-    kind: str = "roi"  # "all", "object" or "roi"
+    label: str
+    frame: DepthFrame
+    temporal_std_m: np.ndarray
+    method: str | None = None
+    params: dict[str, Any] = field(default_factory=dict)
+    evaluation: M.Evaluation | None = None
 
 
-def parse_roi(text: str, shape: tuple[int, int], name: str | None = None) -> Region:
-    """``"x0,y0,x1,y1"`` (pixel columns x0..x1-1, rows y0..y1-1) -> a Region."""
+# ---------------------------------------------------------------------------- loading
+
+
+def session_depth_frames(session: Any, n: int, method: str | None = None,
+                         params: dict[str, Any] | None = None, min_amplitude: float = 0.0) -> list[DepthFrame]:
+    """Depth frames of the first ``n`` frames, optionally corrected.
+
+    Raw sessions are demodulated here (the same pipeline before and after correction);
+    depth-only sessions use their stored depth.
+    """
+    from tofhil.depth import depth_from_raw
+
+    frames = []
+    for i in range(min(n, session.n_frames)):
+        if session.has_raw:
+            raw = session.raw_frame(i)
+            if method is None:
+                frames.append(depth_from_raw(raw, min_amplitude=min_amplitude))
+            else:
+                frames.append(correct_raw(raw, method, params, min_amplitude=min_amplitude)[1])
+        else:
+            d = session.depth_frame(i)
+            frames.append(d if method is None else correct_depth(d, method, params))
+    return frames
+
+
+def tap_health(session: Any, n: int) -> M.TapHealth:
+    """Clipped and non-finite taps over the first ``n`` frames (none for depth-only sessions)."""
+    if not session.has_raw:
+        return M.TapHealth.none(session.camera.shape)
+    return M.TapHealth.from_taps(session.raw_frame(i).taps for i in range(min(n, session.n_frames)))
+
+
+def object_id_map(session: Any) -> tuple[np.ndarray | None, dict[int, str]]:
+    """The twin's object-id map of a session, and the object names.
+
+    From a ``depth/object_id`` dataset when the session has one, else by re-rendering the
+    scene embedded in the session (ids are indices into the scene's objects). ``None``
+    when neither is available.
+    """
+    f = session._file  # noqa: SLF001 -- optional dataset outside the core reader's API
+    names: dict[int, str] = {}
+    scene = None
+    if session.scene_text:
+        try:
+            from tofhil.sim.scene import scene_from_yaml
+
+            scene = scene_from_yaml(session.scene_text, source=f"{session.path}:scene")
+            names = {i: o.name for i, o in enumerate(scene.objects)}
+        except Exception:  # a scene written by another tool version: regions by ROI only
+            scene = None
+    if "depth/object_id" in f:
+        ids = np.asarray(f["depth/object_id"][0 if f["depth/object_id"].ndim == 3 else ()])
+        return ids.astype(np.int64), names
+    if scene is None:
+        return None, names
     try:
-        x0, y0, x1, y1 = (int(v) for v in text.split(","))
-    except ValueError:
-        raise TofhilError(f"got {text!r}", field="--roi", expected="x0,y0,x1,y1 (four integers, pixels)") from None
-    h, w = shape
-    if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h):
-        raise TofhilError(f"ROI {text} is empty or outside the {w}x{h} image", field="--roi",
-                          expected=f"0 <= x0 < x1 <= {w}, 0 <= y0 < y1 <= {h}")
-    mask = np.zeros(shape, dtype=bool)
-    mask[y0:y1, x0:x1] = True
-    return Region(name or f"roi_{x0}_{y0}_{x1}_{y1}", mask, "roi")
+        from tofhil.sim.render import render
+
+        r = render(scene, camera=session.camera, samples_per_pixel=1, bounces=0)
+    except Exception:
+        return None, names
+    return np.asarray(r.object_id, dtype=np.int64), names
 
 
-def object_regions(object_id: np.ndarray, names: dict[int, str] | None = None,
-                   min_pixels: int = 1) -> list[Region]:
-    """One region per object id present in the map (ids < 0 mean background / no hit)."""
-    ids = np.unique(object_id)
-    out = []
-    for i in ids:
-        if i < 0:
-            continue
-        mask = object_id == i
-        if mask.sum() >= min_pixels:
-            label = (names or {}).get(int(i), f"object_{int(i)}")
-            out.append(Region(label, mask, "object"))
+def _mask_shadows(frame: DepthFrame, min_relative_amplitude: float) -> None:
+    """Invalidate unlit pixels (:func:`tofhil.eval.metrics.lit_pixels`)."""
+    lit = M.lit_pixels(frame.amplitude, min_relative_amplitude)
+    if lit is not None:
+        frame.valid = frame.valid & lit
+
+
+# ---------------------------------------------------------------------------- report
+
+
+def _masked(frame: DepthFrame, img: np.ndarray | None, valid: np.ndarray | None = None) -> np.ndarray:
+    if img is None:
+        return np.full(frame.camera.shape, np.nan)
+    return np.where(frame.valid if valid is None else valid, np.asarray(img, float), np.nan)
+
+
+def figures(variants: list[Variant], ref: DepthFrame, section: H.CrossSection,
+            cell_size: float) -> list[tuple[str, str | None, str]]:
+    """The compare page's figures, each drawn by :mod:`tofhil.eval.html`."""
+    ev = [(v.label, v.evaluation) for v in variants]
+    ref_valid = ev[0][1].maps.valid_b
+    dist = [("reference (B)", _masked(ref, ref.radial_m, ref_valid))] + \
+           [(f"{v.label} (A)", _masked(v.frame, v.frame.radial_m, e.maps.valid_a)) for v, (_, e) in zip(variants, ev)]
+    amp = [("reference (B)", _masked(ref, ref.amplitude, ref_valid))] + \
+          [(f"{v.label} (A)", _masked(v.frame, v.frame.amplitude, e.maps.valid_a)) for v, (_, e) in zip(variants, ev)]
+    res = [(label, e.maps.depth_residual_m) for label, e in ev]
+    out = [
+        ("Depth maps", H.figure_distance_maps(dist),
+         "Radial distance of the reference B and of A before and after each correction (shared 1-99 % scale; "
+         "invalid and saturated pixels blank)."),
+        ("Amplitude maps", H.figure_amplitude_maps(amp), "Amplitude |S| (mean over frequencies); each panel on its "
+                                                         "own scale."),
+        ("Residual maps", H.figure_residual_maps([(f"residual A - B: {t}", r) for t, r in res]),
+         "Depth residual A - B in millimetres (red: A farther, blue: A nearer); shared symmetric scale "
+         f"+-max(|p{H.RESIDUAL_PERCENTILES[0]:g}|, |p{H.RESIDUAL_PERCENTILES[1]:g}|) of the residuals, "
+         "values beyond it in the end colours."),
+        ("Amplitude ratio maps", H.figure_ratio_maps([(label, e.maps.amplitude_ratio) for label, e in ev]),
+         "Amplitude of A over amplitude of B per pixel, log2 (0: equal; +1: A twice as bright). "
+         "A device's and the twin's amplitude units differ by a constant: look at the pattern."),
+        ("Cross-section", H.figure_cross_section(section, ("reference (B)", dist[0][1]),
+                                                 [(t, d) for t, d in dist[1:]], res),
+         f"Radial distance and residual A - B along {section.describe()} (choose with --row or --column); "
+         "the residual axis spans the line's 1-99 % range, values beyond it are drawn at its edge."),
+        ("Residual histograms", H.figure_histogram(res),
+         "Distribution of the depth residual over all pixels valid in A and B (log scale)."),
+    ]
+    ndt = [(label, e.ndt_map) for label, e in ev if e.ndt_map is not None]
+    if ndt:
+        out.append(("NDT likelihood maps", H.figure_likelihood_maps(ndt),
+                    f"Trilinear NDT likelihood of each pixel's point of A on B's NDT grid "
+                    f"(cell {cell_size:g} m): 1 = on the reference surface, 0 = far from it."))
     return out
 
 
-def robust_stats(values: np.ndarray) -> dict[str, float]:
-    """median, MAD (raw), sigma_mad, mean, std, RMSE, p95 of |x|, count."""
-    x = np.asarray(values, dtype=np.float64).ravel()
-    x = x[np.isfinite(x)]
-    if x.size == 0:
-        nan = float("nan")
-        return {"n": 0, "median": nan, "mad": nan, "sigma_mad": nan, "mean": nan, "std": nan,
-                "rmse": nan, "p95_abs": nan, "mean_abs": nan}
-    med = float(np.median(x))
-    mad = float(np.median(np.abs(x - med)))
-    return {"n": int(x.size), "median": med, "mad": mad, "sigma_mad": MAD_TO_SIGMA * mad,
-            "mean": float(x.mean()), "std": float(x.std()), "rmse": float(np.sqrt(np.mean(x * x))),
-            "p95_abs": float(np.percentile(np.abs(x), 95)), "mean_abs": float(np.abs(x).mean())}
+def write_report(out: Path, metrics: dict[str, Any], variants: list[Variant],
+                 figs: list[tuple[str, str | None, str]]) -> None:
+    a, b = metrics["inputs"]["a"], metrics["inputs"]["b"]
+    s = metrics["settings"]
+    notes = sorted({n for v in variants for n in v.evaluation.validity_notes()})
+    body = [f"<p class='note'>A (measured): {H.esc(a)}<br>B (reference): {H.esc(b)}<br>frames averaged: "
+            f"A {metrics['frames']['a']}, B {metrics['frames']['b']} &middot; residual = A - B (radial distance"
+            f"{', wrapped to the ' + format(s['wrap_m'], '.4g') + ' m unambiguous range' if s['wrap_m'] else ''}) "
+            f"&middot; {H.esc(metrics['software'])}</p>",
+            "<h2>Summary</h2>", H.notes_html(notes),
+            H.region_table([(v.label, r) for v in variants for r in v.evaluation.regions.values()]),
+            f"<p class='note'>{H.esc(M.DEPTH_RMSE)}: sqrt(mean((A - B)^2)) over the region's pixels valid in A "
+            "and in B (not saturated, finite, lit). compared: that fraction of the region; saturated A: fraction "
+            "of the region with a clipped tap in A. MAD: median absolute deviation from the median (raw, not "
+            f"scaled). Cloud metrics: A's points against B's (threshold {s['threshold_m'] * 1000:g} mm); NDT: A's "
+            f"points scored on B's NDT grid (cell {s['cell_size_m']:g} m). Full numbers in metrics.json.</p>",
+            H.figures_html(figs)]
+    H.write_page(out / "report.html", "tofhil compare", body)
 
 
-def check_aligned(a: DepthFrame, b: DepthFrame) -> dict[str, Any]:
-    """Both frames must share the image size; differing intrinsics are reported, not fatal."""
-    if a.camera.shape != b.camera.shape:
-        raise TofhilError(f"images are {a.camera.shape} and {b.camera.shape}", field="camera",
-                          expected="two sessions with the same camera model (pixel-aligned comparison)")
-    same = (a.camera.fx, a.camera.fy, a.camera.cx, a.camera.cy, a.camera.dist) == \
-           (b.camera.fx, b.camera.fy, b.camera.cx, b.camera.cy, b.camera.dist)
-    return {"same_intrinsics": bool(same)}
+# ---------------------------------------------------------------------------- orchestration
 
 
-def residual_maps(a: DepthFrame, b: DepthFrame) -> dict[str, np.ndarray]:
-    """Per-pixel maps: radial residual A - B (NaN where either is invalid), amplitude ratio A/B."""
-    both = np.asarray(a.valid) & np.asarray(b.valid)
-    with np.errstate(invalid="ignore"):
-        res = np.where(both, np.asarray(a.radial_m, np.float64) - np.asarray(b.radial_m, np.float64), np.nan)
-    ratio = np.full(res.shape, np.nan)
-    if a.amplitude is not None and b.amplitude is not None:
-        aa, ab = np.asarray(a.amplitude, np.float64), np.asarray(b.amplitude, np.float64)
-        ok = (ab > 0) & np.isfinite(aa) & np.isfinite(ab)
-        ratio[ok] = aa[ok] / ab[ok]
-    return {"depth_residual_m": res, "amplitude_ratio": ratio, "valid_both": both}
+def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path, *,
+                     corrections: Sequence[str] = (), rois: Sequence[str] = (), masks: Sequence[str | Path] = (),
+                     row: int | None = None, column: int | None = None, max_frames: int = 10,
+                     cell_size: float = 0.1, threshold: float = 0.01, min_amplitude: float = 0.0,
+                     min_relative_amplitude: float = M.MIN_RELATIVE_AMPLITUDE, objects: bool = True, force: bool = False,
+                     log: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Compare session A with reference B, write ``metrics.json`` and ``report.html``.
 
-
-def compare_frames(a: DepthFrame, b: DepthFrame, regions: Iterable[Region] = ()) -> dict[str, Any]:
-    """Statistics per region of A - B: depth residual, amplitude ratio, valid fractions.
-
-    The region "all" (every pixel) is always included; each region's stats use the pixels
-    valid in both frames.
+    ``corrections`` are method specs (``"psf:psf=cal.npz"``, ``"uniform:w=2e-5"``), each
+    applied to A; ``rois`` are ``"X0,Y0,X1,Y1"`` pixel boxes (half-open); ``masks`` mask
+    files (.png, .npy); ``row`` / ``column`` the cross-section. Returns the metrics.
     """
-    info = check_aligned(a, b)
-    maps = residual_maps(a, b)
-    regs = [Region("all", np.ones(a.camera.shape, dtype=bool), "all")] + list(regions)
-    out: dict[str, Any] = {"alignment": info, "regions": {}}
-    for r in regs:
-        m = r.mask & maps["valid_both"]
-        ratio = maps["amplitude_ratio"][m]
-        ratio = ratio[np.isfinite(ratio)]
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            out["regions"][r.name] = {
-                "kind": r.kind,
-                "pixels": int(r.mask.sum()),
-                "valid_fraction_a": float(np.asarray(a.valid)[r.mask].mean()) if r.mask.any() else float("nan"),
-                "valid_fraction_b": float(np.asarray(b.valid)[r.mask].mean()) if r.mask.any() else float("nan"),
-                "depth_residual_m": robust_stats(maps["depth_residual_m"][m]),
-                "amplitude_ratio_median": float(np.median(ratio)) if ratio.size else float("nan"),
-                "amplitude_ratio": robust_stats(ratio),
-            }
-    return out
+    from tofhil.session import open_session
 
+    say = log or (lambda s: None)
+    for name, v, lo in (("--threshold", threshold, 0.0), ("--cell-size", cell_size, 0.0)):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > lo):
+            raise TofhilError(f"is {v}", field=name, expected="a positive distance in metres")
+    if not (math.isfinite(min_relative_amplitude) and 0 <= min_relative_amplitude < 1):
+        raise TofhilError(f"is {min_relative_amplitude}", field="--min-relative-amplitude",
+                          expected="a fraction in [0, 1)")
+    if not (math.isfinite(min_amplitude) and min_amplitude >= 0):
+        raise TofhilError(f"is {min_amplitude}", field="--min-amplitude", expected="an amplitude >= 0")
+    if max_frames < 1:
+        raise TofhilError(f"is {max_frames}", field="--frames", expected="an integer >= 1")
+    out = H.prepare_output_dir(out_dir, OUTPUTS, force=force)
+    specs = [parse_method_spec(c) for c in corrections]
+    labels = list(corrections)
+    if len(set(labels)) != len(labels):
+        raise TofhilError("the same correction is given twice", field="--correct")
+    with open_session(a_path) as sa, open_session(b_path) as sb:
+        for (name, params), label in zip(specs, labels):
+            m = get_method(name)
+            resolve_params(m, params)
+            if m.domain == "complex" and not sa.has_raw:
+                raise TofhilError(f"correction {label!r} works on the complex signal and needs raw taps; "
+                                  "A has depth only", file=a_path, field="raw/taps",
+                                  expected="a raw session, or depth methods only")
+        shape = sb.camera.shape
+        section = H.CrossSection.choose(shape, row, column)
+        regions: list[M.Region] = [M.parse_roi(r, shape) for r in rois] + [M.load_mask(p, shape) for p in masks]
+        n_a, n_b = min(max_frames, sa.n_frames), min(max_frames, sb.n_frames)
+        say(f"reference: averaging {n_b} frames of {b_path}")
+        ref, ref_std = M.mean_depth_frame(session_depth_frames(sb, max_frames, min_amplitude=min_amplitude))
+        health_b = tap_health(sb, max_frames)
+        say(f"measured: averaging {n_a} frames of {a_path}")
+        health_a = tap_health(sa, max_frames)
+        fa, std = M.mean_depth_frame(session_depth_frames(sa, max_frames, min_amplitude=min_amplitude))
+        variants = [Variant(MEASURED, fa, std)]
+        for (name, params), label in zip(specs, labels):
+            p = load_params(name, params)
+            say(f"correcting A with {label}")
+            f, s = M.mean_depth_frame(session_depth_frames(sa, max_frames, name, p, min_amplitude))
+            variants.append(Variant(label, f, s, name, dict(params)))
+        for f in [ref] + [v.frame for v in variants]:
+            _mask_shadows(f, min_relative_amplitude)
+        obj_source = None
+        if objects:
+            for sess, tag in ((sb, "B"), (sa, "A")):
+                ids, names = object_id_map(sess)
+                if ids is not None and ids.shape == shape:
+                    regions = M.object_regions(ids, names, min_pixels=20) + regions
+                    obj_source = tag
+                    break
+        freqs = getattr(sa, "freq_hz", None) if sa.has_raw else None
+        wrap_m = M.wrap_period(freqs) if freqs is not None else None
+        a_label = str(sa.device.get("model") or sa.device.get("name") or Path(a_path).name)
+        b_label = str(sb.device.get("model") or sb.device.get("name") or Path(b_path).name)
 
-def mean_depth_frame(frames: Iterable[DepthFrame], min_valid_fraction: float = 0.5) -> tuple[DepthFrame, np.ndarray]:
-    """Temporal mean of a session's depth frames and the per-pixel temporal std of distance.
+    metrics: dict[str, Any] = {
+        "software": f"tofhil {__version__}",
+        "inputs": {"a": str(a_path), "b": str(b_path), "a_device": a_label, "b_device": b_label},
+        "frames": {"a": n_a, "b": n_b},
+        "settings": {"cell_size_m": cell_size, "threshold_m": threshold, "min_amplitude": min_amplitude,
+                     "min_relative_amplitude": min_relative_amplitude, "wrap_m": wrap_m,
+                     "object_regions_from": obj_source, "rois": list(rois), "masks": [str(p) for p in masks],
+                     "cross_section": {"axis": section.axis, "index": section.index},
+                     "roi_convention": "X0,Y0,X1,Y1 half-open (X1, Y1 exclusive)"},
+        "depth_rmse_definition": M.DEPTH_RMSE,
+        "reference_temporal_std_m_median": float(np.nanmedian(ref_std)) if np.isfinite(ref_std).any() else None,
+        "variants": {},
+    }
+    for f, h, path in ((ref, health_b, b_path), (fa, health_a, a_path)):
+        if not M.frame_validity(f, h).any():
+            raise TofhilError(f"has no valid pixel in the {min(max_frames, n_a if path == a_path else n_b)} frame(s) "
+                              "compared (NaN, saturated, unlit or flagged invalid everywhere)", file=path,
+                              field="depth/valid", expected="a capture with valid pixels in common with the other")
+    for v in variants:
+        say(f"metrics: {v.label}")
+        v.evaluation = M.evaluate(v.frame, ref, regions, wrap_m=wrap_m, health_a=health_a, health_b=health_b,
+                                  cloud_regions=True, cell_size=cell_size, threshold=threshold,
+                                  source=f"{a_path} vs {b_path}")
+        res = v.evaluation.to_json()
+        res["temporal_std_m_median"] = (float(np.nanmedian(v.temporal_std_m))
+                                        if np.isfinite(v.temporal_std_m).any() else None)
+        res["method"] = v.method
+        res["params"] = v.params
+        res["notes"] = v.evaluation.validity_notes()
+        metrics["variants"][v.label] = res
 
-    A pixel is valid in the mean where it was valid in at least ``min_valid_fraction`` of
-    the frames; averaging is over its valid frames only.
-    """
-    n = 0
-    acc = acc2 = cnt = amp = None
-    first: DepthFrame | None = None
-    for f in frames:
-        d = np.asarray(f.radial_m, np.float64)
-        v = np.asarray(f.valid, bool) & np.isfinite(d)
-        if first is None:
-            first = f
-            acc, acc2, cnt = np.zeros(d.shape), np.zeros(d.shape), np.zeros(d.shape)
-            amp = np.zeros(d.shape)
-        dz = np.where(v, d, 0.0)
-        acc += dz
-        acc2 += dz * dz
-        cnt += v
-        if f.amplitude is not None:
-            amp += np.nan_to_num(np.asarray(f.amplitude, np.float64))
-        n += 1
-    if first is None:
-        raise TofhilError("session has no frames", field="n_frames", expected="at least one frame")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = acc / cnt
-        std = np.sqrt(np.maximum(acc2 / cnt - mean * mean, 0.0))
-    valid = cnt >= max(1.0, min_valid_fraction * n)
-    frame = DepthFrame(distance_m=np.where(valid, mean, np.nan), kind="radial", camera=first.camera,
-                       amplitude=amp / n if first.amplitude is not None else None, valid=valid,
-                       timestamp_s=first.timestamp_s, sequence=first.sequence)
-    return frame, np.where(valid, std, np.nan)
+    say("figures")
+    figs = figures(variants, ref, section, cell_size)
+    out.mkdir(parents=True, exist_ok=True)
+    H.write_json(out / "metrics.json", metrics)
+    write_report(out, metrics, variants, figs)
+    return M.json_safe(metrics)

@@ -12,7 +12,7 @@
 from __future__ import annotations
 
 import dataclasses
-import json
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,15 +21,12 @@ from typing import Any, Callable
 import numpy as np
 
 from tofhil.errors import TofhilError
+from tofhil.eval import metrics as M
 from tofhil.eval.heldout import HeldOutData, depth_from_signal, split_session
 from tofhil.eval.selection import Selection, greedy_select
 from tofhil.eval.twin_model import TwinModel, to_effect_values
+from tofhil.frames import DepthFrame
 from tofhil.session import open_session
-
-
-def wrapped_difference(a: np.ndarray, b: np.ndarray, period: float) -> np.ndarray:
-    """``a - b`` on a circle of circumference ``period`` (distances near the wrap compare right)."""
-    return (a - b + period / 2) % period - period / 2
 
 
 @dataclass
@@ -39,19 +36,21 @@ class DiagnosisResult:
     ranked: list[dict[str, Any]]
     rounds: list[list[dict[str, Any]]]
     gain: dict[str, dict[str, float]]
-    regions: dict[str, dict[str, dict[str, float]]]
+    regions: dict[str, dict[str, dict[str, Any]]]
     extended_scene: str
     params: dict[str, dict[str, float]]
     evidence: list[str]
     chi2_per_value: dict[str, float]
     data: HeldOutData = field(repr=False)
     maps: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
+    evaluations: dict[str, M.Evaluation] = field(repr=False, default_factory=dict)
     seconds: float = 0.0
 
     def to_json(self) -> dict[str, Any]:
         return {"cause": self.cause, "causes": self.causes, "ranked": self.ranked, "gain": self.gain,
                 "regions": self.regions, "extended_scene": self.extended_scene, "params": self.params,
                 "evidence": self.evidence, "chi2_per_value": self.chi2_per_value, "rounds": self.rounds,
+                "depth_rmse_definition": f"{M.DEPTH_RMSE}, held-out pixels and frames",
                 "split": {"train_frames": self.data.n_train_frames, "test_frames": self.data.n_test_frames,
                           "train_pixels": int(self.data.train_pixels.sum()),
                           "test_pixels": int(self.data.test_pixels.sum()),
@@ -70,59 +69,58 @@ def distance_defined(data: HeldOutData, *predictions: np.ndarray, sigmas: float 
     return ok
 
 
-def heldout_metrics(data: HeldOutData, prediction: np.ndarray, mask: np.ndarray, *, ndt_cell_m: float = 0.05,
-                    icp_max_distance_m: float = 0.05) -> tuple[dict[str, float], dict[str, np.ndarray]]:
-    """Residual, point-cloud and NDT figures of a prediction against the held-out data, on the
-    held-out pixels in ``mask`` (the same for every prediction compared)."""
-    from tofhil.eval.matching import icp
-    from tofhil.eval.ndt import ndt_score
+#: The region of the held-out pixels (the gain is measured there).
+HELD_OUT = "held-out"
+#: The pixels the held-out figures use, written next to the report: ``tofhil compare
+#: --mask`` with it gives the same figures for the capture against the twin.
+HELD_OUT_MASK = "heldout_pixels.npy"
 
+
+def heldout_frames(data: HeldOutData, prediction: np.ndarray, defined: np.ndarray) -> tuple[DepthFrame, DepthFrame]:
+    """The held-out measurement and a prediction as depth frames (radial distance and mean
+    amplitude from the complex signal): measured pixels are valid where usable (signal above
+    noise, no clipped tap), predicted ones where ``defined``; both only where lit
+    (:func:`tofhil.eval.metrics.lit_pixels`)."""
     nf = data.n_freq
-    s_meas, s_pred = data.s_test[:nf], prediction[:nf]
-    shown = data.usable & mask
-    mask = data.test_pixels & mask
-    period = data.unambiguous_range_m
-    d_meas = depth_from_signal(s_meas, data.freq_hz)
-    d_pred = depth_from_signal(s_pred, data.freq_hz)
-    dres = wrapped_difference(d_meas, d_pred, period)
-    ares = (np.abs(s_meas) - np.abs(s_pred)).mean(axis=0)
-    metrics = {"depth_rmse_m": float(np.sqrt(np.mean(dres[mask] ** 2))),
-               "depth_median_abs_m": float(np.median(np.abs(dres[mask]))),
-               "amplitude_rmse": float(np.sqrt(np.mean(ares[mask] ** 2))),
-               "chi2_per_value": data.chi2(prediction, "test") / max(data.n_values("test"), 1)}
     cam = data.camera
-    p_meas = cam.points(d_meas, valid=mask)
-    p_pred = cam.points(d_pred, valid=mask)
-    lik_map = np.full(cam.shape, np.nan)
-    if len(p_meas) > 50 and len(p_pred) > 50:
-        r = icp(p_meas, p_pred, icp_max_distance_m)
-        metrics["icp_inlier_rmse_m"] = r.inlier_rmse
-        metrics["icp_fitness"] = r.fitness
-        nd = ndt_score(p_pred, p_meas, cell_size=ndt_cell_m)
-        metrics["ndt_score_per_point"] = nd.score_per_point
-        metrics["ndt_nvtl"] = nd.nvtl
-        metrics["ndt_mean_likelihood_trilinear"] = nd.mean_likelihood_trilinear
-        valid = cam.valid_mask(d_meas, mask)
-        lik_map[valid] = nd.likelihood_trilinear
-    maps = {"depth_measured": d_meas, "depth_twin": d_pred, "depth_residual": np.where(shown, dres, np.nan),
-            "amplitude_residual": np.where(data.usable, ares, np.nan), "ndt_likelihood": lik_map}
-    return metrics, maps
+    s_meas, s_pred = data.s_test[:nf], prediction[:nf]
+    frames = []
+    for s, valid in ((s_meas, data.usable), (s_pred, defined)):
+        amp = np.abs(s).mean(axis=0)
+        lit = M.lit_pixels(amp)  # the rule compare applies: unlit pixels have no phase to compare
+        frames.append(DepthFrame(distance_m=depth_from_signal(s, data.freq_hz), kind="radial", camera=cam,
+                                 amplitude=amp, valid=valid if lit is None else valid & lit))
+    return frames[0], frames[1]
 
 
-def region_metrics(maps: dict[str, np.ndarray], pixels: np.ndarray, object_id: np.ndarray,
-                   names: list[str]) -> dict[str, dict[str, float]]:
-    """Depth and amplitude residual RMSE per object over ``pixels``, from the residual maps
-    of :func:`heldout_metrics`."""
-    dres, ares = maps["depth_residual"], maps["amplitude_residual"]
-    out = {}
-    for i, name in enumerate(names):
-        m = pixels & (object_id == i)
-        if m.sum() < 5:
-            continue
-        out[name] = {"pixels": int(m.sum()), "depth_rmse_m": float(np.sqrt(np.mean(dres[m] ** 2))),
-                     "depth_mean_m": float(np.mean(dres[m])),
-                     "amplitude_rmse": float(np.sqrt(np.mean(ares[m] ** 2)))}
-    return out
+def heldout_metrics(data: HeldOutData, prediction: np.ndarray, defined: np.ndarray,
+                    object_regions: list[M.Region] = (), *, ndt_cell_m: float = 0.05,
+                    icp_max_distance_m: float = 0.05) -> tuple[dict[str, float], dict[str, np.ndarray], M.Evaluation]:
+    """Residual, point-cloud and NDT figures of a prediction against the held-out data, from
+    the evaluation core: the region :data:`HELD_OUT` (held-out pixels) and each object's
+    held-out pixels; a pixel counts where it is valid in both (usable, and ``defined`` for
+    the prediction -- the same for every prediction compared)."""
+    measured, twin = heldout_frames(data, prediction, defined)
+    held = M.Region(HELD_OUT, data.test_pixels, "held-out")
+    objs = [M.Region(r.name, r.mask & data.test_pixels, r.kind) for r in object_regions]
+    ev = M.evaluate(measured, twin, [held] + [r for r in objs if r.mask.sum() >= 5],
+                    wrap_m=M.wrap_period(data.freq_hz), cloud_regions=[HELD_OUT], cell_size=ndt_cell_m,
+                    threshold=icp_max_distance_m, icp_max_distance=icp_max_distance_m, include_all=False,
+                    source="held-out data")
+    h = ev.regions[HELD_OUT]
+    metrics = {"depth_rmse_m": h.depth_rmse_m, "depth_median_m": h.depth_residual_m.median,
+               "depth_mad_m": h.depth_residual_m.mad, "amplitude_rmse": h.amplitude_difference.rmse,
+               "chi2_per_value": data.chi2(prediction, "test") / max(data.n_values("test"), 1)}
+    if h.cloud is not None and h.ndt is not None:
+        metrics["icp_inlier_rmse_m"] = h.cloud.icp_inlier_rmse
+        metrics["icp_fitness"] = h.cloud.icp_fitness
+        metrics["ndt_score_per_point"] = h.ndt.score_per_point
+        metrics["ndt_nvtl"] = h.ndt.nvtl
+        metrics["ndt_mean_likelihood_trilinear"] = h.ndt.mean_likelihood_trilinear
+    maps = {"depth_measured": np.asarray(measured.radial_m), "depth_twin": np.asarray(twin.radial_m),
+            "depth_residual": ev.maps.depth_residual_m, "amplitude_residual": ev.maps.amplitude_difference,
+            "ndt_likelihood": ev.ndt_map if ev.ndt_map is not None else np.full(data.camera.shape, np.nan)}
+    return metrics, maps, ev
 
 
 def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
@@ -182,15 +180,12 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     after_pred = after_model.predict({})
 
     defined = distance_defined(data, base_pred, after_pred)
-    before, maps_before = heldout_metrics(data, base_pred, defined)
-    after, maps_after = heldout_metrics(data, after_pred, defined)
-    gain = {k: {"before": before[k], "after": after.get(k, float("nan"))} for k in before}
     result = model.base_render()
-    names = [o.name for o in model.scene.objects]
-    # the maps hold the residuals on every usable pixel where distance is defined
-    held_out = data.test_pixels & defined
-    regions = {"before": region_metrics(maps_before, held_out, result.object_id, names),
-               "after": region_metrics(maps_after, held_out, result.object_id, names)}
+    objects = M.object_regions(np.asarray(result.object_id), {i: o.name for i, o in enumerate(model.scene.objects)})
+    before, maps_before, ev_before = heldout_metrics(data, base_pred, defined, objects)
+    after, maps_after, ev_after = heldout_metrics(data, after_pred, defined, objects)
+    gain = {k: {"before": before[k], "after": after.get(k, float("nan"))} for k in before}
+    regions = {"before": ev_before.to_json()["regions"], "after": ev_after.to_json()["regions"]}
     ranked = [{"effect": c.effect, "params": to_effect_values(c.effect, c.params), "score": c.score,
                "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,
                "chi2_test": c.chi2_test, "n_params": c.n_params} for c in selection.first_round]
@@ -202,7 +197,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     p_with = model.predict(selection.params)
     for e in selection.causes:
         p_without = model.predict({k: v for k, v in selection.params.items() if k != e})
-        change = wrapped_difference(depth_from_signal(p_with[:nf], data.freq_hz),
+        change = M.wrapped_difference(depth_from_signal(p_with[:nf], data.freq_hz),
                                     depth_from_signal(p_without[:nf], data.freq_hz), data.unambiguous_range_m)
         maps[f"signature_depth_{e}"] = np.where(distance_defined(data, p_with, p_without), change, np.nan)
         maps[f"signature_amplitude_{e}"] = (np.abs(p_with[:nf]) - np.abs(p_without[:nf])).mean(axis=0)
@@ -214,24 +209,49 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                            chi2_per_value={"before": selection.baseline_chi2_test / n,
                                            "after_fit": selection.final_chi2_test / n,
                                            "after_extended_scene": data.chi2(after_pred, "test") / n},
-                           data=data, maps=maps, seconds=time.perf_counter() - t0)
+                           data=data, maps=maps, evaluations={"before": ev_before, "after": ev_after},
+                           seconds=time.perf_counter() - t0)
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,
                   progress: Callable[[str], None] | None = None, **kwargs: Any) -> DiagnosisResult:
-    """``tofhil diagnose``: diagnose and write diagnosis.json, extended_scene.yaml, report.html."""
+    """``tofhil diagnose``: diagnose and write diagnosis.json, extended_scene.yaml, report.html
+    and the held-out pixels (:data:`HELD_OUT_MASK`).
+
+    A run that fails leaves nothing behind: the files it wrote are removed, and the output
+    directory too when this run created it.
+    """
+    from tofhil.eval import html as H
     from tofhil.eval.diagnose_report import write_report
     from tofhil.sim.scene import load_scene
 
-    out = Path(out_dir)
-    targets = [out / "diagnosis.json", out / "report.html", out / "extended_scene.yaml"]
-    existing = [str(p) for p in targets if p.exists()]
-    if existing and not force:
-        raise TofhilError("already holds a diagnosis; refusing to overwrite (use --force)", file=out,
-                          expected="an empty or new directory")
-    out.mkdir(parents=True, exist_ok=True)
+    names = ("diagnosis.json", "report.html", "extended_scene.yaml", HELD_OUT_MASK)
+    try:
+        out = H.prepare_output_dir(out_dir, names, force=force)
+    except TofhilError as exc:
+        if "refusing" not in str(exc):
+            raise
+        raise TofhilError("already holds a diagnosis; refusing to overwrite (use --force)", file=out_dir,
+                          expected="an empty or new directory") from None
     scene = load_scene(scene_path)
-    res = diagnose(session_path, scene, extended_scene_path=out / "extended_scene.yaml", progress=progress, **kwargs)
-    (out / "diagnosis.json").write_text(json.dumps(res.to_json(), indent=2, default=float))
-    write_report(res, out / "report.html", session_path=str(session_path), scene_path=str(scene_path))
+    created = not out.exists()
+    written: list[Path] = []
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        written.append(out / "extended_scene.yaml")
+        res = diagnose(session_path, scene, extended_scene_path=out / "extended_scene.yaml", progress=progress,
+                       **kwargs)
+        written.append(out / "diagnosis.json")
+        H.write_json(out / "diagnosis.json", res.to_json())
+        written.append(out / HELD_OUT_MASK)
+        ev = res.evaluations["before"]
+        np.save(out / HELD_OUT_MASK, ev.maps.valid_both & res.data.test_pixels)
+        written.append(out / "report.html")
+        write_report(res, out / "report.html", session_path=str(session_path), scene_path=str(scene_path))
+    except BaseException:
+        for p in written:
+            p.unlink(missing_ok=True)
+        if created:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
     return res

@@ -38,9 +38,41 @@ def test_text_formats(tmp_path):
         np.testing.assert_array_equal(load_cloud(tmp_path / name), PTS)
 
 
-def test_non_finite_points_dropped(tmp_path):
-    np.save(tmp_path / "c.npy", np.vstack([PTS, [np.nan, 0, 1], [np.inf, 1, 1]]))
+def test_nan_holes_dropped_infinite_and_absurd_points_refused(tmp_path):
+    # NaN marks a hole of an organised cloud: dropped. Infinity or 1e30 m is a broken file.
+    np.save(tmp_path / "c.npy", np.vstack([PTS, [np.nan, 0, 1]]))
     assert load_cloud(tmp_path / "c.npy").shape == (4, 3)
+    np.save(tmp_path / "inf.npy", np.vstack([PTS, [np.inf, 1, 1]]))
+    with pytest.raises(InputFileError, match=r"inf.npy: field 'point 4'"):
+        load_cloud(tmp_path / "inf.npy")
+    (tmp_path / "far.xyz").write_text("0 0 1\n1e30 0 0\n0 1 1\n")
+    with pytest.raises(InputFileError, match=r"far.xyz: field 'point 1'.*1e\+30"):
+        load_cloud(tmp_path / "far.xyz")
+
+
+@pytest.mark.parametrize("ascii", [False, True])
+def test_truncated_ply_is_refused(tmp_path, ascii):
+    n = 100
+    pts = np.random.default_rng(1).uniform(-1, 1, (n, 3))
+    full = tmp_path / "full.ply"
+    _write_o3d(full, pts, ascii)
+    assert load_cloud(full).shape == (n, 3)
+    raw = full.read_bytes()
+    cut = tmp_path / "cut.ply"
+    if ascii:
+        lines = raw.decode().splitlines()
+        cut.write_text("\n".join(lines[:-98]) + "\n")  # 2 of the 100 vertex lines left
+    else:
+        cut.write_bytes(raw[:len(raw) - 98 * 24])  # 3 doubles per vertex: 2 vertices left
+    with pytest.raises(InputFileError, match="cut.ply: field 'element vertex': declares 100 vertices.*only 2"):
+        load_cloud(cut)
+
+
+def test_empty_text_cloud_gives_the_message_only(tmp_path, recwarn):
+    (tmp_path / "c.xyz").write_text("# only a comment\n")
+    with pytest.raises(InputFileError, match="c.xyz: is empty"):
+        load_cloud(tmp_path / "c.xyz")
+    assert not [w for w in recwarn if "loadtxt" in str(w.message)]
 
 
 def test_session_frame(tmp_path):

@@ -74,14 +74,14 @@ def test_calibrate_correct_and_compare(sessions, tmp_path, capsys):
     # Cloud metrics and NDT of the other helper's modules are there for every variant.
     for v in m["variants"].values():
         allr = v["regions"]["all"]
-        assert {"chamfer", "fscore"} <= set(allr["cloud"]["cloud"])
-        assert {"score_per_point", "nvtl", "mean_likelihood_trilinear"} <= set(allr["cloud"]["ndt"])
-    assert (m["variants"][f"psf:psf={psf}"]["regions"]["all"]["cloud"]["cloud"]["chamfer"]
-            < m["variants"]["measured"]["regions"]["all"]["cloud"]["cloud"]["chamfer"])
+        assert {"chamfer", "fscore"} <= set(allr["cloud"])
+        assert {"score_per_point", "nvtl", "mean_likelihood_trilinear"} <= set(allr["ndt"])
+    assert (m["variants"][f"psf:psf={psf}"]["regions"]["all"]["cloud"]["chamfer"]
+            < m["variants"]["measured"]["regions"]["all"]["cloud"]["chamfer"])
 
     html = (out / "report.html").read_text()
     pngs = re.findall(r"src='data:image/png;base64,([^']+)'", html)
-    assert len(pngs) == 7  # depth, amplitude, residual, amplitude ratio, row profile, histogram, NDT maps
+    assert len(pngs) == 7  # depth, amplitude, residual, amplitude ratio, cross-section, histogram, NDT maps
     for p in pngs:
         assert base64.b64decode(p)[:8] == b"\x89PNG\r\n\x1a\n"
     # Self-contained: nothing is fetched from anywhere.
@@ -121,7 +121,7 @@ def test_bad_options_are_one_line_errors(sessions, tmp_path, capsys):
                "--out", tmp_path / "x.h5") == 2
     assert "missing.npz: no such file" in capsys.readouterr().err
     assert run("compare", d / "a.h5", d / "b.h5", "--out", tmp_path / "r", "--roi", "1,2") == 2
-    assert "x0,y0,x1,y1" in capsys.readouterr().err
+    assert "X0,Y0,X1,Y1" in capsys.readouterr().err
 
 
 def test_tap_calibration_removes_tap_gains(tmp_path):

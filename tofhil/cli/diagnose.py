@@ -23,6 +23,8 @@ def _progress_printer() -> callable:
 
 
 def _summary(res, report: Path) -> None:
+    from tofhil.eval.metrics import DEPTH_RMSE
+
     g = res.gain
     if res.causes:
         out.print(f"[bold]cause:[/bold] {' + '.join(res.causes)}")
@@ -30,8 +32,8 @@ def _summary(res, report: Path) -> None:
             out.print(f"  {e}: " + ", ".join(f"{k} = {v:.4g}" for k, v in p.items()), highlight=False)
     else:
         out.print("[bold]cause:[/bold] none -- no significant effect is missing from the twin")
-    out.print(f"held-out gain: depth RMSE {g['depth_rmse_m']['before'] * 1e3:.1f} -> {g['depth_rmse_m']['after'] * 1e3:.1f} mm, "
-              f"amplitude RMSE {g['amplitude_rmse']['before']:.3g} -> {g['amplitude_rmse']['after']:.3g}, "
+    out.print(f"held-out gain: {DEPTH_RMSE} {g['depth_rmse_m']['before'] * 1e3:.1f} -> "
+              f"{g['depth_rmse_m']['after'] * 1e3:.1f} mm (held-out pixels), amplitude RMSE {g['amplitude_rmse']['before']:.3g} -> {g['amplitude_rmse']['after']:.3g}, "
               f"misfit {res.chi2_per_value['before']:.2f} -> {res.chi2_per_value['after_extended_scene']:.2f} per value "
               f"(1.0 = noise)", highlight=False)
     if "ndt_score_per_point" in g:
@@ -76,13 +78,17 @@ def demo(out_dir: Path = typer.Option(Path("demo-out"), "--out", help="Directory
     from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
     from tofhil.drivers.tofcam635.sources import TOFCAM635_OVERRIDES, SimulatedSource
     from tofhil.eval.diagnose import run_diagnosis
-    from tofhil.eval.report import compare_sessions
+    from tofhil.cli.evaluate import compare_line
+    from tofhil.eval.compare import compare_sessions
     from tofhil.sim.pipeline import simulate_session
     from tofhil.sim.scene import load_scene, scene_to_yaml
 
     if frames < 2:
         raise TofhilError(f"is {frames}", field="--frames", expected="at least 2 (training and held-out frames)")
     names = ["capture.h5", "twin.h5", "twin_scene.yaml", "compare", "diagnosis"]
+    if out_dir.exists() and not out_dir.is_dir():
+        raise TofhilError("is a file, not a directory", file=out_dir, field="--out",
+                          expected="a directory for the demo's files (new or existing)")
     if out_dir.exists() and any((out_dir / n).exists() for n in names) and not force:
         raise TofhilError("already holds a demo; refusing to overwrite it (use --force or another --out)",
                           file=out_dir, expected="an empty or new directory")
@@ -104,7 +110,12 @@ def demo(out_dir: Path = typer.Option(Path("demo-out"), "--out", help="Directory
     simulate_session(twin, out_dir / "twin.h5", frames=frames, seed=1, noise=True, force=True)
 
     show("3/5 comparing capture and twin (pixels, point clouds, NDT)")
-    compare_sessions(out_dir / "capture.h5", out_dir / "twin.h5", out_dir / "compare", force=True)
+    cmp = compare_sessions(out_dir / "capture.h5", out_dir / "twin.h5", out_dir / "compare", force=True)
+    measured = cmp["variants"]["measured"]
+    out.print("compare, capture - twin over all pixels: " + compare_line("", measured["regions"]["all"]).strip(),
+              highlight=False)
+    for note in measured["notes"]:
+        out.print(f"  {note}", highlight=False)
 
     show("4/5 diagnosing: fitting every effect of the library on training data, scoring on held-out data")
     res = run_diagnosis(out_dir / "capture.h5", twin_path, out_dir / "diagnosis", force=True, progress=show)

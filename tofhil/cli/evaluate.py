@@ -142,10 +142,16 @@ def compare(a: Path = typer.Argument(..., help="Measured session A (.h5)."),
             correct_specs: list[str] = typer.Option([], "--correct",
                                                     help="Correction applied to A, METHOD[:key=value,...], e.g. "
                                                          "psf:psf=cal.npz or uniform:w=2e-5; repeatable."),
-            roi: list[str] = typer.Option([], "--roi", help="Region x0,y0,x1,y1 in pixels; repeatable."),
+            roi: list[str] = typer.Option([], "--roi", help="Region X0,Y0,X1,Y1 in pixels, half-open (X1, Y1 "
+                                                            "exclusive, as numpy slices); repeatable."),
+            mask: list[Path] = typer.Option([], "--mask", help="Region mask, .png (non-zero = inside) or .npy, "
+                                                              "of the image's size; repeatable."),
+            row: Optional[int] = typer.Option(None, "--row", help="Cross-section along this pixel row "
+                                                                  "(default: the centre row)."),
+            column: Optional[int] = typer.Option(None, "--column", help="Cross-section along this pixel column."),
             frames: int = typer.Option(10, "--frames", help="Frames averaged per session."),
             cell_size: float = typer.Option(0.1, "--cell-size", help="NDT cell size, m."),
-            threshold: float = typer.Option(0.01, "--threshold", help="F-score distance threshold, m."),
+            threshold: float = typer.Option(0.01, "--threshold", help="F-score distance threshold, m (> 0)."),
             min_amplitude: float = typer.Option(0.0, "--min-amplitude",
                                                 help="Invalidate low-amplitude pixels when demodulating."),
             min_relative_amplitude: float = typer.Option(1e-3, "--min-relative-amplitude",
@@ -155,20 +161,31 @@ def compare(a: Path = typer.Argument(..., help="Measured session A (.h5)."),
                                             help="No per-object regions from the twin's scene."),
             force: bool = typer.Option(False, "--force", help="Overwrite an existing report.")) -> None:
     """Pixel-aligned residuals, cloud and NDT metrics of A against B, before and after corrections."""
-    from tofhil.eval.report import compare_sessions
+    from tofhil.eval.compare import compare_sessions
+    from tofhil.eval.metrics import DEPTH_RMSE
 
-    if frames < 1:
-        raise TofhilError(f"got {frames}", field="--frames", expected="an integer >= 1")
-    m = compare_sessions(a, b, out_dir, corrections=correct_specs, rois=roi, max_frames=frames,
-                         cell_size=cell_size, threshold=threshold, min_amplitude=min_amplitude,
+    m = compare_sessions(a, b, out_dir, corrections=correct_specs, rois=roi, masks=mask, row=row, column=column,
+                         max_frames=frames, cell_size=cell_size, threshold=threshold, min_amplitude=min_amplitude,
                          min_relative_amplitude=min_relative_amplitude,
                          objects=not no_objects, force=force, log=lambda s: console.print(s, highlight=False))
     for name, v in m["variants"].items():
-        d = v["regions"]["all"]["depth_residual_m"]
-        med = "-" if d["median"] is None else f"{d['median'] * 1000:.2f}"
-        mad = "-" if d["mad"] is None else f"{d['mad'] * 1000:.2f}"
-        out.print(f"{name:32s} median {med} mm  MAD {mad} mm  (n={d['n']})")
+        out.print(compare_line(name, v["regions"]["all"]), highlight=False)
+        for note in v["notes"]:
+            out.print(f"  {note}", highlight=False)
+    out.print(f"({DEPTH_RMSE}: sqrt(mean((A - B)^2)) over the pixels valid in A and in B)", highlight=False)
     out.print(f"wrote {out_dir / 'metrics.json'} and {out_dir / 'report.html'}")
+
+
+def compare_line(name: str, region: dict[str, Any]) -> str:
+    """One line per variant: the region's depth RMSE (the one definition), median, MAD."""
+    from tofhil.eval.metrics import DEPTH_RMSE
+
+    def mm(x: Any) -> str:
+        return "-" if x is None else f"{x * 1000:.2f}"
+
+    d = region["depth_residual_m"]
+    return (f"{name:24s} {DEPTH_RMSE} {mm(d['rmse'])} mm  median {mm(d['median'])} mm  MAD {mm(d['mad'])} mm  "
+            f"(n={d['n']})")
 
 
 @app.command("calibrate-taps")
