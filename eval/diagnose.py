@@ -224,7 +224,7 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
     from tofhil.sim.scene import load_scene
 
     out = Path(out_dir)
-    targets = [out / "diagnosis.json", out / "report.html", out / "extended_scene.yaml"]
+    targets = [out / "diagnosis.json", out / "report.html", out / "extended_scene.yaml", out / "stray_light_psf.json"]
     existing = [str(p) for p in targets if p.exists()]
     if existing and not force:
         raise TofhilError("already holds a diagnosis; refusing to overwrite (use --force)", file=out,
@@ -233,5 +233,10 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
     scene = load_scene(scene_path)
     res = diagnose(session_path, scene, extended_scene_path=out / "extended_scene.yaml", progress=progress, **kwargs)
     (out / "diagnosis.json").write_text(json.dumps(res.to_json(), indent=2, default=float))
+    if "stray_light" in res.causes:
+        # The fitted stray light as a PSF file: `tofhil correct --method psf:psf=FILE` takes it.
+        from tofhil.eval.corrections.straylight import psf_from_diagnosis
+
+        psf_from_diagnosis(res.to_json(), out / "diagnosis.json").save(out / "stray_light_psf.json", force=True)
     write_report(res, out / "report.html", session_path=str(session_path), scene_path=str(scene_path))
     return res
