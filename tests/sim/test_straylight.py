@@ -9,7 +9,7 @@ import pytest
 from scipy.signal import convolve2d
 
 from tofhil.errors import InputFileError
-from tofhil.sim.straylight import (GaussianLobe, StrayLightOperator, StrayLightPSF, apply_stray_light,
+from tofhil.sim.straylight import (GaussianLobe, Ghost, StrayLightOperator, StrayLightPSF, apply_stray_light,
                                    convolve, correlate, fft_shape, psf_kernel)
 
 
@@ -97,7 +97,7 @@ def test_ghost_mirrors_through_the_optical_centre() -> None:
     h, w = 48, 64
     s = np.zeros((h, w))
     s[5, 10] = 1.0
-    psf = StrayLightPSF(ghost_weight=0.04, ghost_sigma_px=0.0, ghost_center_px=(30.0, 20.0))
+    psf = StrayLightPSF(ghosts=(Ghost(0.04, 0.0, (30.0, 20.0)),))
     out = apply_stray_light(s, psf)
     # 2c - p = (60 - 10, 40 - 5) = (50, 35)  (x, y)
     assert out[35, 50] == pytest.approx(0.04, rel=1e-9)
@@ -107,7 +107,7 @@ def test_ghost_mirrors_through_the_optical_centre() -> None:
     # A ghost whose mirror point lies outside the sensor is lost.
     s2 = np.zeros((h, w))
     s2[2, 2] = 1.0  # mirror (58, 38) inside; now move the centre so it falls outside
-    far = StrayLightPSF(ghost_weight=0.04, ghost_center_px=(40.0, 30.0))
+    far = StrayLightPSF(ghosts=(Ghost(0.04, 0.0, (40.0, 30.0)),))
     assert apply_stray_light(s2, far).sum() == pytest.approx(0.96)  # (78, 58) is off the sensor
 
 
@@ -117,7 +117,7 @@ def test_ghost_default_centre_is_the_principal_point() -> None:
     cam = CameraModel(width=40, height=30, fx=50, fy=50, cx=24.0, cy=12.5)
     s = np.zeros((30, 40))
     s[4, 10] = 1.0
-    out = apply_stray_light(s, StrayLightPSF(ghost_weight=0.1), cam)
+    out = apply_stray_light(s, StrayLightPSF(ghosts=(Ghost(0.1),)), cam)
     assert out[21, 38] == pytest.approx(0.1)  # 2c - p = (48 - 10, 25 - 4)
 
 
@@ -126,7 +126,7 @@ def test_operator_adjoint_is_the_transpose(method: str) -> None:
     rng = _rng(3)
     shape = (10, 14)
     psf = StrayLightPSF(gaussians=(GaussianLobe(0.05, 1.5, 3.0), GaussianLobe(0.02, 6.0, 6.0)), veil=0.01,
-                        ghost_weight=0.03, ghost_sigma_px=1.0, ghost_center_px=(6.3, 5.1))
+                        ghosts=(Ghost(0.03, 1.0, (6.3, 5.1)), Ghost(0.01, 0.5)))
     op = StrayLightOperator(psf, shape, method=method)
     x = rng.normal(size=shape) + 1j * rng.normal(size=shape)
     y = rng.normal(size=shape) + 1j * rng.normal(size=shape)
@@ -139,7 +139,7 @@ def test_fft_and_separable_evaluations_agree() -> None:
     rng = _rng(9)
     shape = (37, 52)
     psf = StrayLightPSF(gaussians=(GaussianLobe(0.03, 2.5, 7.0), GaussianLobe(0.01, 30.0, 30.0)), veil=0.02,
-                        ghost_weight=0.02, ghost_sigma_px=3.0, ghost_center_px=(27.3, 16.8))
+                        ghosts=(Ghost(0.02, 3.0, (27.3, 16.8)),))
     s = rng.normal(size=(2, *shape)) + 1j * rng.normal(size=(2, *shape))
     a = StrayLightOperator(psf, shape, method="fft").apply(s)
     b = StrayLightOperator(psf, shape, method="separable").apply(s)
@@ -152,8 +152,8 @@ def test_operator_matches_dense_matrix_built_from_its_definition(method: str) ->
     h, w = 7, 9
     sig, wg, veil, wgh = 1.2, 0.1, 0.05, 0.02
     cx, cy = 3.5, 3.0
-    psf = StrayLightPSF(gaussians=(GaussianLobe(wg, sig, sig),), veil=veil, ghost_weight=wgh,
-                        ghost_sigma_px=0.0, ghost_center_px=(cx, cy))
+    psf = StrayLightPSF(gaussians=(GaussianLobe(wg, sig, sig),), veil=veil,
+                        ghosts=(Ghost(wgh, 0.0, (cx, cy)),))
 
     def pix(d: float, s: float) -> float:  # pixel-integrated unit Gaussian
         return 0.5 * (math.erf((d + 0.5) / (s * math.sqrt(2))) - math.erf((d - 0.5) / (s * math.sqrt(2))))
