@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from scipy.signal import convolve2d
 
-from tofhil.errors import InputFileError
+from tofhil.errors import InputFileError, TofhilError
 from tofhil.sim.straylight import (GaussianLobe, Ghost, StrayLightOperator, StrayLightPSF, apply_stray_light,
                                    convolve, correlate, fft_shape, psf_kernel)
 
@@ -228,3 +229,45 @@ def test_correlate_is_adjoint_of_convolve() -> None:
     y = rng.normal(size=(12, 10)) + 1j * rng.normal(size=(12, 10))
     c = (1, 4)
     assert np.vdot(y, convolve(x, k, c)) == pytest.approx(np.vdot(correlate(y, k, c), x), rel=1e-12)
+
+
+def test_blur_of_one_image_equals_the_padded_convolution() -> None:
+    from tofhil.sim.straylight import GaussianBlur, gaussian_kernel
+
+    s = _rng(9).normal(size=(2, 12, 17)) + 1j * _rng(10).normal(size=(2, 12, 17))
+    blur = GaussianBlur(s)
+    for sx, sy, off in ((1.5, 2.5, (0.0, 0.0)), (0.0, 0.0, (3.0, -2.0)), (4.0, 4.0, (0.5, 1.5))):
+        k = gaussian_kernel((12, 17), sx, sy, off)
+        np.testing.assert_allclose(blur(sx, sy, off), convolve(s, k, (11, 16)), atol=1e-12)
+
+
+def test_scattered_fraction_is_the_largest_column_sum_and_invert_undoes_apply() -> None:
+    shape = (9, 11)
+    psf = StrayLightPSF(gaussians=(GaussianLobe(0.05, 1.5, 3.0),), veil=0.02,
+                        ghosts=(Ghost(0.03, 1.0, (4.2, 3.9)),))
+    op = StrayLightOperator(psf, shape)
+    # The operator as a matrix, column by column (independent of the adjoint).
+    cols = []
+    for j in range(shape[0] * shape[1]):
+        e = np.zeros(shape[0] * shape[1])
+        e[j] = 1.0
+        cols.append(op.scatter(e.reshape(shape)).ravel())
+    m = np.stack(cols, axis=1)
+    assert op.scattered_fraction == pytest.approx(m.sum(axis=0).max(), rel=1e-12)
+    assert op.scattered_fraction <= psf.total_weight
+    s = _rng(11).random(shape) * np.exp(1j * _rng(12).random(shape))
+    np.testing.assert_allclose(op.invert(op.apply(s), iterations=200, tol=0), s, atol=1e-12)
+
+
+def test_psf_file_keeps_a_measured_image_beside_it(tmp_path) -> None:
+    point = np.zeros((15, 15))
+    point[7, 7] = 1.0
+    img = apply_stray_light(point, StrayLightPSF(gaussians=(GaussianLobe(0.1, 1.5, 1.5),)))
+    psf = replace(StrayLightPSF(), measured=img, measured_scale=0.5, conserve=False)
+    path = psf.save(tmp_path / "lens.json")
+    assert (tmp_path / "lens_measured.npy").is_file()
+    back = StrayLightPSF.load(path)
+    s = _rng(13).random((20, 18))
+    np.testing.assert_allclose(apply_stray_light(s, back), apply_stray_light(s, psf), atol=1e-14)
+    with pytest.raises(TofhilError, match="refusing to overwrite"):
+        psf.save(path)
