@@ -17,15 +17,19 @@ Components:
   (erf differences), so small sigmas are exact.
 - Veil: a weight spread uniformly over the whole sensor (every pixel receives
   ``w_veil * sum(S) / (H W)``).
-- Ghost: a reflection between lens surfaces images the scene mirrored through the optical
-  centre ``c``: light at pixel ``p`` leaks to ``2c - p``, blurred by a Gaussian.
+- Ghosts: a reflection between lens surfaces images the scene mirrored through a centre
+  ``c`` (each ghost's own, default the principal point): light at pixel ``p`` leaks to
+  ``2c - p`` (sub-pixel), blurred by a Gaussian.
 - Measured PSF: the image of a point source (any size; its peak pixel is the direct light).
 
 Convolutions are linear, never circular: images are zero-padded for the FFT so that no
 wrap-around reaches the retained pixels. The shift-invariant part uses a kernel of shape
 ``[2H-1, 2W-1]`` (every shift between two sensor pixels) centred at ``(H-1, W-1)``. The
 operators are public (``psf_kernel``, ``ghost_kernel``, ``convolve``, ``correlate``,
-``StrayLightOperator`` with ``apply``/``scatter``/``adjoint``) so corrections can invert them.
+``StrayLightOperator`` with ``apply``/``scatter``/``adjoint``/``invert``) so corrections
+(``eval/corrections``) are built on them. ``StrayLightPSF`` is the one PSF type: simulated
+(the ``stray_light`` effect's parameters, ``from_params``/``to_params``), diagnosed,
+calibrated, saved and loaded (``save``/``load``, JSON) and corrected with.
 """
 
 from __future__ import annotations
