@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="keep the scenes' sensor as bundled (no ADC pedestal: dark taps clip at 0 DN)")
     args = ap.parse_args(argv)
 
-    from tofhil.eval import straylight_study as st
+    import straylight_study as st  # the study beside this script (benchmarks/)
 
     t0 = time.perf_counter()
     refl = (0.5, 0.05, 0.01) if args.quick else st.REFLECTANCES

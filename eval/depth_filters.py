@@ -69,12 +69,6 @@ def jump_edge_distance(radial_m: np.ndarray, valid: np.ndarray, max_step_m: floa
     return flag & np.asarray(valid, dtype=bool)
 
 
-def _window_stack(d: np.ndarray, radius: int) -> np.ndarray:
-    """``[(2r+1)^2, H, W]`` stack of the image shifted by every offset in the window."""
-    return np.stack([shifted(d, dy, dx) for dy in range(-radius, radius + 1)
-                     for dx in range(-radius, radius + 1)])
-
-
 def gaussian_smooth(radial_m: np.ndarray, valid: np.ndarray, sigma_px: float = 1.0) -> np.ndarray:
     """Normalised Gaussian smoothing: only valid pixels are averaged (weights renormalised)."""
     from scipy.ndimage import gaussian_filter
@@ -88,17 +82,27 @@ def gaussian_smooth(radial_m: np.ndarray, valid: np.ndarray, sigma_px: float = 1
     return np.where(valid, out, radial_m)
 
 
-def median_smooth(radial_m: np.ndarray, valid: np.ndarray, size: int = 3) -> np.ndarray:
-    """Median over the valid pixels of a ``size x size`` window (odd ``size``)."""
+def median_smooth(radial_m: np.ndarray, valid: np.ndarray, size: int = 3, *,
+                  max_bytes: int = 1 << 27) -> np.ndarray:
+    """Median over the valid pixels of a ``size x size`` window (odd ``size``).
+
+    The windows are strided views of the NaN-padded image, taken a block of rows at a time
+    so that memory stays below ``max_bytes`` whatever the window size."""
     if size < 1 or size % 2 == 0:
         raise ValueError(f"median window size must be odd and >= 1, got {size}")
-    d = np.where(valid, radial_m, np.nan).astype(np.float64)
-    stack = _window_stack(d, size // 2)
     import warnings
 
+    r = size // 2
+    d = np.where(valid, radial_m, np.nan).astype(np.float64)
+    h, w = d.shape
+    windows = np.lib.stride_tricks.sliding_window_view(np.pad(d, r, constant_values=np.nan), (size, size))
+    rows = max(1, int(max_bytes // (8 * size * size * w)))
+    out = np.empty_like(d)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows: pixel is invalid anyway
-        out = np.nanmedian(stack, axis=0)
+        for y0 in range(0, h, rows):
+            block = windows[y0:y0 + rows].reshape(-1, w, size * size)
+            out[y0:y0 + rows] = np.nanmedian(block, axis=-1)
     return np.where(valid, out, radial_m)
 
 

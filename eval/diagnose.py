@@ -225,7 +225,7 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
     from tofhil.eval.diagnose_report import write_report
     from tofhil.sim.scene import load_scene
 
-    names = ("diagnosis.json", "report.html", "extended_scene.yaml", HELD_OUT_MASK)
+    names = ("diagnosis.json", "report.html", "extended_scene.yaml", HELD_OUT_MASK, "stray_light_psf.json")
     try:
         out = H.prepare_output_dir(out_dir, names, force=force)
     except TofhilError as exc:
@@ -246,6 +246,12 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
         written.append(out / HELD_OUT_MASK)
         ev = res.evaluations["before"]
         np.save(out / HELD_OUT_MASK, ev.maps.valid_both & res.data.test_pixels)
+        if "stray_light" in res.causes:
+            # The fitted stray light as a PSF file: `tofhil correct --method psf:psf=FILE` takes it.
+            from tofhil.eval.corrections.straylight import psf_from_diagnosis
+
+            written.append(out / "stray_light_psf.json")
+            psf_from_diagnosis(res.to_json(), out / "diagnosis.json").save(out / "stray_light_psf.json", force=True)
         written.append(out / "report.html")
         write_report(res, out / "report.html", session_path=str(session_path), scene_path=str(scene_path))
     except BaseException:

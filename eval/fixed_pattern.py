@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -50,8 +50,37 @@ class TapCalibration:
                               expected="a tap calibration made with the same camera, frequencies and taps")
         return (taps - self.offset_dn) / self.gain
 
-    def save(self, path: str | Path) -> None:
-        np.savez_compressed(path, offset_dn=self.offset_dn, gain=self.gain, info=json.dumps(self.info), format=FORMAT)
+    @staticmethod
+    def file_path(path: str | Path) -> Path:
+        """The file :meth:`save` writes: ``path`` with ``.npz`` added when it lacks it."""
+        p = Path(path)
+        return p if p.suffix == ".npz" else p.with_name(p.name + ".npz")
+
+    def save(self, path: str | Path, *, force: bool = False) -> Path:
+        """Write the calibration (.npz); refuses to overwrite without ``force``. Returns the
+        real path (``.npz`` added when missing)."""
+        import os
+        import tempfile
+
+        p = self.file_path(path)
+        if p.exists() and not force:
+            raise TofhilError("already exists; refusing to overwrite (use --force)", file=p)
+        if not (np.all(np.isfinite(self.offset_dn)) and np.all(np.isfinite(self.gain)) and np.all(self.gain > 0)):
+            raise TofhilError("the calibration has non-finite offsets or gains", file=p, field="gain",
+                              expected="finite offsets and positive gains")
+        try:
+            fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
+        except OSError as exc:
+            raise TofhilError(f"cannot write here ({exc.strerror})", file=p, expected="a writable directory") from None
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez_compressed(f, offset_dn=self.offset_dn, gain=self.gain, info=json.dumps(self.info),
+                                    format=FORMAT)
+            os.replace(tmp, p)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return p
 
     @classmethod
     def load(cls, path: str | Path) -> "TapCalibration":
@@ -88,6 +117,11 @@ def calibrate_taps(flat: np.ndarray, theta_rad: np.ndarray, dark: np.ndarray | N
     """
     flat = np.asarray(flat, dtype=np.float64)
     off = np.zeros_like(flat) if dark is None else np.asarray(dark, dtype=np.float64)
+    for name, taps in (("flat", flat), ("dark", off)):
+        bad = int((~np.isfinite(taps)).sum())
+        if bad:
+            raise TofhilError(f"{bad} of {taps.size} mean taps are not finite (NaN or inf)", field=name,
+                              expected="a capture with finite taps on every pixel")
     if off.shape != flat.shape:
         raise TofhilError(f"dark taps {off.shape} and flat taps {flat.shape} differ", field="dark",
                           expected="captures with the same camera, frequencies and taps")
@@ -108,3 +142,20 @@ def calibrate_taps(flat: np.ndarray, theta_rad: np.ndarray, dark: np.ndarray | N
     return TapCalibration(off, gain * pix, {"tap_gain_spread": float(np.median(gain.std(axis=-3))),
                                             "pixel_gain_spread": float(pix.std()), "dark": dark is not None,
                                             "pixel_gain": pixel_gain})
+
+
+def mean_taps(path: str | Path, progress: Callable[[Any, int, str], Any] | None = None
+              ) -> tuple[np.ndarray, Any, np.ndarray]:
+    """Mean raw taps ``[F, K, H, W]`` of a session (calibration captures are averaged in the
+    taps, before demodulation), its camera and tap phases."""
+    from tofhil.session import open_session
+
+    p = Path(path)
+    wrap = progress or (lambda it, n, desc: it)
+    with open_session(p) as s:
+        if not s.has_raw or s.n_frames == 0:
+            raise TofhilError("needs raw taps (at least one frame)", file=p, field="raw/taps")
+        acc = None
+        for raw in wrap(s.raw_frames(), s.n_frames, f"reading {p.name}"):
+            acc = raw.taps.astype(np.float64) if acc is None else acc + raw.taps
+        return acc / s.n_frames, s.camera, s.theta_rad

@@ -322,32 +322,42 @@ class StrayLightEffect(Effect):
     options = {"sigma_y_px": "sigma of the main lobe along y (default sigma_px)",
                "gaussians": "more lobes: [[weight, sigma_x_px, sigma_y_px], ...]",
                "ghost_center_px": "[x, y] the ghost mirrors through (default the principal point)",
+               "ghosts": "more ghosts: [[weight, sigma_px], ...] or [[weight, sigma_px, cx, cy], ...]",
                "psf_file": "measured PSF image (.npy/.png/.tif; its peak pixel is the direct light)",
                "psf_center_px": "[x, y] of the PSF image's direct pixel (default its maximum)",
                "psf_scale": "factor on the measured PSF's scattered part (default 1)",
-               "conserve": "true: h moves light (energy conserved); false: h adds light"}
+               "conserve": "true: h moves light (energy conserved); false: h adds light",
+               "direct": "fraction of a pixel's light kept on it (default 1 - total weight, or 1 "
+                         "without conserve); a calibration fits it"}
 
     def validate(self, values: Mapping[str, Any] | None, *, source: str | Path = "<effects>",
                  prefix: str | None = None) -> dict[str, Any]:
         out = super().validate(values, source=source, prefix=prefix)
         given = values or {}
-        components = ("veil", "ghost_weight", "gaussians", "psf_file")
+        components = ("veil", "ghost_weight", "gaussians", "ghosts", "psf_file")
         if "weight" not in given and any(given.get(c) for c in components):
             out["weight"] = 0.0  # the default lobe only stands in when no component is named
         self.psf(out, source=source, prefix=prefix or "effects.stray_light", check_file=False)
         return out
 
     def is_off(self, values: Mapping[str, Any]) -> bool:
-        extra = values.get("gaussians") or values.get("psf_file")
-        return super().is_off(values) and not extra
+        extra = values.get("gaussians") or values.get("ghosts") or values.get("psf_file")
+        direct = values.get("direct")
+        return super().is_off(values) and not extra and (direct is None or float(direct) == 1.0)
 
     @staticmethod
     def psf(values: Mapping[str, Any], *, source: str | Path = "<effects>", prefix: str = "effects.stray_light",
             base_dir: Path | None = None, check_file: bool = True) -> StrayLightPSF:
+        """The effect's parameters -> the one PSF type of sim/straylight.py."""
         p = dict(values)
         if not check_file:
             p.pop("psf_file", None)
         return StrayLightPSF.from_params(p, source=source, prefix=prefix, base_dir=base_dir)
+
+    @staticmethod
+    def values(psf: StrayLightPSF, measured_file: str | None = None) -> dict[str, Any]:
+        """A PSF (calibrated, diagnosed or loaded) -> this effect's parameters."""
+        return psf.to_params(measured_file)
 
     def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
         psf = self.psf(values, source=ctx.source, base_dir=ctx.base_dir)

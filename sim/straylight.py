@@ -17,31 +17,36 @@ Components:
   (erf differences), so small sigmas are exact.
 - Veil: a weight spread uniformly over the whole sensor (every pixel receives
   ``w_veil * sum(S) / (H W)``).
-- Ghost: a reflection between lens surfaces images the scene mirrored through the optical
-  centre ``c``: light at pixel ``p`` leaks to ``2c - p``, blurred by a Gaussian.
+- Ghosts: a reflection between lens surfaces images the scene mirrored through a centre
+  ``c`` (each ghost's own, default the principal point): light at pixel ``p`` leaks to
+  ``2c - p`` (sub-pixel), blurred by a Gaussian.
 - Measured PSF: the image of a point source (any size; its peak pixel is the direct light).
 
 Convolutions are linear, never circular: images are zero-padded for the FFT so that no
 wrap-around reaches the retained pixels. The shift-invariant part uses a kernel of shape
 ``[2H-1, 2W-1]`` (every shift between two sensor pixels) centred at ``(H-1, W-1)``. The
 operators are public (``psf_kernel``, ``ghost_kernel``, ``convolve``, ``correlate``,
-``StrayLightOperator`` with ``apply``/``scatter``/``adjoint``) so corrections can invert them.
+``StrayLightOperator`` with ``apply``/``scatter``/``adjoint``/``invert``) so corrections
+(``eval/corrections``) are built on them. ``StrayLightPSF`` is the one PSF type: simulated
+(the ``stray_light`` effect's parameters, ``from_params``/``to_params``), diagnosed,
+calibrated, saved and loaded (``save``/``load``, JSON) and corrected with.
 """
 
 from __future__ import annotations
 
+import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
 import numpy as np
 import scipy.fft as sfft
 from scipy.special import erf
 
 from tofhil.camera import CameraModel
-from tofhil.errors import InputFileError
+from tofhil.errors import InputFileError, TofhilError
 
 
 @dataclass(frozen=True)
@@ -54,20 +59,40 @@ class GaussianLobe:
 
 
 @dataclass(frozen=True)
+class Ghost:
+    """A lens ghost: ``weight`` of the light imaged mirrored through ``center_px`` (``(x, y)``
+    in pixels; None = the camera's principal point), blurred by a Gaussian ``sigma_px``."""
+
+    weight: float
+    sigma_px: float = 0.0
+    center_px: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
 class StrayLightPSF:
-    """Parameters of the scatter kernel ``h`` (see the module docstring)."""
+    """The one stray-light model of tofhil: the scatter kernel ``h`` and the direct part.
+
+    ``S_meas = keep * S + h * S`` with ``h`` = shift-invariant lobes (``gaussians``, the
+    ``veil``, a ``measured`` point-source image) + ``ghosts`` (not shift-invariant: mirrored
+    through their centre). ``keep`` is ``direct`` when given (a calibration fits it), else
+    ``1 - total_weight`` when ``conserve`` (light moved), else 1 (light added). New lobe
+    forms (power-law tails, free radial profiles) are further shift-invariant terms of
+    :func:`psf_kernel`; ghosts with fitted centre or scale are further :class:`Ghost` fields.
+    Simulated (the ``stray_light`` effect), diagnosed, calibrated and corrected with alike.
+    """
 
     gaussians: tuple[GaussianLobe, ...] = ()
     veil: float = 0.0
-    ghost_weight: float = 0.0
-    ghost_sigma_px: float = 0.0
-    #: Optical centre ``(x, y)`` in pixels the ghost mirrors through; None = camera (cx, cy).
-    ghost_center_px: tuple[float, float] | None = None
+    ghosts: tuple[Ghost, ...] = ()
     #: Measured point-source image (normalised on use) and its centre pixel ``(x, y)``.
     measured: np.ndarray | None = field(default=None, compare=False)
     measured_center_px: tuple[int, int] | None = None
     measured_scale: float = 1.0
     conserve: bool = True
+    #: Fraction of a pixel's light that stays on it; None = by ``conserve``.
+    direct: float | None = None
+    #: What a calibration or diagnosis found (basis, weights, residual, source); not physics.
+    info: dict[str, Any] = field(default_factory=dict, compare=False)
 
     @property
     def measured_fraction(self) -> float:
@@ -78,23 +103,135 @@ class StrayLightPSF:
         return self.measured_scale * float(1.0 - p[cy, cx])
 
     @property
+    def ghost_weight(self) -> float:
+        return sum(g.weight for g in self.ghosts)
+
+    @property
     def total_weight(self) -> float:
-        """``W``: the fraction of each pixel's light that is scattered."""
-        return (sum(g.weight for g in self.gaussians) + self.veil + self.ghost_weight
-                + self.measured_fraction)
+        """``W``: the fraction of each pixel's light that is scattered (over the infinite plane)."""
+        return sum(g.weight for g in self.gaussians) + self.veil + self.ghost_weight + self.measured_fraction
+
+    @property
+    def keep(self) -> float:
+        """The direct part: the factor on ``S`` itself."""
+        if self.direct is not None:
+            return float(self.direct)
+        return 1.0 - self.total_weight if self.conserve else 1.0
 
     @property
     def is_identity(self) -> bool:
-        return self.total_weight == 0.0
+        return self.total_weight == 0.0 and self.keep == 1.0
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], *, source: str | Path = "<effects>",
                     prefix: str = "effects.stray_light", base_dir: Path | None = None) -> "StrayLightPSF":
         """From the `stray_light` effect's parameters (docs/effects.md): ``weight``,
         ``sigma_px`` (``sigma_y_px``), ``gaussians: [[w, sx, sy], ...]``, ``veil``,
-        ``ghost_weight``, ``ghost_sigma_px``, ``ghost_center_px``, ``psf_file``,
-        ``psf_center_px``, ``psf_scale``, ``conserve``."""
+        ``ghost_weight``, ``ghost_sigma_px``, ``ghost_center_px``, ``ghosts: [[w, sigma(, cx,
+        cy)], ...]``, ``psf_file``, ``psf_center_px``, ``psf_scale``, ``conserve``, ``direct``."""
         return _psf_from_params(params, source=source, prefix=prefix, base_dir=base_dir)
+
+    def to_params(self, measured_file: str | None = None) -> dict[str, Any]:
+        """The `stray_light` effect's parameters of this PSF (inverse of :meth:`from_params`).
+
+        A measured image is referred to by ``measured_file`` (written by the caller)."""
+        d: dict[str, Any] = {"weight": 0.0}  # every lobe is in `gaussians`
+        if self.gaussians:
+            d["gaussians"] = [[g.weight, g.sigma_x_px, g.sigma_y_px] for g in self.gaussians]
+        if self.veil:
+            d["veil"] = self.veil
+        if len(self.ghosts) == 1:
+            g = self.ghosts[0]
+            d["ghost_weight"], d["ghost_sigma_px"] = g.weight, g.sigma_px
+            if g.center_px is not None:
+                d["ghost_center_px"] = list(g.center_px)
+        elif self.ghosts:
+            d["ghosts"] = [[g.weight, g.sigma_px] + ([] if g.center_px is None else list(g.center_px))
+                           for g in self.ghosts]
+        if self.measured is not None:
+            if measured_file is None:
+                raise ValueError("a PSF with a measured image needs the image's file name")
+            d["psf_file"] = measured_file
+            d["psf_scale"] = self.measured_scale
+            if self.measured_center_px is not None:
+                d["psf_center_px"] = list(self.measured_center_px)
+        d["conserve"] = self.conserve
+        if self.direct is not None:
+            d["direct"] = self.direct
+        return d
+
+    def save(self, path: str | Path, *, force: bool = False) -> Path:
+        """Write the PSF file (JSON: the effect's parameters, so it also pastes into a scene's
+        ``effects: stray_light:``); a measured image goes beside it as ``<stem>_measured.npy``.
+        Refuses to overwrite without ``force``; returns the path written."""
+        p = Path(path)
+        side = p.with_name(p.stem + "_measured.npy") if self.measured is not None else None
+        for f in (p, side):
+            if f is not None and f.exists() and not force:
+                raise TofhilError("already exists; refusing to overwrite (use --force)", file=f)
+        doc = {"format": PSF_FORMAT, "stray_light": self.to_params(None if side is None else side.name),
+               "info": self.info}
+        text = json.dumps(doc, indent=2, default=_json_default)
+        if side is not None:
+            _atomic_write(side, lambda f: np.save(f, np.asarray(self.measured)))
+        _atomic_write(p, lambda f: f.write(text.encode("utf-8")))
+        return p
+
+    @classmethod
+    def load(cls, path: str | Path) -> "StrayLightPSF":
+        """Read a PSF file written by :meth:`save` (``tofhil correct --save-psf``, diagnose)."""
+        p = Path(path)
+        expected = "a stray-light PSF file (.json, written by --save-psf or tofhil diagnose)"
+        if not p.is_file():
+            raise InputFileError("no such file" if not p.exists() else "is not a file", file=p, expected=expected)
+        raw = p.read_bytes()
+        if raw[:2] == b"PK":  # an .npz: the kernel-array format of older versions
+            raise InputFileError("is an .npz PSF of an older tofhil (kernel arrays, no parameters)", file=p,
+                                 field="format", expected=f"{PSF_FORMAT!r}: recalibrate with --save-psf")
+        try:
+            doc = json.loads(raw.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError) as exc:
+            raise InputFileError(f"cannot be read as JSON ({exc})", file=p, expected=expected) from None
+        if not isinstance(doc, dict) or doc.get("format") != PSF_FORMAT:
+            raise InputFileError("not a tofhil stray-light PSF", file=p, field="format", expected=repr(PSF_FORMAT))
+        psf = cls.from_params(doc.get("stray_light"), source=p, prefix="stray_light", base_dir=p.parent)
+        info = doc.get("info")
+        return replace(psf, info=dict(info) if isinstance(info, dict) else {})
+
+
+#: The ``format`` tag of a PSF file.
+PSF_FORMAT = "tofhil.straylight_psf.v2"
+
+
+def _json_default(x: Any) -> Any:
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+
+
+def _atomic_write(path: Path, write: Any) -> None:
+    """Write through a temporary file in the same directory, then rename: a failed write
+    leaves nothing behind and never a half-written file under the real name."""
+    import os
+    import tempfile
+
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as exc:
+        raise TofhilError(f"cannot write here ({exc.strerror})", file=path,
+                          expected="a writable directory") from None
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        raise TofhilError(f"cannot write ({exc.strerror})", file=path, expected="a writable file") from None
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 # ---------------------------------------------------------------------------------------------
@@ -153,16 +290,45 @@ def psf_kernel(psf: StrayLightPSF, shape: tuple[int, int]) -> np.ndarray:
     return k
 
 
-def ghost_kernel(psf: StrayLightPSF, shape: tuple[int, int], center_px: tuple[float, float]) -> np.ndarray:
-    """Kernel of the ghost on the flipped image: ``ghost(S) = convolve(flip(S), ghost_kernel)``.
+def ghost_kernel(ghost: Ghost, shape: tuple[int, int], center_px: tuple[float, float]) -> np.ndarray:
+    """Kernel of a ghost on the flipped image: ``ghost(S) = convolve(flip(S), ghost_kernel)``.
 
     Light at pixel ``p`` goes to ``2c - p``. With ``S'`` the image flipped in both axes
     (``S'[p'] = S[(W-1, H-1) - p']``), ``2c - p = p' + d`` with ``d = 2c - (W-1, H-1)``, so
-    the ghost is ``S'`` convolved with the blur Gaussian shifted by ``d``.
+    the ghost is ``S'`` convolved with the blur Gaussian shifted by ``d`` (sub-pixel: the
+    pixel-integrated Gaussian, a box for ``sigma_px = 0``).
     """
+    return ghost.weight * gaussian_kernel(shape, ghost.sigma_px, ghost.sigma_px, ghost_shift(shape, center_px))
+
+
+def ghost_shift(shape: tuple[int, int], center_px: tuple[float, float]) -> tuple[float, float]:
+    """``d = 2c - (W-1, H-1)``: the shift of the flipped image that mirrors through ``c``."""
     h, w = shape
-    d = (2.0 * center_px[0] - (w - 1), 2.0 * center_px[1] - (h - 1))
-    return psf.ghost_weight * gaussian_kernel(shape, psf.ghost_sigma_px, psf.ghost_sigma_px, d)
+    return 2.0 * center_px[0] - (w - 1), 2.0 * center_px[1] - (h - 1)
+
+
+class GaussianBlur:
+    """Pixel-integrated Gaussians of any widths and shifts applied to ONE image stack
+    ``[..., H, W]`` (what a calibration does for every basis lobe): the image's FFT is taken
+    once and each kernel's FFT is the outer product of two 1-D FFTs. ``blur(sx, sy,
+    offset)`` equals ``convolve(s, gaussian_kernel(shape, sx, sy, offset), (H-1, W-1))``."""
+
+    def __init__(self, s: np.ndarray, workers: int | None = None) -> None:
+        s = np.asarray(s)
+        self.h, self.w = s.shape[-2:]
+        self.workers = workers
+        self.fshape = fft_shape((self.h, self.w), (2 * self.h - 1, 2 * self.w - 1), (self.h - 1, self.w - 1))
+        self._sf = sfft.fft2(s, s=self.fshape, axes=(-2, -1), workers=workers)
+
+    def __call__(self, sigma_x_px: float, sigma_y_px: float,
+                 offset_px: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+        fy = sfft.fft(_pixel_gauss_1d(np.arange(-(self.h - 1), self.h, dtype=np.float64), offset_px[1],
+                                      sigma_y_px), n=self.fshape[0])
+        fx = sfft.fft(_pixel_gauss_1d(np.arange(-(self.w - 1), self.w, dtype=np.float64), offset_px[0],
+                                      sigma_x_px), n=self.fshape[1])
+        # Inverse along x, crop to the sensor's columns, then along y: half the work.
+        t = sfft.ifft(self._sf * fx, axis=-1, workers=self.workers)[..., self.w - 1:2 * self.w - 1]
+        return sfft.ifft(t * fy[:, None], axis=-2, workers=self.workers)[..., self.h - 1:2 * self.h - 1, :]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -279,10 +445,11 @@ class StrayLightOperator:
     """``S -> (delta + h) * S`` for images of one size; kernels built once.
 
     ``apply`` is the forward model, ``scatter`` the stray light alone (``apply(S) = keep * S +
-    scatter(S)``, ``keep = 1 - W`` when conserving), ``adjoint`` the transpose (for
-    least-squares corrections).
+    scatter(S)``), ``adjoint`` the transpose (for least-squares corrections), ``invert`` the
+    correction (fixed-point deconvolution). A ghost without a centre mirrors through
+    ``center_px`` (the camera's principal point; default the image centre).
 
-    ``method``: ``"separable"`` evaluates Gaussian lobes and the ghost as products with
+    ``method``: ``"separable"`` evaluates Gaussian lobes and ghosts as products with
     ``[H, H]`` and ``[W, W]`` pixel-Gaussian matrices (exact linear convolution, no padding
     needed) and the veil as a sum; ``"fft"`` (and ``"auto"``) uses the zero-padded FFT with the
     ``[2H-1, 2W-1]`` kernels. A measured PSF always goes through the FFT. Both give the same
@@ -298,20 +465,22 @@ class StrayLightOperator:
         self.psf = psf
         self.shape = (int(shape[0]), int(shape[1]))
         h, w = self.shape
-        c = psf.ghost_center_px or center_px or ((w - 1) / 2.0, (h - 1) / 2.0)
+        c = center_px or ((w - 1) / 2.0, (h - 1) / 2.0)
         self.center_px = (float(c[0]), float(c[1]))
-        self.keep = 1.0 - psf.total_weight if psf.conserve else 1.0
+        self.keep = psf.keep
         self.method = "fft" if method == "auto" else method
-        self._conv = self._ghost = None
+        self._conv: PaddedConvolution | None = None
+        self._ghosts: list[PaddedConvolution] = []
         self._lobes: list[tuple[float, np.ndarray, np.ndarray]] = []
-        self._ghost_mats: tuple[np.ndarray, np.ndarray] | None = None
+        self._ghost_mats: list[tuple[float, np.ndarray, np.ndarray]] = []
+        ghosts = [(g, self.ghost_center(g)) for g in psf.ghosts if g.weight]
         if self.method == "separable":
             for g in psf.gaussians:
                 if g.weight:
                     self._lobes.append((g.weight, _pixel_matrix(h, g.sigma_y_px), _pixel_matrix(w, g.sigma_x_px)))
-            if psf.ghost_weight:
-                self._ghost_mats = (_pixel_matrix(h, psf.ghost_sigma_px, mirror_about=self.center_px[1]),
-                                    _pixel_matrix(w, psf.ghost_sigma_px, mirror_about=self.center_px[0]))
+            for g, gc in ghosts:
+                self._ghost_mats.append((g.weight, _pixel_matrix(h, g.sigma_px, mirror_about=gc[1]),
+                                         _pixel_matrix(w, g.sigma_px, mirror_about=gc[0])))
             if psf.measured is not None and psf.measured_scale != 0:
                 # Only the measured part goes through the FFT here.
                 k = psf_kernel(StrayLightPSF(measured=psf.measured, measured_center_px=psf.measured_center_px,
@@ -320,25 +489,50 @@ class StrayLightOperator:
         else:
             k = psf_kernel(psf, self.shape)
             self._conv = PaddedConvolution(k, self.shape, (h - 1, w - 1), workers) if np.any(k) else None
-            self._ghost = (PaddedConvolution(ghost_kernel(psf, self.shape, self.center_px), self.shape,
-                                             (h - 1, w - 1), workers) if psf.ghost_weight else None)
+            # Ghosts sharing a centre share one kernel (and one FFT per application).
+            by_centre: dict[tuple[float, float], np.ndarray] = {}
+            for g, gc in ghosts:
+                by_centre[gc] = by_centre.get(gc, 0.0) + ghost_kernel(g, self.shape, gc)
+            self._ghosts = [PaddedConvolution(gk, self.shape, (h - 1, w - 1), workers) for gk in by_centre.values()]
+
+    def ghost_center(self, ghost: Ghost) -> tuple[float, float]:
+        """The point a ghost mirrors through: its own centre, else the principal point."""
+        c = ghost.center_px or self.center_px
+        return float(c[0]), float(c[1])
 
     def scatter(self, s: np.ndarray) -> np.ndarray:
-        """The stray light only: ``h_scatter * S`` (without the ``-W delta`` term)."""
+        """The stray light only: ``h * S`` (without the direct part)."""
         s = np.asarray(s)
         out = np.zeros(s.shape, dtype=np.result_type(s.dtype, np.float64))
         if self.method == "separable":
-            for wgt, my, mx in self._lobes:
+            for wgt, my, mx in self._lobes + self._ghost_mats:
                 out += wgt * _separable(s, my, mx)
-            if self._ghost_mats is not None:
-                out += self.psf.ghost_weight * _separable(s, *self._ghost_mats)
             if self.psf.veil:
                 h, w = self.shape
                 out += (self.psf.veil / (h * w)) * s.sum(axis=(-2, -1), keepdims=True)
-        elif self._ghost is not None:
-            out += self._ghost(flip_image(s))
+        elif self._ghosts:
+            flipped = flip_image(s)
+            for gc in self._ghosts:
+                out += gc(flipped)
         if self._conv is not None:
             out += self._conv(s)
+        return out
+
+    def scatter_adjoint(self, s: np.ndarray) -> np.ndarray:
+        """Transpose of :meth:`scatter` (conjugate transpose for complex kernels)."""
+        s = np.asarray(s)
+        out = np.zeros(s.shape, dtype=np.result_type(s.dtype, np.float64))
+        if self.method == "separable":
+            for wgt, my, mx in self._lobes + self._ghost_mats:
+                out += wgt * _separable(s, my.T, mx.T)
+            if self.psf.veil:
+                h, w = self.shape
+                out += (self.psf.veil / (h * w)) * s.sum(axis=(-2, -1), keepdims=True)
+        else:
+            for gc in self._ghosts:
+                out += flip_image(gc.adjoint(s))
+        if self._conv is not None:
+            out += self._conv.adjoint(s)
         return out
 
     def apply(self, s: np.ndarray) -> np.ndarray:
@@ -350,26 +544,47 @@ class StrayLightOperator:
     def adjoint(self, s: np.ndarray) -> np.ndarray:
         """Transpose of :meth:`apply` (conjugate transpose for complex kernels)."""
         s = np.asarray(s)
-        out = self.keep * s.astype(np.result_type(s.dtype, np.float64))
-        if self.method == "separable":
-            for wgt, my, mx in self._lobes:
-                out = out + wgt * _separable(s, my.T, mx.T)
-            if self._ghost_mats is not None:
-                out = out + self.psf.ghost_weight * _separable(s, self._ghost_mats[0].T, self._ghost_mats[1].T)
-            if self.psf.veil:
-                h, w = self.shape
-                out = out + (self.psf.veil / (h * w)) * s.sum(axis=(-2, -1), keepdims=True)
-        elif self._ghost is not None:
-            out = out + flip_image(self._ghost.adjoint(s))
-        if self._conv is not None:
-            out = out + self._conv.adjoint(s)
-        return out
+        return self.keep * s.astype(np.result_type(s.dtype, np.float64)) + self.scatter_adjoint(s)
+
+    @property
+    def scattered_fraction(self) -> float:
+        """Largest fraction of one pixel's light that lands on other pixels of this sensor:
+        the operator 1-norm of ``h`` on the sensor (its largest column sum; every part of
+        ``h`` is non-negative). Light scattered beyond the edge does not count, so it is at
+        most :attr:`StrayLightPSF.total_weight`."""
+        if not hasattr(self, "_scattered"):
+            self._scattered = float(self.scatter_adjoint(np.ones(self.shape)).max())
+        return self._scattered
+
+    def invert(self, s_meas: np.ndarray, *, iterations: int = 30, tol: float = 1e-7) -> np.ndarray:
+        """Remove the stray light: solve ``keep * S + h * S = S_meas`` by the fixed point
+        ``S_{k+1} = (S_meas - h * S_k) / keep`` (a Neumann series; Kavli et al. 2008).
+
+        The error shrinks by ``scattered_fraction / keep`` per iteration, so a few tens of
+        iterations reach float precision for realistic optics (< 0.3). Stops early when the
+        update is below ``tol`` of the signal. Refuses optics it cannot invert this way.
+        """
+        ratio = self.scattered_fraction / self.keep if self.keep > 0 else math.inf
+        if ratio >= 1.0:
+            raise TofhilError(f"the PSF scatters {self.scattered_fraction:.3f} of the signal against a direct "
+                              f"part of {self.keep:.3f}; the fixed-point inversion needs a ratio < 1",
+                              field="psf", expected="scattered fraction / direct < 1")
+        s_meas = np.asarray(s_meas)
+        scale = float(np.abs(s_meas).max()) or 1.0
+        s = s_meas.astype(np.result_type(s_meas.dtype, np.float64), copy=True)
+        for _ in range(iterations):
+            nxt = (s_meas - self.scatter(s)) / self.keep
+            done = float(np.abs(nxt - s).max()) <= tol * scale
+            s = nxt
+            if done:
+                break
+        return s
 
 
 def apply_stray_light(s: np.ndarray, psf_params: StrayLightPSF | Mapping[str, Any],
                       camera: CameraModel | None = None) -> np.ndarray:
-    """``S_meas = (delta + h) * S`` on images ``[..., H, W]``; the ghost mirrors through the
-    camera's principal point (or the image centre without a camera)."""
+    """``S_meas = (delta + h) * S`` on images ``[..., H, W]``; ghosts without a centre mirror
+    through the camera's principal point (or the image centre without a camera)."""
     psf = psf_params if isinstance(psf_params, StrayLightPSF) else StrayLightPSF.from_params(psf_params)
     if psf.is_identity:
         return np.array(s, copy=True)
@@ -382,7 +597,7 @@ def apply_stray_light(s: np.ndarray, psf_params: StrayLightPSF | Mapping[str, An
 # Parameters (the `stray_light` effect's mapping)
 # ---------------------------------------------------------------------------------------------
 PSF_KEYS = ("weight", "sigma_px", "sigma_y_px", "gaussians", "veil", "ghost_weight", "ghost_sigma_px",
-            "ghost_center_px", "psf_file", "psf_center_px", "psf_scale", "conserve")
+            "ghost_center_px", "ghosts", "psf_file", "psf_center_px", "psf_scale", "conserve", "direct")
 
 
 def _num(params: Mapping[str, Any], key: str, default: float, *, source: str | Path, prefix: str,
@@ -401,7 +616,9 @@ def _pair(v: Any, *, source: str | Path, field_: str) -> tuple[float, float]:
     try:
         a, b = (float(x) for x in v)
     except (TypeError, ValueError):
-        raise InputFileError(f"got {v!r}", file=source, field=field_, expected="[x, y] in pixels") from None
+        a = b = math.nan
+    if not (math.isfinite(a) and math.isfinite(b)):
+        raise InputFileError(f"got {v!r}", file=source, field=field_, expected="[x, y] in pixels")
     return a, b
 
 
@@ -452,7 +669,7 @@ def _psf_from_params(params: Mapping[str, Any], *, source: str | Path, prefix: s
             if len(vals) == 2:
                 vals.append(vals[1])
             w, sx, sy = vals
-            ok = 0 <= w <= 1 and sx >= 0 and sy >= 0
+            ok = 0 <= w <= 1 and 0 <= sx < math.inf and 0 <= sy < math.inf
         except (TypeError, ValueError):
             ok = False
         if not ok:
@@ -461,12 +678,29 @@ def _psf_from_params(params: Mapping[str, Any], *, source: str | Path, prefix: s
         lobes.append(GaussianLobe(w, sx, sy))
     kw["gaussians"] = tuple(lobes)
     kw["veil"] = _num(params, "veil", 0.0, source=source, prefix=prefix, hi=1.0, expected="a fraction in [0, 1]")
-    kw["ghost_weight"] = _num(params, "ghost_weight", 0.0, source=source, prefix=prefix, hi=1.0,
-                              expected="a fraction in [0, 1]")
-    kw["ghost_sigma_px"] = _num(params, "ghost_sigma_px", 0.0, source=source, prefix=prefix,
-                                expected="a sigma in pixels >= 0")
+    ghosts: list[Ghost] = []
+    gw = _num(params, "ghost_weight", 0.0, source=source, prefix=prefix, hi=1.0, expected="a fraction in [0, 1]")
+    gs = _num(params, "ghost_sigma_px", 0.0, source=source, prefix=prefix, expected="a sigma in pixels >= 0")
+    gc = None
     if params.get("ghost_center_px") is not None:
-        kw["ghost_center_px"] = _pair(params["ghost_center_px"], source=source, field_=f"{prefix}.ghost_center_px")
+        gc = _pair(params["ghost_center_px"], source=source, field_=f"{prefix}.ghost_center_px")
+    if gw:
+        ghosts.append(Ghost(gw, gs, gc))
+    extra = params.get("ghosts") or []
+    if not isinstance(extra, (list, tuple)):
+        raise InputFileError(f"got {extra!r}", file=source, field=f"{prefix}.ghosts",
+                             expected="a list of [weight, sigma_px] or [weight, sigma_px, cx, cy]")
+    for i, g in enumerate(extra):
+        try:
+            vals = [float(x) for x in g]
+            ok = len(vals) in (2, 4) and all(map(math.isfinite, vals)) and 0 <= vals[0] <= 1 and vals[1] >= 0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise InputFileError(f"got {g!r}", file=source, field=f"{prefix}.ghosts[{i}]",
+                                 expected="[weight in [0, 1], sigma_px >= 0] or [weight, sigma_px, cx, cy]")
+        ghosts.append(Ghost(vals[0], vals[1], (vals[2], vals[3]) if len(vals) == 4 else None))
+    kw["ghosts"] = tuple(ghosts)
     if params.get("psf_file"):
         f = Path(str(params["psf_file"]))
         if not f.is_absolute() and base_dir is not None:
@@ -486,29 +720,14 @@ def _psf_from_params(params: Mapping[str, Any], *, source: str | Path, prefix: s
     if not isinstance(conserve, bool):
         raise InputFileError(f"got {conserve!r}", file=source, field=f"{prefix}.conserve", expected="true or false")
     kw["conserve"] = conserve
+    if params.get("direct") is not None:
+        kw["direct"] = _num(params, "direct", 1.0, source=source, prefix=prefix, hi=1.0,
+                            expected="a fraction in (0, 1]")
+        if kw["direct"] <= 0:
+            raise InputFileError(f"got {params['direct']!r}", file=source, field=f"{prefix}.direct",
+                                 expected="a fraction in (0, 1]")
     psf = StrayLightPSF(**kw)
-    if psf.conserve and psf.total_weight > 1.0 + 1e-12:
+    if psf.conserve and psf.direct is None and psf.total_weight > 1.0 + 1e-12:
         raise InputFileError(f"the weights add up to {psf.total_weight:g}", file=source, field=prefix,
                              expected="a total scattered fraction <= 1")
     return psf
-
-
-def psf_to_params(psf: StrayLightPSF) -> dict[str, Any]:
-    """Inverse of :meth:`StrayLightPSF.from_params` for the parametric parts (not a measured image)."""
-    d: dict[str, Any] = {}
-    if psf.gaussians:
-        d["gaussians"] = [[g.weight, g.sigma_x_px, g.sigma_y_px] for g in psf.gaussians]
-    if psf.veil:
-        d["veil"] = psf.veil
-    if psf.ghost_weight:
-        d["ghost_weight"] = psf.ghost_weight
-        d["ghost_sigma_px"] = psf.ghost_sigma_px
-        if psf.ghost_center_px is not None:
-            d["ghost_center_px"] = list(psf.ghost_center_px)
-    d["conserve"] = psf.conserve
-    return d
-
-
-def psf_from_sequence(lobes: Sequence[tuple[float, float, float]], **kw: Any) -> StrayLightPSF:
-    """Convenience: ``psf_from_sequence([(w, sx, sy), ...], veil=..., ...)``."""
-    return StrayLightPSF(gaussians=tuple(GaussianLobe(*map(float, g)) for g in lobes), **kw)

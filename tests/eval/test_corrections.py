@@ -14,7 +14,10 @@ from scipy.stats import norm
 
 from tofhil import C_M_PER_S
 from tofhil.errors import InputFileError, TofhilError
-from tofhil.eval import straylight_correction as sl
+from tofhil.eval.corrections import psf_calibration as pc
+from tofhil.eval.corrections import straylight as sl
+from tofhil.sim.straylight import (GaussianLobe, Ghost, StrayLightOperator, StrayLightPSF, convolve,
+                                   gaussian_kernel)
 
 F_HZ = 20e6  # ambiguity range 7.5 m: no wrapping for the distances used here
 H, W = 48, 64
@@ -70,20 +73,18 @@ def apply_optics(s: np.ndarray, conserve: bool = False) -> np.ndarray:
     return keep * s + scatter + GHOST * s[::-1, ::-1]
 
 
-def test_fft_convolve_matches_direct_convolution():
+def test_the_inverse_filter_uses_the_simulators_kernel():
+    # One Gaussian for simulation and correction: the kernel is the pixel-integrated unit
+    # Gaussian of scipy's normal distribution (independent construction).
+    y = np.arange(-(H - 1), H)[:, None]
+    x = np.arange(-(W - 1), W)[None, :]
+    g = (norm.cdf(y + 0.5, scale=2.0) - norm.cdf(y - 0.5, scale=2.0)) * \
+        (norm.cdf(x + 0.5, scale=3.0) - norm.cdf(x - 0.5, scale=3.0))
+    assert np.allclose(gaussian_kernel((H, W), 3.0, 2.0), g, atol=1e-15)
     rng = np.random.default_rng(1)
-    s = rng.normal(size=(12, 9)) + 1j * rng.normal(size=(12, 9))
-    k = rng.normal(size=(23, 17))
-    direct = convolve2d(s, k, mode="full")[11:23, 8:17]
-    assert np.allclose(sl.fft_convolve(s, k), direct, atol=1e-12)
-
-
-def test_mirror_through_image_centre_is_a_double_flip():
-    s = np.arange(20.0).reshape(4, 5)
-    assert np.array_equal(sl.mirror_through(s, 2.0, 1.5), s[::-1, ::-1])
-    # Off-centre principal point: pixels mirrored off the sensor receive nothing.
-    m = sl.mirror_through(s, 1.0, 1.5)
-    assert np.array_equal(m[:, 0], s[::-1, 2]) and np.all(m[:, 3:] == 0)
+    s = rng.normal(size=(H, W)) + 1j * rng.normal(size=(H, W))
+    direct = convolve2d(s, g, mode="full")[H - 1:2 * H - 1, W - 1:2 * W - 1]
+    assert np.allclose(convolve(s, g), direct, atol=1e-12)
 
 
 def test_uniform_subtraction_inverts_a_uniform_veil_exactly():
@@ -109,17 +110,28 @@ def test_inverse_gaussian_filter_recovers_a_compact_scene():
     assert np.abs(sl.inverse_filter_gaussian(meas, 1.5, 1.0, 0.2, 0.5) - s).max() > 1e-3
 
 
+def _plane_gauss(sigma: float) -> np.ndarray:
+    """Unit integral over the infinite plane (what a lobe weight means), on the full grid."""
+    y = np.arange(-(H - 1), H)[:, None]
+    x = np.arange(-(W - 1), W)[None, :]
+    return (norm.cdf(y + 0.5, scale=sigma) - norm.cdf(y - 0.5, scale=sigma)) * \
+        (norm.cdf(x + 0.5, scale=sigma) - norm.cdf(x - 0.5, scale=sigma))
+
+
 def test_deconvolve_inverts_a_known_psf():
-    psf = sl.StrayLightPSF(kernel=TRUE_KERNEL, cx=(W - 1) / 2, cy=(H - 1) / 2, ghost_weight=GHOST)
+    psf = StrayLightPSF(gaussians=(GaussianLobe(0.04, 2.3, 2.3), GaussianLobe(0.05, 13.0, 13.0)), veil=0.03,
+                        ghosts=(Ghost(GHOST),), conserve=False)
     s, _, _ = scene(0.05, card=True)
-    meas = apply_optics(s)
-    assert np.allclose(psf.apply(s), meas - s, atol=1e-12)
+    k = 0.04 * _plane_gauss(2.3) + 0.05 * _plane_gauss(13.0) + 0.03 * np.ones((2 * H - 1, 2 * W - 1)) / (H * W)
+    meas = s + fftconvolve(s, k, mode="full")[H - 1:2 * H - 1, W - 1:2 * W - 1] + GHOST * s[::-1, ::-1]
+    op = StrayLightOperator(psf, (H, W))  # ghost through the image centre
+    assert np.allclose(op.apply(s), meas, atol=1e-12 * np.abs(s).max())
     corr = sl.deconvolve(meas, psf, iterations=60, tol=1e-14)
     assert np.abs(corr - s).max() < 1e-10 * np.abs(s).max()
 
 
 def test_deconvolve_refuses_a_psf_that_scatters_everything():
-    psf = sl.StrayLightPSF(kernel=1.2 * gauss(3, 3), cx=0, cy=0)
+    psf = StrayLightPSF(gaussians=(GaussianLobe(1.2, 3, 3),), conserve=False)
     with pytest.raises(TofhilError, match="< 1"):
         sl.deconvolve(np.ones((H, W), complex), psf)
 
@@ -134,16 +146,16 @@ def test_calibrated_psf_from_one_scene_fixes_dark_squares_of_every_reflectance(t
     cal_true, _, _ = scene(None, card=True, wall=False)
     cal_meas = apply_optics(cal_true, conserve)
     if target_only:
-        psf = sl.calibrate_psf_target(cal_meas, cx=(W - 1) / 2, cy=(H - 1) / 2)
+        psf = pc.calibrate_psf_target(cal_meas, cx=(W - 1) / 2, cy=(H - 1) / 2)
     else:
-        psf = sl.calibrate_psf(cal_meas, cal_true, cx=(W - 1) / 2, cy=(H - 1) / 2)
+        psf = pc.calibrate_psf(cal_meas, cal_true, cx=(W - 1) / 2, cy=(H - 1) / 2)
     # Largest on-sensor column sum of the true operator (light leaving the sensor is lost).
     w_true = fftconvolve(np.ones((H, W)), TRUE_KERNEL[::-1, ::-1], mode="full")[H - 1:2 * H - 1, W - 1:2 * W - 1].max() + GHOST
     if target_only:  # h is found relative to the measured target: h / direct
         w_true /= (1.0 - W_SCATTERED) if conserve else 1.0
     else:
-        assert psf.direct == pytest.approx(1.0 - W_SCATTERED if conserve else 1.0, abs=0.005)
-    assert psf.scattered_fraction == pytest.approx(w_true, rel=0.05)
+        assert psf.keep == pytest.approx(1.0 - W_SCATTERED if conserve else 1.0, abs=0.005)
+    assert psf.info["scattered_fraction"] == pytest.approx(w_true, rel=0.05)
     # ... and correct wall + dark square + card scenes it never saw.
     for rho in (0.5, 0.2, 0.05, 0.01):
         s, dist, sq = scene(rho, card=True)
@@ -156,21 +168,26 @@ def test_calibrated_psf_from_one_scene_fixes_dark_squares_of_every_reflectance(t
 
 def test_psf_file_roundtrip_and_bad_files(tmp_path):
     cal_true, _, _ = scene(None, card=True, wall=False)
-    psf = sl.calibrate_psf(apply_optics(cal_true), cal_true, cx=(W - 1) / 2, cy=(H - 1) / 2)
-    p = tmp_path / "psf.npz"
-    psf.save(p)
-    back = sl.StrayLightPSF.load(p)
+    psf = pc.calibrate_psf(apply_optics(cal_true), cal_true, cx=(W - 1) / 2, cy=(H - 1) / 2)
+    p = tmp_path / "psf.json"
+    assert psf.save(p) == p
+    back = sl.load_psf(p)
     s, _, _ = scene(0.1, card=True)
-    assert np.allclose(back.apply(s), psf.apply(s))
+    assert back == psf  # every physical field survives the file
+    assert np.allclose(StrayLightOperator(back, (H, W)).apply(s), StrayLightOperator(psf, (H, W)).apply(s))
     assert back.info["basis"] == psf.info["basis"]
-    bad = tmp_path / "bad.npz"
-    np.savez(bad, kernel=np.ones((3, 3)))
+    with pytest.raises(TofhilError, match="refusing to overwrite"):
+        psf.save(p)
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"format": "something else"}')
     with pytest.raises(InputFileError, match="format"):
-        sl.StrayLightPSF.load(bad)
+        sl.load_psf(bad)
+    old = tmp_path / "old.npz"
+    np.savez(old, kernel=np.ones((3, 3)), format="tofhil.straylight_psf.v1")
+    with pytest.raises(InputFileError, match="older tofhil"):
+        sl.load_psf(old)
     with pytest.raises(InputFileError, match="no such file"):
-        sl.StrayLightPSF.load(tmp_path / "missing.npz")
-    with pytest.raises(InputFileError, match="calibrated for a"):
-        back.apply(np.ones((H + 2, W), complex))
+        sl.load_psf(tmp_path / "missing.json")
 
 
 def test_correct_raw_resynthesises_taps_with_the_corrected_signal_and_the_same_offset():

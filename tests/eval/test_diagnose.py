@@ -165,6 +165,7 @@ def test_cli_diagnose_writes_json_scene_and_report(tmp_path, bench_scene):
     assert {"effect", "params", "score", "delta_score"} <= set(d["ranked"][0])
     assert d["gain"]["depth_rmse_m"]["after"] < d["gain"]["depth_rmse_m"]["before"]
     assert "ndt_score_per_point" in d["gain"] and "icp_inlier_rmse_m" in d["gain"]
+    assert not (out / "stray_light_psf.json").exists()  # written only when stray light is a cause
     # the extended scene is a scene file that carries the fitted effect
     ext = load_scene(d["extended_scene"])
     assert ext.effects["range_offset"]["path_m"] == pytest.approx(0.05, abs=0.002)

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from scipy.signal import convolve2d
 
-from tofhil.errors import InputFileError
-from tofhil.sim.straylight import (GaussianLobe, StrayLightOperator, StrayLightPSF, apply_stray_light,
+from tofhil.errors import InputFileError, TofhilError
+from tofhil.sim.straylight import (GaussianLobe, Ghost, StrayLightOperator, StrayLightPSF, apply_stray_light,
                                    convolve, correlate, fft_shape, psf_kernel)
 
 
@@ -97,7 +98,7 @@ def test_ghost_mirrors_through_the_optical_centre() -> None:
     h, w = 48, 64
     s = np.zeros((h, w))
     s[5, 10] = 1.0
-    psf = StrayLightPSF(ghost_weight=0.04, ghost_sigma_px=0.0, ghost_center_px=(30.0, 20.0))
+    psf = StrayLightPSF(ghosts=(Ghost(0.04, 0.0, (30.0, 20.0)),))
     out = apply_stray_light(s, psf)
     # 2c - p = (60 - 10, 40 - 5) = (50, 35)  (x, y)
     assert out[35, 50] == pytest.approx(0.04, rel=1e-9)
@@ -107,7 +108,7 @@ def test_ghost_mirrors_through_the_optical_centre() -> None:
     # A ghost whose mirror point lies outside the sensor is lost.
     s2 = np.zeros((h, w))
     s2[2, 2] = 1.0  # mirror (58, 38) inside; now move the centre so it falls outside
-    far = StrayLightPSF(ghost_weight=0.04, ghost_center_px=(40.0, 30.0))
+    far = StrayLightPSF(ghosts=(Ghost(0.04, 0.0, (40.0, 30.0)),))
     assert apply_stray_light(s2, far).sum() == pytest.approx(0.96)  # (78, 58) is off the sensor
 
 
@@ -117,7 +118,7 @@ def test_ghost_default_centre_is_the_principal_point() -> None:
     cam = CameraModel(width=40, height=30, fx=50, fy=50, cx=24.0, cy=12.5)
     s = np.zeros((30, 40))
     s[4, 10] = 1.0
-    out = apply_stray_light(s, StrayLightPSF(ghost_weight=0.1), cam)
+    out = apply_stray_light(s, StrayLightPSF(ghosts=(Ghost(0.1),)), cam)
     assert out[21, 38] == pytest.approx(0.1)  # 2c - p = (48 - 10, 25 - 4)
 
 
@@ -126,7 +127,7 @@ def test_operator_adjoint_is_the_transpose(method: str) -> None:
     rng = _rng(3)
     shape = (10, 14)
     psf = StrayLightPSF(gaussians=(GaussianLobe(0.05, 1.5, 3.0), GaussianLobe(0.02, 6.0, 6.0)), veil=0.01,
-                        ghost_weight=0.03, ghost_sigma_px=1.0, ghost_center_px=(6.3, 5.1))
+                        ghosts=(Ghost(0.03, 1.0, (6.3, 5.1)), Ghost(0.01, 0.5)))
     op = StrayLightOperator(psf, shape, method=method)
     x = rng.normal(size=shape) + 1j * rng.normal(size=shape)
     y = rng.normal(size=shape) + 1j * rng.normal(size=shape)
@@ -139,7 +140,7 @@ def test_fft_and_separable_evaluations_agree() -> None:
     rng = _rng(9)
     shape = (37, 52)
     psf = StrayLightPSF(gaussians=(GaussianLobe(0.03, 2.5, 7.0), GaussianLobe(0.01, 30.0, 30.0)), veil=0.02,
-                        ghost_weight=0.02, ghost_sigma_px=3.0, ghost_center_px=(27.3, 16.8))
+                        ghosts=(Ghost(0.02, 3.0, (27.3, 16.8)),))
     s = rng.normal(size=(2, *shape)) + 1j * rng.normal(size=(2, *shape))
     a = StrayLightOperator(psf, shape, method="fft").apply(s)
     b = StrayLightOperator(psf, shape, method="separable").apply(s)
@@ -152,8 +153,8 @@ def test_operator_matches_dense_matrix_built_from_its_definition(method: str) ->
     h, w = 7, 9
     sig, wg, veil, wgh = 1.2, 0.1, 0.05, 0.02
     cx, cy = 3.5, 3.0
-    psf = StrayLightPSF(gaussians=(GaussianLobe(wg, sig, sig),), veil=veil, ghost_weight=wgh,
-                        ghost_sigma_px=0.0, ghost_center_px=(cx, cy))
+    psf = StrayLightPSF(gaussians=(GaussianLobe(wg, sig, sig),), veil=veil,
+                        ghosts=(Ghost(wgh, 0.0, (cx, cy)),))
 
     def pix(d: float, s: float) -> float:  # pixel-integrated unit Gaussian
         return 0.5 * (math.erf((d + 0.5) / (s * math.sqrt(2))) - math.erf((d - 0.5) / (s * math.sqrt(2))))
@@ -228,3 +229,45 @@ def test_correlate_is_adjoint_of_convolve() -> None:
     y = rng.normal(size=(12, 10)) + 1j * rng.normal(size=(12, 10))
     c = (1, 4)
     assert np.vdot(y, convolve(x, k, c)) == pytest.approx(np.vdot(correlate(y, k, c), x), rel=1e-12)
+
+
+def test_blur_of_one_image_equals_the_padded_convolution() -> None:
+    from tofhil.sim.straylight import GaussianBlur, gaussian_kernel
+
+    s = _rng(9).normal(size=(2, 12, 17)) + 1j * _rng(10).normal(size=(2, 12, 17))
+    blur = GaussianBlur(s)
+    for sx, sy, off in ((1.5, 2.5, (0.0, 0.0)), (0.0, 0.0, (3.0, -2.0)), (4.0, 4.0, (0.5, 1.5))):
+        k = gaussian_kernel((12, 17), sx, sy, off)
+        np.testing.assert_allclose(blur(sx, sy, off), convolve(s, k, (11, 16)), atol=1e-12)
+
+
+def test_scattered_fraction_is_the_largest_column_sum_and_invert_undoes_apply() -> None:
+    shape = (9, 11)
+    psf = StrayLightPSF(gaussians=(GaussianLobe(0.05, 1.5, 3.0),), veil=0.02,
+                        ghosts=(Ghost(0.03, 1.0, (4.2, 3.9)),))
+    op = StrayLightOperator(psf, shape)
+    # The operator as a matrix, column by column (independent of the adjoint).
+    cols = []
+    for j in range(shape[0] * shape[1]):
+        e = np.zeros(shape[0] * shape[1])
+        e[j] = 1.0
+        cols.append(op.scatter(e.reshape(shape)).ravel())
+    m = np.stack(cols, axis=1)
+    assert op.scattered_fraction == pytest.approx(m.sum(axis=0).max(), rel=1e-12)
+    assert op.scattered_fraction <= psf.total_weight
+    s = _rng(11).random(shape) * np.exp(1j * _rng(12).random(shape))
+    np.testing.assert_allclose(op.invert(op.apply(s), iterations=200, tol=0), s, atol=1e-12)
+
+
+def test_psf_file_keeps_a_measured_image_beside_it(tmp_path) -> None:
+    point = np.zeros((15, 15))
+    point[7, 7] = 1.0
+    img = apply_stray_light(point, StrayLightPSF(gaussians=(GaussianLobe(0.1, 1.5, 1.5),)))
+    psf = replace(StrayLightPSF(), measured=img, measured_scale=0.5, conserve=False)
+    path = psf.save(tmp_path / "lens.json")
+    assert (tmp_path / "lens_measured.npy").is_file()
+    back = StrayLightPSF.load(path)
+    s = _rng(13).random((20, 18))
+    np.testing.assert_allclose(apply_stray_light(s, back), apply_stray_light(s, psf), atol=1e-14)
+    with pytest.raises(TofhilError, match="refusing to overwrite"):
+        psf.save(path)

@@ -10,129 +10,81 @@ import typer
 from tofhil.cli import app, console, out, progress
 from tofhil.errors import TofhilError
 
-_METHOD_HELP = ("uniform (w) | gaussian-inverse (sigma-h, sigma-v, w, mu) | psf (psf or calibration) | "
-                "amplitude (min-amplitude) | jump-angle (angle-deg) | jump-distance (max-step, relative) | "
-                "smooth-gaussian (sigma-px) | smooth-median (size) | smooth-bilateral (sigma-px, sigma-m)")
+_METHOD_HELP = ("METHOD[:key=value,...] (the same syntax as compare --correct): uniform:w=W | "
+                "gaussian-inverse:sigma_h=S,sigma_v=S,w=W[,mu=M] | psf:psf=FILE (a PSF file or diagnosis.json; "
+                "or --calibrate)[,iterations=N] | taps:flat=T.npz | amplitude:min_amplitude=A | "
+                "jump-angle[:angle_deg=D] | jump-distance[:max_step_m=M,relative=R] | smooth-gaussian[:sigma_px=S] | "
+                "smooth-median[:size=N] | smooth-bilateral[:sigma_px=S,sigma_m=M]; complex-domain methods "
+                "take flat=T.npz too")
 
 
-def _mean_taps(path: Path) -> tuple[Any, Any]:
-    """Mean raw taps ``[F, K, H, W]`` of a session and the session's camera and phases."""
-    import numpy as np
+def _pixel_pair(text: str, option: str) -> tuple[float, float]:
+    import math
 
-    from tofhil.session import open_session
-
-    with open_session(path) as s:
-        if not s.has_raw or s.n_frames == 0:
-            raise TofhilError("needs raw taps (at least one frame)", file=path, field="raw/taps")
-        acc = None
-        for raw in progress(s.raw_frames(), s.n_frames, f"reading {path.name}"):
-            acc = raw.taps.astype(np.float64) if acc is None else acc + raw.taps
-        return acc / s.n_frames, (s.camera, s.theta_rad)
-
-
-def _calibrate(cal_path: Path, reference: Optional[Path], target_threshold: float, flat: Any = None) -> Any:
-    """Fit a stray-light PSF from a calibration session (frames averaged in S)."""
-    import numpy as np
-
-    from tofhil.demod import phasor
-    from tofhil.eval import straylight_correction as sl
-    def mean_s(path: Path) -> tuple[np.ndarray, Any]:
-        taps, (camera, theta) = _mean_taps(path)
-        if flat is not None:
-            taps = flat.apply(taps)  # the same pre-processing as the sessions it will correct
-        return phasor(taps, theta), camera
-
-    s_meas, cam = mean_s(cal_path)
-    if reference is not None:
-        s_true, cam_ref = mean_s(reference)
-        if s_true.shape != s_meas.shape:
-            raise TofhilError(f"has signals of shape {s_true.shape}, the calibration capture {s_meas.shape}",
-                              file=reference, field="raw/taps", expected="the same camera and frequencies")
-        psf = sl.calibrate_psf(s_meas, s_true, cam.cx, cam.cy)
-        psf.info["calibration"] = {"mode": "reference", "capture": str(cal_path), "reference": str(reference)}
-    else:
-        psf = sl.calibrate_psf_target(s_meas, cam.cx, cam.cy, threshold=target_threshold)
-        psf.info["calibration"]["capture"] = str(cal_path)
-    if psf.direct <= 0.1 + 1e-9 or psf.scattered_fraction >= psf.direct:
-        raise TofhilError(f"the PSF fit is degenerate (direct {psf.direct:.3f}, scattered "
-                          f"{psf.scattered_fraction:.3f})", file=reference or cal_path,
-                          expected="a noise-free twin reference (tofhil simulate --no-noise) or more frames "
-                                   "averaged, and a capture whose stray light is visible")
-    return psf
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        x = y = math.nan
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise TofhilError(f"got {text!r}", field=option, expected="X,Y in pixels (two finite numbers)")
+    return x, y
 
 
 @app.command()
 def correct(session: Path = typer.Argument(..., help="Session to correct (.h5)."),
             method: str = typer.Option(..., "--method", help=_METHOD_HELP),
             out_path: Path = typer.Option(..., "--out", help="Corrected session to write."),
-            w: Optional[float] = typer.Option(None, "--w", help="Stray-light weight (uniform, gaussian-inverse)."),
-            sigma_h: Optional[float] = typer.Option(None, "--sigma-h", help="Horizontal Gaussian sigma, pixels."),
-            sigma_v: Optional[float] = typer.Option(None, "--sigma-v", help="Vertical Gaussian sigma, pixels."),
-            mu: Optional[float] = typer.Option(None, "--mu", help="Inverse-filter regularisation."),
-            psf: Optional[Path] = typer.Option(None, "--psf", help="Calibrated PSF (.npz) for --method psf."),
             calibrate: Optional[Path] = typer.Option(None, "--calibrate",
-                                                     help="Calibration capture (.h5) to fit the PSF from."),
+                                                     help="psf: calibration capture (.h5) to fit the PSF from."),
             reference: Optional[Path] = typer.Option(None, "--reference",
                                                      help="Stray-light-free twin of the calibration capture; "
                                                           "without it the capture must be a bright target on a "
                                                           "dark background."),
             target_threshold: float = typer.Option(0.2, help="Target pixels: amplitude above this fraction "
                                                              "of the brightest (calibration without reference)."),
-            save_psf: Optional[Path] = typer.Option(None, "--save-psf", help="Write the calibrated PSF here."),
-            flat: Optional[Path] = typer.Option(None, "--flat", help="Tap calibration (.npz from calibrate-taps) "
-                                                                     "applied to the taps first (taps, uniform, "
-                                                                     "gaussian-inverse, psf)."),
-            iterations: Optional[int] = typer.Option(None, "--iterations", help="Deconvolution iterations (psf)."),
-            min_amplitude: Optional[float] = typer.Option(None, "--min-amplitude",
-                                                          help="Amplitude threshold (amplitude method; "
-                                                               "invalidation when demodulating)."),
-            angle_deg: Optional[float] = typer.Option(None, "--angle-deg", help="Jump-edge angle, degrees."),
-            max_step: Optional[float] = typer.Option(None, "--max-step", help="Jump-edge distance step, m."),
-            relative: Optional[float] = typer.Option(None, "--relative", help="Jump-edge step per metre."),
-            sigma_px: Optional[float] = typer.Option(None, "--sigma-px", help="Smoothing sigma, pixels."),
-            sigma_m: Optional[float] = typer.Option(None, "--sigma-m", help="Bilateral range sigma, m."),
-            size: Optional[int] = typer.Option(None, "--size", help="Median window size (odd)."),
+            ghost_center: Optional[str] = typer.Option(None, "--ghost-center",
+                                                       help="X,Y (pixels) the calibrated ghost mirrors through "
+                                                            "(default the principal point)."),
+            save_psf: Optional[Path] = typer.Option(None, "--save-psf",
+                                                    help="Write the calibrated PSF here (.json)."),
+            min_amplitude: float = typer.Option(0.0, "--min-amplitude",
+                                                help="Invalidate low-amplitude pixels when demodulating."),
             force: bool = typer.Option(False, "--force", help="Overwrite OUT (and --save-psf) if they exist.")) -> None:
     """Apply one correction to every frame of a session (complex-domain ones need raw taps)."""
-    from tofhil.eval.corrections import correct_session, get_method
+    from tofhil.eval.corrections import check_min_amplitude, correct_session, parse_method_spec
 
-    m = get_method(method)
-    given = {"w": w, "sigma_h": sigma_h, "sigma_v": sigma_v, "mu": mu, "iterations": iterations,
-             "min_amplitude": min_amplitude, "angle_deg": angle_deg, "max_step_m": max_step,
-             "relative": relative, "sigma_px": sigma_px, "sigma_m": sigma_m, "size": size,
-             "flat": None if flat is None else str(flat)}
-    params: dict[str, Any] = {k: v for k, v in given.items() if v is not None and k in m.params}
-    stray = sorted(k for k, v in given.items() if v is not None and k not in m.params and k != "min_amplitude")
-    if stray:
-        raise TofhilError(f"method {method!r} takes no {', '.join('--' + k.replace('_', '-') for k in stray)}",
-                          field="--method", expected="options of that method: " + (", ".join(m.params) or "none"))
-    if method == "psf":
-        if psf is not None and calibrate is not None:
-            raise TofhilError("give either --psf or --calibrate, not both", field="--psf")
-        if calibrate is not None:
-            if save_psf is not None and save_psf.exists() and not force:
-                raise TofhilError("already exists; refusing to overwrite (use --force)", file=save_psf)
-            from tofhil.eval.fixed_pattern import TapCalibration
+    # With --calibrate the PSF comes from the calibration, not from psf=FILE.
+    name, params = parse_method_spec(method, supplied=("psf",) if calibrate is not None else ())
+    check_min_amplitude(min_amplitude, "--min-amplitude")
+    if name != "psf" and (calibrate is not None or reference is not None or save_psf is not None
+                          or ghost_center is not None):
+        raise TofhilError("--calibrate, --reference, --ghost-center and --save-psf belong to --method psf",
+                          field="--method")
+    # Refuse before any work: nothing is written when an output exists.
+    for target in (out_path, save_psf):
+        if target is not None and target.exists() and not force:
+            raise TofhilError("already exists; refusing to overwrite (use --force)", file=target)
+    fitted = None
+    if calibrate is not None:
+        if "psf" in params:
+            raise TofhilError("give either psf=FILE or --calibrate, not both", field="psf:psf")
+        from tofhil.eval.corrections.psf_calibration import calibrate_from_sessions
+        from tofhil.eval.fixed_pattern import TapCalibration
 
-            fitted = _calibrate(calibrate, reference, target_threshold,
-                                None if flat is None else TapCalibration.load(flat))
-            if save_psf is not None:
-                fitted.save(save_psf)
-                # np.savez adds .npz when missing; report the real name.
-                real = save_psf if save_psf.suffix == ".npz" else Path(str(save_psf) + ".npz")
-                out.print(f"saved PSF (scattered fraction {fitted.scattered_fraction:.4f}, direct "
-                          f"{fitted.direct:.4f}) to {real}")
-            params["psf"] = fitted
-        elif psf is not None:
-            params["psf"] = str(psf)
-        else:
-            raise TofhilError("method 'psf' needs --psf FILE.npz or --calibrate CAL.h5", field="--psf")
-    elif calibrate is not None or reference is not None or save_psf is not None:
-        raise TofhilError("--calibrate, --reference and --save-psf belong to --method psf", field="--method")
-    n = correct_session(session, out_path, method, params, force=force,
-                        min_amplitude=min_amplitude if (min_amplitude is not None and method != "amplitude") else 0.0,
+        flat = TapCalibration.load(params["flat"]) if params.get("flat") else None
+        fitted = calibrate_from_sessions(calibrate, reference, target_threshold=target_threshold, flat=flat,
+                                         ghost_center_px=None if ghost_center is None
+                                         else _pixel_pair(ghost_center, "--ghost-center"), progress=progress)
+        params["psf"] = fitted
+    elif reference is not None or save_psf is not None or ghost_center is not None:
+        raise TofhilError("--reference, --ghost-center and --save-psf need --calibrate CAL.h5", field="--calibrate")
+    n = correct_session(session, out_path, name, params, force=force, min_amplitude=min_amplitude,
                         progress=progress)
-    out.print(f"wrote {n} corrected frames ({method}) to {out_path}")
+    if fitted is not None and save_psf is not None:
+        real = fitted.save(save_psf, force=force)
+        out.print(f"saved PSF (scattered fraction {fitted.info['scattered_fraction']:.4f}, direct "
+                  f"{fitted.keep:.4f}) to {real}")
+    out.print(f"wrote {n} corrected frames ({name}) to {out_path}")
 
 
 @app.command()
@@ -192,24 +144,26 @@ def compare_line(name: str, region: dict[str, Any]) -> str:
 def calibrate_taps_cmd(flat: Path = typer.Option(..., "--flat", help="Capture with the emitter off, lit by "
                                                                      "unmodulated light on a surface filling the view."),
                        dark: Optional[Path] = typer.Option(None, "--dark", help="Capture with no light at all."),
-                       out_path: Path = typer.Option(..., "--out", help="Tap calibration to write (.npz)."),
+                       out_path: Path = typer.Option(..., "--out", help="Tap calibration to write (.npz; the "
+                                                                        "suffix is added when missing)."),
                        no_pixel_gain: bool = typer.Option(False, "--no-pixel-gain",
                                                           help="Balance the taps of each pixel only."),
                        force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
-    """Per-tap offsets (dark) and gains (flat) for --flat of tofhil correct."""
-    from tofhil.eval.fixed_pattern import calibrate_taps
+    """Per-tap offsets (dark) and gains (flat) for flat=T.npz of tofhil correct."""
+    from tofhil.eval.fixed_pattern import TapCalibration, calibrate_taps, mean_taps
 
-    if out_path.exists() and not force:
-        raise TofhilError("already exists; refusing to overwrite (use --force)", file=out_path)
-    f_taps, (cam, theta) = _mean_taps(flat)
+    real = TapCalibration.file_path(out_path)
+    if real.exists() and not force:
+        raise TofhilError("already exists; refusing to overwrite (use --force)", file=real)
+    f_taps, _cam, theta = mean_taps(flat, progress)
     d_taps = None
     if dark is not None:
-        d_taps, _ = _mean_taps(dark)
+        d_taps, _, _ = mean_taps(dark, progress)
     try:
         cal = calibrate_taps(f_taps, theta, d_taps, pixel_gain=not no_pixel_gain)
     except TofhilError as exc:
-        raise TofhilError(str(exc), file=flat) from None
+        raise TofhilError(str(exc), file=flat if exc.field != "dark" else dark) from None
     cal.info.update({"flat": str(flat), "dark": None if dark is None else str(dark)})
-    cal.save(out_path)
-    out.print(f"wrote tap calibration to {out_path} (tap gain spread {cal.info['tap_gain_spread']:.4f}, "
+    real = cal.save(out_path, force=force)
+    out.print(f"wrote tap calibration to {real} (tap gain spread {cal.info['tap_gain_spread']:.4f}, "
               f"pixel gain spread {cal.info['pixel_gain_spread']:.4f})")

@@ -7,23 +7,31 @@ corrected session is a valid raw session; its depth is recomputed by
 :func:`tofhil.depth.depth_from_raw`. Depth-domain methods (thresholds, jump edges,
 smoothing) work on depth frames, computing them from taps first when needed.
 
-Methods and parameters (see ``docs/evaluation.md``)::
+One syntax for a correction everywhere (``tofhil correct --method``, ``compare --correct``):
+``METHOD[:key=value,...]`` (:func:`parse_method_spec`); parameters are checked here, so
+every command refuses the same bad values with the same message. Methods (see
+``docs/evaluation.md``)::
 
     taps               flat                    tap offset/gain calibration only
     uniform            w [flat]                thesis method 1: S - w * sum_p S_p
     gaussian-inverse   sigma_h sigma_v w mu    thesis method 2: Wiener inverse of delta + w G
                        [flat]
-    psf                psf iterations [flat]   calibrated PSF, fixed-point deconvolution
+    psf                psf iterations [flat]   a PSF (calibrated, diagnosed), fixed-point deconvolution
     amplitude          min_amplitude           invalidate low-amplitude pixels
     jump-angle         angle_deg               jump-edge filter, angle criterion (8 neighbours)
     jump-distance      max_step_m relative     jump-edge filter, distance criterion
     smooth-gaussian    sigma_px                normalised Gaussian depth smoothing
     smooth-median      size                    median depth smoothing
     smooth-bilateral   sigma_px sigma_m        bilateral depth smoothing
+
+Families live in their own modules: ``straylight`` (thesis methods, PSF deconvolution,
+loading a PSF), ``psf_calibration`` (fitting a PSF), ``depth`` (depth filters); tap
+calibration is ``tofhil.eval.fixed_pattern``.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
@@ -33,21 +41,71 @@ import numpy as np
 from tofhil.demod import offset, phasor, taps_from_signal
 from tofhil.depth import depth_from_raw
 from tofhil.errors import TofhilError
-from tofhil.eval import depth_filters as df
-from tofhil.eval import straylight_correction as sl
+from tofhil.eval.corrections import depth as dm
+from tofhil.eval.corrections import straylight as sl
 from tofhil.eval.fixed_pattern import TapCalibration
 from tofhil.frames import DepthFrame, RawFrame
 
 
 @dataclass(frozen=True)
+class Param:
+    """A method parameter: type, default (None: required) and the values it accepts."""
+
+    type: type
+    default: Any = None
+    lo: float = -math.inf
+    hi: float = math.inf
+    lo_open: bool = False
+    hi_open: bool = False
+    odd: bool = False
+    expected: str = ""
+
+    def check(self, value: Any, field: str) -> Any:
+        """The value converted to the type, or a TofhilError naming ``field``."""
+        what = self.expected or f"a {self.type.__name__}"
+        if self.type is str:
+            if isinstance(value, (str, Path)):
+                return str(value)
+            return value  # an already loaded calibration (PSF, tap calibration)
+        try:
+            if isinstance(value, bool):
+                raise ValueError
+            x = float(value)
+        except (TypeError, ValueError):
+            raise TofhilError(f"got {value!r}", field=field, expected=what) from None
+        ok = math.isfinite(x) and (x > self.lo if self.lo_open else x >= self.lo) and \
+            (x < self.hi if self.hi_open else x <= self.hi)
+        if self.type is int:
+            ok = ok and x.is_integer() and (not self.odd or int(x) % 2 == 1)
+        if not ok:
+            raise TofhilError(f"got {value!r}", field=field, expected=what)
+        return int(x) if self.type is int else x
+
+
+def _fraction(required: bool = True) -> Param:
+    return Param(float, None if required else 0.0, 0.0, 1.0, hi_open=True, expected="a fraction in [0, 1)")
+
+
+def _positive(default: float | None = None, unit: str = "") -> Param:
+    return Param(float, default, 0.0, lo_open=True, expected=f"a finite number > 0{unit}")
+
+
+def _non_negative(default: float | None = None, unit: str = "") -> Param:
+    return Param(float, default, 0.0, expected=f"a finite number >= 0{unit}")
+
+
+_FLAT = Param(str, "", expected="a tap calibration (.npz from tofhil calibrate-taps)")
+
+
+@dataclass(frozen=True)
 class Method:
-    """One correction: its domain, parameters (name -> (type, default)) and implementation."""
+    """One correction: its domain, parameters and implementation."""
 
     name: str
     domain: str  # "complex" (needs raw taps) or "depth"
-    params: dict[str, tuple[type, Any]]
+    params: dict[str, Param]
     summary: str
-    #: complex: f(S[F,H,W], **p) -> S; depth: f(DepthFrame, **p) -> DepthFrame
+    #: complex: f(S[F,H,W], camera, **p) -> S; depth: f(DepthFrame, **p) -> DepthFrame
     func: Callable[..., Any]
 
 
@@ -58,89 +116,46 @@ def _flat_param(value: Any) -> TapCalibration | None:
 
 
 def load_params(method: str, params: dict[str, Any]) -> dict[str, Any]:
-    """Resolved parameters with calibration files (psf, flat) loaded once."""
+    """Checked parameters with calibration files (psf, flat) loaded once."""
     p = resolve_params(method, params)
     if "psf" in p:
-        p["psf"] = _psf_param(p["psf"])
+        p["psf"] = sl.load_psf(p["psf"])
     if "flat" in p:
         p["flat"] = _flat_param(p["flat"])
     return p
 
 
-def _psf_param(value: Any) -> sl.StrayLightPSF:
-    if isinstance(value, sl.StrayLightPSF):
-        return value
-    if value is None or value == "":
-        raise TofhilError("method 'psf' needs a calibrated PSF", field="psf",
-                          expected="--psf FILE.npz (written by --save-psf)")
-    return sl.StrayLightPSF.load(value)
-
-
-def _complex_psf(s: np.ndarray, psf: Any, iterations: int) -> np.ndarray:
-    return sl.deconvolve(s, _psf_param(psf), iterations=iterations)
-
-
-def _depth_amplitude(d: DepthFrame, min_amplitude: float) -> DepthFrame:
-    if d.amplitude is None or not np.isfinite(d.amplitude).any():
-        raise TofhilError("amplitude thresholding needs an amplitude image", field="depth/amplitude",
-                          expected="a session with amplitude or raw taps")
-    return replace(d, valid=df.amplitude_threshold(d.amplitude, d.valid, min_amplitude))
-
-
-def _radial(d: DepthFrame) -> np.ndarray:
-    return np.asarray(d.radial_m, dtype=np.float64)
-
-
-def _with_radial(d: DepthFrame, radial: np.ndarray, valid: np.ndarray | None = None) -> DepthFrame:
-    dist = radial if d.kind == "radial" else d.camera.radial_to_z(radial)
-    return replace(d, distance_m=dist, valid=d.valid if valid is None else valid)
-
-
-def _depth_jump_angle(d: DepthFrame, angle_deg: float) -> DepthFrame:
-    flag = df.jump_edge_angle(_radial(d), d.valid, d.camera, angle_deg)
-    return replace(d, valid=d.valid & ~flag)
-
-
-def _depth_jump_distance(d: DepthFrame, max_step_m: float, relative: float) -> DepthFrame:
-    flag = df.jump_edge_distance(_radial(d), d.valid, max_step_m, relative)
-    return replace(d, valid=d.valid & ~flag)
-
-
-def _depth_gauss(d: DepthFrame, sigma_px: float) -> DepthFrame:
-    return _with_radial(d, df.gaussian_smooth(_radial(d), d.valid, sigma_px))
-
-
-def _depth_median(d: DepthFrame, size: int) -> DepthFrame:
-    return _with_radial(d, df.median_smooth(_radial(d), d.valid, size))
-
-
-def _depth_bilateral(d: DepthFrame, sigma_px: float, sigma_m: float) -> DepthFrame:
-    return _with_radial(d, df.bilateral_smooth(_radial(d), d.valid, sigma_px, sigma_m))
+def _complex_psf(s: np.ndarray, camera: Any, psf: Any, iterations: int) -> np.ndarray:
+    center = None if camera is None else (camera.cx, camera.cy)
+    return sl.deconvolve(s, sl.load_psf(psf), center_px=center, iterations=iterations)
 
 
 METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("taps", "complex", {"flat": (str, None)},
-           "per-tap offset and gain calibration (tofhil calibrate-taps)", lambda s: s),
-    Method("uniform", "complex", {"w": (float, None), "flat": (str, "")},
-           "thesis method 1: S - w * sum of all pixels' S", sl.subtract_uniform),
+    Method("taps", "complex", {"flat": Param(str, None, expected=_FLAT.expected)},
+           "per-tap offset and gain calibration (tofhil calibrate-taps)", lambda s, camera: s),
+    Method("uniform", "complex", {"w": _fraction(), "flat": _FLAT},
+           "thesis method 1: S - w * sum of all pixels' S", lambda s, camera, w: sl.subtract_uniform(s, w)),
     Method("gaussian-inverse", "complex",
-           {"sigma_h": (float, None), "sigma_v": (float, None), "w": (float, None), "mu": (float, 0.0),
-            "flat": (str, "")},
+           {"sigma_h": _positive(unit=" (pixels)"), "sigma_v": _positive(unit=" (pixels)"), "w": _fraction(),
+            "mu": _non_negative(0.0), "flat": _FLAT},
            "thesis method 2: inverse filter of delta + w*Gaussian(sigma_h, sigma_v), regularisation mu",
-           sl.inverse_filter_gaussian),
-    Method("psf", "complex", {"psf": (str, None), "iterations": (int, 30), "flat": (str, "")},
-           "calibrated stray-light PSF removed by fixed-point deconvolution", _complex_psf),
-    Method("amplitude", "depth", {"min_amplitude": (float, None)},
-           "invalidate pixels with amplitude below min_amplitude", _depth_amplitude),
-    Method("jump-angle", "depth", {"angle_deg": (float, 10.0)},
-           "jump-edge filter, angle criterion on the 8 neighbours", _depth_jump_angle),
-    Method("jump-distance", "depth", {"max_step_m": (float, 0.05), "relative": (float, 0.0)},
-           "jump-edge filter, distance criterion on the 8 neighbours", _depth_jump_distance),
-    Method("smooth-gaussian", "depth", {"sigma_px": (float, 1.0)},
-           "Gaussian depth smoothing over valid pixels", _depth_gauss),
-    Method("smooth-median", "depth", {"size": (int, 3)}, "median depth smoothing", _depth_median),
-    Method("smooth-bilateral", "depth", {"sigma_px": (float, 1.5), "sigma_m": (float, 0.03)},
-           "bilateral depth smoothing", _depth_bilateral),
+           lambda s, camera, **p: sl.inverse_filter_gaussian(s, **p)),
+    Method("psf", "complex",
+           {"psf": Param(str, None, expected="a PSF file (--save-psf, diagnose) or a diagnosis.json"),
+            "iterations": Param(int, 30, 1, 10000, expected="an integer in [1, 10000]"), "flat": _FLAT},
+           "a stray-light PSF (calibrated or diagnosed) removed by fixed-point deconvolution", _complex_psf),
+    Method("amplitude", "depth", {"min_amplitude": _non_negative()},
+           "invalidate pixels with amplitude below min_amplitude", dm.amplitude),
+    Method("jump-angle", "depth", {"angle_deg": Param(float, 10.0, 0.0, 90.0, expected="an angle in [0, 90] degrees")},
+           "jump-edge filter, angle criterion on the 8 neighbours", dm.jump_angle),
+    Method("jump-distance", "depth", {"max_step_m": _non_negative(0.05, " (m)"), "relative": _non_negative(0.0)},
+           "jump-edge filter, distance criterion on the 8 neighbours", dm.jump_distance),
+    Method("smooth-gaussian", "depth", {"sigma_px": _positive(1.0, " (pixels)")},
+           "Gaussian depth smoothing over valid pixels", dm.smooth_gaussian),
+    Method("smooth-median", "depth", {"size": Param(int, 3, 1, odd=True, expected="an odd integer >= 1")},
+           "median depth smoothing", dm.smooth_median),
+    Method("smooth-bilateral", "depth", {"sigma_px": _positive(1.5, " (pixels)"), "sigma_m": _positive(0.03, " (m)")},
+           "bilateral depth smoothing", dm.smooth_bilateral),
 )}
 
 
@@ -152,58 +167,55 @@ def get_method(name: str) -> Method:
 
 
 def resolve_params(method: str | Method, params: dict[str, Any] | None) -> dict[str, Any]:
-    """Typed parameters with defaults filled in; unknown or missing ones are user errors."""
+    """Checked, typed parameters with defaults filled in; unknown, missing or out-of-range
+    ones are user errors naming ``METHOD:key``."""
     m = get_method(method) if isinstance(method, str) else method
     params = dict(params or {})
     unknown = set(params) - set(m.params)
     if unknown:
         raise TofhilError(f"method {m.name!r} has no parameter(s) {', '.join(sorted(unknown))}",
-                          field="params", expected=", ".join(m.params) or "no parameters")
+                          field=f"{m.name}:{sorted(unknown)[0]}", expected=", ".join(m.params) or "no parameters")
     out: dict[str, Any] = {}
-    for key, (typ, default) in m.params.items():
+    for key, spec in m.params.items():
         if key in params and params[key] is not None:
-            value = params[key]
-            if typ is not str or isinstance(value, str):
-                try:
-                    value = typ(value)
-                except (TypeError, ValueError):
-                    raise TofhilError(f"got {value!r}", field=key, expected=f"a {typ.__name__}") from None
-            out[key] = value
-        elif default is None:
-            raise TofhilError(f"method {m.name!r} needs parameter {key!r}", field=key,
-                              expected=f"a {typ.__name__}")
+            out[key] = spec.check(params[key], f"{m.name}:{key}")
+        elif spec.default is None:
+            raise TofhilError(f"method {m.name!r} needs parameter {key!r}", field=f"{m.name}:{key}",
+                              expected=spec.expected or f"a {spec.type.__name__}")
         else:
-            out[key] = default
+            out[key] = spec.default
     return out
 
 
-def parse_method_spec(spec: str) -> tuple[str, dict[str, str]]:
-    """``"uniform:w=1e-4"`` or ``"psf:psf=cal.npz,iterations=20"`` -> (name, params)."""
-    name, _, rest = spec.partition(":")
+def parse_method_spec(spec: str, supplied: tuple[str, ...] = ()) -> tuple[str, dict[str, str]]:
+    """The one syntax of a correction: ``METHOD[:key=value,...]`` -> (name, params), e.g.
+    ``"uniform:w=1e-4"``, ``"psf:psf=diagnosis.json,iterations=20"``. Keys may be written
+    with ``-`` or ``_``. The method and its parameters are checked (:func:`resolve_params`);
+    required parameters named in ``supplied`` are left for the caller to fill in."""
+    name, _, rest = str(spec).partition(":")
+    name = name.strip()
     params: dict[str, str] = {}
     for item in filter(None, (p.strip() for p in rest.split(","))):
         key, eq, value = item.partition("=")
-        if not eq:
-            raise TofhilError(f"bad parameter {item!r} in {spec!r}", field="--correct",
+        key = key.strip().replace("-", "_")
+        if not eq or not key:
+            raise TofhilError(f"bad parameter {item!r} in {spec!r}", field="method",
                               expected="METHOD[:key=value,key=value]")
-        params[key.strip().replace("-", "_")] = value.strip()
-    get_method(name.strip())
-    return name.strip(), params
+        if key in params:
+            raise TofhilError(f"parameter {key!r} given twice in {spec!r}", field=f"{name}:{key}",
+                              expected="each parameter once")
+        params[key] = value.strip()
+    m = get_method(name)
+    resolve_params(m, {**{k: "" for k in supplied if k in m.params and m.params[k].type is str}, **params})
+    return name, params
 
 
 # ---------------------------------------------------------------------------- frames
 
 
-def correct_signal(s: np.ndarray, method: str, params: dict[str, Any] | None = None) -> np.ndarray:
-    """Apply a complex-domain method to ``S[..., H, W]``."""
-    m = get_method(method)
-    if m.domain != "complex":
-        raise TofhilError(f"method {method!r} works on depth, not on complex signals", field="method")
-    p = resolve_params(m, params)
-    if p.pop("flat", None):
-        raise TofhilError("a tap calibration (flat) applies to raw taps, not to a complex signal", field="flat",
-                          expected="correct_raw() or a session with raw taps")
-    return m.func(np.asarray(s), **p)
+def check_min_amplitude(value: float, field: str = "min_amplitude") -> float:
+    """The demodulation's amplitude threshold: a finite number >= 0."""
+    return _non_negative().check(value, field)
 
 
 def correct_raw(raw: RawFrame, method: str, params: dict[str, Any] | None = None, *,
@@ -214,13 +226,14 @@ def correct_raw(raw: RawFrame, method: str, params: dict[str, Any] | None = None
     """
     m = get_method(method)
     p = resolve_params(m, params)
+    check_min_amplitude(min_amplitude)
     if m.domain == "complex":
         taps = raw.taps.astype(np.float64)
         flat = _flat_param(p.pop("flat", None))
         if flat is not None:
             taps = flat.apply(taps)
         s = phasor(taps, raw.theta_rad)
-        sc = m.func(s, **p)
+        sc = m.func(s, raw.camera, **p)
         taps = taps_from_signal(np.abs(sc), np.angle(sc), offset(taps), raw.theta_rad)
         out = replace(raw, taps=taps.astype(np.float32), meta=dict(raw.meta, corrected=method))
         return out, depth_from_raw(out, min_amplitude=min_amplitude)
@@ -249,6 +262,7 @@ def correct_session(in_path: str | Path, out_path: str | Path, method: str, para
     if out_path.exists() and out_path.resolve() == in_path.resolve():
         raise TofhilError("the output must differ from the input", file=out_path)
     m = get_method(method)
+    check_min_amplitude(min_amplitude)
     p = load_params(m.name, params or {})  # calibration files loaded once, not per frame
     wrap = progress or (lambda it, n, desc: it)
     with open_session(in_path) as s:

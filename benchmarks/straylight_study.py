@@ -1,4 +1,5 @@
-"""The stray-light study on the twin: thesis methods against the calibrated PSF.
+"""The stray-light study on the twin: thesis methods against the calibrated PSF (a study,
+not library code: run by ``straylight_methods.py`` beside it and the acceptance test).
 
 Cases are the bundled ``dark_square_card`` scene (white wall at 1 m, a dark square in the
 middle, a white card 0.17 m from the lens) for square reflectances from 50 % down to 1 %
@@ -23,8 +24,10 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from tofhil.demod import phasor, phase_to_distance, wrapped_phase
-from tofhil.eval import straylight_correction as sl
+from tofhil.eval.corrections import psf_calibration as pc
+from tofhil.eval.corrections import straylight as sl
 from tofhil.eval.fixed_pattern import TapCalibration, calibrate_taps
+from tofhil.sim.straylight import StrayLightPSF
 
 #: The optics of the study's "camera": a narrow and two wide lobes, a veil and a ghost
 #: (fractions of light; sigmas in pixels of the 160 x 120 sensor). Energy-conserving.
@@ -176,7 +179,7 @@ def best_gaussian(cap: Capture, sigmas: Sequence[float] = tuple(2.0 * np.sqrt(2)
 
 def calibrate(kind: str = "reference", psf: Mapping[str, Any] | None = None,
               flat: TapCalibration | None = None, sensor: Mapping[str, Any] | None = STUDY_SENSOR,
-              noise: bool = False, frames: int = 1) -> sl.StrayLightPSF:
+              noise: bool = False, frames: int = 1) -> StrayLightPSF:
     """The one calibration used for every case, on scenes that are NOT the test cases.
 
     ``reference``: ``wall_card`` (wall and card, no square) with its stray-light-free twin.
@@ -186,13 +189,13 @@ def calibrate(kind: str = "reference", psf: Mapping[str, Any] | None = None,
     if kind == "reference":
         cap = simulate_capture("wall_card", None, psf, sensor=sensor, noise=noise, frames=frames, seed=11)
         cap.flat = flat
-        return sl.calibrate_psf(cap.s_meas, cap.s_ref, cap.cx, cap.cy)
+        return pc.calibrate_psf(cap.s_meas, cap.s_ref, cap.cx, cap.cy)
     if kind == "target":
         cap = simulate_capture("wall_card", {"wall_reflectance": 0.0, "card_offset_x_m": -0.05,
                                              "card_distance_m": 0.3}, psf, sensor=sensor, noise=noise,
                                frames=frames, seed=12)
         cap.flat = flat
-        return sl.calibrate_psf_target(cap.s_meas, cap.cx, cap.cy)
+        return pc.calibrate_psf_target(cap.s_meas, cap.cx, cap.cy)
     raise ValueError(f"unknown calibration kind {kind!r}")
 
 
@@ -226,14 +229,14 @@ def run_study(reflectances: Sequence[float] = REFLECTANCES, calibrations: Sequen
                                frames=frames, seed=int(1000 * rho))
         if raw_psf is not None:
             before_raw = square_error(cap, cap.s_meas)
-            e = square_error(cap, sl.deconvolve(cap.s_meas, raw_psf))
+            e = square_error(cap, sl.deconvolve(cap.s_meas, raw_psf, center_px=(cap.cx, cap.cy)))
             no_flat = {"error_m": e, "removed": 1.0 - e / before_raw, "error_before_m": before_raw}
         cap.flat = tapcal
         before = square_error(cap, cap.s_meas)
         row: dict[str, Any] = {"square_reflectance": rho, "error_before_m": before}
         s_meas = cap.s_meas
         for kind, p in psfs.items():
-            e = square_error(cap, sl.deconvolve(s_meas, p))
+            e = square_error(cap, sl.deconvolve(s_meas, p, center_px=(cap.cx, cap.cy)))
             row[f"psf_{kind}"] = {"error_m": e, "removed": 1.0 - e / before}
         if raw_psf is not None:
             row["psf_reference_without_tap_calibration"] = no_flat
