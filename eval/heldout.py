@@ -19,7 +19,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter
 
 from tofhil.camera import CameraModel
-from tofhil.demod import phasor, wrapped_phase
+from tofhil.demod import TapLimits, bad_extremes, detect_clipping, phasor, wrapped_phase
 from tofhil.errors import TofhilError
 from tofhil.session import Session
 from tofhil.unwrap import frequency_plan, unwrap
@@ -149,16 +149,15 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
 
     amp = np.abs(mean_all[:frames[0].freq_hz.size]).min(axis=0)
     usable = amp > min_amplitude_sigma * np.sqrt(var_frame[:frames[0].freq_hz.size].max(axis=0))
-    if saturation_dn is None:
-        top = float(taps_max.max())
-        if (taps_max >= top).sum() > 4:  # several pixels pinned at one value: a clipped ADC or full well
-            saturation_dn = top
-    if saturation_dn is not None:
-        usable &= taps_max < saturation_dn
-    # A differential readout (signed taps) clips at its negative end too.
-    bottom = float(taps_min.min())
-    if bottom < 0 and (taps_min <= bottom).sum() > 4:
-        usable &= taps_min > bottom
+    # Saturated taps: the one definition of the core (tofhil.demod). Limits given or declared
+    # by the session win; otherwise several pixels pinned at one extreme value over all
+    # frames are a clipped ADC or full well (a signed differential readout clips at both ends).
+    declared = TapLimits.from_meta(frames[0].meta)
+    detected = detect_clipping(taps_max, taps_min)
+    limits = TapLimits(high_dn=saturation_dn if saturation_dn is not None else
+                       declared.high_dn if declared.high_dn is not None else detected.high_dn,
+                       low_dn=declared.low_dn if declared.low_dn is not None else detected.low_dn)
+    usable &= ~bad_extremes(taps_max, taps_min, limits)
     board = block_checkerboard(amp.shape, block_px)
     f0 = frames[0]
     return HeldOutData(camera=session.camera, freq_hz=f0.freq_hz, theta_rad=f0.theta_rad,
