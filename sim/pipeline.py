@@ -156,7 +156,8 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
     # The session records the camera as the scene file states it (what a user's calibration
     # says); a lens_distortion effect is a deviation of the real lens from that model, so it
     # shows in the data, not in the recorded camera.
-    with SessionWriter(out_path, scene.camera, device=device, scene_text=text, force=force) as w:
+    with SessionWriter(out_path, scene.camera, device=device, scene_text=text, force=force,
+                       derived=True) as w:
         for raw in it:
             w.append(raw, depth_from_raw(raw))  # the saturation level travels in raw.meta
     return out_path
