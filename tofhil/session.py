@@ -58,6 +58,64 @@ def _os_reason(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
+#: Files whose writes failed (disk full): never closed by HDF5, see SessionWriter._abort.
+_BROKEN_FILES: list[Any] = []
+
+
+def _drop_quietly(exc: BaseException) -> None:
+    """Drop the traceback of a failed HDF5 write with stderr muted: the frames it holds keep
+    HDF5 handles, and each released handle retries the write and prints the same error from
+    its destructor (the writer reports it once, with the file name)."""
+    import gc
+    import sys
+
+    tb = exc.__traceback__
+    exc.__traceback__ = None
+    try:
+        sys.stderr.flush()
+        saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    except (OSError, ValueError):
+        del tb
+        return
+    try:
+        os.dup2(devnull, 2)
+        del tb
+        gc.collect()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+#: Files whose writes failed (disk full): never closed by HDF5, see SessionWriter._abort.
+_BROKEN_FILES: list[Any] = []
+
+
+def _quiet_hdf5_destructors() -> None:
+    """After a failed write every HDF5 handle released retries the write and reports the same
+    error from its destructor; the writer has already reported it once, with the file name."""
+    import sys
+
+    previous = sys.unraisablehook
+    if getattr(previous, "_tofhil_quiet", False):
+        return
+
+    def hook(unraisable: Any) -> None:
+        if isinstance(unraisable.exc_value, RuntimeError) and "errno" in str(unraisable.exc_value):
+            return
+        previous(unraisable)
+
+    def excepthook(exc_type: Any, exc: Any, tb: Any) -> None:  # Cython destructors print via this too
+        if isinstance(exc, RuntimeError) and "errno" in str(exc):
+            return
+        previous_excepthook(exc_type, exc, tb)
+
+    previous_excepthook = sys.excepthook
+    hook._tofhil_quiet = True  # type: ignore[attr-defined]
+    sys.unraisablehook = hook
+    sys.excepthook = excepthook
+
+
 class SessionWriter:
     """Append frames to a new session file as they arrive.
 
@@ -80,6 +138,8 @@ class SessionWriter:
         self.camera = camera
         self.n_frames = 0
         self.derived = derived
+        self._datasets: dict[str, Any] = {}
+        self._held: list[Any] = []
         self._raw_shape: tuple[int, ...] | None = None
         self._has_raw: bool | None = None
         self._has_depth: bool | None = None
@@ -111,20 +171,20 @@ class SessionWriter:
         a["n_frames"] = 0
         for k, v in (extra_attrs or {}).items():
             a[k] = v
-        fr = self._file.create_group("frames")
-        fr.create_dataset("timestamp_s", shape=(0,), maxshape=(None,), dtype="f8", chunks=(1024,))
-        fr.create_dataset("sequence", shape=(0,), maxshape=(None,), dtype="i8", chunks=(1024,))
-        fr.create_dataset("temperature_c", shape=(0,), maxshape=(None,), dtype="f4", chunks=(1024,))
+        fr = self._hold(self._file.create_group("frames"))
+        self._hold(fr.create_dataset("timestamp_s", shape=(0,), maxshape=(None,), dtype="f8", chunks=(1024,)))
+        self._hold(fr.create_dataset("sequence", shape=(0,), maxshape=(None,), dtype="i8", chunks=(1024,)))
+        self._hold(fr.create_dataset("temperature_c", shape=(0,), maxshape=(None,), dtype="f4", chunks=(1024,)))
         self._file.flush()
 
     # ------------------------------------------------------------------ datasets
     def _create_raw(self, frame: RawFrame) -> None:
-        g = self._file.create_group("raw")
+        g = self._hold(self._file.create_group("raw"))
         shape = frame.taps.shape
-        g.create_dataset("taps", shape=(0,) + shape, maxshape=(None,) + shape, dtype="f4",
-                         chunks=(1,) + shape)
-        g.create_dataset("freq_hz", data=np.asarray(frame.freq_hz, dtype="f8"))
-        g.create_dataset("theta_rad", data=np.asarray(frame.theta_rad, dtype="f8"))
+        self._hold(g.create_dataset("taps", shape=(0,) + shape, maxshape=(None,) + shape, dtype="f4",
+                         chunks=(1,) + shape))
+        self._hold(g.create_dataset("freq_hz", data=np.asarray(frame.freq_hz, dtype="f8")))
+        self._hold(g.create_dataset("theta_rad", data=np.asarray(frame.theta_rad, dtype="f8")))
         g.attrs["integration_time_s"] = float(frame.integration_time_s)
         for key in ("saturation_dn", "saturation_low_dn"):  # the ADC's clip levels (TapLimits)
             if frame.meta.get(key) is not None:
@@ -133,19 +193,37 @@ class SessionWriter:
         self._raw_shape = shape
 
     def _create_depth(self, depth: DepthFrame) -> None:
-        g = self._file.create_group("depth")
+        g = self._hold(self._file.create_group("depth"))
         hw = self.camera.shape
         for name, dt in (("radial_m", "f4"), ("amplitude", "f4"), ("intensity", "f4"), ("valid", "u1")):
-            g.create_dataset(name, shape=(0,) + hw, maxshape=(None,) + hw, dtype=dt, chunks=(1,) + hw)
+            self._hold(g.create_dataset(name, shape=(0,) + hw, maxshape=(None,) + hw, dtype=dt, chunks=(1,) + hw))
 
     # ------------------------------------------------------------------ appending
     def append(self, raw: RawFrame | None = None, depth: DepthFrame | None = None) -> None:
         """Write one frame (raw taps, depth, or both) and make it durable."""
         try:
             self._append(raw, depth)
-        except OSError as exc:  # disk full, file size limit, I/O error: name the file
-            raise InputFileError(f"cannot be written ({_os_reason(exc)}); {self.n_frames} frame(s) completed",
+        except (OSError, RuntimeError) as exc:  # disk full, file size limit, I/O error: name the file
+            if isinstance(exc, RuntimeError) and "errno" not in str(exc):
+                raise  # not a write failure (h5py reports those as RuntimeError with an errno)
+            self._broken = True
+            reason = _os_reason(exc)
+            _drop_quietly(exc)
+            raise InputFileError(f"cannot be written ({reason}); {self.n_frames} frame(s) completed",
                                  file=self.path) from None
+
+    def _hold(self, obj: Any) -> Any:
+        """Keep an HDF5 handle for the writer's life (see :meth:`_dataset`)."""
+        self._held.append(obj)
+        return obj
+
+    def _dataset(self, name: str) -> Any:
+        """One handle per dataset for the writer's life: a released handle makes HDF5 write
+        its cached metadata from a destructor, where a disk-full error cannot be caught."""
+        ds = self._datasets.get(name)
+        if ds is None:
+            ds = self._datasets[name] = self._file[name]
+        return ds
 
     def _append(self, raw: RawFrame | None, depth: DepthFrame | None) -> None:
         if raw is None and depth is None:
@@ -166,23 +244,23 @@ class SessionWriter:
                 raise ValueError(f"taps shape {raw.taps.shape} differs from the session's {self._raw_shape}")
             if raw.camera.shape != self.camera.shape:
                 raise ValueError("frame camera size differs from the session's camera")
-            ds = self._file["raw/taps"]
+            ds = self._dataset("raw/taps")
             ds.resize(n + 1, axis=0)
             ds[n] = raw.taps.astype(np.float32, copy=False)
         if depth is not None:
-            g = self._file["depth"]
             radial = depth.radial_m
             amp = depth.amplitude if depth.amplitude is not None else np.full(radial.shape, np.nan)
             inten = depth.intensity if depth.intensity is not None else np.full(radial.shape, np.nan)
             for name, arr in (("radial_m", radial), ("amplitude", amp), ("intensity", inten),
                               ("valid", np.asarray(depth.valid, dtype=np.uint8))):
-                g[name].resize(n + 1, axis=0)
-                g[name][n] = arr
-        fr = self._file["frames"]
+                ds = self._dataset(f"depth/{name}")
+                ds.resize(n + 1, axis=0)
+                ds[n] = arr
         for name, value in (("timestamp_s", meta.timestamp_s), ("sequence", meta.sequence),
                             ("temperature_c", meta.temperature_c)):
-            fr[name].resize(n + 1, axis=0)
-            fr[name][n] = value
+            ds = self._dataset(f"frames/{name}")
+            ds.resize(n + 1, axis=0)
+            ds[n] = value
         self._file.flush()  # the frame's data is on disk ...
         self.n_frames = n + 1
         self._file.attrs["n_frames"] = self.n_frames
@@ -190,10 +268,13 @@ class SessionWriter:
 
     def close(self) -> None:
         """Finish the file (a derived output is renamed into place)."""
+        if getattr(self, "_broken", False):
+            self._abort()
+            return
         if self._file.id.valid:
             try:
                 self._file.close()
-            except OSError as exc:
+            except (OSError, RuntimeError) as exc:
                 self._abort()
                 raise InputFileError(f"cannot be written ({_os_reason(exc)})", file=self.path) from None
             if self.derived:
@@ -201,11 +282,16 @@ class SessionWriter:
 
     def _abort(self) -> None:
         """Close without finishing; a derived output, or a file holding no frame, is removed."""
-        try:
-            if self._file.id.valid:
-                self._file.close()
-        except Exception:  # the error being reported matters more than a failed close
-            pass
+        if getattr(self, "_broken", False):
+            # After a failed write HDF5 cannot close the file cleanly (it retries the write,
+            # reports from destructors, may crash): keep the handle alive, unlink the file.
+            _BROKEN_FILES.append(self._file)
+        else:
+            try:
+                if self._file.id.valid:
+                    self._file.close()
+            except Exception:  # the error being reported matters more than a failed close
+                pass
         if self.derived or self.n_frames == 0:
             remove_partial(self._write_path)
 

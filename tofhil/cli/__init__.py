@@ -13,7 +13,11 @@ from __future__ import annotations
 
 import errno
 import importlib
+import os
+import shutil
 import sys
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Iterable, Iterator, Optional, TypeVar
 
 import typer
@@ -52,6 +56,20 @@ def progress(items: Iterable[T], total: int, description: str) -> Iterator[T]:
         for item in items:
             yield item
             bar.advance(task)
+
+
+@contextmanager
+def new_output_dir(path: Path) -> Iterator[Path]:
+    """Run a command writing into ``path``: if the directory did not exist and the command
+    fails (or is interrupted), the directory it created is removed, so that a rerun is not
+    blocked by an empty or half-written folder. An existing directory is left as it is."""
+    existed = path.exists()
+    try:
+        yield path
+    except BaseException:
+        if not existed and path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        raise
 
 
 def _version_callback(value: bool) -> None:
@@ -112,30 +130,41 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(exc.exit_code)
     except ex.UsageError as exc:
         error_line(_usage_message(exc))
-        sys.exit(2)
+        _exit(2)
     except ex.ClickException as exc:
         error_line(exc.format_message())
-        sys.exit(2)
+        _exit(2)
     except typer.Abort:
         error_line("aborted")
-        sys.exit(1)
+        _exit(1)
     except TofhilError as exc:
         error_line(str(exc))
-        sys.exit(2)
+        _exit(2)
     except Interrupted as exc:
         console.print(Text(str(exc)), soft_wrap=True, highlight=False)
-        sys.exit(130)
+        _exit(130)
     except KeyboardInterrupt:
         console.print("interrupted (nothing was written)", highlight=False)
-        sys.exit(130)
+        _exit(130)
     except OSError as exc:
         if exc.errno == errno.EPIPE:  # output piped into head: not an error
-            sys.exit(0)
+            _exit(0)
         if exc.errno in _USER_OS_ERRORS:
             where = exc.filename if exc.filename else "output"
             error_line(f"{where}: {exc.strerror or exc}")
-            sys.exit(2)
+            _exit(2)
         raise
+
+
+def _exit(code: int) -> None:
+    """Exit now: outputs are already cleaned up, and an HDF5 file whose write failed (disk
+    full) must not be flushed again by the interpreter's shutdown."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except Exception:
+            pass
+    os._exit(code)
 
 
 #: OS errors caused by the user's paths or disk, not by a bug: one line, exit 2.

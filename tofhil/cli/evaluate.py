@@ -7,12 +7,18 @@ from typing import Any, Optional
 
 import typer
 
-from tofhil.cli import app, console, out, progress
+from tofhil.cli import app, console, lit, new_output_dir, out, progress
+from tofhil.cli import options as opt
 from tofhil.errors import TofhilError
 
 _METHOD_HELP = ("uniform (w) | gaussian-inverse (sigma-h, sigma-v, w, mu) | psf (psf or calibration) | "
                 "amplitude (min-amplitude) | jump-angle (angle-deg) | jump-distance (max-step, relative) | "
                 "smooth-gaussian (sigma-px) | smooth-median (size) | smooth-bilateral (sigma-px, sigma-m)")
+
+
+def _npz_name(path: Path) -> Path:
+    """The file ``np.savez`` really writes for ``path`` (it appends .npz when missing)."""
+    return path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
 
 
 def _mean_taps(path: Path) -> tuple[Any, Any]:
@@ -25,7 +31,7 @@ def _mean_taps(path: Path) -> tuple[Any, Any]:
         if not s.has_raw or s.n_frames == 0:
             raise TofhilError("needs raw taps (at least one frame)", file=path, field="raw/taps")
         acc = None
-        for raw in progress(s.raw_frames(), s.n_frames, f"reading {path.name}"):
+        for raw in progress(s.raw_frames(), s.n_frames, f"reading {path.name}"):  # printed literally
             acc = raw.taps.astype(np.float64) if acc is None else acc + raw.taps
         return acc / s.n_frames, (s.camera, s.theta_rad)
 
@@ -62,36 +68,50 @@ def _calibrate(cal_path: Path, reference: Optional[Path], target_threshold: floa
 
 
 @app.command()
-def correct(session: Path = typer.Argument(..., help="Session to correct (.h5)."),
+def correct(session: Path = typer.Argument(..., parser=opt.existing_file, help="Session to correct (.h5)."),
             method: str = typer.Option(..., "--method", help=_METHOD_HELP),
-            out_path: Path = typer.Option(..., "--out", help="Corrected session to write."),
-            w: Optional[float] = typer.Option(None, "--w", help="Stray-light weight (uniform, gaussian-inverse)."),
-            sigma_h: Optional[float] = typer.Option(None, "--sigma-h", help="Horizontal Gaussian sigma, pixels."),
-            sigma_v: Optional[float] = typer.Option(None, "--sigma-v", help="Vertical Gaussian sigma, pixels."),
-            mu: Optional[float] = typer.Option(None, "--mu", help="Inverse-filter regularisation."),
-            psf: Optional[Path] = typer.Option(None, "--psf", help="Calibrated PSF (.npz) for --method psf."),
-            calibrate: Optional[Path] = typer.Option(None, "--calibrate",
+            out_path: Path = typer.Option(..., "--out", parser=opt.new_file, help="Corrected session to write."),
+            w: Optional[float] = typer.Option(None, "--w", parser=opt.finite(0.0, 1.0, hi_open=True),
+                                              help="Stray-light weight (uniform, gaussian-inverse)."),
+            sigma_h: Optional[float] = typer.Option(None, "--sigma-h", parser=opt.finite(0.0, 1e4, lo_open=True, unit="px"),
+                                                    help="Horizontal Gaussian sigma, pixels."),
+            sigma_v: Optional[float] = typer.Option(None, "--sigma-v", parser=opt.finite(0.0, 1e4, lo_open=True, unit="px"),
+                                                    help="Vertical Gaussian sigma, pixels."),
+            mu: Optional[float] = typer.Option(None, "--mu", parser=opt.finite(0.0, 1e6), help="Inverse-filter regularisation."),
+            psf: Optional[Path] = typer.Option(None, "--psf", parser=opt.existing_file,
+                                               help="Calibrated PSF (.npz) for --method psf."),
+            calibrate: Optional[Path] = typer.Option(None, "--calibrate", parser=opt.existing_file,
                                                      help="Calibration capture (.h5) to fit the PSF from."),
-            reference: Optional[Path] = typer.Option(None, "--reference",
+            reference: Optional[Path] = typer.Option(None, "--reference", parser=opt.existing_file,
                                                      help="Stray-light-free twin of the calibration capture; "
                                                           "without it the capture must be a bright target on a "
                                                           "dark background."),
-            target_threshold: float = typer.Option(0.2, help="Target pixels: amplitude above this fraction "
+            target_threshold: float = typer.Option(0.2, parser=opt.finite(0.0, 1.0, lo_open=True, hi_open=True),
+                                                   help="Target pixels: amplitude above this fraction "
                                                              "of the brightest (calibration without reference)."),
-            save_psf: Optional[Path] = typer.Option(None, "--save-psf", help="Write the calibrated PSF here."),
-            flat: Optional[Path] = typer.Option(None, "--flat", help="Tap calibration (.npz from calibrate-taps) "
+            save_psf: Optional[Path] = typer.Option(None, "--save-psf", parser=opt.new_file,
+                                                    help="Write the calibrated PSF here."),
+            flat: Optional[Path] = typer.Option(None, "--flat", parser=opt.existing_file,
+                                                help="Tap calibration (.npz from calibrate-taps) "
                                                                      "applied to the taps first (taps, uniform, "
                                                                      "gaussian-inverse, psf)."),
-            iterations: Optional[int] = typer.Option(None, "--iterations", help="Deconvolution iterations (psf)."),
-            min_amplitude: Optional[float] = typer.Option(None, "--min-amplitude",
+            iterations: Optional[int] = typer.Option(None, "--iterations", parser=opt.count(1, 10_000),
+                                                     help="Deconvolution iterations (psf)."),
+            min_amplitude: Optional[float] = typer.Option(None, "--min-amplitude", parser=opt.finite(0.0, unit="DN"),
                                                           help="Amplitude threshold (amplitude method; "
                                                                "invalidation when demodulating)."),
-            angle_deg: Optional[float] = typer.Option(None, "--angle-deg", help="Jump-edge angle, degrees."),
-            max_step: Optional[float] = typer.Option(None, "--max-step", help="Jump-edge distance step, m."),
-            relative: Optional[float] = typer.Option(None, "--relative", help="Jump-edge step per metre."),
-            sigma_px: Optional[float] = typer.Option(None, "--sigma-px", help="Smoothing sigma, pixels."),
-            sigma_m: Optional[float] = typer.Option(None, "--sigma-m", help="Bilateral range sigma, m."),
-            size: Optional[int] = typer.Option(None, "--size", help="Median window size (odd)."),
+            angle_deg: Optional[float] = typer.Option(None, "--angle-deg", parser=opt.finite(0.0, 90.0, lo_open=True,
+                                                                                         unit="deg"),
+                                                      help="Jump-edge angle, degrees."),
+            max_step: Optional[float] = typer.Option(None, "--max-step", parser=opt.finite(0.0, 1e4, lo_open=True, unit="m"),
+                                                     help="Jump-edge distance step, m."),
+            relative: Optional[float] = typer.Option(None, "--relative", parser=opt.finite(0.0, 10.0),
+                                                     help="Jump-edge step per metre."),
+            sigma_px: Optional[float] = typer.Option(None, "--sigma-px", parser=opt.finite(0.0, 1e3, lo_open=True, unit="px"),
+                                                     help="Smoothing sigma, pixels."),
+            sigma_m: Optional[float] = typer.Option(None, "--sigma-m", parser=opt.finite(0.0, 1e3, lo_open=True, unit="m"),
+                                                    help="Bilateral range sigma, m."),
+            size: Optional[int] = typer.Option(None, "--size", parser=opt.odd_size(1, 99), help="Median window size (odd)."),
             force: bool = typer.Option(False, "--force", help="Overwrite OUT (and --save-psf) if they exist.")) -> None:
     """Apply one correction to every frame of a session (complex-domain ones need raw taps)."""
     from tofhil.eval.corrections import correct_session, get_method
@@ -110,6 +130,7 @@ def correct(session: Path = typer.Argument(..., help="Session to correct (.h5)."
         if psf is not None and calibrate is not None:
             raise TofhilError("give either --psf or --calibrate, not both", field="--psf")
         if calibrate is not None:
+            save_psf = None if save_psf is None else _npz_name(save_psf)
             if save_psf is not None and save_psf.exists() and not force:
                 raise TofhilError("already exists; refusing to overwrite (use --force)", file=save_psf)
             from tofhil.eval.fixed_pattern import TapCalibration
@@ -121,7 +142,7 @@ def correct(session: Path = typer.Argument(..., help="Session to correct (.h5)."
                 # np.savez adds .npz when missing; report the real name.
                 real = save_psf if save_psf.suffix == ".npz" else Path(str(save_psf) + ".npz")
                 out.print(f"saved PSF (scattered fraction {fitted.scattered_fraction:.4f}, direct "
-                          f"{fitted.direct:.4f}) to {real}")
+                          f"{fitted.direct:.4f}) to {lit(real)}")
             params["psf"] = fitted
         elif psf is not None:
             params["psf"] = str(psf)
@@ -132,23 +153,27 @@ def correct(session: Path = typer.Argument(..., help="Session to correct (.h5)."
     n = correct_session(session, out_path, method, params, force=force,
                         min_amplitude=min_amplitude if (min_amplitude is not None and method != "amplitude") else 0.0,
                         progress=progress)
-    out.print(f"wrote {n} corrected frames ({method}) to {out_path}")
+    out.print(f"wrote {n} corrected frames ({lit(method)}) to {lit(out_path)}")
 
 
 @app.command()
-def compare(a: Path = typer.Argument(..., help="Measured session A (.h5)."),
-            b: Path = typer.Argument(..., help="Reference session B (.h5): the twin or a ground truth."),
-            out_dir: Path = typer.Option(..., "--out", help="Directory for metrics.json and report.html."),
+def compare(a: Path = typer.Argument(..., parser=opt.existing_file, help="Measured session A (.h5)."),
+            b: Path = typer.Argument(..., parser=opt.existing_file,
+                                     help="Reference session B (.h5): the twin or a ground truth."),
+            out_dir: Path = typer.Option(..., "--out", parser=opt.out_dir,
+                                         help="Directory for metrics.json and report.html."),
             correct_specs: list[str] = typer.Option([], "--correct",
                                                     help="Correction applied to A, METHOD[:key=value,...], e.g. "
                                                          "psf:psf=cal.npz or uniform:w=2e-5; repeatable."),
             roi: list[str] = typer.Option([], "--roi", help="Region x0,y0,x1,y1 in pixels; repeatable."),
-            frames: int = typer.Option(10, "--frames", help="Frames averaged per session."),
-            cell_size: float = typer.Option(0.1, "--cell-size", help="NDT cell size, m."),
-            threshold: float = typer.Option(0.01, "--threshold", help="F-score distance threshold, m."),
-            min_amplitude: float = typer.Option(0.0, "--min-amplitude",
+            frames: int = typer.Option(10, "--frames", parser=opt.count(1, 1_000_000), help="Frames averaged per session."),
+            cell_size: float = typer.Option(0.1, "--cell-size", parser=opt.finite(0.0, 100.0, lo_open=True, unit="m"),
+                                            help="NDT cell size, m."),
+            threshold: float = typer.Option(0.01, "--threshold", parser=opt.finite(0.0, 100.0, lo_open=True, unit="m"),
+                                            help="F-score distance threshold, m."),
+            min_amplitude: float = typer.Option(0.0, "--min-amplitude", parser=opt.finite(0.0, unit="DN"),
                                                 help="Invalidate low-amplitude pixels when demodulating."),
-            min_relative_amplitude: float = typer.Option(1e-3, "--min-relative-amplitude",
+            min_relative_amplitude: float = typer.Option(1e-3, "--min-relative-amplitude", parser=opt.finite(0.0, 1.0),
                                                          help="Invalidate pixels below this fraction of the "
                                                               "99th-percentile amplitude (shadows)."),
             no_objects: bool = typer.Option(False, "--no-objects",
@@ -159,29 +184,35 @@ def compare(a: Path = typer.Argument(..., help="Measured session A (.h5)."),
 
     if frames < 1:
         raise TofhilError(f"got {frames}", field="--frames", expected="an integer >= 1")
-    m = compare_sessions(a, b, out_dir, corrections=correct_specs, rois=roi, max_frames=frames,
-                         cell_size=cell_size, threshold=threshold, min_amplitude=min_amplitude,
-                         min_relative_amplitude=min_relative_amplitude,
-                         objects=not no_objects, force=force, log=lambda s: console.print(s, highlight=False))
+    with new_output_dir(out_dir):
+        m = compare_sessions(a, b, out_dir, corrections=correct_specs, rois=roi, max_frames=frames,
+                             cell_size=cell_size, threshold=threshold, min_amplitude=min_amplitude,
+                             min_relative_amplitude=min_relative_amplitude,
+                             objects=not no_objects, force=force,
+                             log=lambda s: console.print(s, highlight=False, markup=False))
     for name, v in m["variants"].items():
         d = v["regions"]["all"]["depth_residual_m"]
         med = "-" if d["median"] is None else f"{d['median'] * 1000:.2f}"
         mad = "-" if d["mad"] is None else f"{d['mad'] * 1000:.2f}"
-        out.print(f"{name:32s} median {med} mm  MAD {mad} mm  (n={d['n']})")
-    out.print(f"wrote {out_dir / 'metrics.json'} and {out_dir / 'report.html'}")
+        out.print(f"{name:32s} median {med} mm  MAD {mad} mm  (n={d['n']})", markup=False)
+    out.print(f"wrote {lit(out_dir / 'metrics.json')} and {lit(out_dir / 'report.html')}")
 
 
 @app.command("calibrate-taps")
-def calibrate_taps_cmd(flat: Path = typer.Option(..., "--flat", help="Capture with the emitter off, lit by "
+def calibrate_taps_cmd(flat: Path = typer.Option(..., "--flat", parser=opt.existing_file,
+                                                  help="Capture with the emitter off, lit by "
                                                                      "unmodulated light on a surface filling the view."),
-                       dark: Optional[Path] = typer.Option(None, "--dark", help="Capture with no light at all."),
-                       out_path: Path = typer.Option(..., "--out", help="Tap calibration to write (.npz)."),
+                       dark: Optional[Path] = typer.Option(None, "--dark", parser=opt.existing_file,
+                                                           help="Capture with no light at all."),
+                       out_path: Path = typer.Option(..., "--out", parser=opt.new_file,
+                                                     help="Tap calibration to write (.npz)."),
                        no_pixel_gain: bool = typer.Option(False, "--no-pixel-gain",
                                                           help="Balance the taps of each pixel only."),
                        force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
     """Per-tap offsets (dark) and gains (flat) for --flat of tofhil correct."""
     from tofhil.eval.fixed_pattern import calibrate_taps
 
+    out_path = _npz_name(out_path)  # np.savez adds .npz: check and name the file really written
     if out_path.exists() and not force:
         raise TofhilError("already exists; refusing to overwrite (use --force)", file=out_path)
     f_taps, (cam, theta) = _mean_taps(flat)
@@ -194,5 +225,5 @@ def calibrate_taps_cmd(flat: Path = typer.Option(..., "--flat", help="Capture wi
         raise TofhilError(str(exc), file=flat) from None
     cal.info.update({"flat": str(flat), "dark": None if dark is None else str(dark)})
     cal.save(out_path)
-    out.print(f"wrote tap calibration to {out_path} (tap gain spread {cal.info['tap_gain_spread']:.4f}, "
+    out.print(f"wrote tap calibration to {lit(out_path)} (tap gain spread {cal.info['tap_gain_spread']:.4f}, "
               f"pixel gain spread {cal.info['pixel_gain_spread']:.4f})")

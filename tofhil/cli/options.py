@@ -116,7 +116,7 @@ def describe_path_problem(path: Path, *, want: str) -> str | None:
     if want == "directory":
         if st is not None and not stat.S_ISDIR(st.st_mode):
             return f"{path}: is a file (expected a directory)"
-        return _parent_problem(path) if st is None else None
+        return _parent_problem(path) if st is None else _not_writable(path)
     # a new file: may exist (the command refuses it without --force), but not as anything else
     if st is not None:
         if stat.S_ISDIR(st.st_mode):
@@ -132,8 +132,21 @@ def _parent_problem(path: Path) -> str | None:
         return f"{parent}: directory does not exist"
     if not parent.is_dir():
         return f"{parent}: is not a directory"
-    if not os.access(parent, os.W_OK | os.X_OK):
-        return f"{parent}: directory is not writable"
+    return _not_writable(parent)
+
+
+def _not_writable(directory: Path) -> str | None:
+    """Try to create a file in ``directory`` (os.access says yes to root on /sys, and knows
+    nothing of some read-only mounts); the probe is removed at once."""
+    probe = directory / f".tofhil-write-probe-{os.getpid()}"
+    try:
+        fd = os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
+    except FileExistsError:
+        return None
+    except OSError as exc:
+        return f"{directory}: directory is not writable ({exc.strerror})"
+    os.close(fd)
+    os.unlink(probe)
     return None
 
 
