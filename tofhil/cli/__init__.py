@@ -126,6 +126,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         with command.make_context("tofhil", args) as ctx:
             command.invoke(ctx)
+        sys.exit(0)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except ex.UsageError as exc:
@@ -157,14 +158,18 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def _exit(code: int) -> None:
-    """Exit now: outputs are already cleaned up, and an HDF5 file whose write failed (disk
-    full) must not be flushed again by the interpreter's shutdown."""
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except Exception:
-            pass
-    os._exit(code)
+    """Exit with ``code``. After a failed HDF5 write (disk full) exit at once: outputs are
+    already cleaned up, and the interpreter's shutdown would make HDF5 retry the write."""
+    from tofhil import session
+
+    if session._BROKEN_FILES:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:
+                pass
+        os._exit(code)
+    sys.exit(code)
 
 
 #: OS errors caused by the user's paths or disk, not by a bug: one line, exit 2.
