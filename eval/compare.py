@@ -21,6 +21,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from tofhil import __version__
+from tofhil.demod import TapLimits
 from tofhil.errors import TofhilError
 from tofhil.eval import html as H
 from tofhil.eval import metrics as M
@@ -73,7 +74,8 @@ def tap_health(session: Any, n: int) -> M.TapHealth:
     """Clipped and non-finite taps over the first ``n`` frames (none for depth-only sessions)."""
     if not session.has_raw:
         return M.TapHealth.none(session.camera.shape)
-    return M.TapHealth.from_taps(session.raw_frame(i).taps for i in range(min(n, session.n_frames)))
+    declared = TapLimits.from_meta(session.raw_frame(0).meta) if session.n_frames else None
+    return M.TapHealth.from_taps((session.raw_frame(i).taps for i in range(min(n, session.n_frames))), declared=declared)
 
 
 def object_id_map(session: Any) -> tuple[np.ndarray | None, dict[int, str]]:

@@ -19,9 +19,8 @@ import numpy as np
 from scipy.ndimage import uniform_filter
 
 from tofhil.camera import CameraModel
-from tofhil.demod import phasor, wrapped_phase
+from tofhil.demod import TapLimits, bad_extremes, clip_limits, phasor, wrapped_phase
 from tofhil.errors import TofhilError
-from tofhil.eval.metrics import clipped_pixels
 from tofhil.session import Session
 from tofhil.unwrap import frequency_plan, unwrap
 
@@ -150,7 +149,11 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
 
     amp = np.abs(mean_all[:frames[0].freq_hz.size]).min(axis=0)
     usable = amp > min_amplitude_sigma * np.sqrt(var_frame[:frames[0].freq_hz.size].max(axis=0))
-    usable &= ~clipped_pixels(taps_max, taps_min, saturation_dn)
+    # Saturated taps: the one definition of the core (tofhil.demod). Limits given or declared
+    # by the session win; otherwise several pixels pinned at one extreme value over all
+    # frames are a clipped ADC or full well (a signed differential readout clips at both ends).
+    limits = clip_limits(taps_max, taps_min, TapLimits.from_meta(frames[0].meta), saturation_dn)
+    usable &= ~bad_extremes(taps_max, taps_min, limits)
     board = block_checkerboard(amp.shape, block_px)
     f0 = frames[0]
     return HeldOutData(camera=session.camera, freq_hz=f0.freq_hz, theta_rad=f0.theta_rad,

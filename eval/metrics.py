@@ -27,6 +27,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from tofhil.demod import TapLimits, bad_extremes, clip_limits
 from tofhil.errors import TofhilError
 from tofhil.frames import DepthFrame
 
@@ -37,7 +38,6 @@ MAD_TO_SIGMA = 1.4826
 DEPTH_RMSE = "depth RMSE over pixels valid in both"
 
 #: A clipped ADC shows as several pixels pinned at one extreme tap value.
-MIN_CLIPPED_PIXELS = 5
 
 
 def json_safe(x: Any) -> Any:
@@ -172,34 +172,6 @@ def stats(values: np.ndarray) -> Stats:
 # ---------------------------------------------------------------------------- validity
 
 
-def clipped_pixels(taps_max: np.ndarray, taps_min: np.ndarray | None = None,
-                   level: float | None = None) -> np.ndarray:
-    """Pixels with a tap clipped at the ADC's end (``[H, W]`` bool), from each pixel's largest
-    (and smallest) tap over the frames.
-
-    ``level`` given: taps at or above it. Otherwise the largest tap value of the data counts
-    as the clip level when at least :data:`MIN_CLIPPED_PIXELS` pixels sit there (a clipped
-    ADC or full well); a signed (differential) readout also clips at its negative end.
-    """
-    tmax = np.asarray(taps_max, np.float64)
-    finite = np.isfinite(tmax)
-    out = np.zeros(tmax.shape, dtype=bool)
-    if level is not None:
-        out |= finite & (tmax >= level)
-    elif finite.any():
-        top = float(tmax[finite].max())
-        if (tmax >= top).sum() >= MIN_CLIPPED_PIXELS:
-            out |= tmax >= top
-    if taps_min is not None:
-        tmin = np.asarray(taps_min, np.float64)
-        fin = np.isfinite(tmin)
-        if fin.any():
-            bottom = float(tmin[fin].min())
-            if bottom < 0 and (tmin <= bottom).sum() >= MIN_CLIPPED_PIXELS:
-                out |= tmin <= bottom
-    return out
-
-
 @dataclass
 class TapHealth:
     """Per-pixel flags of a session's raw taps over the frames used: any tap clipped, any
@@ -213,8 +185,10 @@ class TapHealth:
         return cls(np.zeros(shape, bool), np.zeros(shape, bool))
 
     @classmethod
-    def from_taps(cls, taps: Iterable[np.ndarray], level: float | None = None) -> "TapHealth":
-        """From raw tap arrays ``[F, K, H, W]`` (one per frame)."""
+    def from_taps(cls, taps: Iterable[np.ndarray], level: float | None = None,
+                  declared: TapLimits | None = None) -> "TapHealth":
+        """From raw tap arrays ``[F, K, H, W]`` (one per frame); clip levels by
+        :func:`tofhil.demod.clip_limits` (``level``, else ``declared``, else detected)."""
         tmax = tmin = bad = None
         for t in taps:
             t = np.asarray(t, np.float64)
@@ -227,7 +201,8 @@ class TapHealth:
             bad = nf if bad is None else bad | nf
         if tmax is None:
             raise TofhilError("no frames", field="raw/taps", expected="at least one frame")
-        return cls(clipped_pixels(tmax, tmin, level) & ~bad, bad)
+        limits = clip_limits(tmax, tmin, declared, level)
+        return cls(bad_extremes(tmax, tmin, limits) & ~bad, bad)
 
     @property
     def invalid(self) -> np.ndarray:

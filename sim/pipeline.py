@@ -156,10 +156,10 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
     # The session records the camera as the scene file states it (what a user's calibration
     # says); a lens_distortion effect is a deviation of the real lens from that model, so it
     # shows in the data, not in the recorded camera.
-    with SessionWriter(out_path, scene.camera, device=device, scene_text=text, force=force) as w:
+    with SessionWriter(out_path, scene.camera, device=device, scene_text=text, force=force,
+                       derived=True) as w:
         for raw in it:
-            sat = raw.meta.get("saturation_dn")
-            w.append(raw, depth_from_raw(raw, saturation_level=None if sat is None else float(sat)))
+            w.append(raw, depth_from_raw(raw))  # the saturation level travels in raw.meta
     return out_path
 
 

@@ -7,6 +7,7 @@ pixels with pixel centres at integer coordinates; distortion ``(k1, k2, p1, p2, 
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from importlib import resources
@@ -221,17 +222,19 @@ class CameraModel:
                                      expected=f"a {'positive integer' if typ is int else 'number'}")
             try:
                 values[key] = typ(d[key])
-            except (TypeError, ValueError):
+                if typ is float and not math.isfinite(values[key]):
+                    raise ValueError
+            except (TypeError, ValueError, OverflowError):
                 raise InputFileError(f"got {d[key]!r}", file=source, field=f"{prefix}{key}",
-                                     expected="a number") from None
+                                     expected="a finite number") from None
         dist = d.get("dist", [0.0] * 5)
         try:
             dist_t = tuple(float(v) for v in dist)
         except (TypeError, ValueError):
             dist_t = ()
-        if len(dist_t) != 5:
+        if len(dist_t) != 5 or not all(math.isfinite(v) for v in dist_t):
             raise InputFileError(f"got {dist!r}", file=source, field=f"{prefix}dist",
-                                 expected="5 numbers (k1, k2, p1, p2, k3)")
+                                 expected="5 finite numbers (k1, k2, p1, p2, k3)")
         pitch = d.get("pixel_pitch_m")
         extra = {k: v for k, v in d.items()
                  if k not in ("width", "height", "fx", "fy", "cx", "cy", "dist", "name", "pixel_pitch_m")}

@@ -200,3 +200,82 @@ class TapConvention:
         else:
             theta = np.asarray(self.theta_rad, dtype=np.float64)
         return taps, theta
+
+
+# ---------------------------------------------------------------------------- tap validity
+@dataclass(frozen=True)
+class TapLimits:
+    """The range a device's ADC can report for a tap, in DN.
+
+    A tap at or beyond either end is **saturated** (clipped: the true value is unknown);
+    a non-finite tap is invalid as well. ``None`` means the end is not known. Signed
+    differential devices (the TOFcam635: 12-bit DCS minus its 2048 mid-scale) clip at both
+    ends; single-ended sensors at the top only.
+    """
+
+    high_dn: float | None = None
+    low_dn: float | None = None
+
+    @classmethod
+    def from_meta(cls, meta: dict) -> "TapLimits":
+        """The limits a frame declares (``meta['saturation_dn']`` and ``meta['saturation_low_dn']``)."""
+        hi, lo = meta.get("saturation_dn"), meta.get("saturation_low_dn")
+        return cls(high_dn=None if hi is None else float(hi), low_dn=None if lo is None else float(lo))
+
+    def bounds(self, dtype: np.dtype | type = np.float32) -> tuple[float, float]:
+        """Open interval ``(lo, hi)`` of good taps: a tap ``t`` is good iff ``lo < t < hi``
+        (NaN fails both comparisons; unknown ends are infinite, so +-inf taps fail too)."""
+        t = np.dtype(dtype).type
+        return (t(-np.inf) if self.low_dn is None else t(self.low_dn),
+                t(np.inf) if self.high_dn is None else t(self.high_dn))
+
+
+def bad_tap_pixels(taps: np.ndarray, limits: TapLimits | None = None) -> np.ndarray:
+    """Pixels ``[H, W]`` where any tap ``[..., K, H, W]`` is saturated or not finite.
+
+    The one definition of a saturated tap: at or beyond :class:`TapLimits` (the diagnosis
+    split uses it too, through :func:`bad_extremes`).
+    """
+    taps = np.asarray(taps)
+    lo, hi = (limits or TapLimits()).bounds(taps.dtype if taps.dtype.kind == "f" else np.float64)
+    good = (taps > lo) & (taps < hi)
+    return ~good.reshape((-1,) + taps.shape[-2:]).all(axis=0)
+
+
+def bad_extremes(taps_max: np.ndarray, taps_min: np.ndarray, limits: TapLimits | None = None) -> np.ndarray:
+    """:func:`bad_tap_pixels` from per-pixel extremes of the taps (over frames, frequencies
+    and taps): a pixel is bad if its largest tap reaches the top or its smallest the bottom."""
+    lo, hi = (limits or TapLimits()).bounds(np.float64)
+    with np.errstate(invalid="ignore"):
+        return ~((np.asarray(taps_max) < hi) & (np.asarray(taps_min) > lo))
+
+
+def clip_limits(taps_max: np.ndarray, taps_min: np.ndarray, declared: TapLimits | None = None,
+                high_dn: float | None = None) -> TapLimits:
+    """The clip levels to apply to a session's taps: ``high_dn`` given by the user wins, then the
+    limits the device declares, then :func:`detect_clipping` on the data (per end)."""
+    declared = declared or TapLimits()
+    detected = detect_clipping(taps_max, taps_min)
+    hi = high_dn if high_dn is not None else declared.high_dn if declared.high_dn is not None else detected.high_dn
+    lo = declared.low_dn if declared.low_dn is not None else detected.low_dn
+    return TapLimits(high_dn=hi, low_dn=lo)
+
+
+def detect_clipping(taps_max: np.ndarray, taps_min: np.ndarray, *, min_pixels: int = 5) -> TapLimits:
+    """Clipping levels inferred from data whose device declares none: the largest (and, for
+    signed taps, the most negative) value shared by ``min_pixels`` or more pixels is where
+    the ADC or the full well stopped. Use on many frames of a real capture, not on synthetic
+    frames (a noise-free uniform image would look clipped everywhere)."""
+    tmax = np.asarray(taps_max, dtype=np.float64)
+    tmin = np.asarray(taps_min, dtype=np.float64)
+    finite_max, finite_min = tmax[np.isfinite(tmax)], tmin[np.isfinite(tmin)]
+    hi = lo = None
+    if finite_max.size:
+        top = float(finite_max.max())
+        if (finite_max >= top).sum() >= min_pixels:
+            hi = top
+    if finite_min.size:
+        bottom = float(finite_min.min())
+        if bottom < 0 and (finite_min <= bottom).sum() >= min_pixels:
+            lo = bottom
+    return TapLimits(high_dn=hi, low_dn=lo)

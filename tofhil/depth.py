@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tofhil.demod import iq, phase_from_iq
+from tofhil.demod import TapLimits, bad_tap_pixels, iq, phase_from_iq
 from tofhil.fastdepth import fused_depth, fused_supported
 from tofhil.frames import DepthFrame, RawFrame
 from tofhil.unwrap import unwrap
@@ -14,29 +14,34 @@ _BLOCK_PIXELS = 32768
 
 
 def depth_from_raw(frame: RawFrame, *, min_amplitude: float = 0.0,
-                   saturation_level: float | None = None, margin: float = 0.5, fused: bool = True) -> DepthFrame:
+                   tap_limits: TapLimits | None = None, margin: float = 0.5, fused: bool = True) -> DepthFrame:
     """Demodulate and unwrap a raw frame into radial distance.
 
     A pixel is invalid where its amplitude (the mean over frequencies) is below
-    ``min_amplitude``, where any tap reaches ``saturation_level`` (if given), or where the
-    frequencies disagree during unwrapping. The amplitude returned is the mean over
+    ``min_amplitude``, where any tap is saturated or not finite (``tap_limits``, by default
+    the limits the frame declares in its ``meta``: :meth:`TapLimits.from_meta`), where the
+    frequencies disagree during unwrapping, or where the result is not finite. The amplitude returned is the mean over
     frequencies; the intensity is the mean offset B. Four in-order float32 taps at one or two
     frequencies take the fused path (:mod:`tofhil.fastdepth`); ``fused=False`` forces the
     general numpy path (any K >= 3, any number of frequencies).
     """
     taps = frame.taps
     f, k, h, w = taps.shape
+    limits = TapLimits.from_meta(frame.meta) if tap_limits is None else tap_limits
     if fused and fused_supported(taps, frame.theta_rad):
-        distance, amplitude, intensity, conflict, rng = fused_depth(taps, frame.theta_rad, frame.freq_hz, margin)
-        return _depth_frame(frame, distance, amplitude, intensity, conflict, rng, min_amplitude, saturation_level)
+        distance, amplitude, intensity, conflict, rng, bad = fused_depth(taps, frame.theta_rad, frame.freq_hz,
+                                                                         margin, limits)
+        return _depth_frame(frame, distance, amplitude, intensity, conflict, rng, min_amplitude, bad)
     dtype = np.float32 if taps.dtype == np.float32 else np.float64
     distance = np.empty((h, w), dtype)
     amplitude = np.empty((h, w), dtype)
     intensity = np.empty((h, w), dtype)
     conflict = np.empty((h, w), bool)
+    bad = np.empty((h, w), bool)
     rows = max(1, _BLOCK_PIXELS // w)
     for r0 in range(0, h, rows):
         block = taps[:, :, r0:r0 + rows]
+        bad[r0:r0 + rows] = bad_tap_pixels(block, limits)
         i, q = iq(block, frame.theta_rad)
         amp = np.sqrt(i * i + q * q)
         res = unwrap(phase_from_iq(i, q), frame.freq_hz, amplitude=amp, margin=margin)
@@ -45,18 +50,17 @@ def depth_from_raw(frame: RawFrame, *, min_amplitude: float = 0.0,
         np.mean(amp, axis=0, out=amplitude[r0:r0 + rows])
         np.mean(block.reshape((f * k,) + block.shape[2:]), axis=0, out=intensity[r0:r0 + rows])
     return _depth_frame(frame, distance, amplitude, intensity, conflict, float(res.unambiguous_range_m),
-                        min_amplitude, saturation_level)
+                        min_amplitude, bad)
 
 
 def _depth_frame(frame: RawFrame, distance: np.ndarray, amplitude: np.ndarray, intensity: np.ndarray,
                  conflict: np.ndarray, unambiguous_range_m: float, min_amplitude: float,
-                 saturation_level: float | None) -> DepthFrame:
-    taps = frame.taps
-    valid = ~conflict
+                 bad_taps: np.ndarray) -> DepthFrame:
+    # A saturated or NaN tap is no measurement, whatever arithmetic made of it; nor is a
+    # finite tap so large that the amplitude overflowed.
+    valid = ~(conflict | bad_taps) & np.isfinite(distance) & np.isfinite(amplitude)
     if min_amplitude > 0:
         valid &= amplitude >= min_amplitude
-    if saturation_level is not None:
-        valid &= ~(taps >= saturation_level).any(axis=(0, 1))
     return DepthFrame(distance_m=distance, kind="radial", camera=frame.camera,
                       amplitude=amplitude, intensity=intensity,
                       valid=valid, timestamp_s=frame.timestamp_s, sequence=frame.sequence,

@@ -34,3 +34,19 @@ class InputFileError(TofhilError):
 
 class DeviceError(TofhilError):
     """A camera could not be opened, configured or read."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C (or SIGTERM) ended a writer: what was kept, for the one line the CLI prints.
+
+    A KeyboardInterrupt still, so library callers see the interrupt they expect.
+    """
+
+    def __init__(self, path: str | Path, frames_kept: int) -> None:
+        self.path = str(path)
+        self.frames_kept = int(frames_kept)
+        if frames_kept > 0:
+            text = f"interrupted: {frames_kept} frame{'s' if frames_kept != 1 else ''} kept in {path}"
+        else:
+            text = f"interrupted: nothing was written ({path} not created)"
+        super().__init__(text)

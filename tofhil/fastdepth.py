@@ -5,7 +5,9 @@ its amplitude and phase, the offset, and (two frequencies) the Chinese-remainder
 of :mod:`tofhil.unwrap`, so the intermediate images never leave the CPU cache. The phase uses
 a branch-free arctangent polynomial (|error| < 1e-7 rad, about float32 rounding) that the
 compiler vectorises; the results agree with the numpy path of
-:func:`tofhil.depth.depth_from_raw` to that level (tested).
+:func:`tofhil.depth.depth_from_raw` to that level (tested). The same pass flags pixels with a
+saturated or non-finite tap (:func:`tofhil.demod.bad_tap_pixels`), so the kernels are
+compiled without the no-NaN/no-inf fast-math assumptions (a NaN tap must be seen as one).
 """
 
 from __future__ import annotations
@@ -15,12 +17,16 @@ import math
 import numpy as np
 from numba import njit
 
+from tofhil.demod import TapLimits
+
 _PI = np.float32(math.pi)
 _HALF_PI = np.float32(math.pi / 2)
 _TWO_PI = np.float32(2 * math.pi)
+#: Fast-math without ``nnan``/``ninf``: NaN and inf taps must compare as such.
+_FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
-@njit(inline="always", fastmath=True)
+@njit(inline="always", fastmath=_FASTMATH)
 def _phase(y: float, x: float) -> float:
     """atan2(y, x) mapped into [0, 2 pi).
 
@@ -40,13 +46,15 @@ def _phase(y: float, x: float) -> float:
     return min(r, np.float32(6.2831850))  # the largest float32 below 2 pi
 
 
-@njit(fastmath=True, cache=True)
-def _demod4(taps, w, out_phase, out_amp, out_sum):
-    """taps [F, 4, N] -> phase [F, N], amplitude [F, N], tap sum over all F*4 taps [N]."""
+@njit(fastmath=_FASTMATH, cache=True)
+def _demod4(taps, w, lo, hi, out_phase, out_amp, out_sum, out_bad):
+    """taps [F, 4, N] -> phase [F, N], amplitude [F, N], tap sum over all F*4 taps [N], and
+    ``out_bad`` [N] uint8: 1 where a tap is not inside the open interval (lo, hi)."""
     nf = taps.shape[0]
     n = taps.shape[2]
     for p in range(n):
         out_sum[p] = 0.0
+        out_bad[p] = np.uint8(0)
     for f in range(nf):
         t0 = taps[f, 0]
         t1 = taps[f, 1]
@@ -60,9 +68,12 @@ def _demod4(taps, w, out_phase, out_amp, out_sum):
             out_amp[f, p] = math.sqrt(i * i + q * q)
             out_phase[f, p] = _phase(q, i)
             out_sum[p] += t0[p] + t1[p] + t2[p] + t3[p]
+            good = ((t0[p] > lo) & (t0[p] < hi) & (t1[p] > lo) & (t1[p] < hi)
+                    & (t2[p] > lo) & (t2[p] < hi) & (t3[p] > lo) & (t3[p] < hi))
+            out_bad[p] |= np.uint8(0) if good else np.uint8(1)
 
 
-@njit(fastmath=True, cache=True)
+@njit(fastmath=_FASTMATH, cache=True)
 def _unwrap2(phase, amp, c, out_d, out_conflict, out_amp):
     """Two-frequency Chinese-remainder unwrapping (see tofhil.unwrap._unwrap_two), and the
     mean amplitude. ``out_conflict`` is uint8 (a bool store would stop vectorisation).
@@ -98,10 +109,12 @@ def fused_supported(taps: np.ndarray, theta_rad: np.ndarray) -> bool:
     return bool(np.allclose(w[2], -w[0]) and np.allclose(w[3], -w[1]))
 
 
-def fused_depth(taps: np.ndarray, theta_rad: np.ndarray, freq_hz: np.ndarray, margin: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-    """``(distance, amplitude mean, intensity mean, conflict, unambiguous range)`` for
-    float32 taps ``[F, 4, H, W]`` with F = 1 or 2."""
+def fused_depth(taps: np.ndarray, theta_rad: np.ndarray, freq_hz: np.ndarray, margin: float,
+                limits: TapLimits | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, np.ndarray]:
+    """``(distance, amplitude mean, intensity mean, conflict, unambiguous range, bad taps)``
+    for float32 taps ``[F, 4, H, W]`` with F = 1 or 2; ``bad taps`` is
+    :func:`tofhil.demod.bad_tap_pixels` of ``taps`` and ``limits``."""
     from tofhil.demod import estimator_weights
     from tofhil.unwrap import _ext_gcd, frequency_plan
 
@@ -112,7 +125,9 @@ def fused_depth(taps: np.ndarray, theta_rad: np.ndarray, freq_hz: np.ndarray, ma
     phase = np.empty((nf, h * wd), np.float32)
     amp = np.empty((nf, h * wd), np.float32)
     total = np.empty(h * wd, np.float32)
-    _demod4(flat, w, phase, amp, total)
+    bad = np.empty(h * wd, np.uint8)
+    lo, hi = (limits or TapLimits()).bounds(np.float32)
+    _demod4(flat, w, lo, hi, phase, amp, total, bad)
     plan = frequency_plan(freq_hz)
     rng = plan.unambiguous_range_m
     if nf == 1:
@@ -134,4 +149,4 @@ def fused_depth(taps: np.ndarray, theta_rad: np.ndarray, freq_hz: np.ndarray, ma
         amplitude = amp[0]
     intensity = total * np.float32(1.0 / (nf * k))
     return (distance.reshape(h, wd), amplitude.reshape(h, wd), intensity.reshape(h, wd),
-            conflict.reshape(h, wd), rng)
+            conflict.reshape(h, wd), rng, bad.view(bool).reshape(h, wd))

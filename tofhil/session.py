@@ -21,7 +21,7 @@ import numpy as np
 
 from tofhil import __version__
 from tofhil.camera import CameraModel
-from tofhil.errors import InputFileError
+from tofhil.errors import InputFileError, Interrupted
 from tofhil.frames import DepthFrame, RawFrame
 
 FORMAT = "tofhil.session"
@@ -29,12 +29,91 @@ FORMAT_VERSION = 1
 
 
 def check_new_path(path: Path, force: bool) -> None:
-    """Refuse to replace an existing file unless forced; the directory must exist."""
+    """Refuse to replace an existing file unless forced, and to write anywhere but a regular
+    file in an existing directory (never a directory, a device such as /dev/full, a pipe)."""
+    if path.is_dir():
+        raise InputFileError("is a directory", file=path, expected="a file name for the output")
+    if path.exists() and not path.is_file():
+        raise InputFileError("is not a regular file (a device or a pipe); refusing to write to it", file=path)
     if path.exists() and not force:
         raise InputFileError("already exists; refusing to overwrite recorded data "
                              "(use --force to replace it)", file=path)
-    if not path.parent.exists():
-        raise InputFileError("directory does not exist", file=path.parent)
+    parent = path.parent
+    if not parent.exists():
+        raise InputFileError("directory does not exist", file=parent)
+    if not parent.is_dir():
+        raise InputFileError("is not a directory", file=parent)
+
+
+def _os_reason(exc: BaseException) -> str:
+    """The operating system's reason inside an OSError (h5py buries it in its message)."""
+    import re
+
+    text = str(exc)
+    m = re.search(r"error message = '([^']*)'", text)
+    if m:
+        return m.group(1)
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+#: Files whose writes failed (disk full): never closed by HDF5, see SessionWriter._abort.
+_BROKEN_FILES: list[Any] = []
+
+
+def _drop_quietly(exc: BaseException) -> None:
+    """Drop the traceback of a failed HDF5 write with stderr muted: the frames it holds keep
+    HDF5 handles, and each released handle retries the write and prints the same error from
+    its destructor (the writer reports it once, with the file name)."""
+    import gc
+    import sys
+
+    tb = exc.__traceback__
+    exc.__traceback__ = None
+    try:
+        sys.stderr.flush()
+        saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    except (OSError, ValueError):
+        del tb
+        return
+    try:
+        os.dup2(devnull, 2)
+        del tb
+        gc.collect()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+#: Files whose writes failed (disk full): never closed by HDF5, see SessionWriter._abort.
+_BROKEN_FILES: list[Any] = []
+
+
+def _quiet_hdf5_destructors() -> None:
+    """After a failed write every HDF5 handle released retries the write and reports the same
+    error from its destructor; the writer has already reported it once, with the file name."""
+    import sys
+
+    previous = sys.unraisablehook
+    if getattr(previous, "_tofhil_quiet", False):
+        return
+
+    def hook(unraisable: Any) -> None:
+        if isinstance(unraisable.exc_value, RuntimeError) and "errno" in str(unraisable.exc_value):
+            return
+        previous(unraisable)
+
+    def excepthook(exc_type: Any, exc: Any, tb: Any) -> None:  # Cython destructors print via this too
+        if isinstance(exc, RuntimeError) and "errno" in str(exc):
+            return
+        previous_excepthook(exc_type, exc, tb)
+
+    previous_excepthook = sys.excepthook
+    hook._tofhil_quiet = True  # type: ignore[attr-defined]
+    sys.unraisablehook = hook
+    sys.excepthook = excepthook
 
 
 class SessionWriter:
@@ -42,18 +121,45 @@ class SessionWriter:
 
     >>> with SessionWriter("s.h5", camera, device={"model": "emulator"}) as w:
     ...     w.append(raw_frame)
+
+    A capture (``derived=False``, the default) writes the file itself: whatever stops it,
+    every completed frame stays. A ``derived`` output (depth, a correction, a simulation:
+    re-creatable from its inputs) is written to a hidden temporary file beside it and renamed
+    into place when closed without error: an error removes it (nothing is left behind, an
+    existing file replaced with ``--force`` stays as it was), and an interrupt (Ctrl-C) keeps
+    the completed frames, raising :class:`tofhil.errors.Interrupted` that says how many.
     """
 
     def __init__(self, path: str | Path, camera: CameraModel, *, device: dict[str, Any] | None = None,
-                 scene_text: str = "", force: bool = False, extra_attrs: dict[str, Any] | None = None) -> None:
+                 scene_text: str = "", force: bool = False, extra_attrs: dict[str, Any] | None = None,
+                 derived: bool = False) -> None:
         self.path = Path(path)
         check_new_path(self.path, force)
         self.camera = camera
         self.n_frames = 0
+        self.derived = derived
+        self._datasets: dict[str, Any] = {}
+        self._held: list[Any] = []
         self._raw_shape: tuple[int, ...] | None = None
         self._has_raw: bool | None = None
         self._has_depth: bool | None = None
-        self._file = h5py.File(self.path, "w")
+        self._write_path = (self.path.with_name(f".{self.path.name}.{os.getpid()}.partial") if derived
+                            else self.path)
+        try:
+            self._file = h5py.File(self._write_path, "w")
+        except OSError as exc:
+            raise InputFileError(f"cannot be written ({_os_reason(exc)})", file=self.path) from None
+        try:
+            self._write_header(device, scene_text, extra_attrs)
+        except BaseException as exc:
+            self._abort()
+            if isinstance(exc, OSError):
+                raise InputFileError(f"cannot be written ({_os_reason(exc)})", file=self.path) from None
+            raise
+
+    def _write_header(self, device: dict[str, Any] | None, scene_text: str,
+                      extra_attrs: dict[str, Any] | None) -> None:
+        camera = self.camera
         a = self._file.attrs
         a["format"] = FORMAT
         a["format_version"] = FORMAT_VERSION
@@ -65,33 +171,61 @@ class SessionWriter:
         a["n_frames"] = 0
         for k, v in (extra_attrs or {}).items():
             a[k] = v
-        fr = self._file.create_group("frames")
-        fr.create_dataset("timestamp_s", shape=(0,), maxshape=(None,), dtype="f8", chunks=(1024,))
-        fr.create_dataset("sequence", shape=(0,), maxshape=(None,), dtype="i8", chunks=(1024,))
-        fr.create_dataset("temperature_c", shape=(0,), maxshape=(None,), dtype="f4", chunks=(1024,))
+        fr = self._hold(self._file.create_group("frames"))
+        self._hold(fr.create_dataset("timestamp_s", shape=(0,), maxshape=(None,), dtype="f8", chunks=(1024,)))
+        self._hold(fr.create_dataset("sequence", shape=(0,), maxshape=(None,), dtype="i8", chunks=(1024,)))
+        self._hold(fr.create_dataset("temperature_c", shape=(0,), maxshape=(None,), dtype="f4", chunks=(1024,)))
         self._file.flush()
 
     # ------------------------------------------------------------------ datasets
     def _create_raw(self, frame: RawFrame) -> None:
-        g = self._file.create_group("raw")
+        g = self._hold(self._file.create_group("raw"))
         shape = frame.taps.shape
-        g.create_dataset("taps", shape=(0,) + shape, maxshape=(None,) + shape, dtype="f4",
-                         chunks=(1,) + shape)
-        g.create_dataset("freq_hz", data=np.asarray(frame.freq_hz, dtype="f8"))
-        g.create_dataset("theta_rad", data=np.asarray(frame.theta_rad, dtype="f8"))
+        self._hold(g.create_dataset("taps", shape=(0,) + shape, maxshape=(None,) + shape, dtype="f4",
+                         chunks=(1,) + shape))
+        self._hold(g.create_dataset("freq_hz", data=np.asarray(frame.freq_hz, dtype="f8")))
+        self._hold(g.create_dataset("theta_rad", data=np.asarray(frame.theta_rad, dtype="f8")))
         g.attrs["integration_time_s"] = float(frame.integration_time_s)
+        for key in ("saturation_dn", "saturation_low_dn"):  # the ADC's clip levels (TapLimits)
+            if frame.meta.get(key) is not None:
+                g.attrs[key] = float(frame.meta[key])
         g.attrs["tap_model"] = "c_k = B + A*cos(phi - theta_k), phi = 2*pi*f*L/c"
         self._raw_shape = shape
 
     def _create_depth(self, depth: DepthFrame) -> None:
-        g = self._file.create_group("depth")
+        g = self._hold(self._file.create_group("depth"))
         hw = self.camera.shape
         for name, dt in (("radial_m", "f4"), ("amplitude", "f4"), ("intensity", "f4"), ("valid", "u1")):
-            g.create_dataset(name, shape=(0,) + hw, maxshape=(None,) + hw, dtype=dt, chunks=(1,) + hw)
+            self._hold(g.create_dataset(name, shape=(0,) + hw, maxshape=(None,) + hw, dtype=dt, chunks=(1,) + hw))
 
     # ------------------------------------------------------------------ appending
     def append(self, raw: RawFrame | None = None, depth: DepthFrame | None = None) -> None:
         """Write one frame (raw taps, depth, or both) and make it durable."""
+        try:
+            self._append(raw, depth)
+        except (OSError, RuntimeError) as exc:  # disk full, file size limit, I/O error: name the file
+            if isinstance(exc, RuntimeError) and "errno" not in str(exc):
+                raise  # not a write failure (h5py reports those as RuntimeError with an errno)
+            self._broken = True
+            reason = _os_reason(exc)
+            _drop_quietly(exc)
+            raise InputFileError(f"cannot be written ({reason}); {self.n_frames} frame(s) completed",
+                                 file=self.path) from None
+
+    def _hold(self, obj: Any) -> Any:
+        """Keep an HDF5 handle for the writer's life (see :meth:`_dataset`)."""
+        self._held.append(obj)
+        return obj
+
+    def _dataset(self, name: str) -> Any:
+        """One handle per dataset for the writer's life: a released handle makes HDF5 write
+        its cached metadata from a destructor, where a disk-full error cannot be caught."""
+        ds = self._datasets.get(name)
+        if ds is None:
+            ds = self._datasets[name] = self._file[name]
+        return ds
+
+    def _append(self, raw: RawFrame | None, depth: DepthFrame | None) -> None:
         if raw is None and depth is None:
             raise ValueError("append needs a raw frame, a depth frame or both")
         if self._has_raw is None:
@@ -110,37 +244,71 @@ class SessionWriter:
                 raise ValueError(f"taps shape {raw.taps.shape} differs from the session's {self._raw_shape}")
             if raw.camera.shape != self.camera.shape:
                 raise ValueError("frame camera size differs from the session's camera")
-            ds = self._file["raw/taps"]
+            ds = self._dataset("raw/taps")
             ds.resize(n + 1, axis=0)
             ds[n] = raw.taps.astype(np.float32, copy=False)
         if depth is not None:
-            g = self._file["depth"]
             radial = depth.radial_m
             amp = depth.amplitude if depth.amplitude is not None else np.full(radial.shape, np.nan)
             inten = depth.intensity if depth.intensity is not None else np.full(radial.shape, np.nan)
             for name, arr in (("radial_m", radial), ("amplitude", amp), ("intensity", inten),
                               ("valid", np.asarray(depth.valid, dtype=np.uint8))):
-                g[name].resize(n + 1, axis=0)
-                g[name][n] = arr
-        fr = self._file["frames"]
+                ds = self._dataset(f"depth/{name}")
+                ds.resize(n + 1, axis=0)
+                ds[n] = arr
         for name, value in (("timestamp_s", meta.timestamp_s), ("sequence", meta.sequence),
                             ("temperature_c", meta.temperature_c)):
-            fr[name].resize(n + 1, axis=0)
-            fr[name][n] = value
+            ds = self._dataset(f"frames/{name}")
+            ds.resize(n + 1, axis=0)
+            ds[n] = value
         self._file.flush()  # the frame's data is on disk ...
         self.n_frames = n + 1
         self._file.attrs["n_frames"] = self.n_frames
         self._file.flush()  # ... before the count that makes it visible
 
     def close(self) -> None:
+        """Finish the file (a derived output is renamed into place)."""
+        if getattr(self, "_broken", False):
+            self._abort()
+            return
         if self._file.id.valid:
-            self._file.close()
+            try:
+                self._file.close()
+            except (OSError, RuntimeError) as exc:
+                self._abort()
+                raise InputFileError(f"cannot be written ({_os_reason(exc)})", file=self.path) from None
+            if self.derived:
+                os.replace(self._write_path, self.path)
+
+    def _abort(self) -> None:
+        """Close without finishing; a derived output, or a file holding no frame, is removed."""
+        if getattr(self, "_broken", False):
+            # After a failed write HDF5 cannot close the file cleanly (it retries the write,
+            # reports from destructors, may crash): keep the handle alive, unlink the file.
+            _BROKEN_FILES.append(self._file)
+        else:
+            try:
+                if self._file.id.valid:
+                    self._file.close()
+            except Exception:  # the error being reported matters more than a failed close
+                pass
+        if self.derived or self.n_frames == 0:
+            remove_partial(self._write_path)
 
     def __enter__(self) -> "SessionWriter":
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object) -> None:
+        if exc_type is None:
+            self.close()
+            return
+        interrupted = issubclass(exc_type, KeyboardInterrupt)
+        if self.n_frames == 0 or (self.derived and not interrupted):
+            self._abort()
+        else:
+            self.close()  # the completed frames are a valid, shorter session
+        if interrupted and not isinstance(exc, Interrupted):
+            raise Interrupted(self.path, self.n_frames) from None
 
 
 def _text_attr(attrs: h5py.AttributeManager, name: str) -> str | None:
@@ -160,18 +328,25 @@ class Session:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
+        if self.path.is_dir():
+            raise InputFileError("is a directory", file=self.path, expected="a tofhil session file (.h5)")
         if not self.path.is_file():
-            raise InputFileError("no such file", file=self.path, expected="a tofhil session (.h5)")
+            what = "no such file" if not self.path.exists() else "is not a regular file"
+            raise InputFileError(what, file=self.path, expected="a tofhil session (.h5)")
         try:
             self._file = h5py.File(self.path, "r")
         except OSError as exc:
-            raise InputFileError(f"cannot be opened as HDF5 ({exc})", file=self.path,
+            raise InputFileError(f"cannot be opened as HDF5 ({_os_reason(exc)})", file=self.path,
                                  expected="an HDF5 session file") from None
         try:
             self._validate()
-        except Exception:
+        except InputFileError:
             self._file.close()
             raise
+        except Exception as exc:  # a malformed file h5py or numpy chokes on: still the file's fault
+            self._file.close()
+            raise InputFileError(f"is malformed ({type(exc).__name__}: {exc})", file=self.path,
+                                 expected="the layout of docs/session-format.md") from None
 
     # ------------------------------------------------------------------ validation
     def _fail(self, field: str, message: str, expected: str) -> None:
@@ -198,50 +373,115 @@ class Session:
             self.device = json.loads(dev)
         except json.JSONDecodeError:
             self._fail("device", "is not valid JSON", "JSON text")
+        if not isinstance(self.device, dict):
+            self._fail("device", f"is JSON {type(self.device).__name__}", "a JSON object")
         self.scene_text = _text_attr(a, "scene") or ""
         self.software_version = _text_attr(a, "software_version") or ""
         self.created_utc = _text_attr(a, "created_utc") or ""
         hw = self.camera.shape
         lengths: dict[str, int] = {}
         for name in ("frames/timestamp_s", "frames/sequence"):
-            if name not in f:
+            if name not in f or not isinstance(f[name], h5py.Dataset):
                 self._fail(name, "missing", "a 1-D dataset [N]")
+            if f[name].ndim != 1 or f[name].dtype.kind not in "iuf":
+                self._fail(name, f"has shape {f[name].shape} and type {f[name].dtype}", "a 1-D numeric dataset [N]")
             lengths[name] = f[name].shape[0]
         self.has_raw = "raw" in f
         self.has_depth = "depth" in f
         if not self.has_raw and not self.has_depth:
             self._fail("raw", "neither raw/ nor depth/ is present", "raw/taps and/or depth/radial_m")
         if self.has_raw:
-            for name in ("raw/taps", "raw/freq_hz", "raw/theta_rad"):
-                if name not in f:
-                    self._fail(name, "missing", "see docs/session-format.md")
-            taps = f["raw/taps"]
-            if taps.ndim != 5 or taps.shape[3:] != hw:
-                self._fail("raw/taps", f"has shape {taps.shape}", f"[N, F, K, {hw[0]}, {hw[1]}] (camera size)")
-            self.freq_hz = np.asarray(f["raw/freq_hz"][()], dtype=np.float64).ravel()
-            self.theta_rad = np.asarray(f["raw/theta_rad"][()], dtype=np.float64).ravel()
-            if self.freq_hz.size != taps.shape[1]:
-                self._fail("raw/freq_hz", f"has {self.freq_hz.size} values", f"{taps.shape[1]} (F of raw/taps)")
-            if self.theta_rad.size != taps.shape[2]:
-                self._fail("raw/theta_rad", f"has {self.theta_rad.size} values", f"{taps.shape[2]} (K of raw/taps)")
-            if "integration_time_s" not in f["raw"].attrs:
-                self._fail("raw.integration_time_s", "missing", "a number (seconds) attribute of raw/")
-            self.integration_time_s = float(np.asarray(f["raw"].attrs["integration_time_s"]).reshape(()))
-            lengths["raw/taps"] = taps.shape[0]
+            self._validate_raw(hw)
+            lengths["raw/taps"] = f["raw/taps"].shape[0]
         if self.has_depth:
             if "depth/radial_m" not in f:
                 self._fail("depth/radial_m", "missing", "float32 [N, H, W]")
             for name in ("radial_m", "amplitude", "intensity", "valid"):
                 key = f"depth/{name}"
                 if key in f:
+                    if not isinstance(f[key], h5py.Dataset) or f[key].dtype.kind not in "fiub":
+                        self._fail(key, "is not a numeric dataset", "real numbers [N, H, W]")
                     if f[key].ndim != 3 or f[key].shape[1:] != hw:
                         self._fail(key, f"has shape {f[key].shape}", f"[N, {hw[0]}, {hw[1]}]")
                     lengths[key] = f[key].shape[0]
         n = min(lengths.values())
         if "n_frames" in a:
-            n = min(n, int(np.asarray(a["n_frames"]).reshape(())))
+            try:
+                declared = np.asarray(a["n_frames"]).reshape(())
+                if declared.dtype.kind not in "iu" or int(declared) < 0:
+                    raise ValueError
+            except (TypeError, ValueError):
+                self._fail("n_frames", f"is {a['n_frames']!r}", "a non-negative integer (completed frames)")
+            n = min(n, int(declared))
         self.n_frames = n
         self.dataset_lengths = lengths
+
+    def _validate_raw(self, hw: tuple[int, int]) -> None:
+        """raw/: taps real numbers ``[N, F, K, H, W]``, F positive finite frequencies, K >= 3
+        equally spaced finite phases, a sane integration time and clip levels."""
+        from tofhil.demod import estimator_weights
+
+        f = self._file
+        for name in ("raw/taps", "raw/freq_hz", "raw/theta_rad"):
+            if name not in f or not isinstance(f[name], h5py.Dataset):
+                self._fail(name, "missing", "see docs/session-format.md")
+        taps = f["raw/taps"]
+        if taps.dtype.kind not in "fiu":
+            self._fail("raw/taps", f"has type {taps.dtype}", "real numbers (float32 DN); complex or "
+                       "text taps are not correlation samples")
+        if taps.ndim != 5 or taps.shape[3:] != hw:
+            self._fail("raw/taps", f"has shape {taps.shape}", f"[N, F, K, {hw[0]}, {hw[1]}] (camera size)")
+        freq, theta = f["raw/freq_hz"], f["raw/theta_rad"]
+        for name, ds in (("raw/freq_hz", freq), ("raw/theta_rad", theta)):
+            if ds.dtype.kind not in "fiu":
+                self._fail(name, f"has type {ds.dtype}", "real numbers (float64)")
+        self.freq_hz = np.asarray(freq[()], dtype=np.float64).ravel()
+        self.theta_rad = np.asarray(theta[()], dtype=np.float64).ravel()
+        if self.freq_hz.size != taps.shape[1]:
+            self._fail("raw/freq_hz", f"has {self.freq_hz.size} values", f"{taps.shape[1]} (F of raw/taps)")
+        if self.theta_rad.size != taps.shape[2]:
+            self._fail("raw/theta_rad", f"has {self.theta_rad.size} values", f"{taps.shape[2]} (K of raw/taps)")
+        if not (np.all(np.isfinite(self.freq_hz)) and np.all(self.freq_hz > 0)):
+            self._fail("raw/freq_hz", f"is {self.freq_hz.tolist()}", "positive finite modulation frequencies in Hz")
+        if self.freq_hz.size == 0:
+            self._fail("raw/freq_hz", "is empty", "at least one modulation frequency")
+        if not np.all(np.isfinite(self.theta_rad)):
+            self._fail("raw/theta_rad", f"is {self.theta_rad.tolist()}", "finite phases in radians")
+        if self.theta_rad.size < 3:
+            self._fail("raw/taps", f"has K={self.theta_rad.size} taps per frequency",
+                       "K >= 3 equally spaced phases (a 2-tap A/B readout is stored as its canonical "
+                       "taps: both sub-frames, tofhil.demod.differential_to_taps)")
+        try:
+            estimator_weights(self.theta_rad)
+        except ValueError as exc:
+            self._fail("raw/theta_rad", str(exc), "K equally spaced phases over 2 pi")
+        g = f["raw"]
+        if "integration_time_s" not in g.attrs:
+            self._fail("raw.integration_time_s", "missing", "a number (seconds) attribute of raw/")
+        self.integration_time_s = self._number_attr(g.attrs, "raw.integration_time_s", "integration_time_s",
+                                                    "a positive number of seconds (NaN if unknown)",
+                                                    allow_nan=True, positive=True)
+        self.tap_limits_meta: dict[str, float] = {}
+        for key in ("saturation_dn", "saturation_low_dn"):
+            if key in g.attrs:
+                self.tap_limits_meta[key] = self._number_attr(g.attrs, f"raw.{key}", key,
+                                                              "a finite number of DN (the ADC's clip level)")
+
+    def _number_attr(self, attrs: h5py.AttributeManager, field: str, key: str, expected: str, *,
+                     allow_nan: bool = False, positive: bool = False) -> float:
+        try:
+            v = np.asarray(attrs[key])
+            if v.size != 1 or v.dtype.kind not in "fiub":
+                raise ValueError
+            x = float(v.reshape(()))
+        except (TypeError, ValueError, OverflowError):
+            self._fail(field, f"is {attrs[key]!r}", expected)
+        if math.isnan(x):
+            if not allow_nan:
+                self._fail(field, "is NaN", expected)
+        elif not math.isfinite(x) or (positive and x <= 0):
+            self._fail(field, f"is {x!r}", expected)
+        return x
 
     # ------------------------------------------------------------------ access
     @property
@@ -269,8 +509,17 @@ class Session:
         if not self.has_raw:
             raise InputFileError("has no raw taps", file=self.path, field="raw/taps")
         i = self._index(i)
-        return RawFrame(taps=self._file["raw/taps"][i], freq_hz=self.freq_hz, theta_rad=self.theta_rad,
-                        integration_time_s=self.integration_time_s, camera=self.camera, **self._frame_meta(i))
+        try:
+            taps = self._file["raw/taps"][i]
+            meta = self._frame_meta(i)
+        except (OSError, ValueError, TypeError) as exc:  # a damaged chunk, an unreadable filter
+            raise InputFileError(f"frame {i} cannot be read ({_os_reason(exc)})", file=self.path,
+                                 field="raw/taps") from None
+        if taps.dtype != np.float32 and taps.dtype != np.float64:
+            taps = taps.astype(np.float32)  # integer DN from another tool
+        return RawFrame(taps=taps, freq_hz=self.freq_hz, theta_rad=self.theta_rad,
+                        integration_time_s=self.integration_time_s, camera=self.camera,
+                        meta=dict(self.tap_limits_meta), **meta)
 
     def depth_frame(self, i: int) -> DepthFrame:
         if not self.has_depth:
@@ -278,10 +527,16 @@ class Session:
         i = self._index(i)
         g = self._file["depth"]
         get = lambda name: g[name][i] if name in g else None  # noqa: E731
-        valid = get("valid")
-        return DepthFrame(distance_m=g["radial_m"][i], kind="radial", camera=self.camera,
-                          amplitude=get("amplitude"), intensity=get("intensity"),
-                          valid=None if valid is None else valid.astype(bool), **self._frame_meta(i))
+        try:
+            valid = get("valid")
+            parts = {name: get(name) for name in ("radial_m", "amplitude", "intensity")}
+            meta = self._frame_meta(i)
+        except (OSError, ValueError, TypeError) as exc:
+            raise InputFileError(f"frame {i} cannot be read ({_os_reason(exc)})", file=self.path,
+                                 field="depth") from None
+        return DepthFrame(distance_m=parts["radial_m"], kind="radial", camera=self.camera,
+                          amplitude=parts["amplitude"], intensity=parts["intensity"],
+                          valid=None if valid is None else valid.astype(bool), **meta)
 
     def raw_frames(self) -> Iterator[RawFrame]:
         for i in range(self.n_frames):
@@ -321,11 +576,12 @@ def open_session(path: str | Path) -> Session:
 
 def copy_session_header(src: Session, dst_path: str | Path, *, force: bool = False,
                         note: str | None = None) -> SessionWriter:
-    """A new writer with the same camera, device and scene as ``src`` (for derived sessions)."""
+    """A new ``derived`` writer with the same camera, device and scene as ``src``."""
     device = dict(src.device)
     if note:
         device["derived"] = note
-    return SessionWriter(dst_path, src.camera, device=device, scene_text=src.scene_text, force=force)
+    return SessionWriter(dst_path, src.camera, device=device, scene_text=src.scene_text, force=force,
+                         derived=True)
 
 
 def remove_partial(path: str | Path) -> None:

@@ -284,7 +284,11 @@ class TofCam635(Driver):
         camera = self._camera_for(h)
         seq = self._seq_unwrap(h.frame_counter)
         ts = self._ts_unwrap(h.timestamp) * 1e-3
-        meta = {"header": h.to_dict(), "host_time_s": time.time()}
+        meta = {"header": h.to_dict(), "host_time_s": time.time(),
+                # the 12-bit DCS clip at 0 and 4095: canonical taps (mid-scale removed) at
+                # these values are saturated (tofhil.demod.TapLimits)
+                "saturation_dn": float(P.DCS_MAX - self.profile.dcs_offset),
+                "saturation_low_dn": float(-self.profile.dcs_offset)}
         freq = h.mod_freq_hz
         int_time_s = h.int_time_0 * 1e-6 if h.int_time_0 else (self.settings.integration_time_s or math.nan)
         if mode == "dcs":

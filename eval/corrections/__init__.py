@@ -256,7 +256,7 @@ def correct_session(in_path: str | Path, out_path: str | Path, method: str, para
                     *, force: bool = False, min_amplitude: float = 0.0,
                     progress: Callable[[Any, int, str], Any] | None = None) -> int:
     """Correct every frame of a session into a new session file; returns the frame count."""
-    from tofhil.session import copy_session_header, open_session, remove_partial
+    from tofhil.session import copy_session_header, open_session
 
     in_path, out_path = Path(in_path), Path(out_path)
     if out_path.exists() and out_path.resolve() == in_path.resolve():
@@ -270,19 +270,15 @@ def correct_session(in_path: str | Path, out_path: str | Path, method: str, para
             correct_depth(s.depth_frame(0) if s.n_frames else None, method, p)  # raises the clear error
         note = f"{method} " + " ".join(f"{k}={v if isinstance(v, (int, float, str)) else 'calibrated'}"
                                        for k, v in p.items() if v is not None)
-        w = copy_session_header(s, out_path, force=force, note=f"corrected: {note.strip()}")
-        try:
-            with w:
-                for i in wrap(range(s.n_frames), s.n_frames, f"correcting ({method})"):
-                    if m.domain == "complex":
-                        w.append(*correct_raw(s.raw_frame(i), m.name, p, min_amplitude=min_amplitude))
-                        continue
-                    # Depth methods filter the stored depth (a device's own) when there is one.
-                    raw = s.raw_frame(i) if s.has_raw else None
-                    depth = s.depth_frame(i) if s.has_depth else depth_from_raw(raw, min_amplitude=min_amplitude)
-                    w.append(raw, correct_depth(depth, m.name, p))
-                n = w.n_frames
-        except BaseException:
-            remove_partial(out_path)
-            raise
+        # a derived writer: an error leaves nothing behind, Ctrl-C keeps the frames done
+        with copy_session_header(s, out_path, force=force, note=f"corrected: {note.strip()}") as w:
+            for i in wrap(range(s.n_frames), s.n_frames, f"correcting ({method})"):
+                if m.domain == "complex":
+                    w.append(*correct_raw(s.raw_frame(i), m.name, p, min_amplitude=min_amplitude))
+                    continue
+                # Depth methods filter the stored depth (a device's own) when there is one.
+                raw = s.raw_frame(i) if s.has_raw else None
+                depth = s.depth_frame(i) if s.has_depth else depth_from_raw(raw, min_amplitude=min_amplitude)
+                w.append(raw, correct_depth(depth, m.name, p))
+            n = w.n_frames
     return n

@@ -135,6 +135,7 @@ def test_fused_path_agrees_with_general_path(freqs, start_deg):
     slow = depth_from_raw(frame, fused=False)
     diff = np.abs(fast.distance_m - slow.distance_m)
     diff = np.minimum(diff, rmax - diff)
+    np.testing.assert_array_equal(fast.valid, slow.valid)  # one definition of validity
     same = ~(fast.unwrap_conflict | slow.unwrap_conflict)
     assert same.mean() > 0.95
     assert np.quantile(diff[same], 0.999) < 2e-6 * rmax  # arctangent to ~2e-7 rad + float32 rounding
@@ -145,3 +146,50 @@ def test_fused_path_agrees_with_general_path(freqs, start_deg):
     err = np.abs(fast.distance_m - d)
     err = np.minimum(err, rmax - err)
     assert np.median(err[same]) < 0.01
+
+
+@pytest.mark.parametrize("freqs", [[20e6], [20e6, 30e6], [20e6, 30e6, 50e6]])
+def test_bad_taps_are_invalid_in_both_paths(freqs):
+    """NaN, +-inf and saturated taps (at the frame's declared ADC limits) make the pixel
+    invalid in the fused kernel and in the numpy path alike; the other pixels agree."""
+    from tofhil.demod import TapLimits, bad_tap_pixels
+
+    cam = CameraModel.from_fov(40, 30, 60.0)
+    theta = equally_spaced_phases(4)
+    d = np.full(cam.shape, 1.5)
+    amp = np.full((len(freqs),) + cam.shape, 300.0)
+    phase = np.stack([distance_to_phase(d, f) for f in freqs])
+    taps = taps_from_signal(amp, phase, np.zeros(amp.shape), theta).astype(np.float32)
+    hostile = {(3, 4): np.nan, (5, 6): np.inf, (7, 8): -np.inf, (9, 10): 2047.0, (11, 12): -2048.0}
+    for (r, c), v in hostile.items():
+        taps[-1, 1, r, c] = v
+    frame = RawFrame(taps=taps, freq_hz=freqs, theta_rad=theta, integration_time_s=1e-3, camera=cam,
+                     meta={"saturation_dn": 2047.0, "saturation_low_dn": -2048.0})
+    expected_bad = np.zeros(cam.shape, bool)
+    for rc in hostile:
+        expected_bad[rc] = True
+    np.testing.assert_array_equal(bad_tap_pixels(taps, TapLimits(2047.0, -2048.0)), expected_bad)
+    for fused in (True, False):
+        depth = depth_from_raw(frame, fused=fused)
+        np.testing.assert_array_equal(depth.valid, ~expected_bad)
+        np.testing.assert_allclose(depth.distance_m[depth.valid], 1.5, atol=1e-4)
+    # Without declared limits a tap at 2047 is a measurement (its pixel may still be flagged by
+    # unwrapping, the frequencies disagree); NaN and inf taps are never one.
+    frame.meta = {}
+    for fused in (True, False):
+        valid = depth_from_raw(frame, fused=fused).valid
+        assert not any(valid[rc] for rc in list(hostile)[:3])
+        assert valid.sum() >= valid.size - len(hostile)
+
+
+def test_detect_clipping_finds_pinned_extremes_only():
+    from tofhil.demod import detect_clipping
+
+    rng = np.random.default_rng(0)
+    tmax = rng.uniform(0, 1000, (30, 40))
+    tmin = rng.uniform(-1000, 0, (30, 40))
+    assert detect_clipping(tmax, tmin).high_dn is None and detect_clipping(tmax, tmin).low_dn is None
+    tmax[:2, :3] = 2047.0
+    tmin[5, :5] = -2048.0
+    lim = detect_clipping(tmax, tmin)
+    assert lim.high_dn == 2047.0 and lim.low_dn == -2048.0

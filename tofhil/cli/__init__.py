@@ -3,27 +3,37 @@
 This package is the only place that prints or draws progress; library code takes a
 :class:`tofhil.progress.Progress` callable instead. Each command group registers its commands
 on ``app`` when imported (``COMMAND_MODULES``). User errors (:class:`tofhil.errors.TofhilError`)
-print one message and exit with code 2, no traceback.
+print one message and exit with code 2, no traceback; so do usage errors (a bad option value,
+a missing argument) and files that cannot be written. User values (file names, device specs)
+are printed literally: the consoles interpret no emoji codes and every user value goes
+through :func:`lit` (rich markup such as ``[bold red]`` in a file name stays text).
 """
 
 from __future__ import annotations
 
+import errno
 import importlib
+import os
+import shutil
 import sys
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Iterable, Iterator, Optional, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.text import Text
 
 from tofhil import __version__
-from tofhil.errors import TofhilError
+from tofhil.errors import Interrupted, TofhilError
 
 app = typer.Typer(name="tofhil", add_completion=False, no_args_is_help=True,
                   pretty_exceptions_enable=False,
                   help="Hardware-in-the-loop evaluation of ToF cameras with a simulator twin.")
-console = Console(stderr=True)
-out = Console()
+console = Console(stderr=True, emoji=False)
+out = Console(emoji=False)
 
 T = TypeVar("T")
 
@@ -32,15 +42,34 @@ COMMAND_MODULES: list[str] = ["tofhil.cli.core", "tofhil.cli.imports", "tofhil.c
                               "tofhil.cli.simulate", "tofhil.cli.devices", "tofhil.cli.diagnose"]
 
 
+def lit(value: object) -> str:
+    """A user value (file name, spec, scene name) as rich markup that prints it literally."""
+    return escape(str(value))
+
+
 def progress(items: Iterable[T], total: int, description: str) -> Iterator[T]:
     """Iterate with a progress bar on stderr (hidden when stderr is not a terminal)."""
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+    with Progress(TextColumn("{task.description}", markup=False), BarColumn(), MofNCompleteColumn(),
                   TimeRemainingColumn(), console=console, transient=False,
                   disable=not console.is_terminal) as bar:
         task = bar.add_task(description, total=total)
         for item in items:
             yield item
             bar.advance(task)
+
+
+@contextmanager
+def new_output_dir(path: Path) -> Iterator[Path]:
+    """Run a command writing into ``path``: if the directory did not exist and the command
+    fails (or is interrupted), the directory it created is removed, so that a rerun is not
+    blocked by an empty or half-written folder. An existing directory is left as it is."""
+    existed = path.exists()
+    try:
+        yield path
+    except BaseException:
+        if not existed and path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        raise
 
 
 def _version_callback(value: bool) -> None:
@@ -60,14 +89,89 @@ def _register_command_modules() -> None:
         importlib.import_module(name)
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point: run the CLI; user errors exit 2 with one line on stderr."""
-    _register_command_modules()
+def _click_exceptions():  # typer >= 0.20 vendors click as typer._click
     try:
-        app(args=argv, prog_name="tofhil")
+        from typer._click import exceptions
+    except ImportError:  # pragma: no cover - older typer on click
+        from click import exceptions
+    return exceptions
+
+
+def error_line(message: str) -> None:
+    """Print ``error: MESSAGE`` as one line on stderr, the message taken literally."""
+    text = " ".join(str(message).split())  # one line, whatever the message held
+    console.print(Text("error: ", style="red") + Text(text), soft_wrap=True, highlight=False)
+
+
+def _usage_message(exc: Exception) -> str:
+    msg = exc.format_message()
+    msg = msg.replace("Value error, ", "")  # pydantic's prefix on our parsers' ValueError
+    ctx = getattr(exc, "ctx", None)
+    command = getattr(ctx, "command_path", "") if ctx is not None else ""
+    return f"{command}: {msg}" if command and command != "tofhil" else msg
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point: run the CLI.
+
+    User errors, usage errors and unwritable outputs exit 2 with one line on stderr; an
+    interrupt exits 130 saying what was kept.
+    """
+    _register_command_modules()
+    ex = _click_exceptions()
+    args = sys.argv[1:] if argv is None else list(argv)
+    command = typer.main.get_command(app)
+    if not args:
+        args = ["--help"]
+    try:
+        with command.make_context("tofhil", args) as ctx:
+            command.invoke(ctx)
+        sys.exit(0)
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+    except ex.UsageError as exc:
+        error_line(_usage_message(exc))
+        _exit(2)
+    except ex.ClickException as exc:
+        error_line(exc.format_message())
+        _exit(2)
+    except typer.Abort:
+        error_line("aborted")
+        _exit(1)
     except TofhilError as exc:
-        console.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
-        sys.exit(2)
+        error_line(str(exc))
+        _exit(2)
+    except Interrupted as exc:
+        console.print(Text(str(exc)), soft_wrap=True, highlight=False)
+        _exit(130)
     except KeyboardInterrupt:
-        console.print("interrupted")
-        sys.exit(130)
+        console.print("interrupted (nothing was written)", highlight=False)
+        _exit(130)
+    except OSError as exc:
+        if exc.errno == errno.EPIPE:  # output piped into head: not an error
+            _exit(0)
+        if exc.errno in _USER_OS_ERRORS:
+            where = exc.filename if exc.filename else "output"
+            error_line(f"{where}: {exc.strerror or exc}")
+            _exit(2)
+        raise
+
+
+def _exit(code: int) -> None:
+    """Exit with ``code``. After a failed HDF5 write (disk full) exit at once: outputs are
+    already cleaned up, and the interpreter's shutdown would make HDF5 retry the write."""
+    from tofhil import session
+
+    if session._BROKEN_FILES:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:
+                pass
+        os._exit(code)
+    sys.exit(code)
+
+
+#: OS errors caused by the user's paths or disk, not by a bug: one line, exit 2.
+_USER_OS_ERRORS = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EFBIG, errno.EDQUOT,
+                   errno.ENOENT, errno.EISDIR, errno.ENOTDIR, errno.EEXIST, errno.ENAMETOOLONG, errno.EIO}

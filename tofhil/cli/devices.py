@@ -11,6 +11,7 @@ from typing import Optional
 import typer
 
 from tofhil.cli import app, console, out, progress
+from tofhil.cli import options as opt
 from tofhil.errors import DeviceError
 
 
@@ -44,23 +45,29 @@ def devices(as_json: bool = typer.Option(False, "--json", help="Print JSON inste
                                    for e in entries]))
         return
     for e in entries:
-        out.print(f"{e.spec:28s} {e.kind:10s} {e.description}", highlight=False)
+        out.print(f"{e.spec:28s} {e.kind:10s} {e.description}", highlight=False, markup=False)
     connected = [e for e in entries if e.kind == "connected" and not e.description.startswith("USB unavailable")]
     if not connected:
         out.print("(no camera connected)")
-    out.print("schemes: " + ", ".join(sorted(registered_schemes())), highlight=False)
+    out.print("schemes: " + ", ".join(sorted(registered_schemes())), highlight=False, markup=False)
 
 
 @app.command()
 def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], usb, usb:BUS:ADDR, serial:PORT, ..."),
-            frames: int = typer.Option(10, "--frames", help="Number of good frames to write."),
-            out_path: Path = typer.Option(..., "--out", help="Session file to write (.h5)."),
+            frames: int = typer.Option(10, "--frames", parser=opt.count(1, 10_000_000),
+                                       help="Number of good frames to write."),
+            out_path: Path = typer.Option(..., "--out", parser=opt.new_file, help="Session file to write (.h5)."),
             integration_time_us: Optional[float] = typer.Option(None, "--integration-time-us",
+                                                                parser=opt.finite(0.0, 1e6, lo_open=True, unit="us"),
                                                                 help="Integration time in microseconds."),
-            mod_freq_hz: Optional[float] = typer.Option(None, "--mod-freq-hz", help="Modulation frequency in Hz."),
+            mod_freq_hz: Optional[float] = typer.Option(None, "--mod-freq-hz", parser=opt.finite(0.0, 1e10, lo_open=True,
+                                                                                                unit="Hz"),
+                                                        help="Modulation frequency in Hz."),
             mode: str = typer.Option("dcs", "--mode", help="dcs (raw taps) or distance (depth + amplitude)."),
-            channel: Optional[int] = typer.Option(None, "--channel", help="Modulation channel (0..15)."),
-            min_amplitude: Optional[float] = typer.Option(None, "--min-amplitude", help="Minimum amplitude (DN)."),
+            channel: Optional[int] = typer.Option(None, "--channel", parser=opt.count(0, 15),
+                                                  help="Modulation channel (0..15)."),
+            min_amplitude: Optional[float] = typer.Option(None, "--min-amplitude", parser=opt.finite(0.0, unit="DN"),
+                                                          help="Minimum amplitude (DN)."),
             roi: Optional[str] = typer.Option(None, "--roi", help="X0,Y0,X1,Y1 sensor pixels, half-open (X1, Y1 exclusive; TOFcam635: multiples of 4)."),
             faults: Optional[str] = typer.Option(None, "--faults",
                                                  help="Emulator only: inject faults, e.g. crc@3,disconnect@6."),
@@ -89,7 +96,7 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
     _sigterm_as_interrupt()
     with driver:
         ticks = iter(range(frames))
-        bar = progress(ticks, frames, f"capturing {device}")
+        bar = progress(ticks, frames, f"capturing {device}")  # the bar prints it literally
         summary = run_capture(driver, out_path, frames, settings, force=force, scene_text=scene_text,
                               on_frame=lambda _f: next(bar, None))
         if summary.frames_written == frames:
@@ -97,7 +104,7 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
         bar.close()
     out.print(f"frames written {summary.frames_written}/{summary.requested}, dropped {summary.dropped}, "
               f"reconnects {summary.reconnects}, {summary.frames_per_s:.1f} frames/s -> {summary.path}",
-              highlight=False)
+              highlight=False, markup=False)
     if summary.ended_early == "interrupted":
         kept = f"kept in {summary.path}" if summary.frames_written else "kept (no file written)"
         console.print(f"interrupted: {summary.frames_written} frames {kept}", highlight=False, markup=False, soft_wrap=True)
@@ -112,8 +119,8 @@ def emulate(scene: Optional[str] = typer.Option(None, "--scene", help="Scene fil
                                                 "(default: bundled bench_demo, else a wall at 1 m)."),
             pty: bool = typer.Option(False, "--pty", help="Serve on a pseudo-terminal (prints PORT=... first)."),
             faults: Optional[str] = typer.Option(None, "--faults", help="Inject faults, e.g. crc@3,timeout=0.05."),
-            seed: int = typer.Option(0, "--seed", help="Noise seed."),
-            frame_rate: Optional[float] = typer.Option(None, "--frame-rate",
+            seed: int = typer.Option(0, "--seed", parser=opt.count(0, 2**63 - 1, what="a seed"), help="Noise seed."),
+            frame_rate: Optional[float] = typer.Option(None, "--frame-rate", parser=opt.finite(0.0, 1e4, lo_open=True, unit="frames/s"),
                                                        help="Limit frames/s (> 0; default: as fast as possible).")) -> None:
     """Run the TOFcam635 emulator until stopped (Ctrl-C or SIGTERM)."""
     from tofhil.drivers.tofcam635.emulator import Epc635Emulator
@@ -140,7 +147,7 @@ def emulate(scene: Optional[str] = typer.Option(None, "--scene", help="Scene fil
     server = PtyServer(emulator).start()
     print(f"PORT={server.port}", flush=True)
     console.print(f"emulating TOFcam635 ({emulator.source.description}) on {server.port}; Ctrl-C to stop",
-                  highlight=False)
+                  highlight=False, markup=False)
     try:
         server.serve_forever()
     except KeyboardInterrupt:

@@ -9,7 +9,8 @@ from typing import Optional
 
 import typer
 
-from tofhil.cli import app, console, out
+from tofhil.cli import app, console, lit, new_output_dir, out
+from tofhil.cli import options as opt
 from tofhil.errors import TofhilError
 
 
@@ -17,7 +18,7 @@ def _progress_printer() -> callable:
     start = time.monotonic()
 
     def show(message: str) -> None:
-        console.print(f"[dim]{time.monotonic() - start:6.1f} s[/dim]  {message}", highlight=False)
+        console.print(f"[dim]{time.monotonic() - start:6.1f} s[/dim]  {lit(message)}", highlight=False)
 
     return show
 
@@ -40,14 +41,16 @@ def _summary(res, report: Path) -> None:
         out.print(f"NDT score per point {g['ndt_score_per_point']['before']:.4g} -> {g['ndt_score_per_point']['after']:.4g}, "
                   f"ICP inlier RMSE {g['icp_inlier_rmse_m']['before'] * 1e3:.2f} -> {g['icp_inlier_rmse_m']['after'] * 1e3:.2f} mm",
                   highlight=False)
-    out.print(f"report: {report}")
+    out.print(f"report: {lit(report)}")
 
 
 @app.command()
-def diagnose(session: Path = typer.Argument(..., help="A session with raw taps (2 frames or more)."),
+def diagnose(session: Path = typer.Argument(..., parser=opt.existing_file,
+                                            help="A session with raw taps (2 frames or more)."),
              scene: str = typer.Option(..., "--scene", help="The twin's base scene (file or bundled name)."),
-             out_dir: Path = typer.Option(..., "--out", help="Directory for diagnosis.json, report.html, extended_scene.yaml."),
-             max_effects: int = typer.Option(3, help="Most effects to add."),
+             out_dir: Path = typer.Option(..., "--out", parser=opt.out_dir,
+                                          help="Directory for diagnosis.json, report.html, extended_scene.yaml."),
+             max_effects: int = typer.Option(3, parser=opt.count(1, 50), help="Most effects to add."),
              candidates: Optional[str] = typer.Option(None, help="Comma-separated effects to try (default: all)."),
              force: bool = typer.Option(False, "--force", help="Overwrite an earlier diagnosis in OUT.")) -> None:
     """Find what the twin gets wrong, fit it, write the extended scene and the held-out gain."""
@@ -61,14 +64,16 @@ def diagnose(session: Path = typer.Argument(..., help="A session with raw taps (
         if unknown:
             raise TofhilError(f"unknown effect(s) {', '.join(unknown)}", field="--candidates",
                               expected="names from " + ", ".join(ORDER))
-    res = run_diagnosis(session, scene, out_dir, force=force, progress=_progress_printer(),
-                        max_effects=max_effects, candidates=names)
+    with new_output_dir(out_dir):
+        res = run_diagnosis(session, scene, out_dir, force=force, progress=_progress_printer(),
+                            max_effects=max_effects, candidates=names)
     _summary(res, out_dir / "report.html")
 
 
 @app.command()
-def demo(out_dir: Path = typer.Option(Path("demo-out"), "--out", help="Directory for the demo's files."),
-         frames: int = typer.Option(8, help="Frames to capture from the emulated camera."),
+def demo(out_dir: Path = typer.Option(Path("demo-out"), "--out", parser=opt.out_dir,
+                                      help="Directory for the demo's files."),
+         frames: int = typer.Option(8, parser=opt.count(2, 10_000), help="Frames to capture from the emulated camera."),
          scene: str = typer.Option("bench_demo", help="Bundled scene or file the emulated camera looks at."),
          force: bool = typer.Option(False, "--force", help="Reuse OUT even if it holds an earlier demo.")) -> None:
     """The main job on the embedded default: capture from the emulated TOFcam635 (whose hidden
@@ -121,6 +126,6 @@ def demo(out_dir: Path = typer.Option(Path("demo-out"), "--out", help="Directory
     res = run_diagnosis(out_dir / "capture.h5", twin_path, out_dir / "diagnosis", force=True, progress=show)
     show("5/5 done")
     _summary(res, out_dir / "diagnosis" / "report.html")
-    out.print(f"comparison report: {out_dir / 'compare' / 'report.html'}")
+    out.print(f"comparison report: {lit(out_dir / 'compare' / 'report.html')}")
     (out_dir / "summary.json").write_text(json.dumps({"cause": res.cause, "causes": res.causes, "params": res.params,
                                                       "gain": res.gain}, indent=2, default=float))

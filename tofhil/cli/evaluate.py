@@ -7,7 +7,8 @@ from typing import Any, Optional
 
 import typer
 
-from tofhil.cli import app, console, out, progress
+from tofhil.cli import app, console, lit, new_output_dir, out, progress
+from tofhil.cli import options as opt
 from tofhil.errors import TofhilError
 
 _METHOD_HELP = ("METHOD[:key=value,...] (the same syntax as compare --correct): uniform:w=W | "
@@ -31,23 +32,24 @@ def _pixel_pair(text: str, option: str) -> tuple[float, float]:
 
 
 @app.command()
-def correct(session: Path = typer.Argument(..., help="Session to correct (.h5)."),
+def correct(session: Path = typer.Argument(..., parser=opt.existing_file, help="Session to correct (.h5)."),
             method: str = typer.Option(..., "--method", help=_METHOD_HELP),
-            out_path: Path = typer.Option(..., "--out", help="Corrected session to write."),
-            calibrate: Optional[Path] = typer.Option(None, "--calibrate",
+            out_path: Path = typer.Option(..., "--out", parser=opt.new_file, help="Corrected session to write."),
+            calibrate: Optional[Path] = typer.Option(None, "--calibrate", parser=opt.existing_file,
                                                      help="psf: calibration capture (.h5) to fit the PSF from."),
-            reference: Optional[Path] = typer.Option(None, "--reference",
+            reference: Optional[Path] = typer.Option(None, "--reference", parser=opt.existing_file,
                                                      help="Stray-light-free twin of the calibration capture; "
                                                           "without it the capture must be a bright target on a "
                                                           "dark background."),
-            target_threshold: float = typer.Option(0.2, help="Target pixels: amplitude above this fraction "
+            target_threshold: float = typer.Option(0.2, parser=opt.finite(0.0, 1.0, lo_open=True, hi_open=True),
+                                                   help="Target pixels: amplitude above this fraction "
                                                              "of the brightest (calibration without reference)."),
             ghost_center: Optional[str] = typer.Option(None, "--ghost-center",
                                                        help="X,Y (pixels) the calibrated ghost mirrors through "
                                                             "(default the principal point)."),
-            save_psf: Optional[Path] = typer.Option(None, "--save-psf",
+            save_psf: Optional[Path] = typer.Option(None, "--save-psf", parser=opt.new_file,
                                                     help="Write the calibrated PSF here (.json)."),
-            min_amplitude: float = typer.Option(0.0, "--min-amplitude",
+            min_amplitude: float = typer.Option(0.0, "--min-amplitude", parser=opt.finite(0.0, unit="DN"),
                                                 help="Invalidate low-amplitude pixels when demodulating."),
             force: bool = typer.Option(False, "--force", help="Overwrite OUT (and --save-psf) if they exist.")) -> None:
     """Apply one correction to every frame of a session (complex-domain ones need raw taps)."""
@@ -83,30 +85,32 @@ def correct(session: Path = typer.Argument(..., help="Session to correct (.h5)."
     if fitted is not None and save_psf is not None:
         real = fitted.save(save_psf, force=force)
         out.print(f"saved PSF (scattered fraction {fitted.info['scattered_fraction']:.4f}, direct "
-                  f"{fitted.keep:.4f}) to {real}")
-    out.print(f"wrote {n} corrected frames ({name}) to {out_path}")
+                  f"{fitted.keep:.4f}) to {lit(real)}")
+    out.print(f"wrote {n} corrected frames ({lit(name)}) to {lit(out_path)}")
 
 
 @app.command()
-def compare(a: Path = typer.Argument(..., help="Measured session A (.h5)."),
-            b: Path = typer.Argument(..., help="Reference session B (.h5): the twin or a ground truth."),
-            out_dir: Path = typer.Option(..., "--out", help="Directory for metrics.json and report.html."),
+def compare(a: Path = typer.Argument(..., parser=opt.existing_file, help="Measured session A (.h5)."),
+            b: Path = typer.Argument(..., parser=opt.existing_file, help="Reference session B (.h5): the twin or a ground truth."),
+            out_dir: Path = typer.Option(..., "--out", parser=opt.out_dir, help="Directory for metrics.json and report.html."),
             correct_specs: list[str] = typer.Option([], "--correct",
                                                     help="Correction applied to A, METHOD[:key=value,...], e.g. "
                                                          "psf:psf=cal.npz or uniform:w=2e-5; repeatable."),
             roi: list[str] = typer.Option([], "--roi", help="Region X0,Y0,X1,Y1 in pixels, half-open (X1, Y1 "
                                                             "exclusive, as numpy slices); repeatable."),
-            mask: list[Path] = typer.Option([], "--mask", help="Region mask, .png (non-zero = inside) or .npy, "
+            mask: list[Path] = typer.Option([], "--mask", parser=opt.existing_file, help="Region mask, .png (non-zero = inside) or .npy, "
                                                               "of the image's size; repeatable."),
-            row: Optional[int] = typer.Option(None, "--row", help="Cross-section along this pixel row "
+            row: Optional[int] = typer.Option(None, "--row", parser=opt.count(0, 10**6), help="Cross-section along this pixel row "
                                                                   "(default: the centre row)."),
-            column: Optional[int] = typer.Option(None, "--column", help="Cross-section along this pixel column."),
-            frames: int = typer.Option(10, "--frames", help="Frames averaged per session."),
-            cell_size: float = typer.Option(0.1, "--cell-size", help="NDT cell size, m."),
-            threshold: float = typer.Option(0.01, "--threshold", help="F-score distance threshold, m (> 0)."),
-            min_amplitude: float = typer.Option(0.0, "--min-amplitude",
+            column: Optional[int] = typer.Option(None, "--column", parser=opt.count(0, 10**6), help="Cross-section along this pixel column."),
+            frames: int = typer.Option(10, "--frames", parser=opt.count(1, 1_000_000), help="Frames averaged per session."),
+            cell_size: float = typer.Option(0.1, "--cell-size", parser=opt.finite(0.0, 100.0, lo_open=True, unit="m"),
+                                            help="NDT cell size, m."),
+            threshold: float = typer.Option(0.01, "--threshold", parser=opt.finite(0.0, 100.0, lo_open=True, unit="m"),
+                                            help="F-score distance threshold, m (> 0)."),
+            min_amplitude: float = typer.Option(0.0, "--min-amplitude", parser=opt.finite(0.0, unit="DN"),
                                                 help="Invalidate low-amplitude pixels when demodulating."),
-            min_relative_amplitude: float = typer.Option(1e-3, "--min-relative-amplitude",
+            min_relative_amplitude: float = typer.Option(1e-3, "--min-relative-amplitude", parser=opt.finite(0.0, 1.0),
                                                          help="Invalidate pixels below this fraction of the "
                                                               "99th-percentile amplitude (shadows)."),
             no_objects: bool = typer.Option(False, "--no-objects",
@@ -116,16 +120,17 @@ def compare(a: Path = typer.Argument(..., help="Measured session A (.h5)."),
     from tofhil.eval.compare import compare_sessions
     from tofhil.eval.metrics import DEPTH_RMSE
 
-    m = compare_sessions(a, b, out_dir, corrections=correct_specs, rois=roi, masks=mask, row=row, column=column,
-                         max_frames=frames, cell_size=cell_size, threshold=threshold, min_amplitude=min_amplitude,
-                         min_relative_amplitude=min_relative_amplitude,
-                         objects=not no_objects, force=force, log=lambda s: console.print(s, highlight=False))
+    with new_output_dir(out_dir):
+        m = compare_sessions(a, b, out_dir, corrections=correct_specs, rois=roi, masks=mask, row=row, column=column,
+                             max_frames=frames, cell_size=cell_size, threshold=threshold, min_amplitude=min_amplitude,
+                             min_relative_amplitude=min_relative_amplitude, objects=not no_objects, force=force,
+                             log=lambda s: console.print(s, highlight=False, markup=False))
     for name, v in m["variants"].items():
-        out.print(compare_line(name, v["regions"]["all"]), highlight=False)
+        out.print(compare_line(name, v["regions"]["all"]), highlight=False, markup=False)
         for note in v["notes"]:
-            out.print(f"  {note}", highlight=False)
+            out.print(f"  {note}", highlight=False, markup=False)
     out.print(f"({DEPTH_RMSE}: sqrt(mean((A - B)^2)) over the pixels valid in A and in B)", highlight=False)
-    out.print(f"wrote {out_dir / 'metrics.json'} and {out_dir / 'report.html'}")
+    out.print(f"wrote {lit(out_dir / 'metrics.json')} and {lit(out_dir / 'report.html')}")
 
 
 def compare_line(name: str, region: dict[str, Any]) -> str:
@@ -141,10 +146,10 @@ def compare_line(name: str, region: dict[str, Any]) -> str:
 
 
 @app.command("calibrate-taps")
-def calibrate_taps_cmd(flat: Path = typer.Option(..., "--flat", help="Capture with the emitter off, lit by "
+def calibrate_taps_cmd(flat: Path = typer.Option(..., "--flat", parser=opt.existing_file, help="Capture with the emitter off, lit by "
                                                                      "unmodulated light on a surface filling the view."),
-                       dark: Optional[Path] = typer.Option(None, "--dark", help="Capture with no light at all."),
-                       out_path: Path = typer.Option(..., "--out", help="Tap calibration to write (.npz; the "
+                       dark: Optional[Path] = typer.Option(None, "--dark", parser=opt.existing_file, help="Capture with no light at all."),
+                       out_path: Path = typer.Option(..., "--out", parser=opt.new_file, help="Tap calibration to write (.npz; the "
                                                                         "suffix is added when missing)."),
                        no_pixel_gain: bool = typer.Option(False, "--no-pixel-gain",
                                                           help="Balance the taps of each pixel only."),
@@ -165,5 +170,5 @@ def calibrate_taps_cmd(flat: Path = typer.Option(..., "--flat", help="Capture wi
         raise TofhilError(str(exc), file=flat if exc.field != "dark" else dark) from None
     cal.info.update({"flat": str(flat), "dark": None if dark is None else str(dark)})
     real = cal.save(out_path, force=force)
-    out.print(f"wrote tap calibration to {real} (tap gain spread {cal.info['tap_gain_spread']:.4f}, "
+    out.print(f"wrote tap calibration to {lit(real)} (tap gain spread {cal.info['tap_gain_spread']:.4f}, "
               f"pixel gain spread {cal.info['pixel_gain_spread']:.4f})")

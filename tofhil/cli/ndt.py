@@ -7,7 +7,8 @@ from typing import List, Optional
 
 import typer
 
-from tofhil.cli import app, out
+from tofhil.cli import app, lit, out
+from tofhil.cli import options as opt
 from tofhil.errors import TofhilError
 
 
@@ -15,11 +16,15 @@ from tofhil.errors import TofhilError
 def ndt(ref: str = typer.Argument(..., help="Reference cloud: PLY, PCD, xyz text, .npy or SESSION.h5[:FRAME]."),
         cloud: str = typer.Argument(..., help="Cloud to score, same formats."),
         cell_size: Optional[List[float]] = typer.Option(
-            None, "--cell-size", help="NDT cell side R [m] (default 0.1); repeat for several resolutions."),
-        outlier_ratio: float = typer.Option(0.55, "--outlier-ratio", help="Outlier ratio r for d1, d2 (PCL 0.55)."),
-        min_points: int = typer.Option(6, "--min-points", help="Minimum points per cell (PCL 6)."),
-        eig_floor: float = typer.Option(0.01, "--eig-floor", help="Eigenvalue floor, fraction of the largest."),
-        threshold: Optional[List[float]] = typer.Option(None, "--threshold",
+            None, "--cell-size", parser=opt.finite(0.0, 1e3, lo_open=True, unit="m"),
+            help="NDT cell side R [m] (default 0.1); repeat for several resolutions."),
+        outlier_ratio: float = typer.Option(0.55, "--outlier-ratio", parser=opt.finite(0.0, 1.0, lo_open=True, hi_open=True),
+                                            help="Outlier ratio r for d1, d2 (PCL 0.55)."),
+        min_points: int = typer.Option(6, "--min-points", parser=opt.count(3, 1_000_000),
+                                       help="Minimum points per cell (PCL 6)."),
+        eig_floor: float = typer.Option(0.01, "--eig-floor", parser=opt.finite(0.0, 1.0, lo_open=True),
+                                        help="Eigenvalue floor, fraction of the largest."),
+        threshold: Optional[List[float]] = typer.Option(None, "--threshold", parser=opt.finite(0.0, 1.0),
                                                         help="Likelihood threshold for fraction_above (repeatable)."),
         d2d: bool = typer.Option(False, "--d2d", help="Also the D2D score between the two clouds' grids."),
         as_json: bool = typer.Option(False, "--json", help="Print JSON.")) -> None:
@@ -64,8 +69,8 @@ def ndt(ref: str = typer.Argument(..., help="Reference cloud: PLY, PCD, xyz text
     if as_json:
         out.print_json(json.dumps(payload))
         return
-    out.print(f"reference {ref}: {ref_pts.shape[0]} points")
-    out.print(f"cloud     {cloud}: {pts.shape[0]} points")
+    out.print(f"reference {lit(ref)}: {ref_pts.shape[0]} points")
+    out.print(f"cloud     {lit(cloud)}: {pts.shape[0]} points")
     for r, (s, d) in results.items():
         out.print(f"[bold]cell size {r:g} m[/bold]: {s.cells} cells (min {min_points} points)")
         out.print(f"  score per point (PCL)      {s.score_per_point:.6f}   (d1={s.d1:.5g}, d2={s.d2:.5g})")

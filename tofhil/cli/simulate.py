@@ -9,7 +9,8 @@ from typing import List, Optional
 import typer
 import yaml
 
-from tofhil.cli import app, out, progress
+from tofhil.cli import app, lit, out, progress
+from tofhil.cli import options as opt
 from tofhil.errors import TofhilError
 
 
@@ -34,9 +35,10 @@ def _parse_assignments(items: List[str], option: str) -> dict:
 
 @app.command()
 def simulate(scene: str = typer.Argument(..., help="A scene file (.yaml) or a bundled scene name."),
-             out_path: Path = typer.Option(..., "--out", help="The session file to write (.h5)."),
-             frames: int = typer.Option(1, "--frames", min=1, help="Number of frames."),
-             seed: int = typer.Option(0, "--seed", help="Noise seed: the same seed gives identical frames."),
+             out_path: Path = typer.Option(..., "--out", parser=opt.new_file, help="The session file to write (.h5)."),
+             frames: int = typer.Option(1, "--frames", parser=opt.count(1, 1_000_000), help="Number of frames."),
+             seed: int = typer.Option(0, "--seed", parser=opt.count(0, 2**63 - 1, what="a seed"),
+                                      help="Noise seed: the same seed gives identical frames."),
              no_noise: bool = typer.Option(False, "--no-noise", help="Noise-free taps (exact expectation)."),
              param: List[str] = typer.Option([], "--param", help="Scene parameter NAME=VALUE (repeatable)."),
              effect: List[str] = typer.Option([], "--effect",
@@ -63,7 +65,7 @@ def simulate(scene: str = typer.Argument(..., help="A scene file (.yaml) or a bu
         parse_effects(effects, source=f"{sc.source} with --effect")  # errors name the option
     path = simulate_session(sc, out_path, frames=frames, seed=seed, noise=not no_noise, force=force,
                             effects=effects, progress=progress)
-    out.print(f"wrote {frames} simulated frame{'s' if frames != 1 else ''} of {sc.name or scene} to {path}")
+    out.print(f"wrote {frames} simulated frame{'s' if frames != 1 else ''} of {lit(sc.name or scene)} to {lit(path)}")
 
 
 @app.command("effects")
@@ -82,9 +84,9 @@ def list_effects(as_json: bool = typer.Option(False, "--json", help="Print JSON 
         out.print_json(json.dumps(items))
         return
     for e in items:
-        out.print(f"[bold]{e['name']}[/bold] ({e['stage']}): {e['doc']}")
+        out.print(f"[bold]{lit(e['name'])}[/bold] ({lit(e['stage'])}): {lit(e['doc'])}")
         for p, d in e["params"].items():
             out.print(f"    {p:16s} off={d['off']:<10g} [{d['lo']:g}, {d['hi']:g}] {d['unit']:8s} {d['doc']}",
-                      highlight=False)
+                      highlight=False, markup=False)
         for o, doc in e["options"].items():
-            out.print(f"    {o:16s} (option) {doc}", highlight=False)
+            out.print(f"    {o:16s} (option) {doc}", highlight=False, markup=False)
