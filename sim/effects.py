@@ -294,7 +294,7 @@ class MultipathEffect(Effect):
                                  expected="an integer >= 1")
 
     def render_requirements(self, values: Mapping[str, Any], scene: Any) -> dict[str, Any]:
-        b = values.get("bounces") or max(2, int((getattr(scene, "render", None) or {}).get("bounces", 0)))
+        b = values.get("bounces") or max(2, int(scene.render.bounces))
         return {"separate_direct": True, "bounces": int(b)}
 
     def apply_render(self, result: Any, values: Mapping[str, Any],

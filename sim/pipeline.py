@@ -27,14 +27,13 @@ def resolve_effects(scene: Any, effects: Mapping[str, Any] | None = None) -> dic
     """Validated effects: the scene's ``effects:`` block when ``effects`` is None, else ``effects``
     (which replaces the scene's block entirely; an empty mapping means no effects)."""
     if effects is None:
-        return parse_effects(getattr(scene, "effects", None) or {}, source=getattr(scene, "source", "<scene>"))
+        return scene.effects  # parsed once, when the scene was loaded
     return parse_effects(effects, source="<effects>")
 
 
 def sensor_config(scene: Any) -> SensorConfig:
-    """The scene's interpreted ``sensor:`` block (errors name the scene file)."""
-    return SensorConfig.from_dict(getattr(scene, "sensor", None) or {}, source=getattr(scene, "source", "<scene>"),
-                                  camera=scene.camera)
+    """The scene's sensor, resolved against its camera preset and validated at load."""
+    return scene.sensor
 
 
 def render_arguments(scene: Any, effects: Effects, render_kwargs: Mapping[str, Any] | None = None) -> dict[str, Any]:
@@ -156,7 +155,9 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
     # The session records the camera as the scene file states it (what a user's calibration
     # says); a lens_distortion effect is a deviation of the real lens from that model, so it
     # shows in the data, not in the recorded camera.
-    with SessionWriter(out_path, scene.camera, device=device, scene_text=text, force=force) as w:
+    # The resolved sensor travels with the session: a re-render (diagnosis, compare) uses it.
+    with SessionWriter(out_path, scene.camera, device=device, scene_text=text, force=force,
+                       sensor_config=sensor_config(scene2).to_dict()) as w:
         for raw in it:
             sat = raw.meta.get("saturation_dn")
             w.append(raw, depth_from_raw(raw, saturation_level=None if sat is None else float(sat)))

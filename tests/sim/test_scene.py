@@ -132,7 +132,7 @@ def test_all_thesis_scenes_are_bundled() -> None:
 def test_bundled_scene_round_trips_and_renders(name: str, tmp_path) -> None:
     scene = load_scene(name)
     assert scene.camera.name == "holmlund_thesis" and scene.camera.shape == (120, 160)
-    assert scene.sensor["freq_hz"] == [44.0e6] and scene.sensor["taps"] == 4
+    assert scene.sensor.freq_hz == (44.0e6,) and scene.sensor.taps == 4
     path = tmp_path / f"{name}.yaml"
     path.write_text(scene_to_yaml(scene))
     again = load_scene(path)

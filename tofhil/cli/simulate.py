@@ -53,7 +53,7 @@ def simulate(scene: str = typer.Argument(..., help="A scene file (.yaml) or a bu
     sc = load_scene(scene, overrides=overrides)
     effects = None
     if no_effects or effect:
-        effects = {} if no_effects else {k: dict(v or {}) for k, v in (sc.effects or {}).items()}
+        effects = {} if no_effects else {k: dict(v or {}) for k, v in sc.effects.to_block().items()}
         for name, values in _parse_assignments(effect, "--effect").items():
             if not isinstance(values, dict):
                 raise TofhilError(f"got {name}={values!r}", field="--effect", expected="EFFECT.PARAM=VALUE")
