@@ -42,6 +42,7 @@ from scipy.special import erf
 
 from tofhil.camera import CameraModel
 from tofhil.errors import InputFileError
+from tofhil.schema import Schema
 
 
 @dataclass(frozen=True)
@@ -387,14 +388,8 @@ PSF_KEYS = ("weight", "sigma_px", "sigma_y_px", "gaussians", "veil", "ghost_weig
 
 def _num(params: Mapping[str, Any], key: str, default: float, *, source: str | Path, prefix: str,
          lo: float = 0.0, hi: float = math.inf, expected: str = "a number >= 0") -> float:
-    v = params.get(key, default)
-    try:
-        x = float(v)
-    except (TypeError, ValueError):
-        x = math.nan
-    if isinstance(v, bool) or not math.isfinite(x) or not lo <= x <= hi:
-        raise InputFileError(f"got {v!r}", file=source, field=f"{prefix}.{key}", expected=expected)
-    return x
+    return Schema(source).number(params.get(key, default), f"{prefix}.{key}", lo=lo,
+                                 hi=None if hi == math.inf else hi, expected=expected)
 
 
 def _pair(v: Any, *, source: str | Path, field_: str) -> tuple[float, float]:

@@ -171,3 +171,14 @@ def test_a_940nm_preset_scene_is_diagnosed_at_940nm(tmp_path) -> None:
     assert bad.causes == ["reflectance"]
     assert bad.params["reflectance"]["scale"] == pytest.approx(940 / 850, rel=0.02)
     assert math.isfinite(res.chi2_per_value["after_extended_scene"])
+
+
+def test_preset_facts_survive_a_geometry_override() -> None:
+    # camera: {preset: epc635, width: 80, ...} used to rebuild the camera without the
+    # preset's frequency and wavelength (the sensor then fell back to 850 nm)
+    scene = scene_from_dict({
+        "camera": {"preset": "epc635", "width": 80, "height": 30, "cx": 39.5, "cy": 14.5},
+        "emitter": {"power_w": 0.5}, "materials": {"w": 0.5},
+        "objects": [{"type": "plane", "size": [3, 3], "material": "w", "pose": {"position": [0, 0, 1]}}]})
+    assert scene.camera.shape == (30, 80)
+    assert scene.sensor.wavelength_m == 940e-9 and scene.sensor.freq_hz == (20e6,)

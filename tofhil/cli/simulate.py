@@ -7,10 +7,10 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
-import yaml
 
 from tofhil.cli import app, out, progress
 from tofhil.errors import TofhilError
+from tofhil.yamlio import load_yaml
 
 
 def _parse_assignments(items: List[str], option: str) -> dict:
@@ -21,8 +21,8 @@ def _parse_assignments(items: List[str], option: str) -> dict:
             raise TofhilError(f"got {item!r}", field=option, expected="NAME=VALUE")
         key, _, text = item.partition("=")
         try:
-            value = yaml.safe_load(text)
-        except yaml.YAMLError:
+            value = load_yaml(text, source=option)  # 1e-12 is a number (YAML 1.2), as in scene files
+        except TofhilError:
             value = text
         node = result
         parts = key.strip().split(".")
