@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from tofhil.camera import CameraModel
+from tofhil.camera import CameraModel, camera_presets_dir, list_camera_presets
 from tofhil.errors import InputFileError
 from tofhil.schema import Schema, to_plain
 from tofhil.sim.scene_expressions import substitute
@@ -258,7 +258,11 @@ class _Parser(Schema):
         if "dist" in c:
             self.numbers(c["dist"], "camera.dist", n=5, lo=-1e6, hi=1e6, expected="5 numbers (k1, k2, p1, p2, k3)")
         if "preset" in c:
-            self.string(c["preset"], "camera.preset", nonempty=True, expected="a camera preset name or file")
+            name = self.string(c["preset"], "camera.preset", nonempty=True, expected="a camera preset name or file")
+            preset = Path(name) if Path(name).suffix else camera_presets_dir() / f"{name}.yaml"
+            if not preset.is_file():
+                raise self.error(f"no such camera preset {name!r}", "camera.preset",
+                                 "one of " + ", ".join(list_camera_presets()) + " or a preset YAML file")
         if not c:
             c = {"preset": "holmlund_thesis"}
         camera = CameraModel.from_dict(c, source=self.source, prefix="camera.")

@@ -150,7 +150,8 @@ class Schema:
             raise self.bad(value, field, expected or "a mapping")
         for k in value:
             if not isinstance(k, str):
-                raise self.error(f"key {_show(k)} is not a name", field, "names (strings) as keys")
+                raise self.error(f"key {_show(k)} is not a name", f"{field}.{k}" if field else str(k),
+                                 "names (strings) as keys")
         if allowed is not None:
             self.keys(value, field, allowed)
         return copy.deepcopy(dict(value))
