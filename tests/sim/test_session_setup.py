@@ -182,3 +182,30 @@ def test_preset_facts_survive_a_geometry_override() -> None:
         "objects": [{"type": "plane", "size": [3, 3], "material": "w", "pose": {"position": [0, 0, 1]}}]})
     assert scene.camera.shape == (30, 80)
     assert scene.sensor.wavelength_m == 940e-9 and scene.sensor.freq_hz == (20e6,)
+
+
+def test_demo_twin_of_a_capture_runs_at_the_capture_settings(tmp_path) -> None:
+    """The demo's twin of a 20 MHz capture was rendered at the scene's 44 MHz; set up from the
+    capture it runs at 20 MHz, and compare flags a twin that does not."""
+    from tofhil.eval.report import compare_sessions
+    from tofhil.sim.session_setup import scene_for_setup, setup_for_session
+
+    preset = _preset(tmp_path)
+    capture = tmp_path / "capture.h5"
+    simulate_session(_scene(preset, {"freq_hz": [20e6], "integration_time_s": 2e-4}), capture, frames=2, noise=False)
+    with h5py.File(capture, "a") as f:
+        del f.attrs["sensor_config"]            # a device capture records no sensor configuration
+    scene44 = _scene(preset, {"freq_hz": [44e6], "wavelength_m": 850e-9})
+    with open_session(capture) as cap:
+        setup = setup_for_session(scene44, cap)
+    twin = scene_for_setup(scene44, setup)
+    assert twin.sensor.freq_hz == (20e6,) and twin.sensor.integration_time_s == 2e-4
+    assert twin.sensor.wavelength_m == 850e-9 and not setup.recorded
+    good, bad = tmp_path / "twin.h5", tmp_path / "twin44.h5"
+    simulate_session(twin, good, frames=2, noise=False)
+    simulate_session(scene44, bad, frames=2, noise=False)
+    ok = compare_sessions(capture, good, tmp_path / "cmp_ok", objects=False)
+    assert ok["acquisition_mismatches"] == []
+    assert ok["acquisition"]["b"]["sensor_config"]["freq_hz"] == [20e6]
+    wrong = compare_sessions(capture, bad, tmp_path / "cmp_bad", objects=False)
+    assert any(m.startswith("freq_hz differs") for m in wrong["acquisition_mismatches"])
