@@ -45,9 +45,9 @@ class SessionSetup:
     def note(self) -> str:
         if self.recorded:
             return "camera and sensor: the session's recorded configuration (every sensor setting)"
-        return ("camera and sensor: modulation frequencies, tap phases, integration time and camera model "
-                "from the session; " + ", ".join(self.from_scene)
-                + " from the scene (the session records no sensor configuration)")
+        return ("camera and sensor: modulation frequencies, tap phases, integration time and camera from the "
+                f"session; the other {len(self.from_scene)} sensor settings (wavelength, gains, noise, ...) from "
+                "the scene (the session records no sensor configuration)")
 
 
 def session_setup(scene_sensor: SensorConfig | None, *, camera: CameraModel, freq_hz: Sequence[float],
