@@ -106,7 +106,7 @@ def part_c(threads: int, budget_s: float, spp_per_pass: int, reference_spp: int)
     scene = load_scene("corner")
     cam = corner_camera(scene)
     f = float(scene.freq_hz[0])
-    bounces = int(scene.render.get("bounces", 2))
+    bounces = int(scene.render.bounces)
     render(scene, camera=cam, samples_per_pixel=1, bounces=bounces, threads=threads)   # warm-up
     passes: list[np.ndarray] = []
     t_start = time.perf_counter()

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tofhil.errors import InputFileError
+from tofhil.errors import InputFileError, require_input_file
 
 TEXT_SUFFIXES = (".xyz", ".txt", ".csv", ".pts")
 SESSION_SUFFIXES = (".h5", ".hdf5")
@@ -197,11 +197,7 @@ def load_cloud(source: str | Path) -> np.ndarray:
         if not path.is_file():
             raise InputFileError("does not exist", file=path, expected="a session file (.h5)")
         return _finite(_read_session(path, frame), spec)
-    path = Path(source)
-    if not path.exists():
-        raise InputFileError("does not exist", file=path, expected="a PLY, PCD, xyz text or session file")
-    if not path.is_file():
-        raise InputFileError("is not a file", file=path, expected="a PLY, PCD, xyz text or session file")
+    path = require_input_file(source, expected="a PLY, PCD, xyz text or session file")
     suffix = path.suffix.lower()
     if suffix in (".ply", ".pcd"):
         pts = _read_open3d(path)

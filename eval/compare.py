@@ -187,6 +187,23 @@ def write_report(out: Path, metrics: dict[str, Any], variants: list[Variant],
 # ---------------------------------------------------------------------------- orchestration
 
 
+def acquisition_mismatches(a: dict[str, Any], b: dict[str, Any]) -> list[str]:
+    """Camera settings in which two sessions differ (a capture compared with a twin rendered
+    at other settings compares different measurements)."""
+    out = []
+    for key in ("freq_hz", "theta_deg", "integration_time_s"):
+        if key not in a or key not in b:
+            continue
+        va, vb = np.ravel(a[key]), np.ravel(b[key])
+        if va.size != vb.size or not np.allclose(va, vb, rtol=1e-9):
+            out.append(f"{key} differs: A {a[key]}, B {b[key]}")
+    sa, sb = a.get("sensor_config") or {}, b.get("sensor_config") or {}
+    for key in sorted(set(sa) & set(sb) - {"freq_hz", "theta_deg", "taps", "integration_time_s"}):
+        if sa[key] != sb[key]:
+            out.append(f"sensor {key} differs: A {sa[key]}, B {sb[key]}")
+    return out
+
+
 def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path, *,
                      corrections: Sequence[str] = (), rois: Sequence[str] = (), masks: Sequence[str | Path] = (),
                      row: int | None = None, column: int | None = None, max_frames: int = 10,
@@ -255,11 +272,18 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
         wrap_m = M.wrap_period(freqs) if freqs is not None else None
         a_label = str(sa.device.get("model") or sa.device.get("name") or Path(a_path).name)
         b_label = str(sb.device.get("model") or sb.device.get("name") or Path(b_path).name)
+        acquisition = {"a": sa.acquisition(), "b": sb.acquisition()}
+        mismatches = acquisition_mismatches(acquisition["a"], acquisition["b"])
+        for w in mismatches:
+            say(f"warning: {w}")
 
     metrics: dict[str, Any] = {
         "software": f"tofhil {__version__}",
         "inputs": {"a": str(a_path), "b": str(b_path), "a_device": a_label, "b_device": b_label},
         "frames": {"a": n_a, "b": n_b},
+        # The camera settings of each side (a twin session records its full sensor configuration).
+        "acquisition": acquisition,
+        "acquisition_mismatches": mismatches,
         "settings": {"cell_size_m": cell_size, "threshold_m": threshold, "min_amplitude": min_amplitude,
                      "min_relative_amplitude": min_relative_amplitude, "wrap_m": wrap_m,
                      "object_regions_from": obj_source, "rois": list(rois), "masks": [str(p) for p in masks],

@@ -158,6 +158,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         raise TofhilError("too few usable pixels (signal above noise, not saturated) to diagnose",
                           file=session_path, field="raw/taps")
     model = TwinModel(scene, data, render_kwargs=render_kwargs)
+    if progress:
+        progress(model.setup.note)
     base_pred = model.predict({})
     if candidates is None or "pose" in candidates:
         if progress:

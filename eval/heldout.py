@@ -43,6 +43,9 @@ class HeldOutData:
     n_train_frames: int
     n_test_frames: int
     offset_channel: bool = False
+    #: The session's recorded sensor configuration (twin sessions), None for a device capture.
+    sensor_config: dict | None = None
+    source: str = "<session>"
 
     @property
     def n_freq(self) -> int:
@@ -163,4 +166,5 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
                        usable=usable,
                        train_pixels=usable & board, test_pixels=usable & ~board,
                        n_train_frames=len(train_idx), n_test_frames=len(test_idx),
-                       offset_channel=bool(offset_channel))
+                       offset_channel=bool(offset_channel),
+                       sensor_config=getattr(session, "sensor_config", None), source=str(session.path))

@@ -28,7 +28,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from tofhil.demod import TapLimits, bad_extremes, clip_limits
-from tofhil.errors import TofhilError
+from tofhil.errors import TofhilError, require_input_file
 from tofhil.frames import DepthFrame
 
 #: MAD -> standard deviation for a Gaussian distribution.
@@ -93,10 +93,7 @@ def parse_roi(text: str, shape: tuple[int, int], name: str | None = None) -> Reg
 def load_mask(path: str | Path, shape: tuple[int, int]) -> Region:
     """A region from a mask file: ``.npy`` (bool or numbers, non-zero = inside) or an image
     (PNG and what matplotlib reads; any channel non-zero = inside), of the image's size."""
-    p = Path(path)
-    if not p.is_file():
-        raise TofhilError("no such file" if not p.exists() else "is not a file", file=p, field="--mask",
-                          expected="a mask image (.png) or array (.npy)")
+    p = require_input_file(path, field="--mask", expected="a mask image (.png) or array (.npy)")
     try:
         if p.suffix.lower() == ".npy":
             arr = np.load(p, allow_pickle=False)

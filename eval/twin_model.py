@@ -70,14 +70,22 @@ def to_effect_values(effect: str, fitted: Mapping[str, float]) -> dict[str, floa
     return out
 
 
+def session_setup_for(scene: Any, data: HeldOutData) -> Any:
+    """The camera + sensor configuration of the session (``tofhil.sim.session_setup``): the
+    session's recorded sensor configuration when it has one, else the session's frequencies,
+    tap phases, integration time and camera with the rest from the scene."""
+    from tofhil.sim.session_setup import session_setup
+
+    return session_setup(scene.sensor, camera=data.camera, freq_hz=data.freq_hz, theta_rad=data.theta_rad,
+                         integration_time_s=data.integration_time_s, recorded=data.sensor_config,
+                         source=data.source)
+
+
 def session_scene(scene: Any, data: HeldOutData) -> Any:
-    """The scene with the session's camera, frequencies, tap phases and integration time."""
-    sensor = dict(scene.sensor or {})
-    sensor["freq_hz"] = [float(f) for f in data.freq_hz]
-    sensor["theta_deg"] = [math.degrees(float(t)) for t in data.theta_rad]
-    sensor["taps"] = int(data.theta_rad.size)
-    sensor["integration_time_s"] = float(data.integration_time_s)
-    return dataclasses.replace(scene, camera=data.camera, sensor=sensor)
+    """The scene set to the session's camera and sensor (see :func:`session_setup_for`)."""
+    from tofhil.sim.session_setup import scene_for_setup
+
+    return scene_for_setup(scene, session_setup_for(scene, data))
 
 
 class TwinModel:
@@ -88,10 +96,11 @@ class TwinModel:
         from tofhil.sim.pipeline import sensor_config
         from tofhil.sim.sensor import SensorModel
 
+        self.setup = session_setup_for(scene, data)
         self.scene = session_scene(scene, data)
         self.data = data
-        self.base_effects = parse_effects(self.scene.effects or {}, source=self.scene.source)
-        self.base_bounces = int((self.scene.render or {}).get("bounces", 0))
+        self.base_effects = dict(self.scene.effects)
+        self.base_bounces = int(self.scene.render.bounces)
         self.render_kwargs = dict(render_kwargs or {})
         if "harmonics" not in self.render_kwargs:
             # Render the 3rd harmonic explicitly: synthesising it from the fundamental is exact

@@ -36,6 +36,7 @@ import numpy as np
 from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel
 from tofhil.errors import InputFileError
+from tofhil.schema import Schema, to_plain
 from tofhil.sim.sensor import OpticalSignal, SensorConfig
 from tofhil.sim.straylight import StrayLightOperator, StrayLightPSF
 
@@ -108,14 +109,8 @@ class Effect:
                 raise InputFileError(f"unknown parameter {key!r}", file=source, field=f"{prefix}.{key}",
                                      expected="one of " + ", ".join(known))
             p = self.params[key]
-            try:
-                x = float(v)
-            except (TypeError, ValueError):
-                x = math.nan
-            if isinstance(v, bool) or not (p.lo <= x <= p.hi):
-                raise InputFileError(f"got {v!r}", file=source, field=f"{prefix}.{key}",
-                                     expected=f"a number in [{p.lo:g}, {p.hi:g}] {p.unit}".rstrip())
-            out[key] = x
+            out[key] = Schema(source).number(v, f"{prefix}.{key}", lo=p.lo, hi=p.hi,
+                                             expected=f"a number in [{p.lo:g}, {p.hi:g}] {p.unit}".rstrip())
         self.check_options(out, source=source, prefix=prefix)
         return out
 
@@ -294,7 +289,7 @@ class MultipathEffect(Effect):
                                  expected="an integer >= 1")
 
     def render_requirements(self, values: Mapping[str, Any], scene: Any) -> dict[str, Any]:
-        b = values.get("bounces") or max(2, int((getattr(scene, "render", None) or {}).get("bounces", 0)))
+        b = values.get("bounces") or max(2, int(scene.render.bounces))
         return {"separate_direct": True, "bounces": int(b)}
 
     def apply_render(self, result: Any, values: Mapping[str, Any],
@@ -545,16 +540,7 @@ def render_requirements(effects: Mapping[str, Mapping[str, Any]], scene: Any) ->
 
 def effects_to_block(effects: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
     """Plain (YAML/JSON-safe) form of parsed effects, for embedding in files."""
-    def plain(v: Any) -> Any:
-        if isinstance(v, Mapping):
-            return {str(k): plain(x) for k, x in v.items()}
-        if isinstance(v, (list, tuple)):
-            return [plain(x) for x in v]
-        if isinstance(v, (np.floating, np.integer)):
-            return v.item()
-        return v
-
-    return {n: plain(dict(v)) for n, v in effects.items()}
+    return {n: to_plain(dict(v)) for n, v in effects.items()}
 
 
 def describe_effects() -> list[dict[str, Any]]:

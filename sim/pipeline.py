@@ -18,6 +18,7 @@ from tofhil.frames import RawFrame
 from tofhil.progress import Progress
 from tofhil.sim.effects import (EFFECTS, EffectContext, WigglingEffect, apply_scene_effects,
                                 apply_signal_effects, effects_to_block, parse_effects, render_requirements)
+from tofhil.sim.memory import check_memory, render_memory
 from tofhil.sim.sensor import OpticalSignal, SensorConfig, SensorModel, waveform_from_scene
 
 Effects = Mapping[str, Mapping[str, Any]]
@@ -27,20 +28,23 @@ def resolve_effects(scene: Any, effects: Mapping[str, Any] | None = None) -> dic
     """Validated effects: the scene's ``effects:`` block when ``effects`` is None, else ``effects``
     (which replaces the scene's block entirely; an empty mapping means no effects)."""
     if effects is None:
-        return parse_effects(getattr(scene, "effects", None) or {}, source=getattr(scene, "source", "<scene>"))
+        return scene.effects  # parsed once, when the scene was loaded
     return parse_effects(effects, source="<effects>")
 
 
 def sensor_config(scene: Any) -> SensorConfig:
-    """The scene's interpreted ``sensor:`` block (errors name the scene file)."""
-    return SensorConfig.from_dict(getattr(scene, "sensor", None) or {}, source=getattr(scene, "source", "<scene>"),
-                                  camera=scene.camera)
+    """The scene's sensor, resolved against its camera preset and validated at load."""
+    return scene.sensor
 
 
-def render_arguments(scene: Any, effects: Effects, render_kwargs: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def render_arguments(scene: Any, effects: Effects, render_kwargs: Mapping[str, Any] | None = None, *,
+                     frames_kept: int = 0) -> dict[str, Any]:
     """Arguments for ``render``: the sensor's frequencies, the harmonics the waveform and the
     wiggling effect need, and what render-stage effects require (separate direct/indirect and
-    a 0 Hz channel carrying the direct power for the multipath effect)."""
+    a 0 Hz channel carrying the direct power for the multipath effect).
+
+    Refuses (before anything is allocated) a job whose estimated memory -- the render, the
+    sensor and ``frames_kept`` frames held at once -- exceeds what the machine has."""
     cfg = sensor_config(scene)
     harm = set(waveform_from_scene(scene)) | {1}
     if "wiggling" in effects:
@@ -51,6 +55,9 @@ def render_arguments(scene: Any, effects: Effects, render_kwargs: Mapping[str, A
         kw["freq_hz"] = kw["freq_hz"] + [0.0]
     kw.update(req)
     kw.update(dict(render_kwargs or {}))
+    signal_effects = any(EFFECTS[n].stage in ("signal", "pixel") for n in effects)
+    check_memory(render_memory(scene, kw, frames_kept=frames_kept, signal_effects=signal_effects),
+                 source=str(getattr(scene, "source", "")) or None)
     return kw
 
 
@@ -114,6 +121,7 @@ def simulate(scene: Any, frames: int = 1, seed: int = 0, noise: bool = True,
     if frames < 1:
         raise ValueError("frames must be >= 1")
     eff = resolve_effects(scene, effects)
+    render_arguments(apply_scene_effects(scene, eff), eff, render_kwargs, frames_kept=frames)  # memory check
     scene2, result = prepare_render(scene, eff, render_kwargs=render_kwargs, progress=progress)
     camera = getattr(result, "camera", None) or scene2.camera
     signal = optical_signal(scene2, result, eff)
@@ -156,8 +164,9 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
     # The session records the camera as the scene file states it (what a user's calibration
     # says); a lens_distortion effect is a deviation of the real lens from that model, so it
     # shows in the data, not in the recorded camera.
+    # The resolved sensor travels with the session: a re-render (diagnosis, compare) uses it.
     with SessionWriter(out_path, scene.camera, device=device, scene_text=text, force=force,
-                       derived=True) as w:
+                       sensor_config=sensor_config(scene2).to_dict(), derived=True) as w:
         for raw in it:
             w.append(raw, depth_from_raw(raw))  # the saturation level travels in raw.meta
     return out_path

@@ -64,7 +64,7 @@ class RenderResult:
 
 # --------------------------------------------------------------------------- set-up
 def _render_setting(scene: Scene, key: str, given: Any, default: Any) -> Any:
-    return given if given is not None else scene.render.get(key, default)
+    return given if given is not None else getattr(scene.render, key, default)
 
 
 def _materials_table(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

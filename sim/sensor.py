@@ -38,7 +38,6 @@ import numpy as np
 
 from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel
-from tofhil.errors import InputFileError
 from tofhil.frames import RawFrame
 
 #: Planck constant, J s (exact, SI definition).
@@ -127,139 +126,100 @@ class SensorConfig:
         }
 
 
-# name -> (expected text, lower bound, upper bound, lower inclusive, upper inclusive)
-_NUMBERS: dict[str, tuple[str, float, float, bool, bool]] = {
-    "integration_time_s": ("a positive number of seconds", 0.0, math.inf, False, True),
-    "frame_period_s": ("a positive number of seconds", 0.0, math.inf, False, True),
-    "wavelength_m": ("a wavelength in metres between 1e-7 and 1e-5", 1e-7, 1e-5, True, True),
-    "quantum_efficiency": ("a number in (0, 1]", 0.0, 1.0, False, True),
-    "modulation_contrast": ("a number in [0, 1]", 0.0, 1.0, True, True),
-    "tap_fraction": ("a number in (0, 1]", 0.0, 1.0, False, True),
-    "conversion_gain_dn_per_e": ("a positive number (DN per electron)", 0.0, math.inf, False, True),
-    "full_well_e": ("a positive number of electrons", 0.0, math.inf, False, True),
-    "read_noise_e": ("a number of electrons >= 0", 0.0, math.inf, True, True),
-    "dark_current_e_per_s": ("a number of electrons per second >= 0", 0.0, math.inf, True, True),
-    "black_level_dn": ("a number of DN >= 0", 0.0, math.inf, True, True),
+# name -> range of the number (schema keywords); every other key is handled below.
+_NUMBERS: dict[str, dict[str, Any]] = {
+    "integration_time_s": {"lo": 0.0, "lo_open": True, "expected": "a positive number of seconds"},
+    "frame_period_s": {"lo": 0.0, "lo_open": True, "expected": "a positive number of seconds"},
+    "wavelength_m": {"lo": 1e-7, "hi": 1e-5, "expected": "a wavelength in metres between 1e-7 and 1e-5"},
+    "quantum_efficiency": {"lo": 0.0, "hi": 1.0, "lo_open": True},
+    "modulation_contrast": {"lo": 0.0, "hi": 1.0},
+    "tap_fraction": {"lo": 0.0, "hi": 1.0, "lo_open": True},
+    "conversion_gain_dn_per_e": {"lo": 0.0, "lo_open": True, "expected": "a positive number (DN per electron)"},
+    "full_well_e": {"lo": 0.0, "lo_open": True, "expected": "a positive number of electrons"},
+    "read_noise_e": {"lo": 0.0, "expected": "a number of electrons >= 0"},
+    "dark_current_e_per_s": {"lo": 0.0, "expected": "a number of electrons per second >= 0"},
+    "black_level_dn": {"lo": 0.0, "expected": "a number of DN >= 0"},
+    "temperature_c": {"lo": -273.15, "expected": "a temperature in degrees Celsius"},
 }
-_KNOWN = set(_NUMBERS) | {"taps", "theta_deg", "freq_hz", "adc_bits", "temperature_c", "fixed_pattern"}
-_FP_KNOWN = {"dsnu_e", "prnu", "seed"}
+SENSOR_KEYS = frozenset(_NUMBERS) | {"taps", "theta_deg", "freq_hz", "adc_bits", "fixed_pattern"}
+_FP_KNOWN = ("dsnu_e", "prnu", "seed")
 
 
-def _number(value: Any, *, source: str | Path, fieldname: str, expected: str,
-            lo: float = -math.inf, hi: float = math.inf, lo_incl: bool = True, hi_incl: bool = True) -> float:
-    if isinstance(value, bool):
-        raise InputFileError(f"got {value!r}", file=source, field=fieldname, expected=expected)
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise InputFileError(f"got {value!r}", file=source, field=fieldname, expected=expected) from None
-    ok = math.isfinite(x) or (x == math.inf and hi == math.inf)
-    ok = ok and (x > lo or (lo_incl and x == lo)) and (x < hi or (hi_incl and x == hi))
-    if not ok:
-        raise InputFileError(f"got {value!r}", file=source, field=fieldname, expected=expected)
-    return x
-
-
-def _number_list(value: Any, *, source: str | Path, fieldname: str, expected: str) -> list[float]:
-    items = value if isinstance(value, (list, tuple)) else [value]
-    if not items:
-        raise InputFileError("is empty", file=source, field=fieldname, expected=expected)
-    return [_number(v, source=source, fieldname=fieldname, expected=expected) for v in items]
+def _with_preset_defaults(d: Mapping[str, Any], camera: CameraModel | None) -> dict[str, Any]:
+    """The block over the camera preset's sensor facts (``freq_hz``, ``wavelength_m``, ``taps``
+    or any other sensor key a preset states): the block wins key by key; tap phases are taken
+    from the preset only when the block gives neither ``taps`` nor ``theta_deg``."""
+    extra = dict(camera.extra) if camera is not None else {}
+    merged = {k: v for k, v in extra.items() if k in SENSOR_KEYS}
+    if "taps" in d or "theta_deg" in d:
+        merged.pop("taps", None)
+        merged.pop("theta_deg", None)
+    merged.update(d)
+    return merged
 
 
 def _parse_sensor(d: Mapping[str, Any] | None, *, source: str | Path,
                   camera: CameraModel | None) -> SensorConfig:
-    d = {} if d is None else d
-    if not isinstance(d, Mapping):
-        raise InputFileError(f"got {type(d).__name__}", file=source, field="sensor",
-                             expected="a mapping (see docs/effects.md)")
-    unknown = sorted(set(d) - _KNOWN)
-    if unknown:
-        raise InputFileError(f"unknown key {unknown[0]!r}", file=source, field=f"sensor.{unknown[0]}",
-                             expected="one of " + ", ".join(sorted(_KNOWN)))
-    extra = dict(camera.extra) if camera is not None else {}
+    from tofhil.schema import Schema
+
+    v = Schema(source)
+    d = v.mapping(d, "sensor", allowed=SENSOR_KEYS, expected="a mapping (see docs/scene-format.md)")
+    d = _with_preset_defaults(d, camera)
     kw: dict[str, Any] = {}
 
     # Modulation frequencies: the block, else the camera preset's.
-    freq = d.get("freq_hz", extra.get("freq_hz"))
-    if freq is None:
-        raise InputFileError("missing (and the camera preset names none)", file=source,
-                             field="sensor.freq_hz", expected="a list of modulation frequencies in Hz")
-    freqs = _number_list(freq, source=source, fieldname="sensor.freq_hz",
-                         expected="a list of positive modulation frequencies in Hz")
-    if any(f <= 0 for f in freqs):
-        raise InputFileError(f"got {freq!r}", file=source, field="sensor.freq_hz",
-                             expected="a list of positive modulation frequencies in Hz")
-    kw["freq_hz"] = tuple(freqs)
+    if d.get("freq_hz") is None:
+        raise v.error("missing (and the camera preset names none)", "sensor.freq_hz",
+                      "a list of modulation frequencies in Hz")
+    kw["freq_hz"] = tuple(v.numbers(d["freq_hz"], "sensor.freq_hz", scalar_ok=True, max_len=16, lo=0.0,
+                                    lo_open=True, hi=1e12,
+                                    expected="a list of 1 to 16 positive modulation frequencies in Hz"))
 
     # Tap phases: explicit, else K equally spaced from 0.
-    k_raw = d.get("taps", None)
     k: int | None = None
-    if k_raw is not None:
-        if isinstance(k_raw, bool) or not isinstance(k_raw, (int, np.integer)) or k_raw < 3:
-            raise InputFileError(f"got {k_raw!r}", file=source, field="sensor.taps",
-                                 expected="an integer >= 3 (2-tap A/B pixels: give their 2M phases)")
-        k = int(k_raw)
-    if "theta_deg" in d:
-        theta_deg = _number_list(d["theta_deg"], source=source, fieldname="sensor.theta_deg",
-                                 expected="a list of tap phases in degrees")
+    if d.get("taps") is not None:
+        k = v.integer(d["taps"], "sensor.taps", lo=3, hi=64,
+                      expected="an integer from 3 to 64 (2-tap A/B pixels: give their 2M phases)")
+    if d.get("theta_deg") is not None:
+        theta_deg = v.numbers(d["theta_deg"], "sensor.theta_deg", min_len=3, max_len=64,
+                              expected="a list of tap phases in degrees")
         if k is not None and len(theta_deg) != k:
-            raise InputFileError(f"has {len(theta_deg)} phases but taps is {k}", file=source,
-                                 field="sensor.theta_deg", expected=f"{k} phases")
+            raise v.error(f"has {len(theta_deg)} phases but taps is {k}", "sensor.theta_deg", f"{k} phases")
         theta = np.radians(theta_deg)
         from tofhil.demod import estimator_weights
 
         try:
             estimator_weights(theta)
         except ValueError as exc:
-            raise InputFileError(str(exc), file=source, field="sensor.theta_deg",
-                                 expected=">= 3 phases equally spaced over 360 deg") from None
+            raise v.error(str(exc), "sensor.theta_deg", ">= 3 phases equally spaced over 360 deg") from None
     else:
-        if k is None:
-            k = int(extra.get("taps", 4))
-        theta = 2.0 * np.pi * np.arange(k) / k
+        theta = 2.0 * np.pi * np.arange(4 if k is None else k) / (4 if k is None else k)
     kw["theta_rad"] = tuple(float(t) for t in theta)
 
-    if "wavelength_m" not in d and "wavelength_m" in extra:
-        d = dict(d) | {"wavelength_m": extra["wavelength_m"]}
-    for name, (expected, lo, hi, lo_incl, hi_incl) in _NUMBERS.items():
-        if name in d and d[name] is not None:
-            kw[name] = _number(d[name], source=source, fieldname=f"sensor.{name}", expected=expected,
-                               lo=lo, hi=hi, lo_incl=lo_incl, hi_incl=hi_incl)
+    for name, rng in _NUMBERS.items():
+        if d.get(name) is not None:
+            kw[name] = v.number(d[name], f"sensor.{name}", **rng)
     if "adc_bits" in d:
-        b = d["adc_bits"]
-        if isinstance(b, bool) or not isinstance(b, (int, np.integer)) or not 1 <= b <= 32:
-            raise InputFileError(f"got {b!r}", file=source, field="sensor.adc_bits",
-                                 expected="an integer from 1 to 32")
-        kw["adc_bits"] = int(b)
-    if d.get("temperature_c") is not None:
-        kw["temperature_c"] = _number(d["temperature_c"], source=source, fieldname="sensor.temperature_c",
-                                      expected="a temperature in degrees Celsius")
+        kw["adc_bits"] = v.integer(d["adc_bits"], "sensor.adc_bits", lo=1, hi=32)
     if "conversion_gain_dn_per_e" not in kw:
         # Default: the full well maps onto the ADC's full scale.
         bits = kw.get("adc_bits", SensorConfig.adc_bits)
         fw = kw.get("full_well_e", SensorConfig.full_well_e)
-        kw["conversion_gain_dn_per_e"] = (2 ** bits - 1 - kw.get("black_level_dn", 0.0)) / fw
+        gain = (2 ** bits - 1 - kw.get("black_level_dn", 0.0)) / fw
+        if not gain > 0:
+            raise v.error(f"black_level_dn {kw.get('black_level_dn')} leaves no ADC range", "sensor.black_level_dn",
+                          f"a black level below the ADC's full scale {2 ** bits - 1} DN")
+        kw["conversion_gain_dn_per_e"] = gain
 
     fp = d.get("fixed_pattern")
     if fp is not None:
-        if not isinstance(fp, Mapping):
-            raise InputFileError(f"got {fp!r}", file=source, field="sensor.fixed_pattern",
-                                 expected="a mapping with dsnu_e, prnu, seed")
-        bad = sorted(set(fp) - _FP_KNOWN)
-        if bad:
-            raise InputFileError(f"unknown key {bad[0]!r}", file=source,
-                                 field=f"sensor.fixed_pattern.{bad[0]}", expected="one of dsnu_e, prnu, seed")
-        seed = fp.get("seed", 0)
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise InputFileError(f"got {seed!r}", file=source, field="sensor.fixed_pattern.seed",
-                                 expected="an integer >= 0")
+        fp = v.mapping(fp, "sensor.fixed_pattern", allowed=_FP_KNOWN, expected="a mapping with dsnu_e, prnu, seed")
         kw["fixed_pattern"] = FixedPatternConfig(
-            dsnu_e=_number(fp.get("dsnu_e", 0.0), source=source, fieldname="sensor.fixed_pattern.dsnu_e",
-                           expected="a number of electrons >= 0", lo=0.0),
-            prnu=_number(fp.get("prnu", 0.0), source=source, fieldname="sensor.fixed_pattern.prnu",
-                         expected="a relative gain spread in [0, 0.5]", lo=0.0, hi=0.5),
-            seed=int(seed))
+            dsnu_e=v.number(fp.get("dsnu_e", 0.0), "sensor.fixed_pattern.dsnu_e", lo=0.0,
+                            expected="a number of electrons >= 0"),
+            prnu=v.number(fp.get("prnu", 0.0), "sensor.fixed_pattern.prnu", lo=0.0, hi=0.5,
+                          expected="a relative gain spread in [0, 0.5]"),
+            seed=v.integer(fp.get("seed", 0), "sensor.fixed_pattern.seed", lo=0, hi=2 ** 63 - 1))
     return SensorConfig(**kw)
 
 

@@ -46,7 +46,8 @@ import scipy.fft as sfft
 from scipy.special import erf
 
 from tofhil.camera import CameraModel
-from tofhil.errors import InputFileError, TofhilError
+from tofhil.errors import InputFileError, TofhilError, require_input_file
+from tofhil.schema import Schema
 
 
 @dataclass(frozen=True)
@@ -180,10 +181,8 @@ class StrayLightPSF:
     @classmethod
     def load(cls, path: str | Path) -> "StrayLightPSF":
         """Read a PSF file written by :meth:`save` (``tofhil correct --save-psf``, diagnose)."""
-        p = Path(path)
         expected = "a stray-light PSF file (.json, written by --save-psf or tofhil diagnose)"
-        if not p.is_file():
-            raise InputFileError("no such file" if not p.exists() else "is not a file", file=p, expected=expected)
+        p = require_input_file(path, expected=expected)
         raw = p.read_bytes()
         if raw[:2] == b"PK":  # an .npz: the kernel-array format of older versions
             raise InputFileError("is an .npz PSF of an older tofhil (kernel arrays, no parameters)", file=p,
@@ -602,14 +601,8 @@ PSF_KEYS = ("weight", "sigma_px", "sigma_y_px", "gaussians", "veil", "ghost_weig
 
 def _num(params: Mapping[str, Any], key: str, default: float, *, source: str | Path, prefix: str,
          lo: float = 0.0, hi: float = math.inf, expected: str = "a number >= 0") -> float:
-    v = params.get(key, default)
-    try:
-        x = float(v)
-    except (TypeError, ValueError):
-        x = math.nan
-    if isinstance(v, bool) or not math.isfinite(x) or not lo <= x <= hi:
-        raise InputFileError(f"got {v!r}", file=source, field=f"{prefix}.{key}", expected=expected)
-    return x
+    return Schema(source).number(params.get(key, default), f"{prefix}.{key}", lo=lo,
+                                 hi=None if hi == math.inf else hi, expected=expected)
 
 
 def _pair(v: Any, *, source: str | Path, field_: str) -> tuple[float, float]:

@@ -204,7 +204,9 @@ class CameraModel:
             overrides = {k: v for k, v in d.items() if k != "preset"}
             if not overrides:
                 return base
-            merged = base.to_dict() | overrides
+            # the preset's extra facts (frequencies, wavelength, taps) survive an override of
+            # its geometry: a 940 nm preset with another resolution is still 940 nm
+            merged = base.to_dict() | dict(base.extra) | overrides
             return cls.from_dict(merged, source=source, prefix=prefix)
         if "hfov_deg" in d and "fx" not in d:
             try:

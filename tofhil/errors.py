@@ -50,3 +50,13 @@ class Interrupted(KeyboardInterrupt):
         else:
             text = f"interrupted: nothing was written ({path} not created)"
         super().__init__(text)
+
+
+def require_input_file(path: str | Path, *, expected: str, field: str | None = None) -> Path:
+    """``path`` as a Path if it is a readable regular file; otherwise an :class:`InputFileError`
+    that says what is wrong: 'no such file', 'is a directory' or 'is not a regular file'."""
+    p = Path(path)
+    if p.is_file():
+        return p
+    reason = "is a directory" if p.is_dir() else "no such file" if not p.exists() else "is not a regular file"
+    raise InputFileError(reason, file=p, field=field, expected=expected)

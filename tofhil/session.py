@@ -14,7 +14,7 @@ import math
 import os
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Mapping
 
 import h5py
 import numpy as np
@@ -23,6 +23,7 @@ from tofhil import __version__
 from tofhil.camera import CameraModel
 from tofhil.errors import InputFileError, Interrupted
 from tofhil.frames import DepthFrame, RawFrame
+from tofhil.schema import to_plain
 
 FORMAT = "tofhil.session"
 FORMAT_VERSION = 1
@@ -132,7 +133,7 @@ class SessionWriter:
 
     def __init__(self, path: str | Path, camera: CameraModel, *, device: dict[str, Any] | None = None,
                  scene_text: str = "", force: bool = False, extra_attrs: dict[str, Any] | None = None,
-                 derived: bool = False) -> None:
+                 derived: bool = False, sensor_config: Mapping[str, Any] | None = None) -> None:
         self.path = Path(path)
         check_new_path(self.path, force)
         self.camera = camera
@@ -150,7 +151,7 @@ class SessionWriter:
         except OSError as exc:
             raise InputFileError(f"cannot be written ({_os_reason(exc)})", file=self.path) from None
         try:
-            self._write_header(device, scene_text, extra_attrs)
+            self._write_header(device, scene_text, extra_attrs, sensor_config)
         except BaseException as exc:
             self._abort()
             if isinstance(exc, OSError):
@@ -158,7 +159,7 @@ class SessionWriter:
             raise
 
     def _write_header(self, device: dict[str, Any] | None, scene_text: str,
-                      extra_attrs: dict[str, Any] | None) -> None:
+                      extra_attrs: dict[str, Any] | None, sensor_config: Mapping[str, Any] | None) -> None:
         camera = self.camera
         a = self._file.attrs
         a["format"] = FORMAT
@@ -168,6 +169,10 @@ class SessionWriter:
         a["device"] = json.dumps(device or {})
         a["camera"] = camera.to_json()
         a["scene"] = scene_text or ""
+        if sensor_config is not None:
+            # The fully resolved sensor the frames were made with (a simulated device); a
+            # re-render of this session uses it instead of a scene's or a preset's defaults.
+            a["sensor_config"] = json.dumps(to_plain(sensor_config), allow_nan=False)
         a["n_frames"] = 0
         for k, v in (extra_attrs or {}).items():
             a[k] = v
@@ -376,6 +381,15 @@ class Session:
         if not isinstance(self.device, dict):
             self._fail("device", f"is JSON {type(self.device).__name__}", "a JSON object")
         self.scene_text = _text_attr(a, "scene") or ""
+        self.sensor_config: dict[str, Any] | None = None
+        sensor = _text_attr(a, "sensor_config")
+        if sensor:
+            try:
+                self.sensor_config = json.loads(sensor)
+            except json.JSONDecodeError:
+                self._fail("sensor_config", "is not valid JSON", "JSON text of a sensor block (or no attribute)")
+            if not isinstance(self.sensor_config, dict):
+                self._fail("sensor_config", "is not a JSON object", "a JSON object with the sensor settings")
         self.software_version = _text_attr(a, "software_version") or ""
         self.created_utc = _text_attr(a, "created_utc") or ""
         hw = self.camera.shape
@@ -552,6 +566,15 @@ class Session:
                              "device": self.device, "camera": self.camera.to_dict(), "n_frames": self.n_frames,
                              "has_raw": self.has_raw, "has_depth": self.has_depth,
                              "scene": bool(self.scene_text), "datasets": {k: list(self._file[k].shape) for k in self.datasets}}
+        d.update(self.acquisition())
+        d.pop("camera_model", None)
+        return d
+
+    def acquisition(self) -> dict[str, Any]:
+        """The camera settings the session records: modulation frequencies, tap phases and
+        integration time (with raw taps), the camera, and the full resolved sensor
+        configuration when the writer stored one (simulated sessions); ``None`` when not."""
+        d: dict[str, Any] = {"camera_model": self.camera.to_dict(), "sensor_config": self.sensor_config}
         if self.has_raw:
             d["freq_hz"] = self.freq_hz.tolist()
             d["theta_deg"] = np.degrees(self.theta_rad).round(6).tolist()
@@ -581,7 +604,7 @@ def copy_session_header(src: Session, dst_path: str | Path, *, force: bool = Fal
     if note:
         device["derived"] = note
     return SessionWriter(dst_path, src.camera, device=device, scene_text=src.scene_text, force=force,
-                         derived=True)
+                         derived=True, sensor_config=src.sensor_config)
 
 
 def remove_partial(path: str | Path) -> None:

@@ -169,9 +169,8 @@ class SimulatedSource(ImageSource):
 
         from tofhil.sim.pipeline import simulate
 
-        scene = self.scene
-        if hasattr(scene, "sensor") and isinstance(scene.sensor, dict):
-            scene = dataclasses.replace(scene, sensor={**scene.sensor, "freq_hz": [float(freq_hz)]})
+        scene = dataclasses.replace(self.scene, sensor=dataclasses.replace(self.scene.sensor,
+                                                                           freq_hz=(float(freq_hz),)))
         raw = simulate(scene, 1, self.seed, noise=False, effects=self.effects())[0]
         self.meta = dict(raw.meta)
         taps = np.asarray(raw.taps[0], dtype=np.float64) - float(raw.meta.get("black_level_dn", 0.0))
@@ -180,9 +179,9 @@ class SimulatedSource(ImageSource):
         return np.abs(s) * scale, wrapped_phase(s), taps.mean(axis=0) * scale
 
     def noise_model(self) -> "NoiseModel":
-        sensor = getattr(self.scene, "sensor", None) or {}
-        gain = float(sensor.get("conversion_gain_dn_per_e", 0.15))
-        return NoiseModel(read_noise_dn=float(sensor.get("read_noise_e", 20.0)) * gain, electrons_per_dn=1.0 / gain)
+        sensor = self.scene.sensor  # the resolved SensorConfig
+        gain = sensor.conversion_gain_dn_per_e
+        return NoiseModel(read_noise_dn=sensor.read_noise_e * gain, electrons_per_dn=1.0 / gain)
 
     def scene_text(self) -> str:
         return getattr(self.scene, "text", "") or ""

@@ -101,7 +101,7 @@ def test_session_spec_parsing():
 
 
 def test_errors_name_the_file(tmp_path):
-    with pytest.raises(InputFileError, match="nope.ply: does not exist"):
+    with pytest.raises(InputFileError, match="nope.ply: no such file"):
         load_cloud(tmp_path / "nope.ply")
     with pytest.raises(InputFileError, match="does not exist"):
         load_cloud(f"{tmp_path / 'nope.h5'}:2")

@@ -14,6 +14,7 @@ from tofhil.depth import depth_from_raw
 from tofhil.errors import InputFileError
 from tofhil.sim.effects import (EFFECTS, ORDER, STAGES, EffectContext, apply_scene_effects,
                                 apply_signal_effects, parse_effects)
+from tofhil.sim.scene import RenderSettings
 from tofhil.sim.sensor import OpticalSignal, SensorConfig, SensorModel
 
 C = 299_792_458.0
@@ -199,7 +200,7 @@ def test_multipath_scales_the_indirect_light() -> None:
         np.testing.assert_allclose(sig.phasor_w[0, 0], direct + scale * indirect)
         np.testing.assert_allclose(sig.dc_w, p_dir + scale * p_ind)
         assert sig.freq_hz.tolist() == [F]
-    assert mp.render_requirements({"scale": 1.0}, SimpleNamespace(render={"bounces": 0}))["bounces"] >= 2
+    assert mp.render_requirements({"scale": 1.0}, SimpleNamespace(render=RenderSettings(bounces=0)))["bounces"] >= 2
 
 
 # ----------------------------------------------------------------------------- scene stage

@@ -132,7 +132,7 @@ def test_all_thesis_scenes_are_bundled() -> None:
 def test_bundled_scene_round_trips_and_renders(name: str, tmp_path) -> None:
     scene = load_scene(name)
     assert scene.camera.name == "holmlund_thesis" and scene.camera.shape == (120, 160)
-    assert scene.sensor["freq_hz"] == [44.0e6] and scene.sensor["taps"] == 4
+    assert scene.sensor.freq_hz == (44.0e6,) and scene.sensor.taps == 4
     path = tmp_path / f"{name}.yaml"
     path.write_text(scene_to_yaml(scene))
     again = load_scene(path)
@@ -186,3 +186,24 @@ def test_rendered_scenes_can_be_copied_and_pickled() -> None:
     first = render(scene, camera=cam)                     # caches the Embree scene
     for other in (copy.deepcopy(scene), pickle.loads(pickle.dumps(scene))):
         np.testing.assert_array_equal(render(other, camera=cam).phasor, first.phasor)
+
+
+def test_scene_parts_are_typed_and_replace_validates_mappings() -> None:
+    import dataclasses
+
+    from tofhil.sim.scene import EffectSet, RenderSettings
+    from tofhil.sim.sensor import SensorConfig
+
+    s = scene_from_dict(base() | {"effects": {"stray_light": {"weight": 0.01}}, "render": {"bounces": 1}},
+                        source="bench.yaml")
+    assert isinstance(s.sensor, SensorConfig) and isinstance(s.effects, EffectSet)
+    assert isinstance(s.render, RenderSettings) and s.render.bounces == 1
+    assert s.effects["stray_light"]["weight"] == 0.01 and "sigma_px" in s.effects["stray_light"]  # defaults filled
+    s2 = dataclasses.replace(s, sensor={"freq_hz": [20e6]}, effects={}, render={"samples_per_pixel": 2})
+    assert s2.sensor.freq_hz == (20e6,) and s2.sensor.wavelength_m == 850e-9   # preset facts fill the rest
+    assert s2.effects == {} and s2.render.samples_per_pixel == 2
+    same = dataclasses.replace(s, camera=s.camera.scaled(0.5))
+    assert same.sensor is s.sensor and same.effects is s.effects          # typed parts are not parsed again
+    with pytest.raises(InputFileError) as e:
+        dataclasses.replace(s, sensor={"freq_hz": [20e6], "bogus": 1})
+    assert e.value.file == "bench.yaml" and e.value.field == "sensor.bogus"

@@ -198,7 +198,7 @@ def test_defaults_from_the_camera_preset() -> None:
     ({"freq_hz": [44e6], "adc_bits": 12.5}, "sensor.adc_bits"),
     ({"freq_hz": [44e6], "taps": 4, "theta_deg": [0, 120, 240]}, "sensor.theta_deg"),
     ({"freq_hz": [44e6], "theta_deg": [0, 90, 200, 270]}, "sensor.theta_deg"),
-    ({"freq_hz": ["fast"]}, "sensor.freq_hz"),
+    ({"freq_hz": ["fast"]}, "sensor.freq_hz[0]"),
     ({}, "sensor.freq_hz"),
     ({"freq_hz": [44e6], "fixed_pattern": {"dsnu": 3}}, "sensor.fixed_pattern.dsnu"),
     ({"freq_hz": [44e6], "integration_time_s": -1}, "sensor.integration_time_s"),

@@ -66,7 +66,7 @@ def test_same_seed_identical_frames_and_independent_noise_per_frame() -> None:
     assert abs(diff.mean()) < 0.05 * diff.std()
     assert diff.var() == pytest.approx(2 * (many - exact).var(), rel=0.1)
     assert [f.sequence for f in a] == [0, 1, 2]
-    period = scene.sensor.get("frame_period_s", 1 / 30)
+    period = scene.sensor.frame_period_s
     assert [f.timestamp_s for f in a] == pytest.approx([0.0, period, 2 * period])
 
 

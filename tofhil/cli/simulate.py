@@ -7,11 +7,11 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
-import yaml
 
 from tofhil.cli import app, lit, out, progress
 from tofhil.cli import options as opt
 from tofhil.errors import TofhilError
+from tofhil.yamlio import load_yaml
 
 
 def _parse_assignments(items: List[str], option: str) -> dict:
@@ -22,8 +22,8 @@ def _parse_assignments(items: List[str], option: str) -> dict:
             raise TofhilError(f"got {item!r}", field=option, expected="NAME=VALUE")
         key, _, text = item.partition("=")
         try:
-            value = yaml.safe_load(text)
-        except yaml.YAMLError:
+            value = load_yaml(text, source=option)  # 1e-12 is a number (YAML 1.2), as in scene files
+        except TofhilError:
             value = text
         node = result
         parts = key.strip().split(".")
@@ -55,7 +55,7 @@ def simulate(scene: str = typer.Argument(..., help="A scene file (.yaml) or a bu
     sc = load_scene(scene, overrides=overrides)
     effects = None
     if no_effects or effect:
-        effects = {} if no_effects else {k: dict(v or {}) for k, v in (sc.effects or {}).items()}
+        effects = {} if no_effects else {k: dict(v or {}) for k, v in sc.effects.to_block().items()}
         for name, values in _parse_assignments(effect, "--effect").items():
             if not isinstance(values, dict):
                 raise TofhilError(f"got {name}={values!r}", field="--effect", expected="EFFECT.PARAM=VALUE")
