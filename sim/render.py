@@ -88,8 +88,9 @@ def content_key(*parts: Any) -> str:
     return h.hexdigest()
 
 
-#: Scene fields that do not change a render (the applied effects are in the scene already).
-_NOT_RENDERED = frozenset({"effects", "source", "text", "name", "description"})
+#: Scene fields that do not change a render (effects and expression parameters are applied
+#: in the scene already).
+_NOT_RENDERED = frozenset({"effects", "params", "source", "text", "name", "description"})
 
 
 def _feed(h: Any, x: Any) -> None:
