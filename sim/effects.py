@@ -105,6 +105,8 @@ class Effect:
     name: str = ""
     stage: str = ""
     doc: str = ""
+    #: One line for the table of effects in docs/effects.md.
+    summary: str = ""
     params: dict[str, Param] = {}
     #: Structured, non-fitted options: name -> description.
     options: dict[str, str] = {}
@@ -214,6 +216,7 @@ _POSE_T: dict[str, Any] = {"fit": (-0.1, 0.1), "step": 1e-3}
 class PoseEffect(Effect):
     name = "pose"
     stage = "scene"
+    summary = 'camera pose error in the camera frame: `pose @ [R(r) t; 0 1]`'
     doc = ("Small rigid error of the camera pose, in the camera frame: the twin's camera is moved "
            "by the rotation vector (rx, ry, rz) and the translation (tx, ty, tz): "
            "pose' = pose @ [R(r) t; 0 1].")
@@ -238,6 +241,7 @@ class PoseEffect(Effect):
 class LensDistortionEffect(Effect):
     name = "lens_distortion"
     stage = "scene"
+    summary = "OpenCV coefficients added to the camera's; the renderer's rays follow them"
     doc = ("Lens distortion the camera model lacks: OpenCV coefficients added to the camera's "
            "(k1, k2, p1, p2, k3). The renderer's pixel rays follow the distorted model.")
     params = {
@@ -258,6 +262,7 @@ class LensDistortionEffect(Effect):
 class ReflectanceEffect(Effect):
     name = "reflectance"
     stage = "scene"
+    summary = "NIR reflectance differing from the file's (diffuse, glossy and checker values scaled); options `materials: {name: factor}`, `objects: {name: factor}`"
     doc = ("NIR reflectance different from the scene file's: every material's diffuse and glossy "
            "reflectance (and checker texture values) times `scale`, and per material or per object "
            "times the factors in `materials: {name: factor}` / `objects: {name: factor}`.")
@@ -350,6 +355,7 @@ class ReflectanceEffect(Effect):
 class AmbientEffect(Effect):
     name = "ambient"
     stage = "scene"
+    summary = 'ambient irradiance added on every surface (offset and shot noise, no phase)'
     doc = ("Unmodulated ambient light (sun, lamps) added to the scene's ambient irradiance on every "
            "surface; it raises the tap offset and the shot noise, not the phase.")
     params = {"irradiance_w_m2": Param(0.0, 0.0, 2000.0, "W/m^2", "added ambient irradiance (NIR band)",
@@ -376,6 +382,7 @@ class AmbientEffect(Effect):
 class MultipathEffect(Effect):
     name = "multipath"
     stage = "render"
+    summary = '`S = S_direct + scale * S_indirect` (0 = direct only, 1 = physical); option `bounces` (default max(2, render.bounces))'
     doc = ("Scale of the indirect (multi-bounce) light: S = S_direct + scale * S_indirect. 0 = direct "
            "only, 1 = physical. Needs a render with separate direct/indirect phasors and bounces > 0 "
            "(`bounces` option; default the scene's render.bounces, at least 2). A scene without this "
@@ -405,6 +412,7 @@ class MultipathEffect(Effect):
 class StrayLightEffect(Effect):
     name = "stray_light"
     stage = "signal"
+    summary = 'lens scattering `S_meas = (delta + h) * S`; options below'
     doc = ("Lens scattering: S_meas = (delta + h) * S on every frequency, harmonic and on the "
            "unmodulated light (sim/straylight.py). h = a Gaussian (weight, sigma_px) + more Gaussians "
            "+ a uniform veil + a ghost mirrored through the optical centre, or a measured PSF image; "
@@ -464,6 +472,7 @@ class StrayLightEffect(Effect):
 class RangeOffsetEffect(Effect):
     name = "range_offset"
     stage = "signal"
+    summary = 'constant optical-path offset: reads `path_m / 2` farther'
     doc = ("A constant optical-path offset (e.g. an electronic delay between the emitter drive and "
            "the pixel clock): L -> L + path_m on every pixel, so the radial distance reads "
            "path_m / 2 farther.")
@@ -477,6 +486,7 @@ class RangeOffsetEffect(Effect):
 class WigglingEffect(Effect):
     name = "wiggling"
     stage = "signal"
+    summary = 'odd harmonics of the correlation waveform; with K = 4 taps the 3rd and 5th alias onto the fundamental: phase error `arg(1 + a3 exp(-i(4 phi + psi3)))`, 4 cycles per ambiguity range'
     doc = ("Non-sinusoidal modulation: odd harmonics of the correlation waveform, added to the "
            "emitter's. With K taps harmonic h aliases onto the fundamental and gives a cyclic distance "
            "error (K = 4: the 3rd and 5th give 4 cycles per ambiguity range). Harmonics the render did "
@@ -509,6 +519,7 @@ class WigglingEffect(Effect):
 class AmplitudeDependentEffect(Effect):
     name = "amplitude_dependent"
     stage = "signal"
+    summary = 'radial error `error_m * exp(-A / amplitude_e)`, A = modulation amplitude per tap in electrons'
     doc = ("Range error that grows as the signal weakens (pixel nonlinearity and charge-transfer "
            "lag at low signal): radial error = error_m * exp(-A / amplitude_e), with A the pixel's "
            "modulation amplitude in electrons per tap at that frequency (needs the sensor block).")
@@ -536,6 +547,7 @@ class AmplitudeDependentEffect(Effect):
 class FixedPatternEffect(Effect):
     name = "fixed_pattern"
     stage = "pixel"
+    summary = 'per-pixel demodulation delay: row/column gradients about the image centre (clock distribution) plus a seeded random part (option `seed`); a delay tau reads `c tau / 2` farther'
     doc = ("Per-pixel demodulation delay pattern: linear row and column gradients (the modulation "
            "clock reaching rows/columns at different times) about the image centre, plus a seeded "
            "random per-pixel part. tau > 0 reads farther by c tau / 2.")
@@ -659,3 +671,34 @@ def describe_effects() -> list[dict[str, Any]]:
     """Every effect's name, stage, meaning, parameters (off, bounds, unit) and options."""
     return [EFFECTS[n].describe() for n in ORDER]
 
+
+def _num(x: float) -> str:
+    if x in (math.pi, -math.pi):
+        return "-pi" if x < 0 else "pi"
+    return f"{x:g}"
+
+
+def effects_table_markdown() -> str:
+    """The table of effects in docs/effects.md, from the registry: stage, each parameter's
+    off value, bounds, unit and default, what diagnosis fits (range, step, log scale,
+    start and extra starts) and what the effect models."""
+    rows = ["| effect | stage | parameters: off / [lo, hi] unit / default | diagnosis fits: range (step) [start; also] "
+            "| what it models |", "|---|---|---|---|---|"]
+    for name in ORDER:
+        e = EFFECTS[name]
+        params, fits = [], []
+        for k, p in e.params.items():
+            text = f"`{k}` {_num(p.off)} / [{_num(p.lo)}, {_num(p.hi)}]" + (f" {p.unit}" if p.unit else "")
+            if p.default is not None:
+                text += f" / {_num(p.default)}"
+            params.append(text)
+            if p.fit is not None:
+                scale = "log10 " if p.log else ""
+                text = f"`{k}` {scale}[{_num(p.fit[0])}, {_num(p.fit[1])}] ({_num(p.step)})"
+                tries = ([] if p.start is None else [f"start {_num(p.start)}"])
+                tries += [f"also {', '.join(_num(v) for v in p.starts)}"] if p.starts else []
+                if tries:
+                    text += " [" + "; ".join(tries) + "]"
+                fits.append(text)
+        rows.append(f"| `{name}` | {e.stage} | {'; '.join(params)} | {'; '.join(fits) or '-'} | {e.summary} |")
+    return "\n".join(rows) + "\n"
