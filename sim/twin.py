@@ -85,6 +85,15 @@ def signal_from_render(scene: Any, result: Any, effects: Effects, config: Sensor
     return apply_signal_effects(signal, effects, effect_context(scene, camera, config))
 
 
+def _render_bounces(scene: Any) -> int:
+    """The scene's ``render.bounces`` (a mapping or a settings object)."""
+    settings = getattr(scene, "render", None)
+    if settings is None:
+        return 0
+    value = settings.get("bounces", 0) if isinstance(settings, Mapping) else getattr(settings, "bounces", 0)
+    return int(value or 0)
+
+
 class Twin:
     """A scene, its resolved sensor configuration and a base effect set: the forward model.
 
@@ -108,7 +117,7 @@ class Twin:
         self._renders: OrderedDict[str, tuple[Any, Any]] = OrderedDict()
         self._sensors: dict[Any, SensorModel] = {}
         self.renders = 0  # renders traced (cache misses)
-        self._base_render_bounces = int((getattr(scene, "render", None) or {}).get("bounces", 0))
+        self._base_render_bounces = _render_bounces(scene)
 
     # ------------------------------------------------------------------ effect sets
     def effects(self, overrides: Mapping[str, Mapping[str, Any]] | None = None) -> dict[str, dict[str, Any]]:
@@ -223,4 +232,4 @@ class Twin:
             yield sensor.expose(signal, seed=seed, frame_index=i, noise=noise, meta=dict(meta or {}))
 
 
-__all__ = ["ORDER", "Twin", "effect_context", "render_arguments", "render_key", "signal_from_render"]
+__all__ = ["Twin", "effect_context", "render_arguments", "render_key", "signal_from_render"]
