@@ -16,8 +16,11 @@ Stages, in the order the forward model applies them (``ORDER``):
   ``stray_light`` (optics), ``range_offset``, ``wiggling``, ``amplitude_dependent``.
 - ``pixel``: per-pixel demodulation properties -- ``fixed_pattern``.
 
-Render-, signal- and pixel-stage effects apply to a cached render in milliseconds; that is
-what diagnosis fits. A scene file switches effects on with an ``effects:`` block
+Each stage has one hook (``STAGE_HOOKS``) that its effects implement. Render-, signal- and
+pixel-stage effects apply to a cached render in milliseconds; scene-stage effects whose change
+is exactly a rescaling of a render (reflectance, ambient) also implement ``rescale_render``.
+The twin (``tofhil.sim.twin.Twin``) runs these hooks for simulation and diagnosis alike. What
+diagnosis fits of each parameter (range, step, log scale, starting points) is in its ``Param``. A scene file switches effects on with an ``effects:`` block
 ``{name: {param: value}}``; a missing parameter takes its ``default`` (or its off value).
 See docs/effects.md.
 """
@@ -48,7 +51,7 @@ STAGE_HOOKS = {"scene": "apply_scene", "render": "apply_render", "signal": "appl
 class Param:
     """One parameter: ``off`` leaves the model unchanged; ``[lo, hi]`` are its bounds.
 
-    The ``fit_*`` fields say how diagnosis fits it (this table is the only place that says
+    The last five fields say how diagnosis fits it (this table is the only place that says
     so): ``fit`` the range searched (None: diagnosis does not fit this parameter, it keeps
     its current value), ``step`` a typical change for the optimiser, ``log`` fit
     ``log10(value)`` (``fit`` and ``step`` are then in decades), ``start`` where a fit of a

@@ -151,6 +151,13 @@ class Twin:
             return 1.0 if self._base_render_bounces > 0 else 0.0
         return EFFECTS[effect].params[param].off
 
+    def _resolve(self, effects: Effects | None) -> Effects:
+        """The base set for None, else the given set validated (parameters not given take
+        their defaults, as in a scene file)."""
+        if effects is None:
+            return self.base_effects
+        return parse_effects(effects, source=getattr(self.scene, "source", "<scene>"))
+
     # ------------------------------------------------------------------ render (cached)
     def render(self, effects: Effects | None = None) -> tuple[Any, Any]:
         """``(scene with the rendered scene-stage effects, RenderResult)`` for an effect set
@@ -158,7 +165,7 @@ class Twin:
         whose values differ from the base's is applied to the cached render of the base
         values; when that is not exact, or for the other scene-stage effects, the values are
         rendered in."""
-        eff = self.base_effects if effects is None else effects
+        eff = self._resolve(effects)
         rendered: dict[str, Mapping[str, Any]] = {}
         rescaled: list[tuple[Effect, Mapping[str, Any], Mapping[str, Any]]] = []
         for name in ORDER:
@@ -203,8 +210,9 @@ class Twin:
 
     # ------------------------------------------------------------------ light and taps
     def signal(self, effects: Effects | None = None) -> OpticalSignal:
-        """Light on the sensor for an effect set (default the base set)."""
-        eff = self.base_effects if effects is None else effects
+        """Light on the sensor for an effect set (default the base set; a given set replaces
+        it, see :meth:`effects` for the base set with some parameters changed)."""
+        eff = self._resolve(effects)
         scene2, result = self.render(eff)
         return signal_from_render(scene2, result, eff, self.config)
 
@@ -224,7 +232,7 @@ class Twin:
                meta: Mapping[str, Any] | None = None, first_index: int = 0) -> Iterable[RawFrame]:
         """``frames`` raw frames of one (fixed) light with independent noise per frame. The
         frames carry the camera the render used (a lens_distortion effect shows in it)."""
-        eff = self.base_effects if effects is None else effects
+        eff = self._resolve(effects)
         scene2, result = self.render(eff)
         signal = signal_from_render(scene2, result, eff, self.config)
         sensor = self.sensor(getattr(result, "camera", None) or scene2.camera)
