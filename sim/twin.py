@@ -7,9 +7,9 @@ simulated and a frame predicted while fitting come from one model.
 
 Each effect acts through the hook of its stage (``tofhil.sim.effects.STAGE_HOOKS``):
 
-- scene stage: changes what is rendered. Renders are cached by content (:func:`render_key`:
-  a digest of the scene after its scene-stage effects and of the renderer's arguments, not
-  of Python object identity). An effect whose change is exactly a rescaling of a render
+- scene stage: changes what is rendered. Renders are cached by content (a digest of the
+  scene, of the scene-stage effect values rendered in and of the renderer's arguments, not
+  of Python object identity; :func:`render_key` digests a scene after its effects). An effect whose change is exactly a rescaling of a render
   (reflectance, ambient) is applied to the cached render of the base values instead
   (``Effect.rescale_render``); when that is not exact it is rendered in.
 - render stage: recombines a render's parts (multipath: direct + scale * indirect).
@@ -100,7 +100,8 @@ class Twin:
     ``sensor`` defaults to the scene's interpreted ``sensor:`` block; ``effects`` (the base
     effect set, what the scene models) to its ``effects:`` block. ``render_kwargs`` are
     passed to every render (e.g. harmonics to compute explicitly). Renders are kept in a
-    least-recently-used cache of ``cache_size`` entries keyed by content.
+    least-recently-used cache of ``cache_size`` entries keyed by content; the scene is
+    treated as immutable (derive changed scenes with ``dataclasses.replace``).
     """
 
     def __init__(self, scene: Any, *, sensor: SensorConfig | None = None, effects: Mapping[str, Any] | None = None,
@@ -118,6 +119,9 @@ class Twin:
         self._sensors: dict[Any, SensorModel] = {}
         self.renders = 0  # renders traced (cache misses)
         self._base_render_bounces = _render_bounces(scene)
+        # The scene's content is hashed once (scenes are not changed in place): a render's key
+        # is this digest, the scene-stage effect values rendered in, and the render arguments.
+        self._scene_key = content_key(scene)
 
     # ------------------------------------------------------------------ effect sets
     def effects(self, overrides: Mapping[str, Mapping[str, Any]] | None = None) -> dict[str, dict[str, Any]]:
@@ -196,7 +200,7 @@ class Twin:
 
         scene2 = apply_scene_effects(self.scene, scene_effects)
         args = render_arguments(scene2, effects, self.render_kwargs, freq_hz=self.config.freq_hz)
-        key = render_key(scene2, args)
+        key = content_key(self._scene_key, scene_effects, args)
         hit = self._renders.get(key)
         if hit is not None:
             self._renders.move_to_end(key)
