@@ -31,7 +31,8 @@ import numpy as np
 from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel, load_camera_preset
 from tofhil.sim.geometry import BATCH, RAY_EPSILON_M
-from tofhil.sim.render import radial_from_phasor, render, scene_geometry
+from tofhil.demod import phase_to_distance, wrapped_phase
+from tofhil.sim.render import render, scene_geometry
 from tofhil.sim.scene import load_scene
 
 
@@ -119,7 +120,7 @@ def part_c(threads: int, budget_s: float, spp_per_pass: int, reference_spp: int)
         elapsed = time.perf_counter() - t_start
         m = len(passes)
         if m >= 2:
-            d = radial_from_phasor(np.stack(passes), f)
+            d = phase_to_distance(wrapped_phase(np.stack(passes)), f)
             d = np.where(np.abs(d - d.mean(axis=0)) > C_M_PER_S / (8 * f), np.nan, d)   # no wrap jumps
             var = np.nanvar(d, axis=0, ddof=1)
             rms = float(np.sqrt(np.nanmean(var) / m))
@@ -147,8 +148,8 @@ def part_c(threads: int, budget_s: float, spp_per_pass: int, reference_spp: int)
     if reference_spp:
         t0 = time.perf_counter()
         ref = render(scene, camera=cam, samples_per_pixel=reference_spp, bounces=bounces, seed=7, threads=threads)
-        d_ref = radial_from_phasor(ref.phasor[0, 0], f)
-        d_run = radial_from_phasor(np.mean(passes, axis=0), f)
+        d_ref = phase_to_distance(wrapped_phase(ref.phasor[0, 0]), f)
+        d_run = phase_to_distance(wrapped_phase(np.mean(passes, axis=0)), f)
         print(f"    explicit reference ({reference_spp} spp, {time.perf_counter() - t0:.0f} s): RMS "
               f"{np.sqrt(np.mean((d_run - d_ref) ** 2)) * 1e3:.2f} mm (includes the reference's own error)")
 

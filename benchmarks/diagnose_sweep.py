@@ -1,6 +1,6 @@
 """Detection rate and held-out gain of diagnosis over several seeds.
 
-For every effect of the library (the hidden-parameter draws of tests/eval/test_diagnose.py) and
+For every effect of the library (the hidden-parameter draws of benchmarks/diagnose_cases.py) and
 for "nothing hidden", render measured sessions with several seeds, diagnose them against the
 base twin, and print: how often the hidden effect was named alone, the misfit per held-out
 value before and after, the depth RMSE before and after, and the time per diagnosis.
@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib.util
 import tempfile
 import time
 from pathlib import Path
@@ -23,14 +22,7 @@ from tofhil.eval.diagnose import diagnose
 from tofhil.sim.pipeline import simulate_session
 from tofhil.sim.scene import load_scene
 
-
-def load_cases() -> dict:
-    path = Path(__file__).resolve().parents[1] / "tests" / "eval" / "test_diagnose.py"
-    spec = importlib.util.spec_from_file_location("test_diagnose_cases", path)
-    module = importlib.util.module_from_spec(spec)
-    assert spec.loader is not None
-    spec.loader.exec_module(module)
-    return module.CASES
+from diagnose_cases import CASES  # benchmarks/ is on the path when this file runs as a script
 
 
 def main() -> None:
@@ -38,7 +30,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--effects", default="", help="comma-separated subset (default: all, plus 'none')")
     args = ap.parse_args()
-    cases = load_cases()
+    cases = CASES
     names = [e for e in args.effects.split(",") if e] or list(cases) + ["none"]
     scene = load_scene("bench_demo")
     scene = dataclasses.replace(scene, camera=scene.camera.scaled(0.5))
@@ -49,7 +41,7 @@ def main() -> None:
         for name in names:
             for seed in range(args.seeds):
                 rng = np.random.default_rng(1000 * seed + (names.index(name) + 1))
-                hidden = {} if name == "none" else {name: cases[name][0](rng)}
+                hidden = {} if name == "none" else {name: cases[name](rng)}
                 path = Path(tmp) / f"{name}_{seed}.h5"
                 simulate_session(scene, path, frames=4, seed=int(rng.integers(10_000)), noise=True, effects=hidden)
                 t0 = time.perf_counter()

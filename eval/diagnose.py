@@ -20,6 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from tofhil.demod import bad_tap_pixels
 from tofhil.errors import TofhilError
 from tofhil.eval import metrics as M
 from tofhil.eval.heldout import HeldOutData, depth_from_signal, split_session
@@ -181,7 +182,11 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     after_model = TwinModel(reloaded, data, render_kwargs=render_kwargs)
     after_pred = after_model.predict({})
 
+    # A predicted pixel is compared where its signal is above the noise and no predicted tap
+    # reaches the device's clip levels (compare applies the same rule to a twin session).
     defined = distance_defined(data, base_pred, after_pred)
+    for m in (model, after_model):
+        defined &= ~bad_tap_pixels(m.taps({}), data.tap_limits)
     result = model.base_render()
     objects = M.object_regions(np.asarray(result.object_id), {i: o.name for i, o in enumerate(model.scene.objects)})
     before, maps_before, ev_before = heldout_metrics(data, base_pred, defined, objects)

@@ -13,7 +13,7 @@ frames is enough.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.ndimage import uniform_filter
@@ -46,6 +46,8 @@ class HeldOutData:
     #: The session's recorded sensor configuration (twin sessions), None for a device capture.
     sensor_config: dict | None = None
     source: str = "<session>"
+    #: The clip levels applied to the measured taps; a prediction reaching them would have clipped too.
+    tap_limits: TapLimits = field(default_factory=TapLimits)
 
     @property
     def n_freq(self) -> int:
@@ -167,4 +169,5 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
                        train_pixels=usable & board, test_pixels=usable & ~board,
                        n_train_frames=len(train_idx), n_test_frames=len(test_idx),
                        offset_channel=bool(offset_channel),
-                       sensor_config=getattr(session, "sensor_config", None), source=str(session.path))
+                       sensor_config=getattr(session, "sensor_config", None), source=str(session.path),
+                       tap_limits=limits)

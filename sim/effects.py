@@ -16,8 +16,11 @@ Stages, in the order the forward model applies them (``ORDER``):
   ``stray_light`` (optics), ``range_offset``, ``wiggling``, ``amplitude_dependent``.
 - ``pixel``: per-pixel demodulation properties -- ``fixed_pattern``.
 
-Render-, signal- and pixel-stage effects apply to a cached render in milliseconds; that is
-what diagnosis fits. A scene file switches effects on with an ``effects:`` block
+Each stage has one hook (``STAGE_HOOKS``) that its effects implement. Render-, signal- and
+pixel-stage effects apply to a cached render in milliseconds; scene-stage effects whose change
+is exactly a rescaling of a render (reflectance, ambient) also implement ``rescale_render``.
+The twin (``tofhil.sim.twin.Twin``) runs these hooks for simulation and diagnosis alike. What
+diagnosis fits of each parameter (range, step, log scale, starting points) is in its ``Param``. A scene file switches effects on with an ``effects:`` block
 ``{name: {param: value}}``; a missing parameter takes its ``default`` (or its off value).
 See docs/effects.md.
 """
@@ -41,11 +44,22 @@ from tofhil.sim.sensor import OpticalSignal, SensorConfig
 from tofhil.sim.straylight import StrayLightOperator, StrayLightPSF
 
 STAGES = ("scene", "render", "signal", "pixel")
+#: The hook each stage's effects implement.
+STAGE_HOOKS = {"scene": "apply_scene", "render": "apply_render", "signal": "apply_signal", "pixel": "apply_signal"}
 
 
 @dataclass(frozen=True)
 class Param:
-    """One fittable parameter: ``off`` leaves the model unchanged; ``[lo, hi]`` are its bounds."""
+    """One parameter: ``off`` leaves the model unchanged; ``[lo, hi]`` are its bounds.
+
+    The last five fields say how diagnosis fits it (this table is the only place that says
+    so): ``fit`` the range searched (None: diagnosis does not fit this parameter, it keeps
+    its current value), ``step`` a typical change for the optimiser, ``log`` fit
+    ``log10(value)`` (``fit`` and ``step`` are then in decades), ``start`` where a fit of a
+    newly added effect begins (None: the current value) and ``starts`` more values to try,
+    one parameter at a time with the others at their ``start`` (multi-start: at zero weight a
+    lobe's width is irrelevant, at zero amplitude a harmonic's phase is).
+    """
 
     off: float
     lo: float
@@ -54,10 +68,28 @@ class Param:
     doc: str
     #: Value used when the effect is switched on without this parameter (None: the off value).
     default: float | None = None
+    fit: tuple[float, float] | None = None
+    step: float = 0.0
+    log: bool = False
+    start: float | None = None
+    starts: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.lo <= self.off <= self.hi:
+            raise ValueError(f"off value {self.off} outside [{self.lo}, {self.hi}]")
+        if self.fit is not None:
+            lo, hi = (10.0 ** self.fit[0], 10.0 ** self.fit[1]) if self.log else self.fit
+            if not (self.lo <= lo < hi <= self.hi) or not self.step > 0:
+                raise ValueError(f"fit range {self.fit} must lie in the bounds [{self.lo}, {self.hi}] "
+                                 "with a positive step")
 
     @property
     def on_default(self) -> float:
         return self.off if self.default is None else self.default
+
+    @property
+    def fitted(self) -> bool:
+        return self.fit is not None
 
 
 @dataclass
@@ -77,6 +109,8 @@ class Effect:
     name: str = ""
     stage: str = ""
     doc: str = ""
+    #: One line for the table of effects in docs/effects.md.
+    summary: str = ""
     params: dict[str, Param] = {}
     #: Structured, non-fitted options: name -> description.
     options: dict[str, str] = {}
@@ -121,20 +155,39 @@ class Effect:
         return all(float(values.get(k, p.off)) == p.off for k, p in self.params.items())
 
     # -------------------------------------------------------------- stage hooks
+    # Each stage has one hook (``STAGE_HOOKS``); an effect implements the hook of its stage.
     def apply_scene(self, scene: Any, values: Mapping[str, Any]) -> Any:
+        """Scene stage: the Scene a new render must see with this effect at ``values``."""
         raise NotImplementedError(f"{self.name} is a {self.stage}-stage effect")
+
+    def rescale_render(self, result: Any, values: Mapping[str, Any], rendered: Mapping[str, Any],
+                       scene: Any) -> Any | None:
+        """Scene stage, fast path: a cached render of ``scene`` made with this effect at
+        ``rendered`` turned into the render at ``values`` without tracing rays, or None when
+        only a new render is exact (the default, except when nothing changes)."""
+        return result if _same_values(values, rendered) else None
 
     def render_requirements(self, values: Mapping[str, Any], scene: Any) -> dict[str, Any]:
         """Extra renderer arguments this effect needs (e.g. separate direct/indirect)."""
         return {}
 
+    def apply_render(self, result: Any, values: Mapping[str, Any],
+                     waveform: Mapping[int, complex] | None = None) -> OpticalSignal:
+        """Render stage: the light on the sensor recombined from a render's parts."""
+        raise NotImplementedError(f"{self.name} is a {self.stage}-stage effect")
+
     def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
+        """Signal and pixel stages: the light on the sensor changed by this effect."""
         raise NotImplementedError(f"{self.name} is a {self.stage}-stage effect")
 
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "stage": self.stage, "doc": self.doc,
                 "params": {k: dataclasses.asdict(p) for k, p in self.params.items()},
                 "options": dict(self.options)}
+
+
+def _same_values(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
+    return dict(a) == dict(b)
 
 
 def _rotate_phase(signal: OpticalSignal, path_m: np.ndarray | float) -> OpticalSignal:
@@ -153,19 +206,25 @@ def _rotate_phase(signal: OpticalSignal, path_m: np.ndarray | float) -> OpticalS
 # =============================================================================================
 # scene stage
 # =============================================================================================
+# Diagnosis searches small pose errors: a bench camera is placed to a few centimetres and degrees.
+_POSE_R: dict[str, Any] = {"fit": (-0.05, 0.05), "step": 1e-3}
+_POSE_T: dict[str, Any] = {"fit": (-0.1, 0.1), "step": 1e-3}
+
+
 class PoseEffect(Effect):
     name = "pose"
     stage = "scene"
+    summary = 'camera pose error in the camera frame: `pose @ [R(r) t; 0 1]`'
     doc = ("Small rigid error of the camera pose, in the camera frame: the twin's camera is moved "
            "by the rotation vector (rx, ry, rz) and the translation (tx, ty, tz): "
            "pose' = pose @ [R(r) t; 0 1].")
     params = {
-        "rx": Param(0.0, -0.2, 0.2, "rad", "rotation about the camera x axis (right)"),
-        "ry": Param(0.0, -0.2, 0.2, "rad", "rotation about the camera y axis (down)"),
-        "rz": Param(0.0, -0.2, 0.2, "rad", "rotation about the optical axis"),
-        "tx": Param(0.0, -0.5, 0.5, "m", "translation along camera x"),
-        "ty": Param(0.0, -0.5, 0.5, "m", "translation along camera y"),
-        "tz": Param(0.0, -0.5, 0.5, "m", "translation along the optical axis"),
+        "rx": Param(0.0, -0.2, 0.2, "rad", "rotation about the camera x axis (right)", **_POSE_R),
+        "ry": Param(0.0, -0.2, 0.2, "rad", "rotation about the camera y axis (down)", **_POSE_R),
+        "rz": Param(0.0, -0.2, 0.2, "rad", "rotation about the optical axis", **_POSE_R),
+        "tx": Param(0.0, -0.5, 0.5, "m", "translation along camera x", **_POSE_T),
+        "ty": Param(0.0, -0.5, 0.5, "m", "translation along camera y", **_POSE_T),
+        "tz": Param(0.0, -0.5, 0.5, "m", "translation along the optical axis", **_POSE_T),
     }
 
     def apply_scene(self, scene: Any, values: Mapping[str, Any]) -> Any:
@@ -180,11 +239,13 @@ class PoseEffect(Effect):
 class LensDistortionEffect(Effect):
     name = "lens_distortion"
     stage = "scene"
+    summary = "OpenCV coefficients added to the camera's; the renderer's rays follow them"
     doc = ("Lens distortion the camera model lacks: OpenCV coefficients added to the camera's "
            "(k1, k2, p1, p2, k3). The renderer's pixel rays follow the distorted model.")
     params = {
-        "k1": Param(0.0, -1.0, 1.0, "", "radial r^2 coefficient"),
-        "k2": Param(0.0, -1.0, 1.0, "", "radial r^4 coefficient"),
+        "k1": Param(0.0, -1.0, 1.0, "", "radial r^2 coefficient", fit=(-0.5, 0.5), step=0.01,
+                     starts=(-0.1, 0.1, -0.25, 0.25)),
+        "k2": Param(0.0, -1.0, 1.0, "", "radial r^4 coefficient", fit=(-0.5, 0.5), step=0.01),
         "p1": Param(0.0, -0.05, 0.05, "", "tangential coefficient p1"),
         "p2": Param(0.0, -0.05, 0.05, "", "tangential coefficient p2"),
         "k3": Param(0.0, -1.0, 1.0, "", "radial r^6 coefficient"),
@@ -199,10 +260,12 @@ class LensDistortionEffect(Effect):
 class ReflectanceEffect(Effect):
     name = "reflectance"
     stage = "scene"
+    summary = "NIR reflectance differing from the file's (diffuse, glossy and checker values scaled); options `materials: {name: factor}`, `objects: {name: factor}`"
     doc = ("NIR reflectance different from the scene file's: every material's diffuse and glossy "
            "reflectance (and checker texture values) times `scale`, and per material or per object "
            "times the factors in `materials: {name: factor}` / `objects: {name: factor}`.")
-    params = {"scale": Param(1.0, 0.0, 20.0, "", "factor on every material's reflectance")}
+    params = {"scale": Param(1.0, 0.0, 20.0, "", "factor on every material's reflectance",
+                             fit=(0.05, 20.0), step=0.02)}
     options = {"materials": "mapping material name -> reflectance factor",
                "objects": "mapping object name -> reflectance factor (the object gets its own material)"}
 
@@ -255,18 +318,60 @@ class ReflectanceEffect(Effect):
                 objects[i] = dataclasses.replace(o, material=own)
         return dataclasses.replace(scene, materials=mats, objects=objects)
 
+    def rescale_render(self, result: Any, values: Mapping[str, Any], rendered: Mapping[str, Any],
+                       scene: Any) -> Any | None:
+        """Light that reflected n times scales as ``s^n``: exact for the direct light (n = 1) and
+        one bounce (n = 2) when every material scales alike (the renderer's paths do not depend
+        on the reflectance); a render with more bounces, per-material factors, a transient or a
+        zero reference needs a new render."""
+        if _same_values(values, rendered):
+            return result
+        s_new, s_ref = float(values.get("scale", 1.0)), float(rendered.get("scale", 1.0))
+        same_options = all(dict(values.get(k) or {}) == dict(rendered.get(k) or {}) for k in ("materials", "objects"))
+        if not same_options or s_ref <= 0.0 or result.transient is not None or result.bounces > 1:
+            return None
+        s = s_new / s_ref
+        changes: dict[str, Any] = {"ambient_power_w": result.ambient_power_w * s}
+        if result.ambient_power_per_irradiance is not None:
+            changes["ambient_power_per_irradiance"] = result.ambient_power_per_irradiance * s
+        if result.bounces == 0:
+            changes.update(phasor=result.phasor * s, power_w=result.power_w * s)
+            if result.phasor_direct is not None:
+                changes.update(phasor_direct=result.phasor_direct * s, phasor_indirect=result.phasor_indirect * s)
+            return dataclasses.replace(result, **changes)
+        freq = np.asarray(result.freq_hz)
+        zero = np.flatnonzero(freq == 0.0)
+        if result.phasor_direct is None or result.phasor_indirect is None or not zero.size:
+            return None  # the direct/indirect split of the power is unknown
+        direct, indirect = result.phasor_direct * s, result.phasor_indirect * (s * s)
+        p_direct = result.phasor_direct[zero[0], tuple(result.harmonics).index(1)].real
+        changes.update(phasor_direct=direct, phasor_indirect=indirect, phasor=direct + indirect,
+                       power_w=s * p_direct + (s * s) * (result.power_w - p_direct))
+        return dataclasses.replace(result, **changes)
+
 
 class AmbientEffect(Effect):
     name = "ambient"
     stage = "scene"
+    summary = 'ambient irradiance added on every surface (offset and shot noise, no phase)'
     doc = ("Unmodulated ambient light (sun, lamps) added to the scene's ambient irradiance on every "
            "surface; it raises the tap offset and the shot noise, not the phase.")
     params = {"irradiance_w_m2": Param(0.0, 0.0, 2000.0, "W/m^2", "added ambient irradiance (NIR band)",
-                                       default=1.0)}
+                                       default=1.0, fit=(0.0, 2000.0), step=1.0, start=5.0)}
 
     def apply_scene(self, scene: Any, values: Mapping[str, Any]) -> Any:
         return dataclasses.replace(scene, ambient_irradiance_w_m2=scene.ambient_irradiance_w_m2
                                    + float(values["irradiance_w_m2"]))
+
+    def rescale_render(self, result: Any, values: Mapping[str, Any], rendered: Mapping[str, Any],
+                       scene: Any) -> Any | None:
+        """Ambient power is linear in the irradiance (the render keeps the power per W/m^2)."""
+        if _same_values(values, rendered):
+            return result
+        if result.ambient_power_per_irradiance is None:
+            return None
+        e = scene.ambient_irradiance_w_m2 - float(rendered["irradiance_w_m2"]) + float(values["irradiance_w_m2"])
+        return dataclasses.replace(result, ambient_power_w=result.ambient_power_per_irradiance * e)
 
 
 # =============================================================================================
@@ -275,11 +380,13 @@ class AmbientEffect(Effect):
 class MultipathEffect(Effect):
     name = "multipath"
     stage = "render"
+    summary = '`S = S_direct + scale * S_indirect` (0 = direct only, 1 = physical); option `bounces` (default max(2, render.bounces))'
     doc = ("Scale of the indirect (multi-bounce) light: S = S_direct + scale * S_indirect. 0 = direct "
            "only, 1 = physical. Needs a render with separate direct/indirect phasors and bounces > 0 "
            "(`bounces` option; default the scene's render.bounces, at least 2). A scene without this "
            "effect uses whatever the renderer computed.")
-    params = {"scale": Param(0.0, 0.0, 3.0, "", "factor on the indirect light", default=1.0)}
+    params = {"scale": Param(0.0, 0.0, 3.0, "", "factor on the indirect light", default=1.0,
+                             fit=(0.0, 3.0), step=0.1, start=1.0)}
     options = {"bounces": "number of indirect bounces to render (integer >= 1)"}
 
     def check_options(self, values: dict[str, Any], *, source: str | Path, prefix: str) -> None:
@@ -303,14 +410,18 @@ class MultipathEffect(Effect):
 class StrayLightEffect(Effect):
     name = "stray_light"
     stage = "signal"
+    summary = 'lens scattering `S_meas = (delta + h) * S`; options below'
     doc = ("Lens scattering: S_meas = (delta + h) * S on every frequency, harmonic and on the "
            "unmodulated light (sim/straylight.py). h = a Gaussian (weight, sigma_px) + more Gaussians "
            "+ a uniform veil + a ghost mirrored through the optical centre, or a measured PSF image; "
            "each weight is the fraction of light it moves.")
     params = {
-        "weight": Param(0.0, 0.0, 0.5, "", "fraction of light in the main Gaussian lobe", default=0.02),
-        "sigma_px": Param(20.0, 0.3, 1000.0, "px", "sigma of the main lobe (x, and y unless sigma_y_px)"),
-        "veil": Param(0.0, 0.0, 0.5, "", "fraction spread uniformly over the sensor"),
+        "weight": Param(0.0, 0.0, 0.5, "", "fraction of light in the main Gaussian lobe", default=0.02,
+                        fit=(0.0, 0.3), step=0.01, start=0.02),
+        "sigma_px": Param(20.0, 0.3, 1000.0, "px", "sigma of the main lobe (x, and y unless sigma_y_px)",
+                          fit=(0.5, 300.0), step=5.0, start=15.0, starts=(4.0, 50.0)),
+        "veil": Param(0.0, 0.0, 0.5, "", "fraction spread uniformly over the sensor", fit=(0.0, 0.2), step=0.002,
+                      starts=(0.01,)),
         "ghost_weight": Param(0.0, 0.0, 0.2, "", "fraction imaged mirrored through the optical centre"),
         "ghost_sigma_px": Param(2.0, 0.0, 100.0, "px", "blur of the ghost"),
     }
@@ -369,11 +480,12 @@ class StrayLightEffect(Effect):
 class RangeOffsetEffect(Effect):
     name = "range_offset"
     stage = "signal"
+    summary = 'constant optical-path offset: reads `path_m / 2` farther'
     doc = ("A constant optical-path offset (e.g. an electronic delay between the emitter drive and "
            "the pixel clock): L -> L + path_m on every pixel, so the radial distance reads "
            "path_m / 2 farther.")
     params = {"path_m": Param(0.0, -2.0, 2.0, "m", "optical path length added (radial shift = half)",
-                              default=0.02)}
+                              default=0.02, fit=(-2.0, 2.0), step=0.01)}
 
     def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
         return _rotate_phase(signal, float(values["path_m"]))
@@ -382,14 +494,16 @@ class RangeOffsetEffect(Effect):
 class WigglingEffect(Effect):
     name = "wiggling"
     stage = "signal"
+    summary = 'odd harmonics of the correlation waveform; with K = 4 taps the 3rd and 5th alias onto the fundamental: phase error `arg(1 + a3 exp(-i(4 phi + psi3)))`, 4 cycles per ambiguity range'
     doc = ("Non-sinusoidal modulation: odd harmonics of the correlation waveform, added to the "
            "emitter's. With K taps harmonic h aliases onto the fundamental and gives a cyclic distance "
            "error (K = 4: the 3rd and 5th give 4 cycles per ambiguity range). Harmonics the render did "
            "not compute are synthesised from the fundamental (exact for single-path pixels).")
     params = {
         "h3_amplitude": Param(0.0, 0.0, 0.5, "", "3rd-harmonic correlation amplitude / fundamental's",
-                              default=0.05),
-        "h3_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "3rd-harmonic phase"),
+                              default=0.05, fit=(0.0, 0.5), step=0.01, start=0.03),
+        "h3_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "3rd-harmonic phase", fit=(-math.pi, math.pi), step=0.3,
+                              start=0.0, starts=(-2.0, 2.0)),
         "h5_amplitude": Param(0.0, 0.0, 0.5, "", "5th-harmonic correlation amplitude / fundamental's"),
         "h5_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "5th-harmonic phase"),
     }
@@ -413,12 +527,16 @@ class WigglingEffect(Effect):
 class AmplitudeDependentEffect(Effect):
     name = "amplitude_dependent"
     stage = "signal"
+    summary = 'radial error `error_m * exp(-A / amplitude_e)`, A = modulation amplitude per tap in electrons'
     doc = ("Range error that grows as the signal weakens (pixel nonlinearity and charge-transfer "
            "lag at low signal): radial error = error_m * exp(-A / amplitude_e), with A the pixel's "
            "modulation amplitude in electrons per tap at that frequency (needs the sensor block).")
     params = {
-        "error_m": Param(0.0, -0.5, 0.5, "m", "radial error at zero amplitude", default=0.01),
-        "amplitude_e": Param(1000.0, 1.0, 1.0e6, "e-", "amplitude scale A0 over which the error decays"),
+        "error_m": Param(0.0, -0.5, 0.5, "m", "radial error at zero amplitude", default=0.01, fit=(-0.5, 0.5),
+                         step=0.01, start=0.02, starts=(-0.02,)),
+        "amplitude_e": Param(1000.0, 1.0, 1.0e6, "e-", "amplitude scale A0 over which the error decays",
+                             fit=(0.0, 6.0), step=0.2, log=True, start=1000.0,
+                             starts=(10.0 ** 2.5, 10.0 ** 3.5)),
     }
 
     def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
@@ -437,12 +555,15 @@ class AmplitudeDependentEffect(Effect):
 class FixedPatternEffect(Effect):
     name = "fixed_pattern"
     stage = "pixel"
+    summary = 'per-pixel demodulation delay: row/column gradients about the image centre (clock distribution) plus a seeded random part (option `seed`); a delay tau reads `c tau / 2` farther'
     doc = ("Per-pixel demodulation delay pattern: linear row and column gradients (the modulation "
            "clock reaching rows/columns at different times) about the image centre, plus a seeded "
            "random per-pixel part. tau > 0 reads farther by c tau / 2.")
     params = {
-        "row_delay_s": Param(0.0, -2e-11, 2e-11, "s/row", "delay per row from the image centre"),
-        "col_delay_s": Param(0.0, -2e-11, 2e-11, "s/column", "delay per column from the image centre"),
+        "row_delay_s": Param(0.0, -2e-11, 2e-11, "s/row", "delay per row from the image centre",
+                             fit=(-2e-11, 2e-11), step=1e-13),
+        "col_delay_s": Param(0.0, -2e-11, 2e-11, "s/column", "delay per column from the image centre",
+                             fit=(-2e-11, 2e-11), step=1e-13),
         "random_delay_s": Param(0.0, 0.0, 1e-10, "s", "standard deviation of the random per-pixel delay",
                                 default=5e-12),
     }
@@ -480,6 +601,8 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     StrayLightEffect(), RangeOffsetEffect(), FixedPatternEffect(), AmplitudeDependentEffect(),
     WigglingEffect())}
 assert tuple(sorted(EFFECTS)) == tuple(sorted(ORDER))
+for _e in EFFECTS.values():  # every effect implements the hook of its stage
+    assert _e.stage in STAGES and getattr(type(_e), STAGE_HOOKS[_e.stage]) is not getattr(Effect, STAGE_HOOKS[_e.stage]), _e.name
 
 
 def parse_effects(block: Mapping[str, Any] | None, *, source: str | Path = "<effects>") -> dict[str, dict[str, Any]]:
@@ -547,3 +670,34 @@ def describe_effects() -> list[dict[str, Any]]:
     """Every effect's name, stage, meaning, parameters (off, bounds, unit) and options."""
     return [EFFECTS[n].describe() for n in ORDER]
 
+
+def _num(x: float) -> str:
+    if x in (math.pi, -math.pi):
+        return "-pi" if x < 0 else "pi"
+    return f"{x:g}"
+
+
+def effects_table_markdown() -> str:
+    """The table of effects in docs/effects.md, from the registry: stage, each parameter's
+    off value, bounds, unit and default, what diagnosis fits (range, step, log scale,
+    start and extra starts) and what the effect models."""
+    rows = ["| effect | stage | parameters: off / [lo, hi] unit / default | diagnosis fits: range (step) [start; also] "
+            "| what it models |", "|---|---|---|---|---|"]
+    for name in ORDER:
+        e = EFFECTS[name]
+        params, fits = [], []
+        for k, p in e.params.items():
+            text = f"`{k}` {_num(p.off)} / [{_num(p.lo)}, {_num(p.hi)}]" + (f" {p.unit}" if p.unit else "")
+            if p.default is not None:
+                text += f" / {_num(p.default)}"
+            params.append(text)
+            if p.fit is not None:
+                scale = "log10 " if p.log else ""
+                text = f"`{k}` {scale}[{_num(p.fit[0])}, {_num(p.fit[1])}] ({_num(p.step)})"
+                tries = ([] if p.start is None else [f"start {_num(p.start)}"])
+                tries += [f"also {', '.join(_num(v) for v in p.starts)}"] if p.starts else []
+                if tries:
+                    text += " [" + "; ".join(tries) + "]"
+                fits.append(text)
+        rows.append(f"| `{name}` | {e.stage} | {'; '.join(params)} | {'; '.join(fits) or '-'} | {e.summary} |")
+    return "\n".join(rows) + "\n"

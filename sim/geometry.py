@@ -171,23 +171,6 @@ class Geometry:
             uv = np.stack([sel(r["u"]), sel(r["v"])], axis=1).astype(np.float64)
         return Hits(index=index, t=t, prim=p, ng=n, uv=uv, n_rays=n_rays)
 
-    def occluded(self, origins: np.ndarray, dirs: np.ndarray, dist: np.ndarray) -> np.ndarray:
-        """True where something lies on the segment origin + t dir, 0 < t < dist."""
-        r = self.embree.run(np.ascontiguousarray(origins, dtype=np.float32),
-                            np.ascontiguousarray(dirs, dtype=np.float32),
-                            dists=np.ascontiguousarray(dist, dtype=np.float32), query="OCCLUDED")
-        return r >= 0
-
-    def shading_normal(self, hits: "Hits") -> np.ndarray:
-        """Unit normal at the hits (vertex-normal interpolation for smooth objects)."""
-        if self.vnormal is None:
-            return hits.ng
-        prim, uv = hits.prim, hits.uv
-        vn = self.vnormal[prim]
-        u, v = uv[:, 0:1], uv[:, 1:2]
-        n = (1 - u - v) * vn[:, 0] + u * vn[:, 1] + v * vn[:, 2]
-        return n / np.linalg.norm(n, axis=1, keepdims=True)
-
 
 class WorkerPool:
     """A small thread pool: embreex and large numpy operations release the GIL."""

@@ -133,7 +133,7 @@ def check_memory(estimate: MemoryEstimate, *, what: str = "the render", field: s
 def render_memory(scene: Any, render_kwargs: Mapping[str, Any], *, frames_kept: int = 0,
                   signal_effects: bool = False) -> MemoryEstimate:
     """The estimate for rendering ``scene`` with ``render`` arguments ``render_kwargs`` (as
-    :func:`tofhil.sim.pipeline.render_arguments` gives them) and exposing its frames."""
+    :func:`tofhil.sim.twin.render_arguments` gives them) and exposing its frames."""
     cam = render_kwargs.get("camera") or scene.camera
     spp = render_kwargs.get("samples_per_pixel") or scene.render.samples_per_pixel
     bounces = render_kwargs.get("bounces")

@@ -18,11 +18,15 @@ the GIL, and chunks write disjoint pixel ranges.
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import math
 import os
+import threading
 import warnings
+from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -57,9 +61,9 @@ class RenderResult:
     samples_per_pixel: int = 1
     rays_traced: int = 0                 # closest-hit plus shadow rays sent to Embree
     bounces: int = 0
-
-    def harmonic_index(self, h: int) -> int:
-        return self.harmonics.index(h)
+    #: [H, W] ambient power on the pixel per W/m^2 of ambient irradiance (m^2): the ambient
+    #: light is linear in the irradiance, so a cached render serves any ambient level.
+    ambient_power_per_irradiance: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------- set-up
@@ -74,14 +78,87 @@ def _materials_table(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return rho_d, rho_s, n_s
 
 
+def content_key(*parts: Any) -> str:
+    """A digest of what ``parts`` hold (numbers, strings, arrays, mappings, sequences,
+    dataclasses and meshes, recursively), not of which Python objects they are: equal content
+    gives equal keys, whatever object identity or dictionary order."""
+    h = hashlib.sha256()
+    for p in parts:
+        _feed(h, p)
+    return h.hexdigest()
+
+
+#: Scene fields that do not change a render (effects and expression parameters are applied
+#: in the scene already).
+_NOT_RENDERED = frozenset({"effects", "params", "source", "text", "name", "description"})
+
+
+def _feed(h: Any, x: Any) -> None:
+    if x is None or isinstance(x, (bool, int, float, complex, str, np.generic)):
+        h.update(f"{type(x).__name__}:{x!r};".encode())
+    elif isinstance(x, np.ndarray):
+        h.update(f"nd:{x.dtype.str}:{x.shape};".encode())
+        h.update(np.ascontiguousarray(x).tobytes() if x.dtype != object else repr(x.tolist()).encode())
+    elif isinstance(x, Mapping):
+        h.update(f"map:{len(x)};".encode())
+        for k in sorted(x, key=repr):
+            _feed(h, k)
+            _feed(h, x[k])
+    elif isinstance(x, (list, tuple)):
+        h.update(f"seq:{len(x)};".encode())
+        for v in x:
+            _feed(h, v)
+    elif dataclasses.is_dataclass(x) and not isinstance(x, type):
+        h.update(f"dc:{type(x).__qualname__};".encode())
+        skip = _NOT_RENDERED if isinstance(x, Scene) else ()
+        for f in dataclasses.fields(x):
+            if f.name not in skip:
+                h.update(f"{f.name}=".encode())
+                _feed(h, getattr(x, f.name))
+    elif hasattr(x, "vertices") and hasattr(x, "faces"):  # a trimesh mesh: its triangles
+        h.update(b"mesh;")
+        _feed(h, np.asarray(x.vertices))
+        _feed(h, np.asarray(x.faces))
+    else:
+        h.update(f"{type(x).__qualname__}:{x!r};".encode())
+
+
+class _LRU:
+    """A small thread-safe least-recently-used map (content key -> value)."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self._items: OrderedDict[str, Any] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: str) -> Any | None:
+        with self._lock:
+            v = self._items.get(key)
+            if v is not None:
+                self._items.move_to_end(key)
+            return v
+
+    def put(self, key: str, value: Any) -> None:
+        with self._lock:
+            self._items[key] = value
+            self._items.move_to_end(key)
+            while len(self._items) > self.size:
+                self._items.popitem(last=False)
+
+
+# Embree scenes and per-pixel view arrays, keyed by content: renders of one scene with a
+# moved camera or other materials (as while fitting) share them.
+_GEOMETRY = _LRU(4)
+_VIEWS = _LRU(4)
+
+
 def scene_geometry(scene: Scene) -> Geometry:
-    """The scene's Embree geometry, cached on the scene while its objects are unchanged."""
-    key = tuple((o.type, repr(o.params), o.pose.tobytes(), id(o.mesh)) for o in scene.objects)
-    cached = scene.__dict__.get("_geometry_cache")
-    if cached is not None and cached[0] == key:
-        return cached[1]
-    geom = Geometry.build(scene)
-    scene.__dict__["_geometry_cache"] = (key, geom)
+    """The scene's Embree geometry (shared by every scene with the same objects)."""
+    key = content_key([(o.type, o.params, o.pose, o.mesh if o.type == "mesh" else None) for o in scene.objects])
+    geom = _GEOMETRY.get(key)
+    if geom is None:
+        geom = Geometry.build(scene)
+        _GEOMETRY.put(key, geom)
     return geom
 
 
@@ -101,18 +178,18 @@ def pixel_area_normalized(camera: CameraModel) -> np.ndarray:
     return np.abs((xu1 - xu0) * (yv1 - yv0) - (xv1 - xv0) * (yu1 - yu0)) / (4 * h * h)
 
 
-def _view_arrays(scene: Scene, camera: CameraModel, pose: np.ndarray) -> dict[str, np.ndarray]:
-    """Per-pixel arrays of a camera at the scene's camera pose, cached on the scene (repeated
-    renders of one view, e.g. while fitting, skip them)."""
-    key = (camera, pose.tobytes())
-    cached = scene.__dict__.get("_view_cache")
-    if cached is not None and cached[0] == key:
-        return cached[1]
+def _view_arrays(camera: CameraModel, pose: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-pixel arrays of a camera at a pose (repeated renders of one view, e.g. while
+    fitting, share them)."""
+    key = content_key(camera, pose)
+    view = _VIEWS.get(key)
+    if view is not None:
+        return view
     rays = camera.rays.reshape(-1, 3)
     world = np.array(_rotate(rays, pose[:3, :3]), dtype=np.float64)  # writable: one kernel type
     view = {"rays": rays, "world": world, "world32": world.astype(np.float32),
             "area": pixel_area_normalized(camera).ravel(), "cos4": rays[:, 2] ** 4}
-    scene.__dict__["_view_cache"] = (key, view)
+    _VIEWS.put(key, view)
     return view
 
 
@@ -155,7 +232,7 @@ class _Context:
         self.aperture_radius_m = self.focal_m / (2 * n_f)
         self.aperture_area_m2 = np.pi * self.aperture_radius_m ** 2
         self.focus_m = scene.focus_distance_m
-        view = _view_arrays(scene, camera, pose)
+        view = _view_arrays(camera, pose)
         # Per-pixel weight without cos^4: A_ap * pixel area (normalised coords) / spp.
         self.pix_weight = (self.aperture_area_m2 / spp) * view["area"]
         self.ambient = scene.ambient_irradiance_w_m2
@@ -258,6 +335,7 @@ class _Context:
         acc_im = np.zeros((2, nk, npix))
         power = np.zeros(npix)
         ambient = np.zeros(npix)
+        ambient_unit = np.zeros(npix)
         edges = self.edges if self.edges is not None else np.zeros(1)
         trans = np.zeros((npix, max(len(edges) - 1, 1)))
         geom = self.geom
@@ -313,9 +391,11 @@ class _Context:
             if m == 0:
                 break
             rho = self.reflectance(obj, x)
-            if bounce == 0 and self.ambient > 0:
-                ambient = np.bincount(local, beta * (rho + self.rho_s[obj]) * (self.ambient / np.pi),
-                                      minlength=npix)
+            if bounce == 0:
+                albedo = beta * (rho + self.rho_s[obj])
+                ambient_unit = np.bincount(local, albedo * (1.0 / np.pi), minlength=npix)
+                if self.ambient > 0:
+                    ambient = np.bincount(local, albedo * (self.ambient / np.pi), minlength=npix)
             if self.cos_n < 0:                       # tabulated beam profile
                 irr = self.emitter.intensity_w_sr(cos_e) * np.maximum(cos_s, 0.0) / (r1 * r1)
             lit = np.flatnonzero(irr > 0)
@@ -346,6 +426,7 @@ class _Context:
             path_in, beta, local, sid = path[keep], beta[keep], local[keep], sid[keep]
 
         out["re"], out["im"], out["power"], out["ambient"] = acc_re, acc_im, power, ambient
+        out["ambient_unit"] = ambient_unit
         out["rays"] = np.array(rays)
         if self.edges is not None:
             out["transient"] = trans
@@ -433,6 +514,7 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     acc_im = np.zeros((2, nk, npix_total))
     power = np.zeros(npix_total)
     ambient = np.zeros(npix_total)
+    ambient_unit = np.zeros(npix_total)
     radial = np.full(npix_total, np.inf)
     oid = np.full(npix_total, -1, dtype=np.int32)
     trans = None if edges is None else np.zeros((npix_total, len(edges) - 1))
@@ -445,6 +527,7 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
         power[p0:p1] = r["power"]
         ray_count[0] += int(r["rays"])
         ambient[p0:p1] = r["ambient"]
+        ambient_unit[p0:p1] = r["ambient_unit"]
         radial[p0:p1] = r["radial"]
         oid[p0:p1] = r["object_id"]
         if trans is not None:
@@ -483,10 +566,4 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
         phasor_indirect=indirect if separate_direct else None,
         transient=None if trans is None else np.ascontiguousarray(trans.T.reshape(-1, H, W)),
         transient_edges_m=edges, camera=cam, samples_per_pixel=spp, bounces=nb,
-        rays_traced=ray_count[0])
-
-
-def radial_from_phasor(phasor: np.ndarray, freq_hz: float) -> np.ndarray:
-    """Wrapped radial distance ``d = c phi / (4 pi f)`` of a co-located camera/emitter phasor."""
-    phi = np.mod(np.angle(phasor), 2 * np.pi)
-    return phi * C_M_PER_S / (4 * math.pi * freq_hz)
+        rays_traced=ray_count[0], ambient_power_per_irradiance=ambient_unit.reshape(H, W))

@@ -254,13 +254,6 @@ class Scene:
         if not isinstance(self.render, RenderSettings):
             self.render = RenderSettings.from_dict(self.render, source=self.source)
 
-    def __getstate__(self) -> dict[str, Any]:
-        # Copies and pickles leave out the renderer's cached Embree scene (not copyable).
-        state = self.__dict__.copy()
-        state.pop("_geometry_cache", None)
-        state.pop("_view_cache", None)
-        return state
-
     @property
     def radiometric_f_number(self) -> float:
         """The f-number used in the camera equation (``DEFAULT_F_NUMBER`` if none is given)."""

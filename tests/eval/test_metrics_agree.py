@@ -49,7 +49,8 @@ def test_compare_and_diagnose_give_the_same_depth_rmse(pair):
     region = m["variants"]["measured"]["regions"][f"mask_{HELD_OUT_MASK[:-4]}"]
     assert region["depth_residual_m"]["n"] == before.depth_residual_m.n  # the same pixels
     assert region["depth_rmse_m"] == pytest.approx(before.depth_rmse_m, rel=1e-6)
-    assert region["depth_residual_m"]["median"] == pytest.approx(before.depth_residual_m.median, rel=1e-6)
+    # the median is one pixel's value: float32 demodulation resolves its phase to ~1e-7 rad, ~1e-7 m
+    assert region["depth_residual_m"]["median"] == pytest.approx(before.depth_residual_m.median, abs=1e-6)
     # one name for the figure in both outputs
     assert m["depth_rmse_definition"] == DEPTH_RMSE
     assert json.loads((d / "diag" / "diagnosis.json").read_text())["depth_rmse_definition"].startswith(DEPTH_RMSE)

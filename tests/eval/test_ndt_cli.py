@@ -59,7 +59,7 @@ def test_session_frames_and_text(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args,msg", [
-    (["missing.pcd", "{cloud}"], "missing.pcd: does not exist"),
+    (["missing.pcd", "{cloud}"], "missing.pcd: no such file"),
     (["{ref}", "{cloud}", "--cell-size", "-1"], "--cell-size"),
     (["{ref}", "{cloud}", "--outlier-ratio", "1.5"], "--outlier-ratio"),
     (["{ref}", "{cloud}", "--threshold", "2"], "--threshold"),

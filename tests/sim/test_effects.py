@@ -325,3 +325,17 @@ def test_enabled_false_switches_an_effect_off_and_defaults_fill_in() -> None:
     assert "wiggling" not in eff
     assert eff["stray_light"]["weight"] == EFFECTS["stray_light"].params["weight"].default
     assert list(eff) == ["stray_light", "range_offset"]  # forward-model order
+
+
+def test_docs_table_of_effects_is_the_registry() -> None:
+    """docs/effects.md's table is generated from the registry (tools/effects_table.py)."""
+    from pathlib import Path
+
+    from tofhil.sim.effects import effects_table_markdown
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "effects.md").read_text()
+    begin = text.index("\n", text.index("<!-- effects-table:")) + 1
+    table = text[begin:text.index("<!-- end effects-table -->")]
+    assert table == effects_table_markdown(), "run: python tools/effects_table.py"
+    for name in ORDER:
+        assert f"| `{name}` |" in table

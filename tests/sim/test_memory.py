@@ -15,7 +15,8 @@ from tofhil.sim.memory import AVAILABLE_FRACTION, MemoryEstimate, check_memory, 
 MEASURE = textwrap.dedent("""
     import json, resource, tracemalloc
     from tofhil.sim.memory import render_memory
-    from tofhil.sim.pipeline import render_arguments, simulate
+    from tofhil.sim.pipeline import simulate
+    from tofhil.sim.twin import render_arguments
     from tofhil.sim.scene import load_scene
 
     w, h, frames = 320, 240, 3

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from tofhil.camera import CameraModel
-from tofhil.sim.render import pixel_area_normalized, radial_from_phasor, render
+from tofhil.demod import phase_to_distance, wrapped_phase
+from tofhil.sim.render import pixel_area_normalized, render
 from tofhil.sim.scene import load_scene, scene_from_dict
 
 F_HZ = 44.0e6
@@ -79,7 +80,7 @@ def test_subpixel_sampling_mixes_a_depth_edge_by_area() -> None:
     mixed = res.phasor[0, 0, 2, 11]
     expect = 0.5 * only_wall.phasor[0, 0, 2, 11] + 0.5 * only_card.phasor[0, 0, 2, 11]
     assert abs(mixed / expect - 1) < 0.01
-    d = radial_from_phasor(mixed, F_HZ)
+    d = phase_to_distance(wrapped_phase(mixed), F_HZ)
     assert 0.5 < d < 1.0                                         # a flying pixel between the surfaces
     assert res.object_id[2, 10] == 0 and res.object_id[2, 12] == 1
 
@@ -171,7 +172,7 @@ def test_distorted_camera_gives_exact_ranges_and_pixel_solid_angles() -> None:
     scene = scene_from_dict(scene_dict([wall(1.0)], camera=cam_d))
     res = render(scene)
     truth = 1.0 / scene.camera.ray_z
-    assert np.abs(radial_from_phasor(res.phasor[0, 0], F_HZ) - truth).max() < 1e-4
+    assert np.abs(phase_to_distance(wrapped_phase(res.phasor[0, 0]), F_HZ) - truth).max() < 1e-4
     # Pixel area in normalised coordinates: compare with the shoelace area of the undistorted corners.
     cam = scene.camera
     v, u = 8.0, 20.0

@@ -72,7 +72,7 @@ def _three_views(scene, base_scene, path: Path):
         recorded = SensorConfig.from_dict(s.sensor_config, source=path)
         twin_side = s.acquisition()
         data = split_session(s)
-    rerender = TwinModel(base_scene, data).sensor.config
+    rerender = TwinModel(base_scene, data).twin.config  # what the forward model renders and exposes with
     assert session_scene(base_scene, data).sensor == rerender
     return recorded, twin_side, rerender
 
@@ -133,7 +133,7 @@ def test_capture_without_recorded_config_takes_session_settings_and_the_rest_fro
         assert s.sensor_config is None
         data = split_session(s)
     model = TwinModel(base, data)
-    cfg = model.sensor.config
+    cfg = model.twin.config
     assert cfg.freq_hz == (25e6,) and cfg.integration_time_s == 3e-4     # from the session
     assert cfg.wavelength_m == 905e-9                                   # from the scene
     assert not model.setup.recorded and "wavelength_m" in model.setup.from_scene

@@ -1,0 +1,245 @@
+"""The twin's forward model: effect values -> render (cached) -> light on the sensor -> taps.
+
+A :class:`Twin` is a scene with its resolved sensor configuration and a base effect set (the
+scene's ``effects:`` block, or the one given). It predicts the noise-free taps, or noisy
+frames, for any effect set; ``simulate`` and ``diagnose`` both go through it, so a frame
+simulated and a frame predicted while fitting come from one model.
+
+Each effect acts through the hook of its stage (``tofhil.sim.effects.STAGE_HOOKS``):
+
+- scene stage: changes what is rendered. Renders are cached by content (a digest of the
+  scene, of the scene-stage effect values rendered in and of the renderer's arguments, not
+  of Python object identity; :func:`render_key` digests a scene after its effects). An effect whose change is exactly a rescaling of a render
+  (reflectance, ambient) is applied to the cached render of the base values instead
+  (``Effect.rescale_render``); when that is not exact it is rendered in.
+- render stage: recombines a render's parts (multipath: direct + scale * indirect).
+- signal and pixel stages: act on the light on the sensor in milliseconds.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+
+from tofhil.frames import RawFrame
+from tofhil.progress import Progress
+from tofhil.sim.effects import (EFFECTS, ORDER, Effect, EffectContext, WigglingEffect, apply_scene_effects,
+                                apply_signal_effects, effects_by_stage, parse_effects, render_requirements)
+from tofhil.sim.memory import check_memory, render_memory
+from tofhil.sim.render import content_key
+from tofhil.sim.sensor import OpticalSignal, SensorConfig, SensorModel, waveform_from_scene
+
+Effects = Mapping[str, Mapping[str, Any]]
+
+
+def render_arguments(scene: Any, effects: Effects, render_kwargs: Mapping[str, Any] | None = None,
+                     *, freq_hz: Iterable[float] | None = None) -> dict[str, Any]:
+    """Arguments for ``render``: the sensor's frequencies, the harmonics the waveform and the
+    wiggling effect need, and what render-stage effects require (separate direct/indirect and
+    a 0 Hz channel carrying the direct power for the multipath effect)."""
+    if freq_hz is None:
+        from tofhil.sim.pipeline import sensor_config
+
+        freq_hz = sensor_config(scene).freq_hz
+    harm = set(waveform_from_scene(scene)) | {1}
+    if "wiggling" in effects:
+        harm |= set(WigglingEffect.harmonics(effects["wiggling"]))
+    kw: dict[str, Any] = {"freq_hz": [float(f) for f in freq_hz], "harmonics": tuple(sorted(harm))}
+    req = render_requirements(effects, scene)
+    if req.get("separate_direct"):
+        kw["freq_hz"] = kw["freq_hz"] + [0.0]
+    kw.update(req)
+    kw.update(dict(render_kwargs or {}))
+    return kw
+
+
+def render_key(scene: Any, render_args: Mapping[str, Any]) -> str:
+    """What determines a render: the scene's geometry, materials, camera, pose, emitter,
+    ambient light and render settings (after scene-stage effects) and the renderer's
+    arguments (frequencies, harmonics, bounces, ...)."""
+    return content_key(scene, {k: v for k, v in render_args.items() if k != "progress"})
+
+
+def effect_context(scene: Any, camera: Any, config: SensorConfig) -> EffectContext:
+    src = str(getattr(scene, "source", "<scene>"))
+    base = Path(src).parent if Path(src).is_file() else None
+    return EffectContext(camera=camera, sensor=config, source=src, base_dir=base)
+
+
+def signal_from_render(scene: Any, result: Any, effects: Effects, config: SensorConfig) -> OpticalSignal:
+    """Light on the sensor from a render (scene-stage effects already in it): the render-stage
+    hook recombines the render (or the render is taken as it is), then the signal- and
+    pixel-stage hooks in forward-model order."""
+    camera = getattr(result, "camera", None) or scene.camera
+    waveform = waveform_from_scene(scene)
+    render_stage = effects_by_stage(effects, "render")
+    if len(render_stage) > 1:  # each hook builds the signal from the render: they do not compose
+        raise ValueError("at most one render-stage effect: " + ", ".join(e.name for e, _ in render_stage))
+    if render_stage:
+        eff, values = render_stage[0]
+        signal = eff.apply_render(result, values, waveform)
+    else:
+        signal = OpticalSignal.from_render(result, waveform)
+    return apply_signal_effects(signal, effects, effect_context(scene, camera, config))
+
+
+class Twin:
+    """A scene, its resolved sensor configuration and a base effect set: the forward model.
+
+    ``sensor`` defaults to the scene's interpreted ``sensor:`` block; ``effects`` (the base
+    effect set, what the scene models) to its ``effects:`` block. ``render_kwargs`` are
+    passed to every render (e.g. harmonics to compute explicitly). Renders are kept in a
+    least-recently-used cache of ``cache_size`` entries keyed by content; the scene is
+    treated as immutable (derive changed scenes with ``dataclasses.replace``).
+    """
+
+    def __init__(self, scene: Any, *, sensor: SensorConfig | None = None, effects: Mapping[str, Any] | None = None,
+                 render_kwargs: Mapping[str, Any] | None = None, cache_size: int = 8,
+                 progress: Progress | None = None, frames_kept: int = 0) -> None:
+        from tofhil.sim.pipeline import resolve_effects, sensor_config
+
+        self.scene = scene
+        self.config = sensor if sensor is not None else sensor_config(scene)
+        self.base_effects = resolve_effects(scene, effects)
+        self.render_kwargs = dict(render_kwargs or {})
+        self.progress = progress
+        self.frames_kept = frames_kept  # frames a caller holds at once (for the memory check)
+        self.cache_size = cache_size
+        self._renders: OrderedDict[str, tuple[Any, Any]] = OrderedDict()
+        self._sensors: dict[Any, SensorModel] = {}
+        self.renders = 0  # renders traced (cache misses)
+        self._base_render_bounces = int(scene.render.bounces)
+        # The scene's content is hashed once (scenes are not changed in place): a render's key
+        # is this digest, the scene-stage effect values rendered in, and the render arguments.
+        self._scene_key = content_key(scene)
+
+    # ------------------------------------------------------------------ effect sets
+    def effects(self, overrides: Mapping[str, Mapping[str, Any]] | None = None) -> dict[str, dict[str, Any]]:
+        """The base effect set with some effects' parameters overridden (validated): what
+        diagnosis predicts while fitting.
+
+        An effect the base lacks starts from its off values, not its "switched on" defaults:
+        parameters not overridden change nothing. The indirect light is made explicit: a scene
+        that renders bounces gets ``multipath`` at scale 1, and overriding ``multipath`` asks
+        for a render with separate direct and indirect light (at least 2 bounces)."""
+        overrides = overrides or {}
+        eff: dict[str, dict[str, Any]] = {k: dict(v) for k, v in self.base_effects.items()}
+        for name, values in overrides.items():
+            merged = dict(eff.get(name) or EFFECTS[name].off_values())
+            merged.update(values)
+            eff[name] = merged
+        bounces = self._base_render_bounces
+        if "multipath" in overrides or bounces > 0:
+            if "multipath" not in eff:
+                eff["multipath"] = {"scale": 1.0 if bounces > 0 else 0.0}
+            eff["multipath"].setdefault("bounces", max(2, bounces))
+        return parse_effects(eff, source=getattr(self.scene, "source", "<scene>"))
+
+    def current_value(self, effect: str, param: str) -> float:
+        """A parameter's value in the base effect set: what the scene models (a scene that
+        renders indirect light has multipath at scale 1), else the parameter's off value."""
+        base = self.base_effects.get(effect)
+        if base is not None and param in base:
+            return float(base[param])
+        if effect == "multipath" and param == "scale":
+            return 1.0 if self._base_render_bounces > 0 else 0.0
+        return EFFECTS[effect].params[param].off
+
+    def _resolve(self, effects: Effects | None) -> Effects:
+        """The base set for None, else the given set validated (parameters not given take
+        their defaults, as in a scene file)."""
+        if effects is None:
+            return self.base_effects
+        return parse_effects(effects, source=getattr(self.scene, "source", "<scene>"))
+
+    # ------------------------------------------------------------------ render (cached)
+    def render(self, effects: Effects | None = None) -> tuple[Any, Any]:
+        """``(scene with the rendered scene-stage effects, RenderResult)`` for an effect set
+        (default the base set). A scene-stage effect with a fast path (``rescale_render``)
+        whose values differ from the base's is applied to the cached render of the base
+        values; when that is not exact, or for the other scene-stage effects, the values are
+        rendered in."""
+        eff = self._resolve(effects)
+        rendered: dict[str, Mapping[str, Any]] = {}
+        rescaled: list[tuple[Effect, Mapping[str, Any], Mapping[str, Any]]] = []
+        for name in ORDER:
+            e = EFFECTS[name]
+            if e.stage != "scene" or (name not in eff and name not in self.base_effects):
+                continue
+            target = eff.get(name) or e.off_values()
+            base = self.base_effects.get(name) or e.off_values()
+            if target != base and type(e).rescale_render is not Effect.rescale_render:
+                rescaled.append((e, target, base))
+                if name in self.base_effects:
+                    rendered[name] = base
+            elif name in eff:
+                rendered[name] = target
+        if rescaled:
+            scene2, result = self._cached_render(rendered, eff)
+            for e, target, base in rescaled:
+                result = e.rescale_render(result, target, base, scene2)
+                if result is None:
+                    break
+            else:
+                return scene2, result
+            rendered = {name: eff[name] for name in ORDER if name in eff and EFFECTS[name].stage == "scene"}
+        return self._cached_render(rendered, eff)
+
+    def _cached_render(self, scene_effects: Effects, effects: Effects) -> tuple[Any, Any]:
+        from tofhil.sim.render import render
+
+        scene2 = apply_scene_effects(self.scene, scene_effects)
+        args = render_arguments(scene2, effects, self.render_kwargs, freq_hz=self.config.freq_hz)
+        key = content_key(self._scene_key, scene_effects, args)
+        hit = self._renders.get(key)
+        if hit is not None:
+            self._renders.move_to_end(key)
+            return hit
+        # Refuse, before anything is allocated, a job whose estimated memory (the render, the
+        # sensor and the frames held at once) exceeds what the machine has.
+        signal_effects = any(EFFECTS[n].stage in ("signal", "pixel") for n in effects)
+        check_memory(render_memory(scene2, args, frames_kept=self.frames_kept, signal_effects=signal_effects),
+                     source=str(getattr(scene2, "source", "")) or None)
+        result = render(scene2, progress=self.progress, **args)
+        self.renders += 1
+        self._renders[key] = (scene2, result)
+        while len(self._renders) > self.cache_size:
+            self._renders.popitem(last=False)
+        return scene2, result
+
+    # ------------------------------------------------------------------ light and taps
+    def signal(self, effects: Effects | None = None) -> OpticalSignal:
+        """Light on the sensor for an effect set (default the base set; a given set replaces
+        it, see :meth:`effects` for the base set with some parameters changed)."""
+        eff = self._resolve(effects)
+        scene2, result = self.render(eff)
+        return signal_from_render(scene2, result, eff, self.config)
+
+    def sensor(self, camera: Any | None = None) -> SensorModel:
+        """The sensor model for a camera (default the scene's); its fixed pattern is drawn once."""
+        camera = self.scene.camera if camera is None else camera
+        model = self._sensors.get(camera)
+        if model is None:
+            model = self._sensors[camera] = SensorModel(self.config, camera)
+        return model
+
+    def expected_taps(self, effects: Effects | None = None) -> np.ndarray:
+        """Noise-free taps in DN ``[F, K, H, W]`` (float32, as in a frame)."""
+        return self.sensor().taps_dn(self.signal(effects), noise=False)
+
+    def frames(self, effects: Effects | None = None, frames: int = 1, *, seed: int = 0, noise: bool = True,
+               meta: Mapping[str, Any] | None = None, first_index: int = 0) -> Iterable[RawFrame]:
+        """``frames`` raw frames of one (fixed) light with independent noise per frame. The
+        frames carry the camera the render used (a lens_distortion effect shows in it)."""
+        eff = self._resolve(effects)
+        scene2, result = self.render(eff)
+        signal = signal_from_render(scene2, result, eff, self.config)
+        sensor = self.sensor(getattr(result, "camera", None) or scene2.camera)
+        for i in range(first_index, first_index + frames):
+            yield sensor.expose(signal, seed=seed, frame_index=i, noise=noise, meta=dict(meta or {}))
+
+
+__all__ = ["Twin", "effect_context", "render_arguments", "render_key", "signal_from_render"]

@@ -1,0 +1,42 @@
+"""What diagnosis fits comes from one table: the effect library's Param fields."""
+
+from __future__ import annotations
+
+import math
+
+from tofhil.eval.twin_model import fit_library, to_effect_values
+from tofhil.sim.effects import EFFECTS, ORDER
+
+
+def test_fit_library_is_read_from_the_params() -> None:
+    lib = fit_library()
+    assert list(lib) == list(ORDER)
+    for name, spec in lib.items():
+        fitted = {k: p for k, p in EFFECTS[name].params.items() if p.fitted}
+        assert [fp.name.removeprefix("log10_") for fp in spec.params] == list(fitted)
+        for fp in spec.params:
+            p = fitted[fp.name.removeprefix("log10_")]
+            assert (fp.lo, fp.hi, fp.scale) == (p.fit[0], p.fit[1], p.step)
+            assert fp.name.startswith("log10_") == p.log
+            assert fp.off == (math.log10(p.off) if p.log else p.off)
+            assert fp.lo <= fp.off <= fp.hi  # "off" is inside the range searched
+        for start in spec.starts:  # every start names fitted parameters, inside their ranges
+            for k, v in start.items():
+                fp = next(f for f in spec.params if f.name == k)
+                assert fp.lo <= v <= fp.hi, (name, k, v)
+
+
+def test_multi_starts_vary_one_parameter_at_a_time() -> None:
+    stray = fit_library()["stray_light"].starts
+    assert {"weight": 0.02, "sigma_px": 15.0} in stray
+    assert {"weight": 0.02, "sigma_px": 4.0} in stray and {"weight": 0.02, "sigma_px": 50.0} in stray
+    amp = fit_library()["amplitude_dependent"].starts
+    assert {"error_m": -0.02, "log10_amplitude_e": 3.0} in amp
+    assert fit_library(extra_starts={"pose": [{"tz": 0.01}]})["pose"].starts == ({"tz": 0.01},)
+
+
+def test_current_values_and_log_scale_round_trip() -> None:
+    lib = fit_library(lambda effect, param: 2500.0 if param == "amplitude_e" else EFFECTS[effect].params[param].off)
+    (fp,) = [f for f in lib["amplitude_dependent"].params if f.name == "log10_amplitude_e"]
+    assert math.isclose(fp.off, math.log10(2500.0))
+    assert math.isclose(to_effect_values("amplitude_dependent", {"log10_amplitude_e": fp.off})["amplitude_e"], 2500.0)
