@@ -1,7 +1,7 @@
 """The pyusb TOFcam635 driver, run unchanged against the in-process emulator backend.
 
 Physics is checked against closed forms of the analytic wall (radial distance z / ray_z,
-amplitude A1 ray_z / d^2 scaled with exposure, phase wrap at c / 2f), and the tap
+amplitude A1 cos^6(alpha) / d^2 (the twin's plane radiometry) scaled with exposure, phase wrap at c / 2f), and the tap
 convention against the vendor's own phase formula on the raw device DCS."""
 
 from __future__ import annotations
@@ -42,7 +42,8 @@ def test_dcs_frames_are_canonical_taps_of_the_wall() -> None:
         depth = depth_from_raw(raw)
         # DCS are integers: phase error <= 0.5 DN / A ~ 3e-4 rad ~ 0.2 mm at 20 MHz
         np.testing.assert_allclose(depth.radial_m, d_true, atol=2e-3)
-        a_true = 600.0 * 4 * raw.camera.ray_z / d_true**2  # 500 us = 4 x the reference exposure
+        rz = raw.camera.ray_z  # cos^1 beam, cos incidence, cos^4 lens, 1/d^2; 500 us = 4 x the reference
+        a_true = 600.0 * 4 * rz * rz * rz ** 4 / d_true**2
         np.testing.assert_allclose(np.abs(phasor(raw.taps[0], raw.theta_rad)), a_true, rtol=0.01, atol=1.0)
         # differential DCS: the offset (ambient + signal) cancels
         assert abs(float(raw.taps.mean())) < 1.0
@@ -81,7 +82,8 @@ def test_distance_mode_reports_metres_and_low_amplitude_codes() -> None:
         dev.configure(CaptureSettings(mode="distance", integration_time_s=250e-6, mod_freq_hz=20e6))
         cam = dev.camera
         d_true = 1.5 / cam.ray_z
-        a_true = 600.0 * 2 * cam.ray_z / d_true**2
+        # The twin's radiometry of a wall (cos^1 beam, cos incidence, 1/d^2, cos^4 lens), x2 exposure.
+        a_true = 600.0 * 2 * cam.ray_z * cam.ray_z * cam.ray_z ** 4 / d_true**2
         limit = float(np.percentile(a_true, 30))  # the dimmer (outer) 30 % of the wall falls below
         dev.configure(min_amplitude=limit)
         depth = next(dev.stream(1)).depth
