@@ -60,7 +60,8 @@ def test_tap_convention_matches_the_vendor_phase_formula() -> None:
         assert raw is not None
         ours = depth_from_raw(raw).radial_m
         np.testing.assert_allclose(ours, vendor_m, atol=2e-3)
-        np.testing.assert_allclose(ours, 2.3 / raw.camera.ray_z, atol=3e-3)
+        # dim corners at 2.3 m (cos^8 falloff): integer DCS give up to ~0.5 DN / A rad there
+        np.testing.assert_allclose(ours, 2.3 / raw.camera.ray_z, atol=4e-3)
 
 
 @pytest.mark.parametrize("freq_hz", [20e6, 10e6])
@@ -90,7 +91,8 @@ def test_distance_mode_reports_metres_and_low_amplitude_codes() -> None:
         assert depth is not None and depth.kind == "radial"
         clear = np.abs(a_true - limit) > 3.0  # away from the threshold, the mask is exact
         np.testing.assert_array_equal(depth.valid[clear], (a_true >= limit)[clear])
-        np.testing.assert_allclose(depth.radial_m[depth.valid], d_true[depth.valid], atol=2e-3)  # mm codes
+        # mm codes, plus the integer DCS's ~0.5 DN / A rad on the dimmer valid pixels
+        np.testing.assert_allclose(depth.radial_m[depth.valid], d_true[depth.valid], atol=3e-3)
         assert np.all(np.isnan(depth.radial_m[~depth.valid]))
         np.testing.assert_allclose(depth.amplitude[depth.valid], a_true[depth.valid], rtol=0.01, atol=1.5)
         assert depth.meta["invalid_codes"]["low_amplitude"] == int(np.count_nonzero(~depth.valid))
