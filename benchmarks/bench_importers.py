@@ -1,6 +1,6 @@
 """Importer and DepthAI-driver benchmark (ratios against baselines measured in the same run).
 
-1. Azure Kinect MKV: index the file and decode a depth + IR frame with our EBML reader,
+1. Azure Kinect MKV: index the file and decode a depth + IR frame with PyAV (FFmpeg's demuxer),
    against reading the same number of bytes with ``np.fromfile`` (the I/O floor).
 2. ADI interleaved decode (one structured numpy view) against a per-pixel ``struct``
    loop over the same bytes (the obvious pure-Python decoder), on a 64-row strip.

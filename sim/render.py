@@ -36,10 +36,9 @@ from tofhil.errors import TofhilError
 from tofhil.progress import Progress, no_progress
 from tofhil.sim import kernels
 from tofhil.sim.geometry import BATCH, RAY_EPSILON_M, Geometry, WorkerPool
+from tofhil.sim.radiometry import DEFAULT_PIXEL_PITCH_M, aperture_area_m2, pixel_area_normalized
 from tofhil.sim.scene import Scene
 
-#: Pixel pitch assumed for the camera equation when the camera model gives none (m).
-DEFAULT_PIXEL_PITCH_M = 10e-6
 
 
 @dataclass
@@ -162,22 +161,6 @@ def scene_geometry(scene: Scene) -> Geometry:
     return geom
 
 
-def pixel_area_normalized(camera: CameraModel) -> np.ndarray:
-    """|det d(x, y)/d(u, v)| per pixel: the pixel's area in undistorted normalised coordinates.
-
-    The pixel's solid angle is ``cos^3(alpha)`` times this; ``1/(fx fy)`` without distortion.
-    """
-    if not camera.has_distortion:
-        return np.full(camera.shape, 1.0 / (camera.fx * camera.fy))
-    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
-    h = 0.5
-    xu1, yu1 = camera.undistort_normalized(u + h, v)
-    xu0, yu0 = camera.undistort_normalized(u - h, v)
-    xv1, yv1 = camera.undistort_normalized(u, v + h)
-    xv0, yv0 = camera.undistort_normalized(u, v - h)
-    return np.abs((xu1 - xu0) * (yv1 - yv0) - (xv1 - xv0) * (yu1 - yu0)) / (4 * h * h)
-
-
 def _view_arrays(camera: CameraModel, pose: np.ndarray) -> dict[str, np.ndarray]:
     """Per-pixel arrays of a camera at a pose (repeated renders of one view, e.g. while
     fitting, share them)."""
@@ -230,7 +213,7 @@ class _Context:
         self.focal_m = camera.fx * pitch
         n_f = scene.radiometric_f_number
         self.aperture_radius_m = self.focal_m / (2 * n_f)
-        self.aperture_area_m2 = np.pi * self.aperture_radius_m ** 2
+        self.aperture_area_m2 = aperture_area_m2(camera, n_f)
         self.focus_m = scene.focus_distance_m
         view = _view_arrays(camera, pose)
         # Per-pixel weight without cos^4: A_ap * pixel area (normalised coords) / spp.

@@ -34,7 +34,6 @@ name or file, see :class:`TwinScene`).
 
 from __future__ import annotations
 
-import math
 import os
 import threading
 import time
@@ -47,6 +46,7 @@ from tofhil.camera import CameraModel, load_camera_preset
 from tofhil.demod import distance_to_phase
 from tofhil.drivers.base import (CaptureSettings, DeviceDisconnected, DeviceEntry, DeviceError, DeviceInfo,
                                  Driver, Frame, FrameDropped, register_driver)
+from tofhil.errors import TofhilError
 from tofhil.frames import DepthFrame
 
 OUTPUTS = ("depth", "amplitude", "intensity", "phase", "raw")
@@ -213,12 +213,13 @@ class SequencePairer:
 # --------------------------------------------------------------------------- host source
 @dataclass
 class PlaneScene:
-    """What the host source renders: a Lambertian plane seen by a co-located emitter.
+    """What the host source renders: a Lambertian plane seen by a co-located emitter, with the
+    twin's radiometry (:func:`tofhil.sim.radiometry.plane_view`).
 
     The plane is ``n . X = distance_m`` in the camera frame, its normal tilted by
     ``tilt_deg`` about the camera's x axis. Per pixel with unit ray ``r``: radial distance
-    ``d = distance_m / (n . r)``; amplitude (counts) ``= k * albedo * cos(incidence) *
-    cos^4(off-axis angle) / d^2`` (irradiance from an isotropic emitter, Lambertian
+    ``d = distance_m / (n . r)``; amplitude (counts) ``= k * albedo * p(theta) * cos(incidence) *
+    cos^4(off-axis angle) / d^2`` (the emitter's ``cos^n`` beam, inverse square, Lambertian
     reflection, the lens's cos^4 law), ``k`` = ``amplitude_at_1m``; intensity = amplitude
     + ``ambient``; phase = ``2*pi*f*(2d)/c`` wrapped at the 80 MHz base frequency.
     """
@@ -228,6 +229,8 @@ class PlaneScene:
     albedo: float = 0.8
     amplitude_at_1m: float = 2000.0
     ambient: float = 50.0
+    #: The emitter's beam ``p(theta) = cos^n`` (the twin's default n = 1).
+    profile_cos_n: float = 1.0
     fps: float = 30.0
     #: Fault injection for tests: sequence numbers whose ``amplitude`` message is not sent.
     drop_amplitude_of: tuple[int, ...] = ()
@@ -240,15 +243,17 @@ class PlaneScene:
         return [self.render(camera)]
 
     def render(self, camera: CameraModel) -> dict[str, np.ndarray]:
-        t = math.radians(self.tilt_deg)
-        n = np.array([0.0, math.sin(t), math.cos(t)])
-        rays = camera.rays
-        cos_inc = rays @ n
-        if np.any(cos_inc <= 0):
+        from tofhil.sim.radiometry import Plane, plane_relative_amplitude, plane_view
+        from tofhil.sim.scene import BeamProfile
+
+        plane = Plane.tilted(self.distance_m, self.tilt_deg, self.albedo)
+        profile = BeamProfile("cos_n", n=self.profile_cos_n)
+        try:
+            d = plane_view(camera, plane, power_w=1.0, profile=profile).radial_m
+        except TofhilError:
             raise DeviceError("the plane does not cover the field of view", field="tilt_deg",
-                              expected="a tilt smaller than 90 deg minus half the field of view")
-        d = self.distance_m / cos_inc
-        amp = self.amplitude_at_1m * self.albedo * cos_inc * camera.ray_z ** 4 / d ** 2
+                              expected="a tilt smaller than 90 deg minus half the field of view") from None
+        amp = self.amplitude_at_1m * plane_relative_amplitude(camera, plane, profile)
         phase = distance_to_phase(d, BASE_FREQ_HZ)
         return {"radial_m": d, "z_m": d * camera.ray_z, "amplitude": amp, "intensity": amp + self.ambient,
                 "phase": phase}

@@ -311,8 +311,8 @@ def _read(mkv: MatroskaFile, path: Path, max_frames: int | None, salvage: bool) 
         raise InputFileError("has no track named DEPTH", file=path, field="Tracks.TrackEntry.Name",
                              expected="an Azure Kinect recording with a depth track")
     if depth_t.fourcc != "b16g":
-        raise InputFileError(f"depth codec is {depth_t.codec_id} {depth_t.fourcc!r}", file=path,
-                             field="DEPTH.CodecPrivate", expected="V_MS/VFW/FOURCC 'b16g' (uint16 big-endian)")
+        raise InputFileError(f"depth codec is {depth_t.codec_id or 'unknown'} {depth_t.fourcc!r}", file=path,
+                             field="DEPTH.CodecPrivate", expected="raw video, fourcc 'b16g' (uint16 big-endian)")
     ir_t = mkv.track_by_name("IR")
     if ir_t is not None and ir_t.fourcc != "b16g":
         ir_t = None  # passive/other IR encodings are not amplitude; leave it out
@@ -339,13 +339,13 @@ def _read(mkv: MatroskaFile, path: Path, max_frames: int | None, salvage: bool) 
     except ValueError:
         raise InputFileError(f"is {tags.get('K4A_START_OFFSET_NS')!r}", file=path, field="K4A_START_OFFSET_NS",
                              expected="an integer number of nanoseconds") from None
-    ir_by_time = {b.timecode: b for b in mkv.frames(ir_t)} if ir_t is not None else {}
+    ir_by_time = {b.pts: b for b in mkv.frames(ir_t)} if ir_t is not None else {}
     refs = []
     for blk in mkv.frames(depth_t):
         if max_frames is not None and len(refs) >= max_frames:
             break
         # Block times are device times minus the recording's start offset.
-        refs.append((mkv.time_s(blk) + offset_s, blk, ir_by_time.get(blk.timecode)))
+        refs.append((blk.time_s + offset_s, blk, ir_by_time.get(blk.pts)))
     if not refs:
         raise InputFileError("has no complete depth frame", file=path, field="DEPTH",
                              expected="at least one depth block")

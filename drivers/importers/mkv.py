@@ -1,108 +1,107 @@
-"""A small Matroska (EBML) reader: tracks, tags, attachments and the frames of video tracks.
+"""Matroska (.mkv) files through PyAV (FFmpeg's demuxer): tracks, tags, attachments, packets.
 
-Enough of Matroska to read recordings written by the Azure Kinect recorder (k4arecord,
-libmatroska) and similar raw-video files; it is not a general demuxer. Elements are
-walked with offsets into a memory map of the file, so a multi-gigabyte recording is not
-read into memory; a frame's payload is sliced out only when it is asked for.
+FFmpeg parses the container (EBML, lacing, open-ended clusters, cues); this module turns what
+it reports into tofhil's terms and its failures into one :class:`InputFileError` naming the
+file:
 
-Why our own reader: OpenCV's VideoCapture cannot decode 16-bit ``b16g`` tracks, and the
-pure-Python EBML packages on PyPI either parse metadata only (``enzyme``) or need schema
-files and do not split Matroska blocks (``ebmlite``). Matroska's block layout is small
-(https://www.matroska.org/technical/basics.html), so we read it directly.
+* a file FFmpeg's Matroska demuxer cannot open is refused with FFmpeg's reason (an unknown
+  EBML DocType, which FFmpeg only warns about, is refused too);
+* a file that ends inside an element (a recording cut short) opens with ``truncated`` set and
+  ``truncation`` holding FFmpeg's own message; FFmpeg returns complete blocks only, so what
+  :meth:`MatroskaFile.frames` lists is whole (the caller decides whether to salvage it).
 
-Errors name the file, the element (field) and what was expected.
+FFmpeg reports damage only through its log (``av_read_frame`` ends with EOF either way), so
+warnings and errors are captured while the file is opened and indexed (and not printed).
+
+Opening the file indexes every packet (stream, time, size, byte position) in one demux pass
+and keeps the payloads of the first ``HOLD_BYTES`` (a short recording whole, the first frames of
+a long one); :meth:`MatroskaFile.payload` demuxes any other packet again, continuing the current
+pass when frames are read in file order and seeking (Cues) otherwise, so a multi-gigabyte
+recording is never held in memory.
 """
 
 from __future__ import annotations
 
-import mmap
-import os
+import math
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
+
+import av
+import av.logging
 
 from tofhil.errors import InputFileError
 
-# Element ids (Matroska specification, ids include their length-marker bits).
-EBML = 0x1A45DFA3
-DOC_TYPE = 0x4282
-SEGMENT = 0x18538067
-INFO = 0x1549A966
-TIMECODE_SCALE = 0x2AD7B1
-TRACKS = 0x1654AE6B
-TRACK_ENTRY = 0xAE
-TRACK_NUMBER = 0xD7
-TRACK_UID = 0x73C5
-TRACK_TYPE = 0x83
-CODEC_ID = 0x86
-CODEC_PRIVATE = 0x63A2
-TRACK_NAME = 0x536E
-VIDEO = 0xE0
-PIXEL_WIDTH = 0xB0
-PIXEL_HEIGHT = 0xBA
-ATTACHMENTS = 0x1941A469
-ATTACHED_FILE = 0x61A7
-FILE_NAME = 0x466E
-FILE_MIME = 0x4660
-FILE_DATA = 0x465C
-TAGS = 0x1254C367
-TAG = 0x7373
-TARGETS = 0x63C0
-TAG_TRACK_UID = 0x63C5
-SIMPLE_TAG = 0x67C8
-TAG_NAME = 0x45A3
-TAG_STRING = 0x4487
-CLUSTER = 0x1F43B675
-CLUSTER_TIMECODE = 0xE7
-SIMPLE_BLOCK = 0xA3
-BLOCK_GROUP = 0xA0
-BLOCK = 0xA1
-
-#: Elements whose size may be "unknown" (live recordings): they extend to their parent's end
-#: or to the next top-level element.
-_TOP_LEVEL = {SEGMENT, CLUSTER}
+#: Metadata keys FFmpeg fills from Matroska headers (Info, TrackEntry, AttachedFile), not from Tags.
+_HEADER_KEYS = frozenset({"title", "encoder", "creation_time", "language", "filename", "mimetype"})
+#: FFmpeg log levels we keep (its numbers: smaller is more severe).
+_ERROR = av.logging.ERROR
+_log_lock = threading.RLock()
+#: Payload bytes kept from the indexing pass (the rest is demuxed again when asked for).
+HOLD_BYTES = 64 << 20
 
 
-@dataclass(frozen=True)
-class Element:
-    id: int
-    offset: int       #: where the element's id starts
-    data_start: int   #: where its payload starts
-    size: int         #: payload size in bytes
+@contextmanager
+def _ffmpeg_log() -> Iterator[list[tuple[int, str, str]]]:
+    """FFmpeg's warnings and errors while the block runs, as (level, context, message).
 
-    @property
-    def end(self) -> int:
-        return self.data_start + self.size
+    PyAV discards FFmpeg's log by default; it is switched on (to WARNING) only for the block,
+    captured rather than printed, and restored afterwards.
+    """
+    with _log_lock:
+        before, skip = av.logging.get_level(), av.logging.get_skip_repeated()
+        av.logging.set_level(av.logging.WARNING)
+        av.logging.set_skip_repeated(False)  # else a message equal to the previous file's is dropped
+        try:
+            with av.logging.Capture() as logs:
+                yield logs
+        finally:
+            av.logging.set_level(before)
+            av.logging.set_skip_repeated(skip)
+
+
+def _messages(logs: list[tuple[int, str, str]], max_level: int) -> list[str]:
+    out: list[str] = []
+    for level, _, msg in logs:
+        text = " ".join(msg.split())
+        if level <= max_level and text and text not in out:
+            out.append(text)
+    return out
+
+
+def _said(messages: list[str]) -> str:
+    """FFmpeg's first messages (the cause; what follows is mostly its resynchronisation)."""
+    more = len(messages) - 2
+    return "; ".join(messages[:2]) + (f" (+{more} more)" if more > 0 else "")
 
 
 @dataclass
 class Track:
-    number: int
-    uid: int
-    type: int
-    codec_id: str
-    name: str = ""
-    codec_private: bytes = b""
+    """One stream of the file, as FFmpeg reports it."""
+
+    index: int          #: FFmpeg stream index (also the key of :attr:`MatroskaFile.tracks`)
+    type: str           #: "video", "subtitle", "attachment", ...
+    codec_id: str       #: FFmpeg's codec name, e.g. "rawvideo", "mjpeg"
+    name: str = ""      #: Matroska TrackEntry Name (FFmpeg: metadata "title")
+    fourcc: str = ""    #: the codec tag of ``V_MS/VFW/FOURCC`` tracks, e.g. "b16g"
+    pix_fmt: str = ""   #: FFmpeg's pixel format, e.g. "gray16be"
     width: int = 0
     height: int = 0
-
-    @property
-    def fourcc(self) -> str:
-        """For ``V_MS/VFW/FOURCC`` tracks: the compression code of the BITMAPINFOHEADER."""
-        if self.codec_id == "V_MS/VFW/FOURCC" and len(self.codec_private) >= 20:
-            return self.codec_private[16:20].decode("latin-1")
-        return ""
+    time_base: float = math.nan  #: seconds per timestamp unit (Matroska TimecodeScale)
 
 
 @dataclass(frozen=True)
 class BlockRef:
-    """Where one frame of a track lives in the file (payload not read yet)."""
+    """One packet (one frame of a video track) of the file; its payload is not read yet."""
 
-    track: int
-    timecode: int          #: absolute, in TimecodeScale units
-    data_start: int
-    size: int
-    laced: bool
+    track: int           #: stream index
+    pts: int | None      #: presentation time in the track's time base
+    time_s: float        #: pts in seconds (NaN when the file gives none)
+    size: int            #: payload bytes
+    pos: int             #: byte position FFmpeg reports for the block (-1 if unknown)
+    order: int           #: index in file order among all packets
 
 
 @dataclass
@@ -110,229 +109,118 @@ class MatroskaFile:
     """An opened Matroska file: use as a context manager, or call :meth:`close`."""
 
     path: Path
-    doc_type: str = ""
-    timecode_scale_ns: int = 1_000_000
     tracks: dict[int, Track] = field(default_factory=dict)
     attachments: dict[str, bytes] = field(default_factory=dict)
-    #: Global tags (no track target) by name; per-track tags under ``track_tags[uid]``.
+    #: Global tags by name; per-stream tags (tracks and attachments) under ``track_tags[index]``.
     tags: dict[str, str] = field(default_factory=dict)
     track_tags: dict[int, dict[str, str]] = field(default_factory=dict)
     blocks: list[BlockRef] = field(default_factory=list)
-    #: True when the file ends inside an element (a recording cut short); ``truncation`` says where.
+    #: True when FFmpeg reported damage (a file cut short); ``truncation`` holds its messages.
     truncated: bool = False
     truncation: str = ""
 
     def __post_init__(self) -> None:
-        self._fh = open(self.path, "rb")
-        size = os.fstat(self._fh.fileno()).st_size
-        if size == 0:
-            self._fh.close()
+        self._container: Any = None
+        self._demux: Iterator[Any] | None = None
+        self._cursor = -1
+        self._by_key: dict[tuple[int, int | None, int], BlockRef] = {}
+        self._held: dict[int, Any] = {}  # order -> av.Packet (its buffer, not a copy)
+        self._held_bytes = 0
+        if self.path.stat().st_size == 0:
             raise InputFileError("is empty", file=self.path, expected="a Matroska (.mkv) file")
-        self._mm = mmap.mmap(self._fh.fileno(), 0, access=mmap.ACCESS_READ)
-        self._size = size
         try:
-            self._parse()
-        except Exception:
+            self._open()
+        except BaseException:
             self.close()
             raise
 
-    # ------------------------------------------------------------------ low level
-    def _fail(self, message: str, field_: str, expected: str) -> None:
-        raise InputFileError(message, file=self.path, field=field_, expected=expected)
-
-    def _vint(self, pos: int, keep_marker: bool) -> tuple[int, int, bool]:
-        """Read a variable-length integer at ``pos``: (value, length, all-ones 'unknown')."""
-        if pos >= self._size:
-            self._fail(f"ends at byte {self._size} inside an element header", "EBML header",
-                       "a complete element id and size")
-        first = self._mm[pos]
-        if first == 0:
-            self._fail(f"invalid variable-length integer at byte {pos}", "EBML vint",
-                       "a leading byte with a length marker")
-        length = 9 - first.bit_length()
-        if pos + length > self._size:
-            self._fail(f"ends at byte {self._size} inside an element header", "EBML header",
-                       "a complete element id and size")
-        value = first if keep_marker else first & ((0x80 >> (length - 1)) - 1)
-        for b in self._mm[pos + 1:pos + length]:
-            value = (value << 8) | b
-        unknown = not keep_marker and value == (1 << (7 * length)) - 1
-        return value, length, unknown
-
-    def _children(self, start: int, end: int, lenient: bool = False) -> Iterator[Element]:
-        """Elements between ``start`` and ``end``. ``lenient`` (inside Segment and Cluster):
-        an element cut off by the end of the file ends the walk and marks the file truncated."""
-        pos = start
-        while pos < end:
-            if lenient and self._incomplete_header(pos, end):
-                self._mark_truncated(pos, "an element header")
-                return
-            eid, n_id, _ = self._vint(pos, keep_marker=True)
-            size, n_size, unknown = self._vint(pos + n_id, keep_marker=False)
-            data_start = pos + n_id + n_size
-            if unknown:
-                if eid not in _TOP_LEVEL:
-                    self._fail(f"element 0x{eid:X} at byte {pos} has unknown size", f"0x{eid:X}",
-                               "a known size (only Segment and Cluster may be open-ended)")
-                size = self._open_ended_size(eid, data_start, end)
-            if data_start + size > end:
-                if eid in (CLUSTER, SEGMENT):
-                    # A recording cut short: walk what is there; incomplete children stop it.
-                    self._mark_truncated(pos, f"element 0x{eid:X} ({size} bytes declared)")
-                    size = end - data_start
-                elif lenient:
-                    self._mark_truncated(pos, f"element 0x{eid:X} ({size} bytes declared)")
-                    return
-                else:
-                    self._fail(f"element 0x{eid:X} at byte {pos} declares {size} bytes but only "
-                               f"{max(0, end - data_start)} remain", f"0x{eid:X}",
-                               "a complete file (it looks truncated)")
-            yield Element(eid, pos, data_start, size)
-            pos = data_start + size
-
-    def _incomplete_header(self, pos: int, end: int) -> bool:
-        first = self._mm[pos]
-        if first == 0:
-            return False  # not a truncation: _vint reports the corruption
-        n_id = 9 - first.bit_length()
-        if pos + n_id >= end:
-            return True
-        n_size = 9 - self._mm[pos + n_id].bit_length() if self._mm[pos + n_id] else 1
-        return pos + n_id + n_size > end
-
-    def _mark_truncated(self, pos: int, what: str) -> None:
-        if not self.truncated:
+    # ------------------------------------------------------------------ opening and indexing
+    def _open(self) -> None:
+        with _ffmpeg_log() as logs:
+            try:
+                # probesize: the track headers say all we need; do not let FFmpeg decode frames
+                # (MJPEG colour) to guess stream parameters.
+                self._container = av.open(str(self.path), format="matroska",
+                                          container_options={"probesize": "32"})
+            except UnicodeDecodeError as exc:  # PyAV decodes tags (Matroska UTF-8 strings) strictly
+                raise InputFileError(f"has a name or tag that is not UTF-8 ({exc.reason} at byte "
+                                     f"{exc.start} of {exc.object[:40]!r})", file=self.path,
+                                     field="Tags / TrackEntry.Name", expected="UTF-8 strings") from None
+            except (av.FFmpegError, OSError) as exc:
+                self._refuse(exc, logs)
+            self._describe()
+            try:
+                self._index()
+            except av.FFmpegError as exc:  # damage FFmpeg cannot step over: keep what came before
+                logs.append((_ERROR, "", str(exc)))
+        doctype = [m for m in _messages(logs, av.logging.WARNING) if "doctype" in m.lower()]
+        if doctype:
+            raise InputFileError("; ".join(doctype), file=self.path, field="EBML.DocType",
+                                 expected="'matroska' or 'webm'")
+        errors = _messages(logs, _ERROR)
+        if errors:
             self.truncated = True
-            self.truncation = f"the file ends at byte {self._size} inside {what} starting at byte {pos}"
+            last = self.blocks[-1] if self.blocks else None
+            kept = (f"{len(self.blocks)} complete packets, the last at byte {last.pos} (track {last.track}, "
+                    f"{last.time_s:.6f} s)" if last is not None else "no complete packet")
+            self.truncation = f"FFmpeg: {_said(errors)}; {kept}"
 
-    def _open_ended_size(self, eid: int, data_start: int, end: int) -> int:
-        if eid == SEGMENT:
-            return end - data_start
-        # An open-ended cluster runs to the next cluster (or the end of the parent).
-        nxt = self._mm.find(CLUSTER.to_bytes(4, "big"), data_start, end)
-        return (nxt if nxt >= 0 else end) - data_start
+    def _refuse(self, exc: BaseException, logs: list[tuple[int, str, str]]) -> None:
+        said = _messages(logs, av.logging.WARNING)
+        reason = _said(said) if said else (getattr(exc, "strerror", None) or str(exc))
+        low = " ".join(said).lower()
+        if "doctype" in low:
+            fld, expected = "EBML.DocType", "'matroska' or 'webm'"
+        elif "ebml header parsing failed" in low:
+            fld, expected = "EBML header", "a Matroska (.mkv) file"
+        elif "prematurely" in low or "truncat" in low or "exceeds containing" in low:
+            fld, expected = "Segment", "a complete Matroska file (it looks truncated)"
+        else:
+            fld, expected = "EBML header", "a Matroska (.mkv) file"
+        raise InputFileError(f"FFmpeg's Matroska demuxer cannot open it: {reason}", file=self.path,
+                             field=fld, expected=expected) from None
 
-    def _uint(self, el: Element) -> int:
-        return int.from_bytes(self._mm[el.data_start:el.end], "big")
-
-    def _str(self, el: Element) -> str:
-        return bytes(self._mm[el.data_start:el.end]).rstrip(b"\0").decode("utf-8", "replace")
-
-    def _bytes(self, el: Element) -> bytes:
-        return bytes(self._mm[el.data_start:el.end])
-
-    # ------------------------------------------------------------------ structure
-    def _parse(self) -> None:
-        if self._mm[:4] != EBML.to_bytes(4, "big"):
-            self._fail(f"does not start with an EBML header (starts {self._mm[:4].hex()})", "EBML",
-                       "a Matroska (.mkv) file, magic 1a45dfa3")
-        top = list(self._children(0, self._size))
-        if not top or top[0].id != EBML:
-            self._fail("does not start with an EBML header", "EBML", "a Matroska (.mkv) file")
-        for el in self._children(top[0].data_start, top[0].end):
-            if el.id == DOC_TYPE:
-                self.doc_type = self._str(el)
-        if self.doc_type not in ("matroska", "webm"):
-            self._fail(f"DocType is {self.doc_type!r}", "EBML.DocType", "'matroska'")
-        segments = [el for el in top if el.id == SEGMENT]
-        if not segments:
-            self._fail("has no Segment", "Segment", "one Matroska segment")
-        seg = segments[0]
-        for el in self._children(seg.data_start, seg.end, lenient=True):
-            if el.id == INFO:
-                for c in self._children(el.data_start, el.end):
-                    if c.id == TIMECODE_SCALE:
-                        self.timecode_scale_ns = self._uint(c)
-            elif el.id == TRACKS:
-                for t in self._children(el.data_start, el.end):
-                    if t.id == TRACK_ENTRY:
-                        track = self._track(t)
-                        self.tracks[track.number] = track
-            elif el.id == ATTACHMENTS:
-                for a in self._children(el.data_start, el.end):
-                    if a.id == ATTACHED_FILE:
-                        name, data = "", b""
-                        for c in self._children(a.data_start, a.end):
-                            if c.id == FILE_NAME:
-                                name = self._str(c)
-                            elif c.id == FILE_DATA:
-                                data = self._bytes(c)
-                        self.attachments[name] = data
-            elif el.id == TAGS:
-                self._tags(el)
-            elif el.id == CLUSTER:
-                self._cluster(el)
-
-    def _track(self, el: Element) -> Track:
-        vals: dict[int, Element] = {}
-        width = height = 0
-        for c in self._children(el.data_start, el.end):
-            vals[c.id] = c
-            if c.id == VIDEO:
-                for v in self._children(c.data_start, c.end):
-                    if v.id == PIXEL_WIDTH:
-                        width = self._uint(v)
-                    elif v.id == PIXEL_HEIGHT:
-                        height = self._uint(v)
-        if TRACK_NUMBER not in vals:
-            self._fail(f"TrackEntry at byte {el.offset} has no TrackNumber", "TrackEntry.TrackNumber",
-                       "an unsigned integer")
-        return Track(number=self._uint(vals[TRACK_NUMBER]),
-                     uid=self._uint(vals[TRACK_UID]) if TRACK_UID in vals else 0,
-                     type=self._uint(vals[TRACK_TYPE]) if TRACK_TYPE in vals else 0,
-                     codec_id=self._str(vals[CODEC_ID]) if CODEC_ID in vals else "",
-                     name=self._str(vals[TRACK_NAME]) if TRACK_NAME in vals else "",
-                     codec_private=self._bytes(vals[CODEC_PRIVATE]) if CODEC_PRIVATE in vals else b"",
-                     width=width, height=height)
-
-    def _tags(self, el: Element) -> None:
-        for tag in self._children(el.data_start, el.end):
-            if tag.id != TAG:
+    def _describe(self) -> None:
+        c = self._container
+        self.tags = {k: v for k, v in c.metadata.items() if k not in _HEADER_KEYS}
+        for s in c.streams:
+            meta = dict(s.metadata)
+            tags = {k: v for k, v in meta.items() if k not in _HEADER_KEYS}
+            if tags:
+                self.track_tags[s.index] = tags
+            if s.type == "attachment":
+                self.attachments[getattr(s, "name", None) or meta.get("filename", f"#{s.index}")] = bytes(s.data)
                 continue
-            target_uid = 0
-            pairs: dict[str, str] = {}
-            for c in self._children(tag.data_start, tag.end):
-                if c.id == TARGETS:
-                    for t in self._children(c.data_start, c.end):
-                        if t.id == TAG_TRACK_UID:
-                            target_uid = self._uint(t)
-                elif c.id == SIMPLE_TAG:
-                    name = value = ""
-                    for s in self._children(c.data_start, c.end):
-                        if s.id == TAG_NAME:
-                            name = self._str(s)
-                        elif s.id == TAG_STRING:
-                            value = self._str(s)
-                    if name:
-                        pairs[name] = value
-            if target_uid:
-                self.track_tags.setdefault(target_uid, {}).update(pairs)
-            else:
-                self.tags.update(pairs)
+            cc = s.codec_context
+            tb = s.time_base
+            self.tracks[s.index] = Track(
+                index=s.index, type=s.type, codec_id=(cc.name if cc is not None else ""),
+                name=meta.get("title", ""),
+                fourcc=(str(cc.codec_tag or "") if cc is not None else ""),
+                pix_fmt=(str(getattr(cc, "pix_fmt", "") or "") if cc is not None else ""),
+                width=int(getattr(cc, "width", 0) or 0), height=int(getattr(cc, "height", 0) or 0),
+                time_base=float(tb) if tb else math.nan)
 
-    def _cluster(self, el: Element) -> None:
-        base = 0
-        for c in self._children(el.data_start, el.end, lenient=True):
-            if c.id == CLUSTER_TIMECODE:
-                base = self._uint(c)
-            elif c.id == SIMPLE_BLOCK:
-                self._block(c, base)
-            elif c.id == BLOCK_GROUP:
-                for b in self._children(c.data_start, c.end):
-                    if b.id == BLOCK:
-                        self._block(b, base)
+    def _index(self) -> None:
+        for pkt in self._container.demux():
+            if not pkt.size:
+                continue  # PyAV's flush packets at the end
+            if pkt.is_corrupt:
+                raise InputFileError(f"packet {len(self.blocks)} of track {pkt.stream.index} is flagged corrupt",
+                                     file=self.path, field=f"track {pkt.stream.index}", expected="intact blocks")
+            pts = pkt.pts if pkt.pts is not None else pkt.dts
+            tb = self.tracks[pkt.stream.index].time_base if pkt.stream.index in self.tracks else math.nan
+            ref = BlockRef(track=pkt.stream.index, pts=pts, time_s=(pts * tb if pts is not None else math.nan),
+                           size=pkt.size, pos=pkt.pos if pkt.pos is not None else -1, order=len(self.blocks))
+            self.blocks.append(ref)
+            if self._held_bytes + ref.size <= HOLD_BYTES:
+                self._held[ref.order] = pkt
+                self._held_bytes += ref.size
+            self._by_key.setdefault(self._key(ref.track, ref.pts, ref.pos), ref)
 
-    def _block(self, el: Element, base: int) -> None:
-        # Block header: track number (vint), int16 relative timecode, flags byte.
-        track, n, _ = self._vint(el.data_start, keep_marker=False)
-        head = el.data_start + n
-        if head + 3 > el.end:
-            self._fail(f"block at byte {el.offset} is shorter than its header", "SimpleBlock",
-                       "track number, 16-bit timecode and flags")
-        rel = int.from_bytes(self._mm[head:head + 2], "big", signed=True)
-        flags = self._mm[head + 2]
-        self.blocks.append(BlockRef(track=track, timecode=base + rel, data_start=head + 3,
-                                    size=el.end - head - 3, laced=bool(flags & 0x06)))
+    @staticmethod
+    def _key(track: int, pts: int | None, pos: int | None) -> tuple[int, int | None, int]:
+        return track, pts, pos if pos is not None else -1
 
     # ------------------------------------------------------------------ access
     def track_by_name(self, name: str) -> Track | None:
@@ -342,24 +230,62 @@ class MatroskaFile:
         return None
 
     def frames(self, track: Track) -> list[BlockRef]:
-        """The blocks of ``track`` in file order."""
-        return [b for b in self.blocks if b.track == track.number]
-
-    def payload(self, block: BlockRef) -> bytes:
-        if block.laced:
-            raise InputFileError(f"block at byte {block.data_start} is laced", file=self.path,
-                                 field=f"track {block.track}", expected="one frame per block (no lacing)")
-        return self._mm[block.data_start:block.data_start + block.size]
+        """The complete packets of ``track`` in file order."""
+        return [b for b in self.blocks if b.track == track.index]
 
     def time_s(self, block: BlockRef) -> float:
-        return block.timecode * self.timecode_scale_ns * 1e-9
+        return block.time_s
+
+    def payload(self, block: BlockRef) -> bytes:
+        """The bytes of ``block``, demuxed again (in file order this is one pass over the file)."""
+        if self._container is None:
+            raise InputFileError("is closed", file=self.path, expected="an open recording")
+        held = self._held.get(block.order)
+        if held is not None:
+            return bytes(held)
+        want = self._key(block.track, block.pts, block.pos)
+        try:
+            for attempt in range(2):
+                if self._demux is None or self._cursor >= block.order or attempt:
+                    self._seek(block, rewind=bool(attempt))
+                assert self._demux is not None
+                for pkt in self._demux:
+                    if not pkt.size:
+                        continue
+                    key = self._key(pkt.stream.index, pkt.pts if pkt.pts is not None else pkt.dts, pkt.pos)
+                    ref = self._by_key.get(key)
+                    if ref is not None:
+                        self._cursor = ref.order
+                    if key == want:
+                        data = bytes(pkt)
+                        if len(data) != block.size:
+                            break
+                        return data
+                    if ref is not None and ref.order > block.order:
+                        break  # passed it: seek (then rewind) and try again
+        except av.FFmpegError as exc:
+            raise InputFileError(f"cannot read the packet at byte {block.pos} again: {exc}", file=self.path,
+                                 field=f"track {block.track}", expected="a readable recording") from None
+        raise InputFileError(f"the packet at byte {block.pos} ({block.size} bytes, {block.time_s:.6f} s) "
+                             "could not be read again", file=self.path, field=f"track {block.track}",
+                             expected="an unchanged file")
+
+    def _seek(self, block: BlockRef, rewind: bool) -> None:
+        self._demux = None
+        self._cursor = -1
+        stream = self._container.streams[block.track]
+        if rewind or block.pts is None:
+            self._container.seek(0, stream=stream, backward=True, any_frame=True)
+        else:
+            self._container.seek(block.pts, stream=stream, backward=True)
+        self._demux = self._container.demux()
 
     def close(self) -> None:
-        mm = getattr(self, "_mm", None)
-        if mm is not None and not mm.closed:
-            mm.close()
-        if not self._fh.closed:
-            self._fh.close()
+        self._demux = None
+        self._held.clear()
+        if self._container is not None:
+            self._container.close()
+            self._container = None
 
     def __enter__(self) -> "MatroskaFile":
         return self
@@ -372,5 +298,6 @@ def open_mkv(path: str | Path) -> MatroskaFile:
     """Open and index a Matroska file; raises :class:`InputFileError` for malformed input."""
     p = Path(path)
     if not p.is_file():
-        raise InputFileError("no such file", file=p, expected="a Matroska (.mkv) recording")
+        raise InputFileError("no such file" if not p.exists() else "is not a file", file=p,
+                             expected="a Matroska (.mkv) recording")
     return MatroskaFile(p)

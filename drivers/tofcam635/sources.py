@@ -75,12 +75,14 @@ class WallSpec:
     #: Amplitude (DN) on the optical axis for a wall at 1 m, at the reference integration time.
     amplitude_at_1m_dn: float = 600.0
     ambient_dn: float = 150.0
+    #: The emitter's beam (the twin's default: ``cos^1``), at the camera centre.
+    profile_cos_n: float = 1.0
 
 
 class AnalyticWall(ImageSource):
-    """Closed form: radial distance ``d = z / ray_z``; amplitude ``A = A1 * ray_z / d^2``
-    (inverse square of the emitter/return path times Lambertian cos of incidence); phase
-    ``4 pi f d / c``; offset = ambient + A."""
+    """Closed form: the twin's radiometry of a plane (:func:`tofhil.sim.radiometry.plane_view`):
+    radial distance ``d = z / ray_z``; amplitude ``A1 * p(theta) cos(incidence) cos^4(alpha) / d^2``
+    relative to the axis at 1 m; phase ``4 pi f d / c``; offset = ambient + A."""
 
     def __init__(self, wall: WallSpec | None = None, camera: CameraModel | None = None) -> None:
         super().__init__()
@@ -88,13 +90,19 @@ class AnalyticWall(ImageSource):
         self.camera = camera or load_camera_preset("epc635")
         self.description = f"analytic wall at {self.wall.distance_m:g} m"
 
+    def _relative(self) -> np.ndarray:
+        from tofhil.sim.radiometry import Plane, plane_relative_amplitude
+        from tofhil.sim.scene import BeamProfile
+
+        return plane_relative_amplitude(self.camera, Plane(self.wall.distance_m),
+                                        BeamProfile("cos_n", n=self.wall.profile_cos_n))
+
     def radial_m(self) -> np.ndarray:
         return self.wall.distance_m / self.camera.ray_z
 
     def amplitude_dn(self, integration_time_s: float = REFERENCE_INTEGRATION_TIME_S) -> np.ndarray:
-        d = self.radial_m()
         return (self.wall.amplitude_at_1m_dn * (integration_time_s / REFERENCE_INTEGRATION_TIME_S)
-                * self.camera.ray_z / d**2)
+                * self._relative())
 
     def signal(self, freq_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         a = self.amplitude_dn()
@@ -104,7 +112,8 @@ class AnalyticWall(ImageSource):
     def scene_text(self) -> str:
         w = self.wall
         return (f"# tofhil emulator analytic source\nwall:\n  distance_m: {w.distance_m}\n"
-                f"  amplitude_at_1m_dn: {w.amplitude_at_1m_dn}\n  ambient_dn: {w.ambient_dn}\n")
+                f"  amplitude_at_1m_dn: {w.amplitude_at_1m_dn}\n  ambient_dn: {w.ambient_dn}\n"
+                f"  profile: {{type: cos_n, n: {w.profile_cos_n}}}\n")
 
 
 #: The emulated camera's hidden truth: imperfections the twin's scene does not model

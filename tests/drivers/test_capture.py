@@ -64,7 +64,8 @@ def test_distance_session_with_roi_and_faults(tmp_path: Path) -> None:
     with open_session(out) as s:
         assert s.n_frames == 5 and s.has_depth and not s.has_raw and s.camera.shape == (40, 160)
         for d in s.depth_frames():
-            np.testing.assert_allclose(d.radial_m, 0.9 / s.camera.ray_z, atol=2e-3)
+            # 3 mm: the corners are dim (the twin's cos^8 falloff) and the integer DCS add ~0.5 DN / A rad.
+            np.testing.assert_allclose(d.radial_m, 0.9 / s.camera.ray_z, atol=3e-3)
             assert d.valid.all()
 
 

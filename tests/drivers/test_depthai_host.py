@@ -67,12 +67,13 @@ def test_outputs_are_paired_by_sequence_and_timestamps_are_device_seconds():
     dt = np.diff([f.timestamp_s for f in frames])
     np.testing.assert_allclose(dt, 1.0 / scene.fps, atol=2e-6)  # device clock at the frame rate
     f = frames[0]
-    # Inverse-square law and cos^4: the corner pixel is dimmer than the centre by the closed form.
+    # Beam, inverse-square law and cos^4: the corner pixel is dimmer than the centre by the closed form.
     amp = f.depth.amplitude
     c = (CAM.height // 2, CAM.width // 2)
     ratio = amp[0, 0] / amp[c]
     rz0, rzc = CAM.ray_z[0, 0], CAM.ray_z[c]
-    closed = (rz0 * rz0 ** 4 * rz0 ** 2) / (rzc * rzc ** 4 * rzc ** 2)  # cos_inc * cos^4 / d^2, d = d0/rz
+    # cos^n beam (n = 1) * cos_inc * cos^4 / d^2, d = d0/rz
+    closed = (rz0 * rz0 * rz0 ** 4 * rz0 ** 2) / (rzc * rzc * rzc ** 4 * rzc ** 2)
     assert abs(ratio - closed) < 0.01
     np.testing.assert_allclose(f.depth.intensity - amp, scene.ambient, atol=1.0)
     # The phase output: wrapped 80 MHz phase of the round trip 2d.

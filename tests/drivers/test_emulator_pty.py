@@ -70,7 +70,7 @@ def test_a_serial_client_speaks_the_protocol(pty_port: str) -> None:
         phase = np.arctan2(dcs[3] - dcs[1], dcs[2] - dcs[0]) + np.pi  # the vendor's formula
         dist = phase * C_M_PER_S / (4 * np.pi * 10e6)
         err = dist - WALL_M / cam.ray_z
-        assert abs(float(np.median(err))) < 5e-3 and float(np.percentile(np.abs(err), 90)) < 0.04  # ~1-2 cm noise
+        assert abs(float(np.median(err))) < 5e-3 and float(np.percentile(np.abs(err), 90)) < 0.05  # ~1-2 cm noise, more in the dim (cos^8) corners
         port.write(b"\xf5\x20" + bytes(12))  # bad CRC: the camera answers NACK
         assert _read_packet(port)[0] == P.DataType.NACK
 
