@@ -365,7 +365,7 @@ class Session:
             self._fail("format", "missing" if fmt is None else f"is {fmt!r}", f"root attribute format = {FORMAT!r}")
         try:
             version = int(np.asarray(a["format_version"]).reshape(()))
-        except (KeyError, TypeError, ValueError):
+        except (KeyError, TypeError, ValueError, OverflowError):  # inf -> OverflowError
             self._fail("format_version", "missing or not an integer", "an integer attribute")
         if version > FORMAT_VERSION:
             self._fail("format_version", f"is {version}", f"<= {FORMAT_VERSION} (upgrade tofhil)")
