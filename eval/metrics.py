@@ -29,6 +29,7 @@ import numpy as np
 
 from tofhil.demod import TapLimits, bad_extremes, clip_limits
 from tofhil.errors import TofhilError, require_input_file
+from tofhil.schema import to_plain
 from tofhil.frames import DepthFrame
 
 #: MAD -> standard deviation for a Gaussian distribution.
@@ -41,20 +42,8 @@ DEPTH_RMSE = "depth RMSE over pixels valid in both"
 
 
 def json_safe(x: Any) -> Any:
-    """Plain JSON values: numpy scalars to Python, non-finite floats to ``None``."""
-    if isinstance(x, dict):
-        return {str(k): json_safe(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [json_safe(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return json_safe(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        return None if not math.isfinite(float(x)) else float(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    if isinstance(x, np.integer):
-        return int(x)
-    return x
+    """Plain JSON values for reports: numpy to Python, non-finite floats to ``None``."""
+    return to_plain(x, nonfinite_as_none=True)
 
 
 # ---------------------------------------------------------------------------- regions

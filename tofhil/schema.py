@@ -172,20 +172,26 @@ class Schema:
 
 
 # ---------------------------------------------------------------------------- plain Python
-def to_plain(x: Any) -> Any:
+def to_plain(x: Any, *, nonfinite_as_none: bool = False) -> Any:
     """Numpy scalars and arrays, tuples, Paths and nested mappings -> plain Python (dict, list,
     int, float, str, bool, None) that YAML and JSON dump; dataclass-like objects with a
-    ``to_dict`` method are converted through it."""
+    ``to_dict`` method are converted through it. ``nonfinite_as_none``: NaN and infinities
+    become ``None`` (strict JSON, e.g. report figures that are undefined)."""
+    def plain(v: Any) -> Any:
+        return to_plain(v, nonfinite_as_none=nonfinite_as_none)
+
     if isinstance(x, Mapping):
-        return {str(k): to_plain(v) for k, v in x.items()}
+        return {str(k): plain(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [to_plain(v) for v in x]
+        return [plain(v) for v in x]
     if isinstance(x, np.ndarray):
-        return to_plain(x.tolist())
+        return plain(x.tolist())
     if isinstance(x, np.generic):
-        return x.item()
+        x = x.item()
+    if nonfinite_as_none and isinstance(x, float) and not math.isfinite(x):
+        return None
     if isinstance(x, Path):
         return str(x)
     if hasattr(x, "to_dict") and callable(x.to_dict):
-        return to_plain(x.to_dict())
+        return plain(x.to_dict())
     return x
