@@ -92,49 +92,52 @@ def demo(out_dir: Path = typer.Option(Path("demo-out"), "--out", parser=opt.out_
 
     if frames < 2:
         raise TofhilError(f"is {frames}", field="--frames", expected="at least 2 (training and held-out frames)")
-    names = ["capture.h5", "twin.h5", "twin_scene.yaml", "compare", "diagnosis"]
+    names = ["capture.h5", "twin.h5", "twin_scene.yaml", "compare", "diagnosis", "summary.json"]
     if out_dir.exists() and not out_dir.is_dir():
         raise TofhilError("is a file, not a directory", file=out_dir, field="--out",
                           expected="a directory for the demo's files (new or existing)")
     if out_dir.exists() and any((out_dir / n).exists() for n in names) and not force:
         raise TofhilError("already holds a demo; refusing to overwrite it (use --force or another --out)",
                           file=out_dir, expected="an empty or new directory")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    show = _progress_printer()
+    # The demo's inputs are emulated, so a demo that fails or is interrupted removes the folder
+    # it created (a rerun is not blocked by half a demo); an existing folder is left as it was.
+    with new_output_dir(out_dir):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        show = _progress_printer()
 
-    show(f"1/5 capturing {frames} frames from the emulated TOFcam635 looking at '{scene}' "
-         "(its hidden truth: stray light, wiggling, a clock-skew pattern)")
-    emulator = Epc635Emulator(SimulatedSource(scene))
-    with EmulatedTofCam635("emulator", emulator=emulator) as dev:
-        summary = capture(dev, out_dir / "capture.h5", frames, CaptureSettings(mode="dcs"), force=True)
-    show(f"    {summary.frames_written} frames written, {summary.dropped} dropped, {summary.reconnects} reconnects")
+        show(f"1/5 capturing {frames} frames from the emulated TOFcam635 looking at '{scene}' "
+             "(its hidden truth: stray light, wiggling, a clock-skew pattern)")
+        emulator = Epc635Emulator(SimulatedSource(scene))
+        with EmulatedTofCam635("emulator", emulator=emulator) as dev:
+            summary = capture(dev, out_dir / "capture.h5", frames, CaptureSettings(mode="dcs"), force=True)
+        show(f"    {summary.frames_written} frames written, {summary.dropped} dropped, {summary.reconnects} reconnects")
 
-    show("2/5 the twin: the same scene and camera model, without the hidden imperfections")
-    twin = load_scene(scene, overrides=TOFCAM635_OVERRIDES)
-    # The twin runs with the capture's settings (the emulated TOFcam635 modulates at 20 MHz
-    # whatever the scene's sensor block says): frequencies, tap phases, integration time and
-    # camera from the capture, the rest from the scene.
-    with open_session(out_dir / "capture.h5") as cap:
-        setup = setup_for_session(twin, cap)
-    twin = scene_for_setup(twin, setup)
-    show(f"    {setup.note}")
-    twin_path = out_dir / "twin_scene.yaml"
-    twin_path.write_text(scene_to_yaml(twin))
-    twin = load_scene(twin_path)
-    simulate_session(twin, out_dir / "twin.h5", frames=frames, seed=1, noise=True, force=True)
+        show("2/5 the twin: the same scene and camera model, without the hidden imperfections")
+        twin = load_scene(scene, overrides=TOFCAM635_OVERRIDES)
+        # The twin runs with the capture's settings (the emulated TOFcam635 modulates at 20 MHz
+        # whatever the scene's sensor block says): frequencies, tap phases, integration time and
+        # camera from the capture, the rest from the scene.
+        with open_session(out_dir / "capture.h5") as cap:
+            setup = setup_for_session(twin, cap)
+        twin = scene_for_setup(twin, setup)
+        show(f"    {setup.note}")
+        twin_path = out_dir / "twin_scene.yaml"
+        twin_path.write_text(scene_to_yaml(twin))
+        twin = load_scene(twin_path)
+        simulate_session(twin, out_dir / "twin.h5", frames=frames, seed=1, noise=True, force=True)
 
-    show("3/5 comparing capture and twin (pixels, point clouds, NDT)")
-    cmp = compare_sessions(out_dir / "capture.h5", out_dir / "twin.h5", out_dir / "compare", force=True)
-    measured = cmp["variants"]["measured"]
-    out.print("compare, capture - twin over all pixels: " + compare_line("", measured["regions"]["all"]).strip(),
-              highlight=False)
-    for note in measured["notes"]:
-        out.print(f"  {note}", highlight=False)
+        show("3/5 comparing capture and twin (pixels, point clouds, NDT)")
+        cmp = compare_sessions(out_dir / "capture.h5", out_dir / "twin.h5", out_dir / "compare", force=True)
+        measured = cmp["variants"]["measured"]
+        out.print("compare, capture - twin over all pixels: " + compare_line("", measured["regions"]["all"]).strip(),
+                  highlight=False)
+        for note in measured["notes"]:
+            out.print(f"  {note}", highlight=False)
 
-    show("4/5 diagnosing: fitting every effect of the library on training data, scoring on held-out data")
-    res = run_diagnosis(out_dir / "capture.h5", twin_path, out_dir / "diagnosis", force=True, progress=show)
-    show("5/5 done")
-    _summary(res, out_dir / "diagnosis" / "report.html")
-    out.print(f"comparison report: {lit(out_dir / 'compare' / 'report.html')}")
-    (out_dir / "summary.json").write_text(json.dumps({"cause": res.cause, "causes": res.causes, "params": res.params,
-                                                      "gain": res.gain}, indent=2, default=float))
+        show("4/5 diagnosing: fitting every effect of the library on training data, scoring on held-out data")
+        res = run_diagnosis(out_dir / "capture.h5", twin_path, out_dir / "diagnosis", force=True, progress=show)
+        show("5/5 done")
+        _summary(res, out_dir / "diagnosis" / "report.html")
+        out.print(f"comparison report: {lit(out_dir / 'compare' / 'report.html')}")
+        (out_dir / "summary.json").write_text(json.dumps({"cause": res.cause, "causes": res.causes, "params": res.params,
+                                                          "gain": res.gain}, indent=2, default=float))
