@@ -275,7 +275,10 @@ class _Context:
         return np.mod(self.sobol[None, :, :] + shift, 1.0).reshape(-1, self.dims)
 
     # ------------------------------------------------------------------ one chunk
-    def run_chunk(self, chunk: int, p0: int, p1: int) -> dict[str, np.ndarray]:
+    def run_chunk(self, chunk: int, p0: int, p1: int, dest: dict[str, np.ndarray] | None = None
+                  ) -> dict[str, np.ndarray]:
+        """Trace pixels ``p0:p1``; with ``dest`` (the frame's accumulators) the fused loop
+        adds into them in place, otherwise the chunk's own arrays are returned."""
         npix = p1 - p0
         spp = self.spp
         pix = np.arange(p0, p1) if spp == 1 else np.repeat(np.arange(p0, p1), spp)
@@ -318,13 +321,20 @@ class _Context:
 
         nk = len(self.k)
         out: dict[str, np.ndarray] = {}
-        acc_re = np.zeros((2, nk, npix))     # [direct/indirect, f*h, pixel]
-        acc_im = np.zeros((2, nk, npix))
-        power = np.zeros(npix)
-        ambient = np.zeros(npix)
-        ambient_unit = np.zeros(npix)
         edges = self.edges if self.edges is not None else np.zeros(1)
-        trans = np.zeros((npix, max(len(edges) - 1, 1)))
+        if dest is not None and self.fused:
+            # The compiled loop adds into the frame's own arrays (disjoint pixel ranges).
+            acc_re, acc_im = dest["re"][:, :, p0:p1], dest["im"][:, :, p0:p1]
+            power, ambient_unit = dest["power"][p0:p1], dest["ambient_unit"][p0:p1]
+            trans = dest["trans"][p0:p1] if dest.get("trans") is not None else np.zeros((npix, 1))
+            out["in_place"] = np.array(True)
+        else:
+            acc_re = np.zeros((2, nk, npix))     # [direct/indirect, f*h, pixel]
+            acc_im = np.zeros((2, nk, npix))
+            power = np.zeros(npix)
+            ambient_unit = np.zeros(npix)
+            trans = np.zeros((npix, max(len(edges) - 1, 1)))
+        ambient = np.zeros(npix)
         geom = self.geom
         smooth = geom.vnormal is not None
         vnormal = geom.vnormal if smooth else np.zeros((1, 3, 3))
@@ -545,18 +555,21 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     ray_count = [0]
 
     def store(p0: int, p1: int, r: dict[str, np.ndarray]) -> None:
+        ray_count[0] += int(r["rays"])
+        ambient[p0:p1] = r["ambient"]
+        radial[p0:p1] = r["radial"]
+        oid[p0:p1] = r["object_id"]
+        if "in_place" in r:
+            return
         acc_re[:, :, p0:p1] = r["re"]
         acc_im[:, :, p0:p1] = r["im"]
         power[p0:p1] = r["power"]
-        ray_count[0] += int(r["rays"])
-        ambient[p0:p1] = r["ambient"]
         ambient_unit[p0:p1] = r["ambient_unit"]
-        radial[p0:p1] = r["radial"]
-        oid[p0:p1] = r["object_id"]
         if trans is not None:
             trans[p0:p1] = r["transient"]
 
-    jobs = [(i, p0, min(p0 + per_chunk, npix_total)) for i, p0 in enumerate(starts)]
+    dest = {"re": acc_re, "im": acc_im, "power": power, "ambient_unit": ambient_unit, "trans": trans}
+    jobs = [(i, p0, min(p0 + per_chunk, npix_total), dest) for i, p0 in enumerate(starts)]
     if nthreads <= 1 or len(jobs) == 1:
         for job in jobs:
             store(job[1], job[2], ctx.run_chunk(*job))
