@@ -21,7 +21,7 @@ def depth_from_raw(frame: RawFrame, *, min_amplitude: float = 0.0,
     ``min_amplitude``, where any tap is saturated or not finite (``tap_limits``, by default
     the limits the frame declares in its ``meta``: :meth:`TapLimits.from_meta`), where the
     frequencies disagree during unwrapping, or where the result is not finite. The amplitude returned is the mean over
-    frequencies; the intensity is the mean offset B. Four in-order float32 taps at one or two
+    frequencies; the intensity is the mean offset B. Float32 taps (any K >= 3) at one to three
     frequencies take the fused path (:mod:`tofhil.fastdepth`); ``fused=False`` forces the
     general numpy path (any K >= 3, any number of frequencies).
     """
