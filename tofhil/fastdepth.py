@@ -52,9 +52,10 @@ _BLOCK = 1024
 
 
 @njit(fastmath=_FASTMATH, cache=True)
-def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out_conf, out_bad):  # pragma: no cover
+def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out_conf, out_bad, out_valid):  # pragma: no cover
     """taps [F, K, N] float32 -> distance, mean amplitude, mean tap (intensity), conflict
-    (uint8) and bad taps (uint8: a tap not inside the open interval (lo, hi)), in one pass.
+    (uint8), bad taps (uint8: a tap not inside the open interval (lo, hi)) and validity
+    (uint8: none of these and a finite distance and amplitude), in one pass.
 
     Per block of pixels: I and Q of every frequency (tap differences ``c_j - c_{j+K/2}``
     for even K, as :func:`tofhil.demod.iq`), then phase, amplitude and the unwrapping of
@@ -70,24 +71,43 @@ def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out
     half = k // 2 if k % 2 == 0 else 0
     bi = np.empty((nf, _BLOCK), np.float32)
     bq = np.empty((nf, _BLOCK), np.float32)
+    ph = np.empty((nf, _BLOCK), np.float32)
+    am = np.empty((nf, _BLOCK), np.float32)
     S = np.empty(_BLOCK, np.float32)
     G = np.empty(_BLOCK, np.uint8)
-    ph = np.empty(3, np.float32)
-    am = np.empty(3, np.float32)
-    wrp = np.empty(3, np.float32)
-    us = np.empty(3, np.float32)
-    best = np.empty(3, np.float32)
-    wt = np.empty(3, np.float32)
     inv_two_pi = np.float32(1.0 / (2.0 * math.pi))
     for b0 in range(0, n, _BLOCK):
         m = min(_BLOCK, n - b0)
-        for j in range(m):
-            S[j] = 0.0
-            G[j] = np.uint8(1)
+        S[:m] = 0.0
+        G[:m] = 1
         for f in range(nf):
-            for j in range(m):
-                bi[f, j] = 0.0
-                bq[f, j] = 0.0
+            fp = ph[f]
+            fa = am[f]
+            if k == 4:
+                # The common case in one loop per pixel: I, Q, amplitude and phase from the
+                # four taps while they are in registers.
+                t0 = taps[f, 0, b0:b0 + m]
+                t1 = taps[f, 1, b0:b0 + m]
+                t2 = taps[f, 2, b0:b0 + m]
+                t3 = taps[f, 3, b0:b0 + m]
+                w0r, w1r, w0i, w1i = wr[0], wr[1], wi[0], wi[1]
+                for j in range(m):
+                    x0, x1, x2, x3 = t0[j], t1[j], t2[j], t3[j]
+                    d0 = x0 - x2
+                    d1 = x1 - x3
+                    i_ = w0r * d0 + w1r * d1
+                    q_ = w0i * d0 + w1i * d1
+                    fa[j] = math.sqrt(i_ * i_ + q_ * q_)
+                    fp[j] = _phase(q_, i_)
+                    S[j] += x0 + x1 + x2 + x3
+                    ok = ((x0 > lo) & (x0 < hi) & (x1 > lo) & (x1 < hi)
+                          & (x2 > lo) & (x2 < hi) & (x3 > lo) & (x3 < hi))
+                    G[j] &= np.uint8(1) if ok else np.uint8(0)
+                continue
+            fi = bi[f]
+            fq = bq[f]
+            fi[:m] = 0.0
+            fq[:m] = 0.0
             if half:
                 for t in range(half):
                     ta = taps[f, t, b0:b0 + m]
@@ -98,8 +118,8 @@ def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out
                         x = ta[j]
                         y = tb[j]
                         dd = x - y
-                        bi[f, j] += a_r * dd
-                        bq[f, j] += a_i * dd
+                        fi[j] += a_r * dd
+                        fq[j] += a_i * dd
                         S[j] += x + y
                         ok = (x > lo) & (x < hi) & (y > lo) & (y < hi)
                         G[j] &= np.uint8(1) if ok else np.uint8(0)
@@ -110,71 +130,95 @@ def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out
                     a_i = wi[t]
                     for j in range(m):
                         x = ta[j]
-                        bi[f, j] += a_r * x
-                        bq[f, j] += a_i * x
+                        fi[j] += a_r * x
+                        fq[j] += a_i * x
                         S[j] += x
                         ok = (x > lo) & (x < hi)
                         G[j] &= np.uint8(1) if ok else np.uint8(0)
+            for j in range(m):
+                i_ = fi[j]
+                q_ = fq[j]
+                fa[j] = math.sqrt(i_ * i_ + q_ * q_)
+                fp[j] = _phase(q_, i_)
+        o_int = out_int[b0:b0 + m]
+        o_bad = out_bad[b0:b0 + m]
+        o_d = out_d[b0:b0 + m]
+        o_amp = out_amp[b0:b0 + m]
+        o_conf = out_conf[b0:b0 + m]
         for j in range(m):
-            p = b0 + j
-            out_int[p] = S[j] * c[11]
-            out_bad[p] = np.uint8(1) - G[j]
-            asum = np.float32(0.0)
-            for f in range(nf):
-                i_ = bi[f, j]
-                q_ = bq[f, j]
-                am[f] = math.sqrt(i_ * i_ + q_ * q_)
-                ph[f] = _phase(q_, i_)
-                asum += am[f]
-            out_amp[p] = asum / np.float32(nf) if nf != 2 else np.float32(0.5) * (am[0] + am[1])
-            if nf == 1:
-                out_d[p] = ph[0] * (r[0] * inv_two_pi)
-                out_conf[p] = np.uint8(0)
-            elif nf == 2:
-                x = ph[0] * c[0] - ph[1] * c[1]
-                e = np.floor(x + np.float32(0.5))
+            o_int[j] = S[j] * c[11]
+            o_bad[j] = np.uint8(1) - G[j]
+        if nf == 1:
+            scale = r[0] * inv_two_pi
+            p0 = ph[0]
+            a0 = am[0]
+            for j in range(m):
+                o_d[j] = p0[j] * scale
+                o_conf[j] = np.uint8(0)
+                o_amp[j] = a0[j]
+        elif nf == 2:
+            p0, p1, a0, a1 = ph[0], ph[1], am[0], am[1]
+            half_ = np.float32(0.5)
+            for j in range(m):
+                x = p0[j] * c[0] - p1[j] * c[1]
+                e = np.floor(x + half_)
                 resid = abs(x - e)
-                u1 = ph[0] * c[2] + e * c[3]
-                u2 = ph[1] * c[4] + e * c[5]
-                w1 = c[6] * am[0] * am[0]
-                w2 = c[7] * am[1] * am[1]
+                u1 = p0[j] * c[2] + e * c[3]
+                u2 = p1[j] * c[4] + e * c[5]
+                w1 = c[6] * a0[j] * a0[j]
+                w2 = c[7] * a1[j] * a1[j]
                 d = u1 + (u2 - u1) * (w2 / (w1 + w2 + np.float32(1e-30)))
                 d = d - np.floor(d * c[9]) * c[8]
-                out_d[p] = min(d, c[8])
-                out_conf[p] = np.uint8(1) if resid > c[10] else np.uint8(0)
-            else:
-                ref = int(c[12])
-                wsum = np.float32(0.0)
-                for f in range(nf):
-                    wrp[f] = ph[f] * (r[f] * inv_two_pi)
-                    wt[f] = fw[f] * am[f] * am[f] + np.float32(1e-30)
-                    wsum += wt[f]
-                best_cost = np.float32(np.inf)
-                for cnt in range(int(c[13])):
-                    cand = wrp[ref] + np.float32(cnt) * r[ref]
-                    mean = np.float32(0.0)
-                    for f in range(nf):
-                        us[f] = wrp[f] + np.floor((cand - wrp[f]) / r[f] + np.float32(0.5)) * r[f]
-                        mean += wt[f] * us[f]
-                    mean /= wsum
-                    cost = np.float32(0.0)
-                    for f in range(nf):
-                        cost += wt[f] * (us[f] - mean) * (us[f] - mean)
-                    if cnt == 0 or cost < best_cost:
-                        best_cost = cost
-                        for f in range(nf):
-                            best[f] = us[f]
-                num = np.float32(0.0)
-                conf = np.uint8(0)
-                for f in range(nf):
-                    num += wt[f] * best[f]
-                    for g in range(f + 1, nf):
-                        if abs(best[f] - best[g]) > spacing[f, g]:
-                            conf = np.uint8(1)
-                d = num / wsum
-                d = d - np.floor(d * c[9]) * c[8]
-                out_d[p] = min(d, c[8])
-                out_conf[p] = conf
+                o_d[j] = min(d, c[8])
+                o_conf[j] = np.uint8(1) if resid > c[10] else np.uint8(0)
+                o_amp[j] = half_ * (a0[j] + a1[j])
+        else:
+            _search3(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf)
+        o_val = out_valid[b0:b0 + m]
+        for j in range(m):
+            # As tofhil.depth._depth_frame: no conflict, no bad tap, finite distance and amplitude.
+            fin = np.isfinite(o_d[j]) & np.isfinite(o_amp[j])
+            o_val[j] = np.uint8(1) if (fin & (o_conf[j] == 0) & (o_bad[j] == 0)) else np.uint8(0)
+
+
+@njit(fastmath=_FASTMATH, cache=True, inline="always")
+def _search3(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf):  # pragma: no cover
+    """Three frequencies: every wrap count of the reference (lowest) frequency, the others'
+    counts by rounding; the candidate with the least weighted variance (as
+    :func:`tofhil.unwrap._search`), then the weighted mean wrapped into the range."""
+    inv_two_pi = np.float32(1.0 / (2.0 * math.pi))
+    ref = int(c[12])
+    ncount = int(c[13])
+    r0, r1, r2 = r[0], r[1], r[2]
+    half_ = np.float32(0.5)
+    for j in range(m):
+        w0 = ph[0, j] * (r0 * inv_two_pi)
+        w1 = ph[1, j] * (r1 * inv_two_pi)
+        w2 = ph[2, j] * (r2 * inv_two_pi)
+        k0 = fw[0] * am[0, j] * am[0, j] + np.float32(1e-30)
+        k1 = fw[1] * am[1, j] * am[1, j] + np.float32(1e-30)
+        k2 = fw[2] * am[2, j] * am[2, j] + np.float32(1e-30)
+        ksum = k0 + k1 + k2
+        wref = w0 if ref == 0 else (w1 if ref == 1 else w2)
+        rref = r0 if ref == 0 else (r1 if ref == 1 else r2)
+        best_cost = np.float32(0.0)
+        b0 = b1 = b2 = np.float32(0.0)
+        for cnt in range(ncount):
+            cand = wref + np.float32(cnt) * rref
+            u0 = w0 + np.floor((cand - w0) / r0 + half_) * r0
+            u1 = w1 + np.floor((cand - w1) / r1 + half_) * r1
+            u2 = w2 + np.floor((cand - w2) / r2 + half_) * r2
+            mean = (k0 * u0 + k1 * u1 + k2 * u2) / ksum
+            cost = k0 * (u0 - mean) ** 2 + k1 * (u1 - mean) ** 2 + k2 * (u2 - mean) ** 2
+            if cnt == 0 or cost < best_cost:
+                best_cost = cost
+                b0, b1, b2 = u0, u1, u2
+        d = (k0 * b0 + k1 * b1 + k2 * b2) / ksum
+        d = d - np.floor(d * c[9]) * c[8]
+        o_d[j] = min(d, c[8])
+        conf = (abs(b0 - b1) > spacing[0, 1]) | (abs(b0 - b2) > spacing[0, 2]) | (abs(b1 - b2) > spacing[1, 2])
+        o_conf[j] = np.uint8(1) if conf else np.uint8(0)
+        o_amp[j] = (am[0, j] + am[1, j] + am[2, j]) * np.float32(1.0 / 3.0)
 
 
 def fused_supported(taps: np.ndarray, theta_rad: np.ndarray) -> bool:
@@ -192,10 +236,11 @@ def fused_supported(taps: np.ndarray, theta_rad: np.ndarray) -> bool:
 
 def fused_depth(taps: np.ndarray, theta_rad: np.ndarray, freq_hz: np.ndarray, margin: float,
                 limits: TapLimits | None = None
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, np.ndarray]:
-    """``(distance, amplitude mean, intensity mean, conflict, unambiguous range, bad taps)``
-    for float32 taps ``[F, K, H, W]`` with F = 1, 2 or 3; ``bad taps`` is
-    :func:`tofhil.demod.bad_tap_pixels` of ``taps`` and ``limits``."""
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
+    """``(distance, amplitude mean, intensity mean, conflict, unambiguous range, bad taps,
+    valid)`` for float32 taps ``[F, K, H, W]`` with F = 1, 2 or 3; ``bad taps`` is
+    :func:`tofhil.demod.bad_tap_pixels` of ``taps`` and ``limits``; ``valid`` is the
+    validity rule of :func:`tofhil.depth.depth_from_raw` before any amplitude threshold."""
     from tofhil.demod import estimator_weights
     from tofhil.unwrap import _ext_gcd, frequency_plan
 
@@ -232,6 +277,7 @@ def fused_depth(taps: np.ndarray, theta_rad: np.ndarray, freq_hz: np.ndarray, ma
     intensity = np.empty(h * wd, np.float32)
     conflict = np.empty(h * wd, np.uint8)
     bad = np.empty(h * wd, np.uint8)
-    _fused(flat, wr, wi, lo, hi, c, r, fw, spacing, distance, amplitude, intensity, conflict, bad)
+    valid = np.empty(h * wd, np.uint8)
+    _fused(flat, wr, wi, lo, hi, c, r, fw, spacing, distance, amplitude, intensity, conflict, bad, valid)
     return (distance.reshape(h, wd), amplitude.reshape(h, wd), intensity.reshape(h, wd),
-            conflict.view(bool).reshape(h, wd), rng, bad.view(bool).reshape(h, wd))
+            conflict.view(bool).reshape(h, wd), rng, bad.view(bool).reshape(h, wd), valid.view(bool).reshape(h, wd))
