@@ -25,6 +25,8 @@ Scores of a cloud ``X`` against that grid (all vectorised, no per-point Python l
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Sequence
 
@@ -38,6 +40,7 @@ _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 _KEY_LIMIT = _KEY_OFFSET - 2          # |index| must stay below this (one cell of margin)
 _DENSE_MAX_CELLS = 1 << 25            # dense lookup table up to 32M entries (128 MB int32)
+_POINT_BLOCK = 32768                  # points per thread task of the compiled scoring loop
 
 DEFAULT_THRESHOLDS: tuple[float, ...] = (0.1, 0.5, 0.9)
 
@@ -416,17 +419,17 @@ def _all_point_terms(grid: NDTGrid, p: np.ndarray, outlier_ratio: float
 
 
 @njit(cache=True, nogil=True)
-def _point_terms_dense(p, cell_size, table, lo_span, means_t, icov6_t, d1, d2,
+def _point_terms_block(p, i0, i1, cell_size, table, lo_span, means_t, icov6_t, d1, d2,
                        lik, tri, total, best, has):  # pragma: no cover
-    """:func:`_all_point_terms` with the dense table, one point at a time: the same 27
-    neighbours in the same order, the same arithmetic in the same order (so the same
-    numbers), without the [N]-sized temporaries of every offset."""
+    """:func:`_all_point_terms` with the dense table for points ``i0:i1``, one point at a
+    time: the same 27 neighbours in the same order, the same arithmetic in the same order
+    (so the same numbers), without the [N]-sized temporaries of every offset."""
     lo0, lo1, lo2 = lo_span[0], lo_span[1], lo_span[2]
     s0, s1, s2 = lo_span[3], lo_span[4], lo_span[5]
     r2 = cell_size ** 2
     gp = np.empty((3, 3))      # [offset + 1, axis] squared gap to the neighbour cell
     tw = np.empty((3, 3))      # [offset + 1, axis] trilinear weight of the neighbour
-    for i in range(p.shape[0]):
+    for i in range(i0, i1):
         lik[i] = 0.0
         tri[i] = 0.0
         total[i] = 0.0
@@ -495,9 +498,21 @@ def _point_terms(grid: NDTGrid, p: np.ndarray, outlier_ratio: float
     n = p.shape[0]
     lik, tri, total, best = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     has = np.empty(n, dtype=np.bool_)
-    _point_terms_dense(np.ascontiguousarray(p, dtype=np.float64), float(grid.cell_size), grid._table,
-                       grid._lo_span.astype(np.int64), grid._means_t, grid._icov6_t, d1, d2,
-                       lik, tri, total, best, has)
+    pts = np.ascontiguousarray(p, dtype=np.float64)
+    lo_span = grid._lo_span.astype(np.int64)
+
+    def run(i0: int, i1: int) -> None:
+        _point_terms_block(pts, i0, i1, float(grid.cell_size), grid._table, lo_span, grid._means_t,
+                           grid._icov6_t, d1, d2, lik, tri, total, best, has)
+
+    # Disjoint point ranges on both cores (the loop releases the GIL; Python threads, not
+    # numba's parallel layer, so concurrent callers are safe).
+    spans = [(a, min(n, a + _POINT_BLOCK)) for a in range(0, n, _POINT_BLOCK)]
+    if len(spans) <= 1:
+        run(0, n)
+    else:
+        with ThreadPoolExecutor(min(2, os.cpu_count() or 1)) as pool:
+            list(pool.map(lambda ab: run(*ab), spans))
     return lik, tri, total, best, has
 
 
