@@ -332,8 +332,9 @@ class _Context:
             trans = dest["trans"][p0:p1] if dest.get("trans") is not None else np.zeros((npix, 1))
             out["in_place"] = np.array(True)
         else:
-            acc_re = np.zeros((2, nk, npix))     # [direct/indirect, f*h, pixel]
-            acc_im = np.zeros((2, nk, npix))
+            rows = 2 if self.bounces else 1      # no indirect row without bounces
+            acc_re = np.zeros((rows, nk, npix))  # [direct/indirect, f*h, pixel]
+            acc_im = np.zeros((rows, nk, npix))
             power = np.zeros(npix)
             ambient_unit = np.zeros(npix)
             trans = np.zeros((npix, max(len(edges) - 1, 1)))
@@ -546,8 +547,9 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     nthreads = threads or int(os.environ.get("TOFHIL_RENDER_THREADS", 0)) or min(2, os.cpu_count() or 1)
 
     nk = len(ctx.k)
-    acc_re = np.zeros((2, nk, npix_total))        # [direct/indirect, f*h, pixel]
-    acc_im = np.zeros((2, nk, npix_total))
+    rows = 2 if nb else 1                          # no indirect row without bounces
+    acc_re = np.zeros((rows, nk, npix_total))     # [direct/indirect, f*h, pixel]
+    acc_im = np.zeros((rows, nk, npix_total))
     power = np.zeros(npix_total)
     ambient = np.zeros(npix_total)
     ambient_unit = np.zeros(npix_total)
