@@ -41,8 +41,10 @@ def alternating(fns, repeats: int) -> list[tuple[float, float]]:
 
 
 def frame_for(freq: np.ndarray, k: int, cam, rng: np.random.Generator) -> tuple[RawFrame, np.ndarray]:
+    from tofhil.unwrap import frequency_plan
+
     theta = equally_spaced_phases(k)
-    d = rng.uniform(0.2, 7.0, cam.shape)
+    d = rng.uniform(0.2, min(7.0, 0.98 * frequency_plan(freq).unambiguous_range_m), cam.shape)
     phase = np.stack([distance_to_phase(d, f) for f in freq])
     shape = (len(freq),) + cam.shape
     taps = taps_from_signal(np.full(shape, 200.0), phase, np.full(shape, 900.0), theta)
