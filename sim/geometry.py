@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tofhil.sim import embree4
 from tofhil.sim.scene import Scene, SceneObject
 
 #: Offset of secondary-ray origins along the surface normal (m): far above float32
@@ -96,6 +97,9 @@ class Geometry:
     n_triangles: int
     local_bounds: list[np.ndarray]   # per object [2, 3] bounds in its local frame
     world_bounds: np.ndarray         # [2, 3] bounds of all vertices in the world
+    #: The same triangles in an Embree scene that compiled kernels query directly
+    #: (:mod:`tofhil.sim.embree4`); None where that binding is unavailable.
+    direct: object | None = None
 
     @classmethod
     def build(cls, scene: Scene) -> "Geometry":
@@ -135,7 +139,10 @@ class Geometry:
         es = rtcs.EmbreeScene()
         TriangleMesh(es, V.astype(np.float32), F.astype(np.int32))
         normal = n / norm
-        return cls(embree=es, v0=np.ascontiguousarray(tri[:, 0]), normal=normal,
+        direct = None
+        if embree4.library() is not None and len(F):
+            direct = embree4.DirectScene(V.astype(np.float32), F.astype(np.int32))
+        return cls(direct=direct, embree=es, v0=np.ascontiguousarray(tri[:, 0]), normal=normal,
                    plane_c=_dot(tri[:, 0], normal), vnormal=vnormal,
                    tri_object=tri_object, n_triangles=len(F), local_bounds=bounds,
                    world_bounds=np.stack([V.min(axis=0), V.max(axis=0)]))

@@ -13,6 +13,8 @@ import math
 import numpy as np
 from numba import njit
 
+from tofhil.sim import embree4 as eda
+
 _INV_PI = 1.0 / math.pi
 
 
@@ -161,3 +163,122 @@ def connect_and_bounce(irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, 
         nb_keep[count] = j
         count += 1
     return count
+
+
+@njit(nogil=True, cache=True)
+def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, normal, plane_c, vnormal,
+                smooth, tri_object, rho_d, rho_s, n_s, emitter_pos, emitter_axis, eps, cos_n, i0,
+                k, acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj):  # pragma: no cover
+    """Every sample's whole path in one loop, Embree called per ray (:mod:`tofhil.sim.embree4`).
+
+    The same physics, in the same float32 rays, as :func:`vertex` and
+    :func:`connect_and_bounce` applied bounce by bounce: sample ``s`` starts at ``org`` (one
+    shared row or one per sample) along ``dirs[s]`` with path length ``path0[s]`` and
+    throughput ``beta0[s]``, and draws bounce ``b``'s direction from ``U[s, 4 + 2b]`` and
+    ``U[s, 5 + 2b]``. Uniform reflectance per object (no textures) and a cos^n beam only.
+    ``first_t``/``first_obj`` get the primary hit (inf / -1 for a miss); ``ambient_unit`` the
+    first vertex's albedo * beta / pi. Returns the number of rays traced.
+    """
+    addr, o = eda.record(buf)
+    f = buf
+    u = buf.view(np.uint32)
+    nk = k.shape[0]
+    nbins = edges.shape[0] - 1
+    rays = 0
+    for s in range(dirs.shape[0]):
+        if shared:
+            ox, oy, oz = org[0, 0], org[0, 1], org[0, 2]
+        else:
+            ox, oy, oz = org[s, 0], org[s, 1], org[s, 2]
+        dx, dy, dz = dirs[s, 0], dirs[s, 1], dirs[s, 2]
+        path_in = path0[s]
+        beta = beta0[s]
+        q = local[s]
+        for bounce in range(bounces + 1):
+            eda.set_ray(f, u, o, np.float32(ox), np.float32(oy), np.float32(oz),
+                        np.float32(dx), np.float32(dy), np.float32(dz), np.float32(1e37))
+            eda.rtc_intersect1(scene, addr, 0)
+            rays += 1
+            p = u[o + 17]
+            if p == eda.INVALID_ID:
+                if bounce == 0:
+                    first_t[s] = np.inf
+                    first_obj[s] = -1
+                break
+            nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
+            dn = dx * nx + dy * ny + dz * nz
+            te = np.float64(f[o + 8])
+            t = te
+            if dn != 0.0:
+                tr = (plane_c[p] - (ox * nx + oy * ny + oz * nz)) / dn
+                if abs(tr - te) < 1e-4 * max(1.0, te):
+                    t = tr
+            px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
+            sg = 1.0 if dn < 0.0 else -1.0
+            gx, gy, gz = sg * nx, sg * ny, sg * nz
+            sx, sy, sz = gx, gy, gz
+            if smooth:
+                a, b = np.float64(f[o + 15]), np.float64(f[o + 16])
+                c = 1.0 - a - b
+                sx = c * vnormal[p, 0, 0] + a * vnormal[p, 1, 0] + b * vnormal[p, 2, 0]
+                sy = c * vnormal[p, 0, 1] + a * vnormal[p, 1, 1] + b * vnormal[p, 2, 1]
+                sz = c * vnormal[p, 0, 2] + a * vnormal[p, 1, 2] + b * vnormal[p, 2, 2]
+                ln = math.sqrt(sx * sx + sy * sy + sz * sz)
+                sx, sy, sz = sg * sx / ln, sg * sy / ln, sg * sz / ln
+                if -(sx * dx + sy * dy + sz * dz) < 0.0:
+                    sx, sy, sz = gx, gy, gz
+            ob = tri_object[p]
+            rho, rs, ns = rho_d[ob], rho_s[ob], n_s[ob]
+            path = path_in + t
+            if bounce == 0:
+                first_t[s] = t
+                first_obj[s] = ob
+                ambient_unit[q] += beta * (rho + rs) * _INV_PI
+            ex, ey, ez = emitter_pos[0] - px, emitter_pos[1] - py, emitter_pos[2] - pz
+            r = math.sqrt(ex * ex + ey * ey + ez * ez)
+            ex, ey, ez = ex / r, ey / r, ez / r
+            cs = sx * ex + sy * ey + sz * ez
+            ce = -(ex * emitter_axis[0] + ey * emitter_axis[1] + ez * emitter_axis[2])
+            irr = i0 * _pow(ce, cos_n) * cs / (r * r) if (cs > 0.0 and ce > 0.0) else 0.0
+            if irr > 0.0:
+                eda.set_ray(f, u, o, np.float32(px + eps * gx), np.float32(py + eps * gy), np.float32(pz + eps * gz),
+                            np.float32(ex), np.float32(ey), np.float32(ez), np.float32(r - 2.0 * eps))
+                eda.rtc_occluded1(scene, addr, 0)
+                rays += 1
+                if not f[o + 8] < 0.0:        # tfar = -inf: blocked
+                    w = beta * irr * _brdf(rho, rs, ns, sx, sy, sz, ex, ey, ez, -dx, -dy, -dz)
+                    if w > 0.0:
+                        length = path + r
+                        which = 0 if bounce == 0 else 1
+                        power[q] += w
+                        for m in range(nk):
+                            ph = k[m] * length
+                            acc_re[which, m, q] += w * math.cos(ph)
+                            acc_im[which, m, q] += w * math.sin(ph)
+                        if nbins > 0:
+                            bi = np.searchsorted(edges, length, side="right") - 1
+                            if bi >= 0 and bi < nbins:
+                                trans[q, bi] += w
+            if bounce == bounces:
+                break
+            a1 = U[s, 4 + 2 * bounce]
+            rr = math.sqrt(a1)
+            phi = 2.0 * math.pi * U[s, 5 + 2 * bounce]
+            lx, ly, lz = rr * math.cos(phi), rr * math.sin(phi), math.sqrt(max(0.0, 1.0 - a1))
+            sgn = 1.0 if sz >= 0.0 else -1.0
+            aa = -1.0 / (sgn + sz)
+            bb = sx * sy * aa
+            t1x, t1y, t1z = 1.0 + sgn * sx * sx * aa, sgn * bb, -sgn * sx
+            t2x, t2y, t2z = bb, sgn + sy * sy * aa, -sy
+            ndx = lx * t1x + ly * t2x + lz * sx
+            ndy = lx * t1y + ly * t2y + lz * sy
+            ndz = lx * t1z + ly * t2z + lz * sz
+            if ndx * gx + ndy * gy + ndz * gz <= 0.0:    # below the geometric surface
+                break
+            beta = beta * math.pi * _brdf(rho, rs, ns, sx, sy, sz, ndx, ndy, ndz, -dx, -dy, -dz)
+            if beta <= 0.0:
+                break
+            ox, oy, oz = px + eps * gx, py + eps * gy, pz + eps * gz
+            dx, dy, dz = ndx, ndy, ndz
+            path_in = path
+    return rays

@@ -34,7 +34,7 @@ from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel
 from tofhil.errors import TofhilError
 from tofhil.progress import Progress, no_progress
-from tofhil.sim import kernels
+from tofhil.sim import embree4, kernels
 from tofhil.sim.geometry import BATCH, RAY_EPSILON_M, Geometry, WorkerPool
 from tofhil.sim.radiometry import DEFAULT_PIXEL_PITCH_M, aperture_area_m2, pixel_area_normalized
 from tofhil.sim.scene import Scene
@@ -199,7 +199,7 @@ class _Context:
         # Phase per metre of optical path for every (f, h), flattened [F*NH].
         self.k = (2 * np.pi / C_M_PER_S) * (np.asarray(freq_hz)[:, None] *
                                             np.asarray(harmonics, dtype=np.float64)[None, :]).ravel()
-        self.rho_d, self.rho_s, self.n_s = _materials_table(scene)
+        self.rho_d, self.rho_s, self.n_s = (np.asarray(a, dtype=np.float64) for a in _materials_table(scene))
         self.glossy = bool(np.any(self.rho_s > 0))
         self.textured = [(i, scene.materials[o.material].texture) for i, o in enumerate(scene.objects)
                          if scene.materials[o.material].texture is not None]
@@ -231,6 +231,10 @@ class _Context:
         # Beam profile in the kernel for cos^n (I = i0 cos^n); -1: tabulated, done in numpy.
         self.cos_n = float(prof.n) if prof.kind == "cos_n" else -1.0
         self.i0 = scene.emitter.power_w / prof.solid_angle_norm_sr
+        # The fused path loop covers uniform reflectances and cos^n beams (the common case);
+        # textures and tabulated beams take the wavefront loop below.
+        self.fused = (self.geom.direct is not None and not self.textured and self.cos_n >= 0
+                      and os.environ.get("TOFHIL_RENDER_WAVEFRONT", "") in ("", "0"))
 
     # ------------------------------------------------------------------ shading helpers
     def reflectance(self, obj: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -268,10 +272,16 @@ class _Context:
         if self.sampler == "random" or self.spp == 1:
             return rng.random((npix * self.spp, self.dims))
         shift = rng.random((npix, 1, self.dims))
-        return np.mod(self.sobol[None, :, :] + shift, 1.0).reshape(-1, self.dims)
+        u = (self.sobol[None, :, :] + shift).reshape(-1, self.dims)
+        # mod 1 of a sum in [0, 2): subtracting 1 is exact and equals np.mod (which is slow).
+        np.subtract(u, 1.0, out=u, where=u >= 1.0)
+        return u
 
     # ------------------------------------------------------------------ one chunk
-    def run_chunk(self, chunk: int, p0: int, p1: int) -> dict[str, np.ndarray]:
+    def run_chunk(self, chunk: int, p0: int, p1: int, dest: dict[str, np.ndarray] | None = None
+                  ) -> dict[str, np.ndarray]:
+        """Trace pixels ``p0:p1``; with ``dest`` (the frame's accumulators) the fused loop
+        adds into them in place, otherwise the chunk's own arrays are returned."""
         npix = p1 - p0
         spp = self.spp
         pix = np.arange(p0, p1) if spp == 1 else np.repeat(np.arange(p0, p1), spp)
@@ -314,13 +324,21 @@ class _Context:
 
         nk = len(self.k)
         out: dict[str, np.ndarray] = {}
-        acc_re = np.zeros((2, nk, npix))     # [direct/indirect, f*h, pixel]
-        acc_im = np.zeros((2, nk, npix))
-        power = np.zeros(npix)
-        ambient = np.zeros(npix)
-        ambient_unit = np.zeros(npix)
         edges = self.edges if self.edges is not None else np.zeros(1)
-        trans = np.zeros((npix, max(len(edges) - 1, 1)))
+        if dest is not None and self.fused:
+            # The compiled loop adds into the frame's own arrays (disjoint pixel ranges).
+            acc_re, acc_im = dest["re"][:, :, p0:p1], dest["im"][:, :, p0:p1]
+            power, ambient_unit = dest["power"][p0:p1], dest["ambient_unit"][p0:p1]
+            trans = dest["trans"][p0:p1] if dest.get("trans") is not None else np.zeros((npix, 1))
+            out["in_place"] = np.array(True)
+        else:
+            rows = 2 if self.bounces else 1      # no indirect row without bounces
+            acc_re = np.zeros((rows, nk, npix))  # [direct/indirect, f*h, pixel]
+            acc_im = np.zeros((rows, nk, npix))
+            power = np.zeros(npix)
+            ambient_unit = np.zeros(npix)
+            trans = np.zeros((npix, max(len(edges) - 1, 1)))
+        ambient = np.zeros(npix)
         geom = self.geom
         smooth = geom.vnormal is not None
         vnormal = geom.vnormal if smooth else np.zeros((1, 3, 3))
@@ -332,6 +350,9 @@ class _Context:
         dirs = np.ascontiguousarray(dirs, dtype=np.float64)
         path_in = path0
         local = pix - p0
+        if self.fused:
+            return self._run_fused(npix, p0, p1, org, shared, dirs, path0, beta, local, U, out, acc_re, acc_im,
+                                   power, ambient_unit, edges, trans, vnormal, smooth)
         sid = np.arange(len(pix))
         rays = 0
         for bounce in range(self.bounces + 1):
@@ -409,6 +430,39 @@ class _Context:
             path_in, beta, local, sid = path[keep], beta[keep], local[keep], sid[keep]
 
         out["re"], out["im"], out["power"], out["ambient"] = acc_re, acc_im, power, ambient
+        out["ambient_unit"] = ambient_unit
+        out["rays"] = np.array(rays)
+        if self.edges is not None:
+            out["transient"] = trans
+        return out
+
+    def _run_fused(self, npix: int, p0: int, p1: int, org: np.ndarray, shared: bool, dirs: np.ndarray,
+                   path0: np.ndarray, beta: np.ndarray, local: np.ndarray, U: np.ndarray, out: dict,
+                   acc_re: np.ndarray, acc_im: np.ndarray, power: np.ndarray, ambient_unit: np.ndarray,
+                   edges: np.ndarray, trans: np.ndarray, vnormal: np.ndarray, smooth: bool) -> dict[str, np.ndarray]:
+        """The chunk's paths in one compiled loop that calls Embree per ray (no textures, a
+        cos^n beam): no per-bounce Python round trip and no per-ray temporary arrays."""
+        geom = self.geom
+        n = len(dirs)
+        first_t = np.empty(n)
+        first_obj = np.empty(n, dtype=np.int32)
+        U2 = U if U.shape[0] else np.zeros((0, self.dims))
+        rays = kernels.trace_paths(
+            geom.direct.handle, embree4.ray_buffer(), org, shared, dirs,
+            np.ascontiguousarray(path0, dtype=np.float64), np.ascontiguousarray(beta, dtype=np.float64),
+            np.ascontiguousarray(local, dtype=np.int64), np.ascontiguousarray(U2), self.bounces,
+            geom.normal, geom.plane_c, vnormal, smooth, geom.tri_object, self.rho_d, self.rho_s, self.n_s,
+            self.emitter_pos, self.emitter_axis, RAY_EPSILON_M, self.cos_n, self.i0, self.k,
+            acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj)
+        if not self.subpixel and not self.thin_lens:
+            out["radial"], out["object_id"] = first_t[::self.spp], first_obj[::self.spp]
+        else:
+            hc = geom.intersect(self.t, _rotate(self.centre_rays[p0:p1], self.R))
+            rays += npix
+            out["radial"] = hc.full(hc.t, np.inf)
+            out["object_id"] = hc.full(geom.tri_object[hc.prim], -1).astype(np.int32)
+        out["re"], out["im"], out["power"] = acc_re, acc_im, power
+        out["ambient"] = ambient_unit * self.ambient
         out["ambient_unit"] = ambient_unit
         out["rays"] = np.array(rays)
         if self.edges is not None:
@@ -493,8 +547,9 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     nthreads = threads or int(os.environ.get("TOFHIL_RENDER_THREADS", 0)) or min(2, os.cpu_count() or 1)
 
     nk = len(ctx.k)
-    acc_re = np.zeros((2, nk, npix_total))        # [direct/indirect, f*h, pixel]
-    acc_im = np.zeros((2, nk, npix_total))
+    rows = 2 if nb else 1                          # no indirect row without bounces
+    acc_re = np.zeros((rows, nk, npix_total))     # [direct/indirect, f*h, pixel]
+    acc_im = np.zeros((rows, nk, npix_total))
     power = np.zeros(npix_total)
     ambient = np.zeros(npix_total)
     ambient_unit = np.zeros(npix_total)
@@ -505,18 +560,21 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     ray_count = [0]
 
     def store(p0: int, p1: int, r: dict[str, np.ndarray]) -> None:
+        ray_count[0] += int(r["rays"])
+        ambient[p0:p1] = r["ambient"]
+        radial[p0:p1] = r["radial"]
+        oid[p0:p1] = r["object_id"]
+        if "in_place" in r:
+            return
         acc_re[:, :, p0:p1] = r["re"]
         acc_im[:, :, p0:p1] = r["im"]
         power[p0:p1] = r["power"]
-        ray_count[0] += int(r["rays"])
-        ambient[p0:p1] = r["ambient"]
         ambient_unit[p0:p1] = r["ambient_unit"]
-        radial[p0:p1] = r["radial"]
-        oid[p0:p1] = r["object_id"]
         if trans is not None:
             trans[p0:p1] = r["transient"]
 
-    jobs = [(i, p0, min(p0 + per_chunk, npix_total)) for i, p0 in enumerate(starts)]
+    dest = {"re": acc_re, "im": acc_im, "power": power, "ambient_unit": ambient_unit, "trans": trans}
+    jobs = [(i, p0, min(p0 + per_chunk, npix_total), dest) for i, p0 in enumerate(starts)]
     if nthreads <= 1 or len(jobs) == 1:
         for job in jobs:
             store(job[1], job[2], ctx.run_chunk(*job))

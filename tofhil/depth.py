@@ -21,7 +21,7 @@ def depth_from_raw(frame: RawFrame, *, min_amplitude: float = 0.0,
     ``min_amplitude``, where any tap is saturated or not finite (``tap_limits``, by default
     the limits the frame declares in its ``meta``: :meth:`TapLimits.from_meta`), where the
     frequencies disagree during unwrapping, or where the result is not finite. The amplitude returned is the mean over
-    frequencies; the intensity is the mean offset B. Four in-order float32 taps at one or two
+    frequencies; the intensity is the mean offset B. Float32 taps (any K >= 3) at one to three
     frequencies take the fused path (:mod:`tofhil.fastdepth`); ``fused=False`` forces the
     general numpy path (any K >= 3, any number of frequencies).
     """
@@ -29,9 +29,9 @@ def depth_from_raw(frame: RawFrame, *, min_amplitude: float = 0.0,
     f, k, h, w = taps.shape
     limits = TapLimits.from_meta(frame.meta) if tap_limits is None else tap_limits
     if fused and fused_supported(taps, frame.theta_rad):
-        distance, amplitude, intensity, conflict, rng, bad = fused_depth(taps, frame.theta_rad, frame.freq_hz,
-                                                                         margin, limits)
-        return _depth_frame(frame, distance, amplitude, intensity, conflict, rng, min_amplitude, bad)
+        distance, amplitude, intensity, conflict, rng, bad, valid = fused_depth(taps, frame.theta_rad, frame.freq_hz,
+                                                                                margin, limits)
+        return _depth_frame(frame, distance, amplitude, intensity, conflict, rng, min_amplitude, bad, valid)
     dtype = np.float32 if taps.dtype == np.float32 else np.float64
     distance = np.empty((h, w), dtype)
     amplitude = np.empty((h, w), dtype)
@@ -55,10 +55,12 @@ def depth_from_raw(frame: RawFrame, *, min_amplitude: float = 0.0,
 
 def _depth_frame(frame: RawFrame, distance: np.ndarray, amplitude: np.ndarray, intensity: np.ndarray,
                  conflict: np.ndarray, unambiguous_range_m: float, min_amplitude: float,
-                 bad_taps: np.ndarray) -> DepthFrame:
+                 bad_taps: np.ndarray, valid: np.ndarray | None = None) -> DepthFrame:
     # A saturated or NaN tap is no measurement, whatever arithmetic made of it; nor is a
-    # finite tap so large that the amplitude overflowed.
-    valid = ~(conflict | bad_taps) & np.isfinite(distance) & np.isfinite(amplitude)
+    # finite tap so large that the amplitude overflowed. (The fused kernel applies this
+    # same rule in its pass and hands ``valid`` in.)
+    if valid is None:
+        valid = ~(conflict | bad_taps) & np.isfinite(distance) & np.isfinite(amplitude)
     if min_amplitude > 0:
         valid &= amplitude >= min_amplitude
     return DepthFrame(distance_m=distance, kind="radial", camera=frame.camera,

@@ -1,15 +1,15 @@
-"""Fused demodulation + unwrapping for the common case: 4 taps, one or two frequencies.
+"""Fused demodulation + unwrapping: any K >= 3 equally spaced taps, one to three frequencies.
 
-One pass over the taps per frequency computes the complex signal from the tap differences,
-its amplitude and phase, the offset, and (two frequencies) the Chinese-remainder unwrapping
-of :mod:`tofhil.unwrap`, so the intermediate images never leave the CPU cache. The phase uses
-a branch-free arctangent polynomial (|error| < 1e-7 rad, about float32 rounding) that the
-compiler vectorises; the results agree with the numpy path of
+One pass over the taps, block of pixels by block, computes every frequency's complex signal
+from the taps (their differences for even K), its amplitude and phase, the offset, and the
+unwrapping of :mod:`tofhil.unwrap` (two frequencies: Chinese remainder; three: the search
+over the lowest frequency's wrap counts), so the intermediate images never leave the CPU
+cache. The phase uses a branch-free arctangent polynomial (|error| < 1e-7 rad, about float32
+rounding) that the compiler vectorises; the results agree with the numpy path of
 :func:`tofhil.depth.depth_from_raw` to that level (tested). The same pass flags pixels with a
 saturated or non-finite tap (:func:`tofhil.demod.bad_tap_pixels`), so the kernels are
 compiled without the no-NaN/no-inf fast-math assumptions (a NaN tap must be seen as one).
 """
-
 from __future__ import annotations
 
 import math
@@ -46,107 +46,238 @@ def _phase(y: float, x: float) -> float:
     return min(r, np.float32(6.2831850))  # the largest float32 below 2 pi
 
 
-@njit(fastmath=_FASTMATH, cache=True)
-def _demod4(taps, w, lo, hi, out_phase, out_amp, out_sum, out_bad):
-    """taps [F, 4, N] -> phase [F, N], amplitude [F, N], tap sum over all F*4 taps [N], and
-    ``out_bad`` [N] uint8: 1 where a tap is not inside the open interval (lo, hi)."""
-    nf = taps.shape[0]
-    n = taps.shape[2]
-    for p in range(n):
-        out_sum[p] = 0.0
-        out_bad[p] = np.uint8(0)
-    for f in range(nf):
-        t0 = taps[f, 0]
-        t1 = taps[f, 1]
-        t2 = taps[f, 2]
-        t3 = taps[f, 3]
-        for p in range(n):
-            d0 = t0[p] - t2[p]
-            d1 = t1[p] - t3[p]
-            i = w[0] * d0 + w[1] * d1
-            q = w[2] * d0 + w[3] * d1
-            out_amp[f, p] = math.sqrt(i * i + q * q)
-            out_phase[f, p] = _phase(q, i)
-            out_sum[p] += t0[p] + t1[p] + t2[p] + t3[p]
-            good = ((t0[p] > lo) & (t0[p] < hi) & (t1[p] > lo) & (t1[p] < hi)
-                    & (t2[p] > lo) & (t2[p] < hi) & (t3[p] > lo) & (t3[p] < hi))
-            out_bad[p] |= np.uint8(0) if good else np.uint8(1)
+#: Pixels per block: the block's I, Q, tap sum and validity stay in the L1/L2 cache while
+#: every tap image streams through once.
+_BLOCK = 1024
 
 
 @njit(fastmath=_FASTMATH, cache=True)
-def _unwrap2(phase, amp, c, out_d, out_conflict, out_amp):
-    """Two-frequency Chinese-remainder unwrapping (see tofhil.unwrap._unwrap_two), and the
-    mean amplitude. ``out_conflict`` is uint8 (a bool store would stop vectorisation).
+def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out_conf, out_bad, out_valid):  # pragma: no cover
+    """taps [F, K, N] float32 -> distance, mean amplitude, mean tap (intensity), conflict
+    (uint8), bad taps (uint8: a tap not inside the open interval (lo, hi)) and validity
+    (uint8: none of these and a finite distance and amplitude), in one pass.
 
-    c = [m2/2pi, m1/2pi, r1/2pi, -b*r1, r2/2pi, a*r2, m1^2, m2^2, range, 1/range, margin/2]
+    Per block of pixels: I and Q of every frequency (tap differences ``c_j - c_{j+K/2}``
+    for even K, as :func:`tofhil.demod.iq`), then phase, amplitude and the unwrapping of
+    :mod:`tofhil.unwrap` (F = 2: Chinese remainder; F = 3: search over the lowest
+    frequency's wrap counts). ``c`` = [m2/2pi, m1/2pi, r1/2pi, -b*r1, r2/2pi, a*r2, m1^2, m2^2,
+    range, 1/range, margin/2, 1/(F*K), reference frequency, its multiple],
+    ``r`` the wrap ranges, ``fw`` the weight factors ``(f_i/f_0)^2``, ``spacing`` the
+    conflict thresholds ``margin * decision spacing``.
     """
-    n = phase.shape[1]
-    half = np.float32(0.5)
-    for p in range(n):
-        x = phase[0, p] * c[0] - phase[1, p] * c[1]
-        e = np.floor(x + half)
-        resid = abs(x - e)
-        u1 = phase[0, p] * c[2] + e * c[3]
-        u2 = phase[1, p] * c[4] + e * c[5]
-        a0 = amp[0, p]
-        a1 = amp[1, p]
-        w1 = c[6] * a0 * a0
-        w2 = c[7] * a1 * a1
-        d = u1 + (u2 - u1) * (w2 / (w1 + w2 + np.float32(1e-30)))
+    nf = taps.shape[0]
+    k = taps.shape[1]
+    n = taps.shape[2]
+    half = k // 2 if k % 2 == 0 else 0
+    bi = np.empty((nf, _BLOCK), np.float32)
+    bq = np.empty((nf, _BLOCK), np.float32)
+    ph = np.empty((nf, _BLOCK), np.float32)
+    am = np.empty((nf, _BLOCK), np.float32)
+    S = np.empty(_BLOCK, np.float32)
+    G = np.empty(_BLOCK, np.uint8)
+    inv_two_pi = np.float32(1.0 / (2.0 * math.pi))
+    for b0 in range(0, n, _BLOCK):
+        m = min(_BLOCK, n - b0)
+        S[:m] = 0.0
+        G[:m] = 1
+        for f in range(nf):
+            fp = ph[f]
+            fa = am[f]
+            if k == 4:
+                # The common case in one loop per pixel: I, Q, amplitude and phase from the
+                # four taps while they are in registers.
+                t0 = taps[f, 0, b0:b0 + m]
+                t1 = taps[f, 1, b0:b0 + m]
+                t2 = taps[f, 2, b0:b0 + m]
+                t3 = taps[f, 3, b0:b0 + m]
+                w0r, w1r, w0i, w1i = wr[0], wr[1], wi[0], wi[1]
+                for j in range(m):
+                    x0, x1, x2, x3 = t0[j], t1[j], t2[j], t3[j]
+                    d0 = x0 - x2
+                    d1 = x1 - x3
+                    i_ = w0r * d0 + w1r * d1
+                    q_ = w0i * d0 + w1i * d1
+                    fa[j] = math.sqrt(i_ * i_ + q_ * q_)
+                    fp[j] = _phase(q_, i_)
+                    S[j] += x0 + x1 + x2 + x3
+                    ok = ((x0 > lo) & (x0 < hi) & (x1 > lo) & (x1 < hi)
+                          & (x2 > lo) & (x2 < hi) & (x3 > lo) & (x3 < hi))
+                    G[j] &= np.uint8(1) if ok else np.uint8(0)
+                continue
+            fi = bi[f]
+            fq = bq[f]
+            fi[:m] = 0.0
+            fq[:m] = 0.0
+            if half:
+                for t in range(half):
+                    ta = taps[f, t, b0:b0 + m]
+                    tb = taps[f, t + half, b0:b0 + m]
+                    a_r = wr[t]
+                    a_i = wi[t]
+                    for j in range(m):
+                        x = ta[j]
+                        y = tb[j]
+                        dd = x - y
+                        fi[j] += a_r * dd
+                        fq[j] += a_i * dd
+                        S[j] += x + y
+                        ok = (x > lo) & (x < hi) & (y > lo) & (y < hi)
+                        G[j] &= np.uint8(1) if ok else np.uint8(0)
+            else:
+                for t in range(k):
+                    ta = taps[f, t, b0:b0 + m]
+                    a_r = wr[t]
+                    a_i = wi[t]
+                    for j in range(m):
+                        x = ta[j]
+                        fi[j] += a_r * x
+                        fq[j] += a_i * x
+                        S[j] += x
+                        ok = (x > lo) & (x < hi)
+                        G[j] &= np.uint8(1) if ok else np.uint8(0)
+            for j in range(m):
+                i_ = fi[j]
+                q_ = fq[j]
+                fa[j] = math.sqrt(i_ * i_ + q_ * q_)
+                fp[j] = _phase(q_, i_)
+        o_int = out_int[b0:b0 + m]
+        o_bad = out_bad[b0:b0 + m]
+        o_d = out_d[b0:b0 + m]
+        o_amp = out_amp[b0:b0 + m]
+        o_conf = out_conf[b0:b0 + m]
+        for j in range(m):
+            o_int[j] = S[j] * c[11]
+            o_bad[j] = np.uint8(1) - G[j]
+        if nf == 1:
+            scale = r[0] * inv_two_pi
+            p0 = ph[0]
+            a0 = am[0]
+            for j in range(m):
+                o_d[j] = p0[j] * scale
+                o_conf[j] = np.uint8(0)
+                o_amp[j] = a0[j]
+        elif nf == 2:
+            p0, p1, a0, a1 = ph[0], ph[1], am[0], am[1]
+            half_ = np.float32(0.5)
+            for j in range(m):
+                x = p0[j] * c[0] - p1[j] * c[1]
+                e = np.floor(x + half_)
+                resid = abs(x - e)
+                u1 = p0[j] * c[2] + e * c[3]
+                u2 = p1[j] * c[4] + e * c[5]
+                w1 = c[6] * a0[j] * a0[j]
+                w2 = c[7] * a1[j] * a1[j]
+                d = u1 + (u2 - u1) * (w2 / (w1 + w2 + np.float32(1e-30)))
+                d = d - np.floor(d * c[9]) * c[8]
+                o_d[j] = min(d, c[8])
+                o_conf[j] = np.uint8(1) if resid > c[10] else np.uint8(0)
+                o_amp[j] = half_ * (a0[j] + a1[j])
+        else:
+            _search3(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf)
+        o_val = out_valid[b0:b0 + m]
+        for j in range(m):
+            # As tofhil.depth._depth_frame: no conflict, no bad tap, finite distance and amplitude.
+            fin = np.isfinite(o_d[j]) & np.isfinite(o_amp[j])
+            o_val[j] = np.uint8(1) if (fin & (o_conf[j] == 0) & (o_bad[j] == 0)) else np.uint8(0)
+
+
+@njit(fastmath=_FASTMATH, cache=True, inline="always")
+def _search3(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf):  # pragma: no cover
+    """Three frequencies: every wrap count of the reference (lowest) frequency, the others'
+    counts by rounding; the candidate with the least weighted variance (as
+    :func:`tofhil.unwrap._search`), then the weighted mean wrapped into the range."""
+    inv_two_pi = np.float32(1.0 / (2.0 * math.pi))
+    ref = int(c[12])
+    ncount = int(c[13])
+    r0, r1, r2 = r[0], r[1], r[2]
+    half_ = np.float32(0.5)
+    for j in range(m):
+        w0 = ph[0, j] * (r0 * inv_two_pi)
+        w1 = ph[1, j] * (r1 * inv_two_pi)
+        w2 = ph[2, j] * (r2 * inv_two_pi)
+        k0 = fw[0] * am[0, j] * am[0, j] + np.float32(1e-30)
+        k1 = fw[1] * am[1, j] * am[1, j] + np.float32(1e-30)
+        k2 = fw[2] * am[2, j] * am[2, j] + np.float32(1e-30)
+        ksum = k0 + k1 + k2
+        wref = w0 if ref == 0 else (w1 if ref == 1 else w2)
+        rref = r0 if ref == 0 else (r1 if ref == 1 else r2)
+        best_cost = np.float32(0.0)
+        b0 = b1 = b2 = np.float32(0.0)
+        for cnt in range(ncount):
+            cand = wref + np.float32(cnt) * rref
+            u0 = w0 + np.floor((cand - w0) / r0 + half_) * r0
+            u1 = w1 + np.floor((cand - w1) / r1 + half_) * r1
+            u2 = w2 + np.floor((cand - w2) / r2 + half_) * r2
+            mean = (k0 * u0 + k1 * u1 + k2 * u2) / ksum
+            cost = k0 * (u0 - mean) ** 2 + k1 * (u1 - mean) ** 2 + k2 * (u2 - mean) ** 2
+            if cnt == 0 or cost < best_cost:
+                best_cost = cost
+                b0, b1, b2 = u0, u1, u2
+        d = (k0 * b0 + k1 * b1 + k2 * b2) / ksum
         d = d - np.floor(d * c[9]) * c[8]
-        out_d[p] = min(d, c[8])
-        out_conflict[p] = np.uint8(1) if resid > c[10] else np.uint8(0)
-        out_amp[p] = half * (a0 + a1)
+        o_d[j] = min(d, c[8])
+        conf = (abs(b0 - b1) > spacing[0, 1]) | (abs(b0 - b2) > spacing[0, 2]) | (abs(b1 - b2) > spacing[1, 2])
+        o_conf[j] = np.uint8(1) if conf else np.uint8(0)
+        o_amp[j] = (am[0, j] + am[1, j] + am[2, j]) * np.float32(1.0 / 3.0)
 
 
 def fused_supported(taps: np.ndarray, theta_rad: np.ndarray) -> bool:
-    """Four taps in order (tap k + 2 opposite tap k), one or two frequencies, float32."""
+    """Float32 taps ``[F, K, H, W]``: any K >= 3 equally spaced phases, one to three frequencies."""
     from tofhil.demod import estimator_weights
 
-    if taps.ndim != 4 or taps.shape[1] != 4 or taps.shape[0] not in (1, 2) or taps.dtype != np.float32:
+    if taps.ndim != 4 or taps.shape[1] < 3 or taps.shape[0] not in (1, 2, 3) or taps.dtype != np.float32:
         return False
-    w = estimator_weights(theta_rad)
-    return bool(np.allclose(w[2], -w[0]) and np.allclose(w[3], -w[1]))
+    try:
+        estimator_weights(theta_rad)
+    except ValueError:
+        return False
+    return len(np.atleast_1d(theta_rad)) == taps.shape[1]
 
 
 def fused_depth(taps: np.ndarray, theta_rad: np.ndarray, freq_hz: np.ndarray, margin: float,
                 limits: TapLimits | None = None
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, np.ndarray]:
-    """``(distance, amplitude mean, intensity mean, conflict, unambiguous range, bad taps)``
-    for float32 taps ``[F, 4, H, W]`` with F = 1 or 2; ``bad taps`` is
-    :func:`tofhil.demod.bad_tap_pixels` of ``taps`` and ``limits``."""
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
+    """``(distance, amplitude mean, intensity mean, conflict, unambiguous range, bad taps,
+    valid)`` for float32 taps ``[F, K, H, W]`` with F = 1, 2 or 3; ``bad taps`` is
+    :func:`tofhil.demod.bad_tap_pixels` of ``taps`` and ``limits``; ``valid`` is the
+    validity rule of :func:`tofhil.depth.depth_from_raw` before any amplitude threshold."""
     from tofhil.demod import estimator_weights
     from tofhil.unwrap import _ext_gcd, frequency_plan
 
     nf, k, h, wd = taps.shape
-    wts = estimator_weights(theta_rad)  # w_{k+2} = -w_k for equally spaced taps
-    w = np.array([wts[0].real, wts[1].real, wts[0].imag, wts[1].imag], dtype=np.float32)
+    wts = estimator_weights(theta_rad)   # w_{k+K/2} = -w_k for equally spaced taps
+    wr = np.ascontiguousarray(wts.real, dtype=np.float32)
+    wi = np.ascontiguousarray(wts.imag, dtype=np.float32)
     flat = np.ascontiguousarray(taps).reshape(nf, k, h * wd)
-    phase = np.empty((nf, h * wd), np.float32)
-    amp = np.empty((nf, h * wd), np.float32)
-    total = np.empty(h * wd, np.float32)
-    bad = np.empty(h * wd, np.uint8)
     lo, hi = (limits or TapLimits()).bounds(np.float32)
-    _demod4(flat, w, lo, hi, phase, amp, total, bad)
     plan = frequency_plan(freq_hz)
+    if len(plan.freq_hz) != nf:
+        raise ValueError(f"taps have {nf} frequencies, freq_hz has {len(plan.freq_hz)}")
     rng = plan.unambiguous_range_m
-    if nf == 1:
-        distance = phase[0] * np.float32(plan.wrap_range_m(0) / (2 * np.pi))
-        conflict = np.zeros(h * wd, bool)
-    else:
+    two_pi = 2 * np.pi
+    c = np.zeros(14, np.float32)
+    c[8], c[9], c[11] = rng, 1.0 / rng, 1.0 / (nf * k)
+    r = np.array([plan.wrap_range_m(i) for i in range(nf)], np.float32)
+    fw = np.array([(f / plan.freq_hz[0]) ** 2 for f in plan.freq_hz], np.float32)
+    spacing = np.zeros((3, 3), np.float32)
+    if nf == 2:
         m1, m2 = plan.multiples
         a, b = _ext_gcd(m1, m2)
         r1, r2 = plan.wrap_range_m(0), plan.wrap_range_m(1)
-        two_pi = 2 * np.pi
-        c = np.array([m2 / two_pi, m1 / two_pi, r1 / two_pi, -b * r1, r2 / two_pi, a * r2, m1 * m1, m2 * m2,
-                      rng, 1.0 / rng, margin / 2], dtype=np.float32)
-        distance = np.empty(h * wd, np.float32)
-        conflict = np.empty(h * wd, np.uint8)
-        amplitude = np.empty(h * wd, np.float32)
-        _unwrap2(phase, amp, c, distance, conflict, amplitude)
-        conflict = conflict.view(bool)
-    if nf == 1:
-        amplitude = amp[0]
-    intensity = total * np.float32(1.0 / (nf * k))
+        c[:8] = [m2 / two_pi, m1 / two_pi, r1 / two_pi, -b * r1, r2 / two_pi, a * r2, m1 * m1, m2 * m2]
+        c[10] = margin / 2
+    elif nf == 3:
+        ref = int(np.argmin(plan.multiples))
+        c[12], c[13] = ref, plan.multiples[ref]
+        for i in range(nf):
+            for j in range(i + 1, nf):
+                spacing[i, j] = margin * plan.decision_spacing_m(i, j)
+    distance = np.empty(h * wd, np.float32)
+    amplitude = np.empty(h * wd, np.float32)
+    intensity = np.empty(h * wd, np.float32)
+    conflict = np.empty(h * wd, np.uint8)
+    bad = np.empty(h * wd, np.uint8)
+    valid = np.empty(h * wd, np.uint8)
+    _fused(flat, wr, wi, lo, hi, c, r, fw, spacing, distance, amplitude, intensity, conflict, bad, valid)
     return (distance.reshape(h, wd), amplitude.reshape(h, wd), intensity.reshape(h, wd),
-            conflict.reshape(h, wd), rng, bad.view(bool).reshape(h, wd))
+            conflict.view(bool).reshape(h, wd), rng, bad.view(bool).reshape(h, wd), valid.view(bool).reshape(h, wd))

@@ -115,15 +115,19 @@ def test_depth_from_raw_plane_single_frequency():
     assert depth.valid.all() and depth.kind == "radial"
 
 
-@pytest.mark.parametrize("freqs", [[44e6], [80e6, 100e6], [10e6, 20e6]])
+@pytest.mark.parametrize("freqs,k", [([44e6], 4), ([80e6, 100e6], 4), ([10e6, 20e6], 4), ([44e6], 3),
+                                     ([80e6, 100e6], 5), ([80e6, 100e6], 8), ([20e6, 30e6, 50e6], 4),
+                                     ([80e6, 100e6, 120e6], 3), ([60e6, 80e6, 100e6], 6)])
 @pytest.mark.parametrize("start_deg", [0.0, 37.0])
-def test_fused_path_agrees_with_general_path(freqs, start_deg):
-    """The fused 4-tap kernel (approximate arctangent) against the numpy path (np.arctan2)."""
+def test_fused_path_agrees_with_general_path(freqs, k, start_deg):
+    """The fused kernel (approximate arctangent, one pass over the taps) against the numpy
+    path (np.arctan2), for odd and even K and one to three frequencies."""
+    from tofhil.fastdepth import fused_supported
     from tofhil.unwrap import frequency_plan
 
     rng = np.random.default_rng(3)
     cam = CameraModel.from_fov(64, 48, 60.0)
-    theta = equally_spaced_phases(4, np.radians(start_deg))
+    theta = equally_spaced_phases(k, np.radians(start_deg))
     rmax = frequency_plan(freqs).unambiguous_range_m
     d = rng.uniform(0.0, rmax, cam.shape)
     amp = rng.uniform(20, 400, (len(freqs),) + cam.shape)
@@ -131,6 +135,7 @@ def test_fused_path_agrees_with_general_path(freqs, start_deg):
     taps = taps_from_signal(amp, phase, np.full(amp.shape, 900.0), theta)
     taps = (taps + rng.normal(0, 3.0, taps.shape)).astype(np.float32)
     frame = RawFrame(taps=taps, freq_hz=freqs, theta_rad=theta, integration_time_s=1e-3, camera=cam)
+    assert fused_supported(taps, theta)
     fast = depth_from_raw(frame)
     slow = depth_from_raw(frame, fused=False)
     diff = np.abs(fast.distance_m - slow.distance_m)

@@ -366,3 +366,23 @@ def test_trilinear_weights_reproduce_linear_functions():
     assert (w >= 0).all()
     np.testing.assert_allclose(w.sum(1), 1.0, atol=1e-12)
     np.testing.assert_allclose(np.einsum("nk,nkd->nd", w, (ijk + 0.5) * R), p, atol=1e-12)
+
+
+@pytest.mark.parametrize("cell", [0.05, 0.2])
+def test_compiled_point_loop_equals_vectorised_terms(cell: float) -> None:
+    """The compiled per-point loop and the vectorised 27-offset pass give the same per-point
+    terms, for points inside the reference, beside it and far outside the dense table."""
+    from tofhil.eval.ndt import _all_point_terms, _point_terms
+
+    rng = np.random.default_rng(5)
+    ref = rng.normal(scale=[0.5, 0.3, 0.05], size=(20000, 3)) + [0.2, -0.1, 1.0]
+    pts = np.concatenate([ref[:3000] + rng.normal(scale=0.01, size=(3000, 3)),
+                          rng.uniform(-2, 2, (2000, 3)), [[50.0, 50.0, 50.0], [-40.0, 0.0, 1.0]]])
+    grid = NDTGrid.from_points(ref, cell)
+    assert grid._table is not None
+    fast = _point_terms(grid, pts, 0.55)
+    slow = _all_point_terms(grid, pts, 0.55)
+    for a, b in zip(fast[:4], slow[:4]):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-13)
+    np.testing.assert_array_equal(fast[4], slow[4])
+    assert fast[4].sum() > 2000 and not fast[4][-2:].any()
