@@ -242,7 +242,7 @@ def fused_depth(taps: np.ndarray, theta_rad: np.ndarray, freq_hz: np.ndarray, ma
     :func:`tofhil.demod.bad_tap_pixels` of ``taps`` and ``limits``; ``valid`` is the
     validity rule of :func:`tofhil.depth.depth_from_raw` before any amplitude threshold."""
     from tofhil.demod import estimator_weights
-    from tofhil.unwrap import _ext_gcd, frequency_plan
+    from tofhil.unwrap import ext_gcd, frequency_plan
 
     nf, k, h, wd = taps.shape
     wts = estimator_weights(theta_rad)   # w_{k+K/2} = -w_k for equally spaced taps
@@ -262,7 +262,7 @@ def fused_depth(taps: np.ndarray, theta_rad: np.ndarray, freq_hz: np.ndarray, ma
     spacing = np.zeros((3, 3), np.float32)
     if nf == 2:
         m1, m2 = plan.multiples
-        a, b = _ext_gcd(m1, m2)
+        a, b = ext_gcd(m1, m2)
         r1, r2 = plan.wrap_range_m(0), plan.wrap_range_m(1)
         c[:8] = [m2 / two_pi, m1 / two_pi, r1 / two_pi, -b * r1, r2 / two_pi, a * r2, m1 * m1, m2 * m2]
         c[10] = margin / 2

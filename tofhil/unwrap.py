@@ -78,7 +78,7 @@ class UnwrapResult:
     unambiguous_range_m: float
 
 
-def _ext_gcd(a: int, b: int) -> tuple[int, int]:
+def ext_gcd(a: int, b: int) -> tuple[int, int]:
     """x, y with a*x + b*y = 1 for coprime a, b."""
     old_r, r, old_s, s, old_t, t = a, b, 1, 0, 0, 1
     while r:
@@ -146,7 +146,7 @@ def _unwrap_two(phase: np.ndarray, plan: FrequencyPlan, amplitude: np.ndarray | 
     x -= phase[1] * dtype(m1 * inv_two_pi)  # = m1*n2 - m2*n1 + residual
     e = np.rint(x)
     x -= e  # residual in cycles; |x| = 0.5 is the decision boundary
-    a, b = _ext_gcd(m1, m2)  # m1*a + m2*b = 1  ->  n2 = e*a, n1 = -e*b
+    a, b = ext_gcd(m1, m2)  # m1*a + m2*b = 1  ->  n2 = e*a, n1 = -e*b
     u1 = phase[0] * dtype(r1 * inv_two_pi)
     u1 += e * dtype(-b * r1)
     u2 = phase[1] * dtype(r2 * inv_two_pi)
