@@ -151,7 +151,8 @@ def main(argv: list[str] | None = None) -> None:
         if exc.errno == errno.EPIPE:  # output piped into head: not an error
             _exit(0)
         if exc.errno in _USER_OS_ERRORS:
-            where = exc.filename if exc.filename else "output"
+            # No file name: a library's own file (e.g. numba's compiled-kernel cache) on the same disk.
+            where = exc.filename if exc.filename else "a file being written (disk or file-size limit)"
             error_line(f"{where}: {exc.strerror or exc}")
             _exit(2)
         raise
