@@ -246,7 +246,9 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
             pred = model.predict(fitted)
             chi2_test = data.chi2(pred, "test")
             channels = channel_chi2(data, pred)
-            worse = worse_channels(current_channels, channels)
+            # worse than the current model or, summed over rounds, than the base twin
+            worse = sorted(set(worse_channels(current_channels, channels))
+                           | set(worse_channels(selection.channels_before, channels)))
             score = chi2_test + (current_k + lib[name].k) * penalty
             gain = current_chi2 - chi2_test
             gains = bool(current_score - score > 0 and excess > 0 and gain > min_relative_gain * excess
@@ -279,7 +281,8 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         joint_pred = model.predict(joint)
         joint_chi2 = data.chi2(joint_pred, "test")
         joint_channels = channel_chi2(data, joint_pred)
-        if joint_chi2 < current_chi2 and not worse_channels(before_round, joint_channels):
+        if (joint_chi2 < current_chi2 and not worse_channels(before_round, joint_channels)
+                and not worse_channels(selection.channels_before, joint_channels)):
             params, current_chi2, current_channels = joint, joint_chi2, joint_channels
     selection.causes = active
     selection.params = {e: params[e] for e in active}

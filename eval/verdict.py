@@ -32,7 +32,7 @@ from tofhil.eval.heldout import NOISE_POOL_PX, HeldOutData, huber
 
 #: False-alarm probability of each "above noise" test (one in a thousand).
 ALPHA = 1e-3
-#: The misfit channels: the complex signal split along the measured phasor (amplitude) and
+#: The misfit channels: the complex signal split along the predicted phasor (amplitude) and
 #: across it (phase, i.e. depth), and the tap offset when the session has that channel.
 CHANNELS = ("depth", "amplitude", "offset")
 #: Residual regions smaller than this many pixels are not listed (single hot pixels).
@@ -75,12 +75,15 @@ def _part(data: HeldOutData, part: str) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 def whitened_channels(data: HeldOutData, prediction: np.ndarray, part: str = "test") -> dict[str, np.ndarray]:
     """Whitened residual per channel, ``[values, pixels]`` on the part's pixels: the complex
-    residual of each frequency rotated onto the measured phasor (real: amplitude, imaginary:
-    phase = depth); the per-component noise is isotropic, so the rotation keeps it whitened."""
+    residual of each frequency rotated onto the predicted phasor (real: amplitude, imaginary:
+    phase = depth). The noise is isotropic and the prediction's direction does not depend on
+    it, so both components stay exactly whitened (rotating onto the measured phasor would
+    not: its direction carries the noise, and the phase part would scale with |P| / |S|)."""
     s, var, mask = _part(data, part)
     nf = data.n_freq
     meas, pred = s[:nf, mask], prediction[:nf, mask]
-    u = meas / np.maximum(np.abs(meas), 1e-300)
+    a = np.abs(pred)
+    u = np.where(a > 0, pred / np.where(a > 0, a, 1.0), meas / np.maximum(np.abs(meas), 1e-300))
     r = (meas - pred) * np.conj(u) / np.sqrt(var[:nf, mask])
     out = {"depth": r.imag, "amplitude": r.real}
     if data.offset_channel:
