@@ -165,11 +165,13 @@ def write_report(res: Any, path: Path, *, session_path: str, scene_path: str) ->
                     "Trilinear NDT likelihood of each measured held-out point on the twin's NDT grid."))
     parts.append(H.figures_html(figures))
     parts.append("<h2>Ranking</h2><table><tr><th>effect</th><th>held-out misfit removed</th><th>score gain</th>"
-                 "<th>significant</th><th>parameters</th></tr>")
+                 "<th>significant</th><th>channels worse</th><th>at a bound</th><th>parameters</th></tr>")
     for r in res.ranked:
         p = ", ".join(f"{k} = {v:.4g}" for k, v in r["params"].items())
+        worse = ", ".join(r.get("worse_channels", []))
         parts.append(f"<tr><td>{esc(r['effect'])}</td><td>{100 * r['relative_gain']:.2f}%</td>"
                      f"<td>{r['delta_score']:.1f}</td><td>{'yes' if r['significant'] else 'no'}</td>"
+                     f"<td style='color:#c00'>{esc(worse)}</td><td>{esc(', '.join(r.get('at_bounds', [])))}</td>"
                      f"<td>{esc(p)}</td></tr>")
     parts.append("</table>")
     H.write_page(path, "tofhil diagnose", parts)
