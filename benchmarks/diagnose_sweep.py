@@ -69,7 +69,8 @@ def main() -> None:
             removed = float("nan") if v.excess_removed is None else v.excess_removed
             lost = loss(res)
             rows.setdefault(name, []).append((ok, v.kind == "explained", removed, lost))
-            print(f"{name:20s} {seed:4d} {'+'.join(res.causes) or '-':28s} {v.kind:18s} {100 * removed:6.0f}% "
+            pct = "-" if not np.isfinite(removed) else f"{100 * removed:.0f}%"
+            print(f"{name:20s} {seed:4d} {'+'.join(res.causes) or '-':28s} {v.kind:18s} {pct:>7s} "
                   f"{res.chi2_per_value['before']:13.2f} {res.chi2_per_value['after_extended_scene']:7.2f} "
                   f"{res.gain['depth_rmse_m']['before'] * 1e3:8.1f} {res.gain['depth_rmse_m']['after'] * 1e3:6.1f} "
                   f"{'LOSS' if lost else '-':>4s} {dt:5.1f}", flush=True)
