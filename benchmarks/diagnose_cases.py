@@ -29,6 +29,8 @@ CASES: dict[str, Callable[[np.random.Generator], dict[str, Any]]] = {
     "lens_distortion": lambda r: {"k1": _sign(r) * r.uniform(0.05, 0.15), "k2": 0.0},
     "ambient": lambda r: {"irradiance_w_m2": r.uniform(0.5, 3.0)},
     "reflectance": lambda r: {"scale": float(r.choice([r.uniform(0.7, 0.9), r.uniform(1.1, 1.3)]))},
+    "offset": lambda r: {"dark_e": r.uniform(2000.0, 20000.0)},
+    "field_angle": lambda r: {"c2_m": _sign(r) * r.uniform(0.02, 0.06), "c4_m": 0.0},
     # a wall facing the camera and a card: tilt and distance are observable, lateral shifts and
     # roll hardly at all (docs/diagnose.md), so those are not hidden
     "pose": lambda r: {"rx": _sign(r) * r.uniform(0.005, 0.015), "ry": _sign(r) * r.uniform(0.005, 0.015),

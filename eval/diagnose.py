@@ -26,6 +26,7 @@ from tofhil.eval import metrics as M
 from tofhil.eval.heldout import HeldOutData, depth_from_signal, split_session
 from tofhil.eval.selection import Selection, greedy_select
 from tofhil.eval.twin_model import TwinModel, to_effect_values
+from tofhil.eval import verdict as V
 from tofhil.frames import DepthFrame
 from tofhil.session import open_session
 
@@ -46,17 +47,27 @@ class DiagnosisResult:
     maps: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
     evaluations: dict[str, M.Evaluation] = field(repr=False, default_factory=dict)
     seconds: float = 0.0
+    #: What the diagnosis claims (``eval/verdict.py``), and the figures behind it.
+    verdict: V.Verdict | None = None
+    #: Held-out misfit per channel before and after, with its noise margin and a "worse" flag.
+    channels: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: Connected regions left above noise after the fit (before it when nothing was named).
+    residual_regions: list[dict[str, Any]] = field(default_factory=list)
+    #: Each object's held-out misfit per value before and after, and whether it is above noise.
+    objects: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
-        return {"cause": self.cause, "causes": self.causes, "ranked": self.ranked, "gain": self.gain,
+        return {"verdict": self.verdict.to_json() if self.verdict else None, "channels": self.channels,
+                "residual_regions": self.residual_regions, "objects": self.objects,
+                "cause": self.cause, "causes": self.causes, "ranked": self.ranked, "gain": self.gain,
                 "regions": self.regions, "extended_scene": self.extended_scene, "params": self.params,
                 "evidence": self.evidence, "chi2_per_value": self.chi2_per_value, "rounds": self.rounds,
                 "depth_rmse_definition": f"{M.DEPTH_RMSE}, held-out pixels and frames",
                 "split": {"train_frames": self.data.n_train_frames, "test_frames": self.data.n_test_frames,
                           "train_pixels": int(self.data.train_pixels.sum()),
                           "test_pixels": int(self.data.test_pixels.sum()),
-                          "offset_channel": self.data.offset_channel},
-                "seconds": round(self.seconds, 2)}
+                          "offset_channel": self.data.offset_channel}}
+        # (the run time is in the report, not here: the same inputs give the same file, bit for bit)
 
 
 def distance_defined(data: HeldOutData, *predictions: np.ndarray, sigmas: float = 3.0) -> np.ndarray:
@@ -133,13 +144,25 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
     for i, rnd in enumerate(selection.rounds):
         if not rnd:
             continue
-        best = rnd[0]
-        runner = rnd[1] if len(rnd) > 1 else None
-        verdict = "selected" if best.effect in selection.causes and selection.causes.index(best.effect) == i else "not significant"
+        # the round's chosen effect (the best-scoring significant one), else its best score
+        chosen = selection.causes[i] if i < len(selection.causes) else None
+        best = next((c for c in rnd if c.effect == chosen), rnd[0])
+        runner = next((c for c in rnd if c is not best), None)
+        verdict = "selected" if chosen is not None else "not significant"
         lines.append(f"round {i + 1}: best {best.effect} removes {100 * best.relative_gain:.1f}% of the held-out "
                      f"misfit (score gain {best.delta_score:.0f}, {best.n_params} parameters) -- {verdict}"
                      + (f"; runner-up {runner.effect} {100 * runner.relative_gain:.1f}%" if runner else ""))
-    if not selection.causes:
+    for i, rnd in enumerate(selection.rounds):
+        for c in rnd:
+            if c.worse_channels and c.delta_score > 0:
+                lines.append(f"round {i + 1}: {c.effect} lowers the held-out score but makes "
+                             f"{', '.join(c.worse_channels)} worse beyond its noise -- not accepted")
+    for e, names in selection.at_bounds.items():
+        if names:
+            lines.append(f"{e}: {', '.join(names)} fitted at the bound of the range searched")
+    if not selection.searched:
+        lines.append("nothing searched (max effects 0)")
+    elif not selection.causes:
         lines.append("no effect of the library explains a significant part of the held-out residual"
                      + (" (the twin is consistent with the measurement within its noise)" if excess < 0.05 * n else ""))
     return lines
@@ -168,36 +191,73 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         model.align_pose()
     selection = greedy_select(model, data, candidates=candidates, max_effects=max_effects,
                               min_relative_gain=min_relative_gain, progress=progress)
-    params = {e: to_effect_values(e, v) for e, v in selection.params.items()}
-
     # The extended scene: written, read back and re-rendered, so the gain is that of the file.
     ext_path = Path(extended_scene_path) if extended_scene_path else None
-    ext_scene = dataclasses.replace(model.scene, effects=model.extended_effects_block(selection.params))
-    extended_text = scene_to_yaml(ext_scene)
-    if ext_path is not None:
-        ext_path.write_text(extended_text)
-        reloaded = load_scene(ext_path)
-    else:
-        reloaded = scene_from_yaml(extended_text)
-    after_model = TwinModel(reloaded, data, render_kwargs=render_kwargs)
-    after_pred = after_model.predict({})
+
+    def extend(fitted: dict[str, dict[str, float]]) -> tuple[TwinModel, np.ndarray]:
+        ext_scene = dataclasses.replace(model.scene, effects=model.extended_effects_block(fitted))
+        extended_text = scene_to_yaml(ext_scene)
+        if ext_path is not None:
+            ext_path.write_text(extended_text)
+            reloaded = load_scene(ext_path)
+        else:
+            reloaded = scene_from_yaml(extended_text)
+        after_model = TwinModel(reloaded, data, render_kwargs=render_kwargs)
+        return after_model, after_model.predict({})
+
+    after_model, after_pred = extend(selection.params)
+    result = model.base_render()
+    object_id = np.asarray(result.object_id)
+    object_names = {i: o.name for i, o in enumerate(model.scene.objects)}
+    nu = V.noise_dof(data)
+    n = max(data.n_values("test"), 1)
+    objects_before = V.object_misfits(data, base_pred, nu, object_id, object_names)
+
+    def judge(after_pred: np.ndarray, causes: list[str]) -> tuple[V.Verdict, dict, dict, list[str]]:
+        ch_after = V.channel_chi2(data, after_pred)
+        worse = V.worse_channels(selection.channels_before, ch_after)
+        objects_after = V.object_misfits(data, after_pred, nu, object_id, object_names)
+        v = V.verdict(searched=selection.searched, causes=causes, n_values=n, nu=nu,
+                      before_per_value=selection.baseline_chi2_test / n,
+                      after_per_value=data.chi2(after_pred, "test") / n, worse=worse,
+                      objects_before=objects_before, objects_after=objects_after, pinned=selection.at_bounds,
+                      rejected_for_channels=selection.rejected_for_channels)
+        return v, ch_after, objects_after, worse
+
+    evidence = _evidence(selection, data)
+    verdict, ch_after, objects_after, worse = judge(after_pred, list(selection.causes))
+    if verdict.kind == "scene does not match" and selection.causes:
+        # No effect is named on a scene that does not match: the extended scene is the base.
+        verdict.notes.append("fitted but not named: " + ", ".join(selection.causes))
+        selection.causes, selection.params = [], {}
+        after_model, after_pred = extend({})
+        _, ch_after, objects_after, worse = judge(after_pred, [])
+    params = {e: to_effect_values(e, v) for e, v in selection.params.items()}
 
     # A predicted pixel is compared where its signal is above the noise and no predicted tap
     # reaches the device's clip levels (compare applies the same rule to a twin session).
     defined = distance_defined(data, base_pred, after_pred)
     for m in (model, after_model):
         defined &= ~bad_tap_pixels(m.taps({}), data.tap_limits)
-    result = model.base_render()
-    objects = M.object_regions(np.asarray(result.object_id), {i: o.name for i, o in enumerate(model.scene.objects)})
+    objects = M.object_regions(object_id, object_names)
     before, maps_before, ev_before = heldout_metrics(data, base_pred, defined, objects)
     after, maps_after, ev_after = heldout_metrics(data, after_pred, defined, objects)
+    channels = {c: {"before_per_value": round(selection.channels_before[c][0] / selection.channels_before[c][1], 4),
+                    "after_per_value": round(ch_after[c][0] / ch_after[c][1], 4),
+                    "values": ch_after[c][1],
+                    "noise_margin_per_value": round(V.channel_margin(ch_after[c][1]) / ch_after[c][1], 4),
+                    "worse": c in worse} for c in ch_after}
+    regions_left, above_after = V.residual_regions(
+        data, after_pred, nu, object_id, object_names, maps_after["depth_residual"], maps_after["amplitude_residual"])
     gain = {k: {"before": before[k], "after": after.get(k, float("nan"))} for k in before}
     regions = {"before": ev_before.to_json()["regions"], "after": ev_after.to_json()["regions"]}
     ranked = [{"effect": c.effect, "params": to_effect_values(c.effect, c.params), "score": c.score,
                "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,
-               "chi2_test": c.chi2_test, "n_params": c.n_params} for c in selection.first_round]
+               "chi2_test": c.chi2_test, "n_params": c.n_params, "worse_channels": c.worse_channels,
+               "at_bounds": c.at_bounds} for c in selection.first_round]
     rounds = [[{"effect": c.effect, "delta_score": c.delta_score, "relative_gain": c.relative_gain,
-                "significant": c.significant} for c in rnd] for rnd in selection.rounds]
+                "significant": c.significant, "worse_channels": c.worse_channels} for c in rnd]
+              for rnd in selection.rounds]
     maps = {f"{k}_before": v for k, v in maps_before.items()} | {f"{k}_after": v for k, v in maps_after.items()}
     # Each selected effect's signature: how it changes the twin's depth and amplitude.
     nf = data.n_freq
@@ -208,16 +268,18 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                                     depth_from_signal(p_without[:nf], data.freq_hz), data.unambiguous_range_m)
         maps[f"signature_depth_{e}"] = np.where(distance_defined(data, p_with, p_without), change, np.nan)
         maps[f"signature_amplitude_{e}"] = (np.abs(p_with[:nf]) - np.abs(p_without[:nf])).mean(axis=0)
-    n = max(data.n_values("test"), 1)
+    maps["above_noise_after"] = np.where(data.usable, above_after, np.nan)
     return DiagnosisResult(cause=selection.causes[0] if selection.causes else None, causes=list(selection.causes),
                            ranked=ranked, rounds=rounds, gain=gain, regions=regions,
                            extended_scene=str(ext_path) if ext_path else "", params=params,
-                           evidence=_evidence(selection, data),
+                           evidence=evidence,
                            chi2_per_value={"before": selection.baseline_chi2_test / n,
                                            "after_fit": selection.final_chi2_test / n,
                                            "after_extended_scene": data.chi2(after_pred, "test") / n},
                            data=data, maps=maps, evaluations={"before": ev_before, "after": ev_after},
-                           seconds=time.perf_counter() - t0)
+                           seconds=time.perf_counter() - t0, verdict=verdict, channels=channels,
+                           residual_regions=[r.to_json() | {"text": r.describe()} for r in regions_left],
+                           objects={k: {"before": objects_before.get(k), "after": v} for k, v in objects_after.items()})
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,

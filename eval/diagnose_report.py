@@ -81,14 +81,55 @@ GAIN_LABELS = {"depth_rmse_m": (f"{DEPTH_RMSE} (mm)", 1e3), "depth_median_m": ("
                "ndt_mean_likelihood_trilinear": ("NDT mean likelihood (trilinear)", 1.0)}
 
 
+def channel_table(res: Any) -> str:
+    """Held-out misfit per channel before and after; a channel worse beyond its noise in red."""
+    if not res.channels:
+        return ""
+    rows = ["<h3>Held-out misfit per channel (1.0 = noise)</h3><table><tr><th>channel</th><th>base twin</th>"
+            "<th>extended twin</th><th>noise margin</th><th>worse</th></tr>"]
+    for c, v in res.channels.items():
+        style = " style='color:#c00;font-weight:bold'" if v["worse"] else ""
+        rows.append(f"<tr{style}><td>{H.esc(c)}</td><td>{v['before_per_value']:.3f}</td>"
+                    f"<td>{v['after_per_value']:.3f}</td><td>+{v['noise_margin_per_value']:.3f}</td>"
+                    f"<td>{'WORSE' if v['worse'] else 'no'}</td></tr>")
+    rows.append("</table><p class='note'>depth: the residual across the measured phasor (phase), amplitude: "
+                "along it, offset: the tap offset channel. Worse: grown by more than z sqrt(2 n) of its n values "
+                "(one-sided false-alarm probability 1e-3).</p>")
+    return "".join(rows)
+
+
+def residual_region_table(res: Any) -> str:
+    """Where the misfit left above noise is: connected regions, by object."""
+    if not res.residual_regions:
+        return "<p class='note'>No connected region of the held-out frames is left above noise.</p>"
+    rows = ["<h3>Left above noise</h3><table><tr><th>pixels</th><th>x0, y0, x1, y1</th><th>objects</th>"
+            "<th>misfit per value</th><th>depth residual (mm)</th><th>amplitude residual (DN)</th></tr>"]
+    for r in res.residual_regions:
+        objs = ", ".join(f"{k} {100 * f:.0f} %" for k, f in r["objects"].items())
+        rows.append(f"<tr><td>{r['pixels']}</td><td>{', '.join(map(str, r['bbox_x0y0x1y1']))}</td>"
+                    f"<td>{H.esc(objs)}</td><td>{r['misfit_per_value']:.2f}</td><td>{r['depth_residual_mm']:+.1f}</td>"
+                    f"<td>{r['amplitude_residual']:+.3g}</td></tr>")
+    rows.append("</table><p class='note'>Connected pixels (held-out frames) whose 3 x 3 mean misfit is above the "
+                "noise threshold of its values.</p>")
+    return "".join(rows)
+
+
 def write_report(res: Any, path: Path, *, session_path: str, scene_path: str) -> None:
     """The diagnosis page: cause, evidence, held-out gain, per-region table, figures, ranking."""
     esc = H.esc
-    cause = res.cause or "none: no significant effect is missing"
+    v = res.verdict
+    cause = " + ".join(res.causes) if res.causes else (v.kind if v is not None else "none")
     parts = [f"<p class='note'>session: {esc(session_path)}<br>base scene: {esc(scene_path)}<br>"
              f"extended scene: {esc(res.extended_scene)}<br>tofhil {__version__}, {res.seconds:.1f} s</p>",
-             f"<h2>Cause: {esc(' + '.join(res.causes) if res.causes else cause)}</h2>",
-             H.notes_html(res.evidence, css="note")]
+             f"<h2>Cause: {esc(cause)}</h2>"]
+    if v is not None:
+        css = "warn" if v.kind in ("partly explained", "unexplained", "scene does not match") else "note"
+        parts.append(f"<p class='{css}'><b>Verdict: {esc(v.kind)}.</b> {esc(v.text)}</p>")
+        if v.notes:
+            parts.append(H.notes_html(v.notes, css="warn"))
+    parts.append(H.notes_html(res.evidence, css="note"))
+    parts.append(channel_table(res))
+    parts.append(residual_region_table(res))
     if res.params:
         parts.append("<table><tr><th>effect</th><th>fitted parameters</th></tr>")
         for e, p in res.params.items():
@@ -124,11 +165,13 @@ def write_report(res: Any, path: Path, *, session_path: str, scene_path: str) ->
                     "Trilinear NDT likelihood of each measured held-out point on the twin's NDT grid."))
     parts.append(H.figures_html(figures))
     parts.append("<h2>Ranking</h2><table><tr><th>effect</th><th>held-out misfit removed</th><th>score gain</th>"
-                 "<th>significant</th><th>parameters</th></tr>")
+                 "<th>significant</th><th>channels worse</th><th>at a bound</th><th>parameters</th></tr>")
     for r in res.ranked:
         p = ", ".join(f"{k} = {v:.4g}" for k, v in r["params"].items())
+        worse = ", ".join(r.get("worse_channels", []))
         parts.append(f"<tr><td>{esc(r['effect'])}</td><td>{100 * r['relative_gain']:.2f}%</td>"
                      f"<td>{r['delta_score']:.1f}</td><td>{'yes' if r['significant'] else 'no'}</td>"
+                     f"<td style='color:#c00'>{esc(worse)}</td><td>{esc(', '.join(r.get('at_bounds', [])))}</td>"
                      f"<td>{esc(p)}</td></tr>")
     parts.append("</table>")
     H.write_page(path, "tofhil diagnose", parts)

@@ -128,8 +128,30 @@ def icp(source: Any, target: Any, max_distance: float, kernel: str = "tukey",
     res = reg.registration_icp(src, tgt, float(max_distance), t0,
                                reg.TransformationEstimationPointToPlane(loss),
                                reg.ICPConvergenceCriteria(max_iteration=int(max_iterations)))
-    return IcpResult(np.asarray(res.transformation).copy(), float(res.fitness), float(res.inlier_rmse),
-                     kernel, k)
+    # Open3D sums its normal equations over threads in no fixed order, so the last digits of
+    # its transformation (and of the fitness and RMSE it evaluates) change from run to run.
+    # The transformation is rounded to ICP_ROUND (far below any distance that matters), and
+    # fitness and inlier RMSE are evaluated at it here with a deterministic nearest-neighbour
+    # search and reduction, so that the same clouds give the same figures, bit for bit.
+    t = np.round(np.asarray(res.transformation, dtype=np.float64), ICP_DECIMALS)
+    fitness, rmse = _icp_fit_quality(_points(source, "source"), _points(target, "target"), t, float(max_distance))
+    return IcpResult(t, fitness, rmse, kernel, k)
+
+
+#: Decimals the ICP transformation is rounded to (1e-9 rad, 1e-9 m): see :func:`icp`.
+ICP_DECIMALS = 9
+
+
+def _icp_fit_quality(source: np.ndarray, target: np.ndarray, t: np.ndarray, max_distance: float) -> tuple[float, float]:
+    """Open3D's fitness (share of source points with a target point within ``max_distance``)
+    and inlier RMSE (of those distances), computed in a fixed order."""
+    moved = apply_transform(source, t)
+    d = cKDTree(target).query(moved, workers=1)[0]
+    inl = d <= max_distance
+    n = int(inl.sum())
+    if n == 0 or len(moved) == 0:
+        return 0.0, 0.0
+    return n / len(moved), float(np.sqrt(np.sum(np.sort(d[inl] ** 2)) / n))
 
 
 def apply_transform(points: Any, transformation: np.ndarray) -> np.ndarray:

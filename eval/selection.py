@@ -8,7 +8,11 @@ training data; the fit is scored on held-out data with a BIC-like penalty:
 
 (k the number of fitted parameters, n the number of held-out real values). Effects are added
 one at a time, the best first, while the held-out score improves by more than the penalty
-and by a stated fraction of the current misfit. Nothing here knows what an effect does.
+and by a stated fraction of the current misfit, and only if no channel (depth, amplitude,
+offset: ``verdict.channel_chi2``) gets worse by more than its noise: a fit that trades one
+channel for another is not a gain. ``k`` is an effect's effective number of degrees of freedom
+(``EffectSpec.dof``; its parameter count unless a regularised flexible form says less).
+Nothing here knows what an effect does.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from tofhil.eval.heldout import HUBER_SIGMA, HeldOutData, huber
+from tofhil.eval.verdict import channel_chi2, worse_channels
 
 EffectParams = dict[str, dict[str, float]]
 
@@ -45,6 +50,12 @@ class EffectSpec:
 
     params: tuple[FitParam, ...]
     starts: tuple[dict[str, float], ...] = ()
+    #: Effective degrees of freedom for the penalty (None: the number of parameters).
+    dof: float | None = None
+
+    @property
+    def k(self) -> float:
+        return float(len(self.params) if self.dof is None else self.dof)
 
 
 class ForwardModel(Protocol):
@@ -66,6 +77,12 @@ class Candidate:
     n_params: int
     #: Every active effect's parameters in this trial (the earlier ones and this one).
     all_params: EffectParams = field(default_factory=dict, repr=False)
+    #: Channels whose held-out misfit grew beyond their noise with this effect added.
+    worse_channels: list[str] = field(default_factory=list)
+    #: Fitted parameters pinned at a bound of their range (a bound that is not "off").
+    at_bounds: list[str] = field(default_factory=list)
+    #: Held-out misfit per channel with this effect: {channel: (chi2, n values)}.
+    channels: dict[str, tuple[float, int]] = field(default_factory=dict, repr=False)
 
 
 @dataclass
@@ -76,6 +93,15 @@ class Selection:
     final_chi2_test: float
     rounds: list[list[Candidate]] = field(default_factory=list)
     n_test: int = 0
+    #: False when nothing was searched (``max_effects`` 0).
+    searched: bool = True
+    #: Effects whose held-out score gain was significant but that made a channel worse.
+    rejected_for_channels: list[str] = field(default_factory=list)
+    #: Per cause, its fitted parameters pinned at a bound of the range searched.
+    at_bounds: dict[str, list[str]] = field(default_factory=dict)
+    #: Held-out misfit per channel of the base twin and of the final fit.
+    channels_before: dict[str, tuple[float, int]] = field(default_factory=dict)
+    channels_after: dict[str, tuple[float, int]] = field(default_factory=dict)
 
     @property
     def first_round(self) -> list[Candidate]:
@@ -167,16 +193,28 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
     return full(best_x), 2.0 * best_cost
 
 
+def pinned(spec: EffectSpec, values: Mapping[str, float], rel: float = 1e-3) -> list[str]:
+    """Parameters fitted to within ``rel`` of their range from a bound that is not "off"."""
+    out = []
+    for p in spec.params:
+        v, tol = values.get(p.name, p.off), rel * (p.hi - p.lo)
+        if (abs(v - p.lo) <= tol and p.lo != p.off) or (abs(v - p.hi) <= tol and p.hi != p.off):
+            out.append(p.name)
+    return out
+
+
 def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequence[str] | None = None,
                   max_effects: int = 3, min_relative_gain: float = 0.02, min_gain_per_value: float = 0.02,
                   progress: Callable[[str], None] | None = None) -> Selection:
     """Add effects one by one while each brings a significant held-out gain.
 
-    An effect is significant when its held-out score beats the current model's (the BIC-like
-    penalty included) and it removes at least ``min_relative_gain`` of the current held-out
-    misfit in excess of noise (chi2 - n), and at least ``min_gain_per_value`` per held-out
-    value (chi2 is about 1 per value for pure noise): margins against chasing Monte Carlo
-    noise or tiny model differences that no bench user would call a cause.
+    An effect is significant when its held-out score beats the current model's (the penalty
+    for its effective degrees of freedom included), it removes at least ``min_relative_gain``
+    of the current held-out misfit in excess of noise (chi2 - n), and at least
+    ``min_gain_per_value`` per held-out value (chi2 is about 1 per value for pure noise):
+    margins against chasing Monte Carlo noise or tiny model differences that no bench user
+    would call a cause; and no channel gets worse beyond its noise. The best-scoring
+    significant effect of a round is added.
     """
     lib = model.library()
     names = list(candidates if candidates is not None else lib)
@@ -184,12 +222,15 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     penalty = np.log(n_test)
     active: list[str] = []
     params: EffectParams = {}
-    current_chi2 = data.chi2(model.predict({}), "test")
+    base_pred = model.predict({})
+    current_chi2 = data.chi2(base_pred, "test")
+    current_channels = channel_chi2(data, base_pred)
     baseline = current_chi2
     selection = Selection(causes=[], params={}, baseline_chi2_test=baseline, final_chi2_test=baseline,
-                          n_test=n_test)
+                          n_test=n_test, searched=max_effects > 0, channels_before=current_channels,
+                          channels_after=current_channels)
     while len(active) < max_effects:
-        current_k = sum(len(lib[e].params) for e in active)
+        current_k = sum(lib[e].k for e in active)
         current_score = current_chi2 + current_k * penalty
         excess = max(current_chi2 - n_test, 0.0)
         round_: list[Candidate] = []
@@ -202,35 +243,50 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
             # forward stagewise: the new effect is fitted with the earlier ones held; the
             # chosen set is refitted jointly below
             fitted, chi2_train = fit(model, data, trial, params, new_effect=name, free=[name])
-            chi2_test = data.chi2(model.predict(fitted), "test")
-            k = current_k + len(lib[name].params)
-            score = chi2_test + k * penalty
+            pred = model.predict(fitted)
+            chi2_test = data.chi2(pred, "test")
+            channels = channel_chi2(data, pred)
+            # worse than the current model or, summed over rounds, than the base twin
+            worse = sorted(set(worse_channels(current_channels, channels))
+                           | set(worse_channels(selection.channels_before, channels)))
+            score = chi2_test + (current_k + lib[name].k) * penalty
             gain = current_chi2 - chi2_test
+            gains = bool(current_score - score > 0 and excess > 0 and gain > min_relative_gain * excess
+                         and gain > min_gain_per_value * n_test)
             cand = Candidate(effect=name, params=fitted[name], chi2_train=chi2_train, chi2_test=chi2_test,
                              score=score, delta_score=current_score - score,
                              relative_gain=gain / current_chi2 if current_chi2 > 0 else 0.0,
-                             significant=bool(current_score - score > 0 and excess > 0
-                                              and gain > min_relative_gain * excess
-                                              and gain > min_gain_per_value * n_test),
-                             n_params=len(lib[name].params), all_params=fitted)
+                             significant=gains and not worse, n_params=len(lib[name].params),
+                             all_params=fitted, worse_channels=worse, at_bounds=pinned(lib[name], fitted[name]),
+                             channels=channels)
+            if gains and worse and name not in selection.rejected_for_channels:
+                selection.rejected_for_channels.append(name)
             round_.append(cand)
-        round_.sort(key=lambda c: c.score)
+        # ties broken by name: the ranking does not depend on the library's order
+        round_.sort(key=lambda c: (c.score, c.effect))
         selection.rounds.append(round_)
-        if not round_ or not round_[0].significant:
+        chosen = next((c for c in round_ if c.significant), None)
+        if chosen is None:
             break
-        best = round_[0]
-        active.append(best.effect)
-        params = best.all_params
-        current_chi2 = best.chi2_test
+        active.append(chosen.effect)
+        params = chosen.all_params
+        current_chi2 = chosen.chi2_test
+        before_round = current_channels
+        current_channels = chosen.channels
         # Refit the chosen set jointly (for one effect: more iterations from its best start;
-        # geometric effects often need them).
+        # geometric effects often need them); kept only if better and no channel worse.
         if progress:
             progress("refitting " + " + ".join(active) + " jointly")
         joint, _ = fit(model, data, active, params)
-        joint_chi2 = data.chi2(model.predict(joint), "test")
-        if joint_chi2 < current_chi2:
-            params, current_chi2 = joint, joint_chi2
+        joint_pred = model.predict(joint)
+        joint_chi2 = data.chi2(joint_pred, "test")
+        joint_channels = channel_chi2(data, joint_pred)
+        if (joint_chi2 < current_chi2 and not worse_channels(before_round, joint_channels)
+                and not worse_channels(selection.channels_before, joint_channels)):
+            params, current_chi2, current_channels = joint, joint_chi2, joint_channels
     selection.causes = active
     selection.params = {e: params[e] for e in active}
     selection.final_chi2_test = current_chi2
+    selection.channels_after = current_channels
+    selection.at_bounds = {e: pinned(lib[e], params[e]) for e in active}
     return selection

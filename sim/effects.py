@@ -13,7 +13,8 @@ Stages, in the order the forward model applies them (``ORDER``):
 - ``render``: recombines the renderer's separate direct and indirect phasors --
   ``multipath`` (cheap on a cached render made with ``separate_direct=True``).
 - ``signal``: acts on the light on the sensor (an :class:`OpticalSignal`) before the pixel --
-  ``stray_light`` (optics), ``range_offset``, ``wiggling``, ``amplitude_dependent``.
+  ``stray_light`` (optics), ``offset`` (unmodulated charge), ``range_offset``, ``field_angle``,
+  ``wiggling``, ``amplitude_dependent``.
 - ``pixel``: per-pixel demodulation properties -- ``fixed_pattern``.
 
 Each stage has one hook (``STAGE_HOOKS``) that its effects implement. Render-, signal- and
@@ -549,6 +550,54 @@ class AmplitudeDependentEffect(Effect):
         return _rotate_phase(signal, 2.0 * err)  # radial error -> optical path
 
 
+class FieldAngleEffect(Effect):
+    name = "field_angle"
+    stage = "signal"
+    summary = 'radial error growing with the field angle: `c2 t^2 + c4 t^4`, t = tan(field angle) of the pixel ray'
+    doc = ("Range error that depends on the field angle (lens and illumination path differences, "
+           "optical path through the lens varying over the field): radial error = c2 t^2 + c4 t^4 "
+           "with t the tangent of the pixel ray's angle to the optical axis (undistorted pinhole). "
+           "Even in t: a rotationally symmetric lens.")
+    params = {
+        "c2_m": Param(0.0, -1.0, 1.0, "m", "radial error per tan^2 of the field angle", default=0.01,
+                      fit=(-0.5, 0.5), step=0.002),
+        "c4_m": Param(0.0, -1.0, 1.0, "m", "radial error per tan^4 of the field angle",
+                      fit=(-0.5, 0.5), step=0.002),
+    }
+
+    @staticmethod
+    def tan2(camera: CameraModel, shape: tuple[int, int]) -> np.ndarray:
+        v, u = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+        return ((u - camera.cx) / camera.fx) ** 2 + ((v - camera.cy) / camera.fy) ** 2
+
+    def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
+        t2 = self.tan2(ctx.camera, signal.shape)
+        err = float(values["c2_m"]) * t2 + float(values["c4_m"]) * t2 * t2
+        return _rotate_phase(signal, 2.0 * err)  # radial error -> optical path
+
+
+class OffsetEffect(Effect):
+    name = "offset"
+    stage = "signal"
+    summary = 'unmodulated charge the scene does not explain (dark/black-level offset, LED leakage, a glowing cover): `dark_e` electrons per tap on every pixel'
+    doc = ("Unmodulated charge that is not scene ambient: a dark or black-level offset the sensor "
+           "model lacks, or unmodulated light not from the scene (emitter leakage, a glowing cover "
+           "glass), uniform over the sensor. It raises every tap by dark_e electrons (the tap "
+           "offset, and the shot noise) and leaves the phase alone; unlike ambient it does not "
+           "follow the scene's reflectance or the lens.")
+    params = {"dark_e": Param(0.0, 0.0, 1.0e6, "e-", "unmodulated electrons added to every tap", default=100.0,
+                              fit=(0.0, 2.0e5), step=50.0, start=100.0, starts=(1.0e3, 1.0e4, 5.0e4))}
+
+    def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
+        if ctx.sensor is None:
+            raise ValueError("offset needs the sensor configuration (electrons per watt)")
+        out = signal.copy()
+        # the sensor turns unmodulated power P into tap_fraction * e_per_W * P electrons per tap
+        e_w = ctx.sensor.tap_fraction * ctx.sensor.electrons_per_watt
+        out.ambient_w = np.array(signal.ambient_w) + float(values["dark_e"]) / e_w
+        return out
+
+
 # =============================================================================================
 # pixel stage
 # =============================================================================================
@@ -593,13 +642,13 @@ class FixedPatternEffect(Effect):
 # registry and application
 # =============================================================================================
 #: Forward-model order (optics before the pixel; per-pixel effects after the spatial mixing).
-ORDER = ("pose", "lens_distortion", "reflectance", "ambient", "multipath", "stray_light", "range_offset",
-         "fixed_pattern", "amplitude_dependent", "wiggling")
+ORDER = ("pose", "lens_distortion", "reflectance", "ambient", "multipath", "stray_light", "offset", "range_offset",
+         "field_angle", "fixed_pattern", "amplitude_dependent", "wiggling")
 
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
     PoseEffect(), LensDistortionEffect(), ReflectanceEffect(), AmbientEffect(), MultipathEffect(),
-    StrayLightEffect(), RangeOffsetEffect(), FixedPatternEffect(), AmplitudeDependentEffect(),
-    WigglingEffect())}
+    StrayLightEffect(), OffsetEffect(), RangeOffsetEffect(), FieldAngleEffect(), FixedPatternEffect(),
+    AmplitudeDependentEffect(), WigglingEffect())}
 assert tuple(sorted(EFFECTS)) == tuple(sorted(ORDER))
 for _e in EFFECTS.values():  # every effect implements the hook of its stage
     assert _e.stage in STAGES and getattr(type(_e), STAGE_HOOKS[_e.stage]) is not getattr(Effect, STAGE_HOOKS[_e.stage]), _e.name

@@ -233,11 +233,11 @@ NUMERIC = [
                           ("mod-freq-hz", ("0", "nan", "-1e6")), ("channel", ("16", "-1")),
                           ("min-amplitude", ("nan", "-1")))
       for v in values],
-    # emulate, diagnose, demo, import
+    # emulate, diagnose, demo, import (--max-effects 0 is allowed: it says that nothing was searched)
     *[(f"emulate-{opt}-{v}", ["emulate", "--pty", f"--{opt}", v], f"--{opt}")
       for opt, values in (("frame-rate", ("-1", "nan", "inf")), ("seed", ("-1",))) for v in values],
     *[(f"diagnose-max-effects-{v}", ["diagnose", G, "--scene", "{scene}", "--out", "{out}/dg", "--max-effects", v],
-       "--max-effects") for v in ("0", "nan", "-1")],
+       "--max-effects") for v in ("nan", "-1")],
     *[(f"demo-frames-{v}", ["demo", "--out", "{out}/demo", "--frames", v], "--frames") for v in ("1", "nan", "0")],
     *[(f"import-adi-max-confidence-{v}", ["import", G, "--out", "{out}/i.h5", "--adi-max-confidence", v],
        "--adi-max-confidence") for v in ("-1", "256")],

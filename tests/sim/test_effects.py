@@ -20,7 +20,7 @@ from tofhil.sim.sensor import OpticalSignal, SensorConfig, SensorModel
 C = 299_792_458.0
 F = 44.0e6
 NAMES = {"stray_light", "multipath", "wiggling", "range_offset", "fixed_pattern", "amplitude_dependent",
-         "lens_distortion", "ambient", "reflectance", "pose"}
+         "lens_distortion", "ambient", "reflectance", "pose", "offset", "field_angle"}
 
 
 def _cam(w: int = 24, h: int = 18) -> CameraModel:
@@ -71,7 +71,8 @@ def test_signal_effects_are_identity_at_their_off_values(name: str) -> None:
     # ... and not identity when switched on with its defaults (an effect that does nothing
     # would pass the test above trivially).
     on = apply_signal_effects(sig, parse_effects({name: {}}), _ctx(cam))
-    assert not np.allclose(on.phasor_w, sig.phasor_w, rtol=1e-6, atol=0) or on.waveform != sig.waveform
+    assert (not np.allclose(on.phasor_w, sig.phasor_w, rtol=1e-6, atol=0) or on.waveform != sig.waveform
+            or not np.allclose(on.ambient_w, sig.ambient_w, rtol=1e-6, atol=0))
 
 
 def test_range_offset_shifts_radial_distance_by_half_the_path() -> None:
@@ -86,6 +87,31 @@ def test_range_offset_shifts_radial_distance_by_half_the_path() -> None:
     for _ in range(4):
         s = apply_signal_effects(s, quarter, _ctx(cam))
     np.testing.assert_allclose(_read(cam, s), d, atol=2e-5)
+
+
+def test_field_angle_error_follows_the_tangent_of_the_pixel_ray() -> None:
+    cam = _cam(30, 20)
+    sig = _signal(cam, 1.5)
+    c2, c4 = 0.03, -0.02
+    got = _read(cam, apply_signal_effects(sig, parse_effects({"field_angle": {"c2_m": c2, "c4_m": c4}}), _ctx(cam)))
+    # independent: the angle of each pixel's ray to the optical axis, from the camera's rays
+    v, u = np.mgrid[0:20, 0:30].astype(float)
+    ray = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u)], axis=-1)
+    t = np.tan(np.arccos(ray[..., 2] / np.linalg.norm(ray, axis=-1)))
+    np.testing.assert_allclose(got, 1.5 + c2 * t ** 2 + c4 * t ** 4, atol=2e-5)
+
+
+def test_offset_adds_unmodulated_electrons_and_keeps_the_phase() -> None:
+    cam = _cam(12, 8)
+    sig = _signal(cam, 1.2)
+    dark = 5000.0
+    sensor = _sensor(cam)
+    base = sensor.expose(sig, noise=False)
+    on = sensor.expose(apply_signal_effects(sig, parse_effects({"offset": {"dark_e": dark}}), _ctx(cam)), noise=False)
+    gain = sensor.config.conversion_gain_dn_per_e
+    # every tap rises by dark_e electrons (times the pixel's response, 1 +- PRNU)
+    np.testing.assert_allclose((on.taps - base.taps).astype(float), dark * gain, rtol=0.05)
+    np.testing.assert_allclose(depth_from_raw(on).distance_m, depth_from_raw(base).distance_m, atol=1e-4)
 
 
 def test_fixed_pattern_row_and_column_delays_follow_the_clock_gradient() -> None:

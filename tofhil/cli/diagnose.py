@@ -27,12 +27,17 @@ def _summary(res, report: Path) -> None:
     from tofhil.eval.metrics import DEPTH_RMSE
 
     g = res.gain
+    if res.verdict is not None:
+        out.print(f"[bold]verdict:[/bold] {lit(res.verdict.text)}", highlight=False)
     if res.causes:
         out.print(f"[bold]cause:[/bold] {' + '.join(res.causes)}")
         for e, p in res.params.items():
             out.print(f"  {e}: " + ", ".join(f"{k} = {v:.4g}" for k, v in p.items()), highlight=False)
-    else:
-        out.print("[bold]cause:[/bold] none -- no significant effect is missing from the twin")
+    worse = [c for c, v in res.channels.items() if v["worse"]]
+    if worse:
+        out.print(f"[bold red]worse after the fit:[/bold red] {', '.join(worse)}")
+    for r in res.residual_regions[:3]:
+        out.print(f"  left above noise: {lit(r['text'])}", highlight=False)
     out.print(f"held-out gain: {DEPTH_RMSE} {g['depth_rmse_m']['before'] * 1e3:.1f} -> "
               f"{g['depth_rmse_m']['after'] * 1e3:.1f} mm (held-out pixels), amplitude RMSE {g['amplitude_rmse']['before']:.3g} -> {g['amplitude_rmse']['after']:.3g}, "
               f"misfit {res.chi2_per_value['before']:.2f} -> {res.chi2_per_value['after_extended_scene']:.2f} per value "
@@ -50,7 +55,8 @@ def diagnose(session: Path = typer.Argument(..., parser=opt.existing_file,
              scene: str = typer.Option(..., "--scene", help="The twin's base scene (file or bundled name)."),
              out_dir: Path = typer.Option(..., "--out", parser=opt.out_dir,
                                           help="Directory for diagnosis.json, report.html, extended_scene.yaml."),
-             max_effects: int = typer.Option(3, parser=opt.count(1, 50), help="Most effects to add."),
+             max_effects: int = typer.Option(3, parser=opt.count(0, 50),
+                                             help="Most effects to add (0: only the base twin's misfit; nothing searched)."),
              candidates: Optional[str] = typer.Option(None, help="Comma-separated effects to try (default: all)."),
              force: bool = typer.Option(False, "--force", help="Overwrite an earlier diagnosis in OUT.")) -> None:
     """Find what the twin gets wrong, fit it, write the extended scene and the held-out gain."""

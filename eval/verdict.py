@@ -1,0 +1,295 @@
+"""What a diagnosis may claim: the noise threshold, per-channel misfits, the residual left
+above noise, and the verdict.
+
+Every "above noise" test here has the same false-alarm probability :data:`ALPHA` under the
+noise model of ``heldout`` (Gaussian noise whose variance is estimated from the session's own
+frame-to-frame scatter):
+
+- **within noise**: a misfit of ``n`` whitened values is within the noise when it is below
+  the ``1 - ALPHA`` quantile of a chi-square with ``n`` degrees of freedom, times
+  ``nu / (nu - 2)``: the mean of a squared residual whitened by a variance estimated with
+  ``nu`` degrees of freedom (an F(1, nu) variable), so that an estimated rather than known
+  noise does not read as a misfit (:func:`noise_threshold`).
+- **a channel got worse**: its misfit grew by more than ``z_ALPHA sqrt(2 n_c)``, the
+  ``ALPHA`` one-sided margin of the chi-square of its ``n_c`` values (:func:`channel_margin`).
+- **a residual region**: a connected set of pixels whose 3 x 3 mean misfit is above the
+  threshold for the values of that window.
+
+The verdict (:func:`verdict`) is one of ``nothing searched``, ``within noise`` (the base
+twin already is), ``explained``, ``partly explained`` (with the share of the excess
+removed), ``unexplained`` and ``scene does not match``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from scipy import ndimage, stats
+
+from tofhil.eval.heldout import NOISE_POOL_PX, HeldOutData, huber
+
+#: False-alarm probability of each "above noise" test (one in a thousand).
+ALPHA = 1e-3
+#: The misfit channels: the complex signal split along the predicted phasor (amplitude) and
+#: across it (phase, i.e. depth), and the tap offset when the session has that channel.
+CHANNELS = ("depth", "amplitude", "offset")
+#: Residual regions smaller than this many pixels are not listed (single hot pixels).
+MIN_REGION_PX = 6
+
+
+def noise_dof(data: HeldOutData) -> float:
+    """Degrees of freedom of the noise variance estimate: every frame's deviation from the
+    pixel mean (N - 1 per pixel), pooled over the ``NOISE_POOL_PX`` square of ``heldout``."""
+    n = data.n_train_frames + data.n_test_frames
+    return float(max(n - 1, 1) * NOISE_POOL_PX ** 2)
+
+
+def noise_mean(nu: float) -> float:
+    """Expected whitened squared residual when the variance is estimated with ``nu`` dof."""
+    return nu / (nu - 2.0) if nu > 2.0 else 1.0
+
+
+def noise_threshold(n: int, nu: float, alpha: float = ALPHA) -> float:
+    """Largest misfit per value of ``n`` values that is still noise (see the module doc)."""
+    if n <= 0:
+        return float("inf")
+    return float(stats.chi2.isf(alpha, n) / n * noise_mean(nu))
+
+
+def channel_margin(n_values: int, alpha: float = ALPHA) -> float:
+    """How much a channel's misfit may grow before it counts as worse (the noise of it)."""
+    return float(stats.norm.isf(alpha) * np.sqrt(2.0 * max(n_values, 1)))
+
+
+def _part(data: HeldOutData, part: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    if part == "test":
+        return data.s_test, data.var_test, data.test_pixels
+    if part == "train":
+        return data.s_train, data.var_train, data.train_pixels
+    if part == "test_frames":  # every usable pixel of the held-out frames (maps, not scores)
+        return data.s_test, data.var_test, data.usable
+    raise ValueError(part)
+
+
+def whitened_channels(data: HeldOutData, prediction: np.ndarray, part: str = "test") -> dict[str, np.ndarray]:
+    """Whitened residual per channel, ``[values, pixels]`` on the part's pixels: the complex
+    residual of each frequency rotated onto the predicted phasor (real: amplitude, imaginary:
+    phase = depth). The noise is isotropic and the prediction's direction does not depend on
+    it, so both components stay exactly whitened (rotating onto the measured phasor would
+    not: its direction carries the noise, and the phase part would scale with |P| / |S|)."""
+    s, var, mask = _part(data, part)
+    nf = data.n_freq
+    meas, pred = s[:nf, mask], prediction[:nf, mask]
+    a = np.abs(pred)
+    u = np.where(a > 0, pred / np.where(a > 0, a, 1.0), meas / np.maximum(np.abs(meas), 1e-300))
+    r = (meas - pred) * np.conj(u) / np.sqrt(var[:nf, mask])
+    out = {"depth": r.imag, "amplitude": r.real}
+    if data.offset_channel:
+        out["offset"] = ((s[nf, mask] - prediction[nf, mask]).real / np.sqrt(var[nf, mask].real))[None]
+    return out
+
+
+def channel_chi2(data: HeldOutData, prediction: np.ndarray, part: str = "test") -> dict[str, tuple[float, int]]:
+    """Robust misfit (sum of Huber's rho) and number of values of each channel."""
+    return {k: (float(huber(v).sum()), int(v.size)) for k, v in whitened_channels(data, prediction, part).items()}
+
+
+def worse_channels(before: Mapping[str, tuple[float, int]], after: Mapping[str, tuple[float, int]],
+                   alpha: float = ALPHA) -> list[str]:
+    """Channels whose misfit grew by more than their noise (:func:`channel_margin`)."""
+    return [c for c in CHANNELS if c in before and c in after
+            and after[c][0] - before[c][0] > channel_margin(before[c][1], alpha)]
+
+
+def pixel_misfit(data: HeldOutData, prediction: np.ndarray) -> tuple[np.ndarray, int]:
+    """Per-pixel misfit (sum over channels) on every usable pixel of the held-out frames
+    (NaN elsewhere) and the number of values per pixel."""
+    ch = whitened_channels(data, prediction, "test_frames")
+    per_px = sum(huber(v).sum(axis=0) for v in ch.values())
+    n_per_px = sum(v.shape[0] for v in ch.values())
+    img = np.full(data.usable.shape, np.nan)
+    img[data.usable] = per_px
+    return img, int(n_per_px)
+
+
+@dataclass
+class ResidualRegion:
+    """A connected region of pixels left above noise, and which objects it lies on."""
+
+    pixels: int
+    bbox: tuple[int, int, int, int]  # X0, Y0, X1, Y1 half-open
+    misfit_per_value: float
+    objects: dict[str, float]  # object name -> share of the region's pixels
+    depth_residual_mm: float  # median measured - twin
+    amplitude_residual: float  # median measured - twin amplitude (DN)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"pixels": self.pixels, "bbox_x0y0x1y1": list(self.bbox),
+                "misfit_per_value": round(self.misfit_per_value, 4), "objects": self.objects,
+                "depth_residual_mm": round(self.depth_residual_mm, 3),
+                "amplitude_residual": round(self.amplitude_residual, 4)}
+
+    def describe(self) -> str:
+        on = ", ".join(f"{k} {100 * v:.0f} %" for k, v in self.objects.items()) or "no object"
+        x0, y0, x1, y1 = self.bbox
+        return (f"{self.pixels} px at x {x0}-{x1 - 1}, y {y0}-{y1 - 1} (on {on}): misfit {self.misfit_per_value:.2f} "
+                f"per value, depth residual {self.depth_residual_mm:+.1f} mm, amplitude residual "
+                f"{self.amplitude_residual:+.3g} DN")
+
+
+def residual_regions(data: HeldOutData, prediction: np.ndarray, nu: float, object_id: np.ndarray | None = None,
+                     object_names: Mapping[int, str] | None = None, depth_residual_m: np.ndarray | None = None,
+                     amplitude_residual: np.ndarray | None = None, *, max_regions: int = 10
+                     ) -> tuple[list[ResidualRegion], np.ndarray]:
+    """Connected regions (8-connectivity) of pixels whose 3 x 3 mean misfit per value is above
+    the noise threshold of the window's values; the largest excess first. Also returns the
+    above-noise mask."""
+    img, n_px = pixel_misfit(data, prediction)
+    ok = np.isfinite(img)
+    num = ndimage.uniform_filter(np.where(ok, img, 0.0), 3, mode="constant")
+    den = ndimage.uniform_filter(ok.astype(float), 3, mode="constant")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = num / den / max(n_px, 1)
+    cnt = np.rint(den * 9).astype(int)
+    thr = np.full(img.shape, np.inf)
+    for k in np.unique(cnt[ok]):
+        thr[cnt == k] = noise_threshold(int(k) * n_px, nu)
+    above = ok & (mean > thr)
+    labels, n = ndimage.label(above, structure=np.ones((3, 3), bool))
+    regions = []
+    names = dict(object_names or {})
+    for i, sl in enumerate(ndimage.find_objects(labels), start=1):
+        m = labels[sl] == i
+        px = int(m.sum())
+        if px < MIN_REGION_PX:
+            continue
+        full = np.zeros_like(above)
+        full[sl] = m
+        objs: dict[str, float] = {}
+        if object_id is not None:
+            ids, counts = np.unique(np.asarray(object_id)[full], return_counts=True)
+            for oid, c in sorted(zip(ids.tolist(), counts.tolist()), key=lambda t: -t[1]):
+                objs[names.get(oid, "background" if oid < 0 else f"object {oid}")] = round(c / px, 3)
+
+        def med(a: np.ndarray | None, scale: float = 1.0) -> float:
+            if a is None:
+                return float("nan")
+            v = a[full]
+            v = v[np.isfinite(v)]
+            return float(np.median(v) * scale) if v.size else float("nan")
+
+        regions.append(ResidualRegion(px, (sl[1].start, sl[0].start, sl[1].stop, sl[0].stop),
+                                      float(np.nanmean(img[full]) / n_px), objs,
+                                      med(depth_residual_m, 1e3), med(amplitude_residual)))
+    regions.sort(key=lambda r: -(r.misfit_per_value - 1.0) * r.pixels)
+    return regions[:max_regions], above
+
+
+def object_misfits(data: HeldOutData, prediction: np.ndarray, nu: float, object_id: np.ndarray,
+                   object_names: Mapping[int, str], min_pixels: int = 20) -> dict[str, dict[str, Any]]:
+    """Each object's held-out misfit per value, its noise threshold and whether it is above."""
+    img, n_px = pixel_misfit(data, prediction)
+    out = {}
+    for oid, name in object_names.items():
+        m = data.test_pixels & (np.asarray(object_id) == oid)
+        k = int(m.sum())
+        if k < min_pixels:
+            continue
+        per_value = float(img[m].sum() / (k * n_px))
+        thr = noise_threshold(k * n_px, nu)
+        out[name] = {"pixels": k, "misfit_per_value": round(per_value, 4), "noise_threshold": round(thr, 4),
+                     "above_noise": bool(per_value > thr)}
+    return out
+
+
+@dataclass
+class Verdict:
+    """What the diagnosis claims, and the figures it rests on."""
+
+    kind: str  # nothing searched | within noise | explained | partly explained | unexplained | scene does not match
+    text: str
+    threshold_per_value: float
+    excess_removed: float | None  # share of the base twin's excess over noise removed (held-out)
+    worse_channels: list[str] = field(default_factory=list)
+    disagreeing_objects: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"kind": self.kind, "text": self.text, "threshold_per_value": round(self.threshold_per_value, 4),
+                "excess_removed": None if self.excess_removed is None else round(self.excess_removed, 4),
+                "worse_channels": self.worse_channels, "disagreeing_objects": self.disagreeing_objects,
+                "notes": self.notes}
+
+
+def excess_removed(before: float, after: float, noise: float) -> float | None:
+    """Share of the misfit in excess of the noise level removed (None: no excess to remove)."""
+    excess = before - noise
+    if excess <= 0:
+        return None
+    return float((before - after) / excess)
+
+
+#: "Far above noise": a misfit per value this many times the noise threshold. Below it a
+#: missing effect of the library is a plausible cause; far above it, with no effect of the
+#: library removing most of it cleanly, the scene itself is the suspect.
+FAR_FACTOR = 10.0
+
+
+def verdict(*, searched: bool, causes: Sequence[str], n_values: int, nu: float, before_per_value: float,
+            after_per_value: float, worse: Sequence[str], objects_before: Mapping[str, Mapping[str, Any]],
+            objects_after: Mapping[str, Mapping[str, Any]], pinned: Mapping[str, Sequence[str]],
+            rejected_for_channels: Sequence[str]) -> Verdict:
+    """The verdict from the held-out figures (see the module doc for each test).
+
+    The scene does not match the capture when the base twin's misfit is far above noise
+    (:data:`FAR_FACTOR` times the threshold) and what the search found cannot be a cause:
+    nothing accepted while effects that lowered the total misfit made a channel worse, an
+    accepted effect pinned at a bound of the range searched, or less than half of the excess
+    removed.
+    """
+    thr = noise_threshold(n_values, nu)
+    noise = noise_mean(nu)
+    removed = excess_removed(before_per_value, after_per_value, noise)
+    state = f"threshold {thr:.3f} per value: the {100 * (1 - ALPHA):.1f} % quantile of chi2 with {n_values} values"
+    if not searched:
+        return Verdict("nothing searched", "nothing searched (--max-effects 0): no effect was fitted, so this "
+                       "says nothing about what is missing", thr, None)
+    if before_per_value <= thr and not causes:
+        return Verdict("within noise", f"the base twin matches the capture within its noise (misfit "
+                       f"{before_per_value:.3f} per value, {state})", thr, None)
+    disagree_before = sorted(k for k, v in objects_before.items() if v["above_noise"])
+    disagree = sorted(k for k, v in objects_after.items() if v["above_noise"])
+    far = before_per_value > FAR_FACTOR * thr
+    pinned_any = any(pinned.get(c) for c in causes)
+    little = removed is None or removed < 0.5
+    if far and ((not causes and rejected_for_channels) or pinned_any or little):
+        why = []
+        if pinned_any:
+            why.append("fitted " + ", ".join(f"{c} ({', '.join(pinned[c])})" for c in causes if pinned.get(c))
+                       + " pinned at the bounds of the range searched")
+        if rejected_for_channels and not causes:
+            why.append("effects that lowered the total misfit made a channel worse: "
+                       + ", ".join(rejected_for_channels))
+        if little:
+            why.append(f"{0 if removed is None else max(removed, 0) * 100:.0f} % of the excess removed")
+        return Verdict("scene does not match",
+                       f"the scene does not match the capture: the base twin is far from it (misfit "
+                       f"{before_per_value:.2f} per value, more than {FAR_FACTOR:g} x the {state}) and no effect "
+                       f"of the library removes that cleanly; objects that disagree: "
+                       f"{', '.join(disagree_before) or 'none as a whole'} (see the residual regions); "
+                       "no effect is named", thr, removed, list(worse), disagree_before, why)
+    if not causes:
+        return Verdict("unexplained", f"no effect of the library explains a significant part of the held-out "
+                       f"residual (misfit {before_per_value:.2f} per value, {state}); see the residual regions",
+                       thr, None, list(worse), disagree_before)
+    if after_per_value <= thr and not worse:
+        return Verdict("explained", f"explained by {' + '.join(causes)}: held-out misfit after the fit "
+                       f"{after_per_value:.3f} per value is within the noise ({state})", thr, removed, [], [])
+    pct = 0.0 if removed is None else 100.0 * removed
+    text = (f"partly explained by {' + '.join(causes)}: {pct:.0f} % of the excess removed (misfit "
+            f"{before_per_value:.2f} -> {after_per_value:.2f} per value, {state}); the rest is in the residual regions")
+    if worse:
+        text += "; worse after the fit: " + ", ".join(worse)
+    return Verdict("partly explained", text, thr, removed, list(worse), disagree)

@@ -1,0 +1,98 @@
+"""Sessions from the twin with one hidden change of a form the effect library lacks.
+
+The change acts on the light on the sensor (an :class:`~tofhil.sim.sensor.OpticalSignal`)
+between the render and the sensor model, so the frames carry the sensor's own noise, ADC
+quantisation and clipping, exactly as a simulated session does; only the hidden change is
+outside the library. Shared by the verdict tests and benchmarks/diagnose_sweep.py's forms.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from tofhil import C_M_PER_S
+from tofhil.sim.sensor import OpticalSignal
+
+Change = Callable[[OpticalSignal, Any], OpticalSignal]
+
+
+def small_dark_square(width: int = 80) -> Any:
+    """The bundled dark_square scene on a small camera (``width`` x 3/4 width pixels)."""
+    from tofhil.sim.scene import load_scene
+
+    scene = load_scene("dark_square")
+    return dataclasses.replace(scene, camera=scene.camera.scaled(width / scene.camera.width))
+
+
+def rotate_radial(signal: OpticalSignal, radial_m: np.ndarray | float) -> OpticalSignal:
+    """Every harmonic's phase as if the pixel read ``radial_m`` farther (optical path 2 d)."""
+    out = signal.copy()
+    path = 2.0 * np.asarray(radial_m, dtype=np.float64)
+    f = signal.freq_hz[:, None, None, None]
+    h = np.asarray(signal.harmonics, dtype=np.float64)[None, :, None, None]
+    out.phasor_w = signal.phasor_w * np.exp(1j * 2.0 * np.pi * h * f * path / C_M_PER_S)
+    return out
+
+
+def column_row_offsets(rng: np.random.Generator, col_sd_m: float = 0.008, pixel_sd_m: float = 0.006) -> Change:
+    """Random per-column and per-pixel range offsets (fixed pattern noise of the readout)."""
+    seed = int(rng.integers(1 << 30))
+
+    def change(signal: OpticalSignal, sensor: Any) -> OpticalSignal:
+        r = np.random.default_rng(seed)
+        h, w = signal.shape
+        offs = col_sd_m * r.standard_normal(w)[None, :] + pixel_sd_m * r.standard_normal((h, w))
+        return rotate_radial(signal, offs)
+
+    return change
+
+
+def log_amplitude_error(rng: np.random.Generator, m_per_decade: float | None = None) -> Change:
+    """A range error proportional to log10 of the pixel's amplitude (zero at the median)."""
+    k = float(m_per_decade if m_per_decade is not None else rng.uniform(0.02, 0.04))
+
+    def change(signal: OpticalSignal, sensor: Any) -> OpticalSignal:
+        a = np.abs(signal.phasor_w[:, signal.harmonics.index(1)]).mean(axis=0)
+        lit = a > 0
+        ref = np.median(a[lit])
+        err = np.where(lit, k * np.log10(np.maximum(a, 1e-30) / ref), 0.0)
+        return rotate_radial(signal, err)
+
+    return change
+
+
+def unmodulated_offset(rng: np.random.Generator, times_signal: float = 2.0) -> Change:
+    """A uniform unmodulated light about ``times_signal`` times the mean emitter light (not
+    scene ambient: it does not follow the scene's reflectance or the lens)."""
+
+    def change(signal: OpticalSignal, sensor: Any) -> OpticalSignal:
+        out = signal.copy()
+        out.ambient_w = np.array(signal.ambient_w) + times_signal * float(np.mean(signal.dc_w))
+        return out
+
+    return change
+
+
+def write_session(scene: Any, path: Path, change: Change | None, *, frames: int = 4, seed: int = 0) -> Path:
+    """A session of ``frames`` noisy frames of the scene's twin with ``change`` applied to its light."""
+    from tofhil.depth import depth_from_raw
+    from tofhil.session import SessionWriter
+    from tofhil.sim.scene import scene_to_yaml
+    from tofhil.sim.twin import Twin
+
+    twin = Twin(scene)
+    signal = twin.signal()
+    sensor = twin.sensor()
+    if change is not None:
+        signal = change(signal, sensor)
+    device = {"model": "tofhil-sim", "scene": str(getattr(scene, "source", "")), "seed": int(seed), "noise": True}
+    with SessionWriter(path, scene.camera, device=device, scene_text=scene_to_yaml(scene), force=True,
+                       sensor_config=twin.config.to_dict(), derived=True) as w:
+        for i in range(frames):
+            raw = sensor.expose(signal, seed=seed, frame_index=i, noise=True)
+            w.append(raw, depth_from_raw(raw))
+    return path
