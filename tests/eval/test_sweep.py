@@ -98,9 +98,14 @@ def _by_case(df: pd.DataFrame) -> dict[str, dict]:
     return {r["case"]: r for r in df.to_dict("records")}
 
 
+def _missing(x) -> bool:
+    return x is None or (isinstance(x, float) and math.isnan(x))
+
+
 def _same(a, b) -> bool:
-    if isinstance(a, float) and isinstance(b, float):
-        return (math.isnan(a) and math.isnan(b)) or a == b
+    """Equal values; a missing figure is None in a record and NaN in the table."""
+    if _missing(a) or _missing(b):
+        return _missing(a) and _missing(b)
     return a == b
 
 
