@@ -40,7 +40,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import numpy as np
 import yaml
 
-from tofhil.errors import InputFileError, TofhilError
+from tofhil.errors import InputFileError, Interrupted, TofhilError
 from tofhil.progress import Progress, no_progress
 from tofhil.schema import Schema
 
@@ -672,6 +672,15 @@ def write_report(df: Any, spec: SweepSpec, out_dir: str | Path) -> Path:
 
 
 # ----------------------------------------------------------------------------- the engine
+class SweepInterrupted(Interrupted):
+    """Ctrl-C during a sweep: the finished cases are kept, ``--resume`` continues."""
+
+    def __init__(self, path: str | Path, done: int, total: int) -> None:
+        KeyboardInterrupt.__init__(self, f"interrupted: {done} of {total} cases finished and kept in {path} "
+                                         "(rerun with --resume to continue)")
+        self.path, self.frames_kept = str(path), 0
+
+
 @dataclass
 class SweepResult:
     out_dir: Path
@@ -770,9 +779,12 @@ def run_sweep(spec: SweepSpec, out_dir: str | Path, *, scheduler: str | None = N
         elif todo:
             ran, failed = _run_on_dask(spec, todo, out, scheduler=scheduler, workers=workers, client=client,
                                        progress=bar, say=say)
-    except BaseException:
-        if created and not any((out / "cases").glob("*.json")):
+    except BaseException as exc:
+        kept = len(read_records(out)) if out.is_dir() else 0
+        if created and not kept:
             shutil.rmtree(out, ignore_errors=True)
+        if isinstance(exc, KeyboardInterrupt) and kept:
+            raise SweepInterrupted(out, kept, len(cases)) from None
         raise
     return finish_sweep(spec, out, ran=ran, failed=failed, seconds=time.perf_counter() - t0, n_cases=len(cases))
 

@@ -194,6 +194,22 @@ def test_local_cluster_two_workers_and_failed_case(tmp_path: Path) -> None:
     pd.testing.assert_frame_equal(a, b, check_dtype=False)
 
 
+def test_diagnose_names_the_hidden_effect(tmp_path: Path) -> None:
+    """A hidden range offset (a constant extra light path) is named by the diagnosis of each
+    case; nothing hidden, nothing named."""
+    d = {"scene": "wall_card", "frames": 4, "axes": {"camera.scale": [0.25], "effects": [
+        {}, {"range_offset": {"path_m": 0.08}}]},
+         "diagnose": {"max_effects": 1, "candidates": ["range_offset", "stray_light"]}}
+    res = S.run_sweep(spec_of(d), tmp_path / "out", workers=0)
+    df = res.table.set_index("effects")
+    assert (res.table["status"] == "ok").all(), list(res.table["error"])
+    assert df.loc["range_offset", "diagnose.causes"] == "range_offset"
+    assert df.loc["none", "diagnose.causes"] == "none"
+    assert df["diagnose.correct"].all()
+    assert df.loc["range_offset", "diagnose.chi2_per_value.before"] > df.loc["range_offset",
+                                                                           "diagnose.chi2_per_value.after_extended_scene"]
+
+
 def test_refuses_to_overwrite_and_force(tmp_path: Path) -> None:
     spec = spec_of(dict(SPEC, axes={"camera.scale": [0.25], "seed": [0]}))
     S.run_sweep(spec, tmp_path / "out", workers=0)
@@ -208,6 +224,7 @@ def test_refuses_to_overwrite_and_force(tmp_path: Path) -> None:
     assert list(res.table["seed"]) == [1] and len(list((tmp_path / "out" / "cases").glob("*.json"))) == 1
 
 
+@pytest.mark.slow
 def test_cli_default_engine_killed_and_resumed(tmp_path: Path, tofhil_cli) -> None:
     """The CLI on the default engine (a local cluster), killed mid-way with its workers, then
     resumed: finished cases are not redone and the table is that of the cases run alone."""
