@@ -13,6 +13,7 @@ and on Dask, the cluster's start-up counted separately) against the bare loop.
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -51,13 +52,14 @@ def main() -> None:
         for w in (1, 2):
             t = time.perf_counter()
             client = S.local_client(w)
-            client.run(lambda: __import__("tofhil.eval.sweep"))  # worker start-up and imports
+            # worker start-up, imports and numba compilation: one case on every worker
+            warm = S.expand_cases(sp)[0]
+            client.run(S.run_case, sp, warm, str(Path(tmp) / f"warm{w}"))
             start = time.perf_counter() - t
             t = time.perf_counter()
-            # warm each worker's numba cache with one case per worker
             res = S.run_sweep(sp, Path(tmp) / f"dask{w}", client=client)
             times[f"dask, {w} worker(s)"] = time.perf_counter() - t
-            times[f"dask, {w} worker(s), start-up"] = start
+            times[f"dask, {w} worker(s), start-up + warm-up"] = start
             cluster = client.cluster
             client.close()
             cluster.close()
@@ -69,7 +71,9 @@ def main() -> None:
     bare = times["bare loop"] / n
     print(f"per-case overhead against the bare loop ({bare:.3f} s/case): engine in process "
           f"{(times['engine, in process'] / n - bare) * 1e3:+.0f} ms, Dask 1 worker "
-          f"{(times['dask, 1 worker(s)'] / n - bare) * 1e3:+.0f} ms (the first case on a worker compiles numba)")
+          f"{(times['dask, 1 worker(s)'] / n - bare) * 1e3:+.0f} ms (workers warmed up; the bare loop renders once "
+          "per scene too)")
+    print(f"load average during the run: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
 
 
 if __name__ == "__main__":

@@ -736,12 +736,16 @@ def _save_spec(spec: SweepSpec, out: Path) -> None:
 
 def local_client(workers: int | None = None, **kwargs: Any) -> Any:
     """A ``dask.distributed`` client on a new ``LocalCluster`` of worker processes (one
-    thread each: the cases are CPU-bound Python and numba), no dashboard, quiet logs."""
+    task at a time each: the cases are CPU-bound Python and numba), no dashboard, quiet logs."""
     import logging
 
     from distributed import Client, LocalCluster
 
     n = workers or os.cpu_count() or 1
+    # The cores are shared out: numba's parallel kernels in each worker get cores / workers
+    # threads (n workers each starting one thread per core would oversubscribe the machine).
+    env = {"NUMBA_NUM_THREADS": str(max(1, (os.cpu_count() or 1) // n)), "OMP_NUM_THREADS": "1"}
+    kwargs.setdefault("env", env)
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
                            silence_logs=logging.ERROR, **kwargs)
     return Client(cluster)
@@ -799,7 +803,7 @@ def _run_on_dask(spec: SweepSpec, todo: list[Case], out: Path, *, scheduler: str
             say(f"connecting to the Dask scheduler at {scheduler}")
             try:
                 client = own = Client(scheduler, timeout="20s")
-            except (OSError, TimeoutError) as exc:
+            except (OSError, TimeoutError, ValueError) as exc:
                 raise TofhilError(f"cannot reach the Dask scheduler ({exc})", field="--scheduler",
                                   expected="the address of a running scheduler, e.g. tcp://host:8786") from None
         else:
