@@ -6,6 +6,9 @@ base twin, and print: how often the hidden effect was named alone, the misfit pe
 value before and after, the depth RMSE before and after, and the time per diagnosis.
 
     python benchmarks/diagnose_sweep.py [--seeds 3] [--effects stray_light,wiggling]
+
+The same study as a sweep spec (one representative value per effect, parallel on Dask,
+resumable, one table): ``tofhil sweep configs/sweeps/diagnose_effects.yaml --out DIR``.
 """
 
 from __future__ import annotations
