@@ -10,6 +10,9 @@ beyond its noise (must be 0). Null seeds give the false-alarm rate (any effect n
 
     python benchmarks/diagnose_sweep.py [--seeds 5] [--null-seeds 20] [--effects offset,field_angle]
         [--scene bench_demo] [--width 80]
+
+The same study as a sweep spec (one representative value per effect, parallel on Dask,
+resumable, one table): ``tofhil sweep configs/sweeps/diagnose_effects.yaml --out DIR``.
 """
 
 from __future__ import annotations

@@ -13,6 +13,9 @@ each method removes:
 - thesis method 1 (uniform subtraction) at its best w FOR EACH CASE;
 - thesis method 2 (Gaussian inverse filter) at its best sigma and w FOR EACH CASE;
 - thesis method 1 with the one w that is best on average over all cases.
+
+The cases as a sweep spec (measurement against the stray-light-free twin, on Dask, one
+table): ``tofhil sweep configs/sweeps/straylight_reflectance.yaml --out DIR``.
 """
 
 from __future__ import annotations

@@ -76,12 +76,14 @@ def simulate(scene: Any, frames: int = 1, seed: int = 0, noise: bool = True,
 
 def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: int = 0, noise: bool = True,
                      force: bool = False, effects: Mapping[str, Any] | None = None,
-                     render_kwargs: Mapping[str, Any] | None = None, progress: Progress | None = None) -> Path:
+                     render_kwargs: Mapping[str, Any] | None = None, progress: Progress | None = None,
+                     twin: Twin | None = None) -> Path:
     """Write a session file (same layout as a capture): raw taps and depth per frame, the scene's
     YAML text embedded, ``device = {"model": "tofhil-sim", ...}``.
 
     With ``effects`` given, the embedded scene text carries those effects instead of the file's
-    block, so the session says exactly what was simulated."""
+    block, so the session says exactly what was simulated. ``twin`` is a :class:`Twin` of this
+    scene whose render cache to use (a sweep renders a scene once for many cases)."""
     from tofhil import __version__
     from tofhil.depth import depth_from_raw
     from tofhil.session import SessionWriter, check_new_path
@@ -89,9 +91,10 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
 
     out_path = Path(out_path)
     check_new_path(out_path, force)  # fail before the (slow) render
-    twin = Twin(scene, effects=effects, render_kwargs=render_kwargs, progress=progress)
-    eff = twin.base_effects
-    _, result = twin.render()
+    if twin is None:
+        twin = Twin(scene, effects=effects, render_kwargs=render_kwargs, progress=progress)
+    eff = resolve_effects(scene, effects)
+    _, result = twin.render(eff)
     if effects is None:
         text = getattr(scene, "text", "") or scene_to_yaml(scene)
     else:
@@ -102,7 +105,7 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
               "seed": int(seed), "noise": bool(noise), "effects": effects_to_block(eff),
               "samples_per_pixel": int(getattr(result, "samples_per_pixel", 1)),
               "bounces": int(getattr(result, "bounces", 0))}
-    it = twin.frames(frames=frames, seed=seed, noise=noise)
+    it = twin.frames(eff, frames=frames, seed=seed, noise=noise)
     if progress is not None:
         it = progress(it, frames, "simulate")
     # The session records the camera as the scene file states it (what a user's calibration
