@@ -37,7 +37,7 @@ from tofhil.progress import Progress, no_progress
 from tofhil.sim import kernels
 from tofhil.sim.geometry import BATCH, RAY_EPSILON_M, Geometry, WorkerPool
 from tofhil.sim.radiometry import DEFAULT_PIXEL_PITCH_M, aperture_area_m2, pixel_area_normalized
-from tofhil.sim.scene import Scene
+from tofhil.sim.scene import Scene, Texture
 
 
 
@@ -75,6 +75,14 @@ def _materials_table(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rho_s = np.array([scene.materials[o.material].glossy_reflectance for o in scene.objects])
     n_s = np.array([scene.materials[o.material].glossy_exponent for o in scene.objects])
     return rho_d, rho_s, n_s
+
+
+def _object_texture(scene: Scene, obj: Any) -> Texture | None:
+    """The texture on an object: a board's printed pattern (its reflectances times the
+    material's, 1 by default), else its material's texture."""
+    if obj.type == "board":
+        return Texture("image", image=obj.board.reflectance_image())
+    return scene.materials[obj.material].texture
 
 
 def content_key(*parts: Any) -> str:
@@ -201,8 +209,8 @@ class _Context:
                                             np.asarray(harmonics, dtype=np.float64)[None, :]).ravel()
         self.rho_d, self.rho_s, self.n_s = _materials_table(scene)
         self.glossy = bool(np.any(self.rho_s > 0))
-        self.textured = [(i, scene.materials[o.material].texture) for i, o in enumerate(scene.objects)
-                         if scene.materials[o.material].texture is not None]
+        self.textured = [(i, _object_texture(scene, o)) for i, o in enumerate(scene.objects)
+                         if _object_texture(scene, o) is not None]
         self.inv_pose = [np.linalg.inv(o.pose) for o in scene.objects]
         R, t = pose[:3, :3], pose[:3, 3]
         self.R, self.t = R, t

@@ -398,6 +398,9 @@ class _Parser(Schema):
             if name in names:
                 raise self.error(f"duplicate name {name!r}", f + ".name", "unique object names")
             names.add(name)
+            if kind == "board" and "material" not in o:
+                # a board's pattern sets its reflectance: the default paper is matte
+                o = dict(o, material={"reflectance": 1.0})
             mat = self.require(o, "material", f, "a material name from materials")
             if isinstance(mat, dict):  # inline material
                 mname = f"{name}__material"
@@ -419,12 +422,24 @@ class _Parser(Schema):
 
     def _shape(self, kind: str, o: dict, f: str) -> tuple[dict[str, Any], Any]:
         shape_keys = {"plane": {"size"}, "box": {"size"}, "sphere": {"radius", "subdivisions"},
-                      "cylinder": {"radius", "height", "sections"}, "mesh": {"file", "scale"}}[kind]
+                      "cylinder": {"radius", "height", "sections"}, "mesh": {"file", "scale"},
+                      "board": {"target"}}[kind]
         self.keys(o, f, shape_keys | {"name", "type", "material", "pose"})
         if kind == "plane":
             return {"size": self._size(o, f, 2, "[width, height] in m")}, None
         if kind == "box":
             return {"size": self._size(o, f, 3, "[sx, sy, sz] in m")}, None
+        if kind == "board":
+            from tofhil.boards import BoardSpec
+
+            target = self.require(o, "target", f, "a board: a mapping or KIND:COLSxROWS:SIZE_M[...]")
+            if isinstance(target, str) and not target.lower().endswith((".yaml", ".yml")):
+                spec = BoardSpec.parse(target, source=self.source, field=f + ".target")
+            elif isinstance(target, str):
+                spec = BoardSpec.parse(str(self._path(target, f + ".target")), field=f + ".target")
+            else:
+                spec = BoardSpec.from_dict(target, source=self.source, field=f + ".target")
+            return {"target": spec.to_dict()}, None
         if kind == "sphere":
             r = self.number(self.require(o, "radius", f, "a radius in m"), f + ".radius", lo=0, lo_open=True,
                             hi=_MAX_COORD_M)
