@@ -182,7 +182,12 @@ def refine_saddle_grid(image: np.ndarray, grid: np.ndarray) -> np.ndarray:
     so the fitted corners are not pulled to the pixel grid. A corner whose fit moves by more
     than a pixel, or whose window leaves the image, keeps the detector's position. The
     window's half-width is a little under half the corner spacing (2 to
-    ``MAX_FIT_RADIUS_PX`` px), the edges start along the grid's directions."""
+    ``MAX_FIT_RADIUS_PX`` px); the edges start along the grid's directions. All corners are
+    fitted in one sparse least-squares problem (each corner's parameters touch only its
+    window's residuals)."""
+    from scipy.optimize import least_squares
+    from scipy.sparse import lil_matrix
+
     img = np.asarray(image, dtype=np.float64)
     finite = np.isfinite(img)
     if not finite.any():
@@ -190,44 +195,52 @@ def refine_saddle_grid(image: np.ndarray, grid: np.ndarray) -> np.ndarray:
     scale = np.nanpercentile(img, 99.5)
     img = img / (scale if scale > 0 else 1.0)
     rows, cols = grid.shape[:2]
-    out = grid.copy()
     h, w = img.shape
+    windows, starts, where = [], [], []
     for i in range(rows):
         for j in range(cols):
             x, y = grid[i, j]
-            ex = grid[i, min(j + 1, cols - 1)] - grid[i, max(j - 1, 0)]
-            ey = grid[min(i + 1, rows - 1), j] - grid[max(i - 1, 0), j]
-            ex /= max(1, min(j + 1, cols - 1) - max(j - 1, 0))
-            ey /= max(1, min(i + 1, rows - 1) - max(i - 1, 0))
-            spacing = min(np.linalg.norm(ex), np.linalg.norm(ey))
-            r = int(np.clip(np.floor(0.5 * spacing - 1.0), 2, MAX_FIT_RADIUS_PX))
+            ex = (grid[i, min(j + 1, cols - 1)] - grid[i, max(j - 1, 0)]) / (min(j + 1, cols - 1) - max(j - 1, 0))
+            ey = (grid[min(i + 1, rows - 1), j] - grid[max(i - 1, 0), j]) / (min(i + 1, rows - 1) - max(i - 1, 0))
+            r = int(np.clip(np.floor(0.5 * min(np.linalg.norm(ex), np.linalg.norm(ey)) - 1.0), 2, MAX_FIT_RADIUS_PX))
             xi, yi = int(round(x)), int(round(y))
             if xi - r < 0 or yi - r < 0 or xi + r >= w or yi + r >= h:
                 continue
-            patch = img[yi - r:yi + r + 1, xi - r:xi + r + 1]
             ok = finite[yi - r:yi + r + 1, xi - r:xi + r + 1]
             if ok.sum() < 12:
                 continue
             Y, X = np.mgrid[yi - r:yi + r + 1, xi - r:xi + r + 1].astype(np.float64)
-            fit = _fit_corner(X[ok], Y[ok], patch[ok], x, y,
-                              np.arctan2(ex[0], -ex[1]), np.arctan2(ey[0], -ey[1]))
-            if fit is not None and abs(fit[0] - x) < 1.0 and abs(fit[1] - y) < 1.0:
-                out[i, j] = fit
+            v = img[yi - r:yi + r + 1, xi - r:xi + r + 1][ok]
+            X, Y = X[ok], Y[ok]
+            # edge normals perpendicular to the grid directions; which quadrants are ink: the
+            # start that explains the window better
+            t1, t2 = np.arctan2(ex[0], -ex[1]), np.arctan2(ey[0], -ey[1])
+            lo, hi = float(v.min()), float(v.max())
+            cands = [np.array([x, y, t1, t2, a, b, 0.0, 0.0]) for a, b in ((lo, hi), (hi, lo))]
+            p0 = min(cands, key=lambda p: float(np.sum((_corner_model(p, X, Y) - v) ** 2)))
+            windows.append((X, Y, v))
+            starts.append(p0)
+            where.append((i, j))
+    if not windows:
+        return grid
+    n_par = 8
+    offsets = np.cumsum([0] + [len(wv[2]) for wv in windows])
+    sparsity = lil_matrix((offsets[-1], n_par * len(windows)), dtype=int)
+    for k in range(len(windows)):
+        sparsity[offsets[k]:offsets[k + 1], n_par * k:n_par * (k + 1)] = 1
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        return np.concatenate([_corner_model(p[n_par * k:n_par * (k + 1)], X, Y) - v
+                               for k, (X, Y, v) in enumerate(windows)])
+
+    fit = least_squares(residuals, np.concatenate(starts), jac_sparsity=sparsity, method="trf",
+                        x_scale="jac", max_nfev=200)
+    out = grid.copy()
+    for k, (i, j) in enumerate(where):
+        xy = fit.x[n_par * k:n_par * k + 2]
+        if np.all(np.isfinite(xy)) and np.all(np.abs(xy - grid[i, j]) < 1.0):
+            out[i, j] = xy
     return out
-
-
-def _fit_corner(X: np.ndarray, Y: np.ndarray, v: np.ndarray, x: float, y: float,
-                t1: float, t2: float) -> np.ndarray | None:
-    from scipy.optimize import least_squares
-
-    lo, hi = float(np.min(v)), float(np.max(v))
-    best = None
-    for a, b in ((lo, hi), (hi, lo)):   # which pair of opposite quadrants is ink
-        p0 = np.array([x, y, t1, t2, a, b, 0.0, 0.0])
-        res = least_squares(lambda p: _corner_model(p, X, Y) - v, p0, method="lm", max_nfev=400)
-        if best is None or res.cost < best.cost:
-            best = res
-    return best.x[:2] if best is not None and best.success else None
 
 
 def _corner_model(p: np.ndarray, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
