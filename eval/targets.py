@@ -229,9 +229,11 @@ def refine_saddle_grid(image: np.ndarray, grid: np.ndarray) -> np.ndarray:
     for k in range(len(windows)):
         sparsity[offsets[k]:offsets[k + 1], n_par * k:n_par * (k + 1)] = 1
 
+    corner = np.repeat(np.arange(len(windows)), np.diff(offsets))
+    X_all, Y_all, v_all = (np.concatenate([wv[c] for wv in windows]) for c in range(3))
+
     def residuals(p: np.ndarray) -> np.ndarray:
-        return np.concatenate([_corner_model(p[n_par * k:n_par * (k + 1)], X, Y) - v
-                               for k, (X, Y, v) in enumerate(windows)])
+        return _corner_model(p.reshape(-1, n_par)[corner].T, X_all, Y_all) - v_all
 
     fit = least_squares(residuals, np.concatenate(starts), jac_sparsity=sparsity, method="trf",
                         x_scale="jac", max_nfev=200)
@@ -246,7 +248,8 @@ def refine_saddle_grid(image: np.ndarray, grid: np.ndarray) -> np.ndarray:
 def _corner_model(p: np.ndarray, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     """Pixel values of an ideal corner: edges with normals at angles ``t1``, ``t2`` through
     ``(x0, y0)``; level ``a`` where the pixel is on equal sides of both, ``b`` elsewhere;
-    times a linear shading ``1 + gx dx + gy dy``."""
+    times a linear shading ``1 + gx dx + gy dy``. ``p`` is one parameter vector or ``[8, N]``
+    (one per pixel)."""
     x0, y0, t1, t2, a, b, gx, gy = p
     dx, dy = X - x0, Y - y0
     c1 = _box_edge_fraction(np.cos(t1) * dx + np.sin(t1) * dy, np.cos(t1), np.sin(t1))
@@ -255,13 +258,13 @@ def _corner_model(p: np.ndarray, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     return (b + (a - b) * same) * (1 + gx * dx + gy * dy)
 
 
-def _box_edge_fraction(d: np.ndarray, nx: float, ny: float) -> np.ndarray:
+def _box_edge_fraction(d: np.ndarray, nx: np.ndarray, ny: np.ndarray) -> np.ndarray:
     """Fraction of a unit pixel on the positive side of a straight edge with unit normal
     ``(nx, ny)`` at signed distance ``d`` from the pixel centre: the distribution of
     ``n . (u, v)`` over the pixel is the sum of two uniforms of widths ``|nx|``, ``|ny|``
     (a trapezoid), and the fraction is its CDF at ``d``."""
-    big = max(abs(nx), abs(ny))
-    small = max(min(abs(nx), abs(ny)), 1e-6)
+    big = np.maximum(np.abs(nx), np.abs(ny))
+    small = np.maximum(np.minimum(np.abs(nx), np.abs(ny)), 1e-6)
     low = d + (big + small) / 2
     high = (big + small) / 2 - d
     f_low = np.where(low <= 0, 0.0, low ** 2 / (2 * big * small))
