@@ -90,3 +90,19 @@ def test_kinect_colour_lands_on_the_depth_with_the_factory_calibration():
     pts = np.stack([x * z, y * z, z], axis=-1)[valid]
     res = colorize_points(pts, depth_to_color, color_cam, rgb)
     assert res.visible.mean() > 0.9 and res.occluded.sum() > 1000
+
+
+def test_colorize_cli_writes_the_visible_points_and_refuses_to_overwrite(tofhil_cli, tmp_path):
+    from tofhil.open3d_loader import open3d
+
+    path = need(AZURE_KINECT_MKV)
+    out = tmp_path / "mug.ply"
+    r = tofhil_cli("colorize", path, "--out", out)
+    assert r.returncode == 0, r.stderr
+    coloured = int(r.stdout.split(" of ")[0])
+    cloud = open3d().io.read_point_cloud(str(out))
+    assert len(cloud.points) == coloured > 200_000 and np.asarray(cloud.colors).max() > 0.5
+    r = tofhil_cli("colorize", path, "--out", out)
+    assert r.returncode == 2 and "already exists" in r.stderr
+    r = tofhil_cli("colorize", path, "--out", tmp_path / "x.ply", "--frame", "5")
+    assert r.returncode == 2 and "COLOR" in r.stderr and not (tmp_path / "x.ply").exists()

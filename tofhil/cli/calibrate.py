@@ -58,3 +58,44 @@ def calibrate_camera_cmd(
               + " ".join(f"{d:.5g}" for d in c.dist) + f"  (RMS {cal.rms_px:.4f} px over {len(cal.used)} views)",
               highlight=False, soft_wrap=True)
     out.print(f"wrote camera preset to {lit(out_path)}", highlight=False, soft_wrap=True)
+
+
+@app.command("colorize")
+def colorize_cmd(recording: Path = typer.Argument(..., parser=opt.existing_file,
+                                                 help="Azure Kinect recording (.mkv) with DEPTH and COLOR tracks."),
+                 out_path: Path = typer.Option(..., "--out", parser=opt.new_file, help="Coloured point cloud (.ply)."),
+                 frame: int = typer.Option(0, "--frame", parser=opt.count(0, what="a frame index"),
+                                           help="Frame index (depth and colour)."),
+                 keep_occluded: bool = typer.Option(False, "--keep-occluded",
+                                                    help="Write points the colour camera does not see too (black)."),
+                 force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
+    """Colour the depth points of an Azure Kinect recording from its colour camera (factory
+    calibration; points the colour camera cannot see are occluded and left out)."""
+    import numpy as np
+
+    from tofhil.drivers.importers.k4a import read_k4a_recording
+    from tofhil.drivers.importers.k4a_color import read_color_frame
+    from tofhil.eval.colorize import colorize_points, write_ply
+
+    if out_path.suffix.lower() != ".ply":
+        raise TofhilError("is not a .ply file", file=out_path, field="--out", expected="a path ending in .ply")
+    if out_path.exists() and not force:
+        raise TofhilError("already exists; refusing to overwrite (use --force)", file=out_path)
+    rgb, color_cam, depth_to_color = read_color_frame(recording, frame)
+    with read_k4a_recording(recording) as rec:
+        if frame >= len(rec):
+            raise TofhilError(f"has {len(rec)} depth frames", file=recording, field="--frame",
+                              expected=f"an index below {len(rec)}")
+        _, z_mm, _ = rec.frame(frame)
+        intr = rec.intrinsics
+        v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
+        x, y, ok = intr.undistort(u, v)   # the exact factory rays (z-depth: point = (x z, y z, z))
+    z = z_mm * 1e-3
+    valid = (z_mm > 0) & ok
+    pts = np.stack([x * z, y * z, z], axis=-1)[valid]
+    res = colorize_points(pts, depth_to_color, color_cam, rgb)
+    keep = np.ones(len(pts), bool) if keep_occluded else res.visible
+    write_ply(out_path, pts[keep], res.colors[keep])
+    out.print(f"{int(res.visible.sum())} of {len(pts)} depth points coloured, {int(res.occluded.sum())} occluded, "
+              f"{int(len(pts) - res.visible.sum() - res.occluded.sum())} outside the colour image; "
+              f"wrote {int(keep.sum())} points to {lit(out_path)}", highlight=False, soft_wrap=True)
