@@ -238,3 +238,60 @@ def preset_text(cal: CameraCalibration, target: BoardSpec, *, name: str | None =
         state = f"used, RMS {v.rms_px:.4f} px" if v.used else f"rejected: {v.reason}"
         lines.append(f"#   view {v.name}: {v.corners} corners, {state}")
     return "\n".join(lines) + "\n" + yaml.safe_dump(to_plain(d), sort_keys=False, default_flow_style=None)
+
+
+@dataclass
+class StereoCalibration:
+    """ToF -> second camera extrinsics from simultaneous board views."""
+
+    tof_to_camera: np.ndarray     # 4x4: ToF frame -> the other camera's frame
+    rms_px: float                 # RMS reprojection error over both cameras and all views
+    views: list[CalibrationView]  # per view pair: corners used, per-pair RMS (both cameras)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"tof_to_camera": self.tof_to_camera.tolist(), "rms_px": round(self.rms_px, 5),
+                "views": [v.to_dict() for v in self.views]}
+
+
+def calibrate_stereo(pairs: Sequence[tuple[str, np.ndarray, np.ndarray]], target: BoardSpec | str | dict,
+                     tof_camera: CameraModel, other_camera: CameraModel) -> StereoCalibration:
+    """Extrinsics between the ToF camera and a second camera from simultaneous views
+    ``[(name, tof_amplitude, other_image), ...]`` of one board, both cameras' intrinsics
+    known (``cv2.stereoCalibrate`` with fixed intrinsics, on the corners both cameras see).
+    A pair is skipped (with its reason) when either camera misses the board."""
+    import cv2
+
+    spec = BoardSpec.parse(target)
+    views: list[CalibrationView] = []
+    obj, img_a, img_b = [], [], []
+    for name, a, b in pairs:
+        v = CalibrationView(name=name)
+        views.append(v)
+        da, db = detect_board(a, spec), detect_board(b, spec)
+        if da is None or db is None:
+            v.reason = f"no {spec.kind} board found in the {'ToF' if da is None else 'other'} image"
+            continue
+        common, ia, ib = np.intersect1d(da.ids, db.ids, return_indices=True)
+        v.corners = len(common)
+        if len(common) < MIN_CORNERS:
+            v.reason = f"only {len(common)} corners seen by both cameras"
+            continue
+        v.used = True
+        obj.append(da.object_points[ia].astype(np.float32))
+        img_a.append(da.image_points[ia].astype(np.float32))
+        img_b.append(db.image_points[ib].astype(np.float32))
+    if len(obj) < 1:
+        raise TofhilError(f"no usable view pair of {len(views)}", field="SESSIONS",
+                          expected="views where both cameras see the board")
+    da_, db_ = np.asarray(tof_camera.dist, float), np.asarray(other_camera.dist, float)
+    out = cv2.stereoCalibrateExtended(obj, img_a, img_b, tof_camera.K, da_, other_camera.K, db_,
+                                      (tof_camera.width, tof_camera.height), np.eye(3), np.zeros((3, 1)),
+                                      flags=cv2.CALIB_FIX_INTRINSIC,
+                                      criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12))
+    rms, R, t = out[0], out[5], out[6]
+    per_view = np.asarray(out[-1]).reshape(len(obj), -1)
+    for v, e in zip([v for v in views if v.used], per_view):
+        v.rms_px = float(np.sqrt(np.mean(np.square(e))))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, np.asarray(t).ravel()
+    return StereoCalibration(tof_to_camera=T, rms_px=float(rms), views=views)

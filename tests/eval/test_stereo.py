@@ -1,0 +1,51 @@
+"""ToF <-> second camera extrinsics from simultaneous board views rendered by the twin (ToF
+amplitude through the sensor model, the second camera's grey image from sim/rgb.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tofhil.camera import CameraModel
+from tofhil.depth import depth_from_raw
+from tofhil.eval.calibration import calibrate_stereo
+from tofhil.sim.pipeline import simulate
+from tofhil.sim.rgb import render_grey
+from tofhil.sim.scene import _rotation_xyz, load_scene
+
+POSES = [(20, 0, 0, 0.55), (-20, 5, 5, 0.55), (0, 20, -5, 0.5), (5, -20, 10, 0.5), (15, 15, 0, 0.6)]
+
+
+def test_stereo_extrinsics_within_2mm_and_0p2deg():
+    # the colour camera 50 mm right of and 8 mm below the ToF camera, turned 2 deg about y, 1 about x
+    truth = np.eye(4)
+    truth[:3, :3] = _rotation_xyz(1.0, 2.0, 0.0)
+    truth[:3, 3] = [-0.05, 0.008, 0.002]
+    other = CameraModel.from_fov(240, 180, 62.0)
+    pairs = []
+    for i, (tx, ty, rz, d) in enumerate(POSES):
+        scene = load_scene("board", {"params": {"tilt_x_deg": tx, "tilt_y_deg": ty, "roll_deg": rz,
+                                                "board_distance_m": d},
+                                     "render": {"samples_per_pixel": 16}})
+        amp = depth_from_raw(simulate(scene, noise=True, seed=i)[0]).amplitude
+        pairs.append((f"v{i}", amp, render_grey(scene, other, truth, samples=4)))
+    cal = calibrate_stereo(pairs, "checkerboard:9x6:0.03", scene.camera, other)
+    assert all(v.used for v in cal.views) and cal.rms_px < 0.1
+    dt = np.linalg.norm(cal.tof_to_camera[:3, 3] - truth[:3, 3]) * 1e3
+    R = cal.tof_to_camera[:3, :3].T @ truth[:3, :3]
+    dr = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
+    assert dt < 2.0 and dr < 0.2, (dt, dr)
+
+
+def test_grey_image_is_lambertian_under_the_emitter():
+    """A fronto-parallel wall, emitter at the camera: the radiance at the image centre is
+    rho/pi * I(0) / d^2 (closed form) when the passive camera sits at the ToF camera."""
+    scene = load_scene("wall")
+    cam = CameraModel.from_fov(41, 31, 40.0)
+    g = render_grey(scene, cam, np.eye(4), samples=1)
+    e = scene.emitter
+    d = 1.0
+    # the emitter is 15 mm beside the camera: the centre point is off its axis by atan(0.015)
+    r2 = d * d + e.offset_m[0] ** 2
+    cos = d / np.sqrt(r2)
+    expect = 0.8 / np.pi * e.intensity_w_sr(np.array(cos)) * cos / r2
+    assert abs(g[15, 20] / expect - 1) < 1e-6
