@@ -295,3 +295,29 @@ def calibrate_stereo(pairs: Sequence[tuple[str, np.ndarray, np.ndarray]], target
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, np.asarray(t).ravel()
     return StereoCalibration(tof_to_camera=T, rms_px=float(rms), views=views)
+
+
+def calibrate_stereo_sessions(sessions: Sequence[str | Path], target: BoardSpec | str | dict, *,
+                              tof_camera: CameraModel | None = None,
+                              other_camera: CameraModel | None = None) -> StereoCalibration:
+    """:func:`calibrate_stereo` on sessions with an ``rgb/`` group (one board pose each): the
+    mean ToF amplitude beside the mean of the second camera's images (grey). The cameras
+    default to the sessions' own (``camera`` and ``rgb.camera``)."""
+    from tofhil.session_rgb import read_rgb
+
+    pairs = []
+    for path in sessions:
+        amp, cam = mean_amplitude(path)
+        rgb = read_rgb(path)
+        imgs = rgb.images.astype(np.float64)
+        grey = (imgs @ np.array([0.299, 0.587, 0.114]) if imgs.ndim == 4 else imgs).mean(axis=0)
+        tof_camera = tof_camera or cam
+        other_camera = other_camera or rgb.camera
+        if grey.shape != other_camera.shape:
+            raise TofhilError(f"rgb images are {grey.shape[1]}x{grey.shape[0]}, the camera "
+                              f"{other_camera.width}x{other_camera.height}", file=path, field="rgb/images")
+        if amp.shape != tof_camera.shape:
+            raise TofhilError(f"amplitude is {amp.shape[1]}x{amp.shape[0]}, the ToF camera "
+                              f"{tof_camera.width}x{tof_camera.height}", file=path, field="camera")
+        pairs.append((str(path), amp, grey))
+    return calibrate_stereo(pairs, target, tof_camera, other_camera)

@@ -49,3 +49,29 @@ def test_grey_image_is_lambertian_under_the_emitter():
     cos = d / np.sqrt(r2)
     expect = 0.8 / np.pi * e.intensity_w_sr(np.array(cos)) * cos / r2
     assert abs(g[15, 20] / expect - 1) < 1e-6
+
+
+def test_calibrate_stereo_cli_on_sessions_with_an_rgb_group(tofhil_cli, tmp_path):
+    import yaml
+
+    from tofhil.session_rgb import read_rgb, write_rgb
+    from tofhil.sim.pipeline import simulate_session
+
+    truth = np.eye(4)
+    truth[:3, 3] = [-0.04, 0.0, 0.0]
+    other = CameraModel.from_fov(200, 150, 60.0)
+    paths = []
+    for i, (tx, ty, rz, d) in enumerate(POSES[:4]):
+        scene = load_scene("board", {"params": {"tilt_x_deg": tx, "tilt_y_deg": ty, "roll_deg": rz,
+                                                "board_distance_m": d}, "render": {"samples_per_pixel": 8}})
+        p = simulate_session(scene, tmp_path / f"v{i}.h5", seed=i)
+        write_rgb(p, [render_grey(scene, other, truth, samples=3)], other)
+        paths.append(p)
+    assert read_rgb(paths[0]).tof_to_camera is None and read_rgb(paths[0]).camera == other
+    out = tmp_path / "extr.yaml"
+    r = tofhil_cli("calibrate-stereo", *paths, "--target", "checkerboard:9x6:0.03", "--out", out)
+    assert r.returncode == 0, r.stderr
+    T = np.asarray(yaml.safe_load(out.read_text())["tof_to_camera"])
+    assert np.abs(T[:3, 3] - truth[:3, 3]).max() < 0.002
+    r = tofhil_cli("calibrate-stereo", tmp_path / "v0.h5", "--target", "checkerboard:9x6:0.03", "--out", out)
+    assert r.returncode == 2 and "already exists" in r.stderr

@@ -99,3 +99,41 @@ def colorize_cmd(recording: Path = typer.Argument(..., parser=opt.existing_file,
     out.print(f"{int(res.visible.sum())} of {len(pts)} depth points coloured, {int(res.occluded.sum())} occluded, "
               f"{int(len(pts) - res.visible.sum() - res.occluded.sum())} outside the colour image; "
               f"wrote {int(keep.sum())} points to {lit(out_path)}", highlight=False, soft_wrap=True)
+
+
+@app.command("calibrate-stereo")
+def calibrate_stereo_cmd(
+        sessions: List[Path] = typer.Argument(..., parser=opt.existing_file,
+                                              help="Sessions with an rgb/ group, one board pose each."),
+        target: str = typer.Option(..., "--target", help=_TARGET_HELP),
+        out_path: Path = typer.Option(..., "--out", parser=opt.new_file,
+                                      help="Extrinsics to write (.yaml: tof_to_camera 4x4, errors, views)."),
+        tof_camera: Optional[Path] = typer.Option(None, "--tof-camera", parser=opt.existing_file,
+                                                  help="ToF camera preset (e.g. from calibrate-camera); default the sessions'."),
+        rgb_camera: Optional[Path] = typer.Option(None, "--rgb-camera", parser=opt.existing_file,
+                                                  help="Second camera preset; default the sessions' rgb.camera."),
+        force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
+    """ToF <-> second camera extrinsics from simultaneous board views (OpenCV stereoCalibrate, intrinsics fixed)."""
+    import yaml
+
+    from tofhil.boards import BoardSpec
+    from tofhil.camera import load_camera_preset
+    from tofhil.eval.calibration import calibrate_stereo_sessions
+
+    if out_path.suffix.lower() not in (".yaml", ".yml"):
+        raise TofhilError("is not a .yaml file", file=out_path, field="--out", expected="a path ending in .yaml")
+    if out_path.exists() and not force:
+        raise TofhilError("already exists; refusing to overwrite (use --force)", file=out_path)
+    spec = BoardSpec.parse(target, field="--target")
+    cal = calibrate_stereo_sessions(sessions, spec,
+                                    tof_camera=load_camera_preset(tof_camera) if tof_camera else None,
+                                    other_camera=load_camera_preset(rgb_camera) if rgb_camera else None)
+    out_path.write_text("# ToF frame -> second camera frame (m), by tofhil calibrate-stereo\n"
+                        + yaml.safe_dump(cal.to_dict() | {"target": spec.to_dict()}, sort_keys=False,
+                                         default_flow_style=None), encoding="utf-8")
+    for v in cal.views:
+        state = f"RMS {v.rms_px:.4f} px" if v.used else f"skipped: {v.reason}"
+        out.print(f"{lit(v.name)}: {v.corners} corners, {lit(state)}", highlight=False, soft_wrap=True)
+    t = cal.tof_to_camera[:3, 3] * 1e3
+    out.print(f"translation [{t[0]:.2f}, {t[1]:.2f}, {t[2]:.2f}] mm, RMS {cal.rms_px:.4f} px; "
+              f"wrote {lit(out_path)}", highlight=False, soft_wrap=True)
