@@ -97,7 +97,7 @@ def content_key(*parts: Any) -> str:
 
 #: Scene fields that do not change a render (effects and expression parameters are applied
 #: in the scene already).
-_NOT_RENDERED = frozenset({"effects", "params", "source", "text", "name", "description"})
+_NOT_RENDERED = frozenset({"effects", "params", "source", "text", "name", "description", "rgb_camera"})
 
 
 def _feed(h: Any, x: Any) -> None:

@@ -26,12 +26,12 @@ from tofhil.errors import InputFileError
 from tofhil.schema import Schema, to_plain
 from tofhil.sim.scene_expressions import substitute
 from tofhil.sim.scene_model import (DEFAULT_F_NUMBER, MESH_SUFFIXES, OBJECT_TYPES, BeamProfile, EffectSet,
-                                    Emitter, Material, RenderSettings, Scene, SceneObject, Texture)
+                                    Emitter, Material, RenderSettings, Scene, SceneObject, SecondCamera, Texture)
 from tofhil.sim.sensor import SENSOR_KEYS, SensorConfig
 from tofhil.yamlio import load_yaml
 
 __all__ = ["DEFAULT_F_NUMBER", "MESH_SUFFIXES", "OBJECT_TYPES", "BeamProfile", "EffectSet", "Emitter", "Material",
-           "RenderSettings", "Scene", "SceneObject", "Texture", "bundled_scenes", "load_scene", "look_at_rotation",
+           "RenderSettings", "Scene", "SceneObject", "SecondCamera", "Texture", "bundled_scenes", "load_scene", "look_at_rotation",
            "scene_from_dict", "scene_from_yaml", "scene_to_yaml", "scenes_dir"]
 
 #: Largest camera side accepted in a scene (pixels); memory is checked before a render.
@@ -40,7 +40,7 @@ MAX_CAMERA_SIDE_PX = 100_000
 MAX_SCENE_BYTES = 16 << 20
 
 _TOP_KEYS = ("name", "description", "params", "camera", "emitter", "ambient_irradiance_w_m2",
-             "materials", "objects", "sensor", "effects", "render")
+             "materials", "objects", "sensor", "effects", "render", "rgb_camera")
 _CAMERA_KEYS = {"preset", "width", "height", "fx", "fy", "cx", "cy", "dist", "name", "pixel_pitch_m",
                 "hfov_deg", "vfov_deg", "pose", "f_number", "focus_distance_m"} | set(SENSOR_KEYS)
 
@@ -132,7 +132,8 @@ def scene_from_dict(d: dict, source: str = "<dict>", base_dir: str | Path | None
                  objects=objects, materials=materials, sensor=sensor,
                  effects=EffectSet.parse(effects, source=source),
                  render=RenderSettings.from_dict(d.get("render"), source=source),
-                 params=params, name=p.string(d.get("name", ""), "name"),
+                 params=params, rgb_camera=p.second_camera(d.get("rgb_camera")),
+                 name=p.string(d.get("name", ""), "name"),
                  description=p.string(d.get("description", ""), "description"), source=source)
 
 
@@ -267,6 +268,25 @@ class _Parser(Schema):
             c = {"preset": "holmlund_thesis"}
         camera = CameraModel.from_dict(c, source=self.source, prefix="camera.")
         return camera, pose, f_number, focus
+
+    def second_camera(self, c: Any) -> SecondCamera | None:
+        if c is None:
+            return None
+        c = dict(self.mapping(c, "rgb_camera", allowed={"preset", "width", "height", "fx", "fy", "cx", "cy", "dist",
+                                                          "name", "pixel_pitch_m", "hfov_deg", "vfov_deg", "pose",
+                                                          "samples"}))
+        pose = self.pose(c.pop("pose", None), "rgb_camera.pose")
+        samples = self.integer(c.pop("samples", 4), "rgb_camera.samples", lo=1, hi=64)
+        for key in ("width", "height"):
+            if key in c:
+                self.integer(c[key], f"rgb_camera.{key}", lo=1, hi=MAX_CAMERA_SIDE_PX)
+        for key in ("fx", "fy", "cx", "cy"):
+            if key in c:
+                self.number(c[key], f"rgb_camera.{key}", lo=-1e9, hi=1e9)
+        if "dist" in c:
+            self.numbers(c["dist"], "rgb_camera.dist", n=5, lo=-1e6, hi=1e6, expected="5 numbers (k1, k2, p1, p2, k3)")
+        camera = CameraModel.from_dict(c, source=self.source, prefix="rgb_camera.")
+        return SecondCamera(camera=camera, pose=pose, samples=samples)
 
     def emitter(self, e: Any) -> Emitter:
         e = self.mapping(e, "emitter", allowed=("offset_m", "power_w", "profile", "waveform", "axis"))

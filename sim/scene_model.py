@@ -234,6 +234,27 @@ class EffectSet(dict):
 
 
 @dataclass
+class SecondCamera:
+    """The ``rgb_camera:`` block: a passive (colour or grey) camera rigidly beside the ToF
+    camera. ``pose`` is its camera-to-ToF-camera transform (its position and orientation in
+    the ToF camera's frame); ``samples`` x ``samples`` sub-pixel rays per pixel."""
+
+    camera: CameraModel
+    pose: np.ndarray
+    samples: int = 4
+
+    @property
+    def tof_to_camera(self) -> np.ndarray:
+        """4x4 ToF frame -> this camera's frame."""
+        return np.linalg.inv(self.pose)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = self.camera.to_dict()
+        d.update({"pose": {"matrix": self.pose.tolist()}, "samples": self.samples})
+        return d
+
+
+@dataclass
 class Scene:
     """A validated scene. ``sensor``, ``effects`` and ``render`` are typed (see the module doc)."""
 
@@ -249,6 +270,7 @@ class Scene:
     effects: EffectSet = field(default_factory=EffectSet)
     render: RenderSettings = field(default_factory=RenderSettings)
     params: dict[str, Any] = field(default_factory=dict)
+    rgb_camera: SecondCamera | None = None
     name: str = ""
     description: str = ""
     source: str = "<dict>"
@@ -313,4 +335,6 @@ class Scene:
             "effects": self.effects.to_block(),
             "render": self.render.to_dict(),
         })
+        if self.rgb_camera is not None:
+            d["rgb_camera"] = self.rgb_camera.to_dict()
         return to_plain(d)

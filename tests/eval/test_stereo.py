@@ -75,3 +75,30 @@ def test_calibrate_stereo_cli_on_sessions_with_an_rgb_group(tofhil_cli, tmp_path
     assert np.abs(T[:3, 3] - truth[:3, 3]).max() < 0.002
     r = tofhil_cli("calibrate-stereo", tmp_path / "v0.h5", "--target", "checkerboard:9x6:0.03", "--out", out)
     assert r.returncode == 2 and "already exists" in r.stderr
+
+
+def test_scene_rgb_camera_block_is_rendered_into_the_session(tmp_path):
+    from tofhil.errors import InputFileError
+    from tofhil.session_rgb import read_rgb
+    from tofhil.sim.pipeline import simulate_session
+    from tofhil.sim.scene import scene_from_yaml, scene_to_yaml
+
+    block = {"rgb_camera": {"width": 64, "height": 48, "hfov_deg": 60.0, "samples": 2,
+                            "pose": {"position": [0.04, 0.0, 0.0]}},
+             "render": {"samples_per_pixel": 1}}
+    scene = load_scene("board", block)
+    assert np.allclose(scene.rgb_camera.tof_to_camera[:3, 3], [-0.04, 0, 0])
+    again = scene_from_yaml(scene_to_yaml(scene))
+    assert again.rgb_camera.camera == scene.rgb_camera.camera and np.allclose(again.rgb_camera.pose, scene.rgb_camera.pose)
+    p = simulate_session(scene, tmp_path / "s.h5")
+    rgb = read_rgb(p)
+    assert rgb.images.shape == (1, 48, 64) and np.allclose(rgb.tof_to_camera, scene.rgb_camera.tof_to_camera)
+    # the board (ink and paper) is in the second camera's view: two levels of brightness
+    assert rgb.images.max() > 5 * np.percentile(rgb.images[rgb.images > 0], 5)
+    bad = {"rgb_camera": {"width": 64, "height": 48, "hfov_deg": 60.0, "samples": 0}}
+    try:
+        load_scene("board", bad)
+    except InputFileError as exc:
+        assert exc.field == "rgb_camera.samples"
+    else:
+        raise AssertionError("samples 0 accepted")
