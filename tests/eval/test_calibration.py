@@ -42,6 +42,7 @@ def sessions(tmp_path_factory):
     return paths, away
 
 
+@pytest.mark.slow
 def test_calibrate_camera_cli_recovers_the_twin_camera(sessions, tofhil_cli, tmp_path):
     paths, away = sessions
     out = tmp_path / "cam.yaml"
@@ -82,6 +83,7 @@ def test_refuses_to_overwrite_and_too_few_views(sessions, tofhil_cli, tmp_path):
     assert r.returncode == 2 and "--target.grid" in r.stderr and r.stderr.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_an_outlier_view_is_rejected_with_its_error():
     """A view that no single camera explains with the others (here: seen through a lens of
     strong pincushion distortion) is rejected as an outlier; the rest are kept."""

@@ -4,6 +4,7 @@ amplitude through the sensor model, the second camera's grey image from sim/rgb.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tofhil.camera import CameraModel
 from tofhil.depth import depth_from_raw
@@ -15,6 +16,7 @@ from tofhil.sim.scene import _rotation_xyz, load_scene
 POSES = [(20, 0, 0, 0.55), (-20, 5, 5, 0.55), (0, 20, -5, 0.5), (5, -20, 10, 0.5), (15, 15, 0, 0.6)]
 
 
+@pytest.mark.slow
 def test_stereo_extrinsics_within_2mm_and_0p2deg():
     # the colour camera 50 mm right of and 8 mm below the ToF camera, turned 2 deg about y, 1 about x
     truth = np.eye(4)
