@@ -36,8 +36,8 @@ def object_mesh(obj: SceneObject) -> tuple[np.ndarray, np.ndarray, np.ndarray | 
 
     Planes and boxes are built here (no trimesh import on the common bench scenes).
     """
-    if obj.type == "plane":
-        w, h = obj.params["size"]
+    if obj.type in ("plane", "board"):
+        w, h = obj.params["size"] if obj.type == "plane" else obj.board.size_m
         verts = np.array([[-w / 2, -h / 2, 0], [w / 2, -h / 2, 0], [w / 2, h / 2, 0], [-w / 2, h / 2, 0]])
         return verts, np.array([[0, 1, 2], [0, 2, 3]]), None
     if obj.type == "box":

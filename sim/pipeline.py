@@ -116,6 +116,14 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
                        sensor_config=twin.config.to_dict(), derived=True) as w:
         for raw in it:
             w.append(raw, depth_from_raw(raw))  # the saturation level travels in raw.meta
+    second = getattr(scene, "rgb_camera", None)
+    if second is not None:
+        # the scene does not move between frames: one image of the second camera, with frame 0
+        from tofhil.session_rgb import write_rgb
+        from tofhil.sim.rgb import render_grey
+
+        grey = render_grey(scene, second.camera, second.tof_to_camera, samples=second.samples)
+        write_rgb(out_path, [grey], second.camera, frame_index=[0], tof_to_camera=second.tof_to_camera)
     return out_path
 
 

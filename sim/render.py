@@ -37,7 +37,7 @@ from tofhil.progress import Progress, no_progress
 from tofhil.sim import embree4, kernels
 from tofhil.sim.geometry import BATCH, RAY_EPSILON_M, Geometry, WorkerPool
 from tofhil.sim.radiometry import DEFAULT_PIXEL_PITCH_M, aperture_area_m2, pixel_area_normalized
-from tofhil.sim.scene import Scene
+from tofhil.sim.scene import Scene, Texture
 
 
 
@@ -77,6 +77,14 @@ def _materials_table(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return rho_d, rho_s, n_s
 
 
+def _object_texture(scene: Scene, obj: Any) -> Texture | None:
+    """The texture on an object: a board's printed pattern (its reflectances times the
+    material's, 1 by default), else its material's texture."""
+    if obj.type == "board":
+        return Texture("image", image=obj.board.reflectance_image())
+    return scene.materials[obj.material].texture
+
+
 def content_key(*parts: Any) -> str:
     """A digest of what ``parts`` hold (numbers, strings, arrays, mappings, sequences,
     dataclasses and meshes, recursively), not of which Python objects they are: equal content
@@ -89,7 +97,7 @@ def content_key(*parts: Any) -> str:
 
 #: Scene fields that do not change a render (effects and expression parameters are applied
 #: in the scene already).
-_NOT_RENDERED = frozenset({"effects", "params", "source", "text", "name", "description"})
+_NOT_RENDERED = frozenset({"effects", "params", "source", "text", "name", "description", "rgb_camera"})
 
 
 def _feed(h: Any, x: Any) -> None:
@@ -201,8 +209,8 @@ class _Context:
                                             np.asarray(harmonics, dtype=np.float64)[None, :]).ravel()
         self.rho_d, self.rho_s, self.n_s = (np.asarray(a, dtype=np.float64) for a in _materials_table(scene))
         self.glossy = bool(np.any(self.rho_s > 0))
-        self.textured = [(i, scene.materials[o.material].texture) for i, o in enumerate(scene.objects)
-                         if scene.materials[o.material].texture is not None]
+        self.textured = [(i, _object_texture(scene, o)) for i, o in enumerate(scene.objects)
+                         if _object_texture(scene, o) is not None]
         self.inv_pose = [np.linalg.inv(o.pose) for o in scene.objects]
         R, t = pose[:3, :3], pose[:3, 3]
         self.R, self.t = R, t

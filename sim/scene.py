@@ -26,12 +26,12 @@ from tofhil.errors import InputFileError
 from tofhil.schema import Schema, to_plain
 from tofhil.sim.scene_expressions import substitute
 from tofhil.sim.scene_model import (DEFAULT_F_NUMBER, MESH_SUFFIXES, OBJECT_TYPES, BeamProfile, EffectSet,
-                                    Emitter, Material, RenderSettings, Scene, SceneObject, Texture)
+                                    Emitter, Material, RenderSettings, Scene, SceneObject, SecondCamera, Texture)
 from tofhil.sim.sensor import SENSOR_KEYS, SensorConfig
 from tofhil.yamlio import load_yaml
 
 __all__ = ["DEFAULT_F_NUMBER", "MESH_SUFFIXES", "OBJECT_TYPES", "BeamProfile", "EffectSet", "Emitter", "Material",
-           "RenderSettings", "Scene", "SceneObject", "Texture", "bundled_scenes", "load_scene", "look_at_rotation",
+           "RenderSettings", "Scene", "SceneObject", "SecondCamera", "Texture", "bundled_scenes", "load_scene", "look_at_rotation",
            "scene_from_dict", "scene_from_yaml", "scene_to_yaml", "scenes_dir"]
 
 #: Largest camera side accepted in a scene (pixels); memory is checked before a render.
@@ -40,7 +40,7 @@ MAX_CAMERA_SIDE_PX = 100_000
 MAX_SCENE_BYTES = 16 << 20
 
 _TOP_KEYS = ("name", "description", "params", "camera", "emitter", "ambient_irradiance_w_m2",
-             "materials", "objects", "sensor", "effects", "render")
+             "materials", "objects", "sensor", "effects", "render", "rgb_camera")
 _CAMERA_KEYS = {"preset", "width", "height", "fx", "fy", "cx", "cy", "dist", "name", "pixel_pitch_m",
                 "hfov_deg", "vfov_deg", "pose", "f_number", "focus_distance_m"} | set(SENSOR_KEYS)
 
@@ -132,7 +132,8 @@ def scene_from_dict(d: dict, source: str = "<dict>", base_dir: str | Path | None
                  objects=objects, materials=materials, sensor=sensor,
                  effects=EffectSet.parse(effects, source=source),
                  render=RenderSettings.from_dict(d.get("render"), source=source),
-                 params=params, name=p.string(d.get("name", ""), "name"),
+                 params=params, rgb_camera=p.second_camera(d.get("rgb_camera")),
+                 name=p.string(d.get("name", ""), "name"),
                  description=p.string(d.get("description", ""), "description"), source=source)
 
 
@@ -268,6 +269,25 @@ class _Parser(Schema):
         camera = CameraModel.from_dict(c, source=self.source, prefix="camera.")
         return camera, pose, f_number, focus
 
+    def second_camera(self, c: Any) -> SecondCamera | None:
+        if c is None:
+            return None
+        c = dict(self.mapping(c, "rgb_camera", allowed={"preset", "width", "height", "fx", "fy", "cx", "cy", "dist",
+                                                          "name", "pixel_pitch_m", "hfov_deg", "vfov_deg", "pose",
+                                                          "samples"}))
+        pose = self.pose(c.pop("pose", None), "rgb_camera.pose")
+        samples = self.integer(c.pop("samples", 4), "rgb_camera.samples", lo=1, hi=64)
+        for key in ("width", "height"):
+            if key in c:
+                self.integer(c[key], f"rgb_camera.{key}", lo=1, hi=MAX_CAMERA_SIDE_PX)
+        for key in ("fx", "fy", "cx", "cy"):
+            if key in c:
+                self.number(c[key], f"rgb_camera.{key}", lo=-1e9, hi=1e9)
+        if "dist" in c:
+            self.numbers(c["dist"], "rgb_camera.dist", n=5, lo=-1e6, hi=1e6, expected="5 numbers (k1, k2, p1, p2, k3)")
+        camera = CameraModel.from_dict(c, source=self.source, prefix="rgb_camera.")
+        return SecondCamera(camera=camera, pose=pose, samples=samples)
+
     def emitter(self, e: Any) -> Emitter:
         e = self.mapping(e, "emitter", allowed=("offset_m", "power_w", "profile", "waveform", "axis"))
         power = self.number(self.require(e, "power_w", "emitter", "optical power in W (a number > 0)"),
@@ -398,6 +418,9 @@ class _Parser(Schema):
             if name in names:
                 raise self.error(f"duplicate name {name!r}", f + ".name", "unique object names")
             names.add(name)
+            if kind == "board" and "material" not in o:
+                # a board's pattern sets its reflectance: the default paper is matte
+                o = dict(o, material={"reflectance": 1.0})
             mat = self.require(o, "material", f, "a material name from materials")
             if isinstance(mat, dict):  # inline material
                 mname = f"{name}__material"
@@ -419,12 +442,24 @@ class _Parser(Schema):
 
     def _shape(self, kind: str, o: dict, f: str) -> tuple[dict[str, Any], Any]:
         shape_keys = {"plane": {"size"}, "box": {"size"}, "sphere": {"radius", "subdivisions"},
-                      "cylinder": {"radius", "height", "sections"}, "mesh": {"file", "scale"}}[kind]
+                      "cylinder": {"radius", "height", "sections"}, "mesh": {"file", "scale"},
+                      "board": {"target"}}[kind]
         self.keys(o, f, shape_keys | {"name", "type", "material", "pose"})
         if kind == "plane":
             return {"size": self._size(o, f, 2, "[width, height] in m")}, None
         if kind == "box":
             return {"size": self._size(o, f, 3, "[sx, sy, sz] in m")}, None
+        if kind == "board":
+            from tofhil.boards import BoardSpec
+
+            target = self.require(o, "target", f, "a board: a mapping or KIND:COLSxROWS:SIZE_M[...]")
+            if isinstance(target, str) and not target.lower().endswith((".yaml", ".yml")):
+                spec = BoardSpec.parse(target, source=self.source, field=f + ".target")
+            elif isinstance(target, str):
+                spec = BoardSpec.parse(str(self._path(target, f + ".target")), field=f + ".target")
+            else:
+                spec = BoardSpec.from_dict(target, source=self.source, field=f + ".target")
+            return {"target": spec.to_dict()}, None
         if kind == "sphere":
             r = self.number(self.require(o, "radius", f, "a radius in m"), f + ".radius", lo=0, lo_open=True,
                             hi=_MAX_COORD_M)

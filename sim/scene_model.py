@@ -27,7 +27,7 @@ from tofhil.sim.sensor import SensorConfig
 #: defocus). Typical ToF lenses are fast (F/1.0 .. F/1.6).
 DEFAULT_F_NUMBER = 1.2
 
-OBJECT_TYPES = ("plane", "box", "sphere", "cylinder", "mesh")
+OBJECT_TYPES = ("plane", "box", "sphere", "cylinder", "mesh", "board")
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
 SAMPLERS = ("sobol", "random")
 
@@ -151,8 +151,9 @@ class SceneObject:
 
     ``params`` holds the type's sizes (plane ``size [w, h]`` in local x-y with normal local z;
     box ``size [sx, sy, sz]``; sphere ``radius``, ``subdivisions``; cylinder ``radius``,
-    ``height`` along local z, ``sections``; mesh ``file``, ``scale``). ``pose`` is 4x4
-    object-to-world.
+    ``height`` along local z, ``sections``; mesh ``file``, ``scale``; board ``target``, the
+    :class:`tofhil.boards.BoardSpec` as a mapping: a plane of the board's printed size whose
+    pattern sets the diffuse reflectance). ``pose`` is 4x4 object-to-world.
     """
 
     name: str
@@ -161,6 +162,15 @@ class SceneObject:
     pose: np.ndarray
     params: dict[str, Any] = field(default_factory=dict)
     mesh: Any = field(default=None, repr=False, compare=False)  # trimesh.Trimesh for type 'mesh'
+
+    @property
+    def board(self) -> Any:
+        """The :class:`tofhil.boards.BoardSpec` of a ``board`` object (None otherwise)."""
+        if self.type != "board":
+            return None
+        from tofhil.boards import BoardSpec
+
+        return BoardSpec.from_dict(self.params["target"], source=self.name)
 
     def to_dict(self) -> dict[str, Any]:
         d = {"name": self.name, "type": self.type, "material": self.material}
@@ -224,6 +234,27 @@ class EffectSet(dict):
 
 
 @dataclass
+class SecondCamera:
+    """The ``rgb_camera:`` block: a passive (colour or grey) camera rigidly beside the ToF
+    camera. ``pose`` is its camera-to-ToF-camera transform (its position and orientation in
+    the ToF camera's frame); ``samples`` x ``samples`` sub-pixel rays per pixel."""
+
+    camera: CameraModel
+    pose: np.ndarray
+    samples: int = 4
+
+    @property
+    def tof_to_camera(self) -> np.ndarray:
+        """4x4 ToF frame -> this camera's frame."""
+        return np.linalg.inv(self.pose)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = self.camera.to_dict()
+        d.update({"pose": {"matrix": self.pose.tolist()}, "samples": self.samples})
+        return d
+
+
+@dataclass
 class Scene:
     """A validated scene. ``sensor``, ``effects`` and ``render`` are typed (see the module doc)."""
 
@@ -239,6 +270,7 @@ class Scene:
     effects: EffectSet = field(default_factory=EffectSet)
     render: RenderSettings = field(default_factory=RenderSettings)
     params: dict[str, Any] = field(default_factory=dict)
+    rgb_camera: SecondCamera | None = None
     name: str = ""
     description: str = ""
     source: str = "<dict>"
@@ -303,4 +335,6 @@ class Scene:
             "effects": self.effects.to_block(),
             "render": self.render.to_dict(),
         })
+        if self.rgb_camera is not None:
+            d["rgb_camera"] = self.rgb_camera.to_dict()
         return to_plain(d)

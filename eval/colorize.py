@@ -1,0 +1,105 @@
+"""Colour a ToF point cloud from an RGB camera beside it, with occlusion.
+
+Every ToF point is moved into the colour camera's frame (the ToF -> colour extrinsics) and
+projected with the colour camera's lens model. Several ToF points can land on one colour
+pixel when something in front hides something behind from the colour camera (it sees the
+scene from a few centimetres away): a z-buffer over the colour image keeps, per colour pixel,
+the nearest point's depth (splatted over ``splat_px`` pixels, since ToF points are sparser
+than colour pixels), and a point takes a colour only if it is within ``tolerance`` of that
+depth; the others are occluded (no colour). Colours are sampled bilinearly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: Depth tolerance of the z-buffer: absolute (m) plus relative to the depth.
+Z_TOLERANCE_M = 0.01
+Z_TOLERANCE_REL = 0.01
+
+
+def project(camera: Any, points: np.ndarray) -> np.ndarray:
+    """Camera-frame points ``[N, 3]`` -> pixels ``[N, 2]`` with the camera's lens model: a
+    :class:`tofhil.camera.CameraModel` (``project``) or a model with ``distort`` and fx, fy,
+    cx, cy (the Azure Kinect's rational Brown-Conrady)."""
+    if hasattr(camera, "project"):
+        return camera.project(points)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x, y = points[:, 0] / points[:, 2], points[:, 1] / points[:, 2]
+    xd, yd = camera.distort(x, y)
+    return np.stack([camera.fx * xd + camera.cx, camera.fy * yd + camera.cy], axis=1)
+
+
+@dataclass
+class Colorized:
+    """Colours of the ToF points and which of them the colour camera sees."""
+
+    colors: np.ndarray     # [N, 3] uint8 (0 where not visible)
+    visible: np.ndarray    # [N] bool: in the colour image, in front, not occluded
+    occluded: np.ndarray   # [N] bool: in the colour image but hidden behind a nearer point
+    uv: np.ndarray         # [N, 2] colour-image pixel of each point (NaN behind the camera)
+
+
+def colorize_points(points: np.ndarray, tof_to_color: np.ndarray, color_camera: Any, color_rgb: np.ndarray, *,
+                    splat_px: int = 1) -> Colorized:
+    """Colour ToF-frame points ``[N, 3]`` from an RGB image ``[H, W, 3]`` (uint8) of the colour
+    camera, ``tof_to_color`` the 4x4 ToF -> colour transform (see the module doc)."""
+    pts = np.asarray(points, dtype=np.float64)
+    pc = pts @ tof_to_color[:3, :3].T + tof_to_color[:3, 3]
+    z = pc[:, 2]
+    h, w = color_rgb.shape[:2]
+    front = z > 1e-6
+    uv = np.full((len(pts), 2), np.nan)
+    uv[front] = project(color_camera, pc[front])
+    inside = front & np.all(np.isfinite(uv), axis=1) & (uv[:, 0] > -0.5) & (uv[:, 0] < w - 0.5) \
+        & (uv[:, 1] > -0.5) & (uv[:, 1] < h - 0.5)
+    iu = np.clip(np.round(uv[inside, 0]).astype(np.int64), 0, w - 1)
+    iv = np.clip(np.round(uv[inside, 1]).astype(np.int64), 0, h - 1)
+    zi = z[inside]
+    zbuf = np.full((h, w), np.inf)
+    for dv in range(-splat_px, splat_px + 1):
+        for du in range(-splat_px, splat_px + 1):
+            np.minimum.at(zbuf, (np.clip(iv + dv, 0, h - 1), np.clip(iu + du, 0, w - 1)), zi)
+    near = zi <= zbuf[iv, iu] + Z_TOLERANCE_M + Z_TOLERANCE_REL * zi
+    visible = np.zeros(len(pts), dtype=bool)
+    visible[np.flatnonzero(inside)[near]] = True
+    occluded = inside & ~visible
+    colors = np.zeros((len(pts), 3), dtype=np.uint8)
+    if visible.any():
+        colors[visible] = _bilinear(color_rgb, uv[visible])
+    return Colorized(colors=colors, visible=visible, occluded=occluded, uv=uv)
+
+
+def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``img [H, W, C]`` at pixel positions ``uv [N, 2]`` (edges clamped)."""
+    h, w = img.shape[:2]
+    u = np.clip(uv[:, 0], 0, w - 1)
+    v = np.clip(uv[:, 1], 0, h - 1)
+    u0 = np.minimum(np.floor(u).astype(np.int64), w - 2)
+    v0 = np.minimum(np.floor(v).astype(np.int64), h - 2)
+    fu, fv = (u - u0)[:, None], (v - v0)[:, None]
+    im = img.astype(np.float64)
+    out = (im[v0, u0] * (1 - fu) * (1 - fv) + im[v0, u0 + 1] * fu * (1 - fv)
+           + im[v0 + 1, u0] * (1 - fu) * fv + im[v0 + 1, u0 + 1] * fu * fv)
+    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
+def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray) -> Path:
+    """A binary little-endian PLY of points (float32 x, y, z) with uint8 red, green, blue."""
+    path = Path(path)
+    pts = np.asarray(points, dtype=np.float64)
+    rec = np.empty(len(pts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
+                                    ("blue", "u1")])
+    rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    rec["red"], rec["green"], rec["blue"] = colors[:, 0], colors[:, 1], colors[:, 2]
+    header = ("ply\nformat binary_little_endian 1.0\ncomment written by tofhil colorize\n"
+              f"element vertex {len(pts)}\nproperty float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    with open(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(rec.tobytes())
+    return path

@@ -1,0 +1,139 @@
+"""``tofhil calibrate-camera``: intrinsics and distortion from amplitude images of a board."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from tofhil.cli import app, lit, out, progress
+from tofhil.cli import options as opt
+from tofhil.errors import TofhilError
+
+_TARGET_HELP = ("The board: KIND:COLSxROWS:SIZE_M[:SECOND_M[:DICTIONARY]] (squares, not inner corners), e.g. "
+                "checkerboard:9x6:0.03 | charuco:7x5:0.04:0.03[:DICT_4X4_50] | aruco:4x3:0.04:0.01 (marker, gap); "
+                "or a YAML file with the board mapping (docs/scene-format.md, type: board).")
+
+
+@app.command("calibrate-camera")
+def calibrate_camera_cmd(
+        sessions: List[Path] = typer.Argument(..., parser=opt.existing_file,
+                                              help="Sessions, one board pose each (their frames are averaged)."),
+        target: str = typer.Option(..., "--target", help=_TARGET_HELP),
+        out_path: Path = typer.Option(..., "--out", parser=opt.new_file, help="Camera preset to write (.yaml)."),
+        model: str = typer.Option("k1k2p", "--model",
+                                  help="Distortion coefficients fitted: none | k1 | k1k2 | k1k2p (k1, k2, p1, p2) | "
+                                       "full (k1, k2, p1, p2, k3)."),
+        max_view_error: float = typer.Option(1.0, "--max-view-error", parser=opt.finite(0.0, lo_open=True, unit="px"),
+                                             help="A view is rejected when its RMS reprojection error exceeds this "
+                                                  "and 3x the median view's."),
+        name: Optional[str] = typer.Option(None, "--name", help="Camera name in the preset (default the sessions')."),
+        report: Optional[Path] = typer.Option(None, "--report", parser=opt.new_file,
+                                              help="Also write the per-view results as JSON."),
+        force: bool = typer.Option(False, "--force", help="Overwrite OUT (and --report) if they exist.")) -> None:
+    """Calibrate the camera from amplitude images of a board (OpenCV): fx, fy, cx, cy and distortion."""
+    from tofhil.boards import BoardSpec
+    from tofhil.eval.calibration import DISTORTION_MODELS, calibrate_sessions, preset_text
+
+    if model not in DISTORTION_MODELS:
+        raise TofhilError(f"got {model!r}", field="--model", expected="one of " + ", ".join(DISTORTION_MODELS))
+    if out_path.suffix.lower() not in (".yaml", ".yml"):
+        raise TofhilError("is not a .yaml file", file=out_path, field="--out", expected="a camera preset path ending in .yaml")
+    for p in (out_path, report):
+        if p is not None and p.exists() and not force:
+            raise TofhilError("already exists; refusing to overwrite (use --force)", file=p)
+    spec = BoardSpec.parse(target, field="--target")
+    cal = calibrate_sessions(sessions, spec, model=model, max_view_error_px=max_view_error, progress=progress)
+    text = preset_text(cal, spec, name=name)
+    out_path.write_text(text, encoding="utf-8")
+    if report is not None:
+        report.write_text(json.dumps(cal.to_dict() | {"target": spec.to_dict()}, indent=2), encoding="utf-8")
+    for v in cal.views:
+        state = f"RMS {v.rms_px:.4f} px" if v.used else f"rejected: {v.reason}"
+        out.print(f"{lit(v.name)}: {v.corners} corners, {lit(state)}", highlight=False, soft_wrap=True)
+    c = cal.camera
+    out.print(f"fx {c.fx:.3f}  fy {c.fy:.3f}  cx {c.cx:.3f}  cy {c.cy:.3f}  dist "
+              + " ".join(f"{d:.5g}" for d in c.dist) + f"  (RMS {cal.rms_px:.4f} px over {len(cal.used)} views)",
+              highlight=False, soft_wrap=True)
+    out.print(f"wrote camera preset to {lit(out_path)}", highlight=False, soft_wrap=True)
+
+
+@app.command("colorize")
+def colorize_cmd(recording: Path = typer.Argument(..., parser=opt.existing_file,
+                                                 help="Azure Kinect recording (.mkv) with DEPTH and COLOR tracks."),
+                 out_path: Path = typer.Option(..., "--out", parser=opt.new_file, help="Coloured point cloud (.ply)."),
+                 frame: int = typer.Option(0, "--frame", parser=opt.count(0, what="a frame index"),
+                                           help="Frame index (depth and colour)."),
+                 keep_occluded: bool = typer.Option(False, "--keep-occluded",
+                                                    help="Write points the colour camera does not see too (black)."),
+                 force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
+    """Colour the depth points of an Azure Kinect recording from its colour camera (factory
+    calibration; points the colour camera cannot see are occluded and left out)."""
+    import numpy as np
+
+    from tofhil.drivers.importers.k4a import read_k4a_recording
+    from tofhil.drivers.importers.k4a_color import read_color_frame
+    from tofhil.eval.colorize import colorize_points, write_ply
+
+    if out_path.suffix.lower() != ".ply":
+        raise TofhilError("is not a .ply file", file=out_path, field="--out", expected="a path ending in .ply")
+    if out_path.exists() and not force:
+        raise TofhilError("already exists; refusing to overwrite (use --force)", file=out_path)
+    rgb, color_cam, depth_to_color = read_color_frame(recording, frame)
+    with read_k4a_recording(recording) as rec:
+        if frame >= len(rec):
+            raise TofhilError(f"has {len(rec)} depth frames", file=recording, field="--frame",
+                              expected=f"an index below {len(rec)}")
+        _, z_mm, _ = rec.frame(frame)
+        intr = rec.intrinsics
+        v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
+        x, y, ok = intr.undistort(u, v)   # the exact factory rays (z-depth: point = (x z, y z, z))
+    z = z_mm * 1e-3
+    valid = (z_mm > 0) & ok
+    pts = np.stack([x * z, y * z, z], axis=-1)[valid]
+    res = colorize_points(pts, depth_to_color, color_cam, rgb)
+    keep = np.ones(len(pts), bool) if keep_occluded else res.visible
+    write_ply(out_path, pts[keep], res.colors[keep])
+    out.print(f"{int(res.visible.sum())} of {len(pts)} depth points coloured, {int(res.occluded.sum())} occluded, "
+              f"{int(len(pts) - res.visible.sum() - res.occluded.sum())} outside the colour image; "
+              f"wrote {int(keep.sum())} points to {lit(out_path)}", highlight=False, soft_wrap=True)
+
+
+@app.command("calibrate-stereo")
+def calibrate_stereo_cmd(
+        sessions: List[Path] = typer.Argument(..., parser=opt.existing_file,
+                                              help="Sessions with an rgb/ group, one board pose each."),
+        target: str = typer.Option(..., "--target", help=_TARGET_HELP),
+        out_path: Path = typer.Option(..., "--out", parser=opt.new_file,
+                                      help="Extrinsics to write (.yaml: tof_to_camera 4x4, errors, views)."),
+        tof_camera: Optional[Path] = typer.Option(None, "--tof-camera", parser=opt.existing_file,
+                                                  help="ToF camera preset (e.g. from calibrate-camera); default the sessions'."),
+        rgb_camera: Optional[Path] = typer.Option(None, "--rgb-camera", parser=opt.existing_file,
+                                                  help="Second camera preset; default the sessions' rgb.camera."),
+        force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
+    """ToF <-> second camera extrinsics from simultaneous board views (OpenCV stereoCalibrate, intrinsics fixed)."""
+    import yaml
+
+    from tofhil.boards import BoardSpec
+    from tofhil.camera import load_camera_preset
+    from tofhil.eval.calibration import calibrate_stereo_sessions
+
+    if out_path.suffix.lower() not in (".yaml", ".yml"):
+        raise TofhilError("is not a .yaml file", file=out_path, field="--out", expected="a path ending in .yaml")
+    if out_path.exists() and not force:
+        raise TofhilError("already exists; refusing to overwrite (use --force)", file=out_path)
+    spec = BoardSpec.parse(target, field="--target")
+    cal = calibrate_stereo_sessions(sessions, spec,
+                                    tof_camera=load_camera_preset(tof_camera) if tof_camera else None,
+                                    other_camera=load_camera_preset(rgb_camera) if rgb_camera else None)
+    out_path.write_text("# ToF frame -> second camera frame (m), by tofhil calibrate-stereo\n"
+                        + yaml.safe_dump(cal.to_dict() | {"target": spec.to_dict()}, sort_keys=False,
+                                         default_flow_style=None), encoding="utf-8")
+    for v in cal.views:
+        state = f"RMS {v.rms_px:.4f} px" if v.used else f"skipped: {v.reason}"
+        out.print(f"{lit(v.name)}: {v.corners} corners, {lit(state)}", highlight=False, soft_wrap=True)
+    t = cal.tof_to_camera[:3, 3] * 1e3
+    out.print(f"translation [{t[0]:.2f}, {t[1]:.2f}, {t[2]:.2f}] mm, RMS {cal.rms_px:.4f} px; "
+              f"wrote {lit(out_path)}", highlight=False, soft_wrap=True)
