@@ -23,7 +23,9 @@ import numpy as np
 from tofhil.demod import bad_tap_pixels
 from tofhil.errors import TofhilError
 from tofhil.eval import metrics as M
-from tofhil.eval.heldout import HeldOutData, depth_from_signal, split_session
+from tofhil.eval.depth_heldout import observable_candidates, split_for_diagnosis
+from tofhil.eval.heldout import HeldOutData, depth_from_signal
+from tofhil.eval.observability import Observability, assess
 from tofhil.eval.selection import Selection, greedy_select
 from tofhil.eval.twin_model import TwinModel, to_effect_values
 from tofhil.frames import DepthFrame
@@ -46,6 +48,7 @@ class DiagnosisResult:
     maps: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
     evaluations: dict[str, M.Evaluation] = field(repr=False, default_factory=dict)
     seconds: float = 0.0
+    observability: Observability = field(default_factory=Observability)
 
     def to_json(self) -> dict[str, Any]:
         return {"cause": self.cause, "causes": self.causes, "ranked": self.ranked, "gain": self.gain,
@@ -56,6 +59,8 @@ class DiagnosisResult:
                           "train_pixels": int(self.data.train_pixels.sum()),
                           "test_pixels": int(self.data.test_pixels.sum()),
                           "offset_channel": self.data.offset_channel},
+                "channels": self.data.channels, "noise": self.data.noise,
+                "observability": self.observability.to_json(),
                 "seconds": round(self.seconds, 2)}
 
 
@@ -153,8 +158,15 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     from tofhil.sim.scene import load_scene, scene_from_yaml, scene_to_yaml
 
     t0 = time.perf_counter()
+    from tofhil.sim.from_capture import capture_scene_facts
+
+    unobservable, valid_mask = capture_scene_facts(scene)
     with open_session(session_path) as s:
-        data = split_session(s, block_px=block_px, max_frames=max_frames)
+        data = split_for_diagnosis(s, scene, block_px=block_px, max_frames=max_frames, valid_mask=valid_mask)
+        depth_only = not s.has_raw
+    candidates, unobservable = observable_candidates(candidates, data, depth_only=depth_only, unobservable=unobservable)
+    if progress:
+        progress(f"channels: {data.channels}; noise: {data.noise}")
     if data.test_pixels.sum() < 20:
         raise TofhilError("too few usable pixels (signal above noise, not saturated) to diagnose",
                           file=session_path, field="raw/taps")
@@ -169,6 +181,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     selection = greedy_select(model, data, candidates=candidates, max_effects=max_effects,
                               min_relative_gain=min_relative_gain, progress=progress)
     params = {e: to_effect_values(e, v) for e, v in selection.params.items()}
+    observability = assess(selection, model, data, block_px=block_px, unobservable=unobservable)
 
     # The extended scene: written, read back and re-rendered, so the gain is that of the file.
     ext_path = Path(extended_scene_path) if extended_scene_path else None
@@ -212,12 +225,12 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     return DiagnosisResult(cause=selection.causes[0] if selection.causes else None, causes=list(selection.causes),
                            ranked=ranked, rounds=rounds, gain=gain, regions=regions,
                            extended_scene=str(ext_path) if ext_path else "", params=params,
-                           evidence=_evidence(selection, data),
+                           evidence=_evidence(selection, data) + observability.lines,
                            chi2_per_value={"before": selection.baseline_chi2_test / n,
                                            "after_fit": selection.final_chi2_test / n,
                                            "after_extended_scene": data.chi2(after_pred, "test") / n},
                            data=data, maps=maps, evaluations={"before": ev_before, "after": ev_after},
-                           seconds=time.perf_counter() - t0)
+                           seconds=time.perf_counter() - t0, observability=observability)
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,

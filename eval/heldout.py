@@ -48,6 +48,9 @@ class HeldOutData:
     source: str = "<session>"
     #: The clip levels applied to the measured taps; a prediction reaching them would have clipped too.
     tap_limits: TapLimits = field(default_factory=TapLimits)
+    #: What the channels are made of and where the noise comes from (stated in the report).
+    channels: str = "raw taps: the complex signal S per frequency"
+    noise: str = "frame-to-frame scatter of S (pooled over 5 x 5 pixels)"
 
     @property
     def n_freq(self) -> int:

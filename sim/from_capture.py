@@ -362,7 +362,7 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
         names = [p.name for p in planes] + (["rest"] if mesh_file else [])
         refl = {n: ASSUMED_REFLECTANCE for n in names}
         beam_n, power = 1.0, 1.0
-        base_dir = out_path.parent
+        base_dir = out_path.resolve().parent
         desc = f"twin of {Path(session_path).name} frame {frame} (tofhil scene-from-capture)"
 
         def build(power_w: float, n_beam: float, r: dict[str, float]) -> Any:
@@ -452,3 +452,21 @@ def _render_range(scene: Any) -> tuple[np.ndarray, np.ndarray]:
 
     r = Twin(scene).render()[1]
     return np.asarray(r.radial_m), np.asarray(r.object_id)
+
+
+def capture_scene_facts(scene: Any) -> tuple[dict[str, str], np.ndarray | None]:
+    """For a scene made by :func:`scene_from_capture` (its metadata beside its file): the
+    effects it cannot observe and its valid mask (full capture resolution); else nothing."""
+    src = getattr(scene, "source", None)
+    if not src or str(src).startswith("<"):
+        return {}, None
+    meta = read_capture_metadata(src)
+    if not meta:
+        return {}, None
+    mask = None
+    name = meta.get("valid_mask")
+    if name:
+        p = Path(src).with_name(str(name))
+        if p.is_file():
+            mask = np.load(p).astype(bool)
+    return dict(meta.get("unobservable") or {}), mask
