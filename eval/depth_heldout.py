@@ -52,7 +52,7 @@ from tofhil.session import Session
 #: Effects that act only on the tap offset: not observable without raw taps.
 OFFSET_ONLY_EFFECTS = ("ambient",)
 #: Pixels a diagnosis of a depth session renders at most (larger images are binned).
-MAX_DIAGNOSIS_PIXELS = 24_000
+MAX_DIAGNOSIS_PIXELS = 12_000
 
 
 def frequencies_for(session: Session, scene: Any | None) -> tuple[np.ndarray, str]:
@@ -109,30 +109,35 @@ def _saturated(amp: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return pinned if pinned.sum() >= 5 else np.zeros(amp.shape, bool)
 
 
-def spatial_noise_variance(s: np.ndarray, usable: np.ndarray) -> np.ndarray:
-    """Per-frequency noise variance of one component of ``s [F, H, W]`` from its local spatial
-    scatter: the robust spread (1.4826 MAD) of ``s - mean(4 neighbours)``, divided by 1.25
-    (that high-pass of white noise has variance ``1.25 sigma^2``), over pixels whose
-    neighbours are all usable. The tangential (phase) component carries the depth noise."""
+def spatial_noise_variance(s: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frequency noise variances of ``s [F, H, W]`` across (tangential: phase, i.e. depth)
+    and along (radial: amplitude) each pixel's phasor, from the local spatial scatter: the
+    robust spread (1.4826 MAD) of ``s - mean(4 neighbours)``, divided by 1.25 (that high-pass
+    of white noise has variance ``1.25 sigma^2``), over pixels whose neighbours are all usable.
+    Fine amplitude texture the twin's per-object reflectance cannot follow counts as radial
+    scatter: it is not a cause any effect of the library could explain."""
     ok = usable.copy()
     ok[1:] &= usable[:-1]
     ok[:-1] &= usable[1:]
     ok[:, 1:] &= usable[:, :-1]
     ok[:, :-1] &= usable[:, 1:]
     ok[0], ok[-1], ok[:, 0], ok[:, -1] = False, False, False, False
-    out = []
+    if ok.sum() < 20:
+        raise TofhilError(f"has {int(ok.sum())} pixels with usable neighbours", field="depth/valid",
+                          expected="at least 20 to estimate the noise")
+    tang, rad = [], []
     for sf in s:
         nb = 0.25 * (np.roll(sf, 1, 0) + np.roll(sf, -1, 0) + np.roll(sf, 1, 1) + np.roll(sf, -1, 1))
-        hp = (sf - nb)[ok]
-        # tangential component: perpendicular to the pixel's own phasor
         unit = sf[ok] / np.maximum(np.abs(sf[ok]), 1e-30)
-        t = (hp * np.conj(unit)).imag
-        if t.size < 20:
-            raise TofhilError(f"has {t.size} pixels with usable neighbours", field="depth/valid",
-                              expected="at least 20 to estimate the noise")
-        mad = float(np.median(np.abs(t - np.median(t))))
-        out.append(max((1.4826 * mad) ** 2 / 1.25, 1e-30))
-    return np.asarray(out)
+        hp = (sf - nb)[ok] * np.conj(unit)
+        for comp, out in ((hp.imag, tang), (hp.real, rad)):
+            mad = float(np.median(np.abs(comp - np.median(comp))))
+            out.append(max((1.4826 * mad) ** 2 / 1.25, 1e-30))
+    return np.asarray(tang), np.asarray(rad)
+
+
+def _unit(s: np.ndarray) -> np.ndarray:
+    return s / np.maximum(np.abs(s), 1e-30)
 
 
 def split_depth_session(session: Session, scene: Any | None = None, *, block_px: int = 8,
@@ -179,21 +184,35 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
     if n >= 2:
         train_idx, test_idx = np.arange(0, n, 2), np.arange(1, n, 2)
         mean_all = s_all.mean(axis=0)
-        var_frame = (np.abs(s_all - mean_all[None]) ** 2).sum(axis=0) / (n - 1)
-        var_frame = np.stack([uniform_filter(v, size=5, mode="nearest") for v in var_frame])
-        var_frame = np.maximum(var_frame, max(float(np.median(var_frame)) * 1e-3, 1e-30)) / 2.0
+        ref = _unit(mean_all)
+        dev = (s_all - mean_all[None]) * np.conj(ref)[None]
+
+        def pooled(x: np.ndarray) -> np.ndarray:
+            v = (x ** 2).sum(axis=0) / (n - 1)
+            v = np.stack([uniform_filter(c, size=5, mode="nearest") for c in v])
+            return np.maximum(v, max(float(np.median(v)) * 1e-3, 1e-30))
+
+        var_t, var_r = pooled(dev.imag), pooled(dev.real)
         s_train, s_test = s_all[train_idx].mean(axis=0), s_all[test_idx].mean(axis=0)
-        var_train, var_test = var_frame / len(train_idx), var_frame / len(test_idx)
-        noise = f"frame-to-frame scatter of the phasor over {n} frames (pooled over 5 x 5 pixels)"
+        var_train, var_test = var_t / len(train_idx), var_t / len(test_idx)
+        radial_scale = var_r / var_t
+        noise = (f"frame-to-frame scatter of the phasor over {n} frames, across (depth) and along "
+                 "(amplitude) it separately, pooled over 5 x 5 pixels")
         n_train, n_test = len(train_idx), len(test_idx)
     else:
         s_train = s_test = s_all[0]
-        var = spatial_noise_variance(s_all[0], usable)
-        var_train = var_test = np.broadcast_to(var[:, None, None], s_train.shape).copy()
-        sigma_mm = [1e3 * math.sqrt(v) / max(float(np.median(np.abs(s_all[0][k][usable]))), 1e-30)
-                    / (4 * math.pi * freq_hz[k] / C_M_PER_S) for k, v in enumerate(var)]
-        noise = ("local spatial scatter of one frame (1.4826 MAD of the phasor's high-pass, tangential "
-                 "component; depth noise at the median amplitude " + ", ".join(f"{x:.2f} mm" for x in sigma_mm) + ")")
+        ref = _unit(s_all[0])
+        var_t, var_r = spatial_noise_variance(s_all[0], usable)
+        var_train = var_test = np.broadcast_to(var_t[:, None, None], s_train.shape).copy()
+        radial_scale = np.broadcast_to((var_r / var_t)[:, None, None], s_train.shape).copy()
+        amp_med = [max(float(np.median(np.abs(s_all[0][k][usable]))), 1e-30) for k in range(freq_hz.size)]
+        sigma_mm = [1e3 * math.sqrt(v) / amp_med[k] / (4 * math.pi * freq_hz[k] / C_M_PER_S)
+                    for k, v in enumerate(var_t)]
+        sigma_a = [100 * math.sqrt(v) / amp_med[k] for k, v in enumerate(var_r)]
+        noise = ("local spatial scatter of one frame (1.4826 MAD of the phasor's high-pass, across and along "
+                 "the phasor): depth noise " + ", ".join(f"{x:.2f} mm" for x in sigma_mm)
+                 + " and amplitude scatter " + ", ".join(f"{x:.1f}%" for x in sigma_a)
+                 + " at the median amplitude")
         n_train = n_test = 1
     board = block_checkerboard(usable.shape, block_px)
     sensor = getattr(scene, "sensor", None)
@@ -208,7 +227,7 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
                                  + ", ".join(f"{f / 1e6:g} MHz" for f in freq_hz) + f" (frequencies from {freq_source})"
                                  + (f"; binned {b} x {b} pixels" if b > 1 else "")
                                  + ("; the device's confidence is stored but not used as noise" if conf_seen else "")),
-                       noise=noise)
+                       noise=noise, phase_ref=ref, radial_var_scale=radial_scale)
 
 
 def split_for_diagnosis(session: Session, scene: Any, *, block_px: int = 8, max_frames: int | None = None,

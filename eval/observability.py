@@ -56,7 +56,7 @@ class Observability:
 def _per_block_rho(data: HeldOutData, prediction: np.ndarray, block_px: int) -> tuple[np.ndarray, np.ndarray]:
     """Held-out misfit (Huber rho summed over channels and components) per pixel, and its block label."""
     m = data.test_pixels
-    r = (data.s_test[:, m] - prediction[:, m]) / np.sqrt(data.var_test[:, m])
+    r = data.whitened(prediction, "test")
     rho = (huber(r.real) + huber(r.imag)).sum(axis=0)
     v, u = np.nonzero(m)
     label = (v // block_px) * (data.usable.shape[1] // block_px + 1) + u // block_px
