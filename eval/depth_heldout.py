@@ -37,12 +37,14 @@ is not a finding; the device has already unwrapped, filtered and calibrated its 
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any, Sequence
 
 import numpy as np
 from scipy.ndimage import uniform_filter
 
 from tofhil.camera import CameraModel
+from tofhil.depth import saturated_amplitude
 from tofhil import C_M_PER_S
 from tofhil.demod import distance_to_phase, equally_spaced_phases
 from tofhil.errors import TofhilError
@@ -101,14 +103,6 @@ def binned_camera(camera: CameraModel, b: int) -> CameraModel:
                    pixel_pitch_m=None if camera.pixel_pitch_m is None else camera.pixel_pitch_m * b)
 
 
-def _saturated(amp: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    vals = amp[valid & np.isfinite(amp)]
-    if vals.size == 0:
-        return np.zeros(amp.shape, bool)
-    pinned = valid & (amp >= vals.max())
-    return pinned if pinned.sum() >= 5 else np.zeros(amp.shape, bool)
-
-
 def spatial_noise_variance(s: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-frequency noise variances of ``s [F, H, W]`` across (tangential: phase, i.e. depth)
     and along (radial: amplitude) each pixel's phasor, from the local spatial scatter: the
@@ -162,7 +156,7 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
                               expected="an amplitude (active brightness / IR) image: the depth-only diagnosis "
                                        "compares the phasor A exp(i 4 pi f d / c)")
         ok = np.asarray(df.valid, bool) & np.isfinite(d) & (d > 0) & np.isfinite(amp) & (amp > 0)
-        ok &= ~_saturated(amp, ok)
+        ok &= ~saturated_amplitude(amp, ok)
         if valid_mask is not None and valid_mask.shape == ok.shape:
             ok &= valid_mask
         s = depth_phasor(np.where(ok, d, 0.0), np.where(ok, amp, 0.0), freq_hz)
@@ -170,7 +164,8 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
             dd = np.where(ok, d, np.nan)
             hb, wb = cam.height // b * b, cam.width // b * b
             blocks = dd[:hb, :wb].reshape(hb // b, b, wb // b, b)
-            with np.errstate(invalid="ignore"):
+            with np.errstate(invalid="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN bins: no valid pixel
                 lo, hi = np.nanmin(blocks, axis=(1, 3)), np.nanmax(blocks, axis=(1, 3))
             okb = bin_mean(ok.astype(float), b) == 1.0
             okb &= np.isfinite(lo) & (hi - lo <= 0.05 * np.where(np.isfinite(lo), lo, 1.0))

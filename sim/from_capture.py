@@ -43,6 +43,7 @@ import numpy as np
 import yaml
 
 from tofhil.camera import CameraModel
+from tofhil.depth import saturated_amplitude
 from tofhil.errors import TofhilError
 from tofhil.session import open_session
 from tofhil.unwrap import frequency_plan
@@ -219,16 +220,6 @@ def grid_mesh(points_hw: np.ndarray, mask: np.ndarray, *, stride: int = 2, max_s
     return flat[used], remap[tri]
 
 
-def _saturated(amp: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Pixels pinned at the amplitude image's largest value (several of them: a clipped sensor)."""
-    vals = amp[valid & np.isfinite(amp)]
-    if vals.size == 0:
-        return np.zeros(amp.shape, bool)
-    top = float(vals.max())
-    pinned = valid & (amp >= top)
-    return pinned if pinned.sum() >= 5 else np.zeros(amp.shape, bool)
-
-
 def _camera_block(cam: CameraModel) -> dict[str, Any]:
     d = {k: v for k, v in cam.to_dict().items() if k in ("width", "height", "fx", "fy", "cx", "cy", "dist",
                                                            "pixel_pitch_m")}
@@ -371,7 +362,7 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
 
         radiometry: dict[str, Any] = {"amplitude": "absent: reflectances and power are assumed"}
         if has_amp:
-            usable = valid & np.isfinite(amp) & (amp > 0) & ~_saturated(amp, valid)
+            usable = valid & np.isfinite(amp) & (amp > 0) & ~saturated_amplitude(amp, valid)
             say("rendering the twin for the radiometry fit")
             _, sc = build(power, beam_n, refl)
             pred, _, oid = _predicted_amplitude(sc)
