@@ -136,8 +136,14 @@ def _unit(s: np.ndarray) -> np.ndarray:
 
 def split_depth_session(session: Session, scene: Any | None = None, *, block_px: int = 8,
                         max_frames: int | None = None, valid_mask: np.ndarray | None = None,
-                        max_pixels: int = MAX_DIAGNOSIS_PIXELS) -> HeldOutData:
-    """A depth (+ amplitude) session as training and held-out phasors with their noise."""
+                        max_pixels: int = MAX_DIAGNOSIS_PIXELS,
+                        amplitude_model_error: float | None = None) -> HeldOutData:
+    """A depth (+ amplitude) session as training and held-out phasors with their noise.
+
+    ``amplitude_model_error`` (relative): how well the twin scene can know the amplitude at
+    all (a scene built from the capture has one reflectance per object; its fit left this
+    scatter of the log amplitude). Amplitude differences below it are no evidence: the
+    radial noise is raised to it, so the depth channel is not outweighed by texture."""
     if not session.has_depth:
         raise TofhilError("has neither raw taps nor depth", file=session.path, field="depth/radial_m")
     freq_hz, freq_source = frequencies_for(session, scene)
@@ -209,6 +215,11 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
                  + " and amplitude scatter " + ", ".join(f"{x:.1f}%" for x in sigma_a)
                  + " at the median amplitude")
         n_train = n_test = 1
+    if amplitude_model_error:
+        floor = (amplitude_model_error * np.abs(s_test)) ** 2
+        radial_scale = np.maximum(radial_scale * var_test, floor) / var_test
+        noise += (f"; amplitude known to the scene only to {100 * amplitude_model_error:.0f}% (one reflectance "
+                  "per object), so the amplitude noise is raised to that")
     board = block_checkerboard(usable.shape, block_px)
     sensor = getattr(scene, "sensor", None)
     theta = np.asarray(sensor.theta_rad, float) if sensor is not None else equally_spaced_phases(4)
@@ -226,13 +237,15 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
 
 
 def split_for_diagnosis(session: Session, scene: Any, *, block_px: int = 8, max_frames: int | None = None,
-                        valid_mask: np.ndarray | None = None) -> HeldOutData:
+                        valid_mask: np.ndarray | None = None, amplitude_model_error: float | None = None
+                        ) -> HeldOutData:
     """Raw taps when the session has them, else its depth and amplitude (this module)."""
     from tofhil.eval.heldout import split_session
 
     if session.has_raw:
         return split_session(session, block_px=block_px, max_frames=max_frames)
-    return split_depth_session(session, scene, block_px=block_px, max_frames=max_frames, valid_mask=valid_mask)
+    return split_depth_session(session, scene, block_px=block_px, max_frames=max_frames, valid_mask=valid_mask,
+                               amplitude_model_error=amplitude_model_error)
 
 
 def observable_candidates(candidates: Sequence[str] | None, data: HeldOutData, *, depth_only: bool,

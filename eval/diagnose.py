@@ -160,9 +160,11 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     t0 = time.perf_counter()
     from tofhil.sim.from_capture import capture_scene_facts
 
-    unobservable, valid_mask = capture_scene_facts(scene)
+    facts = capture_scene_facts(scene)
+    unobservable = facts.unobservable
     with open_session(session_path) as s:
-        data = split_for_diagnosis(s, scene, block_px=block_px, max_frames=max_frames, valid_mask=valid_mask)
+        data = split_for_diagnosis(s, scene, block_px=block_px, max_frames=max_frames, valid_mask=facts.valid_mask,
+                                   amplitude_model_error=facts.amplitude_model_error)
         depth_only = not s.has_raw
     candidates, unobservable = observable_candidates(candidates, data, depth_only=depth_only, unobservable=unobservable)
     if progress:

@@ -32,6 +32,7 @@ constant range offset (and the camera pose) is absorbed by them.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -192,6 +193,29 @@ def _segment_planes(points: np.ndarray, pix: np.ndarray, shape: tuple[int, int],
     return planes
 
 
+def occluding_fraction(cam: CameraModel, p: PlanePatch, radial: np.ndarray, valid: np.ndarray,
+                       margin_m: float) -> float:
+    """Fraction of the pixels that see the plane's rectangle where the camera saw something
+    farther than it: there the rectangle would hide what was measured (a rectangle spanning
+    an L-shaped patch, a plane beyond its real edge)."""
+    rays = cam.rays
+    cos = rays @ p.normal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(cos > 1e-6, p.offset_m / cos, np.inf)
+    q = rays * np.where(np.isfinite(t), t, 0.0)[..., None] - p.centre
+    a, b = q @ p.axes[:, 0], q @ p.axes[:, 1]
+    inside = np.isfinite(t) & (np.abs(a) <= p.size[0] / 2) & (np.abs(b) <= p.size[1] / 2)
+    if not inside.any():
+        return 1.0
+    hides = inside & valid & (radial > t + margin_m)
+    return float(hides.sum() / inside.sum())
+
+
+#: A plane whose rectangle would hide more than this fraction of its pixels' measurements
+#: is left to the mesh instead (exact geometry of what was seen).
+MAX_OCCLUDING_FRACTION = 0.03
+
+
 def grid_mesh(points_hw: np.ndarray, mask: np.ndarray, *, stride: int = 2, max_step: float = 0.05
               ) -> tuple[np.ndarray, np.ndarray]:
     """Triangles joining neighbouring pixels of a range image (``points_hw [H, W, 3]``, ``mask``):
@@ -325,6 +349,15 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
     thr = threshold_m if threshold_m is not None else float(np.clip(0.01 * med, 0.004, 0.03))
     say(f"segmenting planes (RANSAC, inlier threshold {thr * 1e3:.1f} mm) in {len(points)} points")
     planes = _segment_planes(points, pix, cam.shape, max_planes=max_planes, threshold_m=thr, min_fraction=0.02)
+    kept = []
+    for p in planes:
+        frac = occluding_fraction(cam, p, radial, valid, 3.0 * thr)
+        if frac > MAX_OCCLUDING_FRACTION:
+            say(f"{p.name}: its rectangle would hide {100 * frac:.0f}% of what the camera saw behind it; "
+                "left to the mesh")
+        else:
+            kept.append(p)
+    planes = [dataclasses.replace(p, name=f"plane{i}") for i, p in enumerate(kept)]
     on_plane = np.zeros(cam.shape, bool)
     for p in planes:
         on_plane |= p.pixels
@@ -445,19 +478,31 @@ def _render_range(scene: Any) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(r.radial_m), np.asarray(r.object_id)
 
 
-def capture_scene_facts(scene: Any) -> tuple[dict[str, str], np.ndarray | None]:
+@dataclass
+class CaptureFacts:
+    """What diagnosis needs to know of a scene made from a capture (empty for other scenes)."""
+
+    unobservable: dict[str, str] = field(default_factory=dict)
+    valid_mask: np.ndarray | None = None
+    #: Relative scatter of the capture's amplitude about the scene's (log-amplitude MAD).
+    amplitude_model_error: float | None = None
+
+
+def capture_scene_facts(scene: Any) -> CaptureFacts:
     """For a scene made by :func:`scene_from_capture` (its metadata beside its file): the
-    effects it cannot observe and its valid mask (full capture resolution); else nothing."""
+    effects it cannot observe, its valid mask (full capture resolution) and how well it
+    knows the amplitude; else nothing."""
     src = getattr(scene, "source", None)
     if not src or str(src).startswith("<"):
-        return {}, None
+        return CaptureFacts()
     meta = read_capture_metadata(src)
     if not meta:
-        return {}, None
+        return CaptureFacts()
     mask = None
     name = meta.get("valid_mask")
     if name:
         p = Path(src).with_name(str(name))
         if p.is_file():
             mask = np.load(p).astype(bool)
-    return dict(meta.get("unobservable") or {}), mask
+    err = (meta.get("radiometry") or {}).get("log_amplitude_residual_mad")
+    return CaptureFacts(dict(meta.get("unobservable") or {}), mask, float(err) if err else None)
