@@ -213,7 +213,7 @@ def occluding_fraction(cam: CameraModel, p: PlanePatch, radial: np.ndarray, vali
 
 #: A plane whose rectangle would hide more than this fraction of its pixels' measurements
 #: is left to the mesh instead (exact geometry of what was seen).
-MAX_OCCLUDING_FRACTION = 0.03
+MAX_OCCLUDING_FRACTION = 0.10
 
 
 def grid_mesh(points_hw: np.ndarray, mask: np.ndarray, *, stride: int = 2, max_step: float = 0.05
