@@ -85,7 +85,7 @@ def assess(selection: Selection, model: Any, data: HeldOutData, *, block_px: int
         best = rnd[0]
         for other in rnd[1:3]:
             diff, se = score_difference(model, data, best, other, block_px)
-            if not diff < se:
+            if diff > se:  # told apart (equal predictions: diff = se = 0, not told apart)
                 continue
             hint = SEPARATING_CAPTURE.get(frozenset({best.effect, other.effect}), DEFAULT_SEPARATING)
             obs.ambiguous.append({

@@ -115,3 +115,54 @@ def test_depth_session_without_amplitude_is_refused_with_the_field_named(tmp_pat
         wr.append(depth=DepthFrame(distance_m=np.ones(cam.shape), kind="radial", camera=cam))
     with open_session(path) as s, pytest.raises(TofhilError, match="depth/amplitude"):
         split_depth_session(s, bench_scene)
+
+
+class _TwoNamesOneCause:
+    """A forward model with two effects that act identically (a gain on S), and a third that
+    does something else: the data cannot tell the first two apart."""
+
+    def __init__(self, base: np.ndarray) -> None:
+        from tofhil.eval.selection import EffectSpec, FitParam
+
+        self.base = base
+        spec = EffectSpec((FitParam("g", 0.0, -0.5, 0.5, 0.05),))
+        self._lib = {"a": spec, "b": spec, "c": spec}
+
+    def library(self):
+        return self._lib
+
+    def predict(self, active):
+        s = self.base.copy()
+        for name in ("a", "b"):
+            s = s * (1.0 + active.get(name, {}).get("g", 0.0))
+        g = active.get("c", {}).get("g", 0.0)
+        return s + g * np.abs(self.base).mean() * 1j  # a constant phase-like shift
+    
+
+def test_two_causes_that_act_alike_are_reported_as_ambiguous():
+    from tofhil.eval.heldout import HeldOutData
+    from tofhil.eval.observability import assess
+    from tofhil.eval.selection import greedy_select
+
+    rng = np.random.default_rng(3)
+    h, w = 32, 32
+    base = (100.0 + 20 * rng.random((1, h, w))) * np.exp(1j * rng.uniform(0, 6, (1, h, w)))
+    truth = base * 1.1
+    noise = lambda: rng.normal(0, 1.0, base.shape) + 1j * rng.normal(0, 1.0, base.shape)  # noqa: E731
+    usable = np.ones((h, w), bool)
+    from tofhil.eval.heldout import block_checkerboard
+
+    board = block_checkerboard((h, w), 8)
+    data = HeldOutData(camera=CameraModel.from_fov(w, h, 60.0), freq_hz=np.array([20e6]),
+                       theta_rad=np.arange(4) * np.pi / 2, integration_time_s=1e-3,
+                       s_train=truth + noise(), s_test=truth + noise(), var_train=np.full(base.shape, 1.0),
+                       var_test=np.full(base.shape, 1.0), usable=usable, train_pixels=board, test_pixels=~board,
+                       n_train_frames=1, n_test_frames=1)
+    model = _TwoNamesOneCause(base)
+    sel = greedy_select(model, data, max_effects=1)
+    assert sel.causes and sel.causes[0] in ("a", "b")
+    obs = assess(sel, model, data, block_px=8)
+    pairs = [set(a["effects"]) for a in obs.ambiguous]
+    assert {"a", "b"} in pairs
+    assert not any("c" in p for p in pairs)  # the effect that acts otherwise is told apart
+    assert "cannot tell them apart" in obs.lines[0]
