@@ -54,7 +54,7 @@ from tofhil.session import Session
 #: Effects that act only on the tap offset: not observable without raw taps.
 OFFSET_ONLY_EFFECTS = ("ambient",)
 #: Pixels a diagnosis of a depth session renders at most (larger images are binned).
-MAX_DIAGNOSIS_PIXELS = 12_000
+MAX_DIAGNOSIS_PIXELS = 8_000
 
 
 def frequencies_for(session: Session, scene: Any | None) -> tuple[np.ndarray, str]:

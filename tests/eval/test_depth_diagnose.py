@@ -15,6 +15,7 @@ candidates; the ambiguity post-step.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -166,3 +167,31 @@ def test_two_causes_that_act_alike_are_reported_as_ambiguous():
     assert {"a", "b"} in pairs
     assert not any("c" in p for p in pairs)  # the effect that acts otherwise is told apart
     assert "cannot tell them apart" in obs.lines[0]
+
+
+@pytest.mark.slow
+def test_real_near_plane_capture_is_diagnosed_end_to_end(tmp_path):
+    """The ADI near-plane capture (binned 4 x 4): import, scene-from-capture, diagnose. The
+    diagnosis runs on the depth path, writes its files, and never names what the scene cannot
+    observe (its planes' poses were fitted to the same depth)."""
+    from tests.real_data import ADI, need
+    from tofhil.drivers.importers.dispatch import import_file
+    from tofhil.eval.diagnose import run_diagnosis
+    from tofhil.sim.from_capture import scene_from_capture
+
+    full = import_file(need(ADI / "near_plane_depth.bin"), tmp_path / "full.h5").out
+    with open_session(full) as s:
+        d = s.depth_frame(0)
+        cam = s.camera.scaled(0.25)
+    small = tmp_path / "small.h5"
+    with SessionWriter(small, cam) as w:
+        w.append(depth=DepthFrame(distance_m=np.asarray(d.radial_m)[1::4, 1::4], kind="radial", camera=cam,
+                                  amplitude=np.asarray(d.amplitude)[1::4, 1::4], valid=d.valid[1::4, 1::4]))
+    scene = scene_from_capture(small, tmp_path / "np.yaml", freq_hz=[40e6], wavelength_m=940e-9)
+    res = run_diagnosis(small, scene.scene_path, tmp_path / "diag", max_effects=1)
+    out = json.loads((tmp_path / "diag" / "diagnosis.json").read_text())
+    assert (tmp_path / "diag" / "report.html").is_file()
+    assert "phasor" in out["channels"] and "spatial scatter" in out["noise"]
+    assert set(out["observability"]["unobservable"]) >= {"range_offset", "pose", "ambient"}
+    assert not {"range_offset", "pose", "ambient"} & set(res.causes)
+    assert not {"range_offset", "pose", "ambient"} & {c["effect"] for c in res.ranked}
