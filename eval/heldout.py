@@ -79,16 +79,23 @@ class HeldOutData:
 
     def whitened(self, prediction: np.ndarray, part: str = "test") -> np.ndarray:
         """Complex (measured - predicted) / sigma ``[C, N]`` over a part's pixels; for depth
-        sessions the real part is along the measured phasor (amplitude), the imaginary across
-        it (phase), each over its own noise."""
+        sessions the real part is the amplitude residual along the measured phasor, the
+        imaginary the phase residual times the measured amplitude, each over its own noise."""
         s, var, mask = ((self.s_test, self.var_test, self.test_pixels) if part == "test"
                         else (self.s_train, self.var_train, self.train_pixels))
         r = s[:, mask] - prediction[:, mask]
         if self.phase_ref is None or self.radial_var_scale is None:
             return r / np.sqrt(var[:, mask])
-        r = r * np.conj(self.phase_ref[:, mask])
+        # Polar residuals: along the measured phasor, the amplitude difference; across it, the
+        # phase difference times the *measured* amplitude (the depth residual in the units of
+        # S). Scaling the prediction's amplitude down must not make a depth misfit cheaper.
+        u = self.phase_ref[:, mask]
+        p = prediction[:, mask]
+        a_meas = np.abs(s[:, mask])
+        radial = a_meas - (p * np.conj(u)).real
+        across = a_meas * ((p / np.maximum(np.abs(p), 1e-30)) * np.conj(u)).imag
         v = var[:, mask]
-        return r.real / np.sqrt(v * self.radial_var_scale[:, mask]) + 1j * (r.imag / np.sqrt(v))
+        return radial / np.sqrt(v * self.radial_var_scale[:, mask]) + 1j * (across / np.sqrt(v))
 
     def n_values(self, part: str = "test") -> int:
         """Real-valued data points in one part (2 per complex signal value, 1 per offset)."""
