@@ -134,3 +134,16 @@ def test_real_near_plane_scene_loads_simulates_and_sits_on_the_cloud(near_plane_
         t = s.depth_frame(0)
     m = p.pixels & d.valid & t.valid
     assert np.median(np.abs(np.asarray(t.radial_m)[m] - np.asarray(d.radial_m)[m])) < 0.004
+
+
+def test_cli_writes_the_scene_and_refuses_bad_input_in_one_line(wall_session, tmp_path, tofhil_cli):
+    _, path = wall_session
+    out = tmp_path / "cli.yaml"
+    r = tofhil_cli("scene-from-capture", path, "--out", out, "--max-planes", "2")
+    assert r.returncode == 0, r.stderr
+    assert out.is_file() and (tmp_path / "cli.capture.json").is_file() and (tmp_path / "cli_valid.npy").is_file()
+    assert "range_offset" in r.stdout
+    for args, field in ((["--target", "charuco"], "--target"), (["--freq-hz", "abc"], "--freq-hz")):
+        r = tofhil_cli("scene-from-capture", path, "--out", tmp_path / "bad.yaml", *args)
+        assert r.returncode == 2 and field in r.stderr and "Traceback" not in r.stderr
+        assert not (tmp_path / "bad.yaml").exists()
