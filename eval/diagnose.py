@@ -227,7 +227,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     return DiagnosisResult(cause=selection.causes[0] if selection.causes else None, causes=list(selection.causes),
                            ranked=ranked, rounds=rounds, gain=gain, regions=regions,
                            extended_scene=str(ext_path) if ext_path else "", params=params,
-                           evidence=_evidence(selection, data) + observability.lines,
+                           evidence=([f"data: {data.channels}; noise: {data.noise}"] + _evidence(selection, data)
+                                     + observability.lines),
                            chi2_per_value={"before": selection.baseline_chi2_test / n,
                                            "after_fit": selection.final_chi2_test / n,
                                            "after_extended_scene": data.chi2(after_pred, "test") / n},
