@@ -23,7 +23,9 @@ import numpy as np
 from tofhil.demod import bad_tap_pixels
 from tofhil.errors import TofhilError
 from tofhil.eval import metrics as M
-from tofhil.eval.heldout import HeldOutData, depth_from_signal, split_session
+from tofhil.eval.depth_heldout import observable_candidates, split_for_diagnosis
+from tofhil.eval.heldout import HeldOutData, depth_from_signal
+from tofhil.eval.observability import Observability, assess
 from tofhil.eval.selection import Selection, greedy_select
 from tofhil.eval.twin_model import TwinModel, to_effect_values
 from tofhil.eval import verdict as V
@@ -55,6 +57,7 @@ class DiagnosisResult:
     residual_regions: list[dict[str, Any]] = field(default_factory=list)
     #: Each object's held-out misfit per value before and after, and whether it is above noise.
     objects: dict[str, dict[str, Any]] = field(default_factory=dict)
+    observability: Observability = field(default_factory=Observability)
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict.to_json() if self.verdict else None, "channels": self.channels,
@@ -66,7 +69,9 @@ class DiagnosisResult:
                 "split": {"train_frames": self.data.n_train_frames, "test_frames": self.data.n_test_frames,
                           "train_pixels": int(self.data.train_pixels.sum()),
                           "test_pixels": int(self.data.test_pixels.sum()),
-                          "offset_channel": self.data.offset_channel}}
+                          "offset_channel": self.data.offset_channel},
+                "data_path": self.data.channels, "noise": self.data.noise,
+                "observability": self.observability.to_json()}
         # (the run time is in the report, not here: the same inputs give the same file, bit for bit)
 
 
@@ -176,8 +181,17 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     from tofhil.sim.scene import load_scene, scene_from_yaml, scene_to_yaml
 
     t0 = time.perf_counter()
+    from tofhil.sim.from_capture import capture_scene_facts
+
+    facts = capture_scene_facts(scene)
+    unobservable = facts.unobservable
     with open_session(session_path) as s:
-        data = split_session(s, block_px=block_px, max_frames=max_frames)
+        data = split_for_diagnosis(s, scene, block_px=block_px, max_frames=max_frames, valid_mask=facts.valid_mask,
+                                   amplitude_model_error=facts.amplitude_model_error)
+        depth_only = not s.has_raw
+    candidates, unobservable = observable_candidates(candidates, data, depth_only=depth_only, unobservable=unobservable)
+    if progress:
+        progress(f"channels: {data.channels}; noise: {data.noise}")
     if data.test_pixels.sum() < 20:
         raise TofhilError("too few usable pixels (signal above noise, not saturated) to diagnose",
                           file=session_path, field="raw/taps")
@@ -233,6 +247,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         after_model, after_pred = extend({})
         _, ch_after, objects_after, worse = judge(after_pred, [])
     params = {e: to_effect_values(e, v) for e, v in selection.params.items()}
+    observability = assess(selection, model, data, block_px=block_px, unobservable=unobservable)
 
     # A predicted pixel is compared where its signal is above the noise and no predicted tap
     # reaches the device's clip levels (compare applies the same rule to a twin session).
@@ -272,14 +287,15 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     return DiagnosisResult(cause=selection.causes[0] if selection.causes else None, causes=list(selection.causes),
                            ranked=ranked, rounds=rounds, gain=gain, regions=regions,
                            extended_scene=str(ext_path) if ext_path else "", params=params,
-                           evidence=evidence,
+                           evidence=[f"data: {data.channels}; noise: {data.noise}"] + evidence + observability.lines,
                            chi2_per_value={"before": selection.baseline_chi2_test / n,
                                            "after_fit": selection.final_chi2_test / n,
                                            "after_extended_scene": data.chi2(after_pred, "test") / n},
                            data=data, maps=maps, evaluations={"before": ev_before, "after": ev_after},
                            seconds=time.perf_counter() - t0, verdict=verdict, channels=channels,
                            residual_regions=[r.to_json() | {"text": r.describe()} for r in regions_left],
-                           objects={k: {"before": objects_before.get(k), "after": v} for k, v in objects_after.items()})
+                           objects={k: {"before": objects_before.get(k), "after": v} for k, v in objects_after.items()},
+                           observability=observability)
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,

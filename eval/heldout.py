@@ -48,6 +48,15 @@ class HeldOutData:
     source: str = "<session>"
     #: The clip levels applied to the measured taps; a prediction reaching them would have clipped too.
     tap_limits: TapLimits = field(default_factory=TapLimits)
+    #: What the channels are made of and where the noise comes from (stated in the report).
+    channels: str = "raw taps: the complex signal S per frequency"
+    noise: str = "frame-to-frame scatter of S (pooled over 5 x 5 pixels)"
+    #: Depth sessions: the noise differs along the measured phasor (amplitude) and across it
+    #: (phase, i.e. depth). ``phase_ref`` is the measured unit phasor [C, H, W] and
+    #: ``radial_var_scale`` the radial variance over the tangential one (``var_*``); None:
+    #: isotropic noise (raw taps).
+    phase_ref: np.ndarray | None = None
+    radial_var_scale: np.ndarray | None = None
 
     @property
     def n_freq(self) -> int:
@@ -65,10 +74,28 @@ class HeldOutData:
         that a finite number of render samples places on the wrong side of a bright edge from
         outweighing the whole image.
         """
+        r = self.whitened(prediction, part)
+        return float(huber(r.real).sum() + huber(r.imag).sum())
+
+    def whitened(self, prediction: np.ndarray, part: str = "test") -> np.ndarray:
+        """Complex (measured - predicted) / sigma ``[C, N]`` over a part's pixels; for depth
+        sessions the real part is the amplitude residual along the measured phasor, the
+        imaginary the phase residual times the measured amplitude, each over its own noise."""
         s, var, mask = ((self.s_test, self.var_test, self.test_pixels) if part == "test"
                         else (self.s_train, self.var_train, self.train_pixels))
-        r = (s[:, mask] - prediction[:, mask]) / np.sqrt(var[:, mask])
-        return float(huber(r.real).sum() + huber(r.imag).sum())
+        r = s[:, mask] - prediction[:, mask]
+        if self.phase_ref is None or self.radial_var_scale is None:
+            return r / np.sqrt(var[:, mask])
+        # Polar residuals: along the measured phasor, the amplitude difference; across it, the
+        # phase difference times the *measured* amplitude (the depth residual in the units of
+        # S). Scaling the prediction's amplitude down must not make a depth misfit cheaper.
+        u = self.phase_ref[:, mask]
+        p = prediction[:, mask]
+        a_meas = np.abs(s[:, mask])
+        radial = a_meas - (p * np.conj(u)).real
+        across = a_meas * ((p / np.maximum(np.abs(p), 1e-30)) * np.conj(u)).imag
+        v = var[:, mask]
+        return radial / np.sqrt(v * self.radial_var_scale[:, mask]) + 1j * (across / np.sqrt(v))
 
     def n_values(self, part: str = "test") -> int:
         """Real-valued data points in one part (2 per complex signal value, 1 per offset)."""
@@ -77,9 +104,7 @@ class HeldOutData:
 
     def whitened_residual(self, prediction: np.ndarray, part: str = "train") -> np.ndarray:
         """Real vector of (measured - predicted) / sigma over a part: what least squares minimises."""
-        s, var, mask = ((self.s_train, self.var_train, self.train_pixels) if part == "train"
-                        else (self.s_test, self.var_test, self.test_pixels))
-        r = (s[:, mask] - prediction[:, mask]) / np.sqrt(var[:, mask])
+        r = self.whitened(prediction, part)
         return np.concatenate([r.real.ravel(), r.imag.ravel()])
 
 

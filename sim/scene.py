@@ -83,7 +83,7 @@ def load_scene(path_or_name: str | Path, overrides: dict | None = None) -> Scene
     except OSError as exc:
         raise InputFileError(f"cannot be read ({exc.strerror})", file=path, field="scene",
                              expected="a readable scene YAML file") from None
-    return scene_from_yaml(text, source=str(path), base_dir=path.parent, overrides=overrides)
+    return scene_from_yaml(text, source=str(path), base_dir=path.resolve().parent, overrides=overrides)
 
 
 def scene_from_yaml(text: str, source: str = "<string>", base_dir: str | Path | None = None,

@@ -68,3 +68,18 @@ def _depth_frame(frame: RawFrame, distance: np.ndarray, amplitude: np.ndarray, i
                       valid=valid, timestamp_s=frame.timestamp_s, sequence=frame.sequence,
                       temperature_c=frame.temperature_c, unwrap_conflict=conflict,
                       meta={"unambiguous_range_m": float(unambiguous_range_m)})
+
+
+def saturated_amplitude(amplitude: np.ndarray, valid: np.ndarray, *, min_pixels: int = 5) -> np.ndarray:
+    """Pixels of a device's amplitude image pinned at its largest value: a clipped sensor.
+
+    Several pixels (``min_pixels`` or more) at exactly the image's maximum, but fewer than half
+    of the valid ones (an evenly lit synthetic image is not saturated), are taken as clipped;
+    their depth and amplitude say nothing about the scene."""
+    amplitude = np.asarray(amplitude)
+    vals = amplitude[valid & np.isfinite(amplitude)]
+    if vals.size == 0:
+        return np.zeros(amplitude.shape, bool)
+    pinned = valid & (amplitude >= vals.max())
+    n = int(pinned.sum())
+    return pinned if min_pixels <= n < 0.5 * vals.size else np.zeros(amplitude.shape, bool)

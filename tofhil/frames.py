@@ -63,6 +63,8 @@ class DepthFrame:
     temperature_c: float = math.nan
     #: Per-pixel flag: the modulation frequencies disagreed during unwrapping.
     unwrap_conflict: np.ndarray | None = None
+    #: The device's own per-pixel confidence, in its own unit (e.g. ADI's confidence byte).
+    confidence: np.ndarray | None = None
     meta: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:

@@ -200,7 +200,11 @@ class SessionWriter:
     def _create_depth(self, depth: DepthFrame) -> None:
         g = self._hold(self._file.create_group("depth"))
         hw = self.camera.shape
-        for name, dt in (("radial_m", "f4"), ("amplitude", "f4"), ("intensity", "f4"), ("valid", "u1")):
+        parts = [("radial_m", "f4"), ("amplitude", "f4"), ("intensity", "f4"), ("valid", "?")]
+        if depth.confidence is not None:
+            parts.append(("confidence", "f4"))  # the device's own confidence, as the device gives it
+        self._has_confidence = depth.confidence is not None
+        for name, dt in parts:
             self._hold(g.create_dataset(name, shape=(0,) + hw, maxshape=(None,) + hw, dtype=dt, chunks=(1,) + hw))
 
     # ------------------------------------------------------------------ appending
@@ -256,8 +260,12 @@ class SessionWriter:
             radial = depth.radial_m
             amp = depth.amplitude if depth.amplitude is not None else np.full(radial.shape, np.nan)
             inten = depth.intensity if depth.intensity is not None else np.full(radial.shape, np.nan)
-            for name, arr in (("radial_m", radial), ("amplitude", amp), ("intensity", inten),
-                              ("valid", np.asarray(depth.valid, dtype=np.uint8))):
+            parts = [("radial_m", radial), ("amplitude", amp), ("intensity", inten),
+                     ("valid", np.asarray(depth.valid, dtype=bool))]
+            if getattr(self, "_has_confidence", False):
+                conf = depth.confidence if depth.confidence is not None else np.full(radial.shape, np.nan)
+                parts.append(("confidence", conf))
+            for name, arr in parts:
                 ds = self._dataset(f"depth/{name}")
                 ds.resize(n + 1, axis=0)
                 ds[n] = arr
@@ -410,7 +418,7 @@ class Session:
         if self.has_depth:
             if "depth/radial_m" not in f:
                 self._fail("depth/radial_m", "missing", "float32 [N, H, W]")
-            for name in ("radial_m", "amplitude", "intensity", "valid"):
+            for name in ("radial_m", "amplitude", "intensity", "valid", "confidence"):
                 key = f"depth/{name}"
                 if key in f:
                     if not isinstance(f[key], h5py.Dataset) or f[key].dtype.kind not in "fiub":
@@ -543,13 +551,14 @@ class Session:
         get = lambda name: g[name][i] if name in g else None  # noqa: E731
         try:
             valid = get("valid")
-            parts = {name: get(name) for name in ("radial_m", "amplitude", "intensity")}
+            parts = {name: get(name) for name in ("radial_m", "amplitude", "intensity", "confidence")}
             meta = self._frame_meta(i)
         except (OSError, ValueError, TypeError) as exc:
             raise InputFileError(f"frame {i} cannot be read ({_os_reason(exc)})", file=self.path,
                                  field="depth") from None
         return DepthFrame(distance_m=parts["radial_m"], kind="radial", camera=self.camera,
                           amplitude=parts["amplitude"], intensity=parts["intensity"],
+                          confidence=parts["confidence"],
                           valid=None if valid is None else valid.astype(bool), **meta)
 
     def raw_frames(self) -> Iterator[RawFrame]:

@@ -13,7 +13,9 @@ format              what                                                        
 
 Every session written here stores ``depth/radial_m`` in metres, ``depth/amplitude`` = the
 device's active brightness / IR in its own counts, ``depth/valid`` = depth > 0 (and the
-device's own validity where it has one), and in the ``device`` attribute the source file,
+device's own validity where it has one; booleans), ``depth/confidence`` = the device's own
+confidence where the format has one (ADI interleaved: the confidence byte), and in the
+``device`` attribute the source file,
 its SHA-256, the format, what the file's depth kind was and where the camera model came
 from. Nothing existing is overwritten without ``force``.
 """
@@ -145,6 +147,7 @@ def _adi_frames(frames: Iterable[adi.AdiFrame], camera: CameraModel,
         # ADI depth is radial (see importers.adi): store it as is, in metres.
         yield DepthFrame(distance_m=np.where(valid, f.depth_mm * 1e-3, 0.0).astype(np.float32), kind="radial",
                          camera=camera, amplitude=f.amplitude.astype(np.float32), valid=valid,
+                         confidence=None if f.confidence is None else f.confidence.astype(np.float32),
                          timestamp_s=math.nan, sequence=i)
 
 
@@ -259,7 +262,8 @@ def import_file(path: str | Path, out: str | Path, *, camera: str | Path | Camer
                 d = s.depth_frame(i) if s.has_depth else None
                 if d is not None:
                     d = DepthFrame(distance_m=d.distance_m, kind="radial", camera=cam, amplitude=d.amplitude,
-                                   intensity=d.intensity, valid=d.valid, timestamp_s=d.timestamp_s,
+                                   intensity=d.intensity, valid=d.valid, confidence=d.confidence,
+                                   timestamp_s=d.timestamp_s,
                                    sequence=d.sequence, temperature_c=d.temperature_c)
                 yield raw, d
 

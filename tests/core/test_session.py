@@ -62,7 +62,7 @@ def test_round_trip_raw_and_depth(tmp_path):
         cam = json.loads(f.attrs["camera"])
         assert set(cam) >= {"width", "height", "fx", "fy", "cx", "cy", "dist"} and len(cam["dist"]) == 5
         assert f["raw/taps"].dtype == np.float32 and f["raw/taps"].shape == (3, 2, 4, 12, 16)
-        assert f["depth/valid"].dtype == np.uint8
+        assert f["depth/valid"].dtype == np.bool_  # booleans, as documented
 
 
 def test_file_written_by_plain_h5py_reads(tmp_path):

@@ -145,3 +145,24 @@ def test_confidence_threshold_is_opt_in(tmp_path):
         valid = s.depth_frame(0).valid
     np.testing.assert_array_equal(valid, (frame.depth_mm > 0) & (frame.confidence <= 5))
     assert valid.sum() < (frame.depth_mm > 0).sum()
+
+
+def test_import_keeps_the_confidence_byte_and_stores_validity_as_booleans(tmp_path):
+    """What the device gives is kept: the interleaved frame's confidence byte becomes
+    depth/confidence (byte for byte), depth/valid is a boolean dataset; a pair (no
+    confidence in the format) has no depth/confidence."""
+    import h5py
+
+    src = need(ADI / "frame_mode2.bin")
+    frame = read_adi_interleaved(src)[0]
+    res = import_file(src, tmp_path / "c.h5")
+    with h5py.File(res.out, "r") as f:
+        assert f["depth/valid"].dtype == np.bool_
+        assert "depth/confidence" in f
+    with open_session(res.out) as s:
+        conf = s.depth_frame(0).confidence
+    np.testing.assert_array_equal(conf, frame.confidence.astype(np.float32))
+    assert conf.max() > conf.min()  # the real byte varies over the office frame
+    pair = import_file(need(ADI / "near_plane_depth.bin"), tmp_path / "p.h5")
+    with open_session(pair.out) as s:
+        assert s.depth_frame(0).confidence is None

@@ -46,6 +46,8 @@ def _summary(res, report: Path) -> None:
         out.print(f"NDT score per point {g['ndt_score_per_point']['before']:.4g} -> {g['ndt_score_per_point']['after']:.4g}, "
                   f"ICP inlier RMSE {g['icp_inlier_rmse_m']['before'] * 1e3:.2f} -> {g['icp_inlier_rmse_m']['after'] * 1e3:.2f} mm",
                   highlight=False)
+    for line in res.observability.lines:
+        out.print(f"[bold]observability:[/bold] {lit(line)}", highlight=False)
     out.print(f"report: {lit(report)}")
 
 

@@ -1,0 +1,265 @@
+"""Depth (+ amplitude, + confidence) sessions as held-out data for diagnosis.
+
+Most cameras deliver depth, an amplitude (active brightness / IR) and a confidence, often one
+frame at a time, and no raw taps. Where the modulation frequencies are known, the phasor
+
+    S_f = A exp(i 4 pi f d / c)
+
+of each frequency is what the device measured before it unwrapped (up to its own gain): it
+stands in for the complex signal, so the twin's forward model and the effect selection apply
+unchanged (the twin predicts S; S is compared). The frequencies come from the session (a
+recorded sensor configuration) or else from the twin's scene; ``tofhil scene-from-capture``
+writes them into the scene it builds.
+
+The split and the noise:
+
+- **one frame**: training and held-out pixels are the two colours of a checkerboard of square
+  blocks (a fit cannot memorise the pixels it is scored on); both parts are the same frame.
+  The noise comes from the local spatial scatter: the high-pass ``x - mean(4 neighbours)``
+  of the phase term ``A k d`` (``k = 4 pi f / c``), whose variance is ``1.25 sigma^2`` for
+  independent pixel noise, robustly (1.4826 MAD, so edges and texture do not inflate it).
+  A shot-noise-limited pixel has a depth noise ``~ 1/A``, so this tangential noise of S is
+  about the same everywhere; it is taken isotropic (the same for the real and imaginary
+  part), as for raw taps;
+- **several frames**: frames as well (even frames train, odd frames test) and the noise from
+  the frame-to-frame scatter of S, pooled over 5 x 5 pixels, as for raw taps.
+
+Large images are binned (the complex phasor averaged over ``b x b`` pixels, the camera model
+scaled to match) so that a diagnosis renders a few tens of thousands of pixels; a bin counts
+only where all its pixels are valid and its depths agree within 5 % (no depth edge inside).
+
+Limits (docs/diagnose.md): there is no tap offset, so nothing that shows only in the offset
+(ambient light) can be observed; the amplitude is in the device's counts, so it is compared
+after the twin's emitter power was fitted to it (scene-from-capture) and the absolute level
+is not a finding; the device has already unwrapped, filtered and calibrated its depth.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Any, Sequence
+
+import numpy as np
+from scipy.ndimage import uniform_filter
+
+from tofhil.camera import CameraModel
+from tofhil.depth import saturated_amplitude
+from tofhil import C_M_PER_S
+from tofhil.demod import distance_to_phase, equally_spaced_phases
+from tofhil.errors import TofhilError
+from tofhil.eval.heldout import HeldOutData, block_checkerboard
+from tofhil.session import Session
+
+#: Effects that act only on the tap offset: not observable without raw taps.
+OFFSET_ONLY_EFFECTS = ("ambient",)
+#: Pixels a diagnosis of a depth session renders at most (larger images are binned).
+MAX_DIAGNOSIS_PIXELS = 8_000
+
+
+def frequencies_for(session: Session, scene: Any | None) -> tuple[np.ndarray, str]:
+    """The modulation frequencies of a depth session: recorded, else the twin scene's."""
+    sc = session.sensor_config or {}
+    if sc.get("freq_hz"):
+        return np.atleast_1d(np.asarray(sc["freq_hz"], float)), "the session's recorded sensor configuration"
+    sensor = getattr(scene, "sensor", None)
+    if sensor is not None and getattr(sensor, "freq_hz", None):
+        return np.asarray(sensor.freq_hz, float), "the twin scene's sensor block (the session records none)"
+    raise TofhilError("records no modulation frequency and the scene gives none", file=session.path,
+                      field="sensor.freq_hz", expected="a scene with sensor.freq_hz (tofhil scene-from-capture "
+                      "--freq-hz writes it)")
+
+
+def depth_phasor(radial_m: np.ndarray, amplitude: np.ndarray, freq_hz: np.ndarray) -> np.ndarray:
+    """``S_f = A exp(i 4 pi f d / c)`` per frequency, ``[F, H, W]`` complex."""
+    phi = distance_to_phase(np.asarray(radial_m, np.float64)[None], np.asarray(freq_hz, float)[:, None, None])
+    return np.asarray(amplitude, np.float64)[None] * np.exp(1j * phi)
+
+
+def bin_factor(shape: tuple[int, int], max_pixels: int = MAX_DIAGNOSIS_PIXELS) -> int:
+    """The smallest integer bin that brings an image to at most ``max_pixels``."""
+    return max(1, int(math.ceil(math.sqrt(shape[0] * shape[1] / max_pixels))))
+
+
+def bin_mean(x: np.ndarray, b: int) -> np.ndarray:
+    """Mean over ``b x b`` blocks of the last two axes (the ragged edge is dropped)."""
+    if b == 1:
+        return x
+    h, w = x.shape[-2] // b * b, x.shape[-1] // b * b
+    x = x[..., :h, :w]
+    return x.reshape(x.shape[:-2] + (h // b, b, w // b, b)).mean(axis=(-3, -1))
+
+
+def binned_camera(camera: CameraModel, b: int) -> CameraModel:
+    """The camera of ``b x b`` binned pixels (the ragged edge dropped)."""
+    if b == 1:
+        return camera
+    from dataclasses import replace
+
+    w, h = camera.width // b, camera.height // b
+    f = 1.0 / b
+    return replace(camera, width=w, height=h, fx=camera.fx * f, fy=camera.fy * f,
+                   cx=(camera.cx + 0.5) * f - 0.5, cy=(camera.cy + 0.5) * f - 0.5,
+                   pixel_pitch_m=None if camera.pixel_pitch_m is None else camera.pixel_pitch_m * b)
+
+
+def spatial_noise_variance(s: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frequency noise variances of ``s [F, H, W]`` across (tangential: phase, i.e. depth)
+    and along (radial: amplitude) each pixel's phasor, from the local spatial scatter: the
+    robust spread (1.4826 MAD) of ``s - mean(4 neighbours)``, divided by 1.25 (that high-pass
+    of white noise has variance ``1.25 sigma^2``), over pixels whose neighbours are all usable.
+    Fine amplitude texture the twin's per-object reflectance cannot follow counts as radial
+    scatter: it is not a cause any effect of the library could explain."""
+    ok = usable.copy()
+    ok[1:] &= usable[:-1]
+    ok[:-1] &= usable[1:]
+    ok[:, 1:] &= usable[:, :-1]
+    ok[:, :-1] &= usable[:, 1:]
+    ok[0], ok[-1], ok[:, 0], ok[:, -1] = False, False, False, False
+    if ok.sum() < 20:
+        raise TofhilError(f"has {int(ok.sum())} pixels with usable neighbours", field="depth/valid",
+                          expected="at least 20 to estimate the noise")
+    tang, rad = [], []
+    for sf in s:
+        nb = 0.25 * (np.roll(sf, 1, 0) + np.roll(sf, -1, 0) + np.roll(sf, 1, 1) + np.roll(sf, -1, 1))
+        unit = sf[ok] / np.maximum(np.abs(sf[ok]), 1e-30)
+        hp = (sf - nb)[ok] * np.conj(unit)
+        for comp, out in ((hp.imag, tang), (hp.real, rad)):
+            mad = float(np.median(np.abs(comp - np.median(comp))))
+            out.append(max((1.4826 * mad) ** 2 / 1.25, 1e-30))
+    return np.asarray(tang), np.asarray(rad)
+
+
+def _unit(s: np.ndarray) -> np.ndarray:
+    return s / np.maximum(np.abs(s), 1e-30)
+
+
+def split_depth_session(session: Session, scene: Any | None = None, *, block_px: int = 8,
+                        max_frames: int | None = None, valid_mask: np.ndarray | None = None,
+                        max_pixels: int = MAX_DIAGNOSIS_PIXELS,
+                        amplitude_model_error: float | None = None) -> HeldOutData:
+    """A depth (+ amplitude) session as training and held-out phasors with their noise.
+
+    ``amplitude_model_error`` (relative): how well the twin scene can know the amplitude at
+    all (a scene built from the capture has one reflectance per object; its fit left this
+    scatter of the log amplitude). Amplitude differences below it are no evidence: the
+    radial noise is raised to it, so the depth channel is not outweighed by texture."""
+    if not session.has_depth:
+        raise TofhilError("has neither raw taps nor depth", file=session.path, field="depth/radial_m")
+    freq_hz, freq_source = frequencies_for(session, scene)
+    n = session.n_frames if max_frames is None else min(session.n_frames, max_frames)
+    if n < 1:
+        raise TofhilError("has no frame", file=session.path, field="depth/radial_m", expected="at least 1 frame")
+    cam = session.camera
+    b = bin_factor(cam.shape, max_pixels)
+    frames_s, frames_ok, conf_seen = [], [], False
+    for i in range(n):
+        df = session.depth_frame(i)
+        d = np.asarray(df.radial_m, np.float64)
+        amp = None if df.amplitude is None else np.asarray(df.amplitude, np.float64)
+        if amp is None or not np.isfinite(amp).any():
+            raise TofhilError("is missing or all NaN", file=session.path, field="depth/amplitude",
+                              expected="an amplitude (active brightness / IR) image: the depth-only diagnosis "
+                                       "compares the phasor A exp(i 4 pi f d / c)")
+        ok = np.asarray(df.valid, bool) & np.isfinite(d) & (d > 0) & np.isfinite(amp) & (amp > 0)
+        ok &= ~saturated_amplitude(amp, ok)
+        if valid_mask is not None and valid_mask.shape == ok.shape:
+            ok &= valid_mask
+        s = depth_phasor(np.where(ok, d, 0.0), np.where(ok, amp, 0.0), freq_hz)
+        if b > 1:
+            dd = np.where(ok, d, np.nan)
+            hb, wb = cam.height // b * b, cam.width // b * b
+            blocks = dd[:hb, :wb].reshape(hb // b, b, wb // b, b)
+            with np.errstate(invalid="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN bins: no valid pixel
+                lo, hi = np.nanmin(blocks, axis=(1, 3)), np.nanmax(blocks, axis=(1, 3))
+            okb = bin_mean(ok.astype(float), b) == 1.0
+            okb &= np.isfinite(lo) & (hi - lo <= 0.05 * np.where(np.isfinite(lo), lo, 1.0))
+            s, ok = bin_mean(s, b), okb
+        frames_s.append(s)
+        frames_ok.append(ok)
+        conf_seen |= "depth/confidence" in session.datasets
+    s_all = np.stack(frames_s)            # [N, F, H, W]
+    usable = np.logical_and.reduce(frames_ok)
+    bcam = binned_camera(cam, b)
+    if n >= 2:
+        train_idx, test_idx = np.arange(0, n, 2), np.arange(1, n, 2)
+        mean_all = s_all.mean(axis=0)
+        ref = _unit(mean_all)
+        dev = (s_all - mean_all[None]) * np.conj(ref)[None]
+
+        def pooled(x: np.ndarray) -> np.ndarray:
+            v = (x ** 2).sum(axis=0) / (n - 1)
+            v = np.stack([uniform_filter(c, size=5, mode="nearest") for c in v])
+            return np.maximum(v, max(float(np.median(v)) * 1e-3, 1e-30))
+
+        var_t, var_r = pooled(dev.imag), pooled(dev.real)
+        s_train, s_test = s_all[train_idx].mean(axis=0), s_all[test_idx].mean(axis=0)
+        var_train, var_test = var_t / len(train_idx), var_t / len(test_idx)
+        radial_scale = var_r / var_t
+        noise = (f"frame-to-frame scatter of the phasor over {n} frames, across (depth) and along "
+                 "(amplitude) it separately, pooled over 5 x 5 pixels")
+        n_train, n_test = len(train_idx), len(test_idx)
+    else:
+        s_train = s_test = s_all[0]
+        ref = _unit(s_all[0])
+        var_t, var_r = spatial_noise_variance(s_all[0], usable)
+        var_train = var_test = np.broadcast_to(var_t[:, None, None], s_train.shape).copy()
+        radial_scale = np.broadcast_to((var_r / var_t)[:, None, None], s_train.shape).copy()
+        amp_med = [max(float(np.median(np.abs(s_all[0][k][usable]))), 1e-30) for k in range(freq_hz.size)]
+        sigma_mm = [1e3 * math.sqrt(v) / amp_med[k] / (4 * math.pi * freq_hz[k] / C_M_PER_S)
+                    for k, v in enumerate(var_t)]
+        sigma_a = [100 * math.sqrt(v) / amp_med[k] for k, v in enumerate(var_r)]
+        noise = ("local spatial scatter of one frame (1.4826 MAD of the phasor's high-pass, across and along "
+                 "the phasor): depth noise " + ", ".join(f"{x:.2f} mm" for x in sigma_mm)
+                 + " and amplitude scatter " + ", ".join(f"{x:.1f}%" for x in sigma_a)
+                 + " at the median amplitude")
+        n_train = n_test = 1
+    if amplitude_model_error:
+        floor = (amplitude_model_error * np.abs(s_test)) ** 2
+        radial_scale = np.maximum(radial_scale * var_test, floor) / var_test
+        noise += (f"; amplitude known to the scene only to {100 * amplitude_model_error:.0f}% (one reflectance "
+                  "per object), so the amplitude noise is raised to that")
+    board = block_checkerboard(usable.shape, block_px)
+    sensor = getattr(scene, "sensor", None)
+    theta = np.asarray(sensor.theta_rad, float) if sensor is not None else equally_spaced_phases(4)
+    t_int = float(sensor.integration_time_s) if sensor is not None else 1e-3
+    return HeldOutData(camera=bcam, freq_hz=np.asarray(freq_hz, float), theta_rad=theta, integration_time_s=t_int,
+                       s_train=s_train, s_test=s_test, var_train=var_train, var_test=var_test, usable=usable,
+                       train_pixels=usable & board, test_pixels=usable & ~board,
+                       n_train_frames=n_train, n_test_frames=n_test, offset_channel=False,
+                       sensor_config=session.sensor_config, source=str(session.path),
+                       channels=("depth + amplitude phasor A exp(i 4 pi f d / c) at "
+                                 + ", ".join(f"{f / 1e6:g} MHz" for f in freq_hz) + f" (frequencies from {freq_source})"
+                                 + (f"; binned {b} x {b} pixels" if b > 1 else "")
+                                 + ("; the device's confidence is stored but not used as noise" if conf_seen else "")),
+                       noise=noise, phase_ref=ref, radial_var_scale=radial_scale)
+
+
+def split_for_diagnosis(session: Session, scene: Any, *, block_px: int = 8, max_frames: int | None = None,
+                        valid_mask: np.ndarray | None = None, amplitude_model_error: float | None = None
+                        ) -> HeldOutData:
+    """Raw taps when the session has them, else its depth and amplitude (this module)."""
+    from tofhil.eval.heldout import split_session
+
+    if session.has_raw:
+        return split_session(session, block_px=block_px, max_frames=max_frames)
+    return split_depth_session(session, scene, block_px=block_px, max_frames=max_frames, valid_mask=valid_mask,
+                               amplitude_model_error=amplitude_model_error)
+
+
+def observable_candidates(candidates: Sequence[str] | None, data: HeldOutData, *, depth_only: bool,
+                          unobservable: dict[str, str] | None = None) -> tuple[list[str], dict[str, str]]:
+    """The effects diagnosis may name, and those it leaves out with the reason: for a depth
+    session, effects that act only on the tap offset (it has none), and those the scene
+    cannot observe (``unobservable``, e.g. from scene-from-capture's metadata)."""
+    from tofhil.sim.effects import ORDER
+
+    names = list(candidates) if candidates is not None else list(ORDER)
+    dropped: dict[str, str] = {}
+    if depth_only and not data.offset_channel:
+        for e in OFFSET_ONLY_EFFECTS:
+            dropped[e] = "acts only on the tap offset, which these data do not contain"
+    for e, why in (unobservable or {}).items():
+        dropped.setdefault(e, why)
+    return [e for e in names if e not in dropped], {e: w for e, w in dropped.items() if e in names}

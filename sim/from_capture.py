@@ -1,0 +1,508 @@
+"""A twin scene built from a capture: camera, planar patches, the rest as a mesh, radiometry.
+
+``tofhil scene-from-capture`` turns one depth (+ amplitude) frame of a session into a scene
+file the twin renders:
+
+- the camera block is the session's camera model (intrinsics, distortion, resolution); the
+  modulation frequencies and wavelength come from the session (raw taps or a recorded
+  sensor configuration), else from the caller (a device capture of depth only says neither);
+- planar patches are segmented from the point cloud by iterated RANSAC (Open3D
+  ``segment_plane``) and written as ``plane`` objects: the pose puts the plane's local z on
+  the fitted normal and its centre at the middle of its inliers, the size spans the inliers
+  (1st to 99th percentile along the plane's axes);
+- what is not planar is a mesh triangulated from the range image itself (neighbouring pixels
+  joined unless a depth step separates them; PLY written by Open3D beside the scene, read by
+  trimesh). The organised cloud gives the connectivity for free and in linear time; a
+  surface reconstruction (Poisson, ball pivoting) would invent surfaces where the camera saw
+  none and takes unbounded time on half a million points;
+- radiometry: the scene is rendered by the twin (inverse square, incidence, emitter profile,
+  cos^4 lens fall-off, :mod:`tofhil.sim.radiometry`) and the amplitude image divided by the
+  prediction, per object. The emitter's beam exponent is fitted on the largest plane (the
+  log ratio against ``log cos`` of the emission angle is a line of slope ``n - n0``); the
+  power and reflectances follow from the per-object ratios. Only their product is seen by
+  an amplitude image: the largest surface is given reflectance ``ASSUMED_REFLECTANCE``
+  (stated in the metadata) unless that would put another object above 1;
+- the scene's pixels whose distance exceeds the unambiguous range of the frequencies are
+  flagged (a warning and a ``valid`` mask beside the scene).
+
+The metadata (``<scene>.capture.json`` beside the scene) says what was fitted and which
+effects the scene cannot observe: the planes' poses were fitted to the same depth, so a
+constant range offset (and the camera pose) is absorbed by them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import yaml
+
+from tofhil.camera import CameraModel
+from tofhil.depth import saturated_amplitude
+from tofhil.errors import TofhilError
+from tofhil.session import open_session
+from tofhil.unwrap import frequency_plan
+
+#: Reflectance given to the largest surface (amplitude sees only power x reflectance).
+ASSUMED_REFLECTANCE = 0.5
+#: Effects a scene whose planes were fitted to the capture's own depth cannot observe.
+UNOBSERVABLE_FITTED_POSE = {
+    "range_offset": "a constant range offset moves every fitted plane along its normal: the plane "
+                    "poses were fitted to the same depth and absorb it (to first order)",
+    "pose": "the camera pose relative to the scene was fitted from the same depth (the planes' poses)",
+}
+METADATA_SUFFIX = ".capture.json"
+VALID_SUFFIX = "_valid.npy"
+MESH_SUFFIX = "_rest.ply"
+
+
+@dataclass
+class PlanePatch:
+    name: str
+    normal: np.ndarray       # unit, pointing away from the camera
+    offset_m: float          # n . X = offset_m
+    centre: np.ndarray
+    axes: np.ndarray         # [3, 3] columns: u, v, n
+    size: tuple[float, float]
+    pixels: np.ndarray       # bool [H, W]
+    rms_m: float
+
+
+@dataclass
+class CaptureScene:
+    """What :func:`scene_from_capture` made: the scene file, its sidecars and the figures."""
+
+    scene_path: Path
+    metadata_path: Path
+    valid_path: Path
+    mesh_path: Path | None
+    planes: list[PlanePatch]
+    metadata: dict[str, Any]
+    warnings: list[str] = field(default_factory=list)
+
+
+def metadata_path_for(scene_path: str | Path) -> Path:
+    p = Path(scene_path)
+    return p.with_name(p.stem + METADATA_SUFFIX)
+
+
+def read_capture_metadata(scene_path: str | Path) -> dict[str, Any] | None:
+    """The metadata of a scene made from a capture, or None for any other scene."""
+    p = metadata_path_for(scene_path)
+    if not p.is_file():
+        return None
+    try:
+        return json.loads(p.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def _frequencies(session: Any, freq_hz: Sequence[float] | None, wavelength_m: float | None
+                 ) -> tuple[list[float], float, str]:
+    sc = session.sensor_config or {}
+    extra = dict(getattr(session.camera, "extra", {}) or {})
+    if freq_hz:
+        freqs, src = [float(f) for f in freq_hz], "--freq-hz"
+    elif session.has_raw:
+        freqs, src = [float(f) for f in session.freq_hz], "session raw/freq_hz"
+    elif sc.get("freq_hz"):
+        freqs, src = [float(f) for f in np.atleast_1d(sc["freq_hz"])], "session sensor_config"
+    else:
+        raise TofhilError("records no modulation frequency (a depth-only capture)", file=session.path,
+                          field="--freq-hz", expected="the device's modulation frequencies, e.g. "
+                          "--freq-hz 100e6 (comma-separated for several)")
+    for f in freqs:
+        if not (math.isfinite(f) and f > 0):
+            raise TofhilError(f"got {f}", field="--freq-hz", expected="positive frequencies in Hz")
+    wl = wavelength_m or sc.get("wavelength_m") or extra.get("wavelength_m")
+    if wl is None:
+        raise TofhilError("records no emitter wavelength", file=session.path, field="--wavelength-m",
+                          expected="the emitter's wavelength, e.g. --wavelength-m 850e-9")
+    return freqs, float(wl), src
+
+
+def _segment_planes(points: np.ndarray, pix: np.ndarray, shape: tuple[int, int], *, max_planes: int,
+                    threshold_m: float, min_fraction: float, seed: int = 0) -> list[PlanePatch]:
+    """Iterated RANSAC on a subsample; inliers then taken from every point within the threshold."""
+    from tofhil.open3d_loader import open3d
+
+    o3d = open3d()
+    o3d.utility.random.seed(seed)
+    rng = np.random.default_rng(seed)
+    remaining = np.ones(len(points), bool)
+    planes: list[PlanePatch] = []
+    min_points = max(200, int(min_fraction * len(points)))
+    for _ in range(3 * max_planes):
+        if len(planes) >= max_planes:
+            break
+        idx = np.flatnonzero(remaining)
+        if idx.size < min_points:
+            break
+        sub = idx if idx.size <= 30000 else rng.choice(idx, 30000, replace=False)
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[sub]))
+        model, _ = pc.segment_plane(distance_threshold=threshold_m, ransac_n=3, num_iterations=300)
+        n = np.asarray(model[:3], float)
+        norm = np.linalg.norm(n)
+        n, d = n / norm, -float(model[3]) / norm
+        if d < 0:  # normal away from the camera: n . X = d > 0 for points in front
+            n, d = -n, -d
+        dist = points[idx] @ n - d
+        inl = idx[np.abs(dist) < threshold_m]
+        if inl.size < min_points:
+            break
+        # least-squares refit on the inliers (RANSAC's plane is from 3 points)
+        c = points[inl].mean(axis=0)
+        _, _, vt = np.linalg.svd(points[inl] - c, full_matrices=False)
+        n = vt[2] if vt[2] @ c > 0 else -vt[2]
+        d = float(n @ c)
+        dist = points[idx] @ n - d
+        inl = idx[np.abs(dist) < threshold_m]
+        if inl.size < min_points:
+            break
+        remaining[inl] = False
+        twin = next((q for q in planes if q.normal @ n > math.cos(math.radians(5.0))
+                     and abs(q.offset_m - d) < 3.0 * threshold_m), None)
+        if twin is not None:
+            # the same surface, a little curved: its pixels stay with the first fit, so the
+            # curvature shows as a residual instead of as overlapping copies of one plane
+            twin.pixels.reshape(-1)[pix[inl]] = True
+            continue
+        # in-plane axes: u along the camera's x projected on the plane, v = n x u
+        u = np.array([1.0, 0.0, 0.0]) - n[0] * n
+        if np.linalg.norm(u) < 1e-6:
+            u = np.array([0.0, 1.0, 0.0]) - n[1] * n
+        u /= np.linalg.norm(u)
+        v = np.cross(n, u)
+        q = points[inl] - c
+        a, b = q @ u, q @ v
+        a0, a1 = np.percentile(a, [1, 99])
+        b0, b1 = np.percentile(b, [1, 99])
+        centre = c + u * 0.5 * (a0 + a1) + v * 0.5 * (b0 + b1)
+        centre = centre - n * (n @ centre - d)
+        mask = np.zeros(shape, bool)
+        mask.reshape(-1)[pix[inl]] = True
+        planes.append(PlanePatch(name=f"plane{len(planes)}", normal=n, offset_m=d, centre=centre,
+                                 axes=np.stack([u, v, n], axis=1), size=(float(a1 - a0), float(b1 - b0)),
+                                 pixels=mask, rms_m=float(np.sqrt(np.mean((points[inl] @ n - d) ** 2)))))
+    return planes
+
+
+def occluding_fraction(cam: CameraModel, p: PlanePatch, radial: np.ndarray, valid: np.ndarray,
+                       margin_m: float) -> float:
+    """Fraction of the pixels that see the plane's rectangle where the camera saw something
+    farther than it: there the rectangle would hide what was measured (a rectangle spanning
+    an L-shaped patch, a plane beyond its real edge)."""
+    rays = cam.rays
+    cos = rays @ p.normal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(cos > 1e-6, p.offset_m / cos, np.inf)
+    q = rays * np.where(np.isfinite(t), t, 0.0)[..., None] - p.centre
+    a, b = q @ p.axes[:, 0], q @ p.axes[:, 1]
+    inside = np.isfinite(t) & (np.abs(a) <= p.size[0] / 2) & (np.abs(b) <= p.size[1] / 2)
+    if not inside.any():
+        return 1.0
+    hides = inside & valid & (radial > t + margin_m)
+    return float(hides.sum() / inside.sum())
+
+
+#: A plane whose rectangle would hide more than this fraction of its pixels' measurements
+#: is left to the mesh instead (exact geometry of what was seen).
+MAX_OCCLUDING_FRACTION = 0.10
+
+
+def grid_mesh(points_hw: np.ndarray, mask: np.ndarray, *, stride: int = 2, max_step: float = 0.05
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles joining neighbouring pixels of a range image (``points_hw [H, W, 3]``, ``mask``):
+    a quad of pixels ``stride`` apart gives two triangles where all its corners are in ``mask``
+    and no edge is longer than ``max_step`` times the distance (a depth step, not a surface)."""
+    p = points_hw[::stride, ::stride]
+    m = mask[::stride, ::stride]
+    h, w = m.shape
+    ids = np.arange(h * w).reshape(h, w)
+    a, b, c, d = ids[:-1, :-1], ids[:-1, 1:], ids[1:, :-1], ids[1:, 1:]
+    flat = p.reshape(-1, 3)
+    mflat = m.reshape(-1)
+    rng = np.linalg.norm(flat, axis=1)
+    tris = []
+    for t in (np.stack([a, c, b], -1), np.stack([b, c, d], -1)):
+        t = t.reshape(-1, 3)
+        ok = mflat[t].all(axis=1)
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            edge = np.linalg.norm(flat[t[:, i]] - flat[t[:, j]], axis=1)
+            ok &= edge <= max_step * np.maximum(rng[t[:, i]], 1e-6)
+        tris.append(t[ok])
+    tri = np.concatenate(tris)
+    used = np.unique(tri)
+    remap = np.full(flat.shape[0], -1, np.int64)
+    remap[used] = np.arange(used.size)
+    return flat[used], remap[tri]
+
+
+def _camera_block(cam: CameraModel) -> dict[str, Any]:
+    d = {k: v for k, v in cam.to_dict().items() if k in ("width", "height", "fx", "fy", "cx", "cy", "dist",
+                                                           "pixel_pitch_m")}
+    d["f_number"] = 1.2  # ASSUMED (no lens data in a depth capture); scales with the fitted power
+    return d
+
+
+def _pose_matrix(p: PlanePatch) -> list[list[float]]:
+    m = np.eye(4)
+    m[:3, :3] = p.axes
+    m[:3, 3] = p.centre
+    return [[round(float(x), 9) for x in row] for row in m]
+
+
+def _scene_dict(name: str, cam: CameraModel, freqs: list[float], wavelength_m: float, planes: list[PlanePatch],
+                mesh_file: str | None, reflectance: dict[str, float], power_w: float, beam_n: float,
+                description: str) -> dict[str, Any]:
+    objects: list[dict[str, Any]] = []
+    materials: dict[str, Any] = {}
+    for p in planes:
+        materials[p.name] = {"reflectance": round(float(reflectance[p.name]), 6)}
+        objects.append({"name": p.name, "type": "plane", "size": [round(p.size[0], 6), round(p.size[1], 6)],
+                        "material": p.name, "pose": {"matrix": _pose_matrix(p)}})
+    if mesh_file:
+        materials["rest"] = {"reflectance": round(float(reflectance["rest"]), 6)}
+        objects.append({"name": "rest", "type": "mesh", "file": mesh_file, "material": "rest"})
+    return {
+        "name": name, "description": description,
+        "camera": _camera_block(cam),
+        "emitter": {"offset_m": [0.0, 0.0, 0.0], "power_w": float(power_w),
+                    "profile": {"type": "cos_n", "n": round(float(beam_n), 4)},
+                    "waveform": {"harmonics": [[1, 1.0, 0.0]]}},
+        "ambient_irradiance_w_m2": 0.0,
+        "materials": materials, "objects": objects,
+        # A linear, unclipped sensor: the fitted power maps the twin's amplitude onto the
+        # device's amplitude counts (whatever their gain); noise comes from the capture itself.
+        "sensor": {"taps": 4, "theta_deg": [0, 90, 180, 270], "freq_hz": [float(f) for f in freqs],
+                   "integration_time_s": 1.0e-3, "wavelength_m": float(wavelength_m),
+                   "quantum_efficiency": 0.3, "modulation_contrast": 1.0, "conversion_gain_dn_per_e": 1.0,
+                   "full_well_e": 1.0e15, "read_noise_e": 0.0, "dark_current_e_per_s": 0.0, "adc_bits": 32,
+                   "black_level_dn": 0.0, "fixed_pattern": {"dsnu_e": 0.0, "prnu": 0.0, "seed": 1}},
+        "effects": {},
+        "render": {"samples_per_pixel": 1, "bounces": 0},
+    }
+
+
+def _predicted_amplitude(scene: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The twin's amplitude per pixel, its radial distance and object id (one render)."""
+    from tofhil.demod import phasor
+    from tofhil.sim.twin import Twin
+
+    twin = Twin(scene)
+    taps = twin.expected_taps().astype(np.float64)
+    amp = np.abs(phasor(taps, twin.config.theta_rad)).mean(axis=0)
+    result = twin.render()[1]
+    return amp, np.asarray(result.radial_m), np.asarray(result.object_id)
+
+
+def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame: int = 0, max_planes: int = 4,
+                       freq_hz: Sequence[float] | None = None, wavelength_m: float | None = None,
+                       mesh: bool = True, threshold_m: float | None = None, force: bool = False,
+                       progress: Callable[[str], None] | None = None) -> CaptureScene:
+    """Build the twin scene of one frame of a session and write it (plus its sidecars)."""
+    from tofhil.sim.scene import load_scene, scene_from_yaml
+
+    t0 = time.perf_counter()
+    say = progress or (lambda _m: None)
+    out_path = Path(out_path)
+    if out_path.is_dir():
+        raise TofhilError("is a directory", file=out_path, field="--out", expected="a scene file name (.yaml)")
+    if not out_path.parent.is_dir():
+        raise TofhilError("directory does not exist", file=out_path.parent, field="--out")
+    sidecars = [out_path, metadata_path_for(out_path), out_path.with_name(out_path.stem + VALID_SUFFIX),
+                out_path.with_name(out_path.stem + MESH_SUFFIX)]
+    existing = [p for p in sidecars if p.exists()]
+    if existing and not force:
+        raise TofhilError("already exists; refusing to overwrite (use --force)", file=existing[0], field="--out")
+
+    with open_session(session_path) as s:
+        if not s.has_depth:
+            raise TofhilError("has no depth frames", file=session_path, field="depth/radial_m",
+                              expected="a session with depth (tofhil import / tofhil depth)")
+        if not 0 <= frame < s.n_frames:
+            raise TofhilError(f"is {frame}", file=session_path, field="--frame",
+                              expected=f"a frame index 0..{s.n_frames - 1}")
+        freqs, wl, freq_src = _frequencies(s, freq_hz, wavelength_m)
+        df = s.depth_frame(frame)
+        cam = s.camera
+    radial = np.asarray(df.radial_m, np.float64)
+    valid = np.asarray(df.valid, bool) & np.isfinite(radial) & (radial > 0)
+    amp = None if df.amplitude is None else np.asarray(df.amplitude, np.float64)
+    has_amp = amp is not None and np.isfinite(amp[valid]).any()
+    warnings: list[str] = []
+    if valid.sum() < 500:
+        raise TofhilError(f"has {int(valid.sum())} valid depth pixels in frame {frame}", file=session_path,
+                          field="depth/valid", expected="at least 500 to fit a scene")
+
+    # ---- geometry
+    pts_hw = cam.rays * radial[..., None]
+    pix = np.flatnonzero(valid)
+    points = pts_hw.reshape(-1, 3)[pix]
+    med = float(np.median(radial[valid]))
+    thr = threshold_m if threshold_m is not None else float(np.clip(0.01 * med, 0.004, 0.03))
+    say(f"segmenting planes (RANSAC, inlier threshold {thr * 1e3:.1f} mm) in {len(points)} points")
+    planes = _segment_planes(points, pix, cam.shape, max_planes=max_planes, threshold_m=thr, min_fraction=0.02)
+    kept = []
+    for p in planes:
+        frac = occluding_fraction(cam, p, radial, valid, 3.0 * thr)
+        if frac > MAX_OCCLUDING_FRACTION:
+            say(f"{p.name}: its rectangle would hide {100 * frac:.0f}% of what the camera saw behind it; "
+                "left to the mesh")
+        else:
+            kept.append(p)
+    planes = [dataclasses.replace(p, name=f"plane{i}") for i, p in enumerate(kept)]
+    on_plane = np.zeros(cam.shape, bool)
+    for p in planes:
+        on_plane |= p.pixels
+    rest = valid & ~on_plane
+    mesh_file: str | None = None
+    mesh_path = out_path.with_name(out_path.stem + MESH_SUFFIX)
+    written: list[Path] = []
+    try:
+        if mesh and rest.sum() >= 200:
+            from tofhil.open3d_loader import open3d
+
+            stride = max(1, int(round(math.sqrt(cam.width * cam.height / 65536))))
+            verts, tris = grid_mesh(pts_hw, rest, stride=stride)
+            if len(tris):
+                o3d = open3d()
+                m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris))
+                written.append(mesh_path)
+                o3d.io.write_triangle_mesh(str(mesh_path), m, write_ascii=False)
+                mesh_file = mesh_path.name
+                say(f"the non-planar rest: {len(tris)} triangles from {int(rest.sum())} pixels -> {mesh_path.name}")
+        if not planes and mesh_file is None:
+            raise TofhilError("no planar patch and no surface to mesh was found", file=session_path,
+                              field="depth/radial_m", expected="a frame showing surfaces")
+
+        # ---- radiometry: render with unit power, compare with the amplitude image
+        names = [p.name for p in planes] + (["rest"] if mesh_file else [])
+        refl = {n: ASSUMED_REFLECTANCE for n in names}
+        beam_n, power = 1.0, 1.0
+        base_dir = out_path.resolve().parent
+        desc = f"twin of {Path(session_path).name} frame {frame} (tofhil scene-from-capture)"
+
+        def build(power_w: float, n_beam: float, r: dict[str, float]) -> Any:
+            d = _scene_dict(out_path.stem, cam, freqs, wl, planes, mesh_file, r, power_w, n_beam, desc)
+            return d, scene_from_yaml(yaml.safe_dump(d, sort_keys=False), source=str(out_path), base_dir=base_dir)
+
+        radiometry: dict[str, Any] = {"amplitude": "absent: reflectances and power are assumed"}
+        if has_amp:
+            usable = valid & np.isfinite(amp) & (amp > 0) & ~saturated_amplitude(amp, valid)
+            say("rendering the twin for the radiometry fit")
+            _, sc = build(power, beam_n, refl)
+            pred, _, oid = _predicted_amplitude(sc)
+            biggest = max(range(len(names)), key=lambda i: int(((oid == i) & usable).sum()))
+            sel = (oid == biggest) & usable & (pred > 0)
+            cos_e = cam.rays[..., 2]
+            if sel.sum() > 100 and np.ptp(np.log(cos_e[sel])) > 0.05:
+                x, y = np.log(cos_e[sel]), np.log(amp[sel] / pred[sel])
+                slope = float(np.polyfit(x, y, 1)[0])
+                beam_n = float(np.clip(1.0 + slope, 0.0, 30.0))
+                _, sc = build(power, beam_n, refl)
+                pred, _, oid = _predicted_amplitude(sc)
+            ratio = {}
+            for i, n in enumerate(names):
+                m = (oid == i) & usable & (pred > 0)
+                ratio[n] = float(np.median(amp[m] / pred[m])) if m.sum() >= 20 else float("nan")
+            ref = ratio[names[biggest]]
+            top = max(v for v in ratio.values() if math.isfinite(v))
+            # The render had power 1 W and reflectance R0 everywhere; amplitude is linear in
+            # power x reflectance, so object n needs P r_n / R0 = ratio_n. Only the product is
+            # seen: the largest surface gets R0 unless another would then exceed 1.
+            power = max(ref, ASSUMED_REFLECTANCE * top)
+            refl = {n: float(np.clip(ASSUMED_REFLECTANCE * v / power, 1e-4, 1.0)) if math.isfinite(v)
+                    else ASSUMED_REFLECTANCE for n, v in ratio.items()}
+            _, sc = build(power, beam_n, refl)
+            pred, _, oid = _predicted_amplitude(sc)
+            m = usable & (pred > 0)
+            lr = np.log(amp[m] / pred[m])
+            radiometry = {"amplitude": "fitted", "beam_exponent_n": beam_n, "power_w": power,
+                          "reflectance": refl, "reflectance_of_largest_surface_assumed": ASSUMED_REFLECTANCE,
+                          "log_amplitude_residual_median": float(np.median(lr)),
+                          "log_amplitude_residual_mad": float(1.4826 * np.median(np.abs(lr - np.median(lr)))),
+                          "pixels": int(m.sum())}
+            say(f"radiometry: beam cos^{beam_n:.2f}, power {power:.4g} W, reflectances "
+                + ", ".join(f"{k} {v:.3f}" for k, v in refl.items()))
+        else:
+            warnings.append("the session has no amplitude image: reflectances and emitter power are assumed")
+        scene_d, sc = build(power, beam_n, refl)
+
+        # ---- unambiguous range of the frequencies
+        plan = frequency_plan(np.asarray(freqs))
+        r_u = float(plan.unambiguous_range_m)
+        _, twin_r, oid = _predicted_amplitude(sc) if has_amp else (None, *_render_range(sc))
+        inside = ~(np.isfinite(twin_r) & (twin_r >= r_u)) & ~(valid & (radial >= r_u))
+        n_out = int((~inside).sum())
+        if n_out:
+            warnings.append(f"{n_out} pixels ({100.0 * n_out / inside.size:.1f}%) see the scene beyond the "
+                            f"unambiguous range {r_u:.3f} m of {', '.join(f'{f / 1e6:g} MHz' for f in freqs)}: "
+                            "the twin wraps there; they are outside the valid mask")
+
+        meta = {"source_session": str(session_path), "frame": frame, "frequencies_hz": freqs,
+                "frequencies_from": freq_src, "wavelength_m": wl, "unambiguous_range_m": r_u,
+                "valid_mask": sidecars[2].name, "pixels_beyond_unambiguous_range": n_out,
+                "planes": [{"name": p.name, "normal": p.normal.round(6).tolist(), "offset_m": p.offset_m,
+                            "size_m": list(p.size), "pixels": int(p.pixels.sum()), "rms_m": p.rms_m}
+                           for p in planes],
+                "mesh": mesh_file, "mesh_pixels": int(rest.sum()) if mesh_file else 0,
+                "ransac_threshold_m": thr, "radiometry": radiometry,
+                "geometry_from_depth": True,
+                "unobservable": dict(UNOBSERVABLE_FITTED_POSE),
+                "warnings": warnings, "seconds": round(time.perf_counter() - t0, 2)}
+        written += [out_path, sidecars[1], sidecars[2]]
+        out_path.write_text("# " + desc + "\n# made by tofhil scene-from-capture; metadata in "
+                            + sidecars[1].name + "\n" + yaml.safe_dump(scene_d, sort_keys=False))
+        np.save(sidecars[2], inside)
+        sidecars[1].write_text(json.dumps(meta, indent=2))
+        load_scene(out_path)  # the written file must load
+    except BaseException:
+        for p in written:
+            p.unlink(missing_ok=True)
+        raise
+    return CaptureScene(scene_path=out_path, metadata_path=sidecars[1], valid_path=sidecars[2],
+                        mesh_path=mesh_path if mesh_file else None, planes=planes, metadata=meta, warnings=warnings)
+
+
+def _render_range(scene: Any) -> tuple[np.ndarray, np.ndarray]:
+    from tofhil.sim.twin import Twin
+
+    r = Twin(scene).render()[1]
+    return np.asarray(r.radial_m), np.asarray(r.object_id)
+
+
+@dataclass
+class CaptureFacts:
+    """What diagnosis needs to know of a scene made from a capture (empty for other scenes)."""
+
+    unobservable: dict[str, str] = field(default_factory=dict)
+    valid_mask: np.ndarray | None = None
+    #: Relative scatter of the capture's amplitude about the scene's (log-amplitude MAD).
+    amplitude_model_error: float | None = None
+
+
+def capture_scene_facts(scene: Any) -> CaptureFacts:
+    """For a scene made by :func:`scene_from_capture` (its metadata beside its file): the
+    effects it cannot observe, its valid mask (full capture resolution) and how well it
+    knows the amplitude; else nothing."""
+    src = getattr(scene, "source", None)
+    if not src or str(src).startswith("<"):
+        return CaptureFacts()
+    meta = read_capture_metadata(src)
+    if not meta:
+        return CaptureFacts()
+    mask = None
+    name = meta.get("valid_mask")
+    if name:
+        p = Path(src).with_name(str(name))
+        if p.is_file():
+            mask = np.load(p).astype(bool)
+    err = (meta.get("radiometry") or {}).get("log_amplitude_residual_mad")
+    return CaptureFacts(dict(meta.get("unobservable") or {}), mask, float(err) if err else None)
