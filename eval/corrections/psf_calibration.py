@@ -14,15 +14,18 @@ fitted PSF applied by :class:`StrayLightOperator` reproduces the fit exactly.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from scipy.optimize import lsq_linear, minimize, nnls
 
 from tofhil.errors import TofhilError
-from tofhil.sim.straylight import (GaussianBlur, GaussianLobe, Ghost, StrayLightOperator, StrayLightPSF,
-                                   flip_image, ghost_shift)
+from tofhil.sim.straylight import (GaussianBlur, GaussianLobe, Ghost, PaddedConvolution, RadialProfile,
+                                   StrayLightOperator, StrayLightPSF, field_rho2, flip_image, ghost_shift,
+                                   radial_hat_sums, radial_hats, shift_grid)
 
 #: Narrowest lobe fitted (pixels); see :func:`default_sigmas`.
 MIN_SIGMA_PX = 1.0
@@ -252,4 +255,284 @@ def calibrate_from_sessions(capture: str | Path, reference: str | Path | None = 
                           f"{psf.info['scattered_fraction']:.3f})", file=reference or capture,
                           expected="a noise-free twin reference (tofhil simulate --no-noise) or more frames "
                                    "averaged, and a capture whose stray light is visible")
+    return psf
+
+
+# ---------------------------------------------------------------------------------------------
+# Free-form calibration: radial profile, fitted ghost, field-dependent lobe, veil
+# ---------------------------------------------------------------------------------------------
+#: Smoothness strengths tried (times the mean diagonal of the radial block of the Gram matrix).
+LAMBDAS = (0.0, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)
+#: Variance inflation above which a component is reported as not constrained by the data.
+VIF_LIMIT = 1e6
+
+
+def radial_knots(height: int, width: int, ratio: float = 2 ** 0.5) -> np.ndarray:
+    """Log-spaced knots from 1 px to beyond the sensor diagonal (ratio sqrt 2)."""
+    top = float(np.hypot(height, width))
+    n = int(np.ceil(np.log(top) / np.log(ratio))) + 1
+    return ratio ** np.arange(n)
+
+
+@dataclass
+class _Capture:
+    """One calibration capture: measured and stray-light-free signals, pixel weights."""
+
+    s_meas: np.ndarray
+    s_true: np.ndarray
+    weight: np.ndarray
+
+    @cached_property
+    def sqrt_w(self) -> np.ndarray:
+        return np.broadcast_to(np.sqrt(self.weight), self.s_true.shape)
+
+    def column(self, b: np.ndarray) -> np.ndarray:
+        bw = np.broadcast_to(b, self.s_true.shape) * self.sqrt_w
+        return np.concatenate([bw.real.ravel(), bw.imag.ravel()])
+
+    @cached_property
+    def mirror(self) -> GaussianBlur:
+        return GaussianBlur(flip_image(self.s_true))
+
+
+def _second_differences(n: int) -> np.ndarray:
+    d = np.zeros((max(n - 2, 0), n))
+    for i in range(n - 2):
+        d[i, i:i + 3] = (1.0, -2.0, 1.0)
+    return d
+
+
+def calibrate_psf_free(captures: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray | None]], cx: float, cy: float,
+                       *, knots: np.ndarray | None = None, field: bool = True, veil: bool = True,
+                       ghost: bool = True, fit_direct: bool = True, lambdas: Sequence[float] = LAMBDAS,
+                       ghost_search_px: float | None = None) -> StrayLightPSF:
+    """Fit a free-form PSF to one or more calibration captures ``(s_meas, s_true, weight)``.
+
+    ``h`` = a radial profile on log-spaced ``knots`` (non-negative, any fall-off: heavy
+    tails included) + with ``field`` the same profile's growth towards the field edge
+    (``rho^2`` times a second profile: a shift-variant lobe) + a uniform veil + a ghost with
+    FITTED centre and blur (found by correlating the residual with the mirrored image, then
+    refined) + the loss ``-S_true`` (``direct``). Every weight is a fraction of light. The
+    radial profiles are regularised by the second differences of their per-knot fractions;
+    the strength is chosen on held-out pixels (two interleaved 8 x 8-block folds of the fit
+    pixels). ``info`` reports the relative residual, the chosen strength, each component's
+    variance inflation (how well the data pin it down) and ``warnings``.
+    """
+    h, w = captures[0][1].shape[-2:]
+    center = (float(cx), float(cy))
+    caps = [_Capture(np.asarray(m, np.complex128), np.asarray(t, np.complex128),
+                     np.ones((h, w)) if wt is None else np.asarray(wt, np.float64)) for m, t, wt in captures]
+    for c in caps:
+        if c.s_meas.shape != c.s_true.shape or c.s_true.shape[-2:] != (h, w):
+            raise ValueError(f"measured {c.s_meas.shape} and true {c.s_true.shape} signals differ in shape")
+    kn = radial_knots(h, w) if knots is None else np.asarray(knots, np.float64)
+    sums = radial_hat_sums(tuple(kn))
+    hats = radial_hats(kn, *shift_grid((h, w)))
+    rho2 = field_rho2((h, w), center)
+    # Columns per capture; radial columns are unit fractions of light (hat / its plane sum).
+    labels: list[str] = [f"radial_{r:.3g}" for r in kn]
+    if field:
+        labels += [f"field_{r:.3g}" for r in kn]
+    if veil:
+        labels.append("veil")
+    if fit_direct:
+        labels.append("loss")
+    blocks, rhs = [], []
+    for c in caps:
+        cols = []
+        for j in range(kn.size):
+            cols.append(c.column(PaddedConvolution(hats[j] / sums[j], (h, w), (h - 1, w - 1))(c.s_true)))
+        if field:
+            src = rho2 * c.s_true
+            for j in range(kn.size):
+                cols.append(c.column(PaddedConvolution(hats[j] / sums[j], (h, w), (h - 1, w - 1))(src)))
+        if veil:
+            cols.append(c.column(c.s_true.sum(axis=(-2, -1), keepdims=True) / (h * w)))
+        if fit_direct:
+            cols.append(c.column(-c.s_true))
+        blocks.append(np.stack(cols, axis=1))
+        rhs.append(c.column(c.s_meas - c.s_true))
+    a = np.concatenate(blocks)
+    b = np.concatenate(rhs)
+    n_rad = kn.size * (2 if field else 1)
+    lower = np.zeros(len(labels))
+    upper = np.ones(len(labels))
+    if fit_direct:
+        upper[-1] = 0.9
+    if field:
+        lower[kn.size:n_rad] = -1.0  # a lobe may also weaken towards the field edge
+    pen = np.zeros((len(labels), len(labels)))
+    d2 = _second_differences(kn.size)
+    for s0 in ((0, kn.size), (kn.size, n_rad)) if field else ((0, kn.size),):
+        pen[s0[0]:s0[1], s0[0]:s0[1]] = d2.T @ d2
+
+    # Held-out folds: interleaved 8 x 8 blocks of every capture's pixels (real and imaginary
+    # rows of a pixel stay in the same fold).
+    yy, xx = np.mgrid[0:h, 0:w]
+    fold_px = ((yy // 8 + xx // 8) % 2).astype(bool)
+    fold = np.concatenate([np.tile(np.broadcast_to(fold_px, c.s_true.shape).ravel(), 2) for c in caps])
+
+    def ghost_cols(g: tuple[float, float, float] | None) -> np.ndarray:
+        if g is None:
+            return np.zeros((b.size, 0))
+        dx, dy, sg = g
+        return np.concatenate([c.column(c.mirror(sg, sg, (dx, dy))) for c in caps])[:, None]
+
+    def solve(g: tuple[float, float, float] | None, lam: float, rows: np.ndarray | None = None
+              ) -> tuple[np.ndarray, float]:
+        ag = np.concatenate([a, ghost_cols(g)], axis=1)
+        lo = np.concatenate([lower, np.zeros(ag.shape[1] - a.shape[1])])
+        up = np.concatenate([upper, np.full(ag.shape[1] - a.shape[1], 1.0)])
+        p = np.zeros((ag.shape[1],) * 2)
+        p[:len(labels), :len(labels)] = pen
+        am, bm = (ag, b) if rows is None else (ag[rows], b[rows])
+        gram = am.T @ am
+        scale = float(np.mean(np.diag(gram)[:kn.size])) or 1.0
+        coef = _bounded_gram(gram + lam * scale * p, am.T @ bm, lo, up)
+        return coef, float(np.linalg.norm(ag @ coef - b) if rows is None else 0.0)
+
+    def heldout(g: tuple[float, float, float] | None, lam: float) -> float:
+        err = 0.0
+        ag = np.concatenate([a, ghost_cols(g)], axis=1)
+        for f in (fold, ~fold):
+            coef, _ = solve(g, lam, f)
+            err += float(np.sum((ag[~f] @ coef - b[~f]) ** 2))
+        return err
+
+    lam = lambdas[0]
+    g_fit: tuple[float, float, float] | None = None
+    if ghost:
+        coef0, _ = solve(None, 1e-5)
+        g_fit = _find_ghost(caps, a @ coef0 - b, (h, w), center, ghost_search_px)
+    scores = {lm: heldout(g_fit, lm) for lm in lambdas}
+    lam = min(scores, key=scores.get)
+    if ghost and g_fit is not None:
+        from scipy.optimize import minimize as _min
+
+        def obj(x: np.ndarray) -> float:
+            return solve((x[0], x[1], float(np.exp(x[2]))), lam)[1]
+
+        x0 = np.array([g_fit[0], g_fit[1], np.log(max(g_fit[2], 0.5))])
+        res = _min(obj, x0, method="Nelder-Mead", options={"xatol": 1e-2, "fatol": 1e-9, "maxfev": 200})
+        g_fit = (float(res.x[0]), float(res.x[1]), float(np.exp(res.x[2])))
+    coef, rnorm = solve(g_fit, lam)
+    # Components -> the one PSF type.
+    c_rad = coef[:kn.size]
+    c_field = coef[kn.size:n_rad] if field else np.zeros(0)
+    i = n_rad
+    veil_w = float(coef[i]) if veil else 0.0
+    i += int(veil)
+    loss = float(coef[i]) if fit_direct else 0.0
+    i += int(fit_direct)
+    ghosts: tuple[Ghost, ...] = ()
+    if g_fit is not None and coef[i] > 0:
+        gcx = 0.5 * (g_fit[0] + (w - 1))  # d = 2c - (W-1, H-1)
+        gcy = 0.5 * (g_fit[1] + (h - 1))
+        ghosts = (Ghost(float(coef[i]), g_fit[2], (gcx, gcy)),)
+    radial = RadialProfile(tuple(float(r) for r in kn), tuple(float(v) for v in c_rad / sums),
+                           tuple(float(v) for v in c_field / sums) if field else ())
+    # Quality: residual, identifiability (variance inflation of each column, unregularised
+    # and with the chosen smoothness), warnings.
+    ag = np.concatenate([a, ghost_cols(g_fit)], axis=1)
+    names = labels + (["ghost"] if g_fit is not None else [])
+    gram = ag.T @ ag
+    dg = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
+    corr = gram / np.outer(dg, dg)
+    p = np.zeros_like(gram)
+    p[:len(labels), :len(labels)] = pen
+    scale = float(np.mean(np.diag(gram)[:kn.size])) or 1.0
+    corr_reg = (gram + lam * scale * p) / np.outer(dg, dg)
+    vif = np.diag(np.linalg.pinv(corr_reg))
+    cond = float(np.linalg.cond(corr))
+    stray = float(np.linalg.norm(b)) or 1.0
+    signal = float(np.linalg.norm(np.concatenate([c.column(c.s_meas) for c in caps]))) or 1.0
+    warnings: list[str] = []
+    rel = rnorm / stray
+    if rel > 0.1:
+        warnings.append(f"the fit leaves {100 * rel:.0f} % of the calibration's stray light unexplained: "
+                        "the lens has a form the PSF model cannot represent, or the reference is wrong")
+    weak = [nm for nm, v in zip(names, vif) if v > VIF_LIMIT]
+    if weak:
+        warnings.append("the calibration data cannot constrain " + ", ".join(weak)
+                        + " (variance inflation > 1e6): add captures (a bright patch at other field "
+                          "positions, a card off-axis) or average more frames")
+    if stray / signal < 1e-4:
+        warnings.append("the calibration capture shows almost no stray light (< 1e-4 of the signal)")
+    info = {"form": "free", "knots_px": kn.tolist(), "weights": [float(x) for x in coef], "basis": names,
+            "lambda": lam, "heldout_error": {str(k): v for k, v in scores.items()},
+            "relative_residual": rel, "residual_relative_to_signal": rnorm / signal,
+            "condition": cond, "variance_inflation": {nm: float(v) for nm, v in zip(names, vif)},
+            "direct": 1.0 - loss, "warnings": warnings, "captures": len(caps)}
+    psf = StrayLightPSF(veil=veil_w, ghosts=ghosts, radial=radial, conserve=False, direct=1.0 - loss, info=info)
+    info["scattered_fraction"] = StrayLightOperator(psf, (h, w), center).scattered_fraction
+    return psf
+
+
+def _bounded_gram(gram: np.ndarray, atb: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """``min x^T G x - 2 x^T c`` with ``lower <= x <= upper`` (bounded least squares via the
+    Cholesky factor of the column-scaled Gram matrix)."""
+    d = np.sqrt(np.clip(np.diag(gram), 0, None))
+    d[d == 0] = 1.0
+    g = gram / np.outer(d, d)
+    k = g.shape[0]
+    r = np.linalg.cholesky(g + 1e-12 * np.eye(k))
+    y = np.linalg.solve(r, atb / d)
+    res = lsq_linear(r.T, y, bounds=(lower * d, upper * d), method="bvls")
+    return res.x / d
+
+
+def _find_ghost(caps: Sequence[_Capture], resid: np.ndarray, shape: tuple[int, int], center: tuple[float, float],
+                search_px: float | None) -> tuple[float, float, float] | None:
+    """The ghost's shift ``d`` (of the mirrored image) that best explains the residual
+    ``A c - b`` of a fit without ghost: normalised cross-correlation over integer shifts
+    within ``search_px`` of the principal point's mirror, then a blur guess of 2 px."""
+    from scipy.signal import fftconvolve
+
+    h, w = shape
+    n = 0
+    num = np.zeros((2 * h - 1, 2 * w - 1))
+    den = np.zeros_like(num)
+    for c in caps:
+        size = c.s_true.size
+        r = -(resid[n:n + size] + 1j * resid[n + size:n + 2 * size]).reshape(c.s_true.shape)  # b - A c
+        n += 2 * size
+        r = r * np.sqrt(c.weight)  # the residual rows are weighted by sqrt(w); the model too
+        m = flip_image(c.s_true)
+        for k in range(m.shape[0] if m.ndim == 3 else 1):
+            mk = m[k] if m.ndim == 3 else m
+            rk = r[k] if r.ndim == 3 else r
+            # num[d] = Re sum_q r(q) conj(m(q - d)) * sqrt(w(q)): correlation of r with m.
+            num += fftconvolve(rk, np.conj(mk[::-1, ::-1]), mode="full").real
+            den += fftconvolve(c.weight, (np.abs(mk) ** 2)[::-1, ::-1], mode="full")
+    # Index (h-1, w-1) of the 'full' output is shift 0.
+    dy, dx = np.mgrid[-(h - 1):h, -(w - 1):w]
+    d0 = ghost_shift(shape, center)
+    lim = search_px if search_px is not None else 0.4 * max(h, w)
+    score = np.where((den > 0) & (num > 0) & (np.hypot(dx - d0[0], dy - d0[1]) <= lim),
+                     num / np.sqrt(np.maximum(den, 1e-300)), -np.inf)
+    if not np.isfinite(score.max()):
+        return None
+    iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
+    return float(dx[iy, ix]), float(dy[iy, ix]), 2.0
+
+
+def calibrate_free_target(s_meas: Sequence[np.ndarray], cx: float, cy: float, *, threshold: float = 0.2,
+                          rounds: int = 3, **kwargs: Any) -> StrayLightPSF:
+    """Free-form calibration from bright targets on a dark background alone (one or more
+    captures, e.g. a card on black and a bright patch at several field positions): fit on
+    the background pixels (true signal zero); the targets' true signal is the measurement,
+    then, each further round, the measurement deconvolved with the previous fit."""
+    meas = [np.asarray(s, np.complex128) for s in s_meas]
+    masks = [target_mask(s, threshold) for s in meas]
+    trues = [np.where(m, s, 0) for s, m in zip(meas, masks)]
+    psf = None
+    for k in range(rounds):
+        if psf is not None:
+            op = StrayLightOperator(psf, meas[0].shape[-2:], (cx, cy))
+            trues = [np.where(m, op.invert(s), 0) for s, m in zip(meas, masks)]
+        psf = calibrate_psf_free([(s, t, (~m).astype(np.float64)) for s, t, m in zip(meas, trues, masks)],
+                                 cx, cy, **kwargs)
+    assert psf is not None
+    psf.info["calibration"] = {"mode": "target", "form": "free", "threshold": threshold, "rounds": rounds,
+                               "target_pixels": [int(m.sum()) for m in masks]}
     return psf
