@@ -52,11 +52,14 @@ from tofhil.schema import Schema
 
 @dataclass(frozen=True)
 class GaussianLobe:
-    """A scattering lobe: ``weight`` of the light spread by a Gaussian (sigmas in pixels)."""
+    """A scattering lobe: ``weight`` of the light spread by a Gaussian (sigmas in pixels).
+    ``field_weight`` makes it shift-variant: a source at normalised field radius ``rho`` (0 at
+    the principal point, 1 at the sensor's corner) spreads ``weight + field_weight rho^2``."""
 
     weight: float
     sigma_x_px: float
     sigma_y_px: float
+    field_weight: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -169,7 +172,8 @@ class StrayLightPSF:
         A measured image is referred to by ``measured_file`` (written by the caller)."""
         d: dict[str, Any] = {"weight": 0.0}  # every lobe is in `gaussians`
         if self.gaussians:
-            d["gaussians"] = [[g.weight, g.sigma_x_px, g.sigma_y_px] for g in self.gaussians]
+            d["gaussians"] = [[g.weight, g.sigma_x_px, g.sigma_y_px] + ([g.field_weight] if g.field_weight else [])
+                              for g in self.gaussians]
         if self.veil:
             d["veil"] = self.veil
         if len(self.ghosts) == 1:
@@ -560,16 +564,26 @@ class StrayLightOperator:
         self.center_px = (float(c[0]), float(c[1]))
         self.keep: float | np.ndarray = psf.keep
         # A radial profile is not separable: it always goes through the FFT.
-        self.method = "fft" if method == "auto" or psf.radial is not None else method
+        self.method = ("fft" if method == "auto" or psf.radial is not None
+                       or any(g.field_weight for g in psf.gaussians) else method)
         self._field: PaddedConvolution | None = None
         rad = psf.radial
-        if rad is not None and rad.field_values and np.any(rad.field_values):
+        field_lobes = [g for g in psf.gaussians if g.field_weight]
+        if field_lobes or (rad is not None and rad.field_values and np.any(rad.field_values)):
+            # Shift-variant part: kernel applied to rho^2 S (a source's lobe grows with rho^2).
             self._rho2 = field_rho2(self.shape, self.center_px)
-            kf = np.tensordot(np.asarray(rad.field_values), radial_hats(rad.radii_px, *shift_grid(self.shape),
-                                                                        rad.aspect), axes=1)
+            kf = np.zeros((2 * h - 1, 2 * w - 1))
+            moved = 0.0
+            for g in field_lobes:
+                kf += g.field_weight * gaussian_kernel(self.shape, g.sigma_x_px, g.sigma_y_px)
+                moved += g.field_weight
+            if rad is not None and rad.field_values:
+                kf += np.tensordot(np.asarray(rad.field_values), radial_hats(rad.radii_px, *shift_grid(self.shape),
+                                                                             rad.aspect), axes=1)
+                moved += rad.field_weight
             self._field = PaddedConvolution(kf, self.shape, (h - 1, w - 1), workers)
             if psf.direct is None and psf.conserve:
-                self.keep = psf.keep - self._rho2 * rad.field_weight  # the field lobe moves light too
+                self.keep = psf.keep - self._rho2 * moved  # the field lobe moves light too
         self._conv: PaddedConvolution | None = None
         self._ghosts: list[PaddedConvolution] = []
         self._lobes: list[tuple[float, np.ndarray, np.ndarray]] = []
@@ -703,7 +717,7 @@ def apply_stray_light(s: np.ndarray, psf_params: StrayLightPSF | Mapping[str, An
 # Parameters (the `stray_light` effect's mapping)
 # ---------------------------------------------------------------------------------------------
 PSF_KEYS = ("weight", "sigma_px", "sigma_y_px", "gaussians", "veil", "ghost_weight", "ghost_sigma_px",
-            "ghost_center_px", "ghosts", "psf_file", "psf_center_px", "psf_scale", "conserve", "direct")
+            "ghost_center_px", "ghosts", "psf_file", "psf_center_px", "psf_scale", "conserve", "direct", "radial")
 
 
 def _num(params: Mapping[str, Any], key: str, default: float, *, source: str | Path, prefix: str,
@@ -768,14 +782,17 @@ def _psf_from_params(params: Mapping[str, Any], *, source: str | Path, prefix: s
             vals = [float(x) for x in g]
             if len(vals) == 2:
                 vals.append(vals[1])
-            w, sx, sy = vals
-            ok = 0 <= w <= 1 and 0 <= sx < math.inf and 0 <= sy < math.inf
+            if len(vals) == 3:
+                vals.append(0.0)
+            w, sx, sy, fw = vals
+            ok = 0 <= w <= 1 and 0 <= sx < math.inf and 0 <= sy < math.inf and -1 <= fw <= 1
         except (TypeError, ValueError):
             ok = False
         if not ok:
             raise InputFileError(f"got {g!r}", file=source, field=f"{prefix}.gaussians[{i}]",
-                                 expected="[weight in [0, 1], sigma_x_px >= 0, sigma_y_px >= 0]")
-        lobes.append(GaussianLobe(w, sx, sy))
+                                 expected="[weight in [0, 1], sigma_x_px >= 0, sigma_y_px >= 0(, field_weight "
+                                          "in [-1, 1])]")
+        lobes.append(GaussianLobe(w, sx, sy, fw))
     kw["gaussians"] = tuple(lobes)
     kw["veil"] = _num(params, "veil", 0.0, source=source, prefix=prefix, hi=1.0, expected="a fraction in [0, 1]")
     ghosts: list[Ghost] = []
@@ -816,6 +833,8 @@ def _psf_from_params(params: Mapping[str, Any], *, source: str | Path, prefix: s
                                      field=f"{prefix}.psf_center_px",
                                      expected=f"integer pixel [x, y] inside the {pw}x{ph} PSF image")
             kw["measured_center_px"] = (int(cx), int(cy))
+    if params.get("radial") is not None:
+        kw["radial"] = _radial_from_params(params["radial"], source=source, field_=f"{prefix}.radial")
     conserve = params.get("conserve", True)
     if not isinstance(conserve, bool):
         raise InputFileError(f"got {conserve!r}", file=source, field=f"{prefix}.conserve", expected="true or false")
@@ -831,3 +850,24 @@ def _psf_from_params(params: Mapping[str, Any], *, source: str | Path, prefix: s
         raise InputFileError(f"the weights add up to {psf.total_weight:g}", file=source, field=prefix,
                              expected="a total scattered fraction <= 1")
     return psf
+
+
+def _radial_from_params(v: Any, *, source: str | Path, field_: str) -> RadialProfile:
+    expected = ("{radii_px: [increasing radii > 0], values: [per-pixel fractions >= 0, one per radius], "
+                "field_values: [one per radius] (optional), aspect: > 0 (optional)}")
+    try:
+        radii = [float(x) for x in v["radii_px"]]
+        values = [float(x) for x in v["values"]]
+        fv = [float(x) for x in (v.get("field_values") or [])]
+        aspect = float(v.get("aspect", 1.0))
+        unknown = set(v) - {"radii_px", "values", "field_values", "aspect"}
+        ok = (not unknown and len(radii) >= 1 and len(values) == len(radii) and len(fv) in (0, len(radii))
+              and all(map(math.isfinite, radii + values + fv)) and radii[0] > 0
+              and all(b > a for a, b in zip(radii, radii[1:])) and min(values) >= 0
+              and math.isfinite(aspect) and aspect > 0
+              and all(a + b >= 0 for a, b in zip(values, fv or [0.0] * len(values))))
+    except (TypeError, ValueError, KeyError, AttributeError):
+        ok = False
+    if not ok:
+        raise InputFileError(f"got {v!r}", file=source, field=field_, expected=expected)
+    return RadialProfile(tuple(radii), tuple(values), tuple(fv), aspect)

@@ -14,8 +14,7 @@ fitted PSF applied by :class:`StrayLightOperator` reproduces the fit exactly.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from functools import cached_property
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -23,9 +22,8 @@ import numpy as np
 from scipy.optimize import lsq_linear, minimize, nnls
 
 from tofhil.errors import TofhilError
-from tofhil.sim.straylight import (GaussianBlur, GaussianLobe, Ghost, PaddedConvolution, RadialProfile,
-                                   StrayLightOperator, StrayLightPSF, field_rho2, flip_image, ghost_shift,
-                                   radial_hat_sums, radial_hats, shift_grid)
+from tofhil.sim.straylight import (GaussianBlur, GaussianLobe, Ghost, StrayLightOperator, StrayLightPSF,
+                                   field_rho2, flip_image, ghost_shift)
 
 #: Narrowest lobe fitted (pixels); see :func:`default_sigmas`.
 MIN_SIGMA_PX = 1.0
@@ -45,24 +43,31 @@ def default_sigmas(height: int, width: int) -> np.ndarray:
 
 
 def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, *,
-                  ghost_center_px: tuple[float, float] | None = None,
+                  ghost_center_px: tuple[float, float] | str | None = None,
                   sigmas: np.ndarray | None = None, veil: bool = True, ghost: bool = True,
                   fit_direct: bool = True, weight: np.ndarray | None = None,
-                  refine: bool = True) -> StrayLightPSF:
+                  refine: bool = True, field: bool = False,
+                  lambdas: Sequence[float] | None = None) -> StrayLightPSF:
     """Fit ``direct`` and ``h`` so that ``direct * S_true + h * S_true`` matches ``S_meas``.
 
-    Non-negative least squares over all pixels (real and imaginary parts). ``s_meas`` and
-    ``s_true`` are ``[..., H, W]`` complex (frequencies / frames stacked in front);
+    Bounded least squares over all pixels (real and imaginary parts). ``s_meas`` and
+    ``s_true`` are ``[..., H, W]`` complex (captures / frequencies stacked in front);
     ``s_true`` is the stray-light-free signal of the calibration scene -- the twin's
     render without stray light, or the target pixels of a bright target on a dark
     background (:func:`calibrate_psf_target`). ``(cx, cy)`` is the camera's principal
-    point; ghosts mirror through ``ghost_center_px`` (default the principal point, and the
-    PSF then follows the camera it corrects). The dictionary: one Gaussian lobe per width
-    in ``sigmas`` (default :func:`default_sigmas`), a uniform veil, the ghost (sharp and
-    blurred by each width), and, with ``fit_direct``, the loss ``-S_true`` (light scattered
-    away from its pixel). ``weight`` (``[H, W]``) weights pixels in the fit. With ``refine``
-    the active Gaussians' widths are then optimised continuously and separately in x and y
-    (variable projection), so lobes between the dictionary's widths are matched too.
+    point. The ghost mirrors through ``ghost_center_px``: default the principal point (the
+    PSF then follows the camera it corrects), a given ``(x, y)``, or ``"fit"``: found by
+    correlating the residual of a fit without ghost with the mirrored image, then refined
+    to sub-pixel with the lobes' widths. The dictionary: one Gaussian lobe per width in
+    ``sigmas`` (default :func:`default_sigmas`; many widths make any radial fall-off,
+    power-law tails included), with ``field`` the same lobes applied to ``rho^2 S`` (signed:
+    a shift-variant lobe that grows or shrinks towards the field edge), a uniform veil, the
+    ghost (sharp and blurred by each width), and, with ``fit_direct``, the loss ``-S_true``.
+    ``weight`` (broadcastable to ``s_true``) weights pixels. ``lambdas``: strengths of a
+    smoothness penalty on the lobe fractions across widths, the one with the least error on
+    held-out pixels (interleaved 8 x 8 blocks) is used; None = no penalty. With ``refine``
+    the active Gaussians' widths are optimised continuously, separately in x and y
+    (variable projection). ``info`` holds the fit-quality report (:func:`_quality`).
     """
     s_meas = np.asarray(s_meas, dtype=np.complex128)
     s_true = np.asarray(s_true, dtype=np.complex128)
@@ -72,67 +77,141 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     sig = default_sigmas(h, w) if sigmas is None else np.asarray(sigmas, dtype=np.float64)
     wt = np.ones((h, w)) if weight is None else np.sqrt(np.asarray(weight, dtype=np.float64))
     wt = np.broadcast_to(wt, s_true.shape).ravel()
-    center = (float(cx), float(cy)) if ghost_center_px is None else (float(ghost_center_px[0]),
-                                                                      float(ghost_center_px[1]))
+    fit_centre = isinstance(ghost_center_px, str)
+    if fit_centre and ghost_center_px != "fit":
+        raise ValueError(f"ghost_center_px must be (x, y), None or 'fit', got {ghost_center_px!r}")
+    center = ((float(cx), float(cy)) if ghost_center_px is None or fit_centre
+              else (float(ghost_center_px[0]), float(ghost_center_px[1])))
 
     def column(b: np.ndarray) -> np.ndarray:
         bw = np.broadcast_to(b, s_true.shape).ravel() * wt
         return np.concatenate([bw.real, bw.imag])
 
-    # Terms: (kind, label, (sigma_x, sigma_y) or None, column). kinds: gauss, veil, ghost, loss.
-    # Each column is exactly what the simulator's operator does with a unit weight.
-    terms: list[tuple[str, str, Any, np.ndarray]] = []
+    # Terms: (kind, label, (sigma_x, sigma_y) or None, column). kinds: gauss, field, veil,
+    # ghost, loss. Each column is exactly what the simulator's operator does with a unit weight.
     blur = GaussianBlur(s_true)
+    rho2 = field_rho2((h, w), (float(cx), float(cy)))
+    fblur = GaussianBlur(rho2 * s_true) if field else None
+    mirror = GaussianBlur(flip_image(s_true)) if ghost else None
+
+    def ghost_terms(c: tuple[float, float]) -> list[tuple[str, str, Any, np.ndarray]]:
+        d = ghost_shift((h, w), c)
+        return [("ghost", f"ghost_{sg:.3g}", (sg, sg), column(mirror(sg, sg, d)))
+                for sg in np.concatenate([[0.0], sig])]
+
+    terms: list[tuple[str, str, Any, np.ndarray]] = []
     for sg in sig:
         terms.append(("gauss", f"gauss_{sg:.3g}", (sg, sg), column(blur(sg, sg))))
+    if field:
+        for sg in sig:
+            terms.append(("field", f"field_{sg:.3g}", (sg, sg), column(fblur(sg, sg))))
     if veil:
         # Unit fraction spread evenly: every pixel gets sum(S) / (H W).
         terms.append(("veil", "veil", None, column(s_true.sum(axis=(-2, -1), keepdims=True) / (h * w))))
-    if ghost:
-        mirror = GaussianBlur(flip_image(s_true))
-        d = ghost_shift((h, w), center)
-        for sg in np.concatenate([[0.0], sig]):
-            terms.append(("ghost", f"ghost_{sg:.3g}", (sg, sg), column(mirror(sg, sg, d))))
     if fit_direct:
         terms.append(("loss", "loss", None, column(-s_true)))
     rhs = column(s_meas - s_true)
-    a_all = np.stack([t[3] for t in terms], axis=1)
-    # Every weight is a fraction of light in [0, 1]; the loss at most 0.9 (a lens that
-    # keeps less than a tenth of the light on its pixel is not a camera). The bounds keep
-    # an ill-posed fit (a noisy reference: average frames, render the twin noise-free)
-    # from trading a huge loss against huge lobes.
-    upper = np.array([0.9 if t[0] == "loss" else 1.0 for t in terms])
-    coef, rnorm = _nnls_gram(a_all.T @ a_all, a_all.T @ rhs, float(rhs @ rhs), upper)
+    bb = float(rhs @ rhs)
     n_gauss = len(sig)
+
+    def bounds(ts: list[tuple[str, str, Any, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+        # Every weight is a fraction of light in [0, 1] (a field term in [-1, 1]); the loss at
+        # most 0.9 (a lens that keeps less than a tenth of the light on its pixel is not a
+        # camera). The bounds keep an ill-posed fit from trading huge terms against each other.
+        lo = np.array([-1.0 if k[0] == "field" else 0.0 for k in ts])
+        up = np.array([0.9 if k[0] == "loss" else 1.0 for k in ts])
+        return lo, up
+
+    def penalty(ts: list[tuple[str, str, Any, np.ndarray]]) -> np.ndarray:
+        p = np.zeros((len(ts), len(ts)))
+        for kind in ("gauss", "field"):
+            idx = [i for i, k in enumerate(ts) if k[0] == kind]
+            if len(idx) > 2:
+                d2 = _second_differences(len(idx))
+                p[np.ix_(idx, idx)] += d2.T @ d2
+        return p
+
+    def fit(ts: list[tuple[str, str, Any, np.ndarray]], lam: float,
+            rows: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+        a = np.stack([k[3] for k in ts], axis=1)
+        am, bm = (a, rhs) if rows is None else (a[rows], rhs[rows])
+        gram = am.T @ am
+        lo, up = bounds(ts)
+        scale = float(np.mean(np.diag(gram)[:n_gauss])) or 1.0
+        coef = _bounded_gram(gram + lam * scale * penalty(ts), am.T @ bm, lo, up)
+        r = a @ coef - rhs
+        return coef, float(np.sqrt(r @ r))
+
+    if ghost and fit_centre:
+        coef0, _ = fit(terms, 0.0)
+        a0 = np.stack([k[3] for k in terms], axis=1)
+        d = _find_ghost(a0 @ coef0 - rhs, s_true, np.broadcast_to(wt.reshape(s_true.shape) ** 2, s_true.shape),
+                        (h, w), (float(cx), float(cy)))
+        if d is not None:
+            center = (0.5 * (d[0] + (w - 1)), 0.5 * (d[1] + (h - 1)))
+    if ghost:
+        terms += ghost_terms(center)
+
+    # Smoothness strength on held-out pixels (real and imaginary rows of a pixel together).
+    lam, scores = 0.0, {}
+    if lambdas:
+        yy, xx = np.mgrid[0:h, 0:w]
+        fold = np.tile(np.broadcast_to(((yy // 8 + xx // 8) % 2).astype(bool), s_true.shape).ravel(), 2)
+        a = np.stack([k[3] for k in terms], axis=1)
+        for lm in lambdas:
+            err = 0.0
+            for f in (fold, ~fold):
+                c, _ = fit(terms, lm, f)
+                r = a[~f] @ c - rhs[~f]
+                err += float(r @ r)
+            scores[float(lm)] = err
+        lam = min(scores, key=scores.get)
+    coef, rnorm = fit(terms, lam)
+
     if refine and np.any(coef[:n_gauss] > 0):
         # Variable projection: each run of neighbouring active widths becomes one Gaussian
-        # with free (sigma_x, sigma_y); the weights are re-solved linearly for every trial.
+        # with free (sigma_x, sigma_y); with a fitted ghost its centre is refined too; the
+        # weights are re-solved linearly for every trial.
         groups = _active_groups(coef[:n_gauss])
-        fixed = [t for t, c in zip(terms[n_gauss:], coef[n_gauss:]) if c > 0]
-        upper_f = np.array([0.9 if t[0] == "loss" else 1.0 for t in fixed])
-        fixed_a = np.stack([t[3] for t in fixed], axis=1) if fixed else np.zeros((rhs.size, 0))
-        # Gram blocks of the fixed columns are computed once; per trial only the new ones.
-        g_ff, c_f, bb = fixed_a.T @ fixed_a, fixed_a.T @ rhs, float(rhs @ rhs)
+        fixed = [k for k, c in zip(terms[n_gauss:], coef[n_gauss:]) if c != 0 and k[0] != "ghost"]
+        fixed_a = np.stack([k[3] for k in fixed], axis=1) if fixed else np.zeros((rhs.size, 0))
+        g_ff, c_f = fixed_a.T @ fixed_a, fixed_a.T @ rhs
+        ghost_sig = [k[2] for k, c in zip(terms, coef) if k[0] == "ghost" and c > 0]
         init = np.array([np.exp(np.average(np.log(sig[g]), weights=coef[g])) for g in groups])
+        n_lobe = 2 * len(groups)
 
         def solve(x: np.ndarray) -> tuple[np.ndarray, float, list[tuple[str, str, Any, np.ndarray]]]:
             gs = [("gauss", f"gauss_{sx:.3g}x{sy:.3g}", (sx, sy), column(blur(sx, sy)))
-                  for sx, sy in np.exp(np.clip(x, LOG_SIGMA_RANGE[0], LOG_SIGMA_RANGE[1])).reshape(-1, 2)]
-            a_g = np.stack([g[3] for g in gs], axis=1)
+                  for sx, sy in np.exp(np.clip(x[:n_lobe], LOG_SIGMA_RANGE[0], LOG_SIGMA_RANGE[1])).reshape(-1, 2)]
+            extra: list[tuple[str, str, Any, np.ndarray]] = []
+            if ghost_sig:
+                c = (center[0] + x[n_lobe], center[1] + x[n_lobe + 1]) if fit_centre else center
+                dd = ghost_shift((h, w), c)
+                extra = [("ghost", f"ghost_{s[0]:.3g}", s, column(mirror(s[0], s[1], dd))) for s in ghost_sig]
+            new = gs + extra
+            a_g = np.stack([k[3] for k in new], axis=1)
             gram = np.block([[a_g.T @ a_g, a_g.T @ fixed_a], [fixed_a.T @ a_g, g_ff]])
-            c, r = _nnls_gram(gram, np.concatenate([a_g.T @ rhs, c_f]), bb,
-                              np.concatenate([np.ones(len(gs)), upper_f]))
-            return c, r, gs
+            lo, up = bounds(new + fixed)
+            cc = _bounded_gram(gram, np.concatenate([a_g.T @ rhs, c_f]), lo, up)
+            res2 = bb - 2 * cc @ np.concatenate([a_g.T @ rhs, c_f]) + cc @ gram @ cc
+            return cc, float(np.sqrt(max(res2, 0.0))), new + fixed
 
         x0 = np.log(np.repeat(init, 2))
+        if ghost_sig and fit_centre:
+            x0 = np.concatenate([x0, [0.0, 0.0]])
         res = minimize(lambda x: solve(x)[1], x0, method="Nelder-Mead",
                        options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": 80 * x0.size + 40})
-        c_ref, r_ref, gs = solve(res.x)
+        c_ref, r_ref, ts = solve(res.x)
         if r_ref < rnorm:
-            terms, coef, rnorm = gs + fixed, c_ref, r_ref
+            terms, coef, rnorm = ts, c_ref, r_ref
+            if ghost_sig and fit_centre:
+                center = (center[0] + res.x[n_lobe], center[1] + res.x[n_lobe + 1])
     lobes, ghosts, veil_w, loss = [], [], 0.0, 0.0
+    field_w: dict[float, float] = {}
     gc = None if ghost_center_px is None else center
     for (kind, _, sxy, _), c in zip(terms, coef):
+        if kind == "field" and c != 0:
+            field_w[float(sxy[0])] = float(c)
         if c <= 0:
             continue
         if kind == "gauss":
@@ -141,14 +220,111 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
             veil_w += float(c)
         elif kind == "ghost":
             ghosts.append(Ghost(float(c), float(sxy[0]), gc))
-        else:
+        elif kind == "loss":
             loss += float(c)
-    info = {"basis": [t[1] for t in terms], "weights": [float(c) for c in coef],
-            "relative_residual": float(rnorm / (np.linalg.norm(rhs) or 1.0)), "direct": 1.0 - loss}
+    # A field term is a lobe of its own (weight 0 on axis, signed growth) with its own width.
+    lobes += [GaussianLobe(0.0, s, s, fw) for s, fw in field_w.items()]
     psf = StrayLightPSF(gaussians=tuple(lobes), veil=veil_w, ghosts=tuple(ghosts), conserve=False,
-                        direct=1.0 - loss, info=info)
+                        direct=1.0 - loss)
+    info = _quality(terms, coef, rhs, rnorm, column(s_meas), lam, scores)
+    info["direct"] = 1.0 - loss
+    if ghosts and fit_centre:
+        info["ghost_center_px"] = [float(center[0]), float(center[1])]
+    psf = replace(psf, info=info)
     info["scattered_fraction"] = StrayLightOperator(psf, (h, w), (cx, cy)).scattered_fraction
     return psf
+
+
+def _quality(terms: list[tuple[str, str, Any, np.ndarray]], coef: np.ndarray, rhs: np.ndarray, rnorm: float,
+             signal: np.ndarray, lam: float, scores: dict[float, float]) -> dict[str, Any]:
+    """The fit-quality report: residual relative to the stray light and to the signal, the
+    condition of the (column-scaled) design, each active component's variance inflation
+    (``(C^-1)_jj`` of the correlation matrix: 1 = independent of the others, > 1e6 = the data
+    cannot tell it from the others), and warnings."""
+    a = np.stack([k[3] for k in terms], axis=1)
+    gram = a.T @ a
+    dg = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
+    corr = gram / np.outer(dg, dg)
+    active = np.flatnonzero(coef != 0)
+    vif = np.diag(np.linalg.pinv(corr[np.ix_(active, active)])) if active.size else np.zeros(0)
+    stray = float(np.linalg.norm(rhs)) or 1.0
+    sig = float(np.linalg.norm(signal)) or 1.0
+    names = [terms[i][1] for i in active]
+    warnings: list[str] = []
+    rel = rnorm / stray
+    if rel > 0.1:
+        warnings.append(f"the fit leaves {100 * rel:.0f} % of the calibration's stray light unexplained: the lens "
+                        "has a form the PSF model cannot represent, the reference is wrong, or the capture is noisy")
+    weak = [n for n, v in zip(names, vif) if v > VIF_LIMIT]
+    if weak:
+        warnings.append("the calibration data cannot constrain " + ", ".join(weak) + " (variance inflation > 1e6): "
+                        "add captures (a bright patch at other field positions, a card off-axis) or average more "
+                        "frames")
+    if stray / sig < 1e-4:
+        warnings.append("the calibration capture shows almost no stray light (< 1e-4 of the signal)")
+    return {"basis": [k[1] for k in terms], "weights": [float(c) for c in coef],
+            "relative_residual": rel, "residual_relative_to_signal": rnorm / sig,
+            "condition": float(np.linalg.cond(corr)), "variance_inflation": dict(zip(names, map(float, vif))),
+            "lambda": lam, "heldout_error": {str(k): v for k, v in scores.items()}, "warnings": warnings}
+
+
+#: Variance inflation above which a component is reported as not constrained by the data.
+VIF_LIMIT = 1e6
+
+
+def _second_differences(n: int) -> np.ndarray:
+    d = np.zeros((max(n - 2, 0), n))
+    for i in range(n - 2):
+        d[i, i:i + 3] = (1.0, -2.0, 1.0)
+    return d
+
+
+def _bounded_gram(gram: np.ndarray, atb: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """``min ||A x - b||`` with ``lower <= x <= upper`` from the normal equations (Cholesky of
+    the column-scaled Gram matrix: a k x k problem instead of one row per pixel)."""
+    d = np.sqrt(np.clip(np.diag(gram), 0, None))
+    d[d == 0] = 1.0
+    g = gram / np.outer(d, d)
+    k = g.shape[0]
+    r = np.linalg.cholesky(g + 1e-12 * np.eye(k))
+    y = np.linalg.solve(r, atb / d)  # r lower-triangular: R^T = r, so R^-T c = r^-1 c
+    if not np.any(lower < 0):
+        coef, _ = nnls(r.T, y, maxiter=50 * k)
+        if np.all(coef <= upper * d):
+            return coef / d
+    res = lsq_linear(r.T, y, bounds=(lower * d, upper * d), method="bvls")
+    return res.x / d
+
+
+def _find_ghost(resid: np.ndarray, s_true: np.ndarray, weight: np.ndarray, shape: tuple[int, int],
+                center: tuple[float, float], search_px: float | None = None) -> tuple[float, float] | None:
+    """The shift ``d`` of the mirrored image (``d = 2c - (W-1, H-1)``) that best explains the
+    residual ``A c - b`` (weighted rows) of a fit without ghost: normalised cross-correlation
+    over integer shifts within ``search_px`` (default 0.4 of the sensor's larger side) of the
+    principal point's mirror."""
+    from scipy.signal import fftconvolve
+
+    h, w = shape
+    size = s_true.size
+    r = -(resid[:size] + 1j * resid[size:]).reshape(s_true.shape)  # b - A c, rows weighted by sqrt(w)
+    r = (r * np.sqrt(weight)).reshape((-1, h, w))
+    m = flip_image(s_true).reshape((-1, h, w))
+    wts = np.asarray(weight).reshape((-1, h, w))
+    num = np.zeros((2 * h - 1, 2 * w - 1))
+    den = np.zeros_like(num)
+    for k in range(m.shape[0]):
+        # num[d] = Re sum_q r(q) conj(m(q - d)) sqrt(w(q)); index (h-1, w-1) is d = 0.
+        num += fftconvolve(r[k], np.conj(m[k][::-1, ::-1]), mode="full").real
+        den += fftconvolve(wts[k], (np.abs(m[k]) ** 2)[::-1, ::-1], mode="full")
+    dy, dx = np.mgrid[-(h - 1):h, -(w - 1):w]
+    d0 = ghost_shift(shape, center)
+    lim = search_px if search_px is not None else 0.4 * max(h, w)
+    score = np.where((den > 0) & (num > 0) & (np.hypot(dx - d0[0], dy - d0[1]) <= lim),
+                     num / np.sqrt(np.maximum(den, 1e-300)), -np.inf)
+    if not np.isfinite(score.max()):
+        return None
+    iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
+    return float(dx[iy, ix]), float(dy[iy, ix])
 
 
 def _nnls_gram(gram: np.ndarray, atb: np.ndarray, btb: float,
@@ -193,9 +369,11 @@ def target_mask(s_meas: np.ndarray, threshold: float = 0.2) -> np.ndarray:
     return amp >= threshold * amp.max()
 
 
-def calibrate_psf_target(s_meas: np.ndarray, cx: float, cy: float, *, threshold: float = 0.2,
-                         rounds: int = 4, **kwargs: Any) -> StrayLightPSF:
-    """Calibrate from a bright target on a dark background alone (no twin needed).
+def calibrate_psf_target(s_meas: np.ndarray | Sequence[np.ndarray], cx: float, cy: float, *,
+                         threshold: float = 0.2, rounds: int = 4, **kwargs: Any) -> StrayLightPSF:
+    """Calibrate from bright targets on a dark background alone (no twin needed): one capture
+    ``[..., H, W]`` or several of the same camera (a card on black, a bright patch at several
+    field positions), fitted together.
 
     The fit uses the background pixels only (their true signal is zero). Round 0 takes
     the measured target pixels as the true source, which still holds the stray light the
@@ -203,19 +381,29 @@ def calibrate_psf_target(s_meas: np.ndarray, cx: float, cy: float, *, threshold:
     deconvolved with the previous PSF instead. Scattering that never leaves the target
     cannot be seen this way (nor does it matter for other pixels).
     """
-    s_meas = np.asarray(s_meas, dtype=np.complex128)
-    mask = target_mask(s_meas, threshold)
+    many = isinstance(s_meas, (list, tuple))
+    stack = np.stack([np.asarray(s, dtype=np.complex128) for s in s_meas]) if many \
+        else np.asarray(s_meas, dtype=np.complex128)[None]
+    if stack.ndim == 3:
+        stack = stack[:, None]
+    masks = np.stack([target_mask(s, threshold) for s in stack])[:, None]  # [N, 1, H, W]
     # The target's own pixels say nothing about h (their true value is unknown): fit
     # only the background, where the true signal is known to be zero.
-    kwargs.setdefault("weight", (~mask).astype(np.float64))
-    s_true = np.where(mask, s_meas, 0)
-    psf = calibrate_psf(s_meas, s_true, cx, cy, **kwargs)
+    kwargs.setdefault("weight", (~masks).astype(np.float64))
+    s_true = np.where(masks, stack, 0)
+    psf = calibrate_psf(stack, s_true, cx, cy, **kwargs)
     for _ in range(rounds - 1):
-        s_true = np.where(mask, StrayLightOperator(psf, s_meas.shape[-2:], (cx, cy)).invert(s_meas), 0)
-        psf = calibrate_psf(s_meas, s_true, cx, cy, **kwargs)
-    psf.info["calibration"] = {"mode": "target", "threshold": threshold, "rounds": rounds,
-                               "target_pixels": int(mask.sum())}
+        s_true = np.where(masks, StrayLightOperator(psf, stack.shape[-2:], (cx, cy)).invert(stack), 0)
+        psf = calibrate_psf(stack, s_true, cx, cy, **kwargs)
+    psf.info["calibration"] = {"mode": "target", "threshold": threshold, "rounds": rounds, "captures": len(stack),
+                               "target_pixels": [int(m.sum()) for m in masks]}
     return psf
+
+
+#: The free-form calibration's options (:func:`calibrate_psf`): many widths with a
+#: shift-variant copy, a fitted ghost centre, smoothness chosen on held-out pixels.
+FREE_FORM: dict[str, Any] = {"field": True, "ghost_center_px": "fit",
+                             "lambdas": (0.0, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)}
 
 
 def calibrate_from_sessions(capture: str | Path, reference: str | Path | None = None, *,
@@ -255,284 +443,4 @@ def calibrate_from_sessions(capture: str | Path, reference: str | Path | None = 
                           f"{psf.info['scattered_fraction']:.3f})", file=reference or capture,
                           expected="a noise-free twin reference (tofhil simulate --no-noise) or more frames "
                                    "averaged, and a capture whose stray light is visible")
-    return psf
-
-
-# ---------------------------------------------------------------------------------------------
-# Free-form calibration: radial profile, fitted ghost, field-dependent lobe, veil
-# ---------------------------------------------------------------------------------------------
-#: Smoothness strengths tried (times the mean diagonal of the radial block of the Gram matrix).
-LAMBDAS = (0.0, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)
-#: Variance inflation above which a component is reported as not constrained by the data.
-VIF_LIMIT = 1e6
-
-
-def radial_knots(height: int, width: int, ratio: float = 2 ** 0.5) -> np.ndarray:
-    """Log-spaced knots from 1 px to beyond the sensor diagonal (ratio sqrt 2)."""
-    top = float(np.hypot(height, width))
-    n = int(np.ceil(np.log(top) / np.log(ratio))) + 1
-    return ratio ** np.arange(n)
-
-
-@dataclass
-class _Capture:
-    """One calibration capture: measured and stray-light-free signals, pixel weights."""
-
-    s_meas: np.ndarray
-    s_true: np.ndarray
-    weight: np.ndarray
-
-    @cached_property
-    def sqrt_w(self) -> np.ndarray:
-        return np.broadcast_to(np.sqrt(self.weight), self.s_true.shape)
-
-    def column(self, b: np.ndarray) -> np.ndarray:
-        bw = np.broadcast_to(b, self.s_true.shape) * self.sqrt_w
-        return np.concatenate([bw.real.ravel(), bw.imag.ravel()])
-
-    @cached_property
-    def mirror(self) -> GaussianBlur:
-        return GaussianBlur(flip_image(self.s_true))
-
-
-def _second_differences(n: int) -> np.ndarray:
-    d = np.zeros((max(n - 2, 0), n))
-    for i in range(n - 2):
-        d[i, i:i + 3] = (1.0, -2.0, 1.0)
-    return d
-
-
-def calibrate_psf_free(captures: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray | None]], cx: float, cy: float,
-                       *, knots: np.ndarray | None = None, field: bool = True, veil: bool = True,
-                       ghost: bool = True, fit_direct: bool = True, lambdas: Sequence[float] = LAMBDAS,
-                       ghost_search_px: float | None = None) -> StrayLightPSF:
-    """Fit a free-form PSF to one or more calibration captures ``(s_meas, s_true, weight)``.
-
-    ``h`` = a radial profile on log-spaced ``knots`` (non-negative, any fall-off: heavy
-    tails included) + with ``field`` the same profile's growth towards the field edge
-    (``rho^2`` times a second profile: a shift-variant lobe) + a uniform veil + a ghost with
-    FITTED centre and blur (found by correlating the residual with the mirrored image, then
-    refined) + the loss ``-S_true`` (``direct``). Every weight is a fraction of light. The
-    radial profiles are regularised by the second differences of their per-knot fractions;
-    the strength is chosen on held-out pixels (two interleaved 8 x 8-block folds of the fit
-    pixels). ``info`` reports the relative residual, the chosen strength, each component's
-    variance inflation (how well the data pin it down) and ``warnings``.
-    """
-    h, w = captures[0][1].shape[-2:]
-    center = (float(cx), float(cy))
-    caps = [_Capture(np.asarray(m, np.complex128), np.asarray(t, np.complex128),
-                     np.ones((h, w)) if wt is None else np.asarray(wt, np.float64)) for m, t, wt in captures]
-    for c in caps:
-        if c.s_meas.shape != c.s_true.shape or c.s_true.shape[-2:] != (h, w):
-            raise ValueError(f"measured {c.s_meas.shape} and true {c.s_true.shape} signals differ in shape")
-    kn = radial_knots(h, w) if knots is None else np.asarray(knots, np.float64)
-    sums = radial_hat_sums(tuple(kn))
-    hats = radial_hats(kn, *shift_grid((h, w)))
-    rho2 = field_rho2((h, w), center)
-    # Columns per capture; radial columns are unit fractions of light (hat / its plane sum).
-    labels: list[str] = [f"radial_{r:.3g}" for r in kn]
-    if field:
-        labels += [f"field_{r:.3g}" for r in kn]
-    if veil:
-        labels.append("veil")
-    if fit_direct:
-        labels.append("loss")
-    blocks, rhs = [], []
-    for c in caps:
-        cols = []
-        for j in range(kn.size):
-            cols.append(c.column(PaddedConvolution(hats[j] / sums[j], (h, w), (h - 1, w - 1))(c.s_true)))
-        if field:
-            src = rho2 * c.s_true
-            for j in range(kn.size):
-                cols.append(c.column(PaddedConvolution(hats[j] / sums[j], (h, w), (h - 1, w - 1))(src)))
-        if veil:
-            cols.append(c.column(c.s_true.sum(axis=(-2, -1), keepdims=True) / (h * w)))
-        if fit_direct:
-            cols.append(c.column(-c.s_true))
-        blocks.append(np.stack(cols, axis=1))
-        rhs.append(c.column(c.s_meas - c.s_true))
-    a = np.concatenate(blocks)
-    b = np.concatenate(rhs)
-    n_rad = kn.size * (2 if field else 1)
-    lower = np.zeros(len(labels))
-    upper = np.ones(len(labels))
-    if fit_direct:
-        upper[-1] = 0.9
-    if field:
-        lower[kn.size:n_rad] = -1.0  # a lobe may also weaken towards the field edge
-    pen = np.zeros((len(labels), len(labels)))
-    d2 = _second_differences(kn.size)
-    for s0 in ((0, kn.size), (kn.size, n_rad)) if field else ((0, kn.size),):
-        pen[s0[0]:s0[1], s0[0]:s0[1]] = d2.T @ d2
-
-    # Held-out folds: interleaved 8 x 8 blocks of every capture's pixels (real and imaginary
-    # rows of a pixel stay in the same fold).
-    yy, xx = np.mgrid[0:h, 0:w]
-    fold_px = ((yy // 8 + xx // 8) % 2).astype(bool)
-    fold = np.concatenate([np.tile(np.broadcast_to(fold_px, c.s_true.shape).ravel(), 2) for c in caps])
-
-    def ghost_cols(g: tuple[float, float, float] | None) -> np.ndarray:
-        if g is None:
-            return np.zeros((b.size, 0))
-        dx, dy, sg = g
-        return np.concatenate([c.column(c.mirror(sg, sg, (dx, dy))) for c in caps])[:, None]
-
-    def solve(g: tuple[float, float, float] | None, lam: float, rows: np.ndarray | None = None
-              ) -> tuple[np.ndarray, float]:
-        ag = np.concatenate([a, ghost_cols(g)], axis=1)
-        lo = np.concatenate([lower, np.zeros(ag.shape[1] - a.shape[1])])
-        up = np.concatenate([upper, np.full(ag.shape[1] - a.shape[1], 1.0)])
-        p = np.zeros((ag.shape[1],) * 2)
-        p[:len(labels), :len(labels)] = pen
-        am, bm = (ag, b) if rows is None else (ag[rows], b[rows])
-        gram = am.T @ am
-        scale = float(np.mean(np.diag(gram)[:kn.size])) or 1.0
-        coef = _bounded_gram(gram + lam * scale * p, am.T @ bm, lo, up)
-        return coef, float(np.linalg.norm(ag @ coef - b) if rows is None else 0.0)
-
-    def heldout(g: tuple[float, float, float] | None, lam: float) -> float:
-        err = 0.0
-        ag = np.concatenate([a, ghost_cols(g)], axis=1)
-        for f in (fold, ~fold):
-            coef, _ = solve(g, lam, f)
-            err += float(np.sum((ag[~f] @ coef - b[~f]) ** 2))
-        return err
-
-    lam = lambdas[0]
-    g_fit: tuple[float, float, float] | None = None
-    if ghost:
-        coef0, _ = solve(None, 1e-5)
-        g_fit = _find_ghost(caps, a @ coef0 - b, (h, w), center, ghost_search_px)
-    scores = {lm: heldout(g_fit, lm) for lm in lambdas}
-    lam = min(scores, key=scores.get)
-    if ghost and g_fit is not None:
-        from scipy.optimize import minimize as _min
-
-        def obj(x: np.ndarray) -> float:
-            return solve((x[0], x[1], float(np.exp(x[2]))), lam)[1]
-
-        x0 = np.array([g_fit[0], g_fit[1], np.log(max(g_fit[2], 0.5))])
-        res = _min(obj, x0, method="Nelder-Mead", options={"xatol": 1e-2, "fatol": 1e-9, "maxfev": 200})
-        g_fit = (float(res.x[0]), float(res.x[1]), float(np.exp(res.x[2])))
-    coef, rnorm = solve(g_fit, lam)
-    # Components -> the one PSF type.
-    c_rad = coef[:kn.size]
-    c_field = coef[kn.size:n_rad] if field else np.zeros(0)
-    i = n_rad
-    veil_w = float(coef[i]) if veil else 0.0
-    i += int(veil)
-    loss = float(coef[i]) if fit_direct else 0.0
-    i += int(fit_direct)
-    ghosts: tuple[Ghost, ...] = ()
-    if g_fit is not None and coef[i] > 0:
-        gcx = 0.5 * (g_fit[0] + (w - 1))  # d = 2c - (W-1, H-1)
-        gcy = 0.5 * (g_fit[1] + (h - 1))
-        ghosts = (Ghost(float(coef[i]), g_fit[2], (gcx, gcy)),)
-    radial = RadialProfile(tuple(float(r) for r in kn), tuple(float(v) for v in c_rad / sums),
-                           tuple(float(v) for v in c_field / sums) if field else ())
-    # Quality: residual, identifiability (variance inflation of each column, unregularised
-    # and with the chosen smoothness), warnings.
-    ag = np.concatenate([a, ghost_cols(g_fit)], axis=1)
-    names = labels + (["ghost"] if g_fit is not None else [])
-    gram = ag.T @ ag
-    dg = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
-    corr = gram / np.outer(dg, dg)
-    p = np.zeros_like(gram)
-    p[:len(labels), :len(labels)] = pen
-    scale = float(np.mean(np.diag(gram)[:kn.size])) or 1.0
-    corr_reg = (gram + lam * scale * p) / np.outer(dg, dg)
-    vif = np.diag(np.linalg.pinv(corr_reg))
-    cond = float(np.linalg.cond(corr))
-    stray = float(np.linalg.norm(b)) or 1.0
-    signal = float(np.linalg.norm(np.concatenate([c.column(c.s_meas) for c in caps]))) or 1.0
-    warnings: list[str] = []
-    rel = rnorm / stray
-    if rel > 0.1:
-        warnings.append(f"the fit leaves {100 * rel:.0f} % of the calibration's stray light unexplained: "
-                        "the lens has a form the PSF model cannot represent, or the reference is wrong")
-    weak = [nm for nm, v in zip(names, vif) if v > VIF_LIMIT]
-    if weak:
-        warnings.append("the calibration data cannot constrain " + ", ".join(weak)
-                        + " (variance inflation > 1e6): add captures (a bright patch at other field "
-                          "positions, a card off-axis) or average more frames")
-    if stray / signal < 1e-4:
-        warnings.append("the calibration capture shows almost no stray light (< 1e-4 of the signal)")
-    info = {"form": "free", "knots_px": kn.tolist(), "weights": [float(x) for x in coef], "basis": names,
-            "lambda": lam, "heldout_error": {str(k): v for k, v in scores.items()},
-            "relative_residual": rel, "residual_relative_to_signal": rnorm / signal,
-            "condition": cond, "variance_inflation": {nm: float(v) for nm, v in zip(names, vif)},
-            "direct": 1.0 - loss, "warnings": warnings, "captures": len(caps)}
-    psf = StrayLightPSF(veil=veil_w, ghosts=ghosts, radial=radial, conserve=False, direct=1.0 - loss, info=info)
-    info["scattered_fraction"] = StrayLightOperator(psf, (h, w), center).scattered_fraction
-    return psf
-
-
-def _bounded_gram(gram: np.ndarray, atb: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
-    """``min x^T G x - 2 x^T c`` with ``lower <= x <= upper`` (bounded least squares via the
-    Cholesky factor of the column-scaled Gram matrix)."""
-    d = np.sqrt(np.clip(np.diag(gram), 0, None))
-    d[d == 0] = 1.0
-    g = gram / np.outer(d, d)
-    k = g.shape[0]
-    r = np.linalg.cholesky(g + 1e-12 * np.eye(k))
-    y = np.linalg.solve(r, atb / d)
-    res = lsq_linear(r.T, y, bounds=(lower * d, upper * d), method="bvls")
-    return res.x / d
-
-
-def _find_ghost(caps: Sequence[_Capture], resid: np.ndarray, shape: tuple[int, int], center: tuple[float, float],
-                search_px: float | None) -> tuple[float, float, float] | None:
-    """The ghost's shift ``d`` (of the mirrored image) that best explains the residual
-    ``A c - b`` of a fit without ghost: normalised cross-correlation over integer shifts
-    within ``search_px`` of the principal point's mirror, then a blur guess of 2 px."""
-    from scipy.signal import fftconvolve
-
-    h, w = shape
-    n = 0
-    num = np.zeros((2 * h - 1, 2 * w - 1))
-    den = np.zeros_like(num)
-    for c in caps:
-        size = c.s_true.size
-        r = -(resid[n:n + size] + 1j * resid[n + size:n + 2 * size]).reshape(c.s_true.shape)  # b - A c
-        n += 2 * size
-        r = r * np.sqrt(c.weight)  # the residual rows are weighted by sqrt(w); the model too
-        m = flip_image(c.s_true)
-        for k in range(m.shape[0] if m.ndim == 3 else 1):
-            mk = m[k] if m.ndim == 3 else m
-            rk = r[k] if r.ndim == 3 else r
-            # num[d] = Re sum_q r(q) conj(m(q - d)) * sqrt(w(q)): correlation of r with m.
-            num += fftconvolve(rk, np.conj(mk[::-1, ::-1]), mode="full").real
-            den += fftconvolve(c.weight, (np.abs(mk) ** 2)[::-1, ::-1], mode="full")
-    # Index (h-1, w-1) of the 'full' output is shift 0.
-    dy, dx = np.mgrid[-(h - 1):h, -(w - 1):w]
-    d0 = ghost_shift(shape, center)
-    lim = search_px if search_px is not None else 0.4 * max(h, w)
-    score = np.where((den > 0) & (num > 0) & (np.hypot(dx - d0[0], dy - d0[1]) <= lim),
-                     num / np.sqrt(np.maximum(den, 1e-300)), -np.inf)
-    if not np.isfinite(score.max()):
-        return None
-    iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
-    return float(dx[iy, ix]), float(dy[iy, ix]), 2.0
-
-
-def calibrate_free_target(s_meas: Sequence[np.ndarray], cx: float, cy: float, *, threshold: float = 0.2,
-                          rounds: int = 3, **kwargs: Any) -> StrayLightPSF:
-    """Free-form calibration from bright targets on a dark background alone (one or more
-    captures, e.g. a card on black and a bright patch at several field positions): fit on
-    the background pixels (true signal zero); the targets' true signal is the measurement,
-    then, each further round, the measurement deconvolved with the previous fit."""
-    meas = [np.asarray(s, np.complex128) for s in s_meas]
-    masks = [target_mask(s, threshold) for s in meas]
-    trues = [np.where(m, s, 0) for s, m in zip(meas, masks)]
-    psf = None
-    for k in range(rounds):
-        if psf is not None:
-            op = StrayLightOperator(psf, meas[0].shape[-2:], (cx, cy))
-            trues = [np.where(m, op.invert(s), 0) for s, m in zip(meas, masks)]
-        psf = calibrate_psf_free([(s, t, (~m).astype(np.float64)) for s, t, m in zip(meas, trues, masks)],
-                                 cx, cy, **kwargs)
-    assert psf is not None
-    psf.info["calibration"] = {"mode": "target", "form": "free", "threshold": threshold, "rounds": rounds,
-                               "target_pixels": [int(m.sum()) for m in masks]}
     return psf
