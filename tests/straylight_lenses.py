@@ -67,15 +67,19 @@ def convolve(s: np.ndarray, k: np.ndarray) -> np.ndarray:
     return full[hy:hy + H, hx:hx + W]
 
 
-def mirror(s: np.ndarray, c: tuple[float, float]) -> np.ndarray:
-    """Light at pixel p moves to 2c - p (c on the half-pixel grid: integer targets); what
-    lands outside the sensor is lost."""
-    out = np.zeros_like(s)
+def ghost(s: np.ndarray, c: tuple[float, float], sigma: float, pad: int = 60) -> np.ndarray:
+    """Light at pixel p is imaged at 2c - p (c on the half-pixel grid: integer targets) and
+    blurred there, on a canvas larger than the sensor (the optics form the ghost before the
+    sensor crops it: light mirrored just past the edge blurs back in); then cropped."""
+    canvas = np.zeros((H + 2 * pad, W + 2 * pad), dtype=s.dtype)
     ys, xs = np.mgrid[0:H, 0:W]
-    tx, ty = np.rint(2 * c[0] - xs).astype(int), np.rint(2 * c[1] - ys).astype(int)
-    ok = (tx >= 0) & (tx < W) & (ty >= 0) & (ty < H)
-    out[ty[ok], tx[ok]] = s[ok]
-    return out
+    tx, ty = np.rint(2 * c[0] - xs).astype(int) + pad, np.rint(2 * c[1] - ys).astype(int) + pad
+    ok = (tx >= 0) & (tx < W + 2 * pad) & (ty >= 0) & (ty < H + 2 * pad)
+    canvas[ty[ok], tx[ok]] = s[ok]
+    if sigma > 0:
+        k = gaussian(sigma)
+        canvas = (fftconvolve(canvas.real, k, mode="same") + 1j * fftconvolve(canvas.imag, k, mode="same"))
+    return canvas[pad:pad + H, pad:pad + W]
 
 
 @dataclass
@@ -98,8 +102,7 @@ class Lens:
         if self.veil:
             out = out + self.veil * s.sum() / (H * W)  # uniform over the sensor
         for w, sg, c in self.ghosts:
-            m = mirror(s, c)
-            out = out + w * (convolve(m, gaussian(sg)) if sg > 0 else m)
+            out = out + w * ghost(s, c, sg)
         if self.field_lobe:
             w, fn = self.field_lobe
             out = out + w * fn(s)
@@ -160,6 +163,25 @@ def calibration_capture(lens: Lens) -> np.ndarray:
     """A white card on black (nothing else in view), through the lens: ``[1, H, W]``."""
     s, _ = scene_signal(square_rho=None, card=True, wall=False)
     return lens(s)[None]
+
+
+#: Bright patches on black for the bench procedure (rows, cols): the card's place in the
+#: dark-square scene, then the other field corners and the centre.
+PATCHES = ((slice(10, 26), slice(8, 24)), (slice(36, 52), slice(58, 74)), (slice(8, 20), slice(56, 70)),
+           (slice(40, 54), slice(6, 20)), (slice(24, 36), slice(34, 46)))
+
+
+def patch_captures(lens: Lens, n: int = len(PATCHES)) -> list[np.ndarray]:
+    """A bright patch (the card: 0.3 m, reflectance 1) on black at ``n`` field positions,
+    each through the lens: ``[1, H, W]`` each."""
+    out = []
+    dist = 0.3 / CAMERA.ray_z
+    for rows, cols in PATCHES[:n]:
+        amp = np.zeros((H, W))
+        amp[rows, cols] = 1.0 / dist[rows, cols] ** 2
+        s = amp * np.exp(1j * 4 * np.pi * FREQ[0] * dist / C_M_PER_S)
+        out.append(lens(s)[None])
+    return out
 
 
 def cases(lens: Lens) -> list[tuple[float, np.ndarray, np.ndarray]]:

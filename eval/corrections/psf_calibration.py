@@ -406,19 +406,30 @@ FREE_FORM: dict[str, Any] = {"field": True, "ghost_center_px": "fit",
                              "lambdas": (0.0, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)}
 
 
-def calibrate_from_sessions(capture: str | Path, reference: str | Path | None = None, *,
+def calibrate_from_sessions(capture: str | Path | Sequence[str | Path],
+                            reference: str | Path | Sequence[str | Path] | None = None, *,
                             target_threshold: float = 0.2, flat: Any = None,
-                            ghost_center_px: tuple[float, float] | None = None,
+                            ghost_center_px: tuple[float, float] | str | None = None, form: str = "gaussian",
                             progress: Callable[[Any, int, str], Any] | None = None) -> StrayLightPSF:
-    """Fit the PSF from a calibration session (frames averaged in the taps), against its
-    stray-light-free twin ``reference`` or, without one, as a bright target on a dark
-    background. ``flat`` (a tap calibration) is applied first, as to the sessions the PSF
-    will correct. Refuses a degenerate fit."""
+    """Fit the PSF from one or more calibration sessions (frames averaged in the taps), each
+    against its stray-light-free twin in ``reference`` (as many, in the same order) or,
+    without, as bright targets on a dark background. ``flat`` (a tap calibration) is applied
+    first, as to the sessions the PSF will correct. ``form``: ``"gaussian"`` (a dictionary of
+    Gaussian widths, veil, ghost through ``ghost_center_px``) or ``"free"`` (:data:`FREE_FORM`:
+    shift-variant lobes when there are several captures, fitted ghost centre, regularised).
+    Refuses a degenerate fit."""
     from tofhil.demod import phasor
     from tofhil.eval.fixed_pattern import mean_taps
 
     if not 0 < target_threshold < 1:
         raise TofhilError(f"got {target_threshold!r}", field="target_threshold", expected="a fraction in (0, 1)")
+    if form not in ("gaussian", "free"):
+        raise TofhilError(f"got {form!r}", field="--psf-form", expected="gaussian or free")
+    captures = [capture] if isinstance(capture, (str, Path)) else list(capture)
+    refs = None if reference is None else ([reference] if isinstance(reference, (str, Path)) else list(reference))
+    if refs is not None and len(refs) != len(captures):
+        raise TofhilError(f"{len(refs)} references for {len(captures)} calibration captures", field="--reference",
+                          expected="one --reference per --calibrate, in the same order")
 
     def mean_s(path: str | Path) -> tuple[np.ndarray, Any]:
         taps, camera, theta = mean_taps(path, progress)
@@ -426,21 +437,35 @@ def calibrate_from_sessions(capture: str | Path, reference: str | Path | None = 
             taps = flat.apply(taps)
         return phasor(taps, theta), camera
 
-    s_meas, cam = mean_s(capture)
-    if reference is not None:
-        s_true, _ = mean_s(reference)
-        if s_true.shape != s_meas.shape:
-            raise TofhilError(f"has signals of shape {s_true.shape}, the calibration capture {s_meas.shape}",
-                              file=reference, field="raw/taps", expected="the same camera and frequencies")
-        psf = calibrate_psf(s_meas, s_true, cam.cx, cam.cy, ghost_center_px=ghost_center_px)
-        psf.info["calibration"] = {"mode": "reference", "capture": str(capture), "reference": str(reference)}
+    kw: dict[str, Any] = dict(FREE_FORM) if form == "free" else {}
+    if form == "free":
+        # One capture sees each source at one field position: a shift-variant lobe is not
+        # identifiable from it (the fit would trade it against the others).
+        kw["field"] = len(captures) > 1
+    if ghost_center_px is not None:
+        kw["ghost_center_px"] = ghost_center_px
+    meas = [mean_s(c) for c in captures]
+    cam = meas[0][1]
+    for c, (s, _) in zip(captures, meas):
+        if s.shape != meas[0][0].shape:
+            raise TofhilError(f"has signals of shape {s.shape}, the first calibration capture {meas[0][0].shape}",
+                              file=c, field="raw/taps", expected="the same camera and frequencies")
+    if refs is not None:
+        trues = [mean_s(r)[0] for r in refs]
+        for r, s_true, (s, _) in zip(refs, trues, meas):
+            if s_true.shape != s.shape:
+                raise TofhilError(f"has signals of shape {s_true.shape}, the calibration capture {s.shape}",
+                                  file=r, field="raw/taps", expected="the same camera and frequencies")
+        psf = calibrate_psf(np.stack([m[0] for m in meas]), np.stack(trues), cam.cx, cam.cy, **kw)
+        psf.info["calibration"] = {"mode": "reference", "capture": [str(c) for c in captures],
+                                   "reference": [str(r) for r in refs]}
     else:
-        psf = calibrate_psf_target(s_meas, cam.cx, cam.cy, threshold=target_threshold,
-                                   ghost_center_px=ghost_center_px)
-        psf.info["calibration"]["capture"] = str(capture)
+        psf = calibrate_psf_target([m[0] for m in meas], cam.cx, cam.cy, threshold=target_threshold, **kw)
+        psf.info["calibration"]["capture"] = [str(c) for c in captures]
+    psf.info["calibration"]["form"] = form
     if psf.keep <= 0.1 + 1e-9 or psf.info["scattered_fraction"] >= psf.keep:
         raise TofhilError(f"the PSF fit is degenerate (direct {psf.keep:.3f}, scattered "
-                          f"{psf.info['scattered_fraction']:.3f})", file=reference or capture,
+                          f"{psf.info['scattered_fraction']:.3f})", file=(refs or captures)[0],
                           expected="a noise-free twin reference (tofhil simulate --no-noise) or more frames "
                                    "averaged, and a capture whose stray light is visible")
     return psf
