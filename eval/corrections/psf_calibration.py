@@ -200,7 +200,7 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
         if ghost_sig and fit_centre:
             x0 = np.concatenate([x0, [0.0, 0.0]])
         res = minimize(lambda x: solve(x)[1], x0, method="Nelder-Mead",
-                       options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": 80 * x0.size + 40})
+                       options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": min(80 * x0.size + 40, 400)})
         c_ref, r_ref, ts = solve(res.x)
         if r_ref < rnorm:
             terms, coef, rnorm = ts, c_ref, r_ref
@@ -226,7 +226,8 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     lobes += [GaussianLobe(0.0, s, s, fw) for s, fw in field_w.items()]
     psf = StrayLightPSF(gaussians=tuple(lobes), veil=veil_w, ghosts=tuple(ghosts), conserve=False,
                         direct=1.0 - loss)
-    info = _quality(terms, coef, rhs, rnorm, column(s_meas), lam, scores)
+    info = _quality(terms, coef, rhs, rnorm, float(np.linalg.norm(s_meas)), lam, scores,
+                    captures=int(s_true.shape[0]) if s_true.ndim == 4 else 1)
     info["direct"] = 1.0 - loss
     if ghosts and fit_centre:
         info["ghost_center_px"] = [float(center[0]), float(center[1])]
@@ -236,7 +237,7 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
 
 
 def _quality(terms: list[tuple[str, str, Any, np.ndarray]], coef: np.ndarray, rhs: np.ndarray, rnorm: float,
-             signal: np.ndarray, lam: float, scores: dict[float, float]) -> dict[str, Any]:
+             signal: float, lam: float, scores: dict[float, float], captures: int = 1) -> dict[str, Any]:
     """The fit-quality report: residual relative to the stray light and to the signal, the
     condition of the (column-scaled) design, each active component's variance inflation
     (``(C^-1)_jj`` of the correlation matrix: 1 = independent of the others, > 1e6 = the data
@@ -246,9 +247,10 @@ def _quality(terms: list[tuple[str, str, Any, np.ndarray]], coef: np.ndarray, rh
     dg = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
     corr = gram / np.outer(dg, dg)
     active = np.flatnonzero(coef != 0)
-    vif = np.diag(np.linalg.pinv(corr[np.ix_(active, active)])) if active.size else np.zeros(0)
-    stray = float(np.linalg.norm(rhs)) or 1.0
-    sig = float(np.linalg.norm(signal)) or 1.0
+    vif = np.abs(np.diag(np.linalg.pinv(corr[np.ix_(active, active)]))) if active.size else np.zeros(0)
+    stray_raw = float(np.linalg.norm(rhs))  # the stray light on the fit's pixels
+    stray = stray_raw or 1.0
+    sig = signal or 1.0  # the whole capture's signal
     names = [terms[i][1] for i in active]
     warnings: list[str] = []
     rel = rnorm / stray
@@ -260,7 +262,10 @@ def _quality(terms: list[tuple[str, str, Any, np.ndarray]], coef: np.ndarray, rh
         warnings.append("the calibration data cannot constrain " + ", ".join(weak) + " (variance inflation > 1e6): "
                         "add captures (a bright patch at other field positions, a card off-axis) or average more "
                         "frames")
-    if stray / sig < 1e-4:
+    if any(terms[i][0] == "field" for i in active) and captures == 1:
+        warnings.append("shift-variant (field) lobes were fitted from one capture: a source at one field "
+                        "position cannot tell them from the others; add a bright patch at other field positions")
+    if stray_raw / sig < 1e-4:
         warnings.append("the calibration capture shows almost no stray light (< 1e-4 of the signal)")
     return {"basis": [k[1] for k in terms], "weights": [float(c) for c in coef],
             "relative_residual": rel, "residual_relative_to_signal": rnorm / sig,
