@@ -72,8 +72,9 @@ def run(names: list[str], thesis: bool = True, log=print) -> list[dict]:
                     before = L.square_error(s_meas[0], s_true[0])
                     res[rho] = 1.0 - best(s_meas, s_true) / before
                 row["removed"][key] = res
-        log(f"{name}: {time.perf_counter() - t0:.0f} s")
         rows.append(row)
+        log(f"{name}: {time.perf_counter() - t0:.0f} s")
+        log(table([row])[-1])
     return rows
 
 

@@ -71,3 +71,30 @@ def test_free_form_beats_the_baseline_on_off_centre_ghosts(name):
     r0 = L.removed(lens, lambda s: sl.deconvolve(s, base, center_px=(L.CX, L.CY)))
     r1 = L.removed(lens, lambda s: sl.deconvolve(s, free, center_px=(L.CX, L.CY)))
     assert all(r1[k] > r0[k] for k in L.REFLECTANCES), (r0, r1)
+
+
+@pytest.mark.slow
+def test_cli_calibrates_one_free_form_psf_from_several_captures(tmp_path, tofhil_cli):
+    from tests.straylight_synthetic import write_session
+    from tofhil.sim.straylight import StrayLightPSF
+
+    lens = L.lenses()["ghost_7px"]
+    cals = [write_session(tmp_path / f"cal{i}.h5", s[0], n_frames=1, offset=50.0)
+            for i, s in enumerate(L.patch_captures(lens, 2))]
+    psf_path = tmp_path / "lens.json"
+    p = tofhil_cli("correct", cals[0], "--method", "psf", "--calibrate", cals[0], "--calibrate", cals[1],
+                   "--psf-form", "free", "--save-psf", psf_path, "--out", tmp_path / "c.h5", timeout=600)
+    assert p.returncode == 0, p.stderr
+    assert "PSF fit: residual" in p.stdout
+    psf = StrayLightPSF.load(psf_path)
+    assert psf.info["calibration"]["capture"] == [str(c) for c in cals]
+    true = np.array(lens.ghosts[0][2])
+    assert np.hypot(*(np.array(psf.info["ghost_center_px"]) - true)) < 0.5
+    # One --reference per --calibrate, or none.
+    bad = tofhil_cli("correct", cals[0], "--method", "psf", "--calibrate", cals[0], "--calibrate", cals[1],
+                     "--reference", cals[0], "--out", tmp_path / "d.h5")
+    assert bad.returncode == 2 and "error:" in bad.stderr and "--reference" in bad.stderr
+    assert not (tmp_path / "d.h5").exists()
+    bad = tofhil_cli("correct", cals[0], "--method", "psf", "--calibrate", cals[0], "--psf-form", "wild",
+                     "--out", tmp_path / "e.h5")
+    assert bad.returncode == 2 and "--psf-form" in bad.stderr
