@@ -332,30 +332,6 @@ def _find_ghost(resid: np.ndarray, s_true: np.ndarray, weight: np.ndarray, shape
     return float(dx[iy, ix]), float(dy[iy, ix])
 
 
-def _nnls_gram(gram: np.ndarray, atb: np.ndarray, btb: float,
-               upper: np.ndarray | None = None) -> tuple[np.ndarray, float]:
-    """Bounded least squares ``min ||A x - b||, 0 <= x <= upper`` from the normal equations.
-
-    With ``A^T A = R^T R`` (Cholesky of the column-scaled Gram matrix) the problem equals
-    ``min ||R x - R^-T A^T b||`` up to a constant, a k x k NNLS instead of one with a row
-    per pixel. Returns the coefficients and ``||A x - b||``.
-    """
-    d = np.sqrt(np.clip(np.diag(gram), 0, None))
-    d[d == 0] = 1.0
-    g = gram / np.outer(d, d)
-    c = atb / d
-    k = g.shape[0]
-    r = np.linalg.cholesky(g + 1e-12 * np.eye(k))
-    y = np.linalg.solve(r, c)  # r lower-triangular: R^T = r, so R^-T c = r^-1 c
-    coef, _ = nnls(r.T, y, maxiter=50 * k)
-    coef = coef / d
-    if upper is not None and np.any(coef > upper):
-        res = lsq_linear(r.T, y, bounds=(np.zeros(k), np.asarray(upper) * d), method="bvls")
-        coef = res.x / d
-    res2 = btb - 2 * coef @ atb + coef @ gram @ coef
-    return coef, float(np.sqrt(max(res2, 0.0)))
-
-
 def _active_groups(coef: np.ndarray) -> list[np.ndarray]:
     """Runs of consecutive positive coefficients -> index arrays."""
     groups: list[list[int]] = []
