@@ -98,3 +98,19 @@ def test_cli_calibrates_one_free_form_psf_from_several_captures(tmp_path, tofhil
     bad = tofhil_cli("correct", cals[0], "--method", "psf", "--calibrate", cals[0], "--psf-form", "wild",
                      "--out", tmp_path / "e.h5")
     assert bad.returncode == 2 and "--psf-form" in bad.stderr
+
+
+_SHORT = {"field_lobe": "measured 94.8 % at 1 %: the field model is first order in rho^2",
+          "gauss_other": "measured 94.9 % at 1 %"}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(reason=_SHORT[n], strict=True))
+                                  if n in _SHORT else n for n in L.lenses()])
+def test_bench_procedure_removes_95_percent_for_every_lens_form(name):
+    """The documented procedure (a card on black and a bright patch at four more field
+    positions, free form) removes >= 95 % of the dark-square error at 50, 5, 2 and 1 %."""
+    lens = L.lenses()[name]
+    psf = pc.calibrate_psf_target(L.patch_captures(lens), L.CX, L.CY, rounds=3, **pc.FREE_FORM)
+    r = L.removed(lens, lambda s: sl.deconvolve(s, psf, center_px=(L.CX, L.CY)))
+    assert all(v >= 0.95 for v in r.values()), r
