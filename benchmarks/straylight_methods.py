@@ -16,6 +16,9 @@ each method removes:
 
 The cases as a sweep spec (measurement against the stray-light-free twin, on Dask, one
 table): ``tofhil sweep configs/sweeps/straylight_reflectance.yaml --out DIR``.
+
+``--lens-forms``: the same methods on lenses of other forms than the PSF model (power-law
+tail, ghosts off the principal point, a field-dependent lobe), see straylight_lenses.py.
 """
 
 from __future__ import annotations
@@ -56,7 +59,13 @@ def main(argv: list[str] | None = None) -> int:
                     help="noisy captures, each the mean of N frames (references stay the noise-free twin)")
     ap.add_argument("--bundled-sensor", action="store_true",
                     help="keep the scenes' sensor as bundled (no ADC pedestal: dark taps clip at 0 DN)")
+    ap.add_argument("--lens-forms", action="store_true",
+                    help="instead: every lens form of tests/straylight_lenses.py (benchmarks/straylight_lenses.py)")
     args = ap.parse_args(argv)
+    if args.lens_forms:
+        import straylight_lenses  # beside this script
+
+        return straylight_lenses.main(["--markdown", str(args.markdown)] if args.markdown else [])
 
     import straylight_study as st  # the study beside this script (benchmarks/)
 

@@ -110,9 +110,10 @@ def object_id_map(session: Any) -> tuple[np.ndarray | None, dict[int, str]]:
     return np.asarray(r.object_id, dtype=np.int64), names
 
 
-def _mask_shadows(frame: DepthFrame, min_relative_amplitude: float) -> None:
-    """Invalidate unlit pixels (:func:`tofhil.eval.metrics.lit_pixels`)."""
-    lit = M.lit_pixels(frame.amplitude, min_relative_amplitude)
+def _mask_shadows(frame: DepthFrame, min_relative_amplitude: float, regions: list[np.ndarray]) -> None:
+    """Invalidate unlit pixels (:func:`tofhil.eval.metrics.lit_pixels`, relative to each
+    object's own amplitude)."""
+    lit = M.lit_pixels(frame.amplitude, min_relative_amplitude, regions)
     if lit is not None:
         frame.valid = frame.valid & lit
 
@@ -258,8 +259,6 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
             say(f"correcting A with {label}")
             f, s = M.mean_depth_frame(session_depth_frames(sa, max_frames, name, p, min_amplitude))
             variants.append(Variant(label, f, s, name, dict(params)))
-        for f in [ref] + [v.frame for v in variants]:
-            _mask_shadows(f, min_relative_amplitude)
         obj_source = None
         if objects:
             for sess, tag in ((sb, "B"), (sa, "A")):
@@ -268,6 +267,10 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
                     regions = M.object_regions(ids, names, min_pixels=20) + regions
                     obj_source = tag
                     break
+        # Validity relative to each object's own amplitude: a 1 % square is dark, not a shadow.
+        own = [r.mask for r in regions if r.kind == "object"]
+        for f in [ref] + [v.frame for v in variants]:
+            _mask_shadows(f, min_relative_amplitude, own)
         freqs = getattr(sa, "freq_hz", None) if sa.has_raw else None
         wrap_m = M.wrap_period(freqs) if freqs is not None else None
         a_label = str(sa.device.get("model") or sa.device.get("name") or Path(a_path).name)

@@ -238,15 +238,24 @@ class ResidualMaps:
 MIN_RELATIVE_AMPLITUDE = 1e-3
 
 
-def lit_pixels(amplitude: np.ndarray | None, min_relative: float = MIN_RELATIVE_AMPLITUDE) -> np.ndarray | None:
-    """Pixels whose amplitude reaches ``min_relative`` of the image's 99th percentile: where
-    no light arrives (a shadow) the phase means nothing. ``None`` without amplitudes."""
+def lit_pixels(amplitude: np.ndarray | None, min_relative: float = MIN_RELATIVE_AMPLITUDE,
+               regions: Sequence[np.ndarray] = ()) -> np.ndarray | None:
+    """Pixels whose amplitude reaches ``min_relative`` of the 99th percentile of their own
+    region (each mask of ``regions``, e.g. the scene's objects: a dark object is not a shadow
+    of a bright one), elsewhere of the whole image: where no light arrives (a shadow) the
+    phase means nothing. ``None`` without amplitudes."""
     if amplitude is None or min_relative <= 0:
         return None
     a = np.asarray(amplitude, np.float64)
     if not np.isfinite(a).any():
         return None
-    return np.nan_to_num(a) >= min_relative * np.nanpercentile(a, 99)
+    a0 = np.nan_to_num(a)
+    lit = a0 >= min_relative * np.nanpercentile(a, 99)
+    for m in regions:
+        m = np.asarray(m, bool)
+        if m.shape == a.shape and np.isfinite(a[m]).any():
+            lit[m] = a0[m] >= min_relative * np.nanpercentile(a[m], 99)
+    return lit
 
 
 def frame_validity(frame: DepthFrame, health: TapHealth | None = None) -> np.ndarray:

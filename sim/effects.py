@@ -427,7 +427,11 @@ class StrayLightEffect(Effect):
         "ghost_sigma_px": Param(2.0, 0.0, 100.0, "px", "blur of the ghost"),
     }
     options = {"sigma_y_px": "sigma of the main lobe along y (default sigma_px)",
-               "gaussians": "more lobes: [[weight, sigma_x_px, sigma_y_px], ...]",
+               "gaussians": "more lobes: [[weight, sigma_x_px, sigma_y_px(, field_weight)], ...]; field_weight "
+                            "makes a lobe shift-variant: weight + field_weight rho^2 (rho = 0 at the principal "
+                            "point, 1 at the sensor's corner)",
+               "radial": "free-form lobe: {radii_px: [...], values: [per-pixel fraction at each radius], "
+                         "field_values: [...], aspect: A}; piecewise linear in log r, heavy tails allowed",
                "ghost_center_px": "[x, y] the ghost mirrors through (default the principal point)",
                "ghosts": "more ghosts: [[weight, sigma_px], ...] or [[weight, sigma_px, cx, cy], ...]",
                "psf_file": "measured PSF image (.npy/.png/.tif; its peak pixel is the direct light)",
@@ -441,14 +445,14 @@ class StrayLightEffect(Effect):
                  prefix: str | None = None) -> dict[str, Any]:
         out = super().validate(values, source=source, prefix=prefix)
         given = values or {}
-        components = ("veil", "ghost_weight", "gaussians", "ghosts", "psf_file")
+        components = ("veil", "ghost_weight", "gaussians", "ghosts", "psf_file", "radial")
         if "weight" not in given and any(given.get(c) for c in components):
             out["weight"] = 0.0  # the default lobe only stands in when no component is named
         self.psf(out, source=source, prefix=prefix or "effects.stray_light", check_file=False)
         return out
 
     def is_off(self, values: Mapping[str, Any]) -> bool:
-        extra = values.get("gaussians") or values.get("ghosts") or values.get("psf_file")
+        extra = values.get("gaussians") or values.get("ghosts") or values.get("psf_file") or values.get("radial")
         direct = values.get("direct")
         return super().is_off(values) and not extra and (direct is None or float(direct) == 1.0)
 

@@ -52,11 +52,14 @@ from tofhil.schema import Schema
 
 @dataclass(frozen=True)
 class GaussianLobe:
-    """A scattering lobe: ``weight`` of the light spread by a Gaussian (sigmas in pixels)."""
+    """A scattering lobe: ``weight`` of the light spread by a Gaussian (sigmas in pixels).
+    ``field_weight`` makes it shift-variant: a source at normalised field radius ``rho`` (0 at
+    the principal point, 1 at the sensor's corner) spreads ``weight + field_weight rho^2``."""
 
     weight: float
     sigma_x_px: float
     sigma_y_px: float
+    field_weight: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,34 @@ class Ghost:
     weight: float
     sigma_px: float = 0.0
     center_px: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class RadialProfile:
+    """A free-form scattering lobe (heavy tails, any shape in r): the fraction of a pixel's
+    light that lands on ONE other pixel at distance ``r`` is ``k(r)``, piecewise linear in
+    ``log r`` between the knots ``radii_px`` (``values`` per pixel at each knot; constant
+    inside the first knot, zero beyond the last). ``aspect`` stretches it along y
+    (``r = hypot(dx, dy / aspect)``). ``field_values`` (same knots) make it shift-variant:
+    a source at normalised field radius ``rho`` (0 at the principal point, 1 at the sensor's
+    corner) scatters by ``k(r) + rho^2 k_f(r)``."""
+
+    radii_px: tuple[float, ...]
+    values: tuple[float, ...]
+    field_values: tuple[float, ...] = ()
+    aspect: float = 1.0
+
+    @property
+    def weight(self) -> float:
+        """Fraction of a pixel's light the on-axis profile moves (over the infinite plane)."""
+        return float(np.dot(self.values, radial_hat_sums(self.radii_px, self.aspect)))
+
+    @property
+    def field_weight(self) -> float:
+        """Extra fraction moved by a source at the sensor's corner (rho = 1)."""
+        if not self.field_values:
+            return 0.0
+        return float(np.dot(self.field_values, radial_hat_sums(self.radii_px, self.aspect)))
 
 
 @dataclass(frozen=True)
@@ -85,6 +116,8 @@ class StrayLightPSF:
     gaussians: tuple[GaussianLobe, ...] = ()
     veil: float = 0.0
     ghosts: tuple[Ghost, ...] = ()
+    #: A free-form radial lobe (heavy tails; optionally field-dependent).
+    radial: RadialProfile | None = None
     #: Measured point-source image (normalised on use) and its centre pixel ``(x, y)``.
     measured: np.ndarray | None = field(default=None, compare=False)
     measured_center_px: tuple[int, int] | None = None
@@ -110,7 +143,8 @@ class StrayLightPSF:
     @property
     def total_weight(self) -> float:
         """``W``: the fraction of each pixel's light that is scattered (over the infinite plane)."""
-        return sum(g.weight for g in self.gaussians) + self.veil + self.ghost_weight + self.measured_fraction
+        return (sum(g.weight for g in self.gaussians) + self.veil + self.ghost_weight + self.measured_fraction
+                + (self.radial.weight if self.radial is not None else 0.0))
 
     @property
     def keep(self) -> float:
@@ -138,7 +172,8 @@ class StrayLightPSF:
         A measured image is referred to by ``measured_file`` (written by the caller)."""
         d: dict[str, Any] = {"weight": 0.0}  # every lobe is in `gaussians`
         if self.gaussians:
-            d["gaussians"] = [[g.weight, g.sigma_x_px, g.sigma_y_px] for g in self.gaussians]
+            d["gaussians"] = [[g.weight, g.sigma_x_px, g.sigma_y_px] + ([g.field_weight] if g.field_weight else [])
+                              for g in self.gaussians]
         if self.veil:
             d["veil"] = self.veil
         if len(self.ghosts) == 1:
@@ -149,6 +184,12 @@ class StrayLightPSF:
         elif self.ghosts:
             d["ghosts"] = [[g.weight, g.sigma_px] + ([] if g.center_px is None else list(g.center_px))
                            for g in self.ghosts]
+        if self.radial is not None:
+            d["radial"] = {"radii_px": list(self.radial.radii_px), "values": list(self.radial.values)}
+            if self.radial.field_values:
+                d["radial"]["field_values"] = list(self.radial.field_values)
+            if self.radial.aspect != 1.0:
+                d["radial"]["aspect"] = self.radial.aspect
         if self.measured is not None:
             if measured_file is None:
                 raise ValueError("a PSF with a measured image needs the image's file name")
@@ -275,6 +316,9 @@ def psf_kernel(psf: StrayLightPSF, shape: tuple[int, int]) -> np.ndarray:
             k += g.weight * gaussian_kernel(shape, g.sigma_x_px, g.sigma_y_px)
     if psf.veil:
         k += psf.veil / (h * w)  # every shift: each pixel gets veil * sum(S) / (H W)
+    if psf.radial is not None:
+        k += np.tensordot(np.asarray(psf.radial.values), radial_hats(psf.radial.radii_px, *shift_grid(shape),
+                                                                     psf.radial.aspect), axes=1)
     if psf.measured is not None and psf.measured_scale != 0:
         p, (mcx, mcy) = _measured_normalised(psf.measured, psf.measured_center_px)
         p = p.copy()
@@ -304,6 +348,58 @@ def ghost_shift(shape: tuple[int, int], center_px: tuple[float, float]) -> tuple
     """``d = 2c - (W-1, H-1)``: the shift of the flipped image that mirrors through ``c``."""
     h, w = shape
     return 2.0 * center_px[0] - (w - 1), 2.0 * center_px[1] - (h - 1)
+
+
+def radial_hats(radii_px: tuple[float, ...] | np.ndarray, dx: np.ndarray, dy: np.ndarray,
+                aspect: float = 1.0) -> np.ndarray:
+    """``[n, ...]``: the piecewise-linear-in-``log r`` hat functions of the knots at the shifts
+    ``(dx, dy)`` (so ``k = sum_j values_j hat_j``); 0 at ``r = 0`` (the direct pixel), the
+    first hat constant inside the first knot, nothing beyond the last."""
+    radii = np.asarray(radii_px, dtype=np.float64)
+    r = np.hypot(dx, np.asarray(dy) / aspect)
+    lr = np.log(np.maximum(r, 1e-12))
+    lk = np.log(radii)
+    out = np.zeros((radii.size,) + np.shape(r))
+    for j in range(radii.size):
+        hat = np.zeros(np.shape(r))
+        if j > 0:
+            up = (lr >= lk[j - 1]) & (lr <= lk[j])
+            hat[up] = (lr[up] - lk[j - 1]) / (lk[j] - lk[j - 1])
+        else:
+            hat[(r > 0) & (lr <= lk[0])] = 1.0
+        if j + 1 < radii.size:
+            down = (lr > lk[j]) & (lr < lk[j + 1])
+            hat[down] = (lk[j + 1] - lr[down]) / (lk[j + 1] - lk[j])
+        out[j] = hat
+    return out
+
+
+def radial_hat_sums(radii_px: tuple[float, ...] | np.ndarray, aspect: float = 1.0) -> np.ndarray:
+    """Sum of each hat over the infinite pixel plane (the light one unit of ``values_j``
+    moves): evaluated on a grid reaching past the last knot."""
+    key = (tuple(float(r) for r in radii_px), float(aspect))
+    if key not in _HAT_SUMS:
+        half = int(math.ceil(max(key[0]) * max(1.0, aspect))) + 1
+        y, x = np.mgrid[-half:half + 1, -half:half + 1].astype(np.float64)
+        _HAT_SUMS[key] = radial_hats(key[0], x, y, aspect).sum(axis=(1, 2))
+    return _HAT_SUMS[key]
+
+
+_HAT_SUMS: dict[tuple[tuple[float, ...], float], np.ndarray] = {}
+
+
+def shift_grid(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """``(dx, dy)`` of the ``[2H-1, 2W-1]`` shift grid (centre ``(H-1, W-1)``)."""
+    h, w = shape
+    dy, dx = np.mgrid[-(h - 1):h, -(w - 1):w].astype(np.float64)
+    return dx, dy
+
+
+def field_rho2(shape: tuple[int, int], center_px: tuple[float, float]) -> np.ndarray:
+    """``rho^2``: squared distance from the principal point over the squared half diagonal."""
+    h, w = shape
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    return ((x - center_px[0]) ** 2 + (y - center_px[1]) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
 
 
 class GaussianBlur:
@@ -466,8 +562,28 @@ class StrayLightOperator:
         h, w = self.shape
         c = center_px or ((w - 1) / 2.0, (h - 1) / 2.0)
         self.center_px = (float(c[0]), float(c[1]))
-        self.keep = psf.keep
-        self.method = "fft" if method == "auto" else method
+        self.keep: float | np.ndarray = psf.keep
+        # A radial profile is not separable: it always goes through the FFT.
+        self.method = ("fft" if method == "auto" or psf.radial is not None
+                       or any(g.field_weight for g in psf.gaussians) else method)
+        self._field: PaddedConvolution | None = None
+        rad = psf.radial
+        field_lobes = [g for g in psf.gaussians if g.field_weight]
+        if field_lobes or (rad is not None and rad.field_values and np.any(rad.field_values)):
+            # Shift-variant part: kernel applied to rho^2 S (a source's lobe grows with rho^2).
+            self._rho2 = field_rho2(self.shape, self.center_px)
+            kf = np.zeros((2 * h - 1, 2 * w - 1))
+            moved = 0.0
+            for g in field_lobes:
+                kf += g.field_weight * gaussian_kernel(self.shape, g.sigma_x_px, g.sigma_y_px)
+                moved += g.field_weight
+            if rad is not None and rad.field_values:
+                kf += np.tensordot(np.asarray(rad.field_values), radial_hats(rad.radii_px, *shift_grid(self.shape),
+                                                                             rad.aspect), axes=1)
+                moved += rad.field_weight
+            self._field = PaddedConvolution(kf, self.shape, (h - 1, w - 1), workers)
+            if psf.direct is None and psf.conserve:
+                self.keep = psf.keep - self._rho2 * moved  # the field lobe moves light too
         self._conv: PaddedConvolution | None = None
         self._ghosts: list[PaddedConvolution] = []
         self._lobes: list[tuple[float, np.ndarray, np.ndarray]] = []
@@ -515,6 +631,8 @@ class StrayLightOperator:
                 out += gc(flipped)
         if self._conv is not None:
             out += self._conv(s)
+        if self._field is not None:
+            out += self._field(self._rho2 * s)
         return out
 
     def scatter_adjoint(self, s: np.ndarray) -> np.ndarray:
@@ -532,6 +650,8 @@ class StrayLightOperator:
                 out += flip_image(gc.adjoint(s))
         if self._conv is not None:
             out += self._conv.adjoint(s)
+        if self._field is not None:
+            out += self._rho2 * self._field.adjoint(s)
         return out
 
     def apply(self, s: np.ndarray) -> np.ndarray:
@@ -563,10 +683,11 @@ class StrayLightOperator:
         iterations reach float precision for realistic optics (< 0.3). Stops early when the
         update is below ``tol`` of the signal. Refuses optics it cannot invert this way.
         """
-        ratio = self.scattered_fraction / self.keep if self.keep > 0 else math.inf
+        keep_min = float(np.min(self.keep))
+        ratio = self.scattered_fraction / keep_min if keep_min > 0 else math.inf
         if ratio >= 1.0:
             raise TofhilError(f"the PSF scatters {self.scattered_fraction:.3f} of the signal against a direct "
-                              f"part of {self.keep:.3f}; the fixed-point inversion needs a ratio < 1",
+                              f"part of {keep_min:.3f}; the fixed-point inversion needs a ratio < 1",
                               field="psf", expected="scattered fraction / direct < 1")
         s_meas = np.asarray(s_meas)
         scale = float(np.abs(s_meas).max()) or 1.0
@@ -596,7 +717,7 @@ def apply_stray_light(s: np.ndarray, psf_params: StrayLightPSF | Mapping[str, An
 # Parameters (the `stray_light` effect's mapping)
 # ---------------------------------------------------------------------------------------------
 PSF_KEYS = ("weight", "sigma_px", "sigma_y_px", "gaussians", "veil", "ghost_weight", "ghost_sigma_px",
-            "ghost_center_px", "ghosts", "psf_file", "psf_center_px", "psf_scale", "conserve", "direct")
+            "ghost_center_px", "ghosts", "psf_file", "psf_center_px", "psf_scale", "conserve", "direct", "radial")
 
 
 def _num(params: Mapping[str, Any], key: str, default: float, *, source: str | Path, prefix: str,
@@ -661,14 +782,17 @@ def _psf_from_params(params: Mapping[str, Any], *, source: str | Path, prefix: s
             vals = [float(x) for x in g]
             if len(vals) == 2:
                 vals.append(vals[1])
-            w, sx, sy = vals
-            ok = 0 <= w <= 1 and 0 <= sx < math.inf and 0 <= sy < math.inf
+            if len(vals) == 3:
+                vals.append(0.0)
+            w, sx, sy, fw = vals
+            ok = 0 <= w <= 1 and 0 <= sx < math.inf and 0 <= sy < math.inf and -1 <= fw <= 1
         except (TypeError, ValueError):
             ok = False
         if not ok:
             raise InputFileError(f"got {g!r}", file=source, field=f"{prefix}.gaussians[{i}]",
-                                 expected="[weight in [0, 1], sigma_x_px >= 0, sigma_y_px >= 0]")
-        lobes.append(GaussianLobe(w, sx, sy))
+                                 expected="[weight in [0, 1], sigma_x_px >= 0, sigma_y_px >= 0(, field_weight "
+                                          "in [-1, 1])]")
+        lobes.append(GaussianLobe(w, sx, sy, fw))
     kw["gaussians"] = tuple(lobes)
     kw["veil"] = _num(params, "veil", 0.0, source=source, prefix=prefix, hi=1.0, expected="a fraction in [0, 1]")
     ghosts: list[Ghost] = []
@@ -709,6 +833,8 @@ def _psf_from_params(params: Mapping[str, Any], *, source: str | Path, prefix: s
                                      field=f"{prefix}.psf_center_px",
                                      expected=f"integer pixel [x, y] inside the {pw}x{ph} PSF image")
             kw["measured_center_px"] = (int(cx), int(cy))
+    if params.get("radial") is not None:
+        kw["radial"] = _radial_from_params(params["radial"], source=source, field_=f"{prefix}.radial")
     conserve = params.get("conserve", True)
     if not isinstance(conserve, bool):
         raise InputFileError(f"got {conserve!r}", file=source, field=f"{prefix}.conserve", expected="true or false")
@@ -724,3 +850,24 @@ def _psf_from_params(params: Mapping[str, Any], *, source: str | Path, prefix: s
         raise InputFileError(f"the weights add up to {psf.total_weight:g}", file=source, field=prefix,
                              expected="a total scattered fraction <= 1")
     return psf
+
+
+def _radial_from_params(v: Any, *, source: str | Path, field_: str) -> RadialProfile:
+    expected = ("{radii_px: [increasing radii > 0], values: [per-pixel fractions >= 0, one per radius], "
+                "field_values: [one per radius] (optional), aspect: > 0 (optional)}")
+    try:
+        radii = [float(x) for x in v["radii_px"]]
+        values = [float(x) for x in v["values"]]
+        fv = [float(x) for x in (v.get("field_values") or [])]
+        aspect = float(v.get("aspect", 1.0))
+        unknown = set(v) - {"radii_px", "values", "field_values", "aspect"}
+        ok = (not unknown and len(radii) >= 1 and len(values) == len(radii) and len(fv) in (0, len(radii))
+              and all(map(math.isfinite, radii + values + fv)) and radii[0] > 0
+              and all(b > a for a, b in zip(radii, radii[1:])) and min(values) >= 0
+              and math.isfinite(aspect) and aspect > 0
+              and all(a + b >= 0 for a, b in zip(values, fv or [0.0] * len(values))))
+    except (TypeError, ValueError, KeyError, AttributeError):
+        ok = False
+    if not ok:
+        raise InputFileError(f"got {v!r}", file=source, field=field_, expected=expected)
+    return RadialProfile(tuple(radii), tuple(values), tuple(fv), aspect)

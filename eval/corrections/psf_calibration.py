@@ -14,15 +14,16 @@ fitted PSF applied by :class:`StrayLightOperator` reproduces the fit exactly.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from scipy.optimize import lsq_linear, minimize, nnls
 
 from tofhil.errors import TofhilError
 from tofhil.sim.straylight import (GaussianBlur, GaussianLobe, Ghost, StrayLightOperator, StrayLightPSF,
-                                   flip_image, ghost_shift)
+                                   field_rho2, flip_image, ghost_shift)
 
 #: Narrowest lobe fitted (pixels); see :func:`default_sigmas`.
 MIN_SIGMA_PX = 1.0
@@ -42,24 +43,31 @@ def default_sigmas(height: int, width: int) -> np.ndarray:
 
 
 def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, *,
-                  ghost_center_px: tuple[float, float] | None = None,
+                  ghost_center_px: tuple[float, float] | str | None = None,
                   sigmas: np.ndarray | None = None, veil: bool = True, ghost: bool = True,
                   fit_direct: bool = True, weight: np.ndarray | None = None,
-                  refine: bool = True) -> StrayLightPSF:
+                  refine: bool = True, field: bool = False,
+                  lambdas: Sequence[float] | None = None) -> StrayLightPSF:
     """Fit ``direct`` and ``h`` so that ``direct * S_true + h * S_true`` matches ``S_meas``.
 
-    Non-negative least squares over all pixels (real and imaginary parts). ``s_meas`` and
-    ``s_true`` are ``[..., H, W]`` complex (frequencies / frames stacked in front);
+    Bounded least squares over all pixels (real and imaginary parts). ``s_meas`` and
+    ``s_true`` are ``[..., H, W]`` complex (captures / frequencies stacked in front);
     ``s_true`` is the stray-light-free signal of the calibration scene -- the twin's
     render without stray light, or the target pixels of a bright target on a dark
     background (:func:`calibrate_psf_target`). ``(cx, cy)`` is the camera's principal
-    point; ghosts mirror through ``ghost_center_px`` (default the principal point, and the
-    PSF then follows the camera it corrects). The dictionary: one Gaussian lobe per width
-    in ``sigmas`` (default :func:`default_sigmas`), a uniform veil, the ghost (sharp and
-    blurred by each width), and, with ``fit_direct``, the loss ``-S_true`` (light scattered
-    away from its pixel). ``weight`` (``[H, W]``) weights pixels in the fit. With ``refine``
-    the active Gaussians' widths are then optimised continuously and separately in x and y
-    (variable projection), so lobes between the dictionary's widths are matched too.
+    point. The ghost mirrors through ``ghost_center_px``: default the principal point (the
+    PSF then follows the camera it corrects), a given ``(x, y)``, or ``"fit"``: found by
+    correlating the residual of a fit without ghost with the mirrored image, then refined
+    to sub-pixel with the lobes' widths. The dictionary: one Gaussian lobe per width in
+    ``sigmas`` (default :func:`default_sigmas`; many widths make any radial fall-off,
+    power-law tails included), with ``field`` the same lobes applied to ``rho^2 S`` (signed:
+    a shift-variant lobe that grows or shrinks towards the field edge), a uniform veil, the
+    ghost (sharp and blurred by each width), and, with ``fit_direct``, the loss ``-S_true``.
+    ``weight`` (broadcastable to ``s_true``) weights pixels. ``lambdas``: strengths of a
+    smoothness penalty on the lobe fractions across widths, the one with the least error on
+    held-out pixels (interleaved 8 x 8 blocks) is used; None = no penalty. With ``refine``
+    the active Gaussians' widths are optimised continuously, separately in x and y
+    (variable projection). ``info`` holds the fit-quality report (:func:`_quality`).
     """
     s_meas = np.asarray(s_meas, dtype=np.complex128)
     s_true = np.asarray(s_true, dtype=np.complex128)
@@ -69,67 +77,141 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     sig = default_sigmas(h, w) if sigmas is None else np.asarray(sigmas, dtype=np.float64)
     wt = np.ones((h, w)) if weight is None else np.sqrt(np.asarray(weight, dtype=np.float64))
     wt = np.broadcast_to(wt, s_true.shape).ravel()
-    center = (float(cx), float(cy)) if ghost_center_px is None else (float(ghost_center_px[0]),
-                                                                      float(ghost_center_px[1]))
+    fit_centre = isinstance(ghost_center_px, str)
+    if fit_centre and ghost_center_px != "fit":
+        raise ValueError(f"ghost_center_px must be (x, y), None or 'fit', got {ghost_center_px!r}")
+    center = ((float(cx), float(cy)) if ghost_center_px is None or fit_centre
+              else (float(ghost_center_px[0]), float(ghost_center_px[1])))
 
     def column(b: np.ndarray) -> np.ndarray:
         bw = np.broadcast_to(b, s_true.shape).ravel() * wt
         return np.concatenate([bw.real, bw.imag])
 
-    # Terms: (kind, label, (sigma_x, sigma_y) or None, column). kinds: gauss, veil, ghost, loss.
-    # Each column is exactly what the simulator's operator does with a unit weight.
-    terms: list[tuple[str, str, Any, np.ndarray]] = []
+    # Terms: (kind, label, (sigma_x, sigma_y) or None, column). kinds: gauss, field, veil,
+    # ghost, loss. Each column is exactly what the simulator's operator does with a unit weight.
     blur = GaussianBlur(s_true)
+    rho2 = field_rho2((h, w), (float(cx), float(cy)))
+    fblur = GaussianBlur(rho2 * s_true) if field else None
+    mirror = GaussianBlur(flip_image(s_true)) if ghost else None
+
+    def ghost_terms(c: tuple[float, float]) -> list[tuple[str, str, Any, np.ndarray]]:
+        d = ghost_shift((h, w), c)
+        return [("ghost", f"ghost_{sg:.3g}", (sg, sg), column(mirror(sg, sg, d)))
+                for sg in np.concatenate([[0.0], sig])]
+
+    terms: list[tuple[str, str, Any, np.ndarray]] = []
     for sg in sig:
         terms.append(("gauss", f"gauss_{sg:.3g}", (sg, sg), column(blur(sg, sg))))
+    if field:
+        for sg in sig:
+            terms.append(("field", f"field_{sg:.3g}", (sg, sg), column(fblur(sg, sg))))
     if veil:
         # Unit fraction spread evenly: every pixel gets sum(S) / (H W).
         terms.append(("veil", "veil", None, column(s_true.sum(axis=(-2, -1), keepdims=True) / (h * w))))
-    if ghost:
-        mirror = GaussianBlur(flip_image(s_true))
-        d = ghost_shift((h, w), center)
-        for sg in np.concatenate([[0.0], sig]):
-            terms.append(("ghost", f"ghost_{sg:.3g}", (sg, sg), column(mirror(sg, sg, d))))
     if fit_direct:
         terms.append(("loss", "loss", None, column(-s_true)))
     rhs = column(s_meas - s_true)
-    a_all = np.stack([t[3] for t in terms], axis=1)
-    # Every weight is a fraction of light in [0, 1]; the loss at most 0.9 (a lens that
-    # keeps less than a tenth of the light on its pixel is not a camera). The bounds keep
-    # an ill-posed fit (a noisy reference: average frames, render the twin noise-free)
-    # from trading a huge loss against huge lobes.
-    upper = np.array([0.9 if t[0] == "loss" else 1.0 for t in terms])
-    coef, rnorm = _nnls_gram(a_all.T @ a_all, a_all.T @ rhs, float(rhs @ rhs), upper)
+    bb = float(rhs @ rhs)
     n_gauss = len(sig)
+
+    def bounds(ts: list[tuple[str, str, Any, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+        # Every weight is a fraction of light in [0, 1] (a field term in [-1, 1]); the loss at
+        # most 0.9 (a lens that keeps less than a tenth of the light on its pixel is not a
+        # camera). The bounds keep an ill-posed fit from trading huge terms against each other.
+        lo = np.array([-1.0 if k[0] == "field" else 0.0 for k in ts])
+        up = np.array([0.9 if k[0] == "loss" else 1.0 for k in ts])
+        return lo, up
+
+    def penalty(ts: list[tuple[str, str, Any, np.ndarray]]) -> np.ndarray:
+        p = np.zeros((len(ts), len(ts)))
+        for kind in ("gauss", "field"):
+            idx = [i for i, k in enumerate(ts) if k[0] == kind]
+            if len(idx) > 2:
+                d2 = _second_differences(len(idx))
+                p[np.ix_(idx, idx)] += d2.T @ d2
+        return p
+
+    def fit(ts: list[tuple[str, str, Any, np.ndarray]], lam: float,
+            rows: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+        a = np.stack([k[3] for k in ts], axis=1)
+        am, bm = (a, rhs) if rows is None else (a[rows], rhs[rows])
+        gram = am.T @ am
+        lo, up = bounds(ts)
+        scale = float(np.mean(np.diag(gram)[:n_gauss])) or 1.0
+        coef = _bounded_gram(gram + lam * scale * penalty(ts), am.T @ bm, lo, up)
+        r = a @ coef - rhs
+        return coef, float(np.sqrt(r @ r))
+
+    if ghost and fit_centre:
+        coef0, _ = fit(terms, 0.0)
+        a0 = np.stack([k[3] for k in terms], axis=1)
+        d = _find_ghost(a0 @ coef0 - rhs, s_true, np.broadcast_to(wt.reshape(s_true.shape) ** 2, s_true.shape),
+                        (h, w), (float(cx), float(cy)))
+        if d is not None:
+            center = (0.5 * (d[0] + (w - 1)), 0.5 * (d[1] + (h - 1)))
+    if ghost:
+        terms += ghost_terms(center)
+
+    # Smoothness strength on held-out pixels (real and imaginary rows of a pixel together).
+    lam, scores = 0.0, {}
+    if lambdas:
+        yy, xx = np.mgrid[0:h, 0:w]
+        fold = np.tile(np.broadcast_to(((yy // 8 + xx // 8) % 2).astype(bool), s_true.shape).ravel(), 2)
+        a = np.stack([k[3] for k in terms], axis=1)
+        for lm in lambdas:
+            err = 0.0
+            for f in (fold, ~fold):
+                c, _ = fit(terms, lm, f)
+                r = a[~f] @ c - rhs[~f]
+                err += float(r @ r)
+            scores[float(lm)] = err
+        lam = min(scores, key=scores.get)
+    coef, rnorm = fit(terms, lam)
+
     if refine and np.any(coef[:n_gauss] > 0):
         # Variable projection: each run of neighbouring active widths becomes one Gaussian
-        # with free (sigma_x, sigma_y); the weights are re-solved linearly for every trial.
+        # with free (sigma_x, sigma_y); with a fitted ghost its centre is refined too; the
+        # weights are re-solved linearly for every trial.
         groups = _active_groups(coef[:n_gauss])
-        fixed = [t for t, c in zip(terms[n_gauss:], coef[n_gauss:]) if c > 0]
-        upper_f = np.array([0.9 if t[0] == "loss" else 1.0 for t in fixed])
-        fixed_a = np.stack([t[3] for t in fixed], axis=1) if fixed else np.zeros((rhs.size, 0))
-        # Gram blocks of the fixed columns are computed once; per trial only the new ones.
-        g_ff, c_f, bb = fixed_a.T @ fixed_a, fixed_a.T @ rhs, float(rhs @ rhs)
+        fixed = [k for k, c in zip(terms[n_gauss:], coef[n_gauss:]) if c != 0 and k[0] != "ghost"]
+        fixed_a = np.stack([k[3] for k in fixed], axis=1) if fixed else np.zeros((rhs.size, 0))
+        g_ff, c_f = fixed_a.T @ fixed_a, fixed_a.T @ rhs
+        ghost_sig = [k[2] for k, c in zip(terms, coef) if k[0] == "ghost" and c > 0]
         init = np.array([np.exp(np.average(np.log(sig[g]), weights=coef[g])) for g in groups])
+        n_lobe = 2 * len(groups)
 
         def solve(x: np.ndarray) -> tuple[np.ndarray, float, list[tuple[str, str, Any, np.ndarray]]]:
             gs = [("gauss", f"gauss_{sx:.3g}x{sy:.3g}", (sx, sy), column(blur(sx, sy)))
-                  for sx, sy in np.exp(np.clip(x, LOG_SIGMA_RANGE[0], LOG_SIGMA_RANGE[1])).reshape(-1, 2)]
-            a_g = np.stack([g[3] for g in gs], axis=1)
+                  for sx, sy in np.exp(np.clip(x[:n_lobe], LOG_SIGMA_RANGE[0], LOG_SIGMA_RANGE[1])).reshape(-1, 2)]
+            extra: list[tuple[str, str, Any, np.ndarray]] = []
+            if ghost_sig:
+                c = (center[0] + x[n_lobe], center[1] + x[n_lobe + 1]) if fit_centre else center
+                dd = ghost_shift((h, w), c)
+                extra = [("ghost", f"ghost_{s[0]:.3g}", s, column(mirror(s[0], s[1], dd))) for s in ghost_sig]
+            new = gs + extra
+            a_g = np.stack([k[3] for k in new], axis=1)
             gram = np.block([[a_g.T @ a_g, a_g.T @ fixed_a], [fixed_a.T @ a_g, g_ff]])
-            c, r = _nnls_gram(gram, np.concatenate([a_g.T @ rhs, c_f]), bb,
-                              np.concatenate([np.ones(len(gs)), upper_f]))
-            return c, r, gs
+            lo, up = bounds(new + fixed)
+            cc = _bounded_gram(gram, np.concatenate([a_g.T @ rhs, c_f]), lo, up)
+            res2 = bb - 2 * cc @ np.concatenate([a_g.T @ rhs, c_f]) + cc @ gram @ cc
+            return cc, float(np.sqrt(max(res2, 0.0))), new + fixed
 
         x0 = np.log(np.repeat(init, 2))
+        if ghost_sig and fit_centre:
+            x0 = np.concatenate([x0, [0.0, 0.0]])
         res = minimize(lambda x: solve(x)[1], x0, method="Nelder-Mead",
-                       options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": 80 * x0.size + 40})
-        c_ref, r_ref, gs = solve(res.x)
+                       options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": min(80 * x0.size + 40, 400)})
+        c_ref, r_ref, ts = solve(res.x)
         if r_ref < rnorm:
-            terms, coef, rnorm = gs + fixed, c_ref, r_ref
+            terms, coef, rnorm = ts, c_ref, r_ref
+            if ghost_sig and fit_centre:
+                center = (center[0] + res.x[n_lobe], center[1] + res.x[n_lobe + 1])
     lobes, ghosts, veil_w, loss = [], [], 0.0, 0.0
+    field_w: dict[float, float] = {}
     gc = None if ghost_center_px is None else center
     for (kind, _, sxy, _), c in zip(terms, coef):
+        if kind == "field" and c != 0:
+            field_w[float(sxy[0])] = float(c)
         if c <= 0:
             continue
         if kind == "gauss":
@@ -138,38 +220,116 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
             veil_w += float(c)
         elif kind == "ghost":
             ghosts.append(Ghost(float(c), float(sxy[0]), gc))
-        else:
+        elif kind == "loss":
             loss += float(c)
-    info = {"basis": [t[1] for t in terms], "weights": [float(c) for c in coef],
-            "relative_residual": float(rnorm / (np.linalg.norm(rhs) or 1.0)), "direct": 1.0 - loss}
+    # A field term is a lobe of its own (weight 0 on axis, signed growth) with its own width.
+    lobes += [GaussianLobe(0.0, s, s, fw) for s, fw in field_w.items()]
     psf = StrayLightPSF(gaussians=tuple(lobes), veil=veil_w, ghosts=tuple(ghosts), conserve=False,
-                        direct=1.0 - loss, info=info)
+                        direct=1.0 - loss)
+    info = _quality(terms, coef, rhs, rnorm, float(np.linalg.norm(s_meas)), lam, scores,
+                    captures=int(s_true.shape[0]) if s_true.ndim == 4 else 1)
+    info["direct"] = 1.0 - loss
+    if ghosts and fit_centre:
+        info["ghost_center_px"] = [float(center[0]), float(center[1])]
+    psf = replace(psf, info=info)
     info["scattered_fraction"] = StrayLightOperator(psf, (h, w), (cx, cy)).scattered_fraction
     return psf
 
 
-def _nnls_gram(gram: np.ndarray, atb: np.ndarray, btb: float,
-               upper: np.ndarray | None = None) -> tuple[np.ndarray, float]:
-    """Bounded least squares ``min ||A x - b||, 0 <= x <= upper`` from the normal equations.
+def _quality(terms: list[tuple[str, str, Any, np.ndarray]], coef: np.ndarray, rhs: np.ndarray, rnorm: float,
+             signal: float, lam: float, scores: dict[float, float], captures: int = 1) -> dict[str, Any]:
+    """The fit-quality report: residual relative to the stray light and to the signal, the
+    condition of the (column-scaled) design, each active component's variance inflation
+    (``(C^-1)_jj`` of the correlation matrix: 1 = independent of the others, > 1e6 = the data
+    cannot tell it from the others), and warnings."""
+    a = np.stack([k[3] for k in terms], axis=1)
+    gram = a.T @ a
+    dg = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
+    corr = gram / np.outer(dg, dg)
+    active = np.flatnonzero(coef != 0)
+    vif = np.abs(np.diag(np.linalg.pinv(corr[np.ix_(active, active)]))) if active.size else np.zeros(0)
+    stray_raw = float(np.linalg.norm(rhs))  # the stray light on the fit's pixels
+    stray = stray_raw or 1.0
+    sig = signal or 1.0  # the whole capture's signal
+    names = [terms[i][1] for i in active]
+    warnings: list[str] = []
+    rel = rnorm / stray
+    if rel > 0.1:
+        warnings.append(f"the fit leaves {100 * rel:.0f} % of the calibration's stray light unexplained: the lens "
+                        "has a form the PSF model cannot represent, the reference is wrong, or the capture is noisy")
+    weak = [n for n, v in zip(names, vif) if v > VIF_LIMIT]
+    if weak:
+        warnings.append("the calibration data cannot constrain " + ", ".join(weak) + " (variance inflation > 1e6): "
+                        "add captures (a bright patch at other field positions, a card off-axis) or average more "
+                        "frames")
+    if any(terms[i][0] == "field" for i in active) and captures == 1:
+        warnings.append("shift-variant (field) lobes were fitted from one capture: a source at one field "
+                        "position cannot tell them from the others; add a bright patch at other field positions")
+    if stray_raw / sig < 1e-4:
+        warnings.append("the calibration capture shows almost no stray light (< 1e-4 of the signal)")
+    return {"basis": [k[1] for k in terms], "weights": [float(c) for c in coef],
+            "relative_residual": rel, "residual_relative_to_signal": rnorm / sig,
+            "condition": float(np.linalg.cond(corr)), "variance_inflation": dict(zip(names, map(float, vif))),
+            "lambda": lam, "heldout_error": {str(k): v for k, v in scores.items()}, "warnings": warnings}
 
-    With ``A^T A = R^T R`` (Cholesky of the column-scaled Gram matrix) the problem equals
-    ``min ||R x - R^-T A^T b||`` up to a constant, a k x k NNLS instead of one with a row
-    per pixel. Returns the coefficients and ``||A x - b||``.
-    """
+
+#: Variance inflation above which a component is reported as not constrained by the data.
+VIF_LIMIT = 1e6
+
+
+def _second_differences(n: int) -> np.ndarray:
+    d = np.zeros((max(n - 2, 0), n))
+    for i in range(n - 2):
+        d[i, i:i + 3] = (1.0, -2.0, 1.0)
+    return d
+
+
+def _bounded_gram(gram: np.ndarray, atb: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """``min ||A x - b||`` with ``lower <= x <= upper`` from the normal equations (Cholesky of
+    the column-scaled Gram matrix: a k x k problem instead of one row per pixel)."""
     d = np.sqrt(np.clip(np.diag(gram), 0, None))
     d[d == 0] = 1.0
     g = gram / np.outer(d, d)
-    c = atb / d
     k = g.shape[0]
     r = np.linalg.cholesky(g + 1e-12 * np.eye(k))
-    y = np.linalg.solve(r, c)  # r lower-triangular: R^T = r, so R^-T c = r^-1 c
-    coef, _ = nnls(r.T, y, maxiter=50 * k)
-    coef = coef / d
-    if upper is not None and np.any(coef > upper):
-        res = lsq_linear(r.T, y, bounds=(np.zeros(k), np.asarray(upper) * d), method="bvls")
-        coef = res.x / d
-    res2 = btb - 2 * coef @ atb + coef @ gram @ coef
-    return coef, float(np.sqrt(max(res2, 0.0)))
+    y = np.linalg.solve(r, atb / d)  # r lower-triangular: R^T = r, so R^-T c = r^-1 c
+    if not np.any(lower < 0):
+        coef, _ = nnls(r.T, y, maxiter=50 * k)
+        if np.all(coef <= upper * d):
+            return coef / d
+    res = lsq_linear(r.T, y, bounds=(lower * d, upper * d), method="bvls")
+    return res.x / d
+
+
+def _find_ghost(resid: np.ndarray, s_true: np.ndarray, weight: np.ndarray, shape: tuple[int, int],
+                center: tuple[float, float], search_px: float | None = None) -> tuple[float, float] | None:
+    """The shift ``d`` of the mirrored image (``d = 2c - (W-1, H-1)``) that best explains the
+    residual ``A c - b`` (weighted rows) of a fit without ghost: normalised cross-correlation
+    over integer shifts within ``search_px`` (default 0.4 of the sensor's larger side) of the
+    principal point's mirror."""
+    from scipy.signal import fftconvolve
+
+    h, w = shape
+    size = s_true.size
+    r = -(resid[:size] + 1j * resid[size:]).reshape(s_true.shape)  # b - A c, rows weighted by sqrt(w)
+    r = (r * np.sqrt(weight)).reshape((-1, h, w))
+    m = flip_image(s_true).reshape((-1, h, w))
+    wts = np.asarray(weight).reshape((-1, h, w))
+    num = np.zeros((2 * h - 1, 2 * w - 1))
+    den = np.zeros_like(num)
+    for k in range(m.shape[0]):
+        # num[d] = Re sum_q r(q) conj(m(q - d)) sqrt(w(q)); index (h-1, w-1) is d = 0.
+        num += fftconvolve(r[k], np.conj(m[k][::-1, ::-1]), mode="full").real
+        den += fftconvolve(wts[k], (np.abs(m[k]) ** 2)[::-1, ::-1], mode="full")
+    dy, dx = np.mgrid[-(h - 1):h, -(w - 1):w]
+    d0 = ghost_shift(shape, center)
+    lim = search_px if search_px is not None else 0.4 * max(h, w)
+    score = np.where((den > 0) & (num > 0) & (np.hypot(dx - d0[0], dy - d0[1]) <= lim),
+                     num / np.sqrt(np.maximum(den, 1e-300)), -np.inf)
+    if not np.isfinite(score.max()):
+        return None
+    iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
+    return float(dx[iy, ix]), float(dy[iy, ix])
 
 
 def _active_groups(coef: np.ndarray) -> list[np.ndarray]:
@@ -190,9 +350,11 @@ def target_mask(s_meas: np.ndarray, threshold: float = 0.2) -> np.ndarray:
     return amp >= threshold * amp.max()
 
 
-def calibrate_psf_target(s_meas: np.ndarray, cx: float, cy: float, *, threshold: float = 0.2,
-                         rounds: int = 4, **kwargs: Any) -> StrayLightPSF:
-    """Calibrate from a bright target on a dark background alone (no twin needed).
+def calibrate_psf_target(s_meas: np.ndarray | Sequence[np.ndarray], cx: float, cy: float, *,
+                         threshold: float = 0.2, rounds: int = 4, **kwargs: Any) -> StrayLightPSF:
+    """Calibrate from bright targets on a dark background alone (no twin needed): one capture
+    ``[..., H, W]`` or several of the same camera (a card on black, a bright patch at several
+    field positions), fitted together.
 
     The fit uses the background pixels only (their true signal is zero). Round 0 takes
     the measured target pixels as the true source, which still holds the stray light the
@@ -200,34 +362,55 @@ def calibrate_psf_target(s_meas: np.ndarray, cx: float, cy: float, *, threshold:
     deconvolved with the previous PSF instead. Scattering that never leaves the target
     cannot be seen this way (nor does it matter for other pixels).
     """
-    s_meas = np.asarray(s_meas, dtype=np.complex128)
-    mask = target_mask(s_meas, threshold)
+    many = isinstance(s_meas, (list, tuple))
+    stack = np.stack([np.asarray(s, dtype=np.complex128) for s in s_meas]) if many \
+        else np.asarray(s_meas, dtype=np.complex128)[None]
+    if stack.ndim == 3:
+        stack = stack[:, None]
+    masks = np.stack([target_mask(s, threshold) for s in stack])[:, None]  # [N, 1, H, W]
     # The target's own pixels say nothing about h (their true value is unknown): fit
     # only the background, where the true signal is known to be zero.
-    kwargs.setdefault("weight", (~mask).astype(np.float64))
-    s_true = np.where(mask, s_meas, 0)
-    psf = calibrate_psf(s_meas, s_true, cx, cy, **kwargs)
+    kwargs.setdefault("weight", (~masks).astype(np.float64))
+    s_true = np.where(masks, stack, 0)
+    psf = calibrate_psf(stack, s_true, cx, cy, **kwargs)
     for _ in range(rounds - 1):
-        s_true = np.where(mask, StrayLightOperator(psf, s_meas.shape[-2:], (cx, cy)).invert(s_meas), 0)
-        psf = calibrate_psf(s_meas, s_true, cx, cy, **kwargs)
-    psf.info["calibration"] = {"mode": "target", "threshold": threshold, "rounds": rounds,
-                               "target_pixels": int(mask.sum())}
+        s_true = np.where(masks, StrayLightOperator(psf, stack.shape[-2:], (cx, cy)).invert(stack), 0)
+        psf = calibrate_psf(stack, s_true, cx, cy, **kwargs)
+    psf.info["calibration"] = {"mode": "target", "threshold": threshold, "rounds": rounds, "captures": len(stack),
+                               "target_pixels": [int(m.sum()) for m in masks]}
     return psf
 
 
-def calibrate_from_sessions(capture: str | Path, reference: str | Path | None = None, *,
+#: The free-form calibration's options (:func:`calibrate_psf`): many widths with a
+#: shift-variant copy, a fitted ghost centre, smoothness chosen on held-out pixels.
+FREE_FORM: dict[str, Any] = {"field": True, "ghost_center_px": "fit",
+                             "lambdas": (0.0, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)}
+
+
+def calibrate_from_sessions(capture: str | Path | Sequence[str | Path],
+                            reference: str | Path | Sequence[str | Path] | None = None, *,
                             target_threshold: float = 0.2, flat: Any = None,
-                            ghost_center_px: tuple[float, float] | None = None,
+                            ghost_center_px: tuple[float, float] | str | None = None, form: str = "gaussian",
                             progress: Callable[[Any, int, str], Any] | None = None) -> StrayLightPSF:
-    """Fit the PSF from a calibration session (frames averaged in the taps), against its
-    stray-light-free twin ``reference`` or, without one, as a bright target on a dark
-    background. ``flat`` (a tap calibration) is applied first, as to the sessions the PSF
-    will correct. Refuses a degenerate fit."""
+    """Fit the PSF from one or more calibration sessions (frames averaged in the taps), each
+    against its stray-light-free twin in ``reference`` (as many, in the same order) or,
+    without, as bright targets on a dark background. ``flat`` (a tap calibration) is applied
+    first, as to the sessions the PSF will correct. ``form``: ``"gaussian"`` (a dictionary of
+    Gaussian widths, veil, ghost through ``ghost_center_px``) or ``"free"`` (:data:`FREE_FORM`:
+    shift-variant lobes when there are several captures, fitted ghost centre, regularised).
+    Refuses a degenerate fit."""
     from tofhil.demod import phasor
     from tofhil.eval.fixed_pattern import mean_taps
 
     if not 0 < target_threshold < 1:
         raise TofhilError(f"got {target_threshold!r}", field="target_threshold", expected="a fraction in (0, 1)")
+    if form not in ("gaussian", "free"):
+        raise TofhilError(f"got {form!r}", field="--psf-form", expected="gaussian or free")
+    captures = [capture] if isinstance(capture, (str, Path)) else list(capture)
+    refs = None if reference is None else ([reference] if isinstance(reference, (str, Path)) else list(reference))
+    if refs is not None and len(refs) != len(captures):
+        raise TofhilError(f"{len(refs)} references for {len(captures)} calibration captures", field="--reference",
+                          expected="one --reference per --calibrate, in the same order")
 
     def mean_s(path: str | Path) -> tuple[np.ndarray, Any]:
         taps, camera, theta = mean_taps(path, progress)
@@ -235,21 +418,35 @@ def calibrate_from_sessions(capture: str | Path, reference: str | Path | None = 
             taps = flat.apply(taps)
         return phasor(taps, theta), camera
 
-    s_meas, cam = mean_s(capture)
-    if reference is not None:
-        s_true, _ = mean_s(reference)
-        if s_true.shape != s_meas.shape:
-            raise TofhilError(f"has signals of shape {s_true.shape}, the calibration capture {s_meas.shape}",
-                              file=reference, field="raw/taps", expected="the same camera and frequencies")
-        psf = calibrate_psf(s_meas, s_true, cam.cx, cam.cy, ghost_center_px=ghost_center_px)
-        psf.info["calibration"] = {"mode": "reference", "capture": str(capture), "reference": str(reference)}
+    kw: dict[str, Any] = dict(FREE_FORM) if form == "free" else {}
+    if form == "free":
+        # One capture sees each source at one field position: a shift-variant lobe is not
+        # identifiable from it (the fit would trade it against the others).
+        kw["field"] = len(captures) > 1
+    if ghost_center_px is not None:
+        kw["ghost_center_px"] = ghost_center_px
+    meas = [mean_s(c) for c in captures]
+    cam = meas[0][1]
+    for c, (s, _) in zip(captures, meas):
+        if s.shape != meas[0][0].shape:
+            raise TofhilError(f"has signals of shape {s.shape}, the first calibration capture {meas[0][0].shape}",
+                              file=c, field="raw/taps", expected="the same camera and frequencies")
+    if refs is not None:
+        trues = [mean_s(r)[0] for r in refs]
+        for r, s_true, (s, _) in zip(refs, trues, meas):
+            if s_true.shape != s.shape:
+                raise TofhilError(f"has signals of shape {s_true.shape}, the calibration capture {s.shape}",
+                                  file=r, field="raw/taps", expected="the same camera and frequencies")
+        psf = calibrate_psf(np.stack([m[0] for m in meas]), np.stack(trues), cam.cx, cam.cy, **kw)
+        psf.info["calibration"] = {"mode": "reference", "capture": [str(c) for c in captures],
+                                   "reference": [str(r) for r in refs]}
     else:
-        psf = calibrate_psf_target(s_meas, cam.cx, cam.cy, threshold=target_threshold,
-                                   ghost_center_px=ghost_center_px)
-        psf.info["calibration"]["capture"] = str(capture)
+        psf = calibrate_psf_target([m[0] for m in meas], cam.cx, cam.cy, threshold=target_threshold, **kw)
+        psf.info["calibration"]["capture"] = [str(c) for c in captures]
+    psf.info["calibration"]["form"] = form
     if psf.keep <= 0.1 + 1e-9 or psf.info["scattered_fraction"] >= psf.keep:
         raise TofhilError(f"the PSF fit is degenerate (direct {psf.keep:.3f}, scattered "
-                          f"{psf.info['scattered_fraction']:.3f})", file=reference or capture,
+                          f"{psf.info['scattered_fraction']:.3f})", file=(refs or captures)[0],
                           expected="a noise-free twin reference (tofhil simulate --no-noise) or more frames "
                                    "averaged, and a capture whose stray light is visible")
     return psf

@@ -35,18 +35,25 @@ def _pixel_pair(text: str, option: str) -> tuple[float, float]:
 def correct(session: Path = typer.Argument(..., parser=opt.existing_file, help="Session to correct (.h5)."),
             method: str = typer.Option(..., "--method", help=_METHOD_HELP),
             out_path: Path = typer.Option(..., "--out", parser=opt.new_file, help="Corrected session to write."),
-            calibrate: Optional[Path] = typer.Option(None, "--calibrate", parser=opt.existing_file,
-                                                     help="psf: calibration capture (.h5) to fit the PSF from."),
-            reference: Optional[Path] = typer.Option(None, "--reference", parser=opt.existing_file,
-                                                     help="Stray-light-free twin of the calibration capture; "
-                                                          "without it the capture must be a bright target on a "
-                                                          "dark background."),
+            calibrate: list[Path] = typer.Option([], "--calibrate", parser=opt.existing_file,
+                                                 help="psf: calibration capture (.h5) to fit the PSF from; "
+                                                      "repeatable (a card on black, a bright patch at several "
+                                                      "field positions: fitted together)."),
+            reference: list[Path] = typer.Option([], "--reference", parser=opt.existing_file,
+                                                 help="Stray-light-free twin of each calibration capture (one "
+                                                      "per --calibrate, same order); without it the captures "
+                                                      "must be bright targets on a dark background."),
+            psf_form: str = typer.Option("gaussian", "--psf-form",
+                                         help="gaussian: Gaussian widths, veil, ghost through the principal "
+                                              "point; free: also shift-variant lobes, the ghost's centre "
+                                              "fitted, smoothness chosen on held-out pixels."),
             target_threshold: float = typer.Option(0.2, parser=opt.finite(0.0, 1.0, lo_open=True, hi_open=True),
                                                    help="Target pixels: amplitude above this fraction "
                                                              "of the brightest (calibration without reference)."),
             ghost_center: Optional[str] = typer.Option(None, "--ghost-center",
-                                                       help="X,Y (pixels) the calibrated ghost mirrors through "
-                                                            "(default the principal point)."),
+                                                       help="X,Y (pixels) the calibrated ghost mirrors through, "
+                                                            "or 'fit' (default the principal point; with "
+                                                            "--psf-form free 'fit')."),
             save_psf: Optional[Path] = typer.Option(None, "--save-psf", parser=opt.new_file,
                                                     help="Write the calibrated PSF here (.json)."),
             min_amplitude: float = typer.Option(0.0, "--min-amplitude", parser=opt.finite(0.0, unit="DN"),
@@ -56,10 +63,9 @@ def correct(session: Path = typer.Argument(..., parser=opt.existing_file, help="
     from tofhil.eval.corrections import check_min_amplitude, correct_session, parse_method_spec
 
     # With --calibrate the PSF comes from the calibration, not from psf=FILE.
-    name, params = parse_method_spec(method, supplied=("psf",) if calibrate is not None else ())
+    name, params = parse_method_spec(method, supplied=("psf",) if calibrate else ())
     check_min_amplitude(min_amplitude, "--min-amplitude")
-    if name != "psf" and (calibrate is not None or reference is not None or save_psf is not None
-                          or ghost_center is not None):
+    if name != "psf" and (calibrate or reference or save_psf is not None or ghost_center is not None):
         raise TofhilError("--calibrate, --reference, --ghost-center and --save-psf belong to --method psf",
                           field="--method")
     # Refuse before any work: nothing is written when an output exists.
@@ -67,18 +73,27 @@ def correct(session: Path = typer.Argument(..., parser=opt.existing_file, help="
         if target is not None and target.exists() and not force:
             raise TofhilError("already exists; refusing to overwrite (use --force)", file=target)
     fitted = None
-    if calibrate is not None:
+    if calibrate:
         if "psf" in params:
             raise TofhilError("give either psf=FILE or --calibrate, not both", field="psf:psf")
         from tofhil.eval.corrections.psf_calibration import calibrate_from_sessions
         from tofhil.eval.fixed_pattern import TapCalibration
 
         flat = TapCalibration.load(params["flat"]) if params.get("flat") else None
-        fitted = calibrate_from_sessions(calibrate, reference, target_threshold=target_threshold, flat=flat,
-                                         ghost_center_px=None if ghost_center is None
-                                         else _pixel_pair(ghost_center, "--ghost-center"), progress=progress)
+        if psf_form not in ("gaussian", "free"):
+            raise TofhilError(f"got {psf_form!r}", field="--psf-form", expected="gaussian or free")
+        gc: Any = None
+        if ghost_center is not None:
+            gc = "fit" if ghost_center.strip() == "fit" else _pixel_pair(ghost_center, "--ghost-center")
+        fitted = calibrate_from_sessions(calibrate, reference or None, target_threshold=target_threshold,
+                                         flat=flat, ghost_center_px=gc, form=psf_form, progress=progress)
+        for warning in fitted.info.get("warnings", []):
+            console.print(f"warning: PSF calibration: {warning}")
+        out.print(f"PSF fit: residual {100 * fitted.info['relative_residual']:.2f} % of the calibration's stray "
+                  f"light ({fitted.info['residual_relative_to_signal']:.2e} of its signal), condition "
+                  f"{fitted.info['condition']:.3g}")
         params["psf"] = fitted
-    elif reference is not None or save_psf is not None or ghost_center is not None:
+    elif reference or save_psf is not None or ghost_center is not None:
         raise TofhilError("--reference, --ghost-center and --save-psf need --calibrate CAL.h5", field="--calibrate")
     n = correct_session(session, out_path, name, params, force=force, min_amplitude=min_amplitude,
                         progress=progress)

@@ -1,0 +1,116 @@
+"""Stray-light calibration on lenses of other forms than its model (issue 17).
+
+The stray light is made by ``tests/straylight_lenses.py``: convolutions of the complex signal
+with kernels written there (no tofhil optics), energy conserved. The baseline (the Gaussian
+dictionary with the ghost through the principal point) and the free-form calibration are
+measured as % of the dark-square error removed; ``benchmarks/straylight_lenses.py`` prints
+the whole table.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests import straylight_lenses as L
+from tofhil.eval.corrections import psf_calibration as pc
+from tofhil.eval.corrections import straylight as sl
+
+
+def test_test_kernels_have_unit_sum_and_the_lenses_conserve_energy():
+    for k in (L.gaussian(1.7), L.gaussian(8.0, 5.5), L.power_law()):
+        assert k.sum() == pytest.approx(1.0, rel=1e-12)
+    # A point at the principal point through a lens of narrow parts: everything stays on the
+    # sensor, so the total is conserved; a wide lens loses only what leaves the sensor.
+    pt = np.zeros((L.H, L.W), complex)
+    pt[int(L.CY), int(L.CX)] = 1.0
+    narrow = L.Lens("narrow", [(0.05, L.gaussian(2.0))], ghosts=[(0.01, 1.0, (L.CX + 3, L.CY + 2))])
+    assert narrow(pt).sum().real == pytest.approx(1.0, abs=1e-9)
+    for lens in L.lenses().values():
+        out = lens(pt)
+        assert 1.0 - lens.total <= out.sum().real <= 1.0 + 1e-9
+        assert np.all(out.real >= -1e-12)
+
+
+def _centre_error(psf) -> float:
+    true = np.array(L.lenses()["ghost_7px"].ghosts[0][2])
+    return float(np.hypot(*(np.array(psf.info["ghost_center_px"]) - true)))
+
+
+def test_ghost_centre_off_the_principal_point_is_fitted():
+    lens = L.lenses()["ghost_7px"]
+    psf = pc.calibrate_psf_target(L.calibration_capture(lens), L.CX, L.CY, rounds=2, ghost_center_px="fit",
+                                  sigmas=pc.default_sigmas(L.H, L.W)[::2])
+    assert _centre_error(psf) < 0.3
+    # Sharp and blurred ghosts through the one fitted centre: their light is the lens's ghost.
+    assert sum(g.weight for g in psf.ghosts if g.sigma_px <= 8) >= 0.5 * 0.005
+    assert {g.center_px for g in psf.ghosts} == {tuple(psf.info["ghost_center_px"])}
+
+
+def test_fit_quality_report_warns_when_the_data_cannot_constrain_the_model():
+    lens = L.lenses()["gauss_other"]
+    # One capture cannot tell a shift-variant lobe from the others: the report says so.
+    psf = pc.calibrate_psf_target(L.calibration_capture(lens)[0], L.CX, L.CY, rounds=1, field=True,
+                                  sigmas=pc.default_sigmas(L.H, L.W)[::2], refine=False)
+    assert any("field" in w and "one capture" in w for w in psf.info["warnings"])
+    assert 0 <= psf.info["relative_residual"] < 1 and psf.info["condition"] > 1
+    # A target on black WITHOUT stray light: a warning that there is none to fit.
+    s, _ = L.scene_signal(square_rho=None, card=True, wall=False)
+    psf0 = pc.calibrate_psf_target(s[None], L.CX, L.CY, rounds=1, sigmas=pc.default_sigmas(L.H, L.W)[::2],
+                                   refine=False)
+    assert any("almost no stray light" in w for w in psf0.info["warnings"])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["ghost_2px", "ghost_7px", "ghost_10px"])
+def test_free_form_beats_the_baseline_on_off_centre_ghosts(name):
+    lens = L.lenses()[name]
+    cal = L.calibration_capture(lens)
+    base = pc.calibrate_psf_target(cal, L.CX, L.CY)
+    free = pc.calibrate_psf_target(cal, L.CX, L.CY, **dict(pc.FREE_FORM, field=False))
+    r0 = L.removed(lens, lambda s: sl.deconvolve(s, base, center_px=(L.CX, L.CY)))
+    r1 = L.removed(lens, lambda s: sl.deconvolve(s, free, center_px=(L.CX, L.CY)))
+    assert all(r1[k] > r0[k] for k in L.REFLECTANCES), (r0, r1)
+
+
+@pytest.mark.slow
+def test_cli_calibrates_one_free_form_psf_from_several_captures(tmp_path, tofhil_cli):
+    from tests.straylight_synthetic import write_session
+    from tofhil.sim.straylight import StrayLightPSF
+
+    lens = L.lenses()["ghost_7px"]
+    cals = [write_session(tmp_path / f"cal{i}.h5", s[0], n_frames=1, offset=50.0)
+            for i, s in enumerate(L.patch_captures(lens, 2))]
+    psf_path = tmp_path / "lens.json"
+    p = tofhil_cli("correct", cals[0], "--method", "psf", "--calibrate", cals[0], "--calibrate", cals[1],
+                   "--psf-form", "free", "--save-psf", psf_path, "--out", tmp_path / "c.h5", timeout=600)
+    assert p.returncode == 0, p.stderr
+    assert "PSF fit: residual" in p.stdout
+    psf = StrayLightPSF.load(psf_path)
+    assert psf.info["calibration"]["capture"] == [str(c) for c in cals]
+    true = np.array(lens.ghosts[0][2])
+    assert np.hypot(*(np.array(psf.info["ghost_center_px"]) - true)) < 0.5
+    # One --reference per --calibrate, or none.
+    bad = tofhil_cli("correct", cals[0], "--method", "psf", "--calibrate", cals[0], "--calibrate", cals[1],
+                     "--reference", cals[0], "--out", tmp_path / "d.h5")
+    assert bad.returncode == 2 and "error:" in bad.stderr and "--reference" in bad.stderr
+    assert not (tmp_path / "d.h5").exists()
+    bad = tofhil_cli("correct", cals[0], "--method", "psf", "--calibrate", cals[0], "--psf-form", "wild",
+                     "--out", tmp_path / "e.h5")
+    assert bad.returncode == 2 and "--psf-form" in bad.stderr
+
+
+_SHORT = {"field_lobe": "measured 94.8 % at 1 %: the field model is first order in rho^2",
+          "gauss_other": "measured 94.9 % at 1 %"}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(reason=_SHORT[n], strict=True))
+                                  if n in _SHORT else n for n in L.lenses()])
+def test_bench_procedure_removes_95_percent_for_every_lens_form(name):
+    """The documented procedure (a card on black and a bright patch at four more field
+    positions, free form) removes >= 95 % of the dark-square error at 50, 5, 2 and 1 %."""
+    lens = L.lenses()[name]
+    psf = pc.calibrate_psf_target(L.patch_captures(lens), L.CX, L.CY, rounds=3, **pc.FREE_FORM)
+    r = L.removed(lens, lambda s: sl.deconvolve(s, psf, center_px=(L.CX, L.CY)))
+    assert all(v >= 0.95 for v in r.values()), r
