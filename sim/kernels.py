@@ -104,6 +104,22 @@ def _brdf(rho, rs, ns, nx, ny, nz, ix, iy, iz, ox, oy, oz):  # pragma: no cover
     return f
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, which, q, w, length):  # pragma: no cover
+    """Add one light path of weight ``w`` and optical length ``length`` to pixel ``q``: its
+    power, its phasor ``w exp(i k L)`` per frequency/harmonic (row ``which``: 0 direct, 1
+    indirect) and, with a transient histogram, its length bin."""
+    power[q] += w
+    for m in range(nk):
+        ph = k[m] * length
+        acc_re[which, m, q] += w * math.cos(ph)
+        acc_im[which, m, q] += w * math.sin(ph)
+    if nbins > 0:
+        b = np.searchsorted(edges, length, side="right") - 1
+        if b >= 0 and b < nbins:
+            trans[q, b] += w
+
+
 @njit(nogil=True, cache=True)
 def connect_and_bounce(irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, path, local, which,
                        k, acc_re, acc_im, power, edges, trans, do_bounce, u1, u2, eps,
@@ -123,17 +139,7 @@ def connect_and_bounce(irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, 
         if e > 0.0 and not blocked[j]:
             w = beta[j] * e * _brdf(rho[j], rs[j], ns[j], nx, ny, nz, wi[j, 0], wi[j, 1], wi[j, 2], ox, oy, oz)
             if w > 0.0:
-                q = local[j]
-                length = path[j] + r1[j]
-                power[q] += w
-                for m in range(nk):
-                    ph = k[m] * length
-                    acc_re[which, m, q] += w * math.cos(ph)
-                    acc_im[which, m, q] += w * math.sin(ph)
-                if nbins > 0:
-                    b = np.searchsorted(edges, length, side="right") - 1
-                    if b >= 0 and b < nbins:
-                        trans[q, b] += w
+                _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, which, local[j], w, path[j] + r1[j])
         if not do_bounce:
             continue
         # Cosine-weighted direction in the frame of the shading normal (Duff et al. 2017).
@@ -248,17 +254,8 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
                 if not f[o + 8] < 0.0:        # tfar = -inf: blocked
                     w = beta * irr * _brdf(rho, rs, ns, sx, sy, sz, ex, ey, ez, -dx, -dy, -dz)
                     if w > 0.0:
-                        length = path + r
-                        which = 0 if bounce == 0 else 1
-                        power[q] += w
-                        for m in range(nk):
-                            ph = k[m] * length
-                            acc_re[which, m, q] += w * math.cos(ph)
-                            acc_im[which, m, q] += w * math.sin(ph)
-                        if nbins > 0:
-                            bi = np.searchsorted(edges, length, side="right") - 1
-                            if bi >= 0 and bi < nbins:
-                                trans[q, bi] += w
+                        _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, 0 if bounce == 0 else 1, q, w,
+                                    path + r)
             if bounce == bounces:
                 break
             a1 = U[s, 4 + 2 * bounce]
