@@ -63,7 +63,7 @@ def test_depth_only_session_is_diagnosed_as_the_raw_tap_one(tmp_path, bench_scen
     assert res_raw.causes == [effect]
     assert res_depth.causes == res_raw.causes, (res_depth.causes, res_depth.params, res_depth.evidence)
     _check_params(res_depth.params[effect], hidden, tolerances)
-    assert "phasor" in res_depth.to_json()["channels"]
+    assert "phasor" in res_depth.to_json()["data_path"]
     assert ("scatter of one frame" in res_depth.data.noise) == (frames == 1)
     assert "ambient" in res_depth.observability.unobservable
 
@@ -191,7 +191,7 @@ def test_real_near_plane_capture_is_diagnosed_end_to_end(tmp_path):
     res = run_diagnosis(small, scene.scene_path, tmp_path / "diag", max_effects=1)
     out = json.loads((tmp_path / "diag" / "diagnosis.json").read_text())
     assert (tmp_path / "diag" / "report.html").is_file()
-    assert "phasor" in out["channels"] and "spatial scatter" in out["noise"]
+    assert "phasor" in out["data_path"] and "spatial scatter" in out["noise"]
     assert set(out["observability"]["unobservable"]) >= {"range_offset", "pose", "ambient"}
     assert not {"range_offset", "pose", "ambient"} & set(res.causes)
     assert not {"range_offset", "pose", "ambient"} & {c["effect"] for c in res.ranked}
