@@ -63,7 +63,7 @@ def _os_reason(exc: BaseException) -> str:
 
 
 #: Files whose writes failed (disk full): never closed by HDF5, see SessionWriter._abort.
-_BROKEN_FILES: list[Any] = []
+BROKEN_FILES: list[Any] = []
 
 
 def _drop_quietly(exc: BaseException) -> None:
@@ -92,7 +92,7 @@ def _drop_quietly(exc: BaseException) -> None:
 
 
 #: Files whose writes failed (disk full): never closed by HDF5, see SessionWriter._abort.
-_BROKEN_FILES: list[Any] = []
+BROKEN_FILES: list[Any] = []
 
 
 def _quiet_hdf5_destructors() -> None:
@@ -317,7 +317,7 @@ class SessionWriter:
         if getattr(self, "_broken", False):
             # After a failed write HDF5 cannot close the file cleanly (it retries the write,
             # reports from destructors, may crash): keep the handle alive, unlink the file.
-            _BROKEN_FILES.append(self._file)
+            BROKEN_FILES.append(self._file)
         else:
             try:
                 if self._file.id.valid:

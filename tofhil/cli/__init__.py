@@ -164,7 +164,7 @@ def _exit(code: int) -> None:
     already cleaned up, and the interpreter's shutdown would make HDF5 retry the write."""
     from tofhil import session
 
-    if session._BROKEN_FILES:
+    if session.BROKEN_FILES:
         for stream in (sys.stdout, sys.stderr):
             try:
                 stream.flush()
