@@ -9,12 +9,9 @@ per-frame dataset.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
-import signal
-import threading
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterator, Mapping
@@ -118,21 +115,6 @@ def _quiet_hdf5_destructors() -> None:
     hook._tofhil_quiet = True  # type: ignore[attr-defined]
     sys.unraisablehook = hook
     sys.excepthook = excepthook
-
-
-@contextlib.contextmanager
-def _signals_deferred() -> Iterator[None]:
-    """Hold SIGINT and SIGTERM until the block ends (main thread, POSIX; elsewhere a no-op):
-    the block updates two things that must agree, the file's frame count and the writer's."""
-    blocking = (hasattr(signal, "pthread_sigmask") and threading.current_thread() is threading.main_thread())
-    if not blocking:
-        yield
-        return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 class SessionWriter:
@@ -293,10 +275,9 @@ class SessionWriter:
             ds.resize(n + 1, axis=0)
             ds[n] = value
         self._file.flush()  # the frame's data is on disk ...
-        with _signals_deferred():  # a Ctrl-C here would leave the file's count and ours apart
-            self._file.attrs["n_frames"] = n + 1
-            self._file.flush()  # ... before the count that makes it visible
-            self.n_frames = n + 1
+        self.n_frames = n + 1
+        self._file.attrs["n_frames"] = self.n_frames
+        self._file.flush()  # ... before the count that makes it visible
 
     def close(self) -> None:
         """Finish the file (a derived output is renamed into place)."""
@@ -305,6 +286,10 @@ class SessionWriter:
             return
         if self._file.id.valid:
             try:
+                # A Ctrl-C between a frame's data flush and its count leaves the count one short:
+                # the frame is complete, so the file says what the writer (and the message) says.
+                if int(self._file.attrs.get("n_frames", 0)) != self.n_frames:
+                    self._file.attrs["n_frames"] = self.n_frames
                 self._file.close()
             except (OSError, RuntimeError) as exc:
                 self._abort()

@@ -34,6 +34,9 @@ MEMORY_LIMIT = 4 << 30  # address space: generous, but a runaway allocation fail
 
 def _limits() -> None:
     resource.setrlimit(resource.RLIMIT_AS, (MEMORY_LIMIT, MEMORY_LIMIT))
+    # a shell starts background jobs with SIGINT ignored and Python keeps it ignored: the CLI
+    # gets a terminal user's Ctrl-C disposition whatever way the tests were started
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def run(*args: str | Path, cwd: Path, fsize: int | None = None, timeout: float = TIMEOUT_S

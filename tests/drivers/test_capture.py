@@ -165,8 +165,11 @@ def test_sigkill_mid_capture_loses_at_most_the_frame_in_flight(tmp_path: Path) -
 def test_an_interrupted_capture_says_how_many_frames_it_kept(tmp_path: Path, sig: signal.Signals) -> None:
     """Ctrl-C or SIGTERM: "interrupted: N frames kept in FILE", exit 130, the file opens with N frames."""
     out = tmp_path / "interrupted.h5"
+    # A shell starts background jobs with SIGINT ignored, and Python keeps an ignored SIGINT: give
+    # the capture the default disposition, as a terminal user's Ctrl-C has (CI may run us in the background).
     proc = subprocess.Popen(_tofhil("capture", "--device", "emulator:wall:1.0", "--frames", "100000",
-                                    "--out", str(out)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                                    "--out", str(out)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and (not out.exists() or out.stat().st_size < 8 * 4 * 60 * 160 * 4):
