@@ -105,6 +105,21 @@ def _brdf(rho, rs, ns, nx, ny, nz, ix, iy, iz, ox, oy, oz):  # pragma: no cover
 
 
 @njit(nogil=True, cache=True, inline="always")
+def _cosine_direction(a1, a2, nx, ny, nz):  # pragma: no cover
+    """A cosine-weighted direction about the unit normal ``n`` from two uniform numbers, in the
+    orthonormal frame of Duff et al. 2017 (no branch on the normal's direction but its sign)."""
+    rr = math.sqrt(a1)
+    phi = 2.0 * math.pi * a2
+    lx, ly, lz = rr * math.cos(phi), rr * math.sin(phi), math.sqrt(max(0.0, 1.0 - a1))
+    sg = 1.0 if nz >= 0.0 else -1.0
+    aa = -1.0 / (sg + nz)
+    bb = nx * ny * aa
+    t1x, t1y, t1z = 1.0 + sg * nx * nx * aa, sg * bb, -sg * nx
+    t2x, t2y, t2z = bb, sg + ny * ny * aa, -ny
+    return (lx * t1x + ly * t2x + lz * nx, lx * t1y + ly * t2y + lz * ny, lx * t1z + ly * t2z + lz * nz)
+
+
+@njit(nogil=True, cache=True, inline="always")
 def _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, which, q, w, length):  # pragma: no cover
     """Add one light path of weight ``w`` and optical length ``length`` to pixel ``q``: its
     power, its phasor ``w exp(i k L)`` per frequency/harmonic (row ``which``: 0 direct, 1
@@ -143,18 +158,7 @@ def connect_and_bounce(irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, 
         if not do_bounce:
             continue
         # Cosine-weighted direction in the frame of the shading normal (Duff et al. 2017).
-        a1 = u1[j]
-        rr = math.sqrt(a1)
-        phi = 2.0 * math.pi * u2[j]
-        lx, ly, lz = rr * math.cos(phi), rr * math.sin(phi), math.sqrt(max(0.0, 1.0 - a1))
-        sg = 1.0 if nz >= 0.0 else -1.0
-        aa = -1.0 / (sg + nz)
-        bb = nx * ny * aa
-        t1x, t1y, t1z = 1.0 + sg * nx * nx * aa, sg * bb, -sg * nx
-        t2x, t2y, t2z = bb, sg + ny * ny * aa, -ny
-        dx = lx * t1x + ly * t2x + lz * nx
-        dy = lx * t1y + ly * t2y + lz * ny
-        dz = lx * t1z + ly * t2z + lz * nz
+        dx, dy, dz = _cosine_direction(u1[j], u2[j], nx, ny, nz)
         gx, gy, gz = ngf[j, 0], ngf[j, 1], ngf[j, 2]
         if dx * gx + dy * gy + dz * gz <= 0.0:    # below the geometric surface
             continue
@@ -258,18 +262,7 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
                                     path + r)
             if bounce == bounces:
                 break
-            a1 = U[s, 4 + 2 * bounce]
-            rr = math.sqrt(a1)
-            phi = 2.0 * math.pi * U[s, 5 + 2 * bounce]
-            lx, ly, lz = rr * math.cos(phi), rr * math.sin(phi), math.sqrt(max(0.0, 1.0 - a1))
-            sgn = 1.0 if sz >= 0.0 else -1.0
-            aa = -1.0 / (sgn + sz)
-            bb = sx * sy * aa
-            t1x, t1y, t1z = 1.0 + sgn * sx * sx * aa, sgn * bb, -sgn * sx
-            t2x, t2y, t2z = bb, sgn + sy * sy * aa, -sy
-            ndx = lx * t1x + ly * t2x + lz * sx
-            ndy = lx * t1y + ly * t2y + lz * sy
-            ndz = lx * t1z + ly * t2z + lz * sz
+            ndx, ndy, ndz = _cosine_direction(U[s, 4 + 2 * bounce], U[s, 5 + 2 * bounce], sx, sy, sz)
             if ndx * gx + ndy * gy + ndz * gz <= 0.0:    # below the geometric surface
                 break
             beta = beta * math.pi * _brdf(rho, rs, ns, sx, sy, sz, ndx, ndy, ndz, -dx, -dy, -dz)
