@@ -22,6 +22,7 @@ workers share.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import glob
@@ -35,7 +36,7 @@ import traceback
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 import yaml
@@ -45,10 +46,16 @@ from tofhil.progress import Progress, no_progress
 from tofhil.schema import Schema
 
 SPEC_KEYS = ("name", "description", "scene", "sessions", "reference", "axes", "design", "frames", "noise", "seed",
-             "effects", "simulate", "compare", "diagnose", "keep_sessions", "report")
+             "effects", "simulate", "capture", "compare", "diagnose", "keep_sessions", "report")
 #: Axis names: ``params.NAME`` (a scene parameter), ``effects.EFFECT.PARAM``, ``effects`` (a
 #: whole effect set per value), ``camera.preset``, ``camera.scale``, ``seed``, ``session``.
 FIXED_AXES = ("effects", "camera.preset", "camera.scale", "seed", "session")
+#: Acquisition settings a capture case sets on the device (``capture.NAME`` axes and keys).
+CAPTURE_SETTINGS = ("integration_time_us", "mod_freq_hz", "channel", "min_amplitude")
+CAPTURE_KEYS = ("device", "frames", "mode", "roi", "timeout_s") + CAPTURE_SETTINGS
+#: The device scheme whose bench the sweep may change: the in-process emulator renders each
+#: case's scene (its parameters, effects and seed); a real device's bench is what it is.
+EMULATED_BENCH = "emulator"
 DISTRIBUTIONS = ("uniform", "log_uniform", "integers", "choice")
 GRID_FORMS = ("linspace", "logspace")
 OUTPUTS = ("results.parquet", "results.csv", "report.html", "spec.yaml", "cases")
@@ -71,6 +78,8 @@ class SweepSpec:
     seed: int = 0
     effects: dict[str, dict[str, Any]] = field(default_factory=dict)
     simulate: bool = True
+    #: Capture each case from a device instead of simulating it (``device``, settings).
+    capture: dict[str, Any] | None = None
     compare: dict[str, Any] | None = None
     diagnose: dict[str, Any] | None = None
     reference: str | None = None
@@ -136,6 +145,8 @@ def parse_spec(data: Any, *, source: str = "<spec>", base_dir: str | Path = ".",
             pass
         elif parts[0] == "params" and len(parts) == 2 and parts[1]:
             pass
+        elif parts[0] == "capture" and len(parts) == 2 and parts[1] in CAPTURE_SETTINGS:
+            pass
         elif parts[0] == "effects" and len(parts) == 3:
             if parts[1] not in EFFECTS:
                 raise s.error(f"unknown effect {parts[1]!r}", f, "one of " + ", ".join(sorted(EFFECTS)))
@@ -143,7 +154,8 @@ def parse_spec(data: Any, *, source: str = "<spec>", base_dir: str | Path = ".",
                 raise s.error(f"unknown parameter {parts[2]!r} of effect {parts[1]}", f,
                               "one of " + ", ".join(sorted(EFFECTS[parts[1]].params)))
         else:
-            raise s.error(f"unknown axis {name!r}", f, "params.NAME, effects.EFFECT.PARAM, " + ", ".join(FIXED_AXES))
+            raise s.error(f"unknown axis {name!r}", f, "params.NAME, effects.EFFECT.PARAM, capture.SETTING, "
+                          + ", ".join(FIXED_AXES))
         axes[name] = _parse_axis(s, f, name, values, kind)
     if scene is None and any(a != "session" for a in axes):
         raise s.error("needs a scene", "axes", "only the 'session' axis when batching over recorded sessions")
@@ -151,11 +163,14 @@ def parse_spec(data: Any, *, source: str = "<spec>", base_dir: str | Path = ".",
     noise = s.boolean(d.get("noise", True), "noise")
     seed = s.integer(d.get("seed", 0), "seed", lo=0, hi=2**32 - 1)
     effects = _parse_effect_set(s, "effects", d.get("effects") or {})
-    simulate = s.boolean(d.get("simulate", sessions is None), "simulate")
+    capture = _parse_capture(s, d.get("capture"), axes, scene=scene, sessions=sessions, frames=frames)
+    simulate = s.boolean(d.get("simulate", sessions is None and capture is None), "simulate")
+    if simulate and capture is not None:
+        raise s.error("both simulate and capture", "simulate", "false when the cases capture from a device")
     if simulate and scene is None:
         raise s.error("needs a scene", "simulate", "a 'scene' to simulate")
-    if not simulate and sessions is None:
-        raise s.error("nothing to evaluate", "simulate", "true, or 'sessions' to batch over")
+    if not simulate and sessions is None and capture is None:
+        raise s.error("nothing to evaluate", "simulate", "true, 'capture' from a device, or 'sessions' to batch over")
     compare = d.get("compare")
     if compare is not None:
         compare = s.mapping(compare, "compare", allowed=("reference", "corrections", "frames", "min_relative_amplitude"),
@@ -193,7 +208,7 @@ def parse_spec(data: Any, *, source: str = "<spec>", base_dir: str | Path = ".",
                 raise s.bad(c, "diagnose.candidates", "a list of effect names")
             for i, e in enumerate(c):
                 s.enum(e, f"diagnose.candidates[{i}]", sorted(EFFECTS))
-    if not simulate and compare is None and diagnose is None:
+    if not simulate and capture is None and compare is None and diagnose is None:
         raise s.error("nothing to do", "", "'compare' and/or 'diagnose' for a batch over sessions")
     report = s.mapping(d.get("report"), "report", allowed=("metrics",))
     metrics = report.get("metrics", [])
@@ -202,13 +217,70 @@ def parse_spec(data: Any, *, source: str = "<spec>", base_dir: str | Path = ".",
     metrics = [s.string(m, f"report.metrics[{i}]", nonempty=True) for i, m in enumerate(metrics)]
     name = s.string(d.get("name", Path(source).stem if source != "<spec>" else "sweep"), "name", nonempty=True)
     spec = SweepSpec(name=name, scene=scene, axes=axes, design=kind, n=n, design_seed=dseed, frames=frames,
-                     noise=noise, seed=seed, effects=effects, simulate=simulate, compare=compare, diagnose=diagnose,
+                     noise=noise, seed=seed, effects=effects, simulate=simulate, capture=capture, compare=compare,
+                     diagnose=diagnose,
                      reference=None, keep_sessions=s.boolean(d.get("keep_sessions", True), "keep_sessions"),
                      report_metrics=metrics, description=s.string(d.get("description", ""), "description"),
                      source=str(source), base_dir=str(base), text=text)
     if scene is not None:
         _check_scene(spec, s)
     return spec
+
+
+def _parse_capture(s: Schema, value: Any, axes: Mapping[str, Any], *, scene: str | None, sessions: Any,
+                   frames: int) -> dict[str, Any] | None:
+    """The ``capture`` block: which device, how many frames, the acquisition settings.
+
+    With ``device: emulator`` and a scene, each case captures from an emulated TOFcam635
+    looking at the case's scene (scene parameters, effects and seed are the bench's); any
+    other device is the bench as it stands, so only ``capture.*`` axes may vary."""
+    if value is None:
+        if any(a.startswith("capture.") for a in axes):
+            raise s.error("a capture axis without a 'capture' block", "capture",
+                          "a 'capture: {device: ...}' block for capture.* axes")
+        return None
+    if sessions is not None:
+        raise s.error("both sessions and capture", "capture", "either recorded 'sessions' or a 'capture' device")
+    c = s.mapping(value, "capture", allowed=CAPTURE_KEYS, none_ok=False)
+    device = s.string(s.require(c, "device", "capture", "a device such as emulator, usb or serial:PORT"),
+                      "capture.device", nonempty=True)
+    out: dict[str, Any] = {"device": device,
+                           "frames": s.integer(c.get("frames", frames), "capture.frames", lo=1, hi=100_000),
+                           "mode": s.enum(c.get("mode", "dcs"), "capture.mode", ("dcs",)),
+                           "timeout_s": s.number(c.get("timeout_s", 2.0), "capture.timeout_s", lo=0.0, hi=3600.0,
+                                                 lo_open=True)}
+    if c.get("roi") is not None:
+        roi = s.numbers(c["roi"], "capture.roi", n=4, expected="[X0, Y0, X1, Y1] sensor pixels, half-open")
+        if any(v != int(v) or v < 0 for v in roi) or roi[2] <= roi[0] or roi[3] <= roi[1]:
+            raise s.bad(c["roi"], "capture.roi", "[X0, Y0, X1, Y1] integers >= 0 with X1 > X0 and Y1 > Y0")
+        out["roi"] = [int(v) for v in roi]
+    for key in CAPTURE_SETTINGS:
+        if c.get(key) is not None:
+            out[key] = _capture_setting(s, f"capture.{key}", key, c[key])
+    for name, values in axes.items():
+        if name.startswith("capture."):
+            key = name.split(".", 1)[1]
+            if isinstance(values, list):
+                for i, v in enumerate(values):
+                    _capture_setting(s, f"axes.{name}[{i}]", key, v)
+    emulated_bench = device == EMULATED_BENCH and scene is not None
+    for name in axes:
+        if name.startswith("camera."):
+            raise s.error("the device is the camera", f"axes.{name}",
+                          "capture.* settings (a camera preset or scale cannot be set on a device)")
+        if not emulated_bench and not name.startswith("capture."):
+            raise s.error(f"a bench axis with device {device!r}", f"axes.{name}",
+                          "only capture.* axes: the sweep changes a real bench's settings, not its scene "
+                          "(device 'emulator' with a scene emulates the bench of each case)")
+    return out
+
+
+def _capture_setting(s: Schema, f: str, key: str, value: Any) -> Any:
+    if key == "channel":
+        return s.integer(value, f, lo=0, hi=15)
+    if key == "min_amplitude":
+        return s.number(value, f, lo=0.0, hi=1e9)
+    return s.number(value, f, lo=0.0, hi=1e10, lo_open=True)
 
 
 def _parse_effect_set(s: Schema, f: str, value: Any) -> dict[str, dict[str, Any]]:
@@ -367,12 +439,13 @@ def case_effects(spec: SweepSpec, params: Mapping[str, Any]) -> dict[str, dict[s
     return eff
 
 
-def case_scene(spec: SweepSpec, params: Mapping[str, Any]) -> Any:
-    """The scene of a case (scene parameters, camera preset and scale applied); its own
-    ``effects:`` block is what the twin models."""
+def case_scene(spec: SweepSpec, params: Mapping[str, Any], overrides: Mapping[str, Any] | None = None) -> Any:
+    """The scene of a case (scene parameters, camera preset and scale applied, then
+    ``overrides`` such as an emulated device's camera); its own ``effects:`` block is what
+    the twin models."""
     from tofhil.sim.scene import load_scene
 
-    ov: dict[str, Any] = {}
+    ov: dict[str, Any] = dict(overrides or {})
     sp = {k.split(".", 1)[1]: v for k, v in params.items() if k.startswith("params.")}
     if sp:
         ov["params"] = sp
@@ -481,6 +554,13 @@ def _run_case_steps(spec: SweepSpec, case: Case, cdir: Path) -> dict[str, Any]:
 
     metrics: dict[str, Any] = {}
     scene = case_scene(spec, case.params) if spec.scene is not None else None
+    hidden: dict[str, Any] | None = case_effects(spec, case.params) if spec.simulate else None
+    if spec.capture is not None:
+        t = time.perf_counter()
+        measured, hidden = capture_case(spec, case, cdir)
+        metrics["capture.seconds"] = time.perf_counter() - t
+        if scene is not None:  # the twin re-renders with the capture's settings
+            scene = twin_scene_for_capture(spec, case, measured, cdir)
     twin = cached_twin(scene) if scene is not None else None
     if spec.simulate:
         from tofhil.sim.effects import effects_to_block
@@ -496,7 +576,7 @@ def _run_case_steps(spec: SweepSpec, case: Case, cdir: Path) -> dict[str, Any]:
                                     twin=twin)
         RENDER_COUNT["renders"] += twin.renders - before
         metrics["simulate.seconds"] = time.perf_counter() - t
-    else:
+    elif spec.capture is None:
         measured = Path(case.params["session"])
     if spec.compare is not None:
         from tofhil.eval.compare import compare_sessions
@@ -520,12 +600,97 @@ def _run_case_steps(spec: SweepSpec, case: Case, cdir: Path) -> dict[str, Any]:
         scene_path = cdir / "twin_scene.yaml"
         scene_path.write_text(scene_to_yaml(scene), encoding="utf-8")
         res = run_diagnosis(measured, scene_path, cdir / "diagnose", force=True, **spec.diagnose)
-        hidden = case_effects(spec, case.params) if spec.simulate else None
         metrics.update(diagnose_metrics(res.to_json(), hidden))
-    if spec.simulate and not spec.keep_sessions:
+    if (spec.simulate or spec.capture is not None) and not spec.keep_sessions:
         for name in ("measured.h5", "twin.h5"):
             (cdir / name).unlink(missing_ok=True)
     return metrics
+
+
+# ----------------------------------------------------------------------------- capture cases
+def capture_settings(spec: SweepSpec, params: Mapping[str, Any]) -> Any:
+    """The acquisition settings of a capture case: the spec's, then the case's axes."""
+    from tofhil.drivers.base import CaptureSettings
+
+    c = {**spec.capture, **{k.split(".", 1)[1]: v for k, v in params.items() if k.startswith("capture.")}}
+    it = c.get("integration_time_us")
+    return CaptureSettings(mode=c["mode"], integration_time_s=None if it is None else float(it) * 1e-6,
+                           mod_freq_hz=c.get("mod_freq_hz"), channel=c.get("channel"),
+                           min_amplitude=c.get("min_amplitude"),
+                           roi=None if c.get("roi") is None else tuple(c["roi"]))
+
+
+def emulates_bench(spec: SweepSpec) -> bool:
+    """True when each case captures from an emulator looking at the case's own scene."""
+    return spec.capture is not None and spec.capture["device"] == EMULATED_BENCH and spec.scene is not None
+
+
+@contextlib.contextmanager
+def device_lock(device: str) -> Iterator[None]:
+    """One capture at a time per device across a Dask cluster's workers (a camera is one
+    resource; the cases' compare and diagnose steps still run in parallel). Outside a worker
+    (``workers=0``) the cases run one by one anyway."""
+    try:
+        from distributed import Lock, get_worker
+
+        get_worker()
+    except (ImportError, ValueError):
+        yield
+        return
+    with Lock(f"tofhil-device:{device}"):
+        yield
+
+
+def capture_case(spec: SweepSpec, case: Case, cdir: Path) -> tuple[Path, dict[str, Any] | None]:
+    """Capture a case's session from the spec's device into ``cdir/measured.h5``.
+
+    Returns the session and the effects the bench really has where the sweep knows them (an
+    emulated bench: the case's effects, else the emulator's own hidden truth), else None."""
+    from tofhil.drivers.base import create_driver
+    from tofhil.drivers.capture import capture
+
+    device = spec.capture["device"]
+    hidden = None
+    scene_text = ""
+    if emulates_bench(spec):
+        from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
+        from tofhil.drivers.tofcam635.sources import HIDDEN_TRUTH_EFFECTS, TOFCAM635_OVERRIDES, SimulatedSource
+        from tofhil.sim.scene import scene_to_yaml
+
+        # the bench as the emulated TOFcam635 sees it (its camera and sensor model); the twin
+        # of each capture starts from the same file
+        bench = cdir / "bench_scene.yaml"
+        scene_text = scene_to_yaml(case_scene(spec, case.params, TOFCAM635_OVERRIDES))
+        bench.write_text(scene_text, encoding="utf-8")
+        effects = case_effects(spec, case.params)
+        hidden = effects or HIDDEN_TRUTH_EFFECTS
+        emulator = Epc635Emulator(SimulatedSource(bench, effects=effects or None),
+                                  seed=int(case.params.get("seed", spec.seed)))
+        driver = EmulatedTofCam635(device, emulator=emulator)
+    else:
+        driver = create_driver(device)
+    out = cdir / "measured.h5"
+    with device_lock(device), driver:
+        summary = capture(driver, out, spec.capture["frames"], capture_settings(spec, case.params), force=True,
+                          scene_text=scene_text, timeout_s=spec.capture["timeout_s"])
+    if summary.ended_early or summary.frames_written < summary.requested:
+        raise TofhilError(f"capture from {device} ended after {summary.frames_written} of {summary.requested} "
+                          f"frames: {summary.ended_early or 'too few frames'}", file=out)
+    return out, hidden
+
+
+def twin_scene_for_capture(spec: SweepSpec, case: Case, session_path: Path, cdir: Path) -> Any:
+    """The case's scene as the twin of its capture (``cdir/twin_scene.yaml``): an emulated
+    TOFcam635's camera and sensor model where the bench is emulated, and the capture's own
+    acquisition settings (:func:`tofhil.sim.session_setup.write_twin_scene`)."""
+    from tofhil.sim.scene import load_scene
+    from tofhil.sim.session_setup import write_twin_scene
+
+    if emulates_bench(spec):
+        scene = load_scene(cdir / "bench_scene.yaml")
+    else:
+        scene = case_scene(spec, case.params)
+    return write_twin_scene(scene, session_path, cdir / "twin_scene.yaml")[0]
 
 
 # ----------------------------------------------------------------------------- records and table
@@ -752,10 +917,11 @@ def local_client(workers: int | None = None, **kwargs: Any) -> Any:
 
 
 def run_sweep(spec: SweepSpec, out_dir: str | Path, *, scheduler: str | None = None, workers: int | None = None,
-              client: Any = None, resume: bool = False, force: bool = False, progress: Progress | None = None,
-              log: Callable[[str], None] | None = None) -> SweepResult:
+              client: Any = None, resume: bool = False, force: bool = False, retry_failed: bool = False,
+              progress: Progress | None = None, log: Callable[[str], None] | None = None) -> SweepResult:
     """Run every case not yet finished, writing each record as it finishes; then the table
-    and the report.
+    and the report. ``retry_failed`` (with ``resume``) runs the cases that failed again too
+    (a device that was unplugged, a worker that died); their old records stay until replaced.
 
     ``client``: an existing ``distributed.Client``; else ``scheduler`` (an address) connects to
     a running cluster; else a ``LocalCluster`` of ``workers`` processes (default: one per
@@ -769,6 +935,14 @@ def run_sweep(spec: SweepSpec, out_dir: str | Path, *, scheduler: str | None = N
     created = not out.exists()
     _save_spec(spec, out)
     done = read_records(out) if resume else {}
+    if retry_failed:
+        if not resume:
+            raise TofhilError("retrying failed cases continues a sweep", field="--retry-failed",
+                              expected="--resume as well")
+        retried = sum(1 for c in cases if c.id in done and done[c.id].get("status") != "ok")
+        done = {k: r for k, r in done.items() if r.get("status") == "ok"}
+        if retried:
+            say(f"retrying {retried} failed case(s)")
     todo = [c for c in cases if c.id not in done]
     if done:
         say(f"resuming: {len(cases) - len(todo)} of {len(cases)} cases already done")

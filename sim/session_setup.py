@@ -80,3 +80,16 @@ def scene_for_setup(scene: Any, setup: SessionSetup) -> Any:
     """The scene set to the session's camera and sensor (the scene itself is unchanged)."""
     return dataclasses.replace(scene, camera=setup.camera, sensor=setup.sensor)
 
+
+
+def write_twin_scene(scene: Any, session_path: str | Path, out_path: str | Path) -> tuple[Any, SessionSetup]:
+    """The twin of a recorded session: ``scene`` set to the session's camera and acquisition
+    settings, written to ``out_path`` (YAML) and read back, so the twin is exactly what that
+    file says (a diagnosis or a later run reads the same file)."""
+    from tofhil.session import open_session
+    from tofhil.sim.scene import load_scene, scene_to_yaml
+
+    with open_session(session_path) as session:
+        setup = setup_for_session(scene, session)
+    Path(out_path).write_text(scene_to_yaml(scene_for_setup(scene, setup)), encoding="utf-8")
+    return load_scene(out_path), setup

@@ -286,3 +286,104 @@ def test_batch_compare_over_sessions(tmp_path: Path, tofhil_cli) -> None:
     assert (df["status"] == "ok").all()
     col = [c for c in df.columns if c.endswith("depth_rmse_m") and c.startswith("compare.measured")][0]
     assert (df[col] > 0).all()  # shot and read noise against a noise-free reference
+
+
+# ----------------------------------------------------------------------------- capture cases
+CAPTURE_SPEC = {
+    "name": "capture",
+    "scene": "wall_card",
+    "capture": {"device": "emulator", "frames": 2},
+    "effects": {"range_offset": {"path_m": 0.1}},  # what the emulated bench has and the twin lacks
+    "axes": {"capture.integration_time_us": [100.0, 400.0]},
+    "compare": {"reference": "twin", "frames": 2},
+}
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"capture": {"device": "usb"}, "axes": {"params.card_reflectance": [0.4]}}, "axes.params.card_reflectance"),
+    ({"capture": {"device": "emulator"}, "axes": {"camera.scale": [0.5]}}, "axes.camera.scale"),
+    ({"capture": {"device": "emulator", "roi": [4, 4, 2, 12]}}, "capture.roi"),
+    ({"capture": {"device": "emulator", "mode": "grayscale"}}, "capture.mode"),
+    ({"capture": {"frames": 2}}, "capture.device"),
+    ({"capture": {"device": "emulator"}, "simulate": True}, "simulate"),
+    ({"capture": None, "axes": {"capture.channel": [1]}}, "capture"),
+    ({"axes": {"capture.channel": [99]}}, "axes.capture.channel[0]"),
+])
+def test_bad_capture_spec_names_the_field(change: dict, field: str) -> None:
+    d = {k: v for k, v in (json.loads(json.dumps(CAPTURE_SPEC)) | change).items() if v is not None}
+    with pytest.raises(TofhilError) as e:
+        spec_of(d)
+    assert f"field '{field}'" in str(e.value) or f"{field}:" in str(e.value), str(e.value)
+
+
+def test_capture_cases_from_the_emulated_bench(tmp_path: Path) -> None:
+    """Each case captures from the emulated TOFcam635 looking at the scene with the case's
+    integration time; the twin re-renders with the capture's settings. Physics: the collected
+    modulation grows linearly with the exposure (4x the time, 4x the tap amplitude), and the
+    bench's hidden 0.1 m extra light path reads 0.05 m farther than the twin in both cases."""
+    from tofhil.demod import phasor
+    from tofhil.session import open_session
+
+    res = S.run_sweep(spec_of(CAPTURE_SPEC), tmp_path / "out", workers=0)
+    df = res.table.set_index("capture.integration_time_us")
+    assert (res.table["status"] == "ok").all(), list(res.table["error"])
+    amp = {}
+    for case in S.expand_cases(spec_of(CAPTURE_SPEC)):
+        cdir = tmp_path / "out" / "cases" / case.id
+        with open_session(cdir / "measured.h5") as s, open_session(cdir / "twin.h5") as t:
+            assert s.device["model"] != "tofhil-sim" and s.device["settings"]["integration_time_s"] == pytest.approx(
+                case.params["capture.integration_time_us"] * 1e-6)
+            frame = s.raw_frame(0)
+            assert t.camera.shape == s.camera.shape and np.allclose(t.freq_hz, s.freq_hz)
+            amp[case.params["capture.integration_time_us"]] = np.median(np.abs(phasor(frame.taps.astype(float),
+                                                                                      frame.theta_rad)))
+    assert amp[400.0] / amp[100.0] == pytest.approx(4.0, rel=0.03)
+    col = "compare.measured.regions.all.depth_residual_m.median"
+    assert col in df.columns, [c for c in df.columns if c.startswith("compare.measured.regions.all")]
+    assert np.allclose(df[col].astype(float), 0.05, atol=0.005)
+
+
+def test_retry_failed_reruns_only_the_failed(tmp_path: Path) -> None:
+    d = dict(SPEC, axes={"camera.scale": [0.25], "seed": [0], "camera.preset": ["holmlund_thesis", "no_such_preset"]})
+    spec = spec_of(d)
+    out = tmp_path / "out"
+    assert S.run_sweep(spec, out, workers=0).failed == 1
+    stamps = {p.name: p.stat().st_mtime_ns for p in (out / "cases").glob("*.json")}
+    assert S.run_sweep(spec, out, workers=0, resume=True).ran == 0
+    with pytest.raises(TofhilError, match="--resume"):
+        S.run_sweep(spec, out, workers=0, retry_failed=True)
+    res = S.run_sweep(spec, out, workers=0, resume=True, retry_failed=True)
+    assert res.ran == 1 and res.failed == 1
+    bad = res.table.loc[res.table["status"] != "ok", "case"].item()
+    for name, stamp in stamps.items():
+        assert ((out / "cases" / name).stat().st_mtime_ns == stamp) == (name != f"{bad}.json")
+
+
+def test_cli_against_a_running_scheduler_and_device_lock(tmp_path: Path, tofhil_cli) -> None:
+    """``--scheduler ADDRESS``: the CLI connects to a cluster it did not start (here one on
+    the loopback); the cases run in that cluster's worker. Captures from one device hold a
+    cluster-wide lock: two tasks never hold it at once."""
+    from distributed import Client, LocalCluster
+
+    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                           host="127.0.0.1", scheduler_port=0)
+    try:
+        with Client(cluster) as client:
+            def hold(i: int) -> tuple[float, float]:
+                with S.device_lock("usb:1:2"):
+                    t0 = time.time()
+                    time.sleep(0.3)
+                    return t0, time.time()
+
+            spans = sorted(client.gather(client.map(hold, range(4), pure=False)))
+            assert all(a[1] <= b[0] for a, b in zip(spans, spans[1:])), spans
+            worker_pids = set(client.run(os.getpid).values())
+        d = dict(SPEC, axes={"camera.scale": [0.25], "seed": [0]})
+        r = tofhil_cli("sweep", write_spec(tmp_path, d), "--out", tmp_path / "out", "--scheduler",
+                       cluster.scheduler_address)
+        assert r.returncode == 0, r.stderr
+        assert f"connecting to the Dask scheduler at {cluster.scheduler_address}" in r.stderr
+        pids = {json.loads(p.read_text())["pid"] for p in (tmp_path / "out" / "cases").glob("*.json")}
+        assert pids and pids <= worker_pids, (pids, worker_pids)
+    finally:
+        cluster.close()

@@ -94,9 +94,8 @@ def demo(out_dir: Path = typer.Option(Path("demo-out"), "--out", parser=opt.out_
     from tofhil.cli.evaluate import compare_line
     from tofhil.eval.compare import compare_sessions
     from tofhil.sim.pipeline import simulate_session
-    from tofhil.session import open_session
-    from tofhil.sim.scene import load_scene, scene_to_yaml
-    from tofhil.sim.session_setup import scene_for_setup, setup_for_session
+    from tofhil.sim.scene import load_scene
+    from tofhil.sim.session_setup import write_twin_scene
 
     if frames < 2:
         raise TofhilError(f"is {frames}", field="--frames", expected="at least 2 (training and held-out frames)")
@@ -121,17 +120,13 @@ def demo(out_dir: Path = typer.Option(Path("demo-out"), "--out", parser=opt.out_
         show(f"    {summary.frames_written} frames written, {summary.dropped} dropped, {summary.reconnects} reconnects")
 
         show("2/5 the twin: the same scene and camera model, without the hidden imperfections")
-        twin = load_scene(scene, overrides=TOFCAM635_OVERRIDES)
         # The twin runs with the capture's settings (the emulated TOFcam635 modulates at 20 MHz
         # whatever the scene's sensor block says): frequencies, tap phases, integration time and
         # camera from the capture, the rest from the scene.
-        with open_session(out_dir / "capture.h5") as cap:
-            setup = setup_for_session(twin, cap)
-        twin = scene_for_setup(twin, setup)
-        show(f"    {setup.note}")
         twin_path = out_dir / "twin_scene.yaml"
-        twin_path.write_text(scene_to_yaml(twin))
-        twin = load_scene(twin_path)
+        twin, setup = write_twin_scene(load_scene(scene, overrides=TOFCAM635_OVERRIDES), out_dir / "capture.h5",
+                                       twin_path)
+        show(f"    {setup.note}")
         simulate_session(twin, out_dir / "twin.h5", frames=frames, seed=1, noise=True, force=True)
 
         show("3/5 comparing capture and twin (pixels, point clouds, NDT)")

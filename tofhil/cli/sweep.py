@@ -20,6 +20,7 @@ _WORKERS = typer.Option(None, "--workers", parser=opt.count(0, 4096),
                         help="Local worker processes (default: one per core; 0: run the cases here, one by one).")
 _RESUME = typer.Option(False, "--resume", help="Continue a sweep in OUT: finished cases are not redone.")
 _FORCE = typer.Option(False, "--force", help="Start over in OUT, removing an earlier sweep's results.")
+_RETRY = typer.Option(False, "--retry-failed", help="With --resume: run the cases that failed again too.")
 
 
 def _log(start: float):
@@ -29,14 +30,15 @@ def _log(start: float):
     return say
 
 
-def _run(spec, out_dir: Path, scheduler: Optional[str], workers: Optional[int], resume: bool, force: bool) -> None:
+def _run(spec, out_dir: Path, scheduler: Optional[str], workers: Optional[int], resume: bool, force: bool,
+         retry_failed: bool = False) -> None:
     from tofhil.eval.sweep import expand_cases, run_sweep
 
     start = time.monotonic()
     n = len(expand_cases(spec))
     _log(start)(f"{spec.name}: {n} case(s)")
     res = run_sweep(spec, out_dir, scheduler=scheduler, workers=workers, resume=resume, force=force,
-                    progress=progress, log=_log(start))
+                    retry_failed=retry_failed, progress=progress, log=_log(start))
     out.print(f"{res.ran} case(s) run, {res.skipped} already done, {res.failed} failed "
               f"({res.seconds:.1f} s)", highlight=False)
     if res.failed:
@@ -50,11 +52,11 @@ def sweep(spec_file: Path = typer.Argument(..., parser=opt.existing_file, help="
           out_dir: Path = typer.Option(..., "--out", parser=opt.out_dir,
                                        help="Directory for cases/, results.parquet, results.csv, report.html."),
           scheduler: Optional[str] = _SCHEDULER, workers: Optional[int] = _WORKERS,
-          resume: bool = _RESUME, force: bool = _FORCE) -> None:
+          resume: bool = _RESUME, force: bool = _FORCE, retry_failed: bool = _RETRY) -> None:
     """Run a sweep: every case of the spec as one Dask task, one table of results and a report."""
     from tofhil.eval.sweep import load_spec
 
-    _run(load_spec(spec_file), out_dir, scheduler, workers, resume, force)
+    _run(load_spec(spec_file), out_dir, scheduler, workers, resume, force, retry_failed)
 
 
 @batch_app.command("diagnose")
@@ -63,12 +65,12 @@ def batch_diagnose(sessions: List[str] = typer.Argument(..., help="Session files
                    out_dir: Path = typer.Option(..., "--out", parser=opt.out_dir, help="Directory for the results."),
                    max_effects: Optional[int] = typer.Option(None, parser=opt.count(1, 50), help="Most effects to add."),
                    scheduler: Optional[str] = _SCHEDULER, workers: Optional[int] = _WORKERS,
-                   resume: bool = _RESUME, force: bool = _FORCE) -> None:
+                   resume: bool = _RESUME, force: bool = _FORCE, retry_failed: bool = _RETRY) -> None:
     """Diagnose every session against one scene; one summary table."""
     from tofhil.eval.sweep import batch_spec, session_list
 
     spec = batch_spec("diagnose", session_list(sessions), scene=scene, max_effects=max_effects)
-    _run(spec, out_dir, scheduler, workers, resume, force)
+    _run(spec, out_dir, scheduler, workers, resume, force, retry_failed)
 
 
 @batch_app.command("compare")
@@ -81,7 +83,7 @@ def batch_compare(sessions: List[str] = typer.Argument(..., help="Session files,
                   frames: int = typer.Option(10, "--frames", parser=opt.count(1, 100_000), help="Frames to average."),
                   out_dir: Path = typer.Option(..., "--out", parser=opt.out_dir, help="Directory for the results."),
                   scheduler: Optional[str] = _SCHEDULER, workers: Optional[int] = _WORKERS,
-                  resume: bool = _RESUME, force: bool = _FORCE) -> None:
+                  resume: bool = _RESUME, force: bool = _FORCE, retry_failed: bool = _RETRY) -> None:
     """Compare every session with one reference (or the twin); one summary table."""
     from tofhil.errors import TofhilError
     from tofhil.eval.sweep import batch_spec, session_list
@@ -92,4 +94,4 @@ def batch_compare(sessions: List[str] = typer.Argument(..., help="Session files,
     spec = batch_spec("compare", session_list(sessions), scene=scene,
                       reference=None if reference is None else str(reference.resolve()),
                       corrections=correct, frames=frames)
-    _run(spec, out_dir, scheduler, workers, resume, force)
+    _run(spec, out_dir, scheduler, workers, resume, force, retry_failed)
