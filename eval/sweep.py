@@ -46,13 +46,16 @@ from tofhil.progress import Progress, no_progress
 from tofhil.schema import Schema
 
 SPEC_KEYS = ("name", "description", "scene", "sessions", "reference", "axes", "design", "frames", "noise", "seed",
-             "effects", "simulate", "capture", "compare", "diagnose", "keep_sessions", "report")
+             "effects", "simulate", "capture", "calibrate", "compare", "diagnose", "keep_sessions", "report")
 #: Axis names: ``params.NAME`` (a scene parameter), ``effects.EFFECT.PARAM``, ``effects`` (a
 #: whole effect set per value), ``camera.preset``, ``camera.scale``, ``seed``, ``session``.
 FIXED_AXES = ("effects", "camera.preset", "camera.scale", "seed", "session")
 #: Acquisition settings a capture case sets on the device (``capture.NAME`` axes and keys).
 CAPTURE_SETTINGS = ("integration_time_us", "mod_freq_hz", "channel", "min_amplitude")
 CAPTURE_KEYS = ("device", "frames", "mode", "roi", "timeout_s") + CAPTURE_SETTINGS
+CALIBRATE_KEYS = ("scene", "captures", "reference", "frames", "form", "ghost_center")
+#: A correction's ``psf=`` value that means the PSF this sweep calibrated (``calibrate``).
+CALIBRATED_PSF = "@calibration"
 #: The device scheme whose bench the sweep may change: the in-process emulator renders each
 #: case's scene (its parameters, effects and seed); a real device's bench is what it is.
 EMULATED_BENCH = "emulator"
@@ -80,6 +83,8 @@ class SweepSpec:
     simulate: bool = True
     #: Capture each case from a device instead of simulating it (``device``, settings).
     capture: dict[str, Any] | None = None
+    #: One stray-light PSF calibration before the cases (``psf:psf=@calibration`` uses it).
+    calibrate: dict[str, Any] | None = None
     compare: dict[str, Any] | None = None
     diagnose: dict[str, Any] | None = None
     reference: str | None = None
@@ -208,6 +213,12 @@ def parse_spec(data: Any, *, source: str = "<spec>", base_dir: str | Path = ".",
                 raise s.bad(c, "diagnose.candidates", "a list of effect names")
             for i, e in enumerate(c):
                 s.enum(e, f"diagnose.candidates[{i}]", sorted(EFFECTS))
+    calibrate = _parse_calibrate(s, d.get("calibrate"), axes, scene=scene, simulate=simulate, frames=frames,
+                                 base=base)
+    for i, c in enumerate((compare or {}).get("corrections", [])):
+        if f"={CALIBRATED_PSF}" in c and calibrate is None:
+            raise s.error(f"{CALIBRATED_PSF} without a calibration", f"compare.corrections[{i}]",
+                          "a 'calibrate' block that fits the PSF once before the cases")
     if not simulate and capture is None and compare is None and diagnose is None:
         raise s.error("nothing to do", "", "'compare' and/or 'diagnose' for a batch over sessions")
     report = s.mapping(d.get("report"), "report", allowed=("metrics",))
@@ -217,8 +228,8 @@ def parse_spec(data: Any, *, source: str = "<spec>", base_dir: str | Path = ".",
     metrics = [s.string(m, f"report.metrics[{i}]", nonempty=True) for i, m in enumerate(metrics)]
     name = s.string(d.get("name", Path(source).stem if source != "<spec>" else "sweep"), "name", nonempty=True)
     spec = SweepSpec(name=name, scene=scene, axes=axes, design=kind, n=n, design_seed=dseed, frames=frames,
-                     noise=noise, seed=seed, effects=effects, simulate=simulate, capture=capture, compare=compare,
-                     diagnose=diagnose,
+                     noise=noise, seed=seed, effects=effects, simulate=simulate, capture=capture,
+                     calibrate=calibrate, compare=compare, diagnose=diagnose,
                      reference=None, keep_sessions=s.boolean(d.get("keep_sessions", True), "keep_sessions"),
                      report_metrics=metrics, description=s.string(d.get("description", ""), "description"),
                      source=str(source), base_dir=str(base), text=text)
@@ -272,6 +283,45 @@ def _parse_capture(s: Schema, value: Any, axes: Mapping[str, Any], *, scene: str
             raise s.error(f"a bench axis with device {device!r}", f"axes.{name}",
                           "only capture.* axes: the sweep changes a real bench's settings, not its scene "
                           "(device 'emulator' with a scene emulates the bench of each case)")
+    return out
+
+
+def _parse_calibrate(s: Schema, value: Any, axes: Mapping[str, Any], *, scene: str | None, simulate: bool,
+                     frames: int, base: Path) -> dict[str, Any] | None:
+    """The ``calibrate`` block: ONE stray-light PSF calibration on scenes that are not the
+    cases (the documented bench procedure: a card on black, a bright patch at several field
+    positions), simulated through the spec's ``effects`` (the lens), fitted by
+    :func:`tofhil.eval.corrections.psf_calibration.calibrate_from_sessions`."""
+    if value is None:
+        return None
+    if not simulate or scene is None:
+        raise s.error("a calibration needs simulated cases", "calibrate",
+                      "a simulating sweep (calibrate a device with 'tofhil correct --method psf --calibrate')")
+    c = s.mapping(value, "calibrate", allowed=CALIBRATE_KEYS, none_ok=False)
+    for name, values in axes.items():
+        if name.startswith("camera.") and not (isinstance(values, list) and len(values) == 1):
+            raise s.error("one calibration for every case", f"axes.{name}",
+                          "one camera for all cases with 'calibrate' (a PSF is calibrated for one camera)")
+    cal_scene = scene if "scene" not in c else _scene_ref(s.string(c["scene"], "calibrate.scene", nonempty=True), base)
+    captures = c.get("captures", [{}])
+    if not isinstance(captures, list) or not captures:
+        raise s.bad(captures, "calibrate.captures", "a non-empty list of scene parameter sets, one per capture")
+    captures = [dict(s.mapping(p, f"calibrate.captures[{i}]")) for i, p in enumerate(captures)]
+    gc = c.get("ghost_center")
+    if gc is not None and gc != "fit":
+        gc = list(s.numbers(gc, "calibrate.ghost_center", n=2, expected="fit, or [X, Y] in pixels"))
+    out = {"scene": cal_scene, "captures": captures,
+           "reference": s.enum(c.get("reference", "twin"), "calibrate.reference", ("twin", "none")),
+           "frames": s.integer(c.get("frames", frames), "calibrate.frames", lo=1, hi=100_000),
+           "form": s.enum(c.get("form", "free"), "calibrate.form", ("free", "gaussian")),
+           "ghost_center": gc}
+    from tofhil.sim.scene import load_scene
+
+    for i, p in enumerate(captures):
+        try:
+            load_scene(cal_scene, overrides={"params": p} if p else None)
+        except TofhilError as exc:
+            raise s.error(str(exc), f"calibrate.captures[{i}]", "parameters the calibration scene accepts") from None
     return out
 
 
@@ -443,15 +493,23 @@ def case_scene(spec: SweepSpec, params: Mapping[str, Any], overrides: Mapping[st
     """The scene of a case (scene parameters, camera preset and scale applied, then
     ``overrides`` such as an emulated device's camera); its own ``effects:`` block is what
     the twin models."""
-    from tofhil.sim.scene import load_scene
 
     ov: dict[str, Any] = dict(overrides or {})
     sp = {k.split(".", 1)[1]: v for k, v in params.items() if k.startswith("params.")}
     if sp:
         ov["params"] = sp
+    return load_with_camera(spec.scene, params, ov)
+
+
+def load_with_camera(scene_ref: str, params: Mapping[str, Any], overrides: Mapping[str, Any] | None = None) -> Any:
+    """Load a scene with a case's ``camera.preset`` (resolved at load: the preset's sensor
+    settings come with it) and ``camera.scale`` (the sensor resampled)."""
+    from tofhil.sim.scene import load_scene
+
+    ov = dict(overrides or {})
     if "camera.preset" in params:
         ov["camera"] = {"preset": params["camera.preset"]}
-    scene = load_scene(spec.scene, overrides=ov or None)
+    scene = load_scene(scene_ref, overrides=ov or None)
     scale = params.get("camera.scale")
     if scale is not None and scale != 1.0:
         scene = dataclasses.replace(scene, camera=scene.camera.scaled(float(scale)))
@@ -589,8 +647,12 @@ def _run_case_steps(spec: SweepSpec, case: Case, cdir: Path) -> dict[str, Any]:
             ref = simulate_session(scene, cdir / "twin.h5", frames=1, seed=0, noise=False, effects=None, twin=twin)
             RENDER_COUNT["renders"] += twin.renders - before
         kw = {k: spec.compare[k] for k in ("min_relative_amplitude",) if k in spec.compare}
-        m = compare_sessions(measured, ref, cdir / "compare", corrections=spec.compare["corrections"],
-                             max_frames=spec.compare["frames"], force=True, **kw)
+        psf = str(calibrated_psf_path(cdir.parent.parent))
+        m = compare_sessions(measured, ref, cdir / "compare", max_frames=spec.compare["frames"], force=True,
+                             corrections=[c.replace(f"={CALIBRATED_PSF}", f"={psf}") for c in spec.compare["corrections"]],
+                             **kw)
+        # the table names the calibrated PSF by its token, not by this machine's path
+        m["variants"] = {k.replace(f"={psf}", f"={CALIBRATED_PSF}"): v for k, v in m["variants"].items()}
         metrics.update(compare_metrics(m))
         metrics["compare.seconds"] = time.perf_counter() - t
     if spec.diagnose is not None:
@@ -605,6 +667,59 @@ def _run_case_steps(spec: SweepSpec, case: Case, cdir: Path) -> dict[str, Any]:
         for name in ("measured.h5", "twin.h5"):
             (cdir / name).unlink(missing_ok=True)
     return metrics
+
+
+# ----------------------------------------------------------------------------- the PSF calibration
+def calibrated_psf_path(out_dir: str | Path) -> Path:
+    return Path(out_dir) / "calibration" / "psf.json"
+
+
+def run_calibration(spec: SweepSpec, out: Path, say: Callable[[str], None]) -> Path:
+    """Fit the sweep's stray-light PSF once (``calibration/psf.json``), before the cases.
+
+    Each calibration capture is the calibration scene with its parameters, simulated with
+    the scene's own effects and the spec's ``effects`` (the lens under test; not the cases'
+    axes), with the spec's noise; with ``reference: twin`` each is fitted against its
+    stray-light-free, noise-free twin, with ``none`` as bright targets on a dark background.
+    A finished calibration is reused by ``--resume`` (the spec, and so the calibration, is
+    the same)."""
+    from tofhil.eval.corrections.psf_calibration import calibrate_from_sessions
+    from tofhil.sim.effects import effects_to_block
+    from tofhil.sim.pipeline import resolve_effects, simulate_session
+
+    cal = spec.calibrate
+    path = calibrated_psf_path(out)
+    if path.is_file():
+        say(f"calibration: reusing {path}")
+        return path
+    work = path.parent.with_name("calibration.tmp")
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    captures, refs = [], []
+    camera = {k: v[0] for k, v in spec.axes.items() if k.startswith("camera.")}  # one value (validated)
+    for i, params in enumerate(cal["captures"]):
+        scene = load_with_camera(cal["scene"], camera, {"params": params} if params else None)
+        eff = effects_to_block(resolve_effects(scene))
+        for k, v in spec.effects.items():
+            eff[k] = {**(eff.get(k) or {}), **v}
+        say(f"calibration capture {i + 1}/{len(cal['captures'])}: {cal['scene']} {params or ''}".rstrip())
+        captures.append(simulate_session(scene, work / f"capture_{i}.h5", frames=cal["frames"], seed=spec.seed + 7919 + i,
+                                         noise=spec.noise, effects=eff))
+        if cal["reference"] == "twin":
+            plain = {k: v for k, v in eff.items() if k != "stray_light"}
+            refs.append(simulate_session(scene, work / f"reference_{i}.h5", frames=1, noise=False,
+                                         effects=plain))
+    gc = cal["ghost_center"]
+    psf = calibrate_from_sessions(captures, refs or None, form=cal["form"],
+                                  ghost_center_px=tuple(gc) if isinstance(gc, list) else gc)
+    for warning in psf.info.get("warnings", []):
+        say(f"warning: PSF calibration: {warning}")
+    say(f"PSF calibrated: residual {100 * psf.info['relative_residual']:.2f} % of the calibration's stray light, "
+        f"condition {psf.info['condition']:.3g}")
+    psf.save(work / "psf.json", force=True)
+    shutil.rmtree(path.parent, ignore_errors=True)
+    os.replace(work, path.parent)
+    return path
 
 
 # ----------------------------------------------------------------------------- capture cases
@@ -948,6 +1063,8 @@ def run_sweep(spec: SweepSpec, out_dir: str | Path, *, scheduler: str | None = N
         say(f"resuming: {len(cases) - len(todo)} of {len(cases)} cases already done")
     ran = failed = 0
     try:
+        if todo and spec.calibrate is not None:
+            run_calibration(spec, out, say)
         if todo and workers == 0 and client is None and scheduler is None:
             for case in bar(todo, len(todo), "sweep"):
                 rec = run_case(spec, case, str(out))

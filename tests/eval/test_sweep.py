@@ -387,3 +387,30 @@ def test_cli_against_a_running_scheduler_and_device_lock(tmp_path: Path, tofhil_
         assert pids and pids <= worker_pids, (pids, worker_pids)
     finally:
         cluster.close()
+
+
+# ----------------------------------------------------------------------------- the PSF calibration
+def test_calibrated_psf_sweep_removes_the_dark_square_error(tmp_path: Path) -> None:
+    """The stray-light study's calibrated-PSF method as a spec: ONE calibration on another
+    scene (wall and card against its stray-light-free twin), then every case corrected with
+    it. The stray light is two of the study's lobes and its veil; the correction removes most
+    of the square's error at 50 % and 10 % reflectivity (lower reflectivities clip at the
+    scene sensor's zero black level: benchmarks/straylight_study.py raises it)."""
+    lens = {"gaussians": [[0.02, 3.0, 3.0], [0.03, 15.0, 12.0]], "veil": 0.01}
+    d = {"name": "sl", "scene": "dark_square_card", "frames": 1, "noise": False,
+         "effects": {"stray_light": lens},
+         "axes": {"camera.scale": [0.5], "params.square_reflectance": [0.5, 0.1]},
+         "calibrate": {"scene": "wall_card", "reference": "twin", "form": "gaussian"},
+         "compare": {"reference": "twin", "frames": 1, "corrections": ["psf:psf=@calibration"]}}
+    logs: list[str] = []
+    res = S.run_sweep(spec_of(d), tmp_path / "out", workers=0, log=logs.append)
+    assert (res.table["status"] == "ok").all(), list(res.table["error"])
+    assert (tmp_path / "out" / "calibration" / "psf.json").is_file()
+    assert any(m.startswith("PSF calibrated") for m in logs)
+    before = res.table["compare.measured.regions.square.depth_rmse_m"].astype(float)
+    after = res.table["compare.psf:psf=@calibration.regions.square.depth_rmse_m"].astype(float)
+    assert (before > 1e-2).all() and (after < 0.1 * before).all(), (list(before), list(after))
+    with pytest.raises(TofhilError, match="compare.corrections"):
+        spec_of({k: v for k, v in d.items() if k != "calibrate"})
+    with pytest.raises(TofhilError, match="axes.camera.scale"):
+        spec_of(dict(d, axes={"camera.scale": [0.5, 0.25]}))
