@@ -5,8 +5,6 @@ NDT score map, and ``model.json`` with the same figures."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
-
 import numpy as np
 
 from tofhil.eval.html import esc, fig_uri, fmt, notes_html, pyplot, write_json, write_page
@@ -35,10 +33,10 @@ def figure_ndt_map(points: np.ndarray, likelihood: np.ndarray, title: str) -> st
     return fig_uri(fig)
 
 
-def write_model_report(model: MultiViewModel, out_dir: Path, *, inputs: list[str], extra: dict[str, Any]) -> None:
+def write_model_report(model: MultiViewModel, out_dir: Path, *, inputs: list[str]) -> None:
     """Write ``model.html`` and ``model.json`` into ``out_dir`` (created)."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    payload = model.to_dict() | {"inputs": inputs} | extra
+    payload = model.to_dict() | {"inputs": inputs}
     write_json(out_dir / "model.json", payload)
     body = [notes_html(model.notes)]
     rows = []
@@ -59,11 +57,13 @@ def write_model_report(model: MultiViewModel, out_dir: Path, *, inputs: list[str
     s = model.score
     if s is not None:
         nd = s.ndt
-        verdict = extra.get("ndt_verdict", "")
+        verdict = payload["ndt_verdict"] or ""
+        top = model.ceiling.ndt["mean_likelihood"] if model.ceiling is not None else None
         body.append("<h2>Model against the truth</h2><table><tr><th>figure</th><th>value</th></tr>"
                     + "".join(f"<tr><td>{esc(k)}</td><td>{v}</td></tr>" for k, v in (
-                        ("NDT cell (m)", fmt(nd["cell_size"])), ("NDT mean trilinear likelihood",
-                                                                 fmt(nd["mean_likelihood_trilinear"])),
+                        ("NDT cell (m)", fmt(nd["cell_size"])), ("NDT mean likelihood", fmt(nd["mean_likelihood"])),
+                        ("NDT mean likelihood of the true-pose model", fmt(top)),
+                        ("NDT mean trilinear likelihood", fmt(nd["mean_likelihood_trilinear"])),
                         ("NDT fraction above 0.5", fmt(nd["fraction_above"].get("0.5"))),
                         ("NDT score per point (PCL)", fmt(nd["score_per_point"])), ("NVTL", fmt(nd["nvtl"])),
                         ("Chamfer (mm)", fmt(s.chamfer_m, 1e3)),

@@ -32,7 +32,7 @@ def model_cmd(sessions: List[Path] = typer.Argument(..., parser=opt.existing_fil
     for simulated views, score it against the scene's geometry (NDT, Chamfer, F-score) with per-view pose errors."""
     from tofhil.eval.colorize import write_ply
     from tofhil.eval.html import prepare_output_dir
-    from tofhil.eval.multiview import NDT_PASS, build_model, load_view, ndt_verdict
+    from tofhil.eval.multiview import build_model, load_view
     from tofhil.eval.multiview_report import REPORT_FILES, write_model_report
 
     if out_path.suffix.lower() != ".ply":
@@ -50,21 +50,18 @@ def model_cmd(sessions: List[Path] = typer.Argument(..., parser=opt.existing_fil
 
     g = np.round(model.grey * 255).astype(np.uint8)
     write_ply(out_path, model.points, np.stack([g, g, g], axis=1))
-    verdict = ndt_verdict(model.score) if model.score is not None else ""
+    summary = model.to_dict()
     if report is not None:
         with new_output_dir(report):
-            write_model_report(model, report, inputs=[str(p) for p in sessions],
-                               extra={"ndt_pass": NDT_PASS, "ndt_verdict": verdict})
+            write_model_report(model, report, inputs=[str(p) for p in sessions])
     for v in model.views:
         err = ("" if v.translation_error_m is None else
                f", pose error {v.translation_error_m * 1e3:.2f} mm {v.rotation_error_deg:.3f} deg")
         out.print(f"{lit(v.name)}: {v.points} points{err}", highlight=False, soft_wrap=True)
     if model.score is not None:
         s = model.score
-        out.print(f"model vs truth: NDT mean likelihood {s.ndt['mean_likelihood_trilinear']:.3f} "
-                  f"(cell {s.ndt['cell_size']:g} m), Chamfer {s.chamfer_m * 1e3:.2f} mm, "
-                  f"F-score {s.fscore:.3f} at {s.fscore_threshold_m * 1e3:g} mm; {verdict}", highlight=False,
-                  soft_wrap=True)
+        out.print(f"model vs truth: Chamfer {s.chamfer_m * 1e3:.2f} mm, F-score {s.fscore:.3f} at "
+                  f"{s.fscore_threshold_m * 1e3:g} mm; {summary['ndt_verdict']}", highlight=False, soft_wrap=True)
     for n in model.notes:
         out.print(lit(n), highlight=False, soft_wrap=True)
     out.print(f"wrote {len(model.points)} model points to {lit(out_path)}"
