@@ -68,10 +68,16 @@ def colorize_cmd(recording: Path = typer.Argument(..., parser=opt.existing_file,
                                            help="Frame index (depth and colour)."),
                  keep_occluded: bool = typer.Option(False, "--keep-occluded",
                                                     help="Write points the colour camera does not see too (black)."),
-                 force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
+                 report: Optional[Path] = typer.Option(None, "--report", parser=opt.out_dir,
+                                                       help="Directory for colorize.html and colorize.json: the "
+                                                            "coloured cloud and the misalignment at depth edges."),
+                 force: bool = typer.Option(False, "--force", help="Overwrite OUT (and the report files) if they exist.")
+                 ) -> None:
     """Colour the depth points of an Azure Kinect recording from its colour camera (factory
     calibration; points the colour camera cannot see are occluded and left out)."""
     import numpy as np
+
+    from tofhil.cli import new_output_dir
 
     from tofhil.drivers.importers.k4a import read_k4a_recording
     from tofhil.drivers.importers.k4a_color import read_color_frame
@@ -81,6 +87,11 @@ def colorize_cmd(recording: Path = typer.Argument(..., parser=opt.existing_file,
         raise TofhilError("is not a .ply file", file=out_path, field="--out", expected="a path ending in .ply")
     if out_path.exists() and not force:
         raise TofhilError("already exists; refusing to overwrite (use --force)", file=out_path)
+    if report is not None:
+        from tofhil.eval.colorize_report import REPORT_FILES
+        from tofhil.eval.html import prepare_output_dir
+
+        prepare_output_dir(report, REPORT_FILES, force=force)
     rgb, color_cam, depth_to_color = read_color_frame(recording, frame)
     with read_k4a_recording(recording) as rec:
         if frame >= len(rec):
@@ -95,10 +106,25 @@ def colorize_cmd(recording: Path = typer.Argument(..., parser=opt.existing_file,
     pts = np.stack([x * z, y * z, z], axis=-1)[valid]
     res = colorize_points(pts, depth_to_color, color_cam, rgb)
     keep = np.ones(len(pts), bool) if keep_occluded else res.visible
+    text = (f"{int(res.visible.sum())} of {len(pts)} depth points coloured, {int(res.occluded.sum())} occluded, "
+            f"{int(len(pts) - res.visible.sum() - res.occluded.sum())} outside the colour image")
+    edges = None
+    if report is not None:
+        from tofhil.eval.edge_alignment import edge_alignment
+
+        edges = edge_alignment(z, valid, intr.undistort, depth_to_color, color_cam, rgb)
     write_ply(out_path, pts[keep], res.colors[keep])
-    out.print(f"{int(res.visible.sum())} of {len(pts)} depth points coloured, {int(res.occluded.sum())} occluded, "
-              f"{int(len(pts) - res.visible.sum() - res.occluded.sum())} outside the colour image; "
-              f"wrote {int(keep.sum())} points to {lit(out_path)}", highlight=False, soft_wrap=True)
+    out.print(f"{text}; wrote {int(keep.sum())} points to {lit(out_path)}", highlight=False, soft_wrap=True)
+    if edges is not None:
+        from tofhil.eval.colorize_report import cloud_view, write_colorize_report
+
+        with new_output_dir(report):
+            write_colorize_report(report, cloud_img=cloud_view(pts[res.visible], res.colors[res.visible]), rgb=rgb,
+                                  edges=edges, summary={"recording": str(recording), "frame": frame, "text": text})
+        state = "self-check passed" if edges.passed else "self-check FAILED: not a measure of the registration"
+        out.print(f"misalignment at depth edges: shift {edges.shift_px:+.2f} colour px, spread {edges.spread_px:+.2f} px "
+                  f"(left {edges.left.median_px:+.2f}, right {edges.right.median_px:+.2f}; {state}, slope "
+                  f"{edges.slope:.2f}); wrote the report to {lit(report)}", highlight=False, soft_wrap=True)
 
 
 @app.command("calibrate-stereo")
