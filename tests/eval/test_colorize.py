@@ -97,11 +97,18 @@ def test_colorize_cli_writes_the_visible_points_and_refuses_to_overwrite(tofhil_
 
     path = need(AZURE_KINECT_MKV)
     out = tmp_path / "mug.ply"
-    r = tofhil_cli("colorize", path, "--out", out)
+    r = tofhil_cli("colorize", path, "--out", out, "--report", tmp_path / "rep")
     assert r.returncode == 0, r.stderr
     coloured = int(r.stdout.split(" of ")[0])
     cloud = open3d().io.read_point_cloud(str(out))
     assert len(cloud.points) == coloured > 200_000 and np.asarray(cloud.colors).max() > 0.5
+    # the report: the edge misalignment with its self-check, and both figures
+    import json
+
+    rep = json.loads((tmp_path / "rep" / "colorize.json").read_text())["edge_alignment"]
+    assert rep["self_check_passed"] and "misalignment at depth edges" in r.stdout
+    html = (tmp_path / "rep" / "colorize.html").read_text()
+    assert html.count("data:image/png;base64,") == 2
     r = tofhil_cli("colorize", path, "--out", out)
     assert r.returncode == 2 and "already exists" in r.stderr
     r = tofhil_cli("colorize", path, "--out", tmp_path / "x.ply", "--frame", "5")
