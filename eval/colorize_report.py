@@ -46,12 +46,14 @@ def figure_cloud(img: np.ndarray, title: str) -> str:
     return fig_uri(fig)
 
 
-def figure_edges(rgb: np.ndarray, res: EdgeAlignment) -> str:
+def figure_edges(rgb: np.ndarray, res: EdgeAlignment) -> str | None:
     """Left: the colour image around the silhouettes, depth silhouettes (red left side, blue right
     side) and the colour edges matched to them (yellow); right: the self-check."""
+    uv = res.depth_edges_uv
+    if uv is None or not np.isfinite(uv).any():
+        return None
     plt = pyplot()
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 5), layout="constrained", width_ratios=[1.6, 1])
-    uv = res.depth_edges_uv
     lo = np.floor(np.nanmin(uv, axis=0) - 30).astype(int).clip(0)
     hi = np.ceil(np.nanmax(uv, axis=0) + 30).astype(int)
     hi = np.minimum(hi, [rgb.shape[1], rgb.shape[0]])
@@ -89,5 +91,7 @@ def write_colorize_report(out_dir: Path, *, cloud_img: np.ndarray, rgb: np.ndarr
             "<h2>Alignment at depth edges</h2><p class='note'>Signed offsets along the image rows, colour edge minus "
             "depth silhouette, in colour pixels; shift = mean of the two sides (registration error along the "
             "baseline), spread = half their difference, outward positive (the colour silhouette's extra width). "
-            f"{esc(verdict)}.</p><img alt='edges' src='{figure_edges(rgb, edges)}'>"]
+            f"{esc(verdict)}.</p>"]
+    uri = figure_edges(rgb, edges)
+    body.append(f"<img alt='edges' src='{uri}'>" if uri else "<p class='warn'>No depth silhouettes found.</p>")
     write_page(out_dir / "colorize.html", "tofhil colorize", body)
