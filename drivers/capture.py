@@ -63,12 +63,15 @@ def capture(driver: Driver, out_path: str | Path, n_frames: int, settings: Captu
     start = time.monotonic()
     ended: str | None = None
     writer: SessionWriter | None = None
+    colors: list[tuple[int, object]] = []     # (frame index, colour image) for the rgb/ group
     try:
         for frame in driver.stream(n_frames, timeout_s=timeout_s):
             if writer is None:  # the first frame's header tells the true image size (ROI)
                 part = frame.raw if frame.raw is not None else frame.depth
                 assert part is not None
                 writer = SessionWriter(out_path, part.camera, device=device, scene_text=scene_text, force=force)
+            if "rgb" in frame.images and getattr(driver, "rgb_camera", None) is not None:
+                colors.append((writer.n_frames, frame.images["rgb"]))
             writer.append(raw=frame.raw, depth=frame.depth)
             if on_frame is not None:
                 on_frame(frame)
@@ -80,6 +83,12 @@ def capture(driver: Driver, out_path: str | Path, n_frames: int, settings: Captu
         written = writer.n_frames if writer is not None else 0
         if writer is not None:
             writer.close()
+            colors = [c for c in colors if c[0] < written]
+            if colors:   # the colour camera's frames beside ToF (tofhil/session_rgb.py)
+                from tofhil.session_rgb import write_rgb
+
+                write_rgb(out_path, [c[1] for c in colors], driver.rgb_camera, frame_index=[c[0] for c in colors],
+                          tof_to_camera=getattr(driver, "tof_to_rgb", None))
     return CaptureSummary(path=str(out_path), requested=n_frames, frames_written=written,
                           dropped=driver.stats.dropped, reconnects=driver.stats.reconnects,
                           elapsed_s=time.monotonic() - start, ended_early=ended)

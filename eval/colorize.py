@@ -103,3 +103,90 @@ def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray) -> Path:
         f.write(header.encode("ascii"))
         f.write(rec.tobytes())
     return path
+
+
+@dataclass
+class ColorizeInputs:
+    """A depth image with its rays and a colour image with its camera and the ToF -> colour transform."""
+
+    z_m: np.ndarray                  # [H, W] depth along the optical axis (NaN or invalid where not valid)
+    valid: np.ndarray                # [H, W] bool
+    pixel_to_ray: Any                # (u, v) -> (x, y, ok): normalised ray coordinates of depth pixels
+    tof_to_color: np.ndarray         # 4x4
+    color_camera: Any
+    rgb: np.ndarray                  # [h, w, 3] uint8
+
+    def points(self) -> np.ndarray:
+        """Depth-camera points ``[N, 3]`` of the valid pixels (row-major)."""
+        v, u = np.mgrid[0:self.z_m.shape[0], 0:self.z_m.shape[1]].astype(np.float64)
+        x, y, _ = self.pixel_to_ray(u, v)
+        z = self.z_m
+        return np.stack([x * z, y * z, z], axis=-1)[self.valid]
+
+
+def grey_to_rgb(img: np.ndarray) -> np.ndarray:
+    """A float grey image (e.g. the twin's radiance) as uint8 RGB, scaled to its 99.5th percentile."""
+    g = np.nan_to_num(np.asarray(img, dtype=np.float64))
+    top = float(np.percentile(g, 99.5)) if g.size else 0.0
+    g8 = np.clip(np.round(255.0 * g / top), 0, 255).astype(np.uint8) if top > 0 else np.zeros(g.shape, np.uint8)
+    return np.repeat(g8[..., None], 3, axis=2)
+
+
+def session_inputs(path: str | Path, frame: int = 0, tof_to_color: np.ndarray | None = None) -> ColorizeInputs:
+    """Depth frame ``frame`` of a session and its ``rgb/`` group's image taken with that frame
+    (``tof_to_color`` default: the group's ``tof_to_camera``, as calibrate-stereo finds it)."""
+    from tofhil.errors import InputFileError
+    from tofhil.session import open_session
+    from tofhil.session_rgb import read_rgb
+
+    path = Path(path)
+    rgb = read_rgb(path)
+    where = np.flatnonzero(np.asarray(rgb.frame_index) == frame)
+    if where.size == 0:
+        raise InputFileError(f"has no second-camera image taken with frame {frame}", file=path,
+                             field="rgb/frame_index", expected="--frame one of " + ", ".join(
+                                 str(int(i)) for i in np.unique(rgb.frame_index)))
+    t = rgb.tof_to_camera if tof_to_color is None else np.asarray(tof_to_color, dtype=np.float64)
+    if t is None:
+        raise InputFileError("missing", file=path, field="rgb.tof_to_camera",
+                             expected="the ToF -> camera extrinsics (or --extrinsics from tofhil calibrate-stereo)")
+    with open_session(path) as s:
+        if not s.has_depth:
+            raise InputFileError("has no depth frames", file=path, field="depth/radial_m",
+                                 expected="a session with depth (run 'tofhil depth' first)")
+        if not 0 <= frame < s.n_frames:
+            raise InputFileError(f"has {s.n_frames} frames", file=path, field="--frame",
+                                 expected=f"an index below {s.n_frames}")
+        d = s.depth_frame(frame)
+    cam = d.camera
+    valid = cam.valid_mask(d.distance_m, d.valid)
+    z = np.asarray(d.distance_m if d.kind != "radial" else cam.radial_to_z(d.distance_m), dtype=np.float64)
+
+    def pixel_to_ray(u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        x, y = cam.undistort_normalized(np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64))
+        return x, y, np.ones(np.shape(x), bool)
+
+    img = rgb.images[int(where[0])]
+    img = img if img.ndim == 3 and img.dtype == np.uint8 else grey_to_rgb(img)
+    return ColorizeInputs(z_m=np.where(valid, z, np.nan), valid=valid, pixel_to_ray=pixel_to_ray, tof_to_color=t,
+                          color_camera=rgb.camera, rgb=img)
+
+
+def k4a_inputs(path: str | Path, frame: int = 0) -> ColorizeInputs:
+    """Depth and colour frame ``frame`` of an Azure Kinect recording with the factory calibration."""
+    from tofhil.drivers.importers.k4a import read_k4a_recording
+    from tofhil.drivers.importers.k4a_color import read_color_frame
+    from tofhil.errors import InputFileError
+
+    rgb, color_cam, depth_to_color = read_color_frame(path, frame)
+    with read_k4a_recording(path) as rec:
+        if frame >= len(rec):
+            raise InputFileError(f"has {len(rec)} depth frames", file=path, field="--frame",
+                                 expected=f"an index below {len(rec)}")
+        _, z_mm, _ = rec.frame(frame)
+        intr = rec.intrinsics
+        v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
+        ok = intr.undistort(u, v)[2]    # the exact factory rays (z-depth: point = (x z, y z, z))
+    valid = (z_mm > 0) & ok
+    return ColorizeInputs(z_m=z_mm * 1e-3, valid=valid, pixel_to_ray=intr.undistort, tof_to_color=depth_to_color,
+                          color_camera=color_cam, rgb=rgb)

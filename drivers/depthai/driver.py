@@ -54,6 +54,12 @@ DEFAULT_OUTPUTS = ("depth", "amplitude", "intensity")
 MEDIAN = {"off": "MEDIAN_OFF", "3x3": "KERNEL_3x3", "5x5": "KERNEL_5x5", "7x7": "KERNEL_7x7"}
 PROFILES = {"low": "LOW_RANGE", "mid": "MID_RANGE", "high": "HIGH_RANGE"}
 PRESET = "oak_tof_33d"
+#: The host source's colour frames: their own sequence numbers (this offset) and device times
+#: this much after the ToF frame's (the colour sensor is not hardware-synchronised).
+COLOR_SEQUENCE_OFFSET = 100_000
+HOST_COLOR_DELAY_S = 0.004
+#: A colour frame goes with the ToF frame whose device time is nearest, if within this.
+COLOR_MATCH_S = 0.015
 #: The 33D module's lower modulation frequency: its single-frequency ambiguity range is
 #: c / (2 * 80 MHz) = 1.87 m (phase unwrapping level 0 in the Luxonis docs).
 BASE_FREQ_HZ = 80e6
@@ -91,6 +97,9 @@ class ToFSettings:
     profile: str | None = None                # low | mid | high (a Luxonis preset, applied first)
     fps: float | None = None
     outputs: tuple[str, ...] = DEFAULT_OUTPUTS
+    #: Record the device's colour camera beside ToF (``Frame.images["rgb"]``, the session's rgb/ group).
+    color: bool = False
+    color_size: tuple[int, int] = (640, 480)
 
     @classmethod
     def from_extra(cls, extra: dict[str, Any]) -> "ToFSettings":
@@ -109,6 +118,14 @@ class ToFSettings:
             raise DeviceError(f"median {s.median!r}", field="median", expected=" | ".join(MEDIAN))
         if s.profile is not None and s.profile not in PROFILES:
             raise DeviceError(f"profile {s.profile!r}", field="profile", expected=" | ".join(PROFILES))
+        try:
+            s.color_size = tuple(int(v) for v in (s.color_size.split("x") if isinstance(s.color_size, str)
+                                                  else s.color_size))
+        except (TypeError, ValueError):
+            s.color_size = ()
+        if len(s.color_size) != 2 or min(s.color_size) < 16:
+            raise DeviceError(f"color_size {extra.get('color_size')!r}", field="color_size",
+                              expected="WIDTHxHEIGHT of the colour output, e.g. 640x480")
         if not 0 <= int(s.phase_unwrapping_level) <= 6:
             raise DeviceError(f"phase unwrapping level {s.phase_unwrapping_level}", field="phase_unwrapping_level",
                               expected="0..6 (0 = off, 1.87 m range at 80 MHz)")
@@ -285,6 +302,23 @@ class TwinScene:
     def camera_model(self) -> CameraModel:
         return self._load().camera
 
+    def color(self) -> tuple[np.ndarray, CameraModel, np.ndarray]:
+        """The scene's second camera (``rgb_camera``): its grey image as 8-bit RGB (scaled to the
+        99.5th percentile), its camera and the true ToF -> camera transform."""
+        from tofhil.sim.rgb import render_grey
+
+        sc = self._load()
+        second = sc.rgb_camera
+        if second is None:
+            raise DeviceError(f"scene {self.scene!r} has no rgb_camera block", field="color",
+                              expected="a scene with a second camera (docs/scene-format.md) or color: false")
+        grey = np.nan_to_num(np.asarray(render_grey(sc, second.camera, second.tof_to_camera, samples=second.samples),
+                                        dtype=np.float64))
+        top = float(np.percentile(grey, 99.5))
+        g8 = np.clip(np.round(255.0 * grey / top), 0, 255).astype(np.uint8) if top > 0 else np.zeros(grey.shape,
+                                                                                                        np.uint8)
+        return np.repeat(g8[..., None], 3, axis=2), second.camera, np.asarray(second.tof_to_camera, dtype=np.float64)
+
     def render_frames(self, camera: CameraModel) -> list[dict[str, np.ndarray]]:
         from tofhil.depth import depth_from_raw
         from tofhil.sim.pipeline import simulate
@@ -316,7 +350,8 @@ def host_source_class() -> Any:
 
         def __init__(self) -> None:
             super().__init__()
-            self.outs = {name: self.createOutput() for name in OUTPUTS}
+            self.outs = {name: self.createOutput() for name in OUTPUTS + ("rgb",)}
+            self.color_image: np.ndarray | None = None
             self.frames: list[dict[str, np.ndarray]] = []
             self.scene: Any = PlaneScene()
             self.sent = 0
@@ -334,6 +369,29 @@ def host_source_class() -> Any:
                     "phase": img["phase"].astype(np.float32)})
             self.scene = scene
             self.wanted = settings.outputs
+            self.color_image = None
+            if settings.color:
+                if not hasattr(scene, "color"):
+                    raise DeviceError("the host plane has no colour camera", field="color",
+                                      expected="depthai-sim:SCENE with an rgb_camera block, or color: false")
+                self.color_image = scene.color()[0]
+
+        def _color_message(self, seq: int, t_s: float) -> Any:
+            # the colour sensor counts its own frames and is not hardware-synchronised: its own
+            # sequence numbers (offset) and a device time a few milliseconds after the ToF frame's
+            img = self.color_image
+            f = dai.ImgFrame()
+            h, w = img.shape[:2]
+            f.setData(np.frombuffer(np.ascontiguousarray(img).tobytes(), dtype=np.uint8))
+            f.setType(dai.ImgFrame.Type.RGB888i)
+            f.setWidth(w)
+            f.setHeight(h)
+            f.setStride(w * 3)
+            f.setSequenceNum(seq + COLOR_SEQUENCE_OFFSET)
+            t = datetime.timedelta(seconds=t_s + HOST_COLOR_DELAY_S)
+            f.setTimestampDevice(t)
+            f.setTimestamp(t)
+            return f
 
         def _message(self, name: str, seq: int, t_s: float) -> Any:
             f = dai.ImgFrame()
@@ -366,6 +424,8 @@ def host_source_class() -> Any:
                     if name == "amplitude" and seq in self.scene.drop_amplitude_of:
                         continue
                     self.outs[name].send(self._message(name, seq, t_s))
+                if self.color_image is not None:
+                    self.outs["rgb"].send(self._color_message(seq, t_s))
                 seq += 1
                 self.sent = seq
                 t_next += period  # a fixed frame clock, like the sensor's
@@ -408,6 +468,12 @@ class DepthAIToF(Driver):
         self._info = DeviceInfo(driver="depthai", model="")
         self._pairer: SequencePairer | None = None
         self._dropped: list[str] = []
+        #: The colour camera (``color: true``): its model and the ToF -> colour transform (m).
+        self.rgb_camera: CameraModel | None = None
+        self.tof_to_rgb: np.ndarray | None = None
+        self._colors: list[tuple[float, Any]] = []       # (device time s, message), oldest first
+        self.color_queue: Any = None
+        self._held: tuple[int, dict[str, Any]] | None = None
 
     # ---- lifecycle ----------------------------------------------------------
     def _open_device(self) -> None:
@@ -468,6 +534,10 @@ class DepthAIToF(Driver):
             src.setup(self.host_scene, self._camera, self.tof)
             outputs = {n: src.outs[n] for n in names}
             self.source = src
+            color_out = None
+            if self.tof.color:
+                _, self.rgb_camera, self.tof_to_rgb = self.host_scene.color()
+                color_out = src.outs["rgb"]
         else:
             self._camera = self._device_camera()
             self.pipeline = dai.Pipeline(self.device)
@@ -484,11 +554,40 @@ class DepthAIToF(Driver):
                                       expected="depth, amplitude, intensity, phase or raw")
                 outputs[n] = port
             self.config_queue = tof.inputConfig.createInputQueue()
+            color_out = self._build_color(dai) if self.tof.color else None
         # Host: blocking queues (nothing lost, the producer waits); device: a slow host drops
         # the oldest frames instead of stalling the camera, and the pairer counts them.
         self.queues = {n: o.createOutputQueue(maxSize=8, blocking=self.host) for n, o in outputs.items()}
+        self.color_queue = None if color_out is None else color_out.createOutputQueue(maxSize=8, blocking=self.host)
+        self._colors, self._held = [], None
         self._pairer = SequencePairer(names, self._on_unmatched)
         self.pipeline.start()
+
+    def _build_color(self, dai: Any) -> Any:
+        """The device's colour camera: a ``dai.node.Camera`` on its COLOR socket with an RGB888i
+        output of ``color_size``, its factory intrinsics and distortion for that size, and the
+        ToF -> colour extrinsics (``getCameraExtrinsics(tof, colour, unit=METER)``: points in the
+        ToF frame to the colour frame)."""
+        socket = None
+        for feat in self.device.getConnectedCameraFeatures():
+            if feat.socket != self._socket and dai.CameraSensorType.COLOR in feat.supportedTypes:
+                socket = feat.socket
+                break
+        if socket is None:
+            raise DeviceError("the device has no colour camera", field="color",
+                              expected="color: false on a ToF-only device (OAK ToF 33D); the OAK-D SR PoE has one")
+        w, h = self.tof.color_size
+        cam = self.pipeline.create(dai.node.Camera).build(socket)
+        kw: dict[str, Any] = {} if self.tof.fps is None else {"fps": float(self.tof.fps)}
+        out = cam.requestOutput((w, h), dai.ImgFrame.Type.RGB888i, **kw)
+        k = np.asarray(self._calib.getCameraIntrinsics(socket, w, h), dtype=float)
+        dist = (list(self._calib.getDistortionCoefficients(socket)) + [0.0] * 5)[:5]
+        self.rgb_camera = CameraModel(width=w, height=h, fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2],
+                                      dist=tuple(dist), name=f"{socket.name} colour (factory calibration)")
+        self.tof_to_rgb = np.asarray(self._calib.getCameraExtrinsics(self._socket, socket,
+                                                                     unit=dai.LengthUnit.METER), dtype=float)
+        self._info.extra["color_socket"] = socket.name
+        return out
 
     def _teardown(self) -> None:
         if self.pipeline is not None:
@@ -499,6 +598,7 @@ class DepthAIToF(Driver):
                 pass
         self.pipeline = None
         self.queues = {}
+        self.color_queue = None
         self.source = None
 
     def _close_device(self) -> None:
@@ -521,7 +621,8 @@ class DepthAIToF(Driver):
                                   expected="leave it unset; use phase_unwrapping_level / profile in extra")
         new = ToFSettings.from_extra(dict(settings.extra))
         restart = self.pipeline is not None and (new.outputs != self.tof.outputs or new.fps != self.tof.fps
-                                                 or self.host)
+                                                 or new.color != self.tof.color
+                                                 or new.color_size != self.tof.color_size or self.host)
         self.tof = new
         if self.pipeline is not None and not restart and self.config_queue is not None:
             self.config_queue.send(new.to_tof_config())  # runtime change, no restart
@@ -559,10 +660,19 @@ class DepthAIToF(Driver):
         while True:
             if self._dropped:
                 raise FrameDropped(self._dropped.pop(0), field="depthai")
-            got = self._pairer.pop()
+            got = self._held or self._pairer.pop()
+            self._held = None
             if got is not None:
-                return self._to_frame(*got)
+                if self._color_ready(got):
+                    return self._to_frame(*got)
+                self._held = got      # its colour frame may still be on the way
             progressed = False
+            if self.color_queue is not None:
+                msg = self.color_queue.tryGet()
+                while msg is not None:
+                    self._colors = self._colors[-15:] + [(device_time_s(msg), msg)]
+                    progressed = True
+                    msg = self.color_queue.tryGet()
             for name, q in self.queues.items():
                 msg = q.tryGet()
                 while msg is not None:
@@ -578,8 +688,31 @@ class DepthAIToF(Driver):
                 raise DeviceError("the host source has sent all its frames", field="depthai-sim",
                                   expected="fewer frames than the scene's n_frames")
             if time.monotonic() > deadline:
+                if self._held is not None:   # the colour stream stalled: the ToF frame goes alone
+                    got, self._held = self._held, None
+                    return self._to_frame(*got)
                 raise FrameDropped(f"no complete frame within {timeout_s} s", field="depthai")
             time.sleep(0.001)
+
+    def _color_ready(self, got: tuple[int, dict[str, Any]]) -> bool:
+        """A ToF frame may go when colour is off or the colour stream has passed its time."""
+        if self.color_queue is None:
+            return True
+        t = device_time_s(got[1]["depth"])
+        return any(tc >= t for tc, _ in self._colors)   # colour arrives in time order: the nearest is known
+
+    def _color_for(self, t: float) -> np.ndarray | None:
+        """The colour image (uint8 [H, W, 3], RGB) nearest in device time to ``t``, within COLOR_MATCH_S."""
+        if not self._colors:
+            return None
+        tc, msg = min(self._colors, key=lambda c: abs(c[0] - t))
+        if abs(tc - t) > COLOR_MATCH_S:
+            return None
+        h, w = msg.getHeight(), msg.getWidth()
+        data = np.asarray(msg.getData(), dtype=np.uint8)
+        if data.size < h * w * 3:
+            return None
+        return data[:h * w * 3].reshape(h, w, 3).copy()
 
     def _to_frame(self, seq: int, msgs: dict[str, Any]) -> Frame:
         cam = self.camera
@@ -592,6 +725,10 @@ class DepthAIToF(Driver):
         radial = cam.z_to_radial(depth_m) if self.tof.depth_kind == "z" else depth_m
         images = {n: decode_imgframe(m, n) for n, m in msgs.items() if n not in ("depth",)}
         t = device_time_s(msgs["depth"])
+        if self.color_queue is not None:
+            rgb = self._color_for(t)
+            if rgb is not None:
+                images["rgb"] = rgb
         amp = images.get("amplitude")
         inten = images.get("intensity")
         depth = DepthFrame(distance_m=np.where(valid, radial, 0.0).astype(np.float32), kind="radial", camera=cam,

@@ -195,3 +195,43 @@ def test_twin_frames_flow_through_the_queues(tmp_path):
     # The wall is 1.0 m away along the optical axis (scene file): the centre's z says so.
     c = frames[0].depth.z_m[cam.height // 2 - 5:cam.height // 2 + 5, cam.width // 2 - 5:cam.width // 2 + 5]
     assert abs(float(np.median(c)) - 1.0) < 0.05
+
+
+def test_colour_stream_is_recorded_beside_tof_in_the_rgb_group(tmp_path):
+    """``color: true`` on depthai-sim:SCENE with a second camera: the host source sends the twin's
+    colour image on its own (unsynchronised) stream; every ToF frame gets the colour frame nearest
+    in device time, and a capture writes them into the session's rgb/ group with the scene's camera
+    and true extrinsics."""
+    from tofhil.drivers.capture import capture
+    from tofhil.drivers.depthai.driver import TwinScene
+    from tofhil.session_rgb import read_rgb
+    from tofhil.sim.rgb import render_grey
+    from tofhil.sim.scene import load_scene, scene_to_yaml
+
+    sc = load_scene("wall", {"camera": {"width": 40, "height": 30, "fx": 29.0, "fy": 29.0, "cx": 19.5, "cy": 14.5},
+                             "rgb_camera": {"width": 64, "height": 48, "hfov_deg": 70.0, "samples": 1,
+                                            "pose": {"position": [0.03, 0.0, 0.0]}}})
+    path = tmp_path / "wall_rgb.yaml"
+    path.write_text(scene_to_yaml(sc), encoding="utf-8")
+    dev = DepthAIToF("depthai-sim", host_scene=TwinScene(scene=str(path), realisations=1))
+    settings = CaptureSettings(mode="distance", extra={"color": True})
+    with dev:
+        summary = capture(dev, tmp_path / "s.h5", 3, settings, timeout_s=30.0)
+    assert summary.frames_written == 3
+    rgb = read_rgb(tmp_path / "s.h5")
+    assert rgb.images.shape == (3, 48, 64, 3) and list(rgb.frame_index) == [0, 1, 2]
+    assert rgb.camera == sc.rgb_camera.camera
+    np.testing.assert_allclose(rgb.tof_to_camera, sc.rgb_camera.tof_to_camera)
+    # the image is the twin's second-camera render (scaled to 8 bit), brightest where the emitter points
+    grey = render_grey(sc, sc.rgb_camera.camera, sc.rgb_camera.tof_to_camera, samples=1)
+    corr = np.corrcoef(rgb.images[0, ..., 0].ravel().astype(float), np.asarray(grey).ravel())[0, 1]
+    assert corr > 0.99
+
+
+def test_colour_on_the_plane_source_is_refused():
+    dev = DepthAIToF("depthai-sim:1.0")
+    with dev:
+        with pytest.raises(DeviceError) as e:
+            dev.configure(CaptureSettings(mode="distance", extra={"color": True}))
+            dev.read_frame(5.0)
+    assert e.value.field == "color"

@@ -4,6 +4,7 @@ sees each point, and points hidden from the colour camera by a nearer object are
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tofhil.camera import CameraModel
 from tofhil.eval.colorize import colorize_points, write_ply
@@ -97,12 +98,55 @@ def test_colorize_cli_writes_the_visible_points_and_refuses_to_overwrite(tofhil_
 
     path = need(AZURE_KINECT_MKV)
     out = tmp_path / "mug.ply"
-    r = tofhil_cli("colorize", path, "--out", out)
+    r = tofhil_cli("colorize", path, "--out", out, "--report", tmp_path / "rep")
     assert r.returncode == 0, r.stderr
     coloured = int(r.stdout.split(" of ")[0])
     cloud = open3d().io.read_point_cloud(str(out))
     assert len(cloud.points) == coloured > 200_000 and np.asarray(cloud.colors).max() > 0.5
+    # the report: the edge misalignment with its self-check, and both figures
+    import json
+
+    rep = json.loads((tmp_path / "rep" / "colorize.json").read_text())["edge_alignment"]
+    assert rep["self_check_passed"] and "misalignment at depth edges" in r.stdout
+    html = (tmp_path / "rep" / "colorize.html").read_text()
+    assert html.count("data:image/png;base64,") == 2
     r = tofhil_cli("colorize", path, "--out", out)
     assert r.returncode == 2 and "already exists" in r.stderr
     r = tofhil_cli("colorize", path, "--out", tmp_path / "x.ply", "--frame", "5")
     assert r.returncode == 2 and "COLOR" in r.stderr and not (tmp_path / "x.ply").exists()
+
+
+def test_colorize_reads_a_session_with_an_rgb_group(tofhil_cli, tmp_path):
+    """A twin session of the room with a second camera 40 mm to the right (its true extrinsics in
+    the rgb/ group): colorize reads it directly, and the misalignment it measures at the boxes'
+    left silhouettes is zero within a fraction of a pixel; a 5 mm wrong baseline shows as the
+    predicted shift (the silhouettes re-projected with the wrong baseline). The right silhouettes are not
+    compared: the colour camera, to the right, sees the boxes' right faces that the ToF camera
+    does not, so its silhouette there is another physical edge (the face's far edge)."""
+    import json
+
+    from tofhil.eval.colorize import session_inputs
+    from tofhil.eval.edge_alignment import edge_alignment
+    from tofhil.sim.pipeline import simulate_session
+    from tofhil.sim.scene import load_scene
+
+    block = {"params": {"width_px": 80, "height_px": 60, "pitch_deg": -20.0},
+             "rgb_camera": {"width": 160, "height": 120, "hfov_deg": 80.0, "samples": 3,
+                            "pose": {"position": [0.04, 0.0, 0.0]}}}
+    s = simulate_session(load_scene("room", block), tmp_path / "s.h5", frames=1)
+    r = tofhil_cli("colorize", s, "--out", tmp_path / "c.ply", "--report", tmp_path / "rep")
+    assert r.returncode == 0, r.stderr
+    coloured, total = (int(x) for x in r.stdout.split(" depth points")[0].split(" of "))
+    assert coloured > 0.8 * total
+    edges = json.loads((tmp_path / "rep" / "colorize.json").read_text())["edge_alignment"]
+    assert edges["left"]["n"] >= 15 and abs(edges["left"]["median_px"]) < 0.3, edges
+    assert edges["right"]["median_px"] < -3.0     # the far edge of the right faces, 5-10 px left of it
+    inp = session_inputs(s, 0)
+    wrong = inp.tof_to_color.copy()
+    wrong[0, 3] += 0.02
+    e0 = edge_alignment(inp.z_m, inp.valid, inp.pixel_to_ray, inp.tof_to_color, inp.color_camera, inp.rgb)
+    e = edge_alignment(inp.z_m, inp.valid, inp.pixel_to_ray, wrong, inp.color_camera, inp.rgb)
+    left = e0.side < 0
+    predicted = -np.median(e.depth_edges_uv[left, 0] - e0.depth_edges_uv[left, 0])
+    assert e0.left.median_px == pytest.approx(edges["left"]["median_px"])
+    assert e.left.median_px - e0.left.median_px == pytest.approx(predicted, abs=0.3)

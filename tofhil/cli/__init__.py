@@ -40,7 +40,8 @@ T = TypeVar("T")
 #: Modules that register further commands on ``app`` when imported.
 COMMAND_MODULES: list[str] = ["tofhil.cli.core", "tofhil.cli.imports", "tofhil.cli.ndt", "tofhil.cli.evaluate",
                               "tofhil.cli.simulate", "tofhil.cli.devices", "tofhil.cli.diagnose",
-                              "tofhil.cli.sweep", "tofhil.cli.calibrate", "tofhil.cli.scene_from_capture"]
+                              "tofhil.cli.sweep", "tofhil.cli.calibrate", "tofhil.cli.scene_from_capture",
+                              "tofhil.cli.model"]
 
 
 def lit(value: object) -> str:

@@ -62,43 +62,78 @@ def calibrate_camera_cmd(
 
 @app.command("colorize")
 def colorize_cmd(recording: Path = typer.Argument(..., parser=opt.existing_file,
-                                                 help="Azure Kinect recording (.mkv) with DEPTH and COLOR tracks."),
+                                                 help="Azure Kinect recording (.mkv) with DEPTH and COLOR tracks, or a "
+                                                      "session (.h5) with an rgb/ group."),
                  out_path: Path = typer.Option(..., "--out", parser=opt.new_file, help="Coloured point cloud (.ply)."),
                  frame: int = typer.Option(0, "--frame", parser=opt.count(0, what="a frame index"),
                                            help="Frame index (depth and colour)."),
+                 extrinsics: Optional[Path] = typer.Option(None, "--extrinsics", parser=opt.existing_file,
+                                                           help="A session's ToF -> camera transform from "
+                                                                "tofhil calibrate-stereo (.yaml); default the rgb/ "
+                                                                "group's own."),
                  keep_occluded: bool = typer.Option(False, "--keep-occluded",
                                                     help="Write points the colour camera does not see too (black)."),
-                 force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
-    """Colour the depth points of an Azure Kinect recording from its colour camera (factory
-    calibration; points the colour camera cannot see are occluded and left out)."""
+                 report: Optional[Path] = typer.Option(None, "--report", parser=opt.out_dir,
+                                                       help="Directory for colorize.html and colorize.json: the "
+                                                            "coloured cloud and the misalignment at depth edges."),
+                 force: bool = typer.Option(False, "--force", help="Overwrite OUT (and the report files) if they exist.")
+                 ) -> None:
+    """Colour the depth points of an Azure Kinect recording (factory calibration) or of a session
+    with a second camera's frames (rgb/ group) from the colour camera; points the colour camera
+    cannot see are occluded and left out."""
     import numpy as np
 
-    from tofhil.drivers.importers.k4a import read_k4a_recording
-    from tofhil.drivers.importers.k4a_color import read_color_frame
-    from tofhil.eval.colorize import colorize_points, write_ply
+    from tofhil.cli import new_output_dir
+    from tofhil.eval.colorize import colorize_points, k4a_inputs, session_inputs, write_ply
 
     if out_path.suffix.lower() != ".ply":
         raise TofhilError("is not a .ply file", file=out_path, field="--out", expected="a path ending in .ply")
     if out_path.exists() and not force:
         raise TofhilError("already exists; refusing to overwrite (use --force)", file=out_path)
-    rgb, color_cam, depth_to_color = read_color_frame(recording, frame)
-    with read_k4a_recording(recording) as rec:
-        if frame >= len(rec):
-            raise TofhilError(f"has {len(rec)} depth frames", file=recording, field="--frame",
-                              expected=f"an index below {len(rec)}")
-        _, z_mm, _ = rec.frame(frame)
-        intr = rec.intrinsics
-        v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
-        x, y, ok = intr.undistort(u, v)   # the exact factory rays (z-depth: point = (x z, y z, z))
-    z = z_mm * 1e-3
-    valid = (z_mm > 0) & ok
-    pts = np.stack([x * z, y * z, z], axis=-1)[valid]
-    res = colorize_points(pts, depth_to_color, color_cam, rgb)
+    if report is not None:
+        from tofhil.eval.colorize_report import REPORT_FILES
+        from tofhil.eval.html import prepare_output_dir
+
+        prepare_output_dir(report, REPORT_FILES, force=force)
+    if recording.suffix.lower() in (".h5", ".hdf5"):
+        t = None
+        if extrinsics is not None:
+            from tofhil.yamlio import load_yaml
+
+            doc = load_yaml(extrinsics.read_text(encoding="utf-8"), source=str(extrinsics))
+            t = np.asarray(doc.get("tof_to_camera") if isinstance(doc, dict) else None, dtype=np.float64)
+            if t.shape != (4, 4) or not np.all(np.isfinite(t)):
+                raise TofhilError("has no usable tof_to_camera", file=extrinsics, field="tof_to_camera",
+                                  expected="a 4x4 transform (tofhil calibrate-stereo's output)")
+        inp = session_inputs(recording, frame, t)
+    else:
+        if extrinsics is not None:
+            raise TofhilError("applies to sessions only", field="--extrinsics",
+                              expected="no --extrinsics with a Kinect recording (its factory calibration is used)")
+        inp = k4a_inputs(recording, frame)
+    pts = inp.points()
+    res = colorize_points(pts, inp.tof_to_color, inp.color_camera, inp.rgb)
     keep = np.ones(len(pts), bool) if keep_occluded else res.visible
+    text = (f"{int(res.visible.sum())} of {len(pts)} depth points coloured, {int(res.occluded.sum())} occluded, "
+            f"{int(len(pts) - res.visible.sum() - res.occluded.sum())} outside the colour image")
+    edges = None
+    if report is not None:
+        from tofhil.eval.edge_alignment import edge_alignment
+
+        edges = edge_alignment(inp.z_m, inp.valid, inp.pixel_to_ray, inp.tof_to_color, inp.color_camera, inp.rgb)
     write_ply(out_path, pts[keep], res.colors[keep])
-    out.print(f"{int(res.visible.sum())} of {len(pts)} depth points coloured, {int(res.occluded.sum())} occluded, "
-              f"{int(len(pts) - res.visible.sum() - res.occluded.sum())} outside the colour image; "
-              f"wrote {int(keep.sum())} points to {lit(out_path)}", highlight=False, soft_wrap=True)
+    out.print(f"{text}; wrote {int(keep.sum())} points to {lit(out_path)}", highlight=False, soft_wrap=True)
+    if edges is not None:
+        from tofhil.eval.colorize_report import cloud_view, write_colorize_report
+
+        with new_output_dir(report):
+            write_colorize_report(report, cloud_img=cloud_view(pts[res.visible], res.colors[res.visible]),
+                                  rgb=inp.rgb, edges=edges,
+                                  summary={"input": str(recording), "frame": frame, "text": text})
+        state = "self-check passed" if edges.passed else "self-check FAILED: not a measure of the registration"
+        out.print(f"misalignment at depth edges: shift {edges.shift_px:+.2f} colour px, spread {edges.spread_px:+.2f} px "
+                  f"(left {edges.left.median_px:+.2f}, right {edges.right.median_px:+.2f}; {state}, slope "
+                  f"{edges.slope:.2f}); wrote the report to {lit(report)}", highlight=False, soft_wrap=True)
 
 
 @app.command("calibrate-stereo")
