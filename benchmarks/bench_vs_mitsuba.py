@@ -42,14 +42,17 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tofhil import C_M_PER_S
 from tofhil.demod import phase_to_distance, wrapped_phase
-from tofhil.sim.geometry import object_mesh
-from tofhil.sim.render import render
-from tofhil.sim.scene import Scene, load_scene, scene_from_dict
+
+if TYPE_CHECKING:
+    from tofhil.sim.scene import Scene
+# tofhil.sim (numba, Embree) is imported where it is used: without Mitsuba the script says so
+# and exits before paying for those imports.
 
 FREQ_HZ = 44.0e6
 ALBEDO = 0.8
@@ -71,6 +74,8 @@ SETUP_HINT = ("Mitsuba 3 + mitransient are not set up: run `bash tools/setup_mit
 
 # --------------------------------------------------------------------------- scenes
 def corner_scene(emitter: dict) -> Scene:
+    from tofhil.sim.scene import load_scene
+
     return load_scene("corner", overrides={"params": {"wall_reflectance": ALBEDO},
                                            "emitter": {"offset_m": [0.0, 0.0, 0.0], "profile": emitter},
                                            "sensor": {"freq_hz": [FREQ_HZ]}})
@@ -79,6 +84,8 @@ def corner_scene(emitter: dict) -> Scene:
 def tilted_plane_scene(emitter: dict) -> Scene:
     """A 4 m x 4 m plane 1 m in front of the camera, turned 35 deg about the vertical and
     10 deg about the horizontal axis: it fills the view, depth 0.6 .. 2.3 m, no multipath."""
+    from tofhil.sim.scene import scene_from_dict
+
     return scene_from_dict({
         "name": "tilted_plane",
         "camera": {"preset": "holmlund_thesis",
@@ -113,11 +120,15 @@ class Tofhil:
         self.render(1, seed=0)                        # JIT warm-up and geometry build
 
     def render(self, spp: int, seed: int) -> Pass:
+        from tofhil.sim.render import render
+
         res, cpu = cpu_timed(render, self.scene, samples_per_pixel=spp, bounces=self.bounces, seed=seed,
                              threads=self.threads, sampler=self.sampler, freq_hz=[FREQ_HZ])
         return Pass(res.phasor[0, 0], cpu)
 
     def geometry_radial_m(self) -> np.ndarray:
+        from tofhil.sim.render import render
+
         return render(self.scene, samples_per_pixel=1, bounces=0, freq_hz=[FREQ_HZ]).radial_m
 
 
@@ -138,6 +149,8 @@ def load_mitsuba():
 class Mitsuba:
     def __init__(self, mi, scene: Scene, bounces: int, sampler: str, workdir: Path,
                  extra_shapes: dict | None = None, max_depth: int | None = None) -> None:
+        from tofhil.sim.geometry import object_mesh
+
         self.mi, self.sampler = mi, sampler
         self.label = f"Mitsuba ({sampler})"
         cam = scene.camera
@@ -349,6 +362,8 @@ def glass_slab_check(mi, work: Path, spp: int) -> dict:
     """Issue 16 groundwork: Mitsuba through a cover glass against the closed form (no tofhil
     refraction yet). The slab adds 2 specular interfaces: max_depth 2 + 2 (direct light)."""
     from glass_slab import GlassSlab, mitsuba_slab_shape, opl_through_slab, opl_without_slab, tofhil_scene_without_slab
+
+    from tofhil.sim.scene import scene_from_dict
 
     slab = GlassSlab()
     scene = scene_from_dict(tofhil_scene_without_slab(slab, freq_hz=FREQ_HZ))
