@@ -333,6 +333,14 @@ def save_maps(path: Path, name: str, e_t, e_m, diff, noise, ok, out) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=72)
     plt.close(fig)
+    shrink_png(path)
+
+
+def shrink_png(path: Path) -> None:
+    """An adaptive 256-colour palette: the noise map does not compress; this halves the file."""
+    from PIL import Image
+
+    Image.open(path).convert("RGB").convert("P", palette=Image.ADAPTIVE, colors=256).save(path, optimize=True)
 
 
 def time_to_1mm(r, spps: list[int]) -> dict:
