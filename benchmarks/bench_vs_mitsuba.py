@@ -425,6 +425,7 @@ def main() -> int:
                     help="Mitsuba samplers to time (independent is its default)")
     ap.add_argument("--figures", type=Path, default=None, help="write the error-map PNGs into this folder")
     ap.add_argument("--skip-timing", action="store_true")
+    ap.add_argument("--only-timing", action="store_true", help="skip the agreement and glass-slab parts")
     args = ap.parse_args()
     mi = load_mitsuba()
     if mi is None:
@@ -439,8 +440,10 @@ def main() -> int:
           f"{FREQ_HZ / 1e6:.0f} MHz, albedo {ALBEDO}")
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        print("(1) agreement (same scene, independent passes; noise from each renderer's own variance)")
-        for name, scene in (("corner", corner_scene(emitter)), ("tilted_plane", tilted_plane_scene(emitter))):
+        if not args.only_timing:
+            print("(1) agreement (same scene, independent passes; noise from each renderer's own variance)")
+        for name, scene in () if args.only_timing else (("corner", corner_scene(emitter)),
+                                                         ("tilted_plane", tilted_plane_scene(emitter))):
             geom = Tofhil(scene, 0, args.threads).geometry_radial_m()
             direct = (Tofhil(scene, 0, args.threads), Mitsuba(mi, scene, 0, "independent", work))
             for b in args.bounces if name == "corner" else args.bounces[:1]:   # a plane has no multipath
@@ -449,7 +452,8 @@ def main() -> int:
                 agreement(f"{name}_B{b}", tf, ms, geom, passes, spp, direct if b == args.bounces[0] else None,
                           args.figures if name == "corner" else None)
         sys.path.insert(0, str(Path(__file__).resolve().parent))     # glass_slab beside this script
-        glass_slab_check(mi, work, 16 if args.quick else 64)
+        if not args.only_timing:
+            glass_slab_check(mi, work, 16 if args.quick else 64)
         if args.skip_timing:
             return 0
         b = args.bounces[0]
