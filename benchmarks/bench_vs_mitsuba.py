@@ -19,7 +19,9 @@ Printed:
       the difference, the RMS predicted noise and their ratio (1 = agreement within noise),
       the mean difference in standard errors (a bias test over all pixels) and the
       correlation of the two depth-error maps; plus each renderer's direct-only error.
-  (2) CPU time (process CPU seconds, all threads) to 1 mm RMS depth error against the
+  (2) issue 16 groundwork: Mitsuba through a glass slab over the lens against the closed-form
+      extra optical path (benchmarks/glass_slab.py; tofhil has no refraction yet).
+  (3) CPU time (process CPU seconds, all threads) to 1 mm RMS depth error against the
       converged image, for tofhil (its default Sobol sampler) and for Mitsuba's samplers
       (independent = its default, multijitter, ...). The error of one render of N samples
       per pixel is measured from two renders with different seeds,
@@ -404,7 +406,7 @@ def glass_slab_check(mi, work: Path, spp: int) -> dict:
            "spawn_loss_mm": 1e3 * float(np.mean(spawn_loss)),
            "diff_corrected_mean_mm": 1e3 * float(np.mean(extra_ms - extra_cf + spawn_loss)),
            "diff_corrected_rms_mm": 1e3 * float(np.sqrt(np.mean((extra_ms - extra_cf + spawn_loss) ** 2)))}
-    print(f"(3) glass slab (n {slab.n}, t {slab.t_m * 1e3:.0f} mm over the lens, emitter beside it), Mitsuba "
+    print(f"(2) glass slab (n {slab.n}, t {slab.t_m * 1e3:.0f} mm over the lens, emitter beside it), Mitsuba "
           f"{spp} spp: the slab makes the centre pixel read {out['extra_centre_mitsuba_mm']:.3f} mm farther, "
           f"closed form {out['extra_centre_closed_mm']:.3f} mm ((n-1)t/2 = {(slab.n - 1) * slab.t_m / 2 * 1e3:.3f} "
           f"on the axis); over the image the closed-form extra spans {out['extra_range_mm'][0]:.3f} .. "
@@ -457,7 +459,7 @@ def main() -> int:
         if args.skip_timing:
             return 0
         b = args.bounces[0]
-        print(f"(2) CPU time to 1 mm RMS depth error, corner 160x120, {b} bounces")
+        print(f"(3) CPU time to 1 mm RMS depth error, corner 160x120, {b} bounces")
         spps = [16, 64] if args.quick else [256, 1024]
         scene = corner_scene(emitter)
         res = [time_to_1mm(Tofhil(scene, b, args.threads), spps)]
