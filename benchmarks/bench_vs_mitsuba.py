@@ -473,4 +473,8 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    t_wall, t_cpu = time.perf_counter(), time.process_time()
+    rc = main()
+    print(f"bench_vs_mitsuba: {time.process_time() - t_cpu:.0f} CPU-s, {time.perf_counter() - t_wall:.0f} s wall "
+          f"(load average {os.getloadavg()[0]:.1f})")
+    sys.exit(rc)
