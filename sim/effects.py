@@ -476,7 +476,9 @@ class StrayLightEffect(Effect):
             return signal
         op = StrayLightOperator(psf, signal.shape, (ctx.camera.cx, ctx.camera.cy))
         out = signal.copy()
-        out.phasor_w = op.apply(signal.phasor_w)
+        # Each channel's modulation frequency: a ghost's extra optical path delays its phasor.
+        freq = (signal.freq_hz[:, None] * np.asarray(signal.harmonics, dtype=np.float64)[None, :])[..., None, None]
+        out.phasor_w = op.apply(signal.phasor_w, freq_hz=freq)
         both = op.apply(np.stack([signal.dc_w, signal.ambient_w]))  # unmodulated light scatters too
         out.dc_w, out.ambient_w = both[0], both[1]
         return out
