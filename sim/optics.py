@@ -282,6 +282,9 @@ class LensModel:
         self.lens = lens
         self.field_samples = field_samples
         self.pupil_samples = pupil_samples
+        #: Pupil grid of the ghost bundles (their weights are ratios to the direct bundle on
+        #: the same grid, so a coarse grid suffices).
+        self.ghost_samples = max(8, pupil_samples // 2)
 
     # ------------------------------------------------------------------ paraxial
     def _parallel(self, h: float, n_events: list[tuple[int, str]] | None = None) -> Rays:
@@ -390,12 +393,12 @@ class LensModel:
 
     # ------------------------------------------------------------------ pupil bundles
     def bundle(self, theta: float, events: Sequence[tuple[int, str]] | None = None,
-               pupil_scale: float = 1.6) -> tuple[Rays, float]:
+               pupil_scale: float = 1.6, samples: int | None = None) -> tuple[Rays, float]:
         """A parallel bundle at field angle ``theta`` on a square grid over the entrance pupil
         (``pupil_scale`` x its radius, perpendicular to the bundle) traced along ``events``;
         returns the rays and the area per ray (m^2, perpendicular to the bundle)."""
         z_ep, r_ep = self.entrance_pupil
-        n = self.pupil_samples
+        n = samples or self.pupil_samples
         half = pupil_scale * r_ep
         g = (np.arange(n) + 0.5) / n * 2 * half - half
         gx, gy = np.meshgrid(g, g)
@@ -448,6 +451,13 @@ class LensModel:
             return "sensor"
         return self.lens.surfaces[k].name or f"S{k + 1}"
 
+    def _direct(self, theta: float) -> Rays:
+        """The direct bundle at a field angle (traced once: every ghost compares with it)."""
+        cache = self.__dict__.setdefault("_direct_cache", {})
+        if theta not in cache:
+            cache[theta] = self.bundle(theta, samples=self.ghost_samples)[0]
+        return cache[theta]
+
     @staticmethod
     def _focus_z(r: Rays) -> float:
         """Best-focus plane (least squares) of the live rays, from their sensor hits."""
@@ -461,8 +471,8 @@ class LensModel:
         """The ghost of surfaces ``i < j`` (``j = len(surfaces)``: the sensor)."""
         lens = self.lens
         ev = ghost_events(lens, i, j)
-        d0, _ = self.bundle(0.0)
-        g0, _ = self.bundle(0.0, ev)
+        d0 = self._direct(0.0)
+        g0, _ = self.bundle(0.0, ev, samples=self.ghost_samples)
         wd = float(d0.w[d0.alive].sum())
         a = g0.alive & (g0.w > 0)
         wg = float(g0.w[a].sum())
@@ -478,8 +488,8 @@ class LensModel:
         th = field_theta if field_theta is not None else 0.5 * float(self.chief["theta"][-1])
         mag = 1.0
         for t in (th, th / 4):
-            dd, _ = self.bundle(t)
-            gg, _ = self.bundle(t, ev)
+            dd = self._direct(t)
+            gg, _ = self.bundle(t, ev, samples=self.ghost_samples)
             ad, ag = dd.alive & (dd.w > 0), gg.alive & (gg.w > 0)
             if ad.any() and ag.any():
                 xd = np.average(dd.pos[ad, 0], weights=dd.w[ad])

@@ -201,3 +201,18 @@ def test_plain_cameras_are_untouched() -> None:
     sentinel = object()
     assert apply_lens(sentinel, CameraModel(width=4, height=3, fx=1, fy=1, cx=1.5, cy=1)) is sentinel
     assert math.isfinite(LensModel(_singlet()).f_number)
+
+
+def test_the_bundled_lens_scene_round_trips_and_renders(tmp_path) -> None:
+    from tofhil.sim.render import render
+    from tofhil.sim.scene import load_scene, scene_to_yaml
+
+    scene = load_scene("dark_square_card_lens")
+    m = scene.camera.model
+    assert m.efl_m == pytest.approx(2.8e-3, rel=0.01) and m.f_number == pytest.approx(1.2, rel=0.01)
+    path = tmp_path / "lens.yaml"
+    path.write_text(scene_to_yaml(scene))
+    again = load_scene(path)
+    assert again.camera == scene.camera and again.f_number == scene.f_number
+    res = render(scene, camera=scene.camera.scaled(0.25), samples_per_pixel=1, bounces=0)
+    assert np.all(np.isfinite(res.radial_m)) and np.all(res.object_id >= 0)
