@@ -95,7 +95,7 @@ def main() -> None:
     def record(label: str, r: dict[str, Any], **extra: Any) -> None:
         rows.append({"case": label, **{k: r[k] for k in regions}, **extra})
         if len(maps) < 6:
-            maps.append((label, r["err"]))
+            maps.append((label, np.where(lit, r["err"], np.nan)))  # the unlit shadow blank
 
     full = model.stray_light(pitch)
     record("all (ghosts + housing veil)", run(full), weight=full.total_weight)
@@ -171,7 +171,8 @@ def main() -> None:
         "distance with the stray light minus without (same lens, same render).</p>", "".join(table),
         html.figures_html([("Ghost PSFs", psf_uri, "The prescription's ghosts (no veil) for a point source at three "
                             "positions: light per pixel as a fraction of the source's (log10)."),
-                           ("Distance error maps", err_uri, "Distance with the stray light minus without (mm).")]),
+                           ("Distance error maps", err_uri, "Distance with the stray light minus without (mm); "
+                            "the card's shadow (no direct light) is left blank.")]),
         "".join(gtab)])
     res = {"lens": lens_info, "cases": rows, "sweep": sweep, "render_s": t_render, "total_s": t_all,
            "ghosts": [{"name": g.name, "group": ghost_group(g), "weight": g.weight, "sigma_px": g.sigma_m / pitch,

@@ -433,7 +433,9 @@ class StrayLightEffect(Effect):
                "radial": "free-form lobe: {radii_px: [...], values: [per-pixel fraction at each radius], "
                          "field_values: [...], aspect: A}; piecewise linear in log r, heavy tails allowed",
                "ghost_center_px": "[x, y] the ghost mirrors through (default the principal point)",
-               "ghosts": "more ghosts: [[weight, sigma_px], ...] or [[weight, sigma_px, cx, cy], ...]",
+               "ghosts": "more ghosts: [[weight, sigma_px], ...] or [[weight, sigma_px, cx, cy], ...], or mappings "
+                         "{weight, sigma_px, magnification, extra_path_m, center_px} (light at p lands at "
+                         "c + m (p - c), delayed by extra_path_m; a lens prescription's ghosts)",
                "psf_file": "measured PSF image (.npy/.png/.tif; its peak pixel is the direct light)",
                "psf_center_px": "[x, y] of the PSF image's direct pixel (default its maximum)",
                "psf_scale": "factor on the measured PSF's scattered part (default 1)",

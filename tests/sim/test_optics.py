@@ -216,3 +216,25 @@ def test_the_bundled_lens_scene_round_trips_and_renders(tmp_path) -> None:
     assert again.camera == scene.camera and again.f_number == scene.f_number
     res = render(scene, camera=scene.camera.scaled(0.25), samples_per_pixel=1, bounces=0)
     assert np.all(np.isfinite(res.radial_m)) and np.all(res.object_id >= 0)
+
+
+def test_the_stray_light_effect_delays_each_channel_by_its_own_frequency() -> None:
+    from tofhil.sim.effects import EFFECTS, EffectContext
+    from tofhil.sim.sensor import OpticalSignal
+
+    shape = (6, 8)
+    cam = CameraModel(width=8, height=6, fx=10, fy=10, cx=3.5, cy=2.5)
+    freq = np.array([20e6, 80e6])
+    sig = OpticalSignal(freq, (1, 3), np.ones((2, 2) + shape, dtype=complex), np.ones(shape), np.zeros(shape))
+    path = 0.5
+    values = EFFECTS["stray_light"].validate(
+        {"ghosts": [{"weight": 0.01, "sigma_px": 1.0, "magnification": 1.0, "extra_path_m": path}],
+         "conserve": False})
+    out = EFFECTS["stray_light"].apply_signal(sig, values, EffectContext(camera=cam))
+    ghost = out.phasor_w - sig.phasor_w
+    for fi, f in enumerate(freq):
+        for hi, h in enumerate((1, 3)):
+            ph = np.angle(ghost[fi, hi, 2, 3] * np.exp(-2j * np.pi * h * f * path / C_M_PER_S))
+            assert abs(ph) < 1e-9
+    # The unmodulated light gets the ghost undelayed (and no more than its weight).
+    assert 0 < (out.dc_w - sig.dc_w).max() <= 0.01
