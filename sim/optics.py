@@ -405,10 +405,9 @@ class LensModel:
         d = np.array([math.sin(theta), 0.0, math.cos(theta)])
         ex = np.array([math.cos(theta), 0.0, -math.sin(theta)])
         ey = np.array([0.0, 1.0, 0.0])
-        start = (np.array([0.0, 0.0, z_ep]) + gx.reshape(-1, 1) * ex + gy.reshape(-1, 1) * ey
-                 - d * (abs(z_ep) + 1e-3 + 2 * half))
-        # Start everyone on the plane z = -(something) in front of the lens.
-        z_start = min(0.0, z_ep) - 1e-3 - 2 * half
+        start = np.array([0.0, 0.0, z_ep]) + gx.reshape(-1, 1) * ex + gy.reshape(-1, 1) * ey
+        # Start on a plane in front of every surface's sag (a lens's length ahead), in air.
+        z_start = min(0.0, z_ep) - float(self.lens.z[-1]) - 0.01 - 2 * half
         s = (z_start - start[:, 2]) / d[2]
         rays = Rays.make(start + s[:, None] * d, d)
         trace_path(self.lens, rays, events if events is not None else direct_events(self.lens))
@@ -577,9 +576,6 @@ class LensCamera(CameraModel):
             k = np.where(ru > 0, rd / np.where(ru > 0, ru, 1.0), 1.0)
         return x * k, y * k
 
-    def scaled(self, factor: float) -> "CameraModel":
-        return replace(super().scaled(factor))
-
     def to_dict(self) -> dict[str, Any]:
         d = super().to_dict()
         d["lens"] = prescription_to_dict(self.lens) if self.lens is not None else None
@@ -717,6 +713,11 @@ def prescription_from_dict(d: Any, *, source: str | Path = "<camera>", prefix: s
         out.append(LensSurface(**kw))
     if sum(s.stop for s in out) > 1:
         raise bad(f"{prefix}.surfaces", [s.name for s in out if s.stop], "exactly one surface with stop: true")
+    k_stop = next((i for i, s in enumerate(out) if s.stop), 0)
+    if math.isinf(out[k_stop].semi_diameter_m):
+        raise InputFileError("the aperture stop has no size", file=source,
+                             field=f"{prefix}.surfaces[{k_stop}].semi_diameter_m",
+                             expected="the stop's semi-diameter in metres (it sets the f-number)")
     pres = Prescription(
         surfaces=tuple(out),
         sensor_reflectance=sch.number(d.get("sensor_reflectance", 0.0), f"{prefix}.sensor_reflectance", lo=0, hi=1),

@@ -189,6 +189,8 @@ def test_bad_lens_blocks_name_the_field() -> None:
         prescription_from_dict({"surfaces": [{"glass": "unobtainium"}]}, source="x.yaml")
     with pytest.raises(InputFileError, match=r"camera\.lens\.surfaces\[1\]\.colour"):
         prescription_from_dict({"surfaces": [{}, {"colour": 1}]}, source="x.yaml")
+    with pytest.raises(InputFileError, match=r"camera\.lens\.surfaces\[1\]\.semi_diameter_m"):
+        prescription_from_dict({"surfaces": [{"radius_m": 0.01, "n": 1.5}, {"stop": True}]}, source="x.yaml")
     with pytest.raises(InputFileError, match=r"camera\.f_number"):
         scene_from_dict(_scene(LENS_BLOCK, f_number=2.0), source="x.yaml")
     with pytest.raises(InputFileError, match="covers the sensor"):
@@ -238,3 +240,16 @@ def test_the_stray_light_effect_delays_each_channel_by_its_own_frequency() -> No
             assert abs(ph) < 1e-9
     # The unmodulated light gets the ghost undelayed (and no more than its weight).
     assert 0 < (out.dc_w - sig.dc_w).max() <= 0.01
+
+
+def test_a_stop_in_front_of_an_ideal_lens_keeps_cos4_and_no_distortion() -> None:
+    # The stop a distance d ahead of the lens is its own entrance pupil (seen as cos(theta)),
+    # and a parallel bundle still meets at f tan(theta): cos^4, no distortion, for any d.
+    f, d = 0.004, 0.002
+    pres = Prescription((LensSurface(thickness_m=d, stop=True, semi_diameter_m=0.5e-3),
+                         LensSurface(focal_length_m=f, thickness_m=f)))
+    m = LensModel(pres, pupil_samples=128)
+    assert m.entrance_pupil == pytest.approx((0.0, 0.5e-3))
+    th = np.radians([0.0, 15.0, 30.0])
+    np.testing.assert_allclose(m.image_height(th), f * np.tan(th), rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(m.relative_illumination(th), np.cos(th) ** 4, rtol=1e-2)
