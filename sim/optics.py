@@ -557,6 +557,12 @@ class LensCamera(CameraModel):
     def has_distortion(self) -> bool:
         return True
 
+    @cached_property
+    def stage(self) -> "LensStage":
+        """The lens stage of this camera (per-pixel maps, the prescription's stray light and
+        its operator), built once: the twin applies it on every prediction."""
+        return lens_stage(self)
+
     def undistort_normalized(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         xd = (np.asarray(u, dtype=np.float64) - self.cx) / self.fx
         yd = (np.asarray(v, dtype=np.float64) - self.cy) / self.fy
@@ -766,19 +772,25 @@ def prescription_to_dict(p: Prescription) -> dict[str, Any]:
 @dataclass
 class LensStage:
     """What the twin applies to the light on the sensor for a :class:`LensCamera`: the pupil's
-    transmission, the lens's extra return path and the ghosts + housing veil."""
+    transmission, the lens's extra return path and the ghosts + housing veil (with its
+    operator for the camera's sensor)."""
 
     transmission: np.ndarray
     extra_path_m: np.ndarray
     psf: StrayLightPSF
+    operator: Any = None
     info: dict[str, Any] = field(default_factory=dict)
 
 
-def lens_stage(camera: LensCamera, *, stray_light: bool = True) -> LensStage:
+def lens_stage(camera: LensCamera, *, psf: StrayLightPSF | None = None) -> LensStage:
+    """The lens stage of a camera; ``psf`` replaces the prescription's stray light."""
+    from tofhil.sim.straylight import StrayLightOperator
+
     m = camera.model
     maps = m.pixel_maps(camera)
-    psf = m.stray_light(camera.pixel_pitch_m) if stray_light else StrayLightPSF(conserve=False)
-    return LensStage(maps["transmission"], maps["extra_path_m"], psf)
+    psf = m.stray_light(camera.pixel_pitch_m) if psf is None else psf
+    op = None if psf.is_identity else StrayLightOperator(psf, camera.shape, (camera.cx, camera.cy))
+    return LensStage(maps["transmission"], maps["extra_path_m"], psf, op)
 
 
 def apply_lens(signal: Any, camera: CameraModel, *, psf: StrayLightPSF | None = None) -> Any:
@@ -789,17 +801,16 @@ def apply_lens(signal: Any, camera: CameraModel, *, psf: StrayLightPSF | None = 
     if not isinstance(camera, LensCamera) or camera.lens is None:
         return signal
     from tofhil.sim.effects import _rotate_phase
-    from tofhil.sim.straylight import StrayLightOperator
 
-    st = lens_stage(camera, stray_light=psf is None)
-    if psf is not None:
-        st.psf = psf
+    st = camera.stage if psf is None else lens_stage(camera, psf=psf)
+    if signal.shape != camera.shape:
+        raise ValueError(f"signal is {signal.shape}, the lens camera {camera.shape}")
     out = _rotate_phase(signal, st.extra_path_m)
     out.phasor_w = out.phasor_w * st.transmission
     out.dc_w = np.asarray(signal.dc_w) * st.transmission
     out.ambient_w = np.asarray(signal.ambient_w) * st.transmission
-    if not st.psf.is_identity:
-        op = StrayLightOperator(st.psf, out.shape, (camera.cx, camera.cy))
+    if st.operator is not None:
+        op = st.operator
         freq = (out.freq_hz[:, None] * np.asarray(out.harmonics, dtype=np.float64)[None, :])[..., None, None]
         out.phasor_w = op.apply(out.phasor_w, freq_hz=freq)
         both = op.apply(np.stack([out.dc_w, out.ambient_w]))
