@@ -433,7 +433,9 @@ class StrayLightEffect(Effect):
                "radial": "free-form lobe: {radii_px: [...], values: [per-pixel fraction at each radius], "
                          "field_values: [...], aspect: A}; piecewise linear in log r, heavy tails allowed",
                "ghost_center_px": "[x, y] the ghost mirrors through (default the principal point)",
-               "ghosts": "more ghosts: [[weight, sigma_px], ...] or [[weight, sigma_px, cx, cy], ...]",
+               "ghosts": "more ghosts: [[weight, sigma_px], ...] or [[weight, sigma_px, cx, cy], ...], or mappings "
+                         "{weight, sigma_px, magnification, extra_path_m, center_px} (light at p lands at "
+                         "c + m (p - c), delayed by extra_path_m; a lens prescription's ghosts)",
                "psf_file": "measured PSF image (.npy/.png/.tif; its peak pixel is the direct light)",
                "psf_center_px": "[x, y] of the PSF image's direct pixel (default its maximum)",
                "psf_scale": "factor on the measured PSF's scattered part (default 1)",
@@ -476,7 +478,9 @@ class StrayLightEffect(Effect):
             return signal
         op = StrayLightOperator(psf, signal.shape, (ctx.camera.cx, ctx.camera.cy))
         out = signal.copy()
-        out.phasor_w = op.apply(signal.phasor_w)
+        # Each channel's modulation frequency: a ghost's extra optical path delays its phasor.
+        freq = (signal.freq_hz[:, None] * np.asarray(signal.harmonics, dtype=np.float64)[None, :])[..., None, None]
+        out.phasor_w = op.apply(signal.phasor_w, freq_hz=freq)
         both = op.apply(np.stack([signal.dc_w, signal.ambient_w]))  # unmodulated light scatters too
         out.dc_w, out.ambient_w = both[0], both[1]
         return out

@@ -42,7 +42,7 @@ MAX_SCENE_BYTES = 16 << 20
 _TOP_KEYS = ("name", "description", "params", "camera", "emitter", "ambient_irradiance_w_m2",
              "materials", "objects", "sensor", "effects", "render", "rgb_camera")
 _CAMERA_KEYS = {"preset", "width", "height", "fx", "fy", "cx", "cy", "dist", "name", "pixel_pitch_m",
-                "hfov_deg", "vfov_deg", "pose", "f_number", "focus_distance_m"} | set(SENSOR_KEYS)
+                "hfov_deg", "vfov_deg", "pose", "f_number", "focus_distance_m", "lens"} | set(SENSOR_KEYS)
 
 
 # --------------------------------------------------------------------------- public API
@@ -239,6 +239,10 @@ class _Parser(Schema):
         pose = self.pose(c.pop("pose", None), "camera.pose")
         f_number = c.pop("f_number", None)
         focus = c.pop("focus_distance_m", None)
+        lens = c.pop("lens", None)
+        if f_number is not None and lens is not None:
+            raise self.error("f_number and lens both given", "camera.f_number",
+                             "no f_number with a lens prescription (the lens gives it: EFL / entrance pupil)")
         if f_number is not None:
             f_number = self.number(f_number, "camera.f_number", lo=0.0, lo_open=True)
         if focus is not None:
@@ -267,6 +271,14 @@ class _Parser(Schema):
         if not c:
             c = {"preset": "holmlund_thesis"}
         camera = CameraModel.from_dict(c, source=self.source, prefix="camera.")
+        if lens is not None:
+            # A real lens (sim/optics.py): its chief rays, EFL and f-number replace the pinhole's.
+            from tofhil.sim.optics import lens_camera, prescription_from_dict
+
+            wl = camera.extra.get("wavelength_m")
+            pres = prescription_from_dict(lens, source=self.source, wavelength_m=None if wl is None else float(wl))
+            camera = lens_camera(camera, pres, source=self.source)
+            f_number = camera.model.f_number
         return camera, pose, f_number, focus
 
     def second_camera(self, c: Any) -> SecondCamera | None:

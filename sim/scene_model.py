@@ -316,7 +316,7 @@ class Scene:
         cam = self.camera.to_dict()
         cam.update(copy.deepcopy(self.camera.extra))
         cam["pose"] = {"matrix": self.camera_pose.tolist()}
-        if self.f_number is not None:
+        if self.f_number is not None and cam.get("lens") is None:  # a lens prescription gives its own
             cam["f_number"] = self.f_number
         if self.focus_distance_m is not None:
             cam["focus_distance_m"] = self.focus_distance_m

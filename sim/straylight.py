@@ -45,6 +45,7 @@ import numpy as np
 import scipy.fft as sfft
 from scipy.special import erf
 
+from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel
 from tofhil.errors import InputFileError, TofhilError, require_input_file
 from tofhil.schema import Schema
@@ -65,11 +66,23 @@ class GaussianLobe:
 @dataclass(frozen=True)
 class Ghost:
     """A lens ghost: ``weight`` of the light imaged mirrored through ``center_px`` (``(x, y)``
-    in pixels; None = the camera's principal point), blurred by a Gaussian ``sigma_px``."""
+    in pixels; None = the camera's principal point), blurred by a Gaussian ``sigma_px``.
+
+    ``magnification`` generalises the mirror (-1): light at ``p`` lands at ``c + m (p - c)``
+    (a traced lens ghost, sim/optics.py; a filter's ghost is near +1); a source pixel then
+    covers ``|m|`` pixels, added to the blur as a box's variance. ``extra_path_m``: the ghost
+    travels this much more optical path than the direct light (its phasor is delayed by it)."""
 
     weight: float
     sigma_px: float = 0.0
     center_px: tuple[float, float] | None = None
+    magnification: float = -1.0
+    extra_path_m: float = 0.0
+
+    @property
+    def is_mirror(self) -> bool:
+        """The plain ghost (mirror through the centre, no delay): a convolution of the flipped image."""
+        return self.magnification == -1.0 and self.extra_path_m == 0.0
 
 
 @dataclass(frozen=True)
@@ -176,14 +189,14 @@ class StrayLightPSF:
                               for g in self.gaussians]
         if self.veil:
             d["veil"] = self.veil
-        if len(self.ghosts) == 1:
+        if len(self.ghosts) == 1 and self.ghosts[0].is_mirror:
             g = self.ghosts[0]
             d["ghost_weight"], d["ghost_sigma_px"] = g.weight, g.sigma_px
             if g.center_px is not None:
                 d["ghost_center_px"] = list(g.center_px)
         elif self.ghosts:
             d["ghosts"] = [[g.weight, g.sigma_px] + ([] if g.center_px is None else list(g.center_px))
-                           for g in self.ghosts]
+                           if g.is_mirror else _ghost_mapping(g) for g in self.ghosts]
         if self.radial is not None:
             d["radial"] = {"radii_px": list(self.radial.radii_px), "values": list(self.radial.values)}
             if self.radial.field_values:
@@ -241,6 +254,14 @@ class StrayLightPSF:
 
 #: The ``format`` tag of a PSF file.
 PSF_FORMAT = "tofhil.straylight_psf.v2"
+
+
+def _ghost_mapping(g: Ghost) -> dict[str, Any]:
+    d: dict[str, Any] = {"weight": g.weight, "sigma_px": g.sigma_px, "magnification": g.magnification,
+                         "extra_path_m": g.extra_path_m}
+    if g.center_px is not None:
+        d["center_px"] = list(g.center_px)
+    return d
 
 
 def _json_default(x: Any) -> Any:
@@ -516,24 +537,33 @@ def flip_image(s: np.ndarray) -> np.ndarray:
     return np.asarray(s)[..., ::-1, ::-1]
 
 
-def _pixel_matrix(n: int, sigma: float, *, mirror_about: float | None = None) -> np.ndarray:
+def _pixel_matrix(n: int, sigma: float, *, mirror_about: float | None = None,
+                  magnification: float = -1.0) -> np.ndarray:
     """``[n, n]`` matrix of the pixel-integrated 1-D Gaussian: ``M[q, p] = g(q - p)`` (Toeplitz),
-    or with ``mirror_about = c`` the ghost's ``M[q, p] = g(q - (2c - p))`` (Hankel)."""
+    or with ``mirror_about = c`` the ghost's ``M[q, p] = g(q - (c + m (p - c)))`` (``m = -1``:
+    Hankel, the mirror)."""
     q = np.arange(n, dtype=np.float64)[:, None]
     p = np.arange(n, dtype=np.float64)[None, :]
-    shift = q - p if mirror_about is None else q + p - 2.0 * mirror_about
+    if mirror_about is None:
+        shift = q - p
+    else:
+        shift = q - (mirror_about + magnification * (p - mirror_about))
+        # A source pixel lands on |m| pixels: its footprint widens the blur (a box's variance).
+        sigma = math.sqrt(sigma * sigma + max(magnification * magnification - 1.0, 0.0) / 12.0)
     return _pixel_gauss_1d(shift, 0.0, sigma)
 
 
 def _separable(s: np.ndarray, my: np.ndarray, mx: np.ndarray) -> np.ndarray:
     """``My @ S @ Mx^T`` on images ``[..., H, W]`` (real matrices; complex images done as two
     real products, which BLAS runs at real speed)."""
+    # Contiguous operands: numpy's matmul on a strided view (the real part of a complex array)
+    # bypasses BLAS and is ~400x slower.
     if np.iscomplexobj(s):
         out = np.empty(s.shape, dtype=np.complex128)
-        out.real = my @ s.real @ mx.T
-        out.imag = my @ s.imag @ mx.T
+        out.real = my @ np.ascontiguousarray(s.real) @ mx.T
+        out.imag = my @ np.ascontiguousarray(s.imag) @ mx.T
         return out
-    return my @ s @ mx.T
+    return my @ np.ascontiguousarray(s) @ mx.T
 
 
 class StrayLightOperator:
@@ -588,7 +618,13 @@ class StrayLightOperator:
         self._ghosts: list[PaddedConvolution] = []
         self._lobes: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._ghost_mats: list[tuple[float, np.ndarray, np.ndarray]] = []
-        ghosts = [(g, self.ghost_center(g)) for g in psf.ghosts if g.weight]
+        ghosts = [(g, self.ghost_center(g)) for g in psf.ghosts if g.weight and g.is_mirror]
+        # Ghosts with another magnification or a delay: separable matrices in either method
+        # (a magnified image is not a convolution), each with its extra optical path.
+        self._gen_ghosts: list[tuple[float, np.ndarray, np.ndarray, float]] = [
+            (g.weight, _pixel_matrix(h, g.sigma_px, mirror_about=gc[1], magnification=g.magnification),
+             _pixel_matrix(w, g.sigma_px, mirror_about=gc[0], magnification=g.magnification), g.extra_path_m)
+            for g, gc in ((g, self.ghost_center(g)) for g in psf.ghosts if g.weight and not g.is_mirror)]
         if self.method == "separable":
             for g in psf.gaussians:
                 if g.weight:
@@ -615,10 +651,26 @@ class StrayLightOperator:
         c = ghost.center_px or self.center_px
         return float(c[0]), float(c[1])
 
-    def scatter(self, s: np.ndarray) -> np.ndarray:
-        """The stray light only: ``h * S`` (without the direct part)."""
+    def _general_ghosts(self, s: np.ndarray, out: np.ndarray, freq_hz: Any, adjoint: bool) -> np.ndarray:
+        """Adds the magnified/delayed ghosts; ``freq_hz`` (broadcast against ``s``, e.g.
+        ``[F, NH, 1, 1]``: each channel's modulation frequency x harmonic) delays a ghost's
+        phasor by ``exp(i 2 pi f extra_path / c)``; None = unmodulated light (no delay)."""
+        for wgt, my, mx, path in self._gen_ghosts:
+            img = _separable(s, my.T, mx.T) if adjoint else _separable(s, my, mx)
+            if path and freq_hz is not None:
+                ph = np.exp(2j * np.pi * np.asarray(freq_hz, dtype=np.float64) * path / C_M_PER_S)
+                img = img * (np.conj(ph) if adjoint else ph)
+                if not np.iscomplexobj(out):
+                    out = out.astype(np.complex128)
+            out = out + wgt * img
+        return out
+
+    def scatter(self, s: np.ndarray, freq_hz: Any = None) -> np.ndarray:
+        """The stray light only: ``h * S`` (without the direct part); ``freq_hz`` see
+        :meth:`_general_ghosts` (only ghosts with an extra path need it)."""
         s = np.asarray(s)
         out = np.zeros(s.shape, dtype=np.result_type(s.dtype, np.float64))
+        out = self._general_ghosts(s, out, freq_hz, adjoint=False)
         if self.method == "separable":
             for wgt, my, mx in self._lobes + self._ghost_mats:
                 out += wgt * _separable(s, my, mx)
@@ -635,10 +687,11 @@ class StrayLightOperator:
             out += self._field(self._rho2 * s)
         return out
 
-    def scatter_adjoint(self, s: np.ndarray) -> np.ndarray:
+    def scatter_adjoint(self, s: np.ndarray, freq_hz: Any = None) -> np.ndarray:
         """Transpose of :meth:`scatter` (conjugate transpose for complex kernels)."""
         s = np.asarray(s)
         out = np.zeros(s.shape, dtype=np.result_type(s.dtype, np.float64))
+        out = self._general_ghosts(s, out, freq_hz, adjoint=True)
         if self.method == "separable":
             for wgt, my, mx in self._lobes + self._ghost_mats:
                 out += wgt * _separable(s, my.T, mx.T)
@@ -654,16 +707,16 @@ class StrayLightOperator:
             out += self._rho2 * self._field.adjoint(s)
         return out
 
-    def apply(self, s: np.ndarray) -> np.ndarray:
+    def apply(self, s: np.ndarray, freq_hz: Any = None) -> np.ndarray:
         """``S_meas = keep * S + scatter(S)``."""
-        return self.keep * np.asarray(s) + self.scatter(s)
+        return self.keep * np.asarray(s) + self.scatter(s, freq_hz)
 
     __call__ = apply
 
-    def adjoint(self, s: np.ndarray) -> np.ndarray:
+    def adjoint(self, s: np.ndarray, freq_hz: Any = None) -> np.ndarray:
         """Transpose of :meth:`apply` (conjugate transpose for complex kernels)."""
         s = np.asarray(s)
-        return self.keep * s.astype(np.result_type(s.dtype, np.float64)) + self.scatter_adjoint(s)
+        return self.keep * s.astype(np.result_type(s.dtype, np.float64)) + self.scatter_adjoint(s, freq_hz)
 
     @property
     def scattered_fraction(self) -> float:
@@ -675,7 +728,8 @@ class StrayLightOperator:
             self._scattered = float(self.scatter_adjoint(np.ones(self.shape)).max())
         return self._scattered
 
-    def invert(self, s_meas: np.ndarray, *, iterations: int = 30, tol: float = 1e-7) -> np.ndarray:
+    def invert(self, s_meas: np.ndarray, *, iterations: int = 30, tol: float = 1e-7,
+               freq_hz: Any = None) -> np.ndarray:
         """Remove the stray light: solve ``keep * S + h * S = S_meas`` by the fixed point
         ``S_{k+1} = (S_meas - h * S_k) / keep`` (a Neumann series; Kavli et al. 2008).
 
@@ -693,7 +747,7 @@ class StrayLightOperator:
         scale = float(np.abs(s_meas).max()) or 1.0
         s = s_meas.astype(np.result_type(s_meas.dtype, np.float64), copy=True)
         for _ in range(iterations):
-            nxt = (s_meas - self.scatter(s)) / self.keep
+            nxt = (s_meas - self.scatter(s, freq_hz)) / self.keep
             done = float(np.abs(nxt - s).max()) <= tol * scale
             s = nxt
             if done:
@@ -808,6 +862,9 @@ def _psf_from_params(params: Mapping[str, Any], *, source: str | Path, prefix: s
         raise InputFileError(f"got {extra!r}", file=source, field=f"{prefix}.ghosts",
                              expected="a list of [weight, sigma_px] or [weight, sigma_px, cx, cy]")
     for i, g in enumerate(extra):
+        if isinstance(g, Mapping):
+            ghosts.append(_ghost_from_mapping(g, source=source, field_=f"{prefix}.ghosts[{i}]"))
+            continue
         try:
             vals = [float(x) for x in g]
             ok = len(vals) in (2, 4) and all(map(math.isfinite, vals)) and 0 <= vals[0] <= 1 and vals[1] >= 0
@@ -850,6 +907,24 @@ def _psf_from_params(params: Mapping[str, Any], *, source: str | Path, prefix: s
         raise InputFileError(f"the weights add up to {psf.total_weight:g}", file=source, field=prefix,
                              expected="a total scattered fraction <= 1")
     return psf
+
+
+def _ghost_from_mapping(g: Mapping[str, Any], *, source: str | Path, field_: str) -> Ghost:
+    expected = ("{weight: in [0, 1], sigma_px: >= 0, magnification: a non-zero number (default -1), "
+                "extra_path_m: metres (default 0), center_px: [x, y] (optional)}")
+    try:
+        unknown = set(g) - {"weight", "sigma_px", "magnification", "extra_path_m", "center_px"}
+        w, sg = float(g["weight"]), float(g.get("sigma_px", 0.0))
+        m, path = float(g.get("magnification", -1.0)), float(g.get("extra_path_m", 0.0))
+        c = g.get("center_px")
+        cc = None if c is None else (float(c[0]), float(c[1]))
+        ok = (not unknown and all(map(math.isfinite, (w, sg, m, path) + (cc or ()))) and 0 <= w <= 1 and sg >= 0
+              and m != 0 and (c is None or len(c) == 2))
+    except (TypeError, ValueError, KeyError, IndexError):
+        ok = False
+    if not ok:
+        raise InputFileError(f"got {dict(g)!r}", file=source, field=field_, expected=expected)
+    return Ghost(w, sg, cc, m, path)
 
 
 def _radial_from_params(v: Any, *, source: str | Path, field_: str) -> RadialProfile:

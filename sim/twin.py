@@ -29,6 +29,7 @@ from tofhil.progress import Progress
 from tofhil.sim.effects import (EFFECTS, ORDER, Effect, EffectContext, WigglingEffect, apply_scene_effects,
                                 apply_signal_effects, effects_by_stage, parse_effects, render_requirements)
 from tofhil.sim.memory import check_memory, render_memory
+from tofhil.sim.optics import apply_lens
 from tofhil.sim.render import content_key
 from tofhil.sim.sensor import OpticalSignal, SensorConfig, SensorModel, waveform_from_scene
 
@@ -83,6 +84,7 @@ def signal_from_render(scene: Any, result: Any, effects: Effects, config: Sensor
         signal = eff.apply_render(result, values, waveform)
     else:
         signal = OpticalSignal.from_render(result, waveform)
+    signal = apply_lens(signal, camera)  # a lens prescription's vignetting, path and ghosts (else nothing)
     return apply_signal_effects(signal, effects, effect_context(scene, camera, config))
 
 
