@@ -103,6 +103,19 @@ def read_capture_metadata(scene_path: str | Path) -> dict[str, Any] | None:
         return None
 
 
+def _preset_fact(cam: CameraModel, key: str) -> Any:
+    """A fact of the camera preset the session's camera is named after (an importer that
+    assumed a preset stores its name, not its extra facts such as the wavelength)."""
+    from tofhil.camera import list_camera_presets, load_camera_preset
+
+    if not cam.name or cam.name not in list_camera_presets():
+        return None
+    try:
+        return dict(load_camera_preset(cam.name).extra).get(key)
+    except TofhilError:
+        return None
+
+
 def _frequencies(session: Any, freq_hz: Sequence[float] | None, wavelength_m: float | None
                  ) -> tuple[list[float], float, str]:
     sc = session.sensor_config or {}
@@ -120,7 +133,8 @@ def _frequencies(session: Any, freq_hz: Sequence[float] | None, wavelength_m: fl
     for f in freqs:
         if not (math.isfinite(f) and f > 0):
             raise TofhilError(f"got {f}", field="--freq-hz", expected="positive frequencies in Hz")
-    wl = wavelength_m or sc.get("wavelength_m") or extra.get("wavelength_m")
+    wl = wavelength_m or sc.get("wavelength_m") or extra.get("wavelength_m") or _preset_fact(session.camera,
+                                                                                            "wavelength_m")
     if wl is None:
         raise TofhilError("records no emitter wavelength", file=session.path, field="--wavelength-m",
                           expected="the emitter's wavelength, e.g. --wavelength-m 850e-9")
@@ -259,7 +273,7 @@ def _pose_matrix(p: PlanePatch) -> list[list[float]]:
 
 
 def _scene_dict(name: str, cam: CameraModel, freqs: list[float], wavelength_m: float, planes: list[PlanePatch],
-                mesh_file: str | None, reflectance: dict[str, float], power_w: float, beam_n: float,
+                mesh_file: str | None, reflectance: dict[str, float], power_w: float, profile: dict[str, Any],
                 description: str) -> dict[str, Any]:
     objects: list[dict[str, Any]] = []
     materials: dict[str, Any] = {}
@@ -274,7 +288,7 @@ def _scene_dict(name: str, cam: CameraModel, freqs: list[float], wavelength_m: f
         "name": name, "description": description,
         "camera": _camera_block(cam),
         "emitter": {"offset_m": [0.0, 0.0, 0.0], "power_w": float(power_w),
-                    "profile": {"type": "cos_n", "n": round(float(beam_n), 4)},
+                    "profile": profile,
                     "waveform": {"harmonics": [[1, 1.0, 0.0]]}},
         "ambient_irradiance_w_m2": 0.0,
         "materials": materials, "objects": objects,
@@ -288,6 +302,48 @@ def _scene_dict(name: str, cam: CameraModel, freqs: list[float], wavelength_m: f
         "effects": {},
         "render": {"samples_per_pixel": 1, "bounces": 0},
     }
+
+
+#: Emission-angle step of a fitted table profile (deg), and the even polynomial's degree in theta^2.
+PROFILE_STEP_DEG = 2.5
+PROFILE_DEGREE = 4
+
+
+def fit_profile_table(theta_deg: np.ndarray, amp: np.ndarray, pred: np.ndarray, oid: np.ndarray, mask: np.ndarray,
+                      beam_n: float, *, min_gain: float = 0.01) -> tuple[dict[str, Any] | None, float]:
+    """The emitter profile ``cos^n (theta) exp(g(theta))`` as a table, ``g`` an even polynomial
+    (theta^2 .. theta^(2 PROFILE_DEGREE), ``g(0) = 0``) fitted by least squares to the log
+    ratio of measured to predicted amplitude after each object's own median level (its
+    reflectance). Returns None when ``g`` changes the amplitude by less than ``min_gain``
+    (rms in log amplitude): cos^n is then the profile. Also returns that rms."""
+    if mask.sum() < 200:
+        return None, 0.0
+    th = np.radians(theta_deg[mask])
+    lr = np.log(amp[mask] / pred[mask])
+    ids = oid[mask]
+    level = np.zeros_like(lr)
+    g = np.zeros_like(lr)
+    X = np.stack([th ** (2 * k) for k in range(1, PROFILE_DEGREE + 1)], axis=1)
+    coef = np.zeros(PROFILE_DEGREE)
+    for _ in range(3):  # alternate: each object's level, then the common angular shape
+        for i in np.unique(ids):
+            sel = ids == i
+            level[sel] = np.median(lr[sel] - g[sel])
+        coef = np.linalg.lstsq(X, lr - level, rcond=None)[0]
+        g = X @ coef
+    rms = float(np.sqrt(np.mean(g ** 2)))
+    if rms < min_gain:
+        return None, rms
+    top = float(min(89.0, np.degrees(th.max()) + PROFILE_STEP_DEG))
+    knots = np.append(np.arange(0.0, top, PROFILE_STEP_DEG), top)
+    kr = np.radians(knots)
+    gk = np.stack([kr ** (2 * k) for k in range(1, PROFILE_DEGREE + 1)], axis=1) @ coef
+    values = np.cos(kr) ** beam_n * np.exp(gk)
+    # beyond the field of view the emitter's light reaches nothing the camera sees: the last value up to 90 deg
+    knots = np.append(knots, 90.0)
+    values = np.append(values, values[-1])
+    return {"type": "table", "theta_deg": [round(float(k), 4) for k in knots],
+            "relative_intensity": [round(float(v), 6) for v in values]}, rms
 
 
 def _predicted_amplitude(scene: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -389,15 +445,16 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
         base_dir = out_path.resolve().parent
         desc = f"twin of {Path(session_path).name} frame {frame} (tofhil scene-from-capture)"
 
-        def build(power_w: float, n_beam: float, r: dict[str, float]) -> Any:
-            d = _scene_dict(out_path.stem, cam, freqs, wl, planes, mesh_file, r, power_w, n_beam, desc)
+        def build(power_w: float, prof: dict[str, Any], r: dict[str, float]) -> Any:
+            d = _scene_dict(out_path.stem, cam, freqs, wl, planes, mesh_file, r, power_w, prof, desc)
             return d, scene_from_yaml(yaml.safe_dump(d, sort_keys=False), source=str(out_path), base_dir=base_dir)
 
         radiometry: dict[str, Any] = {"amplitude": "absent: reflectances and power are assumed"}
+        profile: dict[str, Any] = {"type": "cos_n", "n": beam_n}
         if has_amp:
             usable = valid & np.isfinite(amp) & (amp > 0) & ~saturated_amplitude(amp, valid)
             say("rendering the twin for the radiometry fit")
-            _, sc = build(power, beam_n, refl)
+            _, sc = build(power, profile, refl)
             pred, _, oid = _predicted_amplitude(sc)
             biggest = max(range(len(names)), key=lambda i: int(((oid == i) & usable).sum()))
             sel = (oid == biggest) & usable & (pred > 0)
@@ -406,8 +463,21 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
                 x, y = np.log(cos_e[sel]), np.log(amp[sel] / pred[sel])
                 slope = float(np.polyfit(x, y, 1)[0])
                 beam_n = float(np.clip(1.0 + slope, 0.0, 30.0))
-                _, sc = build(power, beam_n, refl)
+                profile = {"type": "cos_n", "n": round(beam_n, 4)}
+                _, sc = build(power, profile, refl)
                 pred, _, oid = _predicted_amplitude(sc)
+                # What cos^n cannot follow (a diffuser flatter than cos^0, vignetting beyond
+                # cos^4): an even polynomial in the emission angle, fitted to every object's
+                # log ratio after its own level; written as a table profile.
+                m = usable & (pred > 0) & (oid >= 0)
+                table, g_rms = fit_profile_table(np.degrees(np.arccos(np.clip(cos_e, -1, 1))), amp, pred, oid, m,
+                                                 beam_n)
+                if table is not None:
+                    profile = table
+                    _, sc = build(power, profile, refl)
+                    pred, _, oid = _predicted_amplitude(sc)
+                    say(f"emitter profile: cos^{beam_n:.2f} corrected by a table over the emission angle "
+                        f"({g_rms:.2f} rms in log amplitude)")
             ratio = {}
             for i, n in enumerate(names):
                 m = (oid == i) & usable & (pred > 0)
@@ -420,20 +490,21 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
             power = max(ref, ASSUMED_REFLECTANCE * top)
             refl = {n: float(np.clip(ASSUMED_REFLECTANCE * v / power, 1e-4, 1.0)) if math.isfinite(v)
                     else ASSUMED_REFLECTANCE for n, v in ratio.items()}
-            _, sc = build(power, beam_n, refl)
+            _, sc = build(power, profile, refl)
             pred, _, oid = _predicted_amplitude(sc)
             m = usable & (pred > 0)
             lr = np.log(amp[m] / pred[m])
-            radiometry = {"amplitude": "fitted", "beam_exponent_n": beam_n, "power_w": power,
+            radiometry = {"amplitude": "fitted", "beam_exponent_n": beam_n, "profile": profile["type"],
+                          "power_w": power,
                           "reflectance": refl, "reflectance_of_largest_surface_assumed": ASSUMED_REFLECTANCE,
                           "log_amplitude_residual_median": float(np.median(lr)),
                           "log_amplitude_residual_mad": float(1.4826 * np.median(np.abs(lr - np.median(lr)))),
                           "pixels": int(m.sum())}
-            say(f"radiometry: beam cos^{beam_n:.2f}, power {power:.4g} W, reflectances "
-                + ", ".join(f"{k} {v:.3f}" for k, v in refl.items()))
+            say(f"radiometry: beam cos^{beam_n:.2f}" + (" + table" if profile["type"] == "table" else "")
+                + f", power {power:.4g} W, reflectances " + ", ".join(f"{k} {v:.3f}" for k, v in refl.items()))
         else:
             warnings.append("the session has no amplitude image: reflectances and emitter power are assumed")
-        scene_d, sc = build(power, beam_n, refl)
+        scene_d, sc = build(power, profile, refl)
 
         # ---- unambiguous range of the frequencies
         plan = frequency_plan(np.asarray(freqs))
