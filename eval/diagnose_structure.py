@@ -166,15 +166,17 @@ def channel_structure(channel: str, residual: np.ndarray, sigma: np.ndarray, usa
             if np.isfinite(centre_v) and corners:
                 where = (f" (centre {_fmt(centre_v, channel)}, corners {_fmt(min(corners), channel)} to "
                          f"{_fmt(max(corners), channel)})")
-            hint = ("radial about the principal point: the signature of lens distortion, a wrong focal length or a "
-                    "field-angle-dependent error" if radial_share >= 0.7 else
-                    "not radial: a bowed or tilted surface, or a scene the twin places differently")
-            if channel == "amplitude" and radial_share >= 0.7:
-                hint = "radial about the principal point: the emitter's profile or the lens's vignetting"
+            if radial_share >= 0.7:
+                hint = ("mostly radial: the signature of lens distortion, a wrong focal length or a field-angle-"
+                        "dependent error" if channel == "depth" else "mostly radial: the emitter's profile or the "
+                        "lens's vignetting")
+            else:
+                hint = ("mostly not radial: a bowed or tilted surface, a scene the twin places differently, or an "
+                        "error that follows the distance or the amplitude rather than the field angle")
             out.append(Finding(channel, "smooth", name, shape_rms, noise_rms, n,
                                f"{channel} on {name}: a smooth error over the field of {_fmt(shape_rms, channel)} rms"
-                               f"{where}, {100 * radial_share:.0f} % of it {hint}; the noise is "
-                               f"{_fmt(noise_rms, channel)} per pixel",
+                               f"{where}, {100 * radial_share:.0f} % of it radial about the principal point, {hint}; "
+                               f"the noise is {_fmt(noise_rms, channel)} per pixel",
                                {"radial_share": radial_share, "mean": mean, "grid_3x3": grid}))
         rest = np.full(residual.shape, np.nan)
         rest[m] = y - smooth

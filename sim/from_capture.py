@@ -116,6 +116,45 @@ def _preset_fact(cam: CameraModel, key: str) -> Any:
         return None
 
 
+@dataclass
+class BoardFit:
+    """A board found in the amplitude image: its pose (photogrammetry) and the pixels it covers."""
+
+    spec: Any                    # tofhil.boards.BoardSpec
+    pose: Any                    # tofhil.eval.targets.BoardPose
+    plane_to_camera: np.ndarray  # 4x4: the twin's centred board plane -> camera
+    pixels: np.ndarray           # bool [H, W]: the sheet's outline, one pixel wider (mixed pixels)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"spec": self.spec.to_dict(), "corners": int(self.pose.detection.n),
+                "reprojection_rms_px": float(self.pose.rms_px),
+                "board_to_camera": [[float(x) for x in row] for row in self.pose.board_to_camera],
+                "pixels": int(self.pixels.sum()), "pose_from": "the amplitude image (solvePnP), not the depth"}
+
+
+def fit_board(amplitude: np.ndarray, cam: CameraModel, target: Any) -> BoardFit:
+    """The board's pose from the amplitude image and the pixels its sheet covers."""
+    import cv2
+
+    from tofhil.boards import BoardSpec
+    from tofhil.eval.targets import board_pose_from_amplitude
+
+    spec = BoardSpec.parse(target, source="--target", field="--target")
+    pose = board_pose_from_amplitude(amplitude, cam, spec)
+    plane_to_camera = pose.board_to_camera @ np.linalg.inv(spec.board_to_plane())
+    w, h = spec.size_m
+    corners = np.array([[-w / 2, -h / 2, 0.0], [w / 2, -h / 2, 0.0], [w / 2, h / 2, 0.0], [-w / 2, h / 2, 0.0]])
+    cam_pts = corners @ plane_to_camera[:3, :3].T + plane_to_camera[:3, 3]
+    # the outline through the lens: each edge sampled, so distortion bends it as it bends the image
+    edge = np.concatenate([cam_pts[i] + np.linspace(0, 1, 32, endpoint=False)[:, None] * (cam_pts[(i + 1) % 4] - cam_pts[i])
+                           for i in range(4)])
+    uv = cam.project(edge)
+    mask = np.zeros(cam.shape, np.uint8)
+    cv2.fillPoly(mask, [np.round(uv * 16).astype(np.int32)], 1, shift=4)
+    pixels = cv2.dilate(mask, np.ones((3, 3), np.uint8)).astype(bool)
+    return BoardFit(spec=spec, pose=pose, plane_to_camera=plane_to_camera, pixels=pixels)
+
+
 def _frequencies(session: Any, freq_hz: Sequence[float] | None, wavelength_m: float | None
                  ) -> tuple[list[float], float, str]:
     sc = session.sensor_config or {}
@@ -274,7 +313,7 @@ def _pose_matrix(p: PlanePatch) -> list[list[float]]:
 
 def _scene_dict(name: str, cam: CameraModel, freqs: list[float], wavelength_m: float, planes: list[PlanePatch],
                 mesh_file: str | None, reflectance: dict[str, float], power_w: float, profile: dict[str, Any],
-                description: str) -> dict[str, Any]:
+                description: str, board: "BoardFit | None" = None) -> dict[str, Any]:
     objects: list[dict[str, Any]] = []
     materials: dict[str, Any] = {}
     for p in planes:
@@ -284,6 +323,9 @@ def _scene_dict(name: str, cam: CameraModel, freqs: list[float], wavelength_m: f
     if mesh_file:
         materials["rest"] = {"reflectance": round(float(reflectance["rest"]), 6)}
         objects.append({"name": "rest", "type": "mesh", "file": mesh_file, "material": "rest"})
+    if board is not None:
+        objects.append({"name": "board", "type": "board", "target": board.spec.to_dict(),
+                        "pose": {"matrix": [[round(float(x), 9) for x in row] for row in board.plane_to_camera]}})
     return {
         "name": name, "description": description,
         "camera": _camera_block(cam),
@@ -361,8 +403,13 @@ def _predicted_amplitude(scene: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray
 def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame: int = 0, max_planes: int = 4,
                        freq_hz: Sequence[float] | None = None, wavelength_m: float | None = None,
                        mesh: bool = True, threshold_m: float | None = None, force: bool = False,
-                       progress: Callable[[str], None] | None = None) -> CaptureScene:
-    """Build the twin scene of one frame of a session and write it (plus its sidecars)."""
+                       target: Any = None, progress: Callable[[str], None] | None = None) -> CaptureScene:
+    """Build the twin scene of one frame of a session and write it (plus its sidecars).
+
+    ``target``: a board the capture shows (:class:`tofhil.boards.BoardSpec` or its text): its
+    pose comes from the amplitude image (photogrammetry, :func:`tofhil.eval.targets.board_pose_from_amplitude`),
+    not from the depth, and it is written as a ``board`` object; the range offset and the
+    pose are then observable (the board is truth the depth did not decide)."""
     from tofhil.sim.scene import load_scene, scene_from_yaml
 
     t0 = time.perf_counter()
@@ -397,9 +444,23 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
         raise TofhilError(f"has {int(valid.sum())} valid depth pixels in frame {frame}", file=session_path,
                           field="depth/valid", expected="at least 500 to fit a scene")
 
+    # ---- a known target: its pose from the amplitude image; its pixels are not segmented
+    board: BoardFit | None = None
+    if target is not None:
+        if not has_amp:
+            raise TofhilError("has no amplitude image", file=session_path, field="--target",
+                              expected="a capture with amplitude (the board is found in it)")
+        board = fit_board(amp, cam, target)
+        say(f"target: {board.spec.kind} {board.spec.cols}x{board.spec.rows} found ({board.pose.detection.n} corners, "
+            f"reprojection {board.pose.rms_px:.3f} px rms); pose from the amplitude image, not from depth")
+        if board.pose.rms_px > 1.0:
+            warnings.append(f"the board's corners reproject with {board.pose.rms_px:.2f} px rms: its pose is "
+                            "uncertain (blur, a bent board, or a camera model that does not fit)")
+
     # ---- geometry
     pts_hw = cam.rays * radial[..., None]
-    pix = np.flatnonzero(valid)
+    seg = valid if board is None else valid & ~board.pixels
+    pix = np.flatnonzero(seg)
     points = pts_hw.reshape(-1, 3)[pix]
     med = float(np.median(radial[valid]))
     thr = threshold_m if threshold_m is not None else float(np.clip(0.01 * med, 0.004, 0.03))
@@ -417,7 +478,7 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
     on_plane = np.zeros(cam.shape, bool)
     for p in planes:
         on_plane |= p.pixels
-    rest = valid & ~on_plane
+    rest = valid & ~on_plane if board is None else valid & ~on_plane & ~board.pixels
     mesh_file: str | None = None
     mesh_path = out_path.with_name(out_path.stem + MESH_SUFFIX)
     written: list[Path] = []
@@ -439,14 +500,14 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
                               field="depth/radial_m", expected="a frame showing surfaces")
 
         # ---- radiometry: render with unit power, compare with the amplitude image
-        names = [p.name for p in planes] + (["rest"] if mesh_file else [])
+        names = [p.name for p in planes] + (["rest"] if mesh_file else []) + (["board"] if board else [])
         refl = {n: ASSUMED_REFLECTANCE for n in names}
         beam_n, power = 1.0, 1.0
         base_dir = out_path.resolve().parent
         desc = f"twin of {Path(session_path).name} frame {frame} (tofhil scene-from-capture)"
 
         def build(power_w: float, prof: dict[str, Any], r: dict[str, float]) -> Any:
-            d = _scene_dict(out_path.stem, cam, freqs, wl, planes, mesh_file, r, power_w, prof, desc)
+            d = _scene_dict(out_path.stem, cam, freqs, wl, planes, mesh_file, r, power_w, prof, desc, board)
             return d, scene_from_yaml(yaml.safe_dump(d, sort_keys=False), source=str(out_path), base_dir=base_dir)
 
         radiometry: dict[str, Any] = {"amplitude": "absent: reflectances and power are assumed"}
@@ -483,13 +544,17 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
                 m = (oid == i) & usable & (pred > 0)
                 ratio[n] = float(np.median(amp[m] / pred[m])) if m.sum() >= 20 else float("nan")
             ref = ratio[names[biggest]]
-            top = max(v for v in ratio.values() if math.isfinite(v))
+            top = max(v for k, v in ratio.items() if math.isfinite(v) and k != "board")
             # The render had power 1 W and reflectance R0 everywhere; amplitude is linear in
             # power x reflectance, so object n needs P r_n / R0 = ratio_n. Only the product is
-            # seen: the largest surface gets R0 unless another would then exceed 1.
-            power = max(ref, ASSUMED_REFLECTANCE * top)
+            # seen: the largest surface gets R0 unless another would then exceed 1. A board's
+            # ink and paper reflectances are known, so its ratio is the power itself.
+            if board is not None and math.isfinite(ratio.get("board", float("nan"))):
+                power = ratio["board"]
+            else:
+                power = max(ref, ASSUMED_REFLECTANCE * top)
             refl = {n: float(np.clip(ASSUMED_REFLECTANCE * v / power, 1e-4, 1.0)) if math.isfinite(v)
-                    else ASSUMED_REFLECTANCE for n, v in ratio.items()}
+                    else ASSUMED_REFLECTANCE for n, v in ratio.items() if n != "board"}
             _, sc = build(power, profile, refl)
             pred, _, oid = _predicted_amplitude(sc)
             m = usable & (pred > 0)
@@ -525,8 +590,9 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
                            for p in planes],
                 "mesh": mesh_file, "mesh_pixels": int(rest.sum()) if mesh_file else 0,
                 "ransac_threshold_m": thr, "radiometry": radiometry,
-                "geometry_from_depth": True,
-                "unobservable": dict(UNOBSERVABLE_FITTED_POSE),
+                "geometry_from_depth": board is None,
+                "target": None if board is None else board.to_json(),
+                "unobservable": dict(UNOBSERVABLE_FITTED_POSE) if board is None else {},
                 "warnings": warnings, "seconds": round(time.perf_counter() - t0, 2)}
         written += [out_path, sidecars[1], sidecars[2]]
         out_path.write_text("# " + desc + "\n# made by tofhil scene-from-capture; metadata in "
