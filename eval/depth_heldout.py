@@ -91,7 +91,13 @@ def bin_mean(x: np.ndarray, b: int) -> np.ndarray:
 
 
 def binned_camera(camera: CameraModel, b: int) -> CameraModel:
-    """The camera of ``b x b`` binned pixels (the ragged edge dropped)."""
+    """The camera of ``b x b`` binned pixels (the ragged edge dropped).
+
+    The binned measurement is the *mean* of its pixels, so a binned twin pixel must collect
+    the light of one pixel, not of ``b^2``: the pixel pitch is kept (the twin's flux per pixel
+    goes as its solid angle ``1/(fx fy)`` times the pupil area ``(fx pitch / 2N)^2``, i.e. as
+    ``pitch^2``, whatever ``fx``). Scaling the pitch by ``b`` made a 2 x 2 binned twin four
+    times too bright on a camera with a pitch (a camera without one used a default pitch)."""
     if b == 1:
         return camera
     from dataclasses import replace
@@ -99,8 +105,7 @@ def binned_camera(camera: CameraModel, b: int) -> CameraModel:
     w, h = camera.width // b, camera.height // b
     f = 1.0 / b
     return replace(camera, width=w, height=h, fx=camera.fx * f, fy=camera.fy * f,
-                   cx=(camera.cx + 0.5) * f - 0.5, cy=(camera.cy + 0.5) * f - 0.5,
-                   pixel_pitch_m=None if camera.pixel_pitch_m is None else camera.pixel_pitch_m * b)
+                   cx=(camera.cx + 0.5) * f - 0.5, cy=(camera.cy + 0.5) * f - 0.5)
 
 
 def spatial_noise_variance(s: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
