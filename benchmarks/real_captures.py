@@ -29,8 +29,9 @@ CAPTURES = {
 }
 
 
-def run(args: list[str]) -> tuple[float, float, str]:
-    """Wall seconds, peak memory (MiB) and output of one CLI call."""
+def run(args: list[str]) -> tuple[float, float, float, str]:
+    """Wall seconds, peak memory (MiB), CPU seconds (user + system: the figure that does not
+    depend on how many others share the cores) and output of one CLI call."""
     t0 = time.perf_counter()
     p = subprocess.Popen([sys.executable, "-m", "tofhil.cli", *args], stdout=subprocess.PIPE,
                          stderr=subprocess.STDOUT, text=True, env=os.environ | {"COLUMNS": "200"})
@@ -40,7 +41,7 @@ def run(args: list[str]) -> tuple[float, float, str]:
     wall = time.perf_counter() - t0
     if p.returncode:
         raise SystemExit(f"tofhil {' '.join(args)} failed ({p.returncode}):\n{out}")
-    return wall, ru.ru_maxrss / 1024.0, out
+    return wall, ru.ru_maxrss / 1024.0, ru.ru_utime + ru.ru_stime, out
 
 
 def main() -> None:
@@ -57,16 +58,16 @@ def main() -> None:
         session = d / "session.h5"
         steps = {}
         if not session.exists():
-            steps["import"] = run(["import", str(src), "--out", str(session)])[:2]
+            steps["import"] = run(["import", str(src), "--out", str(session)])[:3]
         steps["scene-from-capture"] = run(["scene-from-capture", str(session), "--out", str(d / "scene.yaml"),
-                                           *opts, "--force"])[:2]
+                                           *opts, "--force"])[:3]
         steps["diagnose"] = run(["diagnose", str(session), "--scene", str(d / "scene.yaml"), "--out", str(d / "diag"),
-                                 "--force"])[:2]
+                                 "--force"])[:3]
         res = json.loads((d / "diag" / "diagnosis.json").read_text())
         g = res["gain"]
         rows[name] = {
             "verdict": res["verdict"]["kind"], "verdict_text": res["verdict"]["text"],
-            "notes": res["verdict"]["notes"], "causes": res["causes"],
+            "notes": res["verdict"]["notes"], "causes": res["causes"], "params": res["params"],
             "ambiguous": [a["effects"] for a in res["observability"]["ambiguous"]],
             "unobservable": sorted(res["observability"]["unobservable"]),
             "depth_rmse_mm": [round(g["depth_rmse_m"]["before"] * 1e3, 3), round(g["depth_rmse_m"]["after"] * 1e3, 3)],
@@ -74,7 +75,8 @@ def main() -> None:
             "channels_per_value": {c: [v["before_per_value"], v["after_per_value"]] for c, v in res["channels"].items()},
             "noise": res["noise"], "residual_regions": len(res["residual_regions"]),
             "residual_structure": [f["text"] for f in res.get("residual_structure", [])],
-            "steps_s_mib": {k: [round(v[0], 1), round(v[1])] for k, v in steps.items()},
+            "steps_wall_s_peak_mib_cpu_s": {k: [round(v[0], 1), round(v[1]), round(v[2], 1)]
+                                            for k, v in steps.items()},
         }
         print(json.dumps({name: rows[name]}, indent=1), flush=True)
     (args.out / "summary.json").write_text(json.dumps(rows, indent=1))

@@ -170,9 +170,12 @@ def channel_structure(channel: str, residual: np.ndarray, sigma: np.ndarray, usa
                 hint = ("mostly radial: the signature of lens distortion, a wrong focal length or a field-angle-"
                         "dependent error" if channel == "depth" else "mostly radial: the emitter's profile or the "
                         "lens's vignetting")
-            else:
+            elif channel == "depth":
                 hint = ("mostly not radial: a bowed or tilted surface, a scene the twin places differently, or an "
                         "error that follows the distance or the amplitude rather than the field angle")
+            else:
+                hint = ("mostly not radial: a reflectance that varies over the object, or light the twin does not "
+                        "have there (stray light, multipath)")
             out.append(Finding(channel, "smooth", name, shape_rms, noise_rms, n,
                                f"{channel} on {name}: a smooth error over the field of {_fmt(shape_rms, channel)} rms"
                                f"{where}, {100 * radial_share:.0f} % of it radial about the principal point, {hint}; "
