@@ -60,6 +60,8 @@ UNOBSERVABLE_FITTED_POSE = {
 METADATA_SUFFIX = ".capture.json"
 VALID_SUFFIX = "_valid.npy"
 MESH_SUFFIX = "_rest.ply"
+#: A plane's outline mesh: ``<scene>_<plane name>.ply``.
+PLANE_GLOB = "_plane*.ply"
 
 
 @dataclass
@@ -72,6 +74,9 @@ class PlanePatch:
     size: tuple[float, float]
     pixels: np.ndarray       # bool [H, W]
     rms_m: float
+    #: The patch's outline as a flat mesh on the fitted plane (file name beside the scene);
+    #: None: the rectangle ``size`` is written.
+    outline_file: str | None = None
 
 
 @dataclass
@@ -297,6 +302,28 @@ def grid_mesh(points_hw: np.ndarray, mask: np.ndarray, *, stride: int = 2, max_s
     return flat[used], remap[tri]
 
 
+def write_plane_outline(cam: CameraModel, p: PlanePatch, path: Path, stride: int) -> bool:
+    """Write the plane patch as a flat mesh covering its pixels (closed over gaps of noise
+    up to 2 pixels, ``stride`` pixels wider so the mesh through every ``stride``-th pixel
+    centre still covers the edge pixels): each pixel's ray meets the fitted plane. False when nothing is left to write."""
+    from scipy import ndimage
+
+    from tofhil.open3d_loader import open3d
+
+    mask = ndimage.binary_closing(p.pixels, np.ones((5, 5), bool)) | p.pixels
+    mask = ndimage.binary_dilation(mask, np.ones((2 * stride + 1, 2 * stride + 1), bool))
+    cos = cam.rays @ p.normal
+    mask &= cos > 1e-3
+    pts = cam.rays * np.where(mask, p.offset_m / np.where(mask, cos, 1.0), 0.0)[..., None]
+    verts, tris = grid_mesh(pts, mask, stride=stride, max_step=1e6)
+    if not len(tris):
+        return False
+    o3d = open3d()
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris))
+    o3d.io.write_triangle_mesh(str(path), m, write_ascii=False)
+    return True
+
+
 def _camera_block(cam: CameraModel) -> dict[str, Any]:
     d = {k: v for k, v in cam.to_dict().items() if k in ("width", "height", "fx", "fy", "cx", "cy", "dist",
                                                            "pixel_pitch_m")}
@@ -318,8 +345,11 @@ def _scene_dict(name: str, cam: CameraModel, freqs: list[float], wavelength_m: f
     materials: dict[str, Any] = {}
     for p in planes:
         materials[p.name] = {"reflectance": round(float(reflectance[p.name]), 6)}
-        objects.append({"name": p.name, "type": "plane", "size": [round(p.size[0], 6), round(p.size[1], 6)],
-                        "material": p.name, "pose": {"matrix": _pose_matrix(p)}})
+        if p.outline_file:
+            objects.append({"name": p.name, "type": "mesh", "file": p.outline_file, "material": p.name})
+        else:
+            objects.append({"name": p.name, "type": "plane", "size": [round(p.size[0], 6), round(p.size[1], 6)],
+                            "material": p.name, "pose": {"matrix": _pose_matrix(p)}})
     if mesh_file:
         materials["rest"] = {"reflectance": round(float(reflectance["rest"]), 6)}
         objects.append({"name": "rest", "type": "mesh", "file": mesh_file, "material": "rest"})
@@ -421,7 +451,7 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
         raise TofhilError("directory does not exist", file=out_path.parent, field="--out")
     sidecars = [out_path, metadata_path_for(out_path), out_path.with_name(out_path.stem + VALID_SUFFIX),
                 out_path.with_name(out_path.stem + MESH_SUFFIX)]
-    existing = [p for p in sidecars if p.exists()]
+    existing = [p for p in sidecars if p.exists()] + sorted(out_path.parent.glob(out_path.stem + PLANE_GLOB))
     if existing and not force:
         raise TofhilError("already exists; refusing to overwrite (use --force)", file=existing[0], field="--out")
 
@@ -482,11 +512,20 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
     mesh_file: str | None = None
     mesh_path = out_path.with_name(out_path.stem + MESH_SUFFIX)
     written: list[Path] = []
+    stride = max(1, int(round(math.sqrt(cam.width * cam.height / 65536))))
     try:
+        for p in planes:
+            # the patch's own outline (holes where something else was seen in front of it), not
+            # the rectangle around it: pixels a rectangle would cover beyond the patch are not the plane
+            plane_file = out_path.with_name(f"{out_path.stem}_{p.name}.ply")
+            written.append(plane_file)
+            if write_plane_outline(cam, p, plane_file, stride):
+                p.outline_file = plane_file.name
+            else:
+                plane_file.unlink(missing_ok=True)
         if mesh and rest.sum() >= 200:
             from tofhil.open3d_loader import open3d
 
-            stride = max(1, int(round(math.sqrt(cam.width * cam.height / 65536))))
             verts, tris = grid_mesh(pts_hw, rest, stride=stride)
             if len(tris):
                 o3d = open3d()
@@ -585,7 +624,8 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
         meta = {"source_session": str(session_path), "frame": frame, "frequencies_hz": freqs,
                 "frequencies_from": freq_src, "wavelength_m": wl, "unambiguous_range_m": r_u,
                 "valid_mask": sidecars[2].name, "pixels_beyond_unambiguous_range": n_out,
-                "planes": [{"name": p.name, "normal": p.normal.round(6).tolist(), "offset_m": p.offset_m,
+                "planes": [{"name": p.name, "outline_mesh": p.outline_file,
+                            "normal": p.normal.round(6).tolist(), "offset_m": p.offset_m,
                             "size_m": list(p.size), "pixels": int(p.pixels.sum()), "rms_m": p.rms_m}
                            for p in planes],
                 "mesh": mesh_file, "mesh_pixels": int(rest.sum()) if mesh_file else 0,
