@@ -87,7 +87,8 @@ def _poly_terms(u: np.ndarray, v: np.ndarray, degree: int = 3) -> np.ndarray:
 
 
 def _fmt(x: float, channel: str) -> str:
-    return f"{x * 1e3:.2f} mm" if channel == "depth" else f"{100 * x:.1f} %"
+    """Depth in mm; amplitude (a log ratio) as the relative change it means."""
+    return f"{x * 1e3:.2f} mm" if channel == "depth" else f"{100 * float(np.expm1(x)):.1f} %"
 
 
 def _robust_fit(X: np.ndarray, y: np.ndarray) -> np.ndarray:
