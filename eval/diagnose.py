@@ -304,6 +304,15 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     regions_left, above_after = V.residual_regions(
         data, after_pred, nu, object_id, object_names, maps_after["depth_residual"], maps_after["amplitude_residual"])
     gain = {k: {"before": before[k], "after": after.get(k, float("nan"))} for k in before}
+    if selection.causes and verdict is not None:
+        # The misfit weighs each pixel by its noise and caps outliers; the RMSE does neither.
+        # A named cause that leaves an unweighted figure worse is said, not hidden.
+        for k, label, scale, unit in (("depth_rmse_m", "depth RMSE", 1e3, " mm"), ("amplitude_rmse", "amplitude RMSE", 1.0, "")):
+            b, a = gain[k]["before"], gain[k]["after"]
+            if np.isfinite(a) and np.isfinite(b) and a > b:
+                verdict.notes.append(f"held-out {label} {b * scale:.3g} -> {a * scale:.3g}{unit} is worse after the fit: "
+                                     "the misfit that chose the cause weighs pixels by their noise and caps outliers, "
+                                     "the RMSE does not")
     regions = {"before": ev_before.to_json()["regions"], "after": ev_after.to_json()["regions"]}
     ranked = [{"effect": c.effect, "params": to_effect_values(c.effect, c.params), "score": c.score,
                "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,

@@ -167,10 +167,13 @@ def channel_structure(channel: str, residual: np.ndarray, sigma: np.ndarray, usa
             if np.isfinite(centre_v) and corners:
                 where = (f" (centre {_fmt(centre_v, channel)}, corners {_fmt(min(corners), channel)} to "
                          f"{_fmt(max(corners), channel)})")
-            if radial_share >= 0.7:
+            if radial_share >= 0.6:
                 hint = ("mostly radial: the signature of lens distortion, a wrong focal length or a field-angle-"
                         "dependent error" if channel == "depth" else "mostly radial: the emitter's profile or the "
                         "lens's vignetting")
+            elif radial_share > 0.4:
+                hint = ("partly radial: a field-angle error (lens, focal length) and a surface or distance effect "
+                        "together")
             elif channel == "depth":
                 hint = ("mostly not radial: a bowed or tilted surface, a scene the twin places differently, or an "
                         "error that follows the distance or the amplitude rather than the field angle")
