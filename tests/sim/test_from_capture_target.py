@@ -43,12 +43,11 @@ def board_capture(tmp_path_factory):
     board = next(o for o in scene.objects if o.name == "board")
     truth = np.asarray(board.pose) @ board.board.board_to_plane()
     with_target = scene_from_capture(path, tmp / "with.yaml", freq_hz=[44e6], wavelength_m=850e-9, target=TARGET)
-    without = scene_from_capture(path, tmp / "without.yaml", freq_hz=[44e6], wavelength_m=850e-9)
-    return path, truth, with_target, without, tmp
+    return path, truth, with_target, tmp
 
 
 def test_board_pose_from_amplitude_within_1_mm_and_0_1_deg(board_capture):
-    _, truth, res, _, _ = board_capture
+    _, truth, res, _ = board_capture
     est = np.asarray(res.metadata["target"]["board_to_camera"])
     assert np.linalg.norm(est[:3, 3] - truth[:3, 3]) < 1e-3
     r = est[:3, :3].T @ truth[:3, :3]
@@ -59,11 +58,12 @@ def test_board_pose_from_amplitude_within_1_mm_and_0_1_deg(board_capture):
     assert any(o.type == "board" for o in twin.objects)
 
 
+@pytest.mark.slow
 def test_range_offset_named_with_target_and_unobservable_without(board_capture):
     from tofhil.eval.diagnose import diagnose
 
-    # (the fixture's renders are shared with the pose test; the two diagnoses take ~5 s)
-    path, _, with_target, without, tmp = board_capture
+    path, _, with_target, tmp = board_capture
+    without = scene_from_capture(path, tmp / "without.yaml", freq_hz=[44e6], wavelength_m=850e-9)
     kw = dict(candidates=["range_offset", "wiggling", "amplitude_dependent"], max_effects=1)
     res = diagnose(path, load_scene(with_target.scene_path), **kw)
     assert res.causes == ["range_offset"]
