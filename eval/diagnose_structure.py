@@ -208,8 +208,9 @@ def channel_structure(channel: str, residual: np.ndarray, sigma: np.ndarray, usa
                                    int(keep.sum()),
                                    f"{channel} on {name}: a {label} pattern of {_fmt(rms, channel)} rms over "
                                    f"{int(keep.sum())} {label}s (each {label}'s median after the smooth part; "
-                                   f"{_fmt(float(np.sqrt(np.mean(se ** 2))), channel)} expected from noise): a fixed "
-                                   "pattern the twin does not have", {}))
+                                   f"{_fmt(float(np.sqrt(np.mean(se ** 2))), channel)} expected from noise): a sensor "
+                                   f"fixed pattern, or straight {label}-wise structure in the scene (a frame, an edge) "
+                                   "the twin's surface does not have", {}))
         # spots: connected pixels far beyond the noise after the smooth part
         z = np.where(m, np.abs(rest) / sigma, 0.0)
         spot = z > SPOT_SIGMAS
