@@ -121,6 +121,10 @@ def _preset_fact(cam: CameraModel, key: str) -> Any:
         return None
 
 
+#: Board corners reprojecting worse than this (px rms) are refused: not the board of the spec.
+MAX_BOARD_RMS_PX = 1.5
+
+
 @dataclass
 class BoardFit:
     """A board found in the amplitude image: its pose (photogrammetry) and the pixels it covers."""
@@ -146,6 +150,12 @@ def fit_board(amplitude: np.ndarray, cam: CameraModel, target: Any) -> BoardFit:
 
     spec = BoardSpec.parse(target, source="--target", field="--target")
     pose = board_pose_from_amplitude(amplitude, cam, spec)
+    if pose.rms_px > MAX_BOARD_RMS_PX:
+        # a part of another board, or a camera model that does not fit: its pose would be wrong
+        raise TofhilError(f"the {spec.kind} {spec.cols}x{spec.rows} corners found reproject with "
+                          f"{pose.rms_px:.2f} px rms", field="--target",
+                          expected=f"the printed board's spec (grid, square size) and a camera model under which "
+                                   f"its corners reproject within {MAX_BOARD_RMS_PX:g} px")
     plane_to_camera = pose.board_to_camera @ np.linalg.inv(spec.board_to_plane())
     w, h = spec.size_m
     corners = np.array([[-w / 2, -h / 2, 0.0], [w / 2, -h / 2, 0.0], [w / 2, h / 2, 0.0], [-w / 2, h / 2, 0.0]])

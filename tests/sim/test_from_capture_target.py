@@ -72,3 +72,14 @@ def test_range_offset_named_with_target_and_unobservable_without(board_capture):
     assert "range_offset" not in res0.causes and "range_offset" not in {c["effect"] for c in res0.ranked}
     assert "range_offset" in res0.observability.unobservable
     assert json.loads(without.metadata_path.read_text())["unobservable"].get("range_offset")
+
+
+def test_a_board_that_does_not_fit_its_spec_is_refused(board_capture, tmp_path):
+    from tofhil.errors import TofhilError
+
+    path = board_capture[0]
+    # a 7x4 spec finds part of the 9x6 board; its corners do not reproject: refused, nothing written
+    with pytest.raises(TofhilError, match="--target"):
+        scene_from_capture(path, tmp_path / "x.yaml", freq_hz=[44e6], wavelength_m=850e-9,
+                           target="checkerboard:7x4:0.03")
+    assert not list(tmp_path.iterdir())
