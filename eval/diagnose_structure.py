@@ -173,7 +173,8 @@ def channel_structure(channel: str, residual: np.ndarray, sigma: np.ndarray, usa
                         "lens's vignetting")
             elif radial_share > 0.4:
                 hint = ("partly radial: a field-angle error (lens, focal length) and a surface or distance effect "
-                        "together")
+                        "together" if channel == "depth" else "partly radial: the emitter's profile or vignetting "
+                        "and a reflectance that varies over the object together")
             elif channel == "depth":
                 hint = ("mostly not radial: a bowed or tilted surface, a scene the twin places differently, or an "
                         "error that follows the distance or the amplitude rather than the field angle")
