@@ -54,7 +54,7 @@ from tofhil.session import Session
 #: Effects that act only on the tap offset: not observable without raw taps.
 OFFSET_ONLY_EFFECTS = ("ambient",)
 #: Pixels a diagnosis of a depth session renders at most (larger images are binned).
-MAX_DIAGNOSIS_PIXELS = 8_000
+MAX_DIAGNOSIS_PIXELS = 6_000
 
 
 def frequencies_for(session: Session, scene: Any | None) -> tuple[np.ndarray, str]:
@@ -91,7 +91,13 @@ def bin_mean(x: np.ndarray, b: int) -> np.ndarray:
 
 
 def binned_camera(camera: CameraModel, b: int) -> CameraModel:
-    """The camera of ``b x b`` binned pixels (the ragged edge dropped)."""
+    """The camera of ``b x b`` binned pixels (the ragged edge dropped).
+
+    The binned measurement is the *mean* of its pixels, so a binned twin pixel must collect
+    the light of one pixel, not of ``b^2``: the pixel pitch is kept (the twin's flux per pixel
+    goes as its solid angle ``1/(fx fy)`` times the pupil area ``(fx pitch / 2N)^2``, i.e. as
+    ``pitch^2``, whatever ``fx``). Scaling the pitch by ``b`` made a 2 x 2 binned twin four
+    times too bright on a camera with a pitch (a camera without one used a default pitch)."""
     if b == 1:
         return camera
     from dataclasses import replace
@@ -99,8 +105,7 @@ def binned_camera(camera: CameraModel, b: int) -> CameraModel:
     w, h = camera.width // b, camera.height // b
     f = 1.0 / b
     return replace(camera, width=w, height=h, fx=camera.fx * f, fy=camera.fy * f,
-                   cx=(camera.cx + 0.5) * f - 0.5, cy=(camera.cy + 0.5) * f - 0.5,
-                   pixel_pitch_m=None if camera.pixel_pitch_m is None else camera.pixel_pitch_m * b)
+                   cx=(camera.cx + 0.5) * f - 0.5, cy=(camera.cy + 0.5) * f - 0.5)
 
 
 def spatial_noise_variance(s: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -130,6 +135,83 @@ def spatial_noise_variance(s: np.ndarray, usable: np.ndarray) -> tuple[np.ndarra
     return np.asarray(tang), np.asarray(rad)
 
 
+#: Confidence classes (quantiles) the device's confidence is calibrated in.
+CONFIDENCE_CLASSES = 6
+
+
+def confidence_noise(s: np.ndarray, usable: np.ndarray, confidence: np.ndarray
+                     ) -> tuple[np.ndarray, str] | None:
+    """The device's confidence as a noise source, calibrated against the local scatter.
+
+    Pixels are split into :data:`CONFIDENCE_CLASSES` quantile classes of the confidence; in
+    each, the robust tangential scatter of the phasor's high-pass (as
+    :func:`spatial_noise_variance`) gives that class's noise variance. The confidence is
+    used when the classes differ by more than their sampling error (chi-square of the log
+    variances about their mean, ``1e-3`` false-alarm; a robust variance of ``k`` values has a
+    relative standard error of about ``1.65 sqrt(2 / k)``): each pixel's variance is then
+    scaled by its class's over the global one (linear in the class's median confidence,
+    interpolated). Returns ``(scale [H, W], note)``, or None when the confidence does not
+    predict the scatter."""
+    from scipy import stats
+
+    ok = usable & np.isfinite(confidence)
+    if ok.sum() < 20 * CONFIDENCE_CLASSES:
+        return None
+    values = np.unique(confidence[ok])
+    if values.size < 2:
+        return None  # a constant confidence says nothing
+    if values.size <= CONFIDENCE_CLASSES:  # a few levels: one class each
+        cls = np.searchsorted(values, confidence)
+        n_cls = values.size
+    else:
+        edges = np.unique(np.quantile(confidence[ok], np.linspace(0, 1, CONFIDENCE_CLASSES + 1)))
+        n_cls = edges.size - 1
+        cls = np.clip(np.searchsorted(edges, confidence, side="right") - 1, 0, n_cls - 1)
+    # the high-pass over every usable pixel (neighbours of any class), then its scatter per class
+    inner = usable.copy()
+    inner[1:] &= usable[:-1]
+    inner[:-1] &= usable[1:]
+    inner[:, 1:] &= usable[:, :-1]
+    inner[:, :-1] &= usable[:, 1:]
+    inner[0], inner[-1], inner[:, 0], inner[:, -1] = False, False, False, False
+    inner &= ok
+    hp2 = []
+    for sf in s:
+        nb = 0.25 * (np.roll(sf, 1, 0) + np.roll(sf, -1, 0) + np.roll(sf, 1, 1) + np.roll(sf, -1, 1))
+        hp2.append(((sf - nb) * np.conj(_unit(sf))).imag)
+    hp = np.stack(hp2)
+
+    def robust_var(m: np.ndarray) -> float:
+        x = hp[:, m]
+        return float(np.mean([(1.4826 * np.median(np.abs(c - np.median(c)))) ** 2 / 1.25 for c in x]))
+
+    v_all = robust_var(inner)
+    centres, logv, w = [], [], []
+    for c in range(n_cls):
+        m = inner & (cls == c)
+        k = int(m.sum())
+        if k < 20:
+            continue
+        v = max(robust_var(m), 1e-30)
+        centres.append(float(np.median(confidence[m])))
+        logv.append(math.log(v))
+        w.append(1.0 / (1.65 ** 2 * 2.0 / k))
+    if len(logv) < 2:
+        return None
+    logv_a, w_a = np.asarray(logv), np.asarray(w)
+    mean = float(np.sum(w_a * logv_a) / w_a.sum())
+    chi = float(np.sum(w_a * (logv_a - mean) ** 2))
+    if chi <= stats.chi2.isf(1e-3, len(logv) - 1):
+        return None
+    order = np.argsort(centres)
+    cx, cv = np.asarray(centres)[order], np.exp(logv_a[order])
+    scale = np.interp(np.where(np.isfinite(confidence), confidence, np.median(confidence[ok])), cx, cv) / v_all
+    note = ("; the device's confidence calibrated against the local scatter and used as the noise: per confidence "
+            "class (median confidence -> noise relative to the image's) "
+            + ", ".join(f"{c:.3g} -> {math.sqrt(v / v_all):.2f}" for c, v in zip(cx, cv)))
+    return scale, note
+
+
 def _unit(s: np.ndarray) -> np.ndarray:
     return s / np.maximum(np.abs(s), 1e-30)
 
@@ -152,7 +234,7 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
         raise TofhilError("has no frame", file=session.path, field="depth/radial_m", expected="at least 1 frame")
     cam = session.camera
     b = bin_factor(cam.shape, max_pixels)
-    frames_s, frames_ok, conf_seen = [], [], False
+    frames_s, frames_ok, conf_seen, conf0 = [], [], False, None
     for i in range(n):
         df = session.depth_frame(i)
         d = np.asarray(df.radial_m, np.float64)
@@ -166,6 +248,8 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
         if valid_mask is not None and valid_mask.shape == ok.shape:
             ok &= valid_mask
         s = depth_phasor(np.where(ok, d, 0.0), np.where(ok, amp, 0.0), freq_hz)
+        if i == 0 and df.confidence is not None and np.isfinite(df.confidence[ok]).any():
+            conf0 = bin_mean(np.where(ok, np.asarray(df.confidence, np.float64), np.nan), b)
         if b > 1:
             dd = np.where(ok, d, np.nan)
             hb, wb = cam.height // b * b, cam.width // b * b
@@ -206,6 +290,16 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
         var_t, var_r = spatial_noise_variance(s_all[0], usable)
         var_train = var_test = np.broadcast_to(var_t[:, None, None], s_train.shape).copy()
         radial_scale = np.broadcast_to((var_r / var_t)[:, None, None], s_train.shape).copy()
+        conf_note = ("; depth noise taken as 1/amplitude (shot-noise limited: the phasor's scatter the same "
+                     "everywhere), its level from that scatter")
+        if conf0 is not None:
+            cal = confidence_noise(s_all[0], usable, conf0)
+            if cal is not None:
+                scale, conf_note = cal
+                var_train = var_test = var_train * scale[None]
+            else:
+                conf_note = ("; the device's confidence was calibrated against the local scatter and does not "
+                             "predict it (per-class scatter equal within its error): not used" + conf_note)
         amp_med = [max(float(np.median(np.abs(s_all[0][k][usable]))), 1e-30) for k in range(freq_hz.size)]
         sigma_mm = [1e3 * math.sqrt(v) / amp_med[k] / (4 * math.pi * freq_hz[k] / C_M_PER_S)
                     for k, v in enumerate(var_t)]
@@ -213,7 +307,7 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
         noise = ("local spatial scatter of one frame (1.4826 MAD of the phasor's high-pass, across and along "
                  "the phasor): depth noise " + ", ".join(f"{x:.2f} mm" for x in sigma_mm)
                  + " and amplitude scatter " + ", ".join(f"{x:.1f}%" for x in sigma_a)
-                 + " at the median amplitude")
+                 + " at the median amplitude" + conf_note)
         n_train = n_test = 1
     if amplitude_model_error:
         floor = (amplitude_model_error * np.abs(s_test)) ** 2
@@ -232,7 +326,8 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
                        channels=("depth + amplitude phasor A exp(i 4 pi f d / c) at "
                                  + ", ".join(f"{f / 1e6:g} MHz" for f in freq_hz) + f" (frequencies from {freq_source})"
                                  + (f"; binned {b} x {b} pixels" if b > 1 else "")
-                                 + ("; the device's confidence is stored but not used as noise" if conf_seen else "")),
+                                 + ("; the device's confidence is stored but not used as noise (frames give the "
+                                    "noise)" if conf_seen and n >= 2 else "")),
                        noise=noise, phase_ref=ref, radial_var_scale=radial_scale)
 
 

@@ -58,6 +58,9 @@ class DiagnosisResult:
     #: Each object's held-out misfit per value before and after, and whether it is above noise.
     objects: dict[str, dict[str, Any]] = field(default_factory=dict)
     observability: Observability = field(default_factory=Observability)
+    #: What the residual left looks like: edges, smooth field errors, fixed patterns, spots
+    #: (``eval/diagnose_structure.py``), each above its noise.
+    structure: list[dict[str, Any]] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict.to_json() if self.verdict else None, "channels": self.channels,
@@ -71,7 +74,7 @@ class DiagnosisResult:
                           "test_pixels": int(self.data.test_pixels.sum()),
                           "offset_channel": self.data.offset_channel},
                 "data_path": self.data.channels, "noise": self.data.noise,
-                "observability": self.observability.to_json()}
+                "observability": self.observability.to_json(), "residual_structure": self.structure}
         # (the run time is in the report, not here: the same inputs give the same file, bit for bit)
 
 
@@ -138,6 +141,34 @@ def heldout_metrics(data: HeldOutData, prediction: np.ndarray, defined: np.ndarr
             "depth_residual": ev.maps.depth_residual_m, "amplitude_residual": ev.maps.amplitude_difference,
             "ndt_likelihood": ev.ndt_map if ev.ndt_map is not None else np.full(data.camera.shape, np.nan)}
     return metrics, maps, ev
+
+
+def residual_structure(data: HeldOutData, prediction: np.ndarray, maps: dict[str, np.ndarray], object_id: np.ndarray,
+                       object_names: dict[int, str]) -> list[Any]:
+    """The structures of the depth and amplitude residual left by ``prediction``
+    (:mod:`tofhil.eval.diagnose_structure`), each against the noise of its pixels: the depth
+    noise from the phasor's tangential variance (the best frequency), the amplitude's as a
+    relative error from its radial variance."""
+    from tofhil import C_M_PER_S
+    from tofhil.eval import diagnose_structure as DS
+
+    nf = data.n_freq
+    s = data.s_test[:nf]
+    a = np.maximum(np.abs(s), 1e-30)
+    k = (4 * np.pi * data.freq_hz / C_M_PER_S)[:, None, None]
+    var = data.var_test[:nf].real
+    sigma_depth = np.sqrt(var / a ** 2 / k ** 2).min(axis=0)
+    radial = var * (data.radial_var_scale[:nf] if data.radial_var_scale is not None else 1.0)
+    sigma_amp = np.sqrt(radial / a ** 2).mean(axis=0) / np.sqrt(nf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_amp = np.log(a.mean(axis=0) / np.abs(prediction[:nf]).mean(axis=0))
+    edges = DS.edge_mask(maps["depth_measured"], data.usable, object_id)
+    centre = (data.camera.cx, data.camera.cy)
+    out = DS.channel_structure("depth", maps["depth_residual"], sigma_depth, data.usable, object_id, object_names,
+                               edges, centre)
+    out += DS.channel_structure("amplitude", np.where(np.isfinite(maps["depth_residual"]), log_amp, np.nan),
+                                sigma_amp, data.usable, object_id, object_names, edges, centre)
+    return out
 
 
 def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
@@ -242,7 +273,15 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     verdict, ch_after, objects_after, worse = judge(after_pred, list(selection.causes))
     if verdict.kind == "scene does not match" and selection.causes:
         # No effect is named on a scene that does not match: the extended scene is the base.
-        verdict.notes.append("fitted but not named: " + ", ".join(selection.causes))
+        # what the fitted set would have done, on the held-out pixels (a lower misfit can come
+        # with a worse depth RMSE: the misfit weighs each pixel by its noise, the RMSE does not)
+        ok = distance_defined(data, base_pred, after_pred)
+        fb, _, _ = heldout_metrics(data, base_pred, ok)
+        fa, _, _ = heldout_metrics(data, after_pred, ok)
+        verdict.notes.append("fitted but not named: " + ", ".join(selection.causes)
+                             + f" (with them, held-out misfit {fb['chi2_per_value']:.2f} -> {fa['chi2_per_value']:.2f}"
+                             f" per value, depth RMSE {fb['depth_rmse_m'] * 1e3:.2f} -> {fa['depth_rmse_m'] * 1e3:.2f} mm,"
+                             f" amplitude RMSE {fb['amplitude_rmse']:.3g} -> {fa['amplitude_rmse']:.3g})")
         selection.causes, selection.params = [], {}
         after_model, after_pred = extend({})
         _, ch_after, objects_after, worse = judge(after_pred, [])
@@ -265,6 +304,15 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     regions_left, above_after = V.residual_regions(
         data, after_pred, nu, object_id, object_names, maps_after["depth_residual"], maps_after["amplitude_residual"])
     gain = {k: {"before": before[k], "after": after.get(k, float("nan"))} for k in before}
+    if selection.causes and verdict is not None:
+        # The misfit weighs each pixel by its noise and caps outliers; the RMSE does neither.
+        # A named cause that leaves an unweighted figure worse is said, not hidden.
+        for k, label, scale, unit in (("depth_rmse_m", "depth RMSE", 1e3, " mm"), ("amplitude_rmse", "amplitude RMSE", 1.0, "")):
+            b, a = gain[k]["before"], gain[k]["after"]
+            if np.isfinite(a) and np.isfinite(b) and a > 1.005 * b:  # (0.5 %: not a rounding)
+                verdict.notes.append(f"held-out {label} {b * scale:.4g} -> {a * scale:.4g}{unit} is worse after the fit: "
+                                     "the misfit that chose the cause weighs pixels by their noise and caps outliers, "
+                                     "the RMSE does not")
     regions = {"before": ev_before.to_json()["regions"], "after": ev_after.to_json()["regions"]}
     ranked = [{"effect": c.effect, "params": to_effect_values(c.effect, c.params), "score": c.score,
                "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,
@@ -284,6 +332,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         maps[f"signature_depth_{e}"] = np.where(distance_defined(data, p_with, p_without), change, np.nan)
         maps[f"signature_amplitude_{e}"] = (np.abs(p_with[:nf]) - np.abs(p_without[:nf])).mean(axis=0)
     maps["above_noise_after"] = np.where(data.usable, above_after, np.nan)
+    structure = residual_structure(data, after_pred, maps_after, object_id, object_names)
     return DiagnosisResult(cause=selection.causes[0] if selection.causes else None, causes=list(selection.causes),
                            ranked=ranked, rounds=rounds, gain=gain, regions=regions,
                            extended_scene=str(ext_path) if ext_path else "", params=params,
@@ -295,7 +344,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                            seconds=time.perf_counter() - t0, verdict=verdict, channels=channels,
                            residual_regions=[r.to_json() | {"text": r.describe()} for r in regions_left],
                            objects={k: {"before": objects_before.get(k), "after": v} for k, v in objects_after.items()},
-                           observability=observability)
+                           observability=observability, structure=[f.to_json() for f in structure])
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,

@@ -114,6 +114,17 @@ def residual_region_table(res: Any) -> str:
     return "".join(rows)
 
 
+def structure_list(res: Any) -> str:
+    """What the residual left shows (edges, smooth field errors, fixed patterns, spots)."""
+    items = getattr(res, "structure", None) or []
+    if not items:
+        return ("<p class='note'>The residual left shows no structure above its noise: no edge excess, no smooth "
+                "field error, no row or column pattern, no spot.</p>")
+    return ("<h3>What the residual left shows</h3>" + H.notes_html([f["text"] for f in items], css="warn")
+            + "<p class='note'>Each part tested against the noise of its own pixels (chi-square, false-alarm "
+              "probability 1e-3); see docs/diagnose.md, residual structure.</p>")
+
+
 def write_report(res: Any, path: Path, *, session_path: str, scene_path: str) -> None:
     """The diagnosis page: cause, evidence, held-out gain, per-region table, figures, ranking."""
     esc = H.esc
@@ -130,6 +141,7 @@ def write_report(res: Any, path: Path, *, session_path: str, scene_path: str) ->
     parts.append(H.notes_html(res.evidence, css="note"))
     parts.append(channel_table(res))
     parts.append(residual_region_table(res))
+    parts.append(structure_list(res))
     if res.params:
         parts.append("<table><tr><th>effect</th><th>fitted parameters</th></tr>")
         for e, p in res.params.items():

@@ -77,12 +77,22 @@ class HeldOutData:
         r = self.whitened(prediction, part)
         return float(huber(r.real).sum() + huber(r.imag).sum())
 
+    def part(self, part: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Signal, noise variance and pixel mask of one part: ``test``, ``train``, or
+        ``test_frames`` (every usable pixel of the held-out frames: maps, not scores)."""
+        if part == "test":
+            return self.s_test, self.var_test, self.test_pixels
+        if part == "train":
+            return self.s_train, self.var_train, self.train_pixels
+        if part == "test_frames":
+            return self.s_test, self.var_test, self.usable
+        raise ValueError(part)
+
     def whitened(self, prediction: np.ndarray, part: str = "test") -> np.ndarray:
         """Complex (measured - predicted) / sigma ``[C, N]`` over a part's pixels; for depth
         sessions the real part is the amplitude residual along the measured phasor, the
         imaginary the phase residual times the measured amplitude, each over its own noise."""
-        s, var, mask = ((self.s_test, self.var_test, self.test_pixels) if part == "test"
-                        else (self.s_train, self.var_train, self.train_pixels))
+        s, var, mask = self.part(part)
         r = s[:, mask] - prediction[:, mask]
         if self.phase_ref is None or self.radial_var_scale is None:
             return r / np.sqrt(var[:, mask])

@@ -63,24 +63,22 @@ def channel_margin(n_values: int, alpha: float = ALPHA) -> float:
     return float(stats.norm.isf(alpha) * np.sqrt(2.0 * max(n_values, 1)))
 
 
-def _part(data: HeldOutData, part: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    if part == "test":
-        return data.s_test, data.var_test, data.test_pixels
-    if part == "train":
-        return data.s_train, data.var_train, data.train_pixels
-    if part == "test_frames":  # every usable pixel of the held-out frames (maps, not scores)
-        return data.s_test, data.var_test, data.usable
-    raise ValueError(part)
-
-
 def whitened_channels(data: HeldOutData, prediction: np.ndarray, part: str = "test") -> dict[str, np.ndarray]:
     """Whitened residual per channel, ``[values, pixels]`` on the part's pixels: the complex
     residual of each frequency rotated onto the predicted phasor (real: amplitude, imaginary:
     phase = depth). The noise is isotropic and the prediction's direction does not depend on
     it, so both components stay exactly whitened (rotating onto the measured phasor would
-    not: its direction carries the noise, and the phase part would scale with |P| / |S|)."""
-    s, var, mask = _part(data, part)
+    not: its direction carries the noise, and the phase part would scale with |P| / |S|).
+
+    A depth session's noise is not isotropic (``radial_var_scale``: the amplitude is known
+    to the scene only to its own misfit); its channels are the polar residuals the fit
+    minimises (``HeldOutData.whitened``), so the verdict, the regions and the fit judge by
+    the same noise."""
+    s, var, mask = data.part(part)
     nf = data.n_freq
+    if data.radial_var_scale is not None and data.phase_ref is not None:
+        r = data.whitened(prediction, part)[:nf]
+        return {"depth": r.imag, "amplitude": r.real}
     meas, pred = s[:nf, mask], prediction[:nf, mask]
     a = np.abs(pred)
     u = np.where(a > 0, pred / np.where(a > 0, a, 1.0), meas / np.maximum(np.abs(meas), 1e-300))

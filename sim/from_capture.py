@@ -60,6 +60,8 @@ UNOBSERVABLE_FITTED_POSE = {
 METADATA_SUFFIX = ".capture.json"
 VALID_SUFFIX = "_valid.npy"
 MESH_SUFFIX = "_rest.ply"
+#: A plane's outline mesh: ``<scene>_<plane name>.ply``.
+PLANE_GLOB = "_plane*.ply"
 
 
 @dataclass
@@ -72,6 +74,9 @@ class PlanePatch:
     size: tuple[float, float]
     pixels: np.ndarray       # bool [H, W]
     rms_m: float
+    #: The patch's outline as a flat mesh on the fitted plane (file name beside the scene);
+    #: None: the rectangle ``size`` is written.
+    outline_file: str | None = None
 
 
 @dataclass
@@ -103,6 +108,68 @@ def read_capture_metadata(scene_path: str | Path) -> dict[str, Any] | None:
         return None
 
 
+def _preset_fact(cam: CameraModel, key: str) -> Any:
+    """A fact of the camera preset the session's camera is named after (an importer that
+    assumed a preset stores its name, not its extra facts such as the wavelength)."""
+    from tofhil.camera import list_camera_presets, load_camera_preset
+
+    if not cam.name or cam.name not in list_camera_presets():
+        return None
+    try:
+        return dict(load_camera_preset(cam.name).extra).get(key)
+    except TofhilError:
+        return None
+
+
+#: Board corners reprojecting worse than this (px rms) are refused: not the board of the spec.
+MAX_BOARD_RMS_PX = 1.5
+
+
+@dataclass
+class BoardFit:
+    """A board found in the amplitude image: its pose (photogrammetry) and the pixels it covers."""
+
+    spec: Any                    # tofhil.boards.BoardSpec
+    pose: Any                    # tofhil.eval.targets.BoardPose
+    plane_to_camera: np.ndarray  # 4x4: the twin's centred board plane -> camera
+    pixels: np.ndarray           # bool [H, W]: the sheet's outline, one pixel wider (mixed pixels)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"spec": self.spec.to_dict(), "corners": int(self.pose.detection.n),
+                "reprojection_rms_px": float(self.pose.rms_px),
+                "board_to_camera": [[float(x) for x in row] for row in self.pose.board_to_camera],
+                "pixels": int(self.pixels.sum()), "pose_from": "the amplitude image (solvePnP), not the depth"}
+
+
+def fit_board(amplitude: np.ndarray, cam: CameraModel, target: Any) -> BoardFit:
+    """The board's pose from the amplitude image and the pixels its sheet covers."""
+    import cv2
+
+    from tofhil.boards import BoardSpec
+    from tofhil.eval.targets import board_pose_from_amplitude
+
+    spec = BoardSpec.parse(target, source="--target", field="--target")
+    pose = board_pose_from_amplitude(amplitude, cam, spec)
+    if pose.rms_px > MAX_BOARD_RMS_PX:
+        # a part of another board, or a camera model that does not fit: its pose would be wrong
+        raise TofhilError(f"the {spec.kind} {spec.cols}x{spec.rows} corners found reproject with "
+                          f"{pose.rms_px:.2f} px rms", field="--target",
+                          expected=f"the printed board's spec (grid, square size) and a camera model under which "
+                                   f"its corners reproject within {MAX_BOARD_RMS_PX:g} px")
+    plane_to_camera = pose.board_to_camera @ np.linalg.inv(spec.board_to_plane())
+    w, h = spec.size_m
+    corners = np.array([[-w / 2, -h / 2, 0.0], [w / 2, -h / 2, 0.0], [w / 2, h / 2, 0.0], [-w / 2, h / 2, 0.0]])
+    cam_pts = corners @ plane_to_camera[:3, :3].T + plane_to_camera[:3, 3]
+    # the outline through the lens: each edge sampled, so distortion bends it as it bends the image
+    edge = np.concatenate([cam_pts[i] + np.linspace(0, 1, 32, endpoint=False)[:, None] * (cam_pts[(i + 1) % 4] - cam_pts[i])
+                           for i in range(4)])
+    uv = cam.project(edge)
+    mask = np.zeros(cam.shape, np.uint8)
+    cv2.fillPoly(mask, [np.round(uv * 16).astype(np.int32)], 1, shift=4)
+    pixels = cv2.dilate(mask, np.ones((3, 3), np.uint8)).astype(bool)
+    return BoardFit(spec=spec, pose=pose, plane_to_camera=plane_to_camera, pixels=pixels)
+
+
 def _frequencies(session: Any, freq_hz: Sequence[float] | None, wavelength_m: float | None
                  ) -> tuple[list[float], float, str]:
     sc = session.sensor_config or {}
@@ -120,7 +187,8 @@ def _frequencies(session: Any, freq_hz: Sequence[float] | None, wavelength_m: fl
     for f in freqs:
         if not (math.isfinite(f) and f > 0):
             raise TofhilError(f"got {f}", field="--freq-hz", expected="positive frequencies in Hz")
-    wl = wavelength_m or sc.get("wavelength_m") or extra.get("wavelength_m")
+    wl = wavelength_m or sc.get("wavelength_m") or extra.get("wavelength_m") or _preset_fact(session.camera,
+                                                                                            "wavelength_m")
     if wl is None:
         raise TofhilError("records no emitter wavelength", file=session.path, field="--wavelength-m",
                           expected="the emitter's wavelength, e.g. --wavelength-m 850e-9")
@@ -244,6 +312,28 @@ def grid_mesh(points_hw: np.ndarray, mask: np.ndarray, *, stride: int = 2, max_s
     return flat[used], remap[tri]
 
 
+def write_plane_outline(cam: CameraModel, p: PlanePatch, path: Path, stride: int) -> bool:
+    """Write the plane patch as a flat mesh covering its pixels (closed over gaps of noise
+    up to 2 pixels, ``stride`` pixels wider so the mesh through every ``stride``-th pixel
+    centre still covers the edge pixels): each pixel's ray meets the fitted plane. False when nothing is left to write."""
+    from scipy import ndimage
+
+    from tofhil.open3d_loader import open3d
+
+    mask = ndimage.binary_closing(p.pixels, np.ones((5, 5), bool)) | p.pixels
+    mask = ndimage.binary_dilation(mask, np.ones((2 * stride + 1, 2 * stride + 1), bool))
+    cos = cam.rays @ p.normal
+    mask &= cos > 1e-3
+    pts = cam.rays * np.where(mask, p.offset_m / np.where(mask, cos, 1.0), 0.0)[..., None]
+    verts, tris = grid_mesh(pts, mask, stride=stride, max_step=1e6)
+    if not len(tris):
+        return False
+    o3d = open3d()
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris))
+    o3d.io.write_triangle_mesh(str(path), m, write_ascii=False)
+    return True
+
+
 def _camera_block(cam: CameraModel) -> dict[str, Any]:
     d = {k: v for k, v in cam.to_dict().items() if k in ("width", "height", "fx", "fy", "cx", "cy", "dist",
                                                            "pixel_pitch_m")}
@@ -259,22 +349,28 @@ def _pose_matrix(p: PlanePatch) -> list[list[float]]:
 
 
 def _scene_dict(name: str, cam: CameraModel, freqs: list[float], wavelength_m: float, planes: list[PlanePatch],
-                mesh_file: str | None, reflectance: dict[str, float], power_w: float, beam_n: float,
-                description: str) -> dict[str, Any]:
+                mesh_file: str | None, reflectance: dict[str, float], power_w: float, profile: dict[str, Any],
+                description: str, board: "BoardFit | None" = None) -> dict[str, Any]:
     objects: list[dict[str, Any]] = []
     materials: dict[str, Any] = {}
     for p in planes:
         materials[p.name] = {"reflectance": round(float(reflectance[p.name]), 6)}
-        objects.append({"name": p.name, "type": "plane", "size": [round(p.size[0], 6), round(p.size[1], 6)],
-                        "material": p.name, "pose": {"matrix": _pose_matrix(p)}})
+        if p.outline_file:
+            objects.append({"name": p.name, "type": "mesh", "file": p.outline_file, "material": p.name})
+        else:
+            objects.append({"name": p.name, "type": "plane", "size": [round(p.size[0], 6), round(p.size[1], 6)],
+                            "material": p.name, "pose": {"matrix": _pose_matrix(p)}})
     if mesh_file:
         materials["rest"] = {"reflectance": round(float(reflectance["rest"]), 6)}
         objects.append({"name": "rest", "type": "mesh", "file": mesh_file, "material": "rest"})
+    if board is not None:
+        objects.append({"name": "board", "type": "board", "target": board.spec.to_dict(),
+                        "pose": {"matrix": [[round(float(x), 9) for x in row] for row in board.plane_to_camera]}})
     return {
         "name": name, "description": description,
         "camera": _camera_block(cam),
         "emitter": {"offset_m": [0.0, 0.0, 0.0], "power_w": float(power_w),
-                    "profile": {"type": "cos_n", "n": round(float(beam_n), 4)},
+                    "profile": profile,
                     "waveform": {"harmonics": [[1, 1.0, 0.0]]}},
         "ambient_irradiance_w_m2": 0.0,
         "materials": materials, "objects": objects,
@@ -288,6 +384,48 @@ def _scene_dict(name: str, cam: CameraModel, freqs: list[float], wavelength_m: f
         "effects": {},
         "render": {"samples_per_pixel": 1, "bounces": 0},
     }
+
+
+#: Emission-angle step of a fitted table profile (deg), and the even polynomial's degree in theta^2.
+PROFILE_STEP_DEG = 2.5
+PROFILE_DEGREE = 4
+
+
+def fit_profile_table(theta_deg: np.ndarray, amp: np.ndarray, pred: np.ndarray, oid: np.ndarray, mask: np.ndarray,
+                      beam_n: float, *, min_gain: float = 0.01) -> tuple[dict[str, Any] | None, float]:
+    """The emitter profile ``cos^n (theta) exp(g(theta))`` as a table, ``g`` an even polynomial
+    (theta^2 .. theta^(2 PROFILE_DEGREE), ``g(0) = 0``) fitted by least squares to the log
+    ratio of measured to predicted amplitude after each object's own median level (its
+    reflectance). Returns None when ``g`` changes the amplitude by less than ``min_gain``
+    (rms in log amplitude): cos^n is then the profile. Also returns that rms."""
+    if mask.sum() < 200:
+        return None, 0.0
+    th = np.radians(theta_deg[mask])
+    lr = np.log(amp[mask] / pred[mask])
+    ids = oid[mask]
+    level = np.zeros_like(lr)
+    g = np.zeros_like(lr)
+    X = np.stack([th ** (2 * k) for k in range(1, PROFILE_DEGREE + 1)], axis=1)
+    coef = np.zeros(PROFILE_DEGREE)
+    for _ in range(3):  # alternate: each object's level, then the common angular shape
+        for i in np.unique(ids):
+            sel = ids == i
+            level[sel] = np.median(lr[sel] - g[sel])
+        coef = np.linalg.lstsq(X, lr - level, rcond=None)[0]
+        g = X @ coef
+    rms = float(np.sqrt(np.mean(g ** 2)))
+    if rms < min_gain:
+        return None, rms
+    top = float(min(89.0, np.degrees(th.max()) + PROFILE_STEP_DEG))
+    knots = np.append(np.arange(0.0, top, PROFILE_STEP_DEG), top)
+    kr = np.radians(knots)
+    gk = np.stack([kr ** (2 * k) for k in range(1, PROFILE_DEGREE + 1)], axis=1) @ coef
+    values = np.cos(kr) ** beam_n * np.exp(gk)
+    # beyond the field of view the emitter's light reaches nothing the camera sees: the last value up to 90 deg
+    knots = np.append(knots, 90.0)
+    values = np.append(values, values[-1])
+    return {"type": "table", "theta_deg": [round(float(k), 4) for k in knots],
+            "relative_intensity": [round(float(v), 6) for v in values]}, rms
 
 
 def _predicted_amplitude(scene: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -305,8 +443,13 @@ def _predicted_amplitude(scene: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray
 def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame: int = 0, max_planes: int = 4,
                        freq_hz: Sequence[float] | None = None, wavelength_m: float | None = None,
                        mesh: bool = True, threshold_m: float | None = None, force: bool = False,
-                       progress: Callable[[str], None] | None = None) -> CaptureScene:
-    """Build the twin scene of one frame of a session and write it (plus its sidecars)."""
+                       target: Any = None, progress: Callable[[str], None] | None = None) -> CaptureScene:
+    """Build the twin scene of one frame of a session and write it (plus its sidecars).
+
+    ``target``: a board the capture shows (:class:`tofhil.boards.BoardSpec` or its text): its
+    pose comes from the amplitude image (photogrammetry, :func:`tofhil.eval.targets.board_pose_from_amplitude`),
+    not from the depth, and it is written as a ``board`` object; the range offset and the
+    pose are then observable (the board is truth the depth did not decide)."""
     from tofhil.sim.scene import load_scene, scene_from_yaml
 
     t0 = time.perf_counter()
@@ -318,7 +461,7 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
         raise TofhilError("directory does not exist", file=out_path.parent, field="--out")
     sidecars = [out_path, metadata_path_for(out_path), out_path.with_name(out_path.stem + VALID_SUFFIX),
                 out_path.with_name(out_path.stem + MESH_SUFFIX)]
-    existing = [p for p in sidecars if p.exists()]
+    existing = [p for p in sidecars if p.exists()] + sorted(out_path.parent.glob(out_path.stem + PLANE_GLOB))
     if existing and not force:
         raise TofhilError("already exists; refusing to overwrite (use --force)", file=existing[0], field="--out")
 
@@ -341,9 +484,23 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
         raise TofhilError(f"has {int(valid.sum())} valid depth pixels in frame {frame}", file=session_path,
                           field="depth/valid", expected="at least 500 to fit a scene")
 
+    # ---- a known target: its pose from the amplitude image; its pixels are not segmented
+    board: BoardFit | None = None
+    if target is not None:
+        if not has_amp:
+            raise TofhilError("has no amplitude image", file=session_path, field="--target",
+                              expected="a capture with amplitude (the board is found in it)")
+        board = fit_board(amp, cam, target)
+        say(f"target: {board.spec.kind} {board.spec.cols}x{board.spec.rows} found ({board.pose.detection.n} corners, "
+            f"reprojection {board.pose.rms_px:.3f} px rms); pose from the amplitude image, not from depth")
+        if board.pose.rms_px > 1.0:
+            warnings.append(f"the board's corners reproject with {board.pose.rms_px:.2f} px rms: its pose is "
+                            "uncertain (blur, a bent board, or a camera model that does not fit)")
+
     # ---- geometry
     pts_hw = cam.rays * radial[..., None]
-    pix = np.flatnonzero(valid)
+    seg = valid if board is None else valid & ~board.pixels
+    pix = np.flatnonzero(seg)
     points = pts_hw.reshape(-1, 3)[pix]
     med = float(np.median(radial[valid]))
     thr = threshold_m if threshold_m is not None else float(np.clip(0.01 * med, 0.004, 0.03))
@@ -361,15 +518,24 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
     on_plane = np.zeros(cam.shape, bool)
     for p in planes:
         on_plane |= p.pixels
-    rest = valid & ~on_plane
+    rest = valid & ~on_plane if board is None else valid & ~on_plane & ~board.pixels
     mesh_file: str | None = None
     mesh_path = out_path.with_name(out_path.stem + MESH_SUFFIX)
     written: list[Path] = []
+    stride = max(1, int(round(math.sqrt(cam.width * cam.height / 65536))))
     try:
+        for p in planes:
+            # the patch's own outline (holes where something else was seen in front of it), not
+            # the rectangle around it: pixels a rectangle would cover beyond the patch are not the plane
+            plane_file = out_path.with_name(f"{out_path.stem}_{p.name}.ply")
+            written.append(plane_file)
+            if write_plane_outline(cam, p, plane_file, stride):
+                p.outline_file = plane_file.name
+            else:
+                plane_file.unlink(missing_ok=True)
         if mesh and rest.sum() >= 200:
             from tofhil.open3d_loader import open3d
 
-            stride = max(1, int(round(math.sqrt(cam.width * cam.height / 65536))))
             verts, tris = grid_mesh(pts_hw, rest, stride=stride)
             if len(tris):
                 o3d = open3d()
@@ -383,21 +549,22 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
                               field="depth/radial_m", expected="a frame showing surfaces")
 
         # ---- radiometry: render with unit power, compare with the amplitude image
-        names = [p.name for p in planes] + (["rest"] if mesh_file else [])
+        names = [p.name for p in planes] + (["rest"] if mesh_file else []) + (["board"] if board else [])
         refl = {n: ASSUMED_REFLECTANCE for n in names}
         beam_n, power = 1.0, 1.0
         base_dir = out_path.resolve().parent
         desc = f"twin of {Path(session_path).name} frame {frame} (tofhil scene-from-capture)"
 
-        def build(power_w: float, n_beam: float, r: dict[str, float]) -> Any:
-            d = _scene_dict(out_path.stem, cam, freqs, wl, planes, mesh_file, r, power_w, n_beam, desc)
+        def build(power_w: float, prof: dict[str, Any], r: dict[str, float]) -> Any:
+            d = _scene_dict(out_path.stem, cam, freqs, wl, planes, mesh_file, r, power_w, prof, desc, board)
             return d, scene_from_yaml(yaml.safe_dump(d, sort_keys=False), source=str(out_path), base_dir=base_dir)
 
         radiometry: dict[str, Any] = {"amplitude": "absent: reflectances and power are assumed"}
+        profile: dict[str, Any] = {"type": "cos_n", "n": beam_n}
         if has_amp:
             usable = valid & np.isfinite(amp) & (amp > 0) & ~saturated_amplitude(amp, valid)
             say("rendering the twin for the radiometry fit")
-            _, sc = build(power, beam_n, refl)
+            _, sc = build(power, profile, refl)
             pred, _, oid = _predicted_amplitude(sc)
             biggest = max(range(len(names)), key=lambda i: int(((oid == i) & usable).sum()))
             sel = (oid == biggest) & usable & (pred > 0)
@@ -406,34 +573,52 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
                 x, y = np.log(cos_e[sel]), np.log(amp[sel] / pred[sel])
                 slope = float(np.polyfit(x, y, 1)[0])
                 beam_n = float(np.clip(1.0 + slope, 0.0, 30.0))
-                _, sc = build(power, beam_n, refl)
+                profile = {"type": "cos_n", "n": round(beam_n, 4)}
+                _, sc = build(power, profile, refl)
                 pred, _, oid = _predicted_amplitude(sc)
+                # What cos^n cannot follow (a diffuser flatter than cos^0, vignetting beyond
+                # cos^4): an even polynomial in the emission angle, fitted to every object's
+                # log ratio after its own level; written as a table profile.
+                m = usable & (pred > 0) & (oid >= 0)
+                table, g_rms = fit_profile_table(np.degrees(np.arccos(np.clip(cos_e, -1, 1))), amp, pred, oid, m,
+                                                 beam_n)
+                if table is not None:
+                    profile = table
+                    _, sc = build(power, profile, refl)
+                    pred, _, oid = _predicted_amplitude(sc)
+                    say(f"emitter profile: cos^{beam_n:.2f} corrected by a table over the emission angle "
+                        f"({g_rms:.2f} rms in log amplitude)")
             ratio = {}
             for i, n in enumerate(names):
                 m = (oid == i) & usable & (pred > 0)
                 ratio[n] = float(np.median(amp[m] / pred[m])) if m.sum() >= 20 else float("nan")
             ref = ratio[names[biggest]]
-            top = max(v for v in ratio.values() if math.isfinite(v))
+            top = max(v for k, v in ratio.items() if math.isfinite(v) and k != "board")
             # The render had power 1 W and reflectance R0 everywhere; amplitude is linear in
             # power x reflectance, so object n needs P r_n / R0 = ratio_n. Only the product is
-            # seen: the largest surface gets R0 unless another would then exceed 1.
-            power = max(ref, ASSUMED_REFLECTANCE * top)
+            # seen: the largest surface gets R0 unless another would then exceed 1. A board's
+            # ink and paper reflectances are known, so its ratio is the power itself.
+            if board is not None and math.isfinite(ratio.get("board", float("nan"))):
+                power = ratio["board"]
+            else:
+                power = max(ref, ASSUMED_REFLECTANCE * top)
             refl = {n: float(np.clip(ASSUMED_REFLECTANCE * v / power, 1e-4, 1.0)) if math.isfinite(v)
-                    else ASSUMED_REFLECTANCE for n, v in ratio.items()}
-            _, sc = build(power, beam_n, refl)
+                    else ASSUMED_REFLECTANCE for n, v in ratio.items() if n != "board"}
+            _, sc = build(power, profile, refl)
             pred, _, oid = _predicted_amplitude(sc)
             m = usable & (pred > 0)
             lr = np.log(amp[m] / pred[m])
-            radiometry = {"amplitude": "fitted", "beam_exponent_n": beam_n, "power_w": power,
+            radiometry = {"amplitude": "fitted", "beam_exponent_n": beam_n, "profile": profile["type"],
+                          "power_w": power,
                           "reflectance": refl, "reflectance_of_largest_surface_assumed": ASSUMED_REFLECTANCE,
                           "log_amplitude_residual_median": float(np.median(lr)),
                           "log_amplitude_residual_mad": float(1.4826 * np.median(np.abs(lr - np.median(lr)))),
                           "pixels": int(m.sum())}
-            say(f"radiometry: beam cos^{beam_n:.2f}, power {power:.4g} W, reflectances "
-                + ", ".join(f"{k} {v:.3f}" for k, v in refl.items()))
+            say(f"radiometry: beam cos^{beam_n:.2f}" + (" + table" if profile["type"] == "table" else "")
+                + f", power {power:.4g} W, reflectances " + ", ".join(f"{k} {v:.3f}" for k, v in refl.items()))
         else:
             warnings.append("the session has no amplitude image: reflectances and emitter power are assumed")
-        scene_d, sc = build(power, beam_n, refl)
+        scene_d, sc = build(power, profile, refl)
 
         # ---- unambiguous range of the frequencies
         plan = frequency_plan(np.asarray(freqs))
@@ -449,13 +634,15 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
         meta = {"source_session": str(session_path), "frame": frame, "frequencies_hz": freqs,
                 "frequencies_from": freq_src, "wavelength_m": wl, "unambiguous_range_m": r_u,
                 "valid_mask": sidecars[2].name, "pixels_beyond_unambiguous_range": n_out,
-                "planes": [{"name": p.name, "normal": p.normal.round(6).tolist(), "offset_m": p.offset_m,
+                "planes": [{"name": p.name, "outline_mesh": p.outline_file,
+                            "normal": p.normal.round(6).tolist(), "offset_m": p.offset_m,
                             "size_m": list(p.size), "pixels": int(p.pixels.sum()), "rms_m": p.rms_m}
                            for p in planes],
                 "mesh": mesh_file, "mesh_pixels": int(rest.sum()) if mesh_file else 0,
                 "ransac_threshold_m": thr, "radiometry": radiometry,
-                "geometry_from_depth": True,
-                "unobservable": dict(UNOBSERVABLE_FITTED_POSE),
+                "geometry_from_depth": board is None,
+                "target": None if board is None else board.to_json(),
+                "unobservable": dict(UNOBSERVABLE_FITTED_POSE) if board is None else {},
                 "warnings": warnings, "seconds": round(time.perf_counter() - t0, 2)}
         written += [out_path, sidecars[1], sidecars[2]]
         out_path.write_text("# " + desc + "\n# made by tofhil scene-from-capture; metadata in "

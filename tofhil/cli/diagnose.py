@@ -38,6 +38,8 @@ def _summary(res, report: Path) -> None:
         out.print(f"[bold red]worse after the fit:[/bold red] {', '.join(worse)}")
     for r in res.residual_regions[:3]:
         out.print(f"  left above noise: {lit(r['text'])}", highlight=False)
+    for f in res.structure[:8]:
+        out.print(f"  residual: {lit(f['text'])}", highlight=False)
     out.print(f"held-out gain: {DEPTH_RMSE} {g['depth_rmse_m']['before'] * 1e3:.1f} -> "
               f"{g['depth_rmse_m']['after'] * 1e3:.1f} mm (held-out pixels), amplitude RMSE {g['amplitude_rmse']['before']:.3g} -> {g['amplitude_rmse']['after']:.3g}, "
               f"misfit {res.chi2_per_value['before']:.2f} -> {res.chi2_per_value['after_extended_scene']:.2f} per value "
