@@ -82,7 +82,7 @@ def main() -> None:
     scene = dataclasses.replace(scene, camera=scene.camera.scaled(args.width / scene.camera.width))
     print(f"{'hidden':20s} {'seed':>4s} {'named':28s} {'verdict':18s} {'removed':>7s} {'misfit before':>13s} "
           f"{'after':>7s} {'depth mm':>8s} {'after':>6s} {'loss':>4s} {'s':>5s}")
-    rows: dict[str, list[tuple[bool, bool, float, bool]]] = {}
+    rows: dict[str, list[tuple[bool, bool, float, bool, str]]] = {}
     runs = [(n, s) for n in names + forms for s in range(args.seeds)] + [("none", s) for s in range(args.null_seeds)]
     with tempfile.TemporaryDirectory() as tmp:
         for name, seed in runs:
@@ -105,21 +105,25 @@ def main() -> None:
             v = res.verdict
             removed = float("nan") if v.excess_removed is None else v.excess_removed
             lost = loss(res)
-            rows.setdefault(name, []).append((ok, v.kind == "explained", removed, lost))
+            form = (res.forms.get(expected[0], "") or "simple") if ok and expected else "-"
+            rows.setdefault(name, []).append((ok, v.kind == "explained", removed, lost, form))
             pct = "-" if not np.isfinite(removed) else f"{100 * removed:.0f}%"
             named = "+".join(c + (f"({res.forms[c]})" if res.forms.get(c) else "") for c in res.causes) or "-"
             print(f"{name:20s} {seed:4d} {named:28s} {v.kind:18s} {pct:>7s} "
                   f"{res.chi2_per_value['before']:13.2f} {res.chi2_per_value['after_extended_scene']:7.2f} "
                   f"{res.gain['depth_rmse_m']['before'] * 1e3:8.1f} {res.gain['depth_rmse_m']['after'] * 1e3:6.1f} "
                   f"{'LOSS' if lost else '-':>4s} {dt:5.1f}", flush=True)
-    print("\n| hidden form | seeds | named alone (as its family) | explained | excess removed (median) | gains that were losses |")
-    print("|---|---|---|---|---|---|")
+    print("\n| hidden form | seeds | named alone (as its family) | form fitted | explained | excess removed (median) "
+          "| gains that were losses |")
+    print("|---|---|---|---|---|---|---|")
     for name, r in rows.items():
         med = np.nanmedian([x[2] for x in r]) if any(np.isfinite(x[2]) for x in r) else float("nan")
         label = ("nothing (false alarms: any effect named)" if name == "none"
                  else f"{name} -> {FORMS[name][0]}" if name in forms else name)
         named = sum(x[0] for x in r) if name != "none" else len(r) - sum(x[0] for x in r)
-        print(f"| {label} | {len(r)} | {named}/{len(r)} | {sum(x[1] for x in r)}/{len(r)} | "
+        kinds = sorted({x[4] for x in r if x[4] != "-"})
+        fitted = ", ".join(f"{k} {sum(x[4] == k for x in r)}" for k in kinds) or "-"
+        print(f"| {label} | {len(r)} | {named}/{len(r)} | {fitted} | {sum(x[1] for x in r)}/{len(r)} | "
               f"{'-' if not np.isfinite(med) else f'{100 * med:.0f} %'} | {sum(x[3] for x in r)} |")
     total_losses = sum(x[3] for r in rows.values() for x in r)
     print(f"\nreported gains that were losses: {total_losses} (must be 0)")

@@ -55,13 +55,14 @@ def amplitude_sigmoid(rng: np.random.Generator) -> Change:
 def cos_beam(rng: np.random.Generator) -> Change:
     """The emitter's beam narrower or wider than the scene's by a factor cos^dn of the field
     angle (on the emitter's light only; ambient unchanged)."""
-    dn = float(rng.choice([-1.0, 1.0]) * rng.uniform(2.0, 4.0))
+    dn = float(rng.choice([-1.0, 1.0]) * rng.uniform(1.0, 3.0))
 
     def change(signal: OpticalSignal, sensor: Any) -> OpticalSignal:
         cam = sensor.camera
         v, u = np.mgrid[0:cam.height, 0:cam.width].astype(np.float64)
-        cos2 = 1.0 / (1.0 + ((u - cam.cx) / cam.fx) ** 2 + ((v - cam.cy) / cam.fy) ** 2)
-        g = cos2 ** (dn / 2)
+        # the pixel ray (x, y, 1) in camera coordinates; cos of its angle to the optical axis
+        x, y = (u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy
+        g = (1.0 / np.sqrt(1.0 + x * x + y * y)) ** dn
         out = signal.copy()
         out.phasor_w = signal.phasor_w * g
         out.dc_w = np.asarray(signal.dc_w) * g

@@ -71,7 +71,7 @@ def test_the_flexible_form_is_chosen_only_when_it_earns_its_freedom(truth, form)
 # ------------------------------------------------------------------------------ end to end
 @pytest.fixture(scope="module")
 def scene():
-    return hf.small_dark_square(80)
+    return hf.small_dark_square(40)
 
 
 def _diagnose(scene, tmp_path, change, seed, **kw):
