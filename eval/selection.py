@@ -39,6 +39,8 @@ class FitParam:
     lo: float
     hi: float
     scale: float
+    #: An angle whose range is one period: its bounds are the same value, never a limit.
+    periodic: bool = False
 
 
 @dataclass(frozen=True)
@@ -215,9 +217,12 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
 
 
 def pinned(spec: EffectSpec, values: Mapping[str, float], rel: float = 1e-3) -> list[str]:
-    """Parameters fitted to within ``rel`` of their range from a bound that is not "off"."""
+    """Parameters fitted to within ``rel`` of their range from a bound that is not "off"
+    (an angle over one period has no such bound)."""
     out = []
     for p in spec.params:
+        if p.periodic:
+            continue
         v, tol = values.get(p.name, p.off), rel * (p.hi - p.lo)
         if (abs(v - p.lo) <= tol and p.lo != p.off) or (abs(v - p.hi) <= tol and p.hi != p.off):
             out.append(p.name)

@@ -37,11 +37,16 @@ def to_fitted(p: Param, value: float) -> float:
 
 
 def to_effect_values(effect: str, fitted: Mapping[str, float]) -> dict[str, float]:
-    """Fitted parameters -> the effect's own parameter names (undo log scales)."""
+    """Fitted parameters -> the effect's own parameter names (undo log scales, wrap angles
+    into their period)."""
     out: dict[str, float] = {}
+    params = EFFECTS[effect].params if effect in EFFECTS else {}
     for k, v in fitted.items():
         if k.startswith(LOG_PREFIX):
             out[k[len(LOG_PREFIX):]] = float(10.0 ** v)
+        elif k in params and params[k].periodic:
+            p = params[k]
+            out[k] = float(p.lo + (v - p.lo) % (p.hi - p.lo))
         else:
             out[k] = float(v)
     return out
@@ -53,7 +58,10 @@ def _spec(name: str, form: str, params: Mapping[str, Param], current: Callable[[
     for k, p in params.items():
         value = p.off if current is None else current(name, k)
         assert p.fit is not None
-        fps.append(FitParam(fitted_name(k, p), to_fitted(p, value), p.fit[0], p.fit[1], p.step))
+        lo, hi = p.fit
+        if p.periodic:  # half a period beyond each end, so that a fit near the wrap can cross it
+            lo, hi = lo - (hi - lo) / 2, hi + (hi - lo) / 2
+        fps.append(FitParam(fitted_name(k, p), to_fitted(p, value), lo, hi, p.step, periodic=p.periodic))
     first = {fitted_name(k, p): to_fitted(p, p.start) for k, p in params.items() if p.start is not None}
     starts: list[dict[str, float]] = [first] if first else []
     for k, p in params.items():

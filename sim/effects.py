@@ -77,6 +77,8 @@ class Param:
     #: The diagnosis forms that fit it: "" the effect's simple form, a name one of its
     #: flexible forms (``Effect.forms``).
     forms: tuple[str, ...] = ("",)
+    #: An angle whose bounds are one period: a fit at a bound is not pinned there.
+    periodic: bool = False
 
     def __post_init__(self) -> None:
         if not self.lo <= self.off <= self.hi:
@@ -523,7 +525,7 @@ def harmonic_aliases(h: int, n_taps: int) -> bool:
 
 _WIGGLE_ORDERS = (3, 5, 7)
 _AMP: dict[str, Any] = {"fit": (0.0, 0.5), "step": 0.01}
-_PHASE: dict[str, Any] = {"fit": (-math.pi, math.pi), "step": 0.3}
+_PHASE: dict[str, Any] = {"fit": (-math.pi, math.pi), "step": 0.3, "periodic": True}
 _ALL = ("harmonics",)
 
 

@@ -16,7 +16,8 @@ def test_fit_library_is_read_from_the_params() -> None:
         assert fitted and [fp.name.removeprefix("log10_") for fp in spec.params] == list(fitted)
         for fp in spec.params:
             p = fitted[fp.name.removeprefix("log10_")]
-            assert (fp.lo, fp.hi, fp.scale) == (p.fit[0], p.fit[1], p.step)
+            half = (p.fit[1] - p.fit[0]) / 2 if p.periodic else 0.0  # an angle may cross its wrap
+            assert (fp.lo, fp.hi, fp.scale) == (p.fit[0] - half, p.fit[1] + half, p.step)
             assert fp.name.startswith("log10_") == p.log
             assert fp.off == (math.log10(p.off) if p.log else p.off)
             assert fp.lo <= fp.off <= fp.hi  # "off" is inside the range searched
@@ -52,3 +53,11 @@ def test_forms_and_harmonics_the_taps_cannot_see() -> None:
     k3 = fit_library(n_taps=3)["wiggling"]
     assert k3.form == "harmonics" and {p.name for p in k3.params} == {"h5_amplitude", "h5_phase_rad",
                                                                          "h7_amplitude", "h7_phase_rad"}
+
+
+def test_angles_are_fitted_across_their_wrap_and_reported_inside_it() -> None:
+    assert math.isclose(to_effect_values("wiggling", {"h3_phase_rad": math.pi + 0.25})["h3_phase_rad"],
+                        -math.pi + 0.25)
+    assert math.isclose(to_effect_values("wiggling", {"h7_phase_rad": -math.pi - 0.5})["h7_phase_rad"],
+                        math.pi - 0.5)
+    assert to_effect_values("wiggling", {"h3_amplitude": 0.7})["h3_amplitude"] == 0.7  # not an angle
