@@ -95,11 +95,19 @@ def _honest_gain(res) -> None:
     ("illumination", "", hs.cos_beam, 13),
 ])
 def test_each_hidden_form_is_named_as_its_family(tmp_path, scene, family, form, make, seed):
-    res = _diagnose(scene, tmp_path, make(np.random.default_rng(seed)), seed)
+    change = make(np.random.default_rng(seed))
+    res = _diagnose(scene, tmp_path, change, seed)
     assert res.causes == [family], (res.causes, res.forms, res.params)
     if form is not None:
         assert res.forms[family] == form
     _honest_gain(res)
+    p = res.params[family]
+    if family == "wiggling":  # every harmonic recovered, its phase across the wrap included
+        for h, c in change.coef.items():
+            assert abs(p[f"h{h}_amplitude"] - abs(c)) < 0.15 * abs(c), (h, p, change.coef)
+            assert abs(np.angle(np.exp(1j * (p[f"h{h}_phase_rad"] - np.angle(c))))) < 0.15, (h, p, change.coef)
+    if family == "illumination":  # the beam exponent's change
+        assert abs(p["dn"] - change.dn) < 0.05 * abs(change.dn), (p, change.dn)
 
 
 def test_log_amplitude_error_is_amplitude_dependent_not_wiggling(tmp_path, scene):
