@@ -61,11 +61,13 @@ class DiagnosisResult:
     #: What the residual left looks like: edges, smooth field errors, fixed patterns, spots
     #: (``eval/diagnose_structure.py``), each above its noise.
     structure: list[dict[str, Any]] = field(default_factory=list)
+    #: Per cause, the form fitted ("" the effect's simple form, else a flexible form's name).
+    forms: dict[str, str] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict.to_json() if self.verdict else None, "channels": self.channels,
                 "residual_regions": self.residual_regions, "objects": self.objects,
-                "cause": self.cause, "causes": self.causes, "ranked": self.ranked, "gain": self.gain,
+                "cause": self.cause, "causes": self.causes, "forms": self.forms, "ranked": self.ranked, "gain": self.gain,
                 "regions": self.regions, "extended_scene": self.extended_scene, "params": self.params,
                 "evidence": self.evidence, "chi2_per_value": self.chi2_per_value, "rounds": self.rounds,
                 "depth_rmse_definition": f"{M.DEPTH_RMSE}, held-out pixels and frames",
@@ -185,8 +187,10 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
         best = next((c for c in rnd if c.effect == chosen), rnd[0])
         runner = next((c for c in rnd if c is not best), None)
         verdict = "selected" if chosen is not None else "not significant"
-        lines.append(f"round {i + 1}: best {best.effect} removes {100 * best.relative_gain:.1f}% of the held-out "
-                     f"misfit (score gain {best.delta_score:.0f}, {best.n_params} parameters) -- {verdict}"
+        others = [f or "simple" for f in best.forms if f != best.form]
+        form = f" ({best.form or 'simple'} form; preferred over {', '.join(others)})" if others else ""
+        lines.append(f"round {i + 1}: best {best.effect}{form} removes {100 * best.relative_gain:.1f}% of the held-out "
+                     f"misfit (score gain {best.delta_score:.0f}, {best.dof:g} degrees of freedom) -- {verdict}"
                      + (f"; runner-up {runner.effect} {100 * runner.relative_gain:.1f}%" if runner else ""))
     for i, rnd in enumerate(selection.rounds):
         for c in rnd:
@@ -317,8 +321,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     ranked = [{"effect": c.effect, "params": to_effect_values(c.effect, c.params), "score": c.score,
                "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,
                "chi2_test": c.chi2_test, "n_params": c.n_params, "worse_channels": c.worse_channels,
-               "at_bounds": c.at_bounds} for c in selection.first_round]
-    rounds = [[{"effect": c.effect, "delta_score": c.delta_score, "relative_gain": c.relative_gain,
+               "at_bounds": c.at_bounds, "form": c.form, "dof": c.dof, "forms": c.forms} for c in selection.first_round]
+    rounds = [[{"effect": c.effect, "form": c.form, "delta_score": c.delta_score, "relative_gain": c.relative_gain,
                 "significant": c.significant, "worse_channels": c.worse_channels} for c in rnd]
               for rnd in selection.rounds]
     maps = {f"{k}_before": v for k, v in maps_before.items()} | {f"{k}_after": v for k, v in maps_after.items()}
@@ -344,7 +348,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                            seconds=time.perf_counter() - t0, verdict=verdict, channels=channels,
                            residual_regions=[r.to_json() | {"text": r.describe()} for r in regions_left],
                            objects={k: {"before": objects_before.get(k), "after": v} for k, v in objects_after.items()},
-                           observability=observability, structure=[f.to_json() for f in structure])
+                           observability=observability, structure=[f.to_json() for f in structure],
+                           forms={e: selection.forms.get(e, "") for e in selection.causes})
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,

@@ -145,7 +145,8 @@ def write_report(res: Any, path: Path, *, session_path: str, scene_path: str) ->
     if res.params:
         parts.append("<table><tr><th>effect</th><th>fitted parameters</th></tr>")
         for e, p in res.params.items():
-            parts.append(f"<tr><td>{esc(e)}</td><td>{esc(', '.join(f'{k} = {v:.4g}' for k, v in p.items()))}</td></tr>")
+            form = res.forms.get(e, "")
+            parts.append(f"<tr><td>{esc(e)}{esc(f' ({form} form)' if form else '')}</td><td>{esc(', '.join(f'{k} = {v:.4g}' for k, v in p.items()))}</td></tr>")
         parts.append("</table>")
     parts.append("<h2>Gain on held-out data</h2><p class='note'>Held-out: the odd frames and the pixels of the "
                  "checkerboard blocks the fit did not see. The extended twin is the extended scene file, read back "

@@ -17,6 +17,7 @@ Nothing here knows what an effect does.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Callable, Mapping, Protocol, Sequence
 
@@ -38,6 +39,8 @@ class FitParam:
     lo: float
     hi: float
     scale: float
+    #: An angle whose range is one period: its bounds are the same value, never a limit.
+    periodic: bool = False
 
 
 @dataclass(frozen=True)
@@ -52,10 +55,20 @@ class EffectSpec:
     starts: tuple[dict[str, float], ...] = ()
     #: Effective degrees of freedom for the penalty (None: the number of parameters).
     dof: float | None = None
+    #: The form this spec fits ("" the effect's simple form).
+    form: str = ""
+    #: Flexible forms of the same effect, from the least to the most flexible: each is fitted
+    #: beside this (simple) form and replaces it only when it earns its extra degrees of
+    #: freedom on held-out data (:func:`choose_form`).
+    forms: tuple["EffectSpec", ...] = ()
 
     @property
     def k(self) -> float:
         return float(len(self.params) if self.dof is None else self.dof)
+
+    def variant(self, form: str) -> "EffectSpec":
+        """The spec of ``form`` (this one or one of its flexible forms)."""
+        return next(s for s in (self,) + tuple(self.forms) if s.form == form)
 
 
 class ForwardModel(Protocol):
@@ -83,6 +96,12 @@ class Candidate:
     at_bounds: list[str] = field(default_factory=list)
     #: Held-out misfit per channel with this effect: {channel: (chi2, n values)}.
     channels: dict[str, tuple[float, int]] = field(default_factory=dict, repr=False)
+    #: The effect's form ("" its simple form, else the name of a flexible one).
+    form: str = ""
+    #: Effective degrees of freedom of that form (the penalty's k).
+    dof: float = 0.0
+    #: Every form tried: {form: {"chi2_test", "score", "dof", "significant"}}.
+    forms: dict[str, dict[str, float | bool]] = field(default_factory=dict)
 
 
 @dataclass
@@ -99,6 +118,8 @@ class Selection:
     rejected_for_channels: list[str] = field(default_factory=list)
     #: Per cause, its fitted parameters pinned at a bound of the range searched.
     at_bounds: dict[str, list[str]] = field(default_factory=dict)
+    #: Per cause, the form chosen ("" the simple form).
+    forms: dict[str, str] = field(default_factory=dict)
     #: Held-out misfit per channel of the base twin and of the final fit.
     channels_before: dict[str, tuple[float, int]] = field(default_factory=dict)
     channels_after: dict[str, tuple[float, int]] = field(default_factory=dict)
@@ -125,14 +146,16 @@ def _unpack(active: Sequence[str], lib: Mapping[str, EffectSpec], x: np.ndarray)
 
 def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: EffectParams,
         new_effect: str | None = None, max_nfev: int = 60,
-        free: Sequence[str] | None = None) -> tuple[EffectParams, float]:
+        free: Sequence[str] | None = None, lib: Mapping[str, EffectSpec] | None = None) -> tuple[EffectParams, float]:
     """Least-squares fit of the active effects' parameters on the training data.
 
     Only the effects in ``free`` (default: all active ones) move; the others keep their
     values in ``start``. Starts from ``start`` ("off" where it is silent) and, for
     ``new_effect``, also from its extra starting points; keeps the best training fit.
+    ``lib`` (default the model's library) says which parameters each effect fits: the
+    form chosen for it.
     """
-    lib = model.library()
+    lib = model.library() if lib is None else lib
     free = list(active if free is None else free)
     fixed = {e: dict(start.get(e, {})) for e in active if e not in free}
     for e in fixed:
@@ -194,13 +217,36 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
 
 
 def pinned(spec: EffectSpec, values: Mapping[str, float], rel: float = 1e-3) -> list[str]:
-    """Parameters fitted to within ``rel`` of their range from a bound that is not "off"."""
+    """Parameters fitted to within ``rel`` of their range from a bound that is not "off"
+    (an angle over one period has no such bound)."""
     out = []
     for p in spec.params:
+        if p.periodic:
+            continue
         v, tol = values.get(p.name, p.off), rel * (p.hi - p.lo)
         if (abs(v - p.lo) <= tol and p.lo != p.off) or (abs(v - p.hi) <= tol and p.hi != p.off):
             out.append(p.name)
     return out
+
+
+def choose_form(tried: Sequence[Candidate], min_extra_gain: float) -> Candidate:
+    """The form of one effect to offer in a round, from its fits in each form (the simple
+    form first, then the flexible ones from least to most flexible).
+
+    A more flexible form replaces the current choice only when it is significant itself
+    and earns its extra freedom on held-out data: its score (held-out misfit plus the
+    penalty for its effective degrees of freedom) beats the current choice's, and it removes
+    more than ``min_extra_gain`` more held-out misfit (the same margin an effect needs to be
+    significant). Otherwise the simpler form stays: a flexible form that adds nothing on
+    held-out data is not chosen. The chosen candidate lists every form tried in ``forms``.
+    """
+    chosen = tried[0]
+    for c in tried[1:]:
+        if c.significant and c.score < chosen.score and chosen.chi2_test - c.chi2_test > min_extra_gain:
+            chosen = c
+    chosen.forms = {c.form: {"chi2_test": c.chi2_test, "score": c.score, "dof": c.dof, "significant": c.significant}
+                    for c in tried}
+    return chosen
 
 
 def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequence[str] | None = None,
@@ -229,39 +275,50 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     selection = Selection(causes=[], params={}, baseline_chi2_test=baseline, final_chi2_test=baseline,
                           n_test=n_test, searched=max_effects > 0, channels_before=current_channels,
                           channels_after=current_channels)
+    work = dict(lib)  # each chosen effect's spec is that of its chosen form
     while len(active) < max_effects:
-        current_k = sum(lib[e].k for e in active)
+        current_k = sum(work[e].k for e in active)
         current_score = current_chi2 + current_k * penalty
         excess = max(current_chi2 - n_test, 0.0)
         round_: list[Candidate] = []
         for name in names:
             if name in active:
                 continue
-            if progress:
-                progress(f"fitting {name}")
-            trial = active + [name]
-            # forward stagewise: the new effect is fitted with the earlier ones held; the
-            # chosen set is refitted jointly below
-            fitted, chi2_train = fit(model, data, trial, params, new_effect=name, free=[name])
-            pred = model.predict(fitted)
-            chi2_test = data.chi2(pred, "test")
-            channels = channel_chi2(data, pred)
-            # worse than the current model or, summed over rounds, than the base twin
-            worse = sorted(set(worse_channels(current_channels, channels))
-                           | set(worse_channels(selection.channels_before, channels)))
-            score = chi2_test + (current_k + lib[name].k) * penalty
-            gain = current_chi2 - chi2_test
-            gains = bool(current_score - score > 0 and excess > 0 and gain > min_relative_gain * excess
-                         and gain > min_gain_per_value * n_test)
-            cand = Candidate(effect=name, params=fitted[name], chi2_train=chi2_train, chi2_test=chi2_test,
-                             score=score, delta_score=current_score - score,
-                             relative_gain=gain / current_chi2 if current_chi2 > 0 else 0.0,
-                             significant=gains and not worse, n_params=len(lib[name].params),
-                             all_params=fitted, worse_channels=worse, at_bounds=pinned(lib[name], fitted[name]),
-                             channels=channels)
-            if gains and worse and name not in selection.rejected_for_channels:
+            tried: list[Candidate] = []
+            traded = False  # a form gained only by making a channel worse
+            for spec in (lib[name],) + tuple(lib[name].forms):
+                if tried:
+                    # a flexible form also starts where the simple one ended (its phases found)
+                    names_ = {p.name for p in spec.params}
+                    simple = {k: v for k, v in tried[0].params.items() if k in names_}
+                    spec = dataclasses.replace(spec, starts=(simple,) + tuple(spec.starts))
+                if progress:
+                    progress(f"fitting {name}" + (f" ({spec.form})" if spec.form else ""))
+                trial_lib = {**work, name: spec}
+                trial = active + [name]
+                # forward stagewise: the new effect is fitted with the earlier ones held; the
+                # chosen set is refitted jointly below
+                fitted, chi2_train = fit(model, data, trial, params, new_effect=name, free=[name], lib=trial_lib)
+                pred = model.predict(fitted)
+                chi2_test = data.chi2(pred, "test")
+                channels = channel_chi2(data, pred)
+                # worse than the current model or, summed over rounds, than the base twin
+                worse = sorted(set(worse_channels(current_channels, channels))
+                               | set(worse_channels(selection.channels_before, channels)))
+                score = chi2_test + (current_k + spec.k) * penalty
+                gain = current_chi2 - chi2_test
+                gains = bool(current_score - score > 0 and excess > 0 and gain > min_relative_gain * excess
+                             and gain > min_gain_per_value * n_test)
+                tried.append(Candidate(effect=name, params=fitted[name], chi2_train=chi2_train, chi2_test=chi2_test,
+                                       score=score, delta_score=current_score - score,
+                                       relative_gain=gain / current_chi2 if current_chi2 > 0 else 0.0,
+                                       significant=gains and not worse, n_params=len(spec.params),
+                                       all_params=fitted, worse_channels=worse, at_bounds=pinned(spec, fitted[name]),
+                                       channels=channels, form=spec.form, dof=spec.k))
+                traded |= gains and bool(worse)
+            if traded and name not in selection.rejected_for_channels:
                 selection.rejected_for_channels.append(name)
-            round_.append(cand)
+            round_.append(choose_form(tried, min_relative_gain * excess))
         # ties broken by name: the ranking does not depend on the library's order
         round_.sort(key=lambda c: (c.score, c.effect))
         selection.rounds.append(round_)
@@ -269,6 +326,8 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         if chosen is None:
             break
         active.append(chosen.effect)
+        work[chosen.effect] = lib[chosen.effect].variant(chosen.form)
+        selection.forms[chosen.effect] = chosen.form
         params = chosen.all_params
         current_chi2 = chosen.chi2_test
         before_round = current_channels
@@ -277,7 +336,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         # geometric effects often need them); kept only if better and no channel worse.
         if progress:
             progress("refitting " + " + ".join(active) + " jointly")
-        joint, _ = fit(model, data, active, params)
+        joint, _ = fit(model, data, active, params, lib=work)
         joint_pred = model.predict(joint)
         joint_chi2 = data.chi2(joint_pred, "test")
         joint_channels = channel_chi2(data, joint_pred)
@@ -288,5 +347,5 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     selection.params = {e: params[e] for e in active}
     selection.final_chi2_test = current_chi2
     selection.channels_after = current_channels
-    selection.at_bounds = {e: pinned(lib[e], params[e]) for e in active}
+    selection.at_bounds = {e: pinned(work[e], params[e]) for e in active}
     return selection

@@ -14,6 +14,7 @@ gradients are fitted). Log-scale parameters are fitted as ``log10_<name>``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any, Callable, Mapping
 
@@ -36,37 +37,59 @@ def to_fitted(p: Param, value: float) -> float:
 
 
 def to_effect_values(effect: str, fitted: Mapping[str, float]) -> dict[str, float]:
-    """Fitted parameters -> the effect's own parameter names (undo log scales)."""
+    """Fitted parameters -> the effect's own parameter names (undo log scales, wrap angles
+    into their period)."""
     out: dict[str, float] = {}
+    params = EFFECTS[effect].params if effect in EFFECTS else {}
     for k, v in fitted.items():
         if k.startswith(LOG_PREFIX):
             out[k[len(LOG_PREFIX):]] = float(10.0 ** v)
+        elif k in params and params[k].periodic:
+            p = params[k]
+            out[k] = float(p.lo + (v - p.lo) % (p.hi - p.lo))
         else:
             out[k] = float(v)
     return out
 
 
+def _spec(name: str, form: str, params: Mapping[str, Param], current: Callable[[str, str], float] | None,
+          extra: list[dict[str, float]]) -> EffectSpec:
+    fps = []
+    for k, p in params.items():
+        value = p.off if current is None else current(name, k)
+        assert p.fit is not None
+        lo, hi = p.fit
+        if p.periodic:  # half a period beyond each end, so that a fit near the wrap can cross it
+            lo, hi = lo - (hi - lo) / 2, hi + (hi - lo) / 2
+        fps.append(FitParam(fitted_name(k, p), to_fitted(p, value), lo, hi, p.step, periodic=p.periodic))
+    first = {fitted_name(k, p): to_fitted(p, p.start) for k, p in params.items() if p.start is not None}
+    starts: list[dict[str, float]] = [first] if first else []
+    for k, p in params.items():
+        for v in p.starts:
+            starts.append({**first, fitted_name(k, p): to_fitted(p, v)})
+    names = {fp.name for fp in fps}
+    starts += [s for s in extra if set(s) <= names]
+    return EffectSpec(tuple(fps), tuple(starts), form=form)
+
+
 def fit_library(current: Callable[[str, str], float] | None = None,
-                extra_starts: Mapping[str, list[dict[str, float]]] | None = None) -> dict[str, EffectSpec]:
+                extra_starts: Mapping[str, list[dict[str, float]]] | None = None,
+                n_taps: int | None = None) -> dict[str, EffectSpec]:
     """What diagnosis fits, per effect, from the ``Param`` table: each fitted parameter's
     current value (``current(effect, param)``, default its off value), range and step, and
     the multi-start points (``Param.start`` for all, then each ``Param.starts`` value in
-    turn with the others at their start), plus ``extra_starts`` (e.g. from an alignment)."""
+    turn with the others at their start), plus ``extra_starts`` (e.g. from an alignment).
+
+    Each effect's simple form, with its flexible forms (``Effect.forms``) attached; with
+    ``n_taps`` given, parameters those taps cannot see (a harmonic that does not alias onto
+    the fundamental) are left out, and a form left without parameters is dropped."""
     lib = {}
     for name in ORDER:
-        params = {k: p for k, p in EFFECTS[name].params.items() if p.fitted}
-        fps = []
-        for k, p in params.items():
-            value = p.off if current is None else current(name, k)
-            assert p.fit is not None
-            fps.append(FitParam(fitted_name(k, p), to_fitted(p, value), p.fit[0], p.fit[1], p.step))
-        first = {fitted_name(k, p): to_fitted(p, p.start) for k, p in params.items() if p.start is not None}
-        starts: list[dict[str, float]] = [first] if first else []
-        for k, p in params.items():
-            for v in p.starts:
-                starts.append({**first, fitted_name(k, p): to_fitted(p, v)})
-        starts += list((extra_starts or {}).get(name, ()))
-        lib[name] = EffectSpec(tuple(fps), tuple(starts))
+        eff = EFFECTS[name]
+        extra = list((extra_starts or {}).get(name, ()))
+        specs = [_spec(name, form, eff.form_params(form, n_taps), current, extra) for form in ("", *eff.forms)]
+        specs = [s for s in specs if s.params] or specs[:1]
+        lib[name] = dataclasses.replace(specs[0], forms=tuple(specs[1:]))
     return lib
 
 
@@ -115,7 +138,7 @@ class TwinModel:
         def current(effect: str, param: str) -> float:
             return self.twin.current_value(effect, param)
 
-        return fit_library(current, self.extra_starts)
+        return fit_library(current, self.extra_starts, n_taps=len(self.data.theta_rad))
 
     def align_pose(self, max_distance_m: float = 0.05) -> dict[str, float] | None:
         """A starting pose from point-to-plane ICP of the measured cloud onto the twin's.

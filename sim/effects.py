@@ -13,7 +13,7 @@ Stages, in the order the forward model applies them (``ORDER``):
 - ``render``: recombines the renderer's separate direct and indirect phasors --
   ``multipath`` (cheap on a cached render made with ``separate_direct=True``).
 - ``signal``: acts on the light on the sensor (an :class:`OpticalSignal`) before the pixel --
-  ``stray_light`` (optics), ``offset`` (unmodulated charge), ``range_offset``, ``field_angle``,
+  ``illumination`` (the emitter's profile), ``stray_light`` (optics), ``offset`` (unmodulated charge), ``range_offset``, ``field_angle``,
   ``wiggling``, ``amplitude_dependent``.
 - ``pixel``: per-pixel demodulation properties -- ``fixed_pattern``.
 
@@ -74,6 +74,11 @@ class Param:
     log: bool = False
     start: float | None = None
     starts: tuple[float, ...] = ()
+    #: The diagnosis forms that fit it: "" the effect's simple form, a name one of its
+    #: flexible forms (``Effect.forms``).
+    forms: tuple[str, ...] = ("",)
+    #: An angle whose bounds are one period: a fit at a bound is not pinned there.
+    periodic: bool = False
 
     def __post_init__(self) -> None:
         if not self.lo <= self.off <= self.hi:
@@ -115,6 +120,9 @@ class Effect:
     params: dict[str, Param] = {}
     #: Structured, non-fitted options: name -> description.
     options: dict[str, str] = {}
+    #: Flexible forms diagnosis fits besides the simple one: form name -> what it adds. A
+    #: form fits the parameters whose ``Param.forms`` name it (docs/diagnose.md, Selection).
+    forms: dict[str, str] = {}
 
     # -------------------------------------------------------------- values
     def off_values(self) -> dict[str, float]:
@@ -154,6 +162,16 @@ class Effect:
 
     def is_off(self, values: Mapping[str, Any]) -> bool:
         return all(float(values.get(k, p.off)) == p.off for k, p in self.params.items())
+
+    def form_params(self, form: str = "", n_taps: int | None = None) -> dict[str, Param]:
+        """The parameters diagnosis fits in ``form`` ("" the simple form), leaving out those a
+        session with ``n_taps`` taps per frequency cannot see (:meth:`observable`)."""
+        return {k: p for k, p in self.params.items()
+                if p.fitted and form in p.forms and (n_taps is None or self.observable(k, n_taps))}
+
+    def observable(self, param: str, n_taps: int) -> bool:
+        """Whether ``param`` changes what ``n_taps`` equally spaced taps measure (default yes)."""
+        return True
 
     # -------------------------------------------------------------- stage hooks
     # Each stage has one hook (``STAGE_HOOKS``); an effect implements the hook of its stage.
@@ -500,53 +518,135 @@ class RangeOffsetEffect(Effect):
         return _rotate_phase(signal, float(values["path_m"]))
 
 
+def harmonic_aliases(h: int, n_taps: int) -> bool:
+    """Whether harmonic ``h`` of the correlation waveform reaches the estimate
+    ``S = (2/K) sum_k c_k exp(i theta_k)`` of ``K = n_taps`` equally spaced taps: the sum over
+    the taps keeps exactly the orders ``h = +-1 (mod K)``, each folded onto the fundamental
+    (K = 4: every odd order, 3 and 7 as ``exp(-i(h-1) phi)``, 5 as ``exp(+i 4 phi)``; K = 3:
+    2, 4, 5, 7 but not 3). Other orders cancel and cannot be seen in the data."""
+    return h % n_taps in (1, n_taps - 1)
+
+
+_WIGGLE_ORDERS = (3, 5, 7)
+_AMP: dict[str, Any] = {"fit": (0.0, 0.5), "step": 0.01}
+_PHASE: dict[str, Any] = {"fit": (-math.pi, math.pi), "step": 0.3, "periodic": True}
+_ALL = ("harmonics",)
+
+
 class WigglingEffect(Effect):
     name = "wiggling"
     stage = "signal"
-    summary = 'odd harmonics of the correlation waveform; with K = 4 taps the 3rd and 5th alias onto the fundamental: phase error `arg(1 + a3 exp(-i(4 phi + psi3)))`, 4 cycles per ambiguity range'
+    summary = ('odd harmonics 3, 5, 7 of the correlation waveform; harmonic h reaches K taps only if h = +-1 mod K '
+               '(K = 4: phase error about `-a3 sin(4 phi + psi3) + a5 sin(4 phi + psi5) - a7 sin(8 phi + psi7)`)')
     doc = ("Non-sinusoidal modulation: odd harmonics of the correlation waveform, added to the "
-           "emitter's. With K taps harmonic h aliases onto the fundamental and gives a cyclic distance "
-           "error (K = 4: the 3rd and 5th give 4 cycles per ambiguity range). Harmonics the render did "
-           "not compute are synthesised from the fundamental (exact for single-path pixels).")
+           "emitter's. With K taps harmonic h aliases onto the fundamental when h = +-1 mod K and gives a "
+           "cyclic distance error (K = 4: the 3rd and 5th give 4 cycles per ambiguity range, the 7th 8); "
+           "other orders cancel. Harmonics the render did not compute are synthesised from the "
+           "fundamental (exact for single-path pixels). Diagnosis fits the 3rd harmonic (simple form) "
+           "or every visible order up to the 7th (form `harmonics`).")
+    forms = {"harmonics": "all odd harmonics up to the 7th that the session's taps see (amplitude and phase each)"}
     params = {
         "h3_amplitude": Param(0.0, 0.0, 0.5, "", "3rd-harmonic correlation amplitude / fundamental's",
-                              default=0.05, fit=(0.0, 0.5), step=0.01, start=0.03),
-        "h3_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "3rd-harmonic phase", fit=(-math.pi, math.pi), step=0.3,
-                              start=0.0, starts=(-2.0, 2.0)),
-        "h5_amplitude": Param(0.0, 0.0, 0.5, "", "5th-harmonic correlation amplitude / fundamental's"),
-        "h5_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "5th-harmonic phase"),
+                              default=0.05, start=0.03, forms=("",) + _ALL, **_AMP),
+        "h3_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "3rd-harmonic phase", start=0.0, starts=(-2.0, 2.0),
+                              forms=("",) + _ALL, **_PHASE),
+        "h5_amplitude": Param(0.0, 0.0, 0.5, "", "5th-harmonic correlation amplitude / fundamental's",
+                              start=0.01, forms=_ALL, **_AMP),
+        "h5_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "5th-harmonic phase", start=0.0, starts=(-2.0, 2.0),
+                              forms=_ALL, **_PHASE),
+        "h7_amplitude": Param(0.0, 0.0, 0.5, "", "7th-harmonic correlation amplitude / fundamental's",
+                              start=0.01, forms=_ALL, **_AMP),
+        "h7_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "7th-harmonic phase", start=0.0, starts=(-2.0, 2.0),
+                              forms=_ALL, **_PHASE),
     }
 
     def is_off(self, values: Mapping[str, Any]) -> bool:
-        return float(values.get("h3_amplitude", 0)) == 0 and float(values.get("h5_amplitude", 0)) == 0
+        return not self.harmonics(values)
 
     @staticmethod
     def harmonics(values: Mapping[str, Any]) -> tuple[int, ...]:
-        return tuple(h for h in (3, 5) if float(values.get(f"h{h}_amplitude", 0.0)) != 0.0)
+        return tuple(h for h in _WIGGLE_ORDERS if float(values.get(f"h{h}_amplitude", 0.0)) != 0.0)
+
+    def observable(self, param: str, n_taps: int) -> bool:
+        return harmonic_aliases(int(param[1:param.index("_")]), n_taps)
 
     def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
         out = signal.copy()
-        for h in (3, 5):
+        for h in self.harmonics(values):
             a = float(values[f"h{h}_amplitude"])
-            if a:
-                out.waveform[h] = out.waveform.get(h, 0.0) + a * np.exp(1j * float(values[f"h{h}_phase_rad"]))
+            out.waveform[h] = out.waveform.get(h, 0.0) + a * np.exp(1j * float(values[f"h{h}_phase_rad"]))
         return out
+
+
+#: Knots of the amplitude-dependent spline, log10 of the modulation amplitude in electrons per tap.
+AMPLITUDE_KNOTS_LOG10_E = (2.0, 2.75, 3.5, 4.25, 5.0)
+_SPLINE = ("spline",)
+
+
+def stick_breaking(q: np.ndarray) -> np.ndarray:
+    """Fractions ``w_1..w_m >= 0`` summing to 1 from ``m - 1`` numbers in [0, 1]: ``w_j = q_j
+    prod_{i<j} (1 - q_i)``, the last takes what is left. ``q_j = 1 / (m - j + 1)`` gives equal parts."""
+    rest = np.concatenate([[1.0], np.cumprod(1.0 - q)])
+    return np.concatenate([q, [1.0]]) * rest
+
+
+def monotone_spline(x: np.ndarray, knots: np.ndarray, level: float, span: float, q: np.ndarray) -> np.ndarray:
+    """Piecewise linear in ``x`` through the knots, ``level`` at and below the first knot,
+    ``level + span`` at and above the last, the rise between knots ``span * w_j`` with ``w`` from
+    :func:`stick_breaking`: monotone (in the sign of ``span``) for every parameter value."""
+    steps = span * stick_breaking(np.asarray(q, dtype=np.float64))
+    values = level + np.concatenate([[0.0], np.cumsum(steps)])
+    return np.interp(x, knots, values)
 
 
 class AmplitudeDependentEffect(Effect):
     name = "amplitude_dependent"
     stage = "signal"
-    summary = 'radial error `error_m * exp(-A / amplitude_e)`, A = modulation amplitude per tap in electrons'
-    doc = ("Range error that grows as the signal weakens (pixel nonlinearity and charge-transfer "
-           "lag at low signal): radial error = error_m * exp(-A / amplitude_e), with A the pixel's "
-           "modulation amplitude in electrons per tap at that frequency (needs the sensor block).")
+    summary = ('radial error as a function of A, the modulation amplitude per tap in electrons: '
+               '`error_m * exp(-A / amplitude_e)` plus, as the flexible form `spline`, a monotone piecewise-linear '
+               'function of log10 A (knots at 10^2 ... 10^5 e-)')
+    doc = ("Range error that depends on the signal strength (pixel nonlinearity and charge-transfer "
+           "lag at low signal): radial error = error_m * exp(-A / amplitude_e) + s(log10 A), with A the "
+           "pixel's modulation amplitude in electrons per tap at that frequency (needs the sensor block). "
+           "s is monotone by construction: piecewise linear through knots at log10 A = "
+           + ", ".join(f"{k:g}" for k in AMPLITUDE_KNOTS_LOG10_E) + ", spline_level_m at and below the "
+           "first, rising (or falling) by spline_span_m to the last, the share of each interval from the "
+           "stick-breaking fractions spline_q1..q3 (their off values give equal shares: an error linear in "
+           "log A). Diagnosis fits the exponential (simple form) or the spline (form `spline`).")
+    forms = {"spline": "monotone piecewise-linear error in log10 amplitude (level, span, 3 shape fractions)"}
     params = {
         "error_m": Param(0.0, -0.5, 0.5, "m", "radial error at zero amplitude", default=0.01, fit=(-0.5, 0.5),
                          step=0.01, start=0.02, starts=(-0.02,)),
         "amplitude_e": Param(1000.0, 1.0, 1.0e6, "e-", "amplitude scale A0 over which the error decays",
                              fit=(0.0, 6.0), step=0.2, log=True, start=1000.0,
                              starts=(10.0 ** 2.5, 10.0 ** 3.5)),
+        "spline_level_m": Param(0.0, -0.5, 0.5, "m", "spline: radial error at and below the first knot",
+                                fit=(-0.3, 0.3), step=0.005, start=-0.02, starts=(0.02,), forms=_SPLINE),
+        "spline_span_m": Param(0.0, -0.5, 0.5, "m", "spline: error at the last knot minus at the first",
+                               fit=(-0.3, 0.3), step=0.005, start=0.03, starts=(-0.03,), forms=_SPLINE),
+        "spline_q1": Param(0.25, 0.0, 1.0, "", "spline: share of the span in the 1st interval",
+                           fit=(0.0, 1.0), step=0.05, forms=_SPLINE),
+        "spline_q2": Param(1.0 / 3.0, 0.0, 1.0, "", "spline: share of the rest in the 2nd interval",
+                           fit=(0.0, 1.0), step=0.05, forms=_SPLINE),
+        "spline_q3": Param(0.5, 0.0, 1.0, "", "spline: share of the rest in the 3rd interval (the 4th takes the rest)",
+                           fit=(0.0, 1.0), step=0.05, forms=_SPLINE),
     }
+
+    def is_off(self, values: Mapping[str, Any]) -> bool:
+        return float(values.get("error_m", 0.0)) == 0.0 and float(values.get("spline_level_m", 0.0)) == 0.0 \
+            and float(values.get("spline_span_m", 0.0)) == 0.0
+
+    @staticmethod
+    def error_m(values: Mapping[str, Any], amp_e: np.ndarray) -> np.ndarray:
+        """The radial error at modulation amplitude ``amp_e`` (electrons per tap)."""
+        p = AmplitudeDependentEffect.params
+        err = float(values.get("error_m", 0.0)) * np.exp(-amp_e / float(values.get("amplitude_e", 1000.0)))
+        level, span = float(values.get("spline_level_m", 0.0)), float(values.get("spline_span_m", 0.0))
+        if level or span:
+            q = np.array([float(values.get(f"spline_q{j}", p[f"spline_q{j}"].off)) for j in (1, 2, 3)])
+            x = np.log10(np.maximum(amp_e, 1e-3))
+            err = err + monotone_spline(x, np.asarray(AMPLITUDE_KNOTS_LOG10_E), level, span, q)
+        return err
 
     def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
         if ctx.sensor is None:
@@ -554,8 +654,7 @@ class AmplitudeDependentEffect(Effect):
         s = ctx.sensor
         amp_e = (s.tap_fraction * s.modulation_contrast * s.electrons_per_watt
                  * np.abs(signal.phasor_w[:, signal.harmonics.index(1)]))  # [F, H, W]
-        err = float(values["error_m"]) * np.exp(-amp_e / float(values["amplitude_e"]))
-        return _rotate_phase(signal, 2.0 * err)  # radial error -> optical path
+        return _rotate_phase(signal, 2.0 * self.error_m(values, amp_e))  # radial error -> optical path
 
 
 class FieldAngleEffect(Effect):
@@ -582,6 +681,45 @@ class FieldAngleEffect(Effect):
         t2 = self.tan2(ctx.camera, signal.shape)
         err = float(values["c2_m"]) * t2 + float(values["c4_m"]) * t2 * t2
         return _rotate_phase(signal, 2.0 * err)  # radial error -> optical path
+
+
+class IlluminationEffect(Effect):
+    name = "illumination"
+    stage = "signal"
+    summary = ("emitter illumination profile the scene lacks: the emitter light on each pixel times "
+               "`cos(alpha)^dn (1 + b4 t^4 + b6 t^6)`, alpha the pixel ray's field angle, t = tan(alpha)")
+    doc = ("The emitter's illumination profile differing from the scene's beam (a cos^n beam of "
+           "another exponent, a diffuser, an LED array, a cover glass): the emitter's light on each "
+           "pixel (modulated and unmodulated, not ambient) times cos(alpha)^dn (1 + b4 t^4 + b6 t^6), "
+           "clipped at 0, with alpha the pixel ray's angle to the optical axis and t = tan(alpha) "
+           "(emitter next to the lens: a point seen at field angle alpha is lit at about alpha; "
+           "indirect light is scaled like the direct light of its pixel). dn changes the exponent of "
+           "the scene's cos^n beam (the simple form); b4 and b6 bend the profile further (the flexible "
+           "form `radial`; no t^2 term: to first order it is dn). Changes the amplitude only; acts "
+           "before the lens's stray light.")
+    forms = {"radial": "cos^dn times a radial polynomial 1 + b4 t^4 + b6 t^6"}
+    params = {
+        "dn": Param(0.0, -20.0, 20.0, "", "change of the beam's cos^n exponent", default=1.0,
+                    fit=(-10.0, 10.0), step=0.05, forms=("", "radial")),
+        "b4": Param(0.0, -50.0, 50.0, "", "relative change per tan^4 of the field angle",
+                    fit=(-20.0, 20.0), step=0.05, forms=("radial",)),
+        "b6": Param(0.0, -200.0, 200.0, "", "relative change per tan^6 of the field angle",
+                    fit=(-100.0, 100.0), step=0.1, forms=("radial",)),
+    }
+
+    @staticmethod
+    def factor(values: Mapping[str, Any], camera: CameraModel, shape: tuple[int, int]) -> np.ndarray:
+        t2 = FieldAngleEffect.tan2(camera, shape)
+        poly = 1.0 + float(values.get("b4", 0.0)) * t2 ** 2 + float(values.get("b6", 0.0)) * t2 ** 3
+        # cos^2(alpha) = 1 / (1 + tan^2(alpha))
+        return (1.0 + t2) ** (-0.5 * float(values.get("dn", 0.0))) * np.maximum(poly, 0.0)
+
+    def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
+        g = self.factor(values, ctx.camera, signal.shape)
+        out = signal.copy()
+        out.phasor_w = signal.phasor_w * g
+        out.dc_w = np.asarray(signal.dc_w) * g
+        return out
 
 
 class OffsetEffect(Effect):
@@ -650,12 +788,12 @@ class FixedPatternEffect(Effect):
 # registry and application
 # =============================================================================================
 #: Forward-model order (optics before the pixel; per-pixel effects after the spatial mixing).
-ORDER = ("pose", "lens_distortion", "reflectance", "ambient", "multipath", "stray_light", "offset", "range_offset",
-         "field_angle", "fixed_pattern", "amplitude_dependent", "wiggling")
+ORDER = ("pose", "lens_distortion", "reflectance", "ambient", "multipath", "illumination", "stray_light", "offset",
+         "range_offset", "field_angle", "fixed_pattern", "amplitude_dependent", "wiggling")
 
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
     PoseEffect(), LensDistortionEffect(), ReflectanceEffect(), AmbientEffect(), MultipathEffect(),
-    StrayLightEffect(), OffsetEffect(), RangeOffsetEffect(), FieldAngleEffect(), FixedPatternEffect(),
+    IlluminationEffect(), StrayLightEffect(), OffsetEffect(), RangeOffsetEffect(), FieldAngleEffect(), FixedPatternEffect(),
     AmplitudeDependentEffect(), WigglingEffect())}
 assert tuple(sorted(EFFECTS)) == tuple(sorted(ORDER))
 for _e in EFFECTS.values():  # every effect implements the hook of its stage
@@ -755,6 +893,8 @@ def effects_table_markdown() -> str:
                 tries += [f"also {', '.join(_num(v) for v in p.starts)}"] if p.starts else []
                 if tries:
                     text += " [" + "; ".join(tries) + "]"
+                if p.forms != ("",):
+                    text += " {" + ", ".join(f"form `{f}`" if f else "simple form" for f in p.forms) + "}"
                 fits.append(text)
         rows.append(f"| `{name}` | {e.stage} | {'; '.join(params)} | {'; '.join(fits) or '-'} | {e.summary} |")
     return "\n".join(rows) + "\n"

@@ -11,12 +11,13 @@ from tofhil.sim.effects import EFFECTS, ORDER
 def test_fit_library_is_read_from_the_params() -> None:
     lib = fit_library()
     assert list(lib) == list(ORDER)
-    for name, spec in lib.items():
-        fitted = {k: p for k, p in EFFECTS[name].params.items() if p.fitted}
-        assert [fp.name.removeprefix("log10_") for fp in spec.params] == list(fitted)
+    for name, spec in ((n, s) for n, simple in lib.items() for s in (simple,) + simple.forms):
+        fitted = {k: p for k, p in EFFECTS[name].params.items() if p.fitted and spec.form in p.forms}
+        assert fitted and [fp.name.removeprefix("log10_") for fp in spec.params] == list(fitted)
         for fp in spec.params:
             p = fitted[fp.name.removeprefix("log10_")]
-            assert (fp.lo, fp.hi, fp.scale) == (p.fit[0], p.fit[1], p.step)
+            half = (p.fit[1] - p.fit[0]) / 2 if p.periodic else 0.0  # an angle may cross its wrap
+            assert (fp.lo, fp.hi, fp.scale) == (p.fit[0] - half, p.fit[1] + half, p.step)
             assert fp.name.startswith("log10_") == p.log
             assert fp.off == (math.log10(p.off) if p.log else p.off)
             assert fp.lo <= fp.off <= fp.hi  # "off" is inside the range searched
@@ -40,3 +41,23 @@ def test_current_values_and_log_scale_round_trip() -> None:
     (fp,) = [f for f in lib["amplitude_dependent"].params if f.name == "log10_amplitude_e"]
     assert math.isclose(fp.off, math.log10(2500.0))
     assert math.isclose(to_effect_values("amplitude_dependent", {"log10_amplitude_e": fp.off})["amplitude_e"], 2500.0)
+
+
+def test_forms_and_harmonics_the_taps_cannot_see() -> None:
+    """Each flexible form is a spec of its own; with 3 taps the 3rd harmonic cancels, so the
+    simple wiggling form (the 3rd harmonic) is left out and the flexible one keeps 5 and 7."""
+    lib = fit_library(n_taps=4)
+    assert [s.form for s in lib["wiggling"].forms] == ["harmonics"] and lib["wiggling"].forms[0].k == 6
+    assert [s.form for s in lib["amplitude_dependent"].forms] == ["spline"]
+    assert lib["range_offset"].forms == ()
+    k3 = fit_library(n_taps=3)["wiggling"]
+    assert k3.form == "harmonics" and {p.name for p in k3.params} == {"h5_amplitude", "h5_phase_rad",
+                                                                         "h7_amplitude", "h7_phase_rad"}
+
+
+def test_angles_are_fitted_across_their_wrap_and_reported_inside_it() -> None:
+    assert math.isclose(to_effect_values("wiggling", {"h3_phase_rad": math.pi + 0.25})["h3_phase_rad"],
+                        -math.pi + 0.25)
+    assert math.isclose(to_effect_values("wiggling", {"h7_phase_rad": -math.pi - 0.5})["h7_phase_rad"],
+                        math.pi - 0.5)
+    assert to_effect_values("wiggling", {"h3_amplitude": 0.7})["h3_amplitude"] == 0.7  # not an angle

@@ -20,7 +20,7 @@ from tofhil.sim.sensor import OpticalSignal, SensorConfig, SensorModel
 C = 299_792_458.0
 F = 44.0e6
 NAMES = {"stray_light", "multipath", "wiggling", "range_offset", "fixed_pattern", "amplitude_dependent",
-         "lens_distortion", "ambient", "reflectance", "pose", "offset", "field_angle"}
+         "lens_distortion", "ambient", "reflectance", "pose", "offset", "field_angle", "illumination"}
 
 
 def _cam(w: int = 24, h: int = 18) -> CameraModel:

@@ -32,7 +32,8 @@ def _summary(res, report: Path) -> None:
     if res.causes:
         out.print(f"[bold]cause:[/bold] {' + '.join(res.causes)}")
         for e, p in res.params.items():
-            out.print(f"  {e}: " + ", ".join(f"{k} = {v:.4g}" for k, v in p.items()), highlight=False)
+            form = f" ({res.forms[e]} form)" if res.forms.get(e) else ""
+            out.print(f"  {e}{form}: " + ", ".join(f"{k} = {v:.4g}" for k, v in p.items()), highlight=False)
     worse = [c for c, v in res.channels.items() if v["worse"]]
     if worse:
         out.print(f"[bold red]worse after the fit:[/bold red] {', '.join(worse)}")
