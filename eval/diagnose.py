@@ -25,6 +25,7 @@ from tofhil.errors import TofhilError
 from tofhil.eval import metrics as M
 from tofhil.eval.depth_heldout import observable_candidates, split_for_diagnosis
 from tofhil.eval.heldout import HeldOutData, depth_from_signal
+from tofhil.eval.linear_forms import MAP_EFFECT, fit_frame_drift
 from tofhil.eval.observability import Observability, assess
 from tofhil.eval.selection import Selection, greedy_select
 from tofhil.eval.twin_model import TwinModel, to_effect_values
@@ -58,6 +59,8 @@ class DiagnosisResult:
     #: Each object's held-out misfit per value before and after, and whether it is above noise.
     objects: dict[str, dict[str, Any]] = field(default_factory=dict)
     observability: Observability = field(default_factory=Observability)
+    #: The per-frame drift test (``eval/linear_forms.py``): None when not searched.
+    drift: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict.to_json() if self.verdict else None, "channels": self.channels,
@@ -71,7 +74,7 @@ class DiagnosisResult:
                           "test_pixels": int(self.data.test_pixels.sum()),
                           "offset_channel": self.data.offset_channel},
                 "data_path": self.data.channels, "noise": self.data.noise,
-                "observability": self.observability.to_json()}
+                "observability": self.observability.to_json(), "drift": self.drift}
         # (the run time is in the report, not here: the same inputs give the same file, bit for bit)
 
 
@@ -91,6 +94,18 @@ HELD_OUT = "held-out"
 #: The pixels the held-out figures use, written next to the report: ``tofhil compare
 #: --mask`` with it gives the same figures for the capture against the twin.
 HELD_OUT_MASK = "heldout_pixels.npy"
+#: The name of the per-frame drift form among the candidates (it is not a scene effect).
+DRIFT = "drift"
+#: The fitted range offset map [H, W] (m), beside the extended scene that loads it.
+OFFSET_MAP_FILE = "range_offset_map.npy"
+
+
+def _json_params(effect: str, values: dict[str, Any], details: dict[str, Any] | None = None) -> dict[str, Any]:
+    """An effect's fitted values for diagnosis.json: a closed-form map's figures (the map
+    is in its .npy file), else the parameters."""
+    if details:
+        return dict(details)
+    return to_effect_values(effect, values)
 
 
 def heldout_frames(data: HeldOutData, prediction: np.ndarray, defined: np.ndarray) -> tuple[DepthFrame, DepthFrame]:
@@ -170,6 +185,9 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
     elif not selection.causes:
         lines.append("no effect of the library explains a significant part of the held-out residual"
                      + (" (the twin is consistent with the measurement within its noise)" if excess < 0.05 * n else ""))
+    for c in (c for rnd in selection.rounds[:1] for c in rnd if c.details.get("pixel_part")):
+        lines.append(f"{c.effect}: fitted form {c.details['form']} ({c.details['dof']:.1f} effective degrees of "
+                     f"freedom); per-pixel part {c.details['pixel_part']}")
     return lines
 
 
@@ -185,6 +203,10 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
 
     facts = capture_scene_facts(scene)
     unobservable = facts.unobservable
+    # the per-frame drift is a form of its own (not an effect of the scene): searched unless
+    # a candidate list leaves it out
+    want_drift = max_effects > 0 and (candidates is None or DRIFT in candidates)
+    candidates = None if candidates is None else [c for c in candidates if c != DRIFT]
     with open_session(session_path) as s:
         data = split_for_diagnosis(s, scene, block_px=block_px, max_frames=max_frames, valid_mask=facts.valid_mask,
                                    amplitude_model_error=facts.amplitude_model_error)
@@ -208,8 +230,20 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     # The extended scene: written, read back and re-rendered, so the gain is that of the file.
     ext_path = Path(extended_scene_path) if extended_scene_path else None
 
-    def extend(fitted: dict[str, dict[str, float]]) -> tuple[TwinModel, np.ndarray]:
-        ext_scene = dataclasses.replace(model.scene, effects=model.extended_effects_block(fitted))
+    map_path = ext_path.parent / OFFSET_MAP_FILE if ext_path is not None else None
+
+    def extend(fitted: dict[str, dict[str, Any]]) -> tuple[TwinModel, np.ndarray]:
+        if map_path is not None:
+            if MAP_EFFECT in fitted:
+                # the map goes to a .npy file beside the extended scene, which names it
+                np.save(map_path, np.asarray(fitted[MAP_EFFECT]["values"], dtype=np.float64))
+                fitted = fitted | {MAP_EFFECT: {"file": str(map_path.resolve())}}
+            else:
+                map_path.unlink(missing_ok=True)
+        block = model.extended_effects_block(fitted)
+        if map_path is not None and MAP_EFFECT in block:
+            block[MAP_EFFECT]["file"] = OFFSET_MAP_FILE  # relative to the scene file
+        ext_scene = dataclasses.replace(model.scene, effects=block)
         extended_text = scene_to_yaml(ext_scene)
         if ext_path is not None:
             ext_path.write_text(extended_text)
@@ -246,7 +280,15 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         selection.causes, selection.params = [], {}
         after_model, after_pred = extend({})
         _, ch_after, objects_after, worse = judge(after_pred, [])
-    params = {e: to_effect_values(e, v) for e, v in selection.params.items()}
+    drift = fit_frame_drift(model, data, selection.params, float(np.log(n))) if want_drift else None
+    if drift is not None:
+        evidence.append(drift.text)
+        if drift.named:
+            verdict.notes.append(drift.text)
+    params = {e: _json_params(e, v, selection.details.get(e)) for e, v in selection.params.items()}
+    for e in params:
+        if e == MAP_EFFECT:
+            params[e] = {"file": OFFSET_MAP_FILE if map_path is not None else None} | params[e]
     observability = assess(selection, model, data, block_px=block_px, unobservable=unobservable)
 
     # A predicted pixel is compared where its signal is above the noise and no predicted tap
@@ -266,9 +308,10 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         data, after_pred, nu, object_id, object_names, maps_after["depth_residual"], maps_after["amplitude_residual"])
     gain = {k: {"before": before[k], "after": after.get(k, float("nan"))} for k in before}
     regions = {"before": ev_before.to_json()["regions"], "after": ev_after.to_json()["regions"]}
-    ranked = [{"effect": c.effect, "params": to_effect_values(c.effect, c.params), "score": c.score,
+    ranked = [{"effect": c.effect, "params": _json_params(c.effect, c.params, c.details), "score": c.score,
                "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,
-               "chi2_test": c.chi2_test, "n_params": c.n_params, "worse_channels": c.worse_channels,
+               "chi2_test": c.chi2_test, "n_params": c.n_params, "dof": round(c.dof, 2),
+               "worse_channels": c.worse_channels,
                "at_bounds": c.at_bounds} for c in selection.first_round]
     rounds = [[{"effect": c.effect, "delta_score": c.delta_score, "relative_gain": c.relative_gain,
                 "significant": c.significant, "worse_channels": c.worse_channels} for c in rnd]
@@ -295,7 +338,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                            seconds=time.perf_counter() - t0, verdict=verdict, channels=channels,
                            residual_regions=[r.to_json() | {"text": r.describe()} for r in regions_left],
                            objects={k: {"before": objects_before.get(k), "after": v} for k, v in objects_after.items()},
-                           observability=observability)
+                           observability=observability, drift=None if drift is None else drift.to_json())
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,
@@ -310,7 +353,8 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
     from tofhil.eval.diagnose_report import write_report
     from tofhil.sim.scene import load_scene
 
-    names = ("diagnosis.json", "report.html", "extended_scene.yaml", HELD_OUT_MASK, "stray_light_psf.json")
+    names = ("diagnosis.json", "report.html", "extended_scene.yaml", HELD_OUT_MASK, "stray_light_psf.json",
+             OFFSET_MAP_FILE)
     try:
         out = H.prepare_output_dir(out_dir, names, force=force)
     except TofhilError as exc:
@@ -323,7 +367,7 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
     written: list[Path] = []
     try:
         out.mkdir(parents=True, exist_ok=True)
-        written.append(out / "extended_scene.yaml")
+        written += [out / "extended_scene.yaml", out / OFFSET_MAP_FILE]
         res = diagnose(session_path, scene, extended_scene_path=out / "extended_scene.yaml", progress=progress,
                        **kwargs)
         written.append(out / "diagnosis.json")

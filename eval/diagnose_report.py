@@ -114,6 +114,12 @@ def residual_region_table(res: Any) -> str:
     return "".join(rows)
 
 
+def _value(v: Any) -> str:
+    """A fitted parameter for the tables: numbers to 4 digits, anything else (a map's form,
+    its file) as it is."""
+    return f"{v:.4g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v)
+
+
 def write_report(res: Any, path: Path, *, session_path: str, scene_path: str) -> None:
     """The diagnosis page: cause, evidence, held-out gain, per-region table, figures, ranking."""
     esc = H.esc
@@ -133,7 +139,7 @@ def write_report(res: Any, path: Path, *, session_path: str, scene_path: str) ->
     if res.params:
         parts.append("<table><tr><th>effect</th><th>fitted parameters</th></tr>")
         for e, p in res.params.items():
-            parts.append(f"<tr><td>{esc(e)}</td><td>{esc(', '.join(f'{k} = {v:.4g}' for k, v in p.items()))}</td></tr>")
+            parts.append(f"<tr><td>{esc(e)}</td><td>{esc(', '.join(f'{k} = {_value(v)}' for k, v in p.items()))}</td></tr>")
         parts.append("</table>")
     parts.append("<h2>Gain on held-out data</h2><p class='note'>Held-out: the odd frames and the pixels of the "
                  "checkerboard blocks the fit did not see. The extended twin is the extended scene file, read back "
@@ -167,7 +173,7 @@ def write_report(res: Any, path: Path, *, session_path: str, scene_path: str) ->
     parts.append("<h2>Ranking</h2><table><tr><th>effect</th><th>held-out misfit removed</th><th>score gain</th>"
                  "<th>significant</th><th>channels worse</th><th>at a bound</th><th>parameters</th></tr>")
     for r in res.ranked:
-        p = ", ".join(f"{k} = {v:.4g}" for k, v in r["params"].items())
+        p = ", ".join(f"{k} = {_value(v)}" for k, v in r["params"].items())
         worse = ", ".join(r.get("worse_channels", []))
         parts.append(f"<tr><td>{esc(r['effect'])}</td><td>{100 * r['relative_gain']:.2f}%</td>"
                      f"<td>{r['delta_score']:.1f}</td><td>{'yes' if r['significant'] else 'no'}</td>"

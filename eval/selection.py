@@ -12,13 +12,15 @@ and by a stated fraction of the current misfit, and only if no channel (depth, a
 offset: ``verdict.channel_chi2``) gets worse by more than its noise: a fit that trades one
 channel for another is not a gain. ``k`` is an effect's effective number of degrees of freedom
 (``EffectSpec.dof``; its parameter count unless a regularised flexible form says less).
-Nothing here knows what an effect does.
+An effect with a ``closed_form`` fit (a map: many values, linear in the residual) is fitted
+by it instead of the optimiser, and its ``k`` is the effective degrees of freedom that fit
+reports (the trace of its hat matrix). Nothing here knows what an effect does.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Mapping, Protocol, Sequence
+from typing import Any, Callable, Mapping, Protocol, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -52,6 +54,9 @@ class EffectSpec:
     starts: tuple[dict[str, float], ...] = ()
     #: Effective degrees of freedom for the penalty (None: the number of parameters).
     dof: float | None = None
+    #: A closed-form fit on the training data instead of the optimiser (flexible map forms):
+    #: ``(model, data, current effects, penalty per dof) -> (values, effective dof, details)``.
+    closed_form: Callable[..., tuple[dict[str, Any], float, dict[str, Any]]] | None = None
 
     @property
     def k(self) -> float:
@@ -83,6 +88,10 @@ class Candidate:
     at_bounds: list[str] = field(default_factory=list)
     #: Held-out misfit per channel with this effect: {channel: (chi2, n values)}.
     channels: dict[str, tuple[float, int]] = field(default_factory=dict, repr=False)
+    #: Effective degrees of freedom in the penalty (``n_params`` unless regularised).
+    dof: float = 0.0
+    #: What a closed-form fit reports about itself (form, strengths, parts).
+    details: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -102,6 +111,8 @@ class Selection:
     #: Held-out misfit per channel of the base twin and of the final fit.
     channels_before: dict[str, tuple[float, int]] = field(default_factory=dict)
     channels_after: dict[str, tuple[float, int]] = field(default_factory=dict)
+    #: Per cause fitted in closed form, what its fit reports (form, dof, strengths).
+    details: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     @property
     def first_round(self) -> list[Candidate]:
@@ -133,7 +144,8 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
     ``new_effect``, also from its extra starting points; keeps the best training fit.
     """
     lib = model.library()
-    free = list(active if free is None else free)
+    # effects without optimiser parameters (closed-form maps) keep their values
+    free = [e for e in (active if free is None else free) if lib[e].params]
     fixed = {e: dict(start.get(e, {})) for e in active if e not in free}
     for e in fixed:
         for p in lib[e].params:
@@ -222,6 +234,10 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     penalty = np.log(n_test)
     active: list[str] = []
     params: EffectParams = {}
+    dofs: dict[str, float] = {}  # effective dof of the closed-form fits chosen
+
+    def k_of(e: str) -> float:
+        return dofs.get(e, lib[e].k)
     base_pred = model.predict({})
     current_chi2 = data.chi2(base_pred, "test")
     current_channels = channel_chi2(data, base_pred)
@@ -230,7 +246,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                           n_test=n_test, searched=max_effects > 0, channels_before=current_channels,
                           channels_after=current_channels)
     while len(active) < max_effects:
-        current_k = sum(lib[e].k for e in active)
+        current_k = sum(k_of(e) for e in active)
         current_score = current_chi2 + current_k * penalty
         excess = max(current_chi2 - n_test, 0.0)
         round_: list[Candidate] = []
@@ -240,16 +256,22 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
             if progress:
                 progress(f"fitting {name}")
             trial = active + [name]
+            k_new, details = lib[name].k, {}
             # forward stagewise: the new effect is fitted with the earlier ones held; the
             # chosen set is refitted jointly below
-            fitted, chi2_train = fit(model, data, trial, params, new_effect=name, free=[name])
+            if lib[name].closed_form is not None:
+                values, k_new, details = lib[name].closed_form(model, data, params, penalty)
+                fitted = {e: params[e] for e in active} | {name: values}
+                chi2_train = data.chi2(model.predict(fitted), "train")
+            else:
+                fitted, chi2_train = fit(model, data, trial, params, new_effect=name, free=[name])
             pred = model.predict(fitted)
             chi2_test = data.chi2(pred, "test")
             channels = channel_chi2(data, pred)
             # worse than the current model or, summed over rounds, than the base twin
             worse = sorted(set(worse_channels(current_channels, channels))
                            | set(worse_channels(selection.channels_before, channels)))
-            score = chi2_test + (current_k + lib[name].k) * penalty
+            score = chi2_test + (current_k + k_new) * penalty
             gain = current_chi2 - chi2_test
             gains = bool(current_score - score > 0 and excess > 0 and gain > min_relative_gain * excess
                          and gain > min_gain_per_value * n_test)
@@ -258,7 +280,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                              relative_gain=gain / current_chi2 if current_chi2 > 0 else 0.0,
                              significant=gains and not worse, n_params=len(lib[name].params),
                              all_params=fitted, worse_channels=worse, at_bounds=pinned(lib[name], fitted[name]),
-                             channels=channels)
+                             channels=channels, dof=float(k_new), details=details)
             if gains and worse and name not in selection.rejected_for_channels:
                 selection.rejected_for_channels.append(name)
             round_.append(cand)
@@ -269,6 +291,9 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         if chosen is None:
             break
         active.append(chosen.effect)
+        dofs[chosen.effect] = chosen.dof
+        if chosen.details:
+            selection.details[chosen.effect] = chosen.details
         params = chosen.all_params
         current_chi2 = chosen.chi2_test
         before_round = current_channels

@@ -35,11 +35,14 @@ def to_fitted(p: Param, value: float) -> float:
     return math.log10(value) if p.log else float(value)
 
 
-def to_effect_values(effect: str, fitted: Mapping[str, float]) -> dict[str, float]:
-    """Fitted parameters -> the effect's own parameter names (undo log scales)."""
-    out: dict[str, float] = {}
+def to_effect_values(effect: str, fitted: Mapping[str, Any]) -> dict[str, Any]:
+    """Fitted parameters -> the effect's own parameter names (undo log scales); a closed-form
+    fit's values (a map) pass through."""
+    out: dict[str, Any] = {}
     for k, v in fitted.items():
-        if k.startswith(LOG_PREFIX):
+        if isinstance(v, np.ndarray):
+            out[k] = v
+        elif k.startswith(LOG_PREFIX):
             out[k[len(LOG_PREFIX):]] = float(10.0 ** v)
         else:
             out[k] = float(v)
@@ -66,8 +69,20 @@ def fit_library(current: Callable[[str, str], float] | None = None,
             for v in p.starts:
                 starts.append({**first, fitted_name(k, p): to_fitted(p, v)})
         starts += list((extra_starts or {}).get(name, ()))
-        lib[name] = EffectSpec(tuple(fps), tuple(starts))
+        lib[name] = EffectSpec(tuple(fps), tuple(starts), closed_form=CLOSED_FORM.get(name))
     return lib
+
+
+def _fit_offset_map(model: Any, data: HeldOutData, current: EffectParams,
+                    penalty_per_dof: float) -> tuple[dict[str, Any], float, dict[str, Any]]:
+    from tofhil.eval.linear_forms import fit_offset_map
+
+    m = fit_offset_map(model, data, current, penalty_per_dof)
+    return {"values": m.map_m}, m.dof, m.summary()
+
+
+#: Effects fitted in closed form rather than by the optimiser (``EffectSpec.closed_form``).
+CLOSED_FORM = {"range_offset_map": _fit_offset_map}
 
 
 def session_setup_for(scene: Any, data: HeldOutData) -> Any:
