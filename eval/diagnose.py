@@ -170,7 +170,9 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
         runner = next((c for c in rnd if c is not best), None)
         verdict = "selected" if chosen is not None else "not significant"
         lines.append(f"round {i + 1}: best {best.effect} removes {100 * best.relative_gain:.1f}% of the held-out "
-                     f"misfit (score gain {best.delta_score:.0f}, {best.n_params} parameters) -- {verdict}"
+                     f"misfit (score gain {best.delta_score:.0f}, "
+                     + (f"{best.dof:.0f} effective degrees of freedom" if best.details else f"{best.n_params} parameters")
+                     + f") -- {verdict}"
                      + (f"; runner-up {runner.effect} {100 * runner.relative_gain:.1f}%" if runner else ""))
     for i, rnd in enumerate(selection.rounds):
         for c in rnd:
@@ -240,11 +242,16 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                 fitted = fitted | {MAP_EFFECT: {"file": str(map_path.resolve())}}
             else:
                 map_path.unlink(missing_ok=True)
-        block = model.extended_effects_block(fitted)
-        if map_path is not None and MAP_EFFECT in block:
-            block[MAP_EFFECT]["file"] = OFFSET_MAP_FILE  # relative to the scene file
-        ext_scene = dataclasses.replace(model.scene, effects=block)
+        ext_scene = dataclasses.replace(model.scene, effects=model.extended_effects_block(fitted))
         extended_text = scene_to_yaml(ext_scene)
+        if map_path is not None and MAP_EFFECT in fitted:
+            # the file named relative to the scene file: the output directory can be moved
+            import yaml
+
+            header, body = extended_text.split("\n", 1)
+            doc = yaml.safe_load(body)
+            doc["effects"][MAP_EFFECT]["file"] = OFFSET_MAP_FILE
+            extended_text = header + "\n" + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
         if ext_path is not None:
             ext_path.write_text(extended_text)
             reloaded = load_scene(ext_path)

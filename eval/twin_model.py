@@ -37,10 +37,10 @@ def to_fitted(p: Param, value: float) -> float:
 
 def to_effect_values(effect: str, fitted: Mapping[str, Any]) -> dict[str, Any]:
     """Fitted parameters -> the effect's own parameter names (undo log scales); a closed-form
-    fit's values (a map) pass through."""
+    fit's values (a map, its file) pass through."""
     out: dict[str, Any] = {}
     for k, v in fitted.items():
-        if isinstance(v, np.ndarray):
+        if isinstance(v, (np.ndarray, str)):
             out[k] = v
         elif k.startswith(LOG_PREFIX):
             out[k[len(LOG_PREFIX):]] = float(10.0 ** v)
