@@ -9,7 +9,14 @@ cause while the held-out misfit, depth RMSE or amplitude RMSE got worse, or a ch
 beyond its noise (must be 0). Null seeds give the false-alarm rate (any effect named).
 
     python benchmarks/diagnose_sweep.py [--seeds 5] [--null-seeds 20] [--effects offset,field_angle]
-        [--scene bench_demo] [--width 80]
+        [--forms offset_map,drift] [--scene bench_demo] [--width 80] [--null-frames 4]
+
+``--forms`` adds hidden forms the library has no parametric effect for (tests/eval/hidden_forms.py,
+applied to the light between render and sensor): ``offset_map`` random per-column (8 mm) and
+per-pixel (6 mm) range offsets in a 32-frame session, expected as ``range_offset_map``;
+``drift`` a range drift linear over 8 frames (8-15 mm first to last), expected as the per-frame
+drift with no effect named. ``--effects none`` runs only the forms. A null seed counts as a
+false alarm when any effect or the drift is named.
 
 The same study as a sweep spec (one representative value per effect, parallel on Dask,
 resumable, one table): ``tofhil sweep configs/sweeps/diagnose_effects.yaml --out DIR``.
@@ -19,9 +26,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
@@ -30,6 +39,21 @@ from tofhil.sim.pipeline import simulate_session
 from tofhil.sim.scene import load_scene
 
 from diagnose_cases import CASES  # benchmarks/ is on the path when this file runs as a script
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests/eval/hidden_forms.py
+from tests.eval import hidden_forms as hf  # noqa: E402
+
+#: Hidden forms outside the library: name -> (draw(rng) -> session arguments, expected outcome).
+FORMS: dict[str, tuple[Callable[[np.random.Generator], dict[str, Any]], Callable[[Any], bool]]] = {
+    "offset_map": (lambda r: {"change": hf.column_row_offsets(r), "frames": 32},
+                   lambda res: res.causes == ["range_offset_map"]),
+    "drift": (lambda r: {"frame_change": hf.linear_drift(r), "frames": 8},
+              lambda res: bool(res.drift and res.drift["named"]) and not res.causes),
+}
+
+
+def false_alarm(res) -> bool:
+    return bool(res.causes or (res.drift and res.drift["named"]))
 
 
 def loss(res) -> bool:
@@ -50,30 +74,48 @@ def main() -> None:
     ap.add_argument("--scene", default="bench_demo")
     ap.add_argument("--width", type=int, default=80)
     ap.add_argument("--max-effects", type=int, default=2)
+    ap.add_argument("--forms", default="", help="comma-separated hidden forms outside the library: "
+                    + ", ".join(FORMS))
+    ap.add_argument("--null-frames", type=int, default=4, help="frames of each null session")
     args = ap.parse_args()
-    names = [e for e in args.effects.split(",") if e] or list(CASES)
+    names = [] if args.effects == "none" else [e for e in args.effects.split(",") if e] or list(CASES)
+    forms = [f for f in args.forms.split(",") if f]
+    for f in forms:
+        if f not in FORMS:
+            ap.error(f"unknown form {f!r}: one of {', '.join(FORMS)}")
     scene = load_scene(args.scene)
     scene = dataclasses.replace(scene, camera=scene.camera.scaled(args.width / scene.camera.width))
     print(f"{'hidden':20s} {'seed':>4s} {'named':28s} {'verdict':18s} {'removed':>7s} {'misfit before':>13s} "
           f"{'after':>7s} {'depth mm':>8s} {'after':>6s} {'loss':>4s} {'s':>5s}")
     rows: dict[str, list[tuple[bool, bool, float, bool]]] = {}
-    runs = [(n, s) for n in names for s in range(args.seeds)] + [("none", s) for s in range(args.null_seeds)]
+    runs = ([(n, s) for n in names + forms for s in range(args.seeds)]
+            + [("none", s) for s in range(args.null_seeds)])
     with tempfile.TemporaryDirectory() as tmp:
         for name, seed in runs:
-            rng = np.random.default_rng(1000 * seed + (names.index(name) + 1 if name in names else 0))
-            hidden = {} if name == "none" else {name: CASES[name](rng)}
+            rng = np.random.default_rng(1000 * seed + ((names + forms).index(name) + 1 if name != "none" else 0))
             path = Path(tmp) / f"{name}_{seed}.h5"
-            simulate_session(scene, path, frames=4, seed=int(rng.integers(10_000)), noise=True, effects=hidden)
+            if name in FORMS:
+                kw = FORMS[name][0](rng)
+                hf.write_session(scene, path, kw.get("change"), frames=kw["frames"], seed=int(rng.integers(10_000)),
+                                 frame_change=kw.get("frame_change"))
+            else:
+                hidden = {} if name == "none" else {name: CASES[name](rng)}
+                simulate_session(scene, path, frames=4 if name != "none" else args.null_frames,
+                                 seed=int(rng.integers(10_000)), noise=True, effects=hidden)
             t0 = time.perf_counter()
             res = diagnose(path, scene, max_effects=args.max_effects)
             dt = time.perf_counter() - t0
-            ok = res.causes == ([] if name == "none" else [name])
+            if name in FORMS:
+                ok = FORMS[name][1](res)
+            else:
+                ok = not false_alarm(res) if name == "none" else res.causes == [name]
             v = res.verdict
             removed = float("nan") if v.excess_removed is None else v.excess_removed
             lost = loss(res)
             rows.setdefault(name, []).append((ok, v.kind == "explained", removed, lost))
             pct = "-" if not np.isfinite(removed) else f"{100 * removed:.0f}%"
-            print(f"{name:20s} {seed:4d} {'+'.join(res.causes) or '-':28s} {v.kind:18s} {pct:>7s} "
+            named = "+".join(res.causes + (["drift"] if res.drift and res.drift["named"] else [])) or "-"
+            print(f"{name:20s} {seed:4d} {named:28s} {v.kind:18s} {pct:>7s} "
                   f"{res.chi2_per_value['before']:13.2f} {res.chi2_per_value['after_extended_scene']:7.2f} "
                   f"{res.gain['depth_rmse_m']['before'] * 1e3:8.1f} {res.gain['depth_rmse_m']['after'] * 1e3:6.1f} "
                   f"{'LOSS' if lost else '-':>4s} {dt:5.1f}", flush=True)

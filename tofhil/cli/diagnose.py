@@ -32,7 +32,11 @@ def _summary(res, report: Path) -> None:
     if res.causes:
         out.print(f"[bold]cause:[/bold] {' + '.join(res.causes)}")
         for e, p in res.params.items():
-            out.print(f"  {e}: " + ", ".join(f"{k} = {v:.4g}" for k, v in p.items()), highlight=False)
+            # a closed-form map reports its form and file, not numbers only
+            out.print(f"  {e}: " + ", ".join(f"{k} = {v:.4g}" if isinstance(v, (int, float)) else f"{k} = {v}"
+                                            for k, v in p.items()), highlight=False)
+    if res.drift is not None and res.drift["named"]:
+        out.print(f"[bold]drift:[/bold] {lit(res.drift['text'])}", highlight=False)
     worse = [c for c, v in res.channels.items() if v["worse"]]
     if worse:
         out.print(f"[bold red]worse after the fit:[/bold red] {', '.join(worse)}")
