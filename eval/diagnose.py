@@ -290,7 +290,16 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     drift = fit_frame_drift(model, data, selection.params, float(np.log(n))) if want_drift else None
     if drift is not None:
         evidence.append(drift.text)
-        if drift.named:
+        if drift.named and verdict.kind in ("within noise", "unexplained"):
+            # the frames' mean hides a drift (it inflates the frame-to-frame noise instead): the
+            # verdict is the drift's, on the held-out pixels of every frame
+            verdict = V.verdict(searched=True, causes=[DRIFT], n_values=drift.n_values, nu=nu,
+                                before_per_value=drift.chi2_static / drift.n_values,
+                                after_per_value=drift.chi2_drift / drift.n_values, worse=[],
+                                objects_before=objects_before, objects_after=objects_before, pinned={},
+                                rejected_for_channels=[])
+            verdict.notes.append(drift.text)
+        elif drift.named:
             verdict.notes.append(drift.text)
     params = {e: _json_params(e, v, selection.details.get(e)) for e, v in selection.params.items()}
     for e in params:
