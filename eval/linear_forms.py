@@ -1,4 +1,5 @@
-"""Flexible map forms fitted in closed form: the fixed-pattern range offset map.
+"""Flexible forms fitted in closed form: the fixed-pattern range offset map, and the
+per-frame drift.
 
 A per-column, per-row or per-pixel range offset is not a few scalars, so the optimiser over
 ``Param``s does not fit it. It is linear in the residual: with the twin's prediction ``P`` and
@@ -27,15 +28,19 @@ effective degrees of freedom are the trace of the hat matrix of the parts that r
 held-out score (columns and rows: ``tr((X'WX + L)^-1 X'WX)``; pixels: the sum of ``s`` over
 the held-out pixels), reported through :attr:`EffectSpec.dof <tofhil.eval.selection.EffectSpec>`
 so the selection penalises the map for what it can fit.
+
+The per-frame drift (:func:`fit_frame_drift`) is the same linearisation frame by frame: one
+offset per frame from its training pixels, smooth in time, scored on every frame's held-out
+pixels against a constant.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-
 from scipy.ndimage import uniform_filter
 
 from tofhil import C_M_PER_S
@@ -45,7 +50,7 @@ from tofhil.eval.heldout import NOISE_POOL_PX, HeldOutData
 MAP_EFFECT = "range_offset_map"
 #: Radial offset of the linearisation (m): small against the wrap, large against round-off.
 EPS_M = 1e-3
-#: Ridge strengths tried, relative to the median weight of a column (about one per decade/2).
+#: Ridge strengths tried, relative to the median weight of a column (two per decade).
 RIDGE_GRID = 10.0 ** np.arange(-3.0, 2.01, 0.5)
 
 
@@ -307,6 +312,4 @@ def fit_frame_drift(model: Any, data: HeldOutData, current: dict[str, dict[str, 
 
 def _one_frame(data: HeldOutData, s: np.ndarray, var1: np.ndarray) -> HeldOutData:
     """``data`` with one frame as its training part (the whitening of that frame)."""
-    import dataclasses
-
     return dataclasses.replace(data, s_train=s, var_train=var1, n_train_frames=1)
