@@ -328,7 +328,8 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
                                  + (f"; binned {b} x {b} pixels" if b > 1 else "")
                                  + ("; the device's confidence is stored but not used as noise (frames give the "
                                     "noise)" if conf_seen and n >= 2 else "")),
-                       noise=noise, phase_ref=ref, radial_var_scale=radial_scale)
+                       noise=noise, phase_ref=ref, radial_var_scale=radial_scale, frames_held_out=n >= 2,
+                       s_frames=s_all if n >= 2 else None)
 
 
 def split_for_diagnosis(session: Session, scene: Any, *, block_px: int = 8, max_frames: int | None = None,

@@ -25,6 +25,7 @@ from tofhil.errors import TofhilError
 from tofhil.eval import metrics as M
 from tofhil.eval.depth_heldout import observable_candidates, split_for_diagnosis
 from tofhil.eval.heldout import HeldOutData, depth_from_signal
+from tofhil.eval.linear_forms import MAP_EFFECT, fit_frame_drift
 from tofhil.eval.observability import Observability, assess
 from tofhil.eval.selection import Selection, greedy_select
 from tofhil.eval.twin_model import TwinModel, to_effect_values
@@ -63,6 +64,8 @@ class DiagnosisResult:
     structure: list[dict[str, Any]] = field(default_factory=list)
     #: Per cause, the form fitted ("" the effect's simple form, else a flexible form's name).
     forms: dict[str, str] = field(default_factory=dict)
+    #: The per-frame drift test (``eval/linear_forms.py``): None when not searched.
+    drift: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict.to_json() if self.verdict else None, "channels": self.channels,
@@ -76,7 +79,8 @@ class DiagnosisResult:
                           "test_pixels": int(self.data.test_pixels.sum()),
                           "offset_channel": self.data.offset_channel},
                 "data_path": self.data.channels, "noise": self.data.noise,
-                "observability": self.observability.to_json(), "residual_structure": self.structure}
+                "observability": self.observability.to_json(), "residual_structure": self.structure,
+                "drift": self.drift}
         # (the run time is in the report, not here: the same inputs give the same file, bit for bit)
 
 
@@ -96,6 +100,18 @@ HELD_OUT = "held-out"
 #: The pixels the held-out figures use, written next to the report: ``tofhil compare
 #: --mask`` with it gives the same figures for the capture against the twin.
 HELD_OUT_MASK = "heldout_pixels.npy"
+#: The name of the per-frame drift form among the candidates (it is not a scene effect).
+DRIFT = "drift"
+#: The fitted range offset map [H, W] (m), beside the extended scene that loads it.
+OFFSET_MAP_FILE = "range_offset_map.npy"
+
+
+def _json_params(effect: str, values: dict[str, Any], details: dict[str, Any] | None = None) -> dict[str, Any]:
+    """An effect's fitted values for diagnosis.json: a closed-form map's figures (the map
+    is in its .npy file), else the parameters."""
+    if details:
+        return dict(details)
+    return to_effect_values(effect, values)
 
 
 def heldout_frames(data: HeldOutData, prediction: np.ndarray, defined: np.ndarray) -> tuple[DepthFrame, DepthFrame]:
@@ -190,7 +206,9 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
         others = [f or "simple" for f in best.forms if f != best.form]
         form = f" ({best.form or 'simple'} form; preferred over {', '.join(others)})" if others else ""
         lines.append(f"round {i + 1}: best {best.effect}{form} removes {100 * best.relative_gain:.1f}% of the held-out "
-                     f"misfit (score gain {best.delta_score:.0f}, {best.dof:g} degrees of freedom) -- {verdict}"
+                     f"misfit (score gain {best.delta_score:.0f}, "
+                     + (f"{best.dof:.0f} effective degrees of freedom" if best.details else f"{best.dof:g} degrees of freedom")
+                     + f") -- {verdict}"
                      + (f"; runner-up {runner.effect} {100 * runner.relative_gain:.1f}%" if runner else ""))
     for i, rnd in enumerate(selection.rounds):
         for c in rnd:
@@ -205,6 +223,9 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
     elif not selection.causes:
         lines.append("no effect of the library explains a significant part of the held-out residual"
                      + (" (the twin is consistent with the measurement within its noise)" if excess < 0.05 * n else ""))
+    for c in (c for rnd in selection.rounds[:1] for c in rnd if c.details.get("pixel_part")):
+        lines.append(f"{c.effect}: fitted form {c.details['form']} ({c.details['dof']:.1f} effective degrees of "
+                     f"freedom); per-pixel part {c.details['pixel_part']}")
     return lines
 
 
@@ -220,6 +241,10 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
 
     facts = capture_scene_facts(scene)
     unobservable = facts.unobservable
+    # the per-frame drift is a form of its own (not an effect of the scene): searched unless
+    # a candidate list leaves it out
+    want_drift = max_effects > 0 and (candidates is None or DRIFT in candidates)
+    candidates = None if candidates is None else [c for c in candidates if c != DRIFT]
     with open_session(session_path) as s:
         data = split_for_diagnosis(s, scene, block_px=block_px, max_frames=max_frames, valid_mask=facts.valid_mask,
                                    amplitude_model_error=facts.amplitude_model_error)
@@ -243,9 +268,26 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     # The extended scene: written, read back and re-rendered, so the gain is that of the file.
     ext_path = Path(extended_scene_path) if extended_scene_path else None
 
-    def extend(fitted: dict[str, dict[str, float]]) -> tuple[TwinModel, np.ndarray]:
+    map_path = ext_path.parent / OFFSET_MAP_FILE if ext_path is not None else None
+
+    def extend(fitted: dict[str, dict[str, Any]]) -> tuple[TwinModel, np.ndarray]:
+        if map_path is not None:
+            if MAP_EFFECT in fitted:
+                # the map goes to a .npy file beside the extended scene, which names it
+                np.save(map_path, np.asarray(fitted[MAP_EFFECT]["values"], dtype=np.float64))
+                fitted = fitted | {MAP_EFFECT: {"file": str(map_path.resolve())}}
+            else:
+                map_path.unlink(missing_ok=True)
         ext_scene = dataclasses.replace(model.scene, effects=model.extended_effects_block(fitted))
         extended_text = scene_to_yaml(ext_scene)
+        if map_path is not None and MAP_EFFECT in fitted:
+            # the file named relative to the scene file: the output directory can be moved
+            import yaml
+
+            header, body = extended_text.split("\n", 1)
+            doc = yaml.safe_load(body)
+            doc["effects"][MAP_EFFECT]["file"] = OFFSET_MAP_FILE
+            extended_text = header + "\n" + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
         if ext_path is not None:
             ext_path.write_text(extended_text)
             reloaded = load_scene(ext_path)
@@ -289,7 +331,24 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         selection.causes, selection.params = [], {}
         after_model, after_pred = extend({})
         _, ch_after, objects_after, worse = judge(after_pred, [])
-    params = {e: to_effect_values(e, v) for e, v in selection.params.items()}
+    drift = fit_frame_drift(model, data, selection.params, float(np.log(n))) if want_drift else None
+    if drift is not None:
+        evidence.append(drift.text)
+        if drift.named and verdict.kind in ("within noise", "unexplained"):
+            # the frames' mean hides a drift (it inflates the frame-to-frame noise instead): the
+            # verdict is the drift's, on the held-out pixels of every frame
+            verdict = V.verdict(searched=True, causes=[DRIFT], n_values=drift.n_values, nu=nu,
+                                before_per_value=drift.chi2_static / drift.n_values,
+                                after_per_value=drift.chi2_drift / drift.n_values, worse=[],
+                                objects_before=objects_before, objects_after=objects_before, pinned={},
+                                rejected_for_channels=[])
+            verdict.notes.append(drift.text)
+        elif drift.named:
+            verdict.notes.append(drift.text)
+    params = {e: _json_params(e, v, selection.details.get(e)) for e, v in selection.params.items()}
+    for e in params:
+        if e == MAP_EFFECT:
+            params[e] = {"file": OFFSET_MAP_FILE if map_path is not None else None} | params[e]
     observability = assess(selection, model, data, block_px=block_px, unobservable=unobservable)
 
     # A predicted pixel is compared where its signal is above the noise and no predicted tap
@@ -318,10 +377,11 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                                      "the misfit that chose the cause weighs pixels by their noise and caps outliers, "
                                      "the RMSE does not")
     regions = {"before": ev_before.to_json()["regions"], "after": ev_after.to_json()["regions"]}
-    ranked = [{"effect": c.effect, "params": to_effect_values(c.effect, c.params), "score": c.score,
+    ranked = [{"effect": c.effect, "params": _json_params(c.effect, c.params, c.details), "score": c.score,
                "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,
                "chi2_test": c.chi2_test, "n_params": c.n_params, "worse_channels": c.worse_channels,
-               "at_bounds": c.at_bounds, "form": c.form, "dof": c.dof, "forms": c.forms} for c in selection.first_round]
+               "at_bounds": c.at_bounds, "form": c.form, "dof": round(c.dof, 2), "forms": c.forms}
+              for c in selection.first_round]
     rounds = [[{"effect": c.effect, "form": c.form, "delta_score": c.delta_score, "relative_gain": c.relative_gain,
                 "significant": c.significant, "worse_channels": c.worse_channels} for c in rnd]
               for rnd in selection.rounds]
@@ -349,7 +409,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                            residual_regions=[r.to_json() | {"text": r.describe()} for r in regions_left],
                            objects={k: {"before": objects_before.get(k), "after": v} for k, v in objects_after.items()},
                            observability=observability, structure=[f.to_json() for f in structure],
-                           forms={e: selection.forms.get(e, "") for e in selection.causes})
+                           forms={e: selection.forms.get(e, "") for e in selection.causes},
+                           drift=None if drift is None else drift.to_json())
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,
@@ -364,7 +425,8 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
     from tofhil.eval.diagnose_report import write_report
     from tofhil.sim.scene import load_scene
 
-    names = ("diagnosis.json", "report.html", "extended_scene.yaml", HELD_OUT_MASK, "stray_light_psf.json")
+    names = ("diagnosis.json", "report.html", "extended_scene.yaml", HELD_OUT_MASK, "stray_light_psf.json",
+             OFFSET_MAP_FILE)
     try:
         out = H.prepare_output_dir(out_dir, names, force=force)
     except TofhilError as exc:
@@ -377,7 +439,7 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
     written: list[Path] = []
     try:
         out.mkdir(parents=True, exist_ok=True)
-        written.append(out / "extended_scene.yaml")
+        written += [out / "extended_scene.yaml", out / OFFSET_MAP_FILE]
         res = diagnose(session_path, scene, extended_scene_path=out / "extended_scene.yaml", progress=progress,
                        **kwargs)
         written.append(out / "diagnosis.json")

@@ -125,6 +125,12 @@ def structure_list(res: Any) -> str:
               "probability 1e-3); see docs/diagnose.md, residual structure.</p>")
 
 
+def _value(v: Any) -> str:
+    """A fitted parameter for the tables: numbers to 4 digits, anything else (a map's form,
+    its file) as it is."""
+    return f"{v:.4g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v)
+
+
 def write_report(res: Any, path: Path, *, session_path: str, scene_path: str) -> None:
     """The diagnosis page: cause, evidence, held-out gain, per-region table, figures, ranking."""
     esc = H.esc
@@ -146,7 +152,7 @@ def write_report(res: Any, path: Path, *, session_path: str, scene_path: str) ->
         parts.append("<table><tr><th>effect</th><th>fitted parameters</th></tr>")
         for e, p in res.params.items():
             form = res.forms.get(e, "")
-            parts.append(f"<tr><td>{esc(e)}{esc(f' ({form} form)' if form else '')}</td><td>{esc(', '.join(f'{k} = {v:.4g}' for k, v in p.items()))}</td></tr>")
+            parts.append(f"<tr><td>{esc(e)}{esc(f' ({form} form)' if form else '')}</td><td>{esc(', '.join(f'{k} = {_value(v)}' for k, v in p.items()))}</td></tr>")
         parts.append("</table>")
     parts.append("<h2>Gain on held-out data</h2><p class='note'>Held-out: the odd frames and the pixels of the "
                  "checkerboard blocks the fit did not see. The extended twin is the extended scene file, read back "
@@ -180,7 +186,7 @@ def write_report(res: Any, path: Path, *, session_path: str, scene_path: str) ->
     parts.append("<h2>Ranking</h2><table><tr><th>effect</th><th>held-out misfit removed</th><th>score gain</th>"
                  "<th>significant</th><th>channels worse</th><th>at a bound</th><th>parameters</th></tr>")
     for r in res.ranked:
-        p = ", ".join(f"{k} = {v:.4g}" for k, v in r["params"].items())
+        p = ", ".join(f"{k} = {_value(v)}" for k, v in r["params"].items())
         worse = ", ".join(r.get("worse_channels", []))
         parts.append(f"<tr><td>{esc(r['effect'])}</td><td>{100 * r['relative_gain']:.2f}%</td>"
                      f"<td>{r['delta_score']:.1f}</td><td>{'yes' if r['significant'] else 'no'}</td>"

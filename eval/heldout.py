@@ -57,6 +57,17 @@ class HeldOutData:
     #: isotropic noise (raw taps).
     phase_ref: np.ndarray | None = None
     radial_var_scale: np.ndarray | None = None
+    #: False when the training and the held-out data are the same frame (a one-frame depth
+    #: session): then nothing fitted per pixel can be scored.
+    frames_held_out: bool = True
+    #: Every frame's signal ``[N, C, H, W]`` (even frames train, odd frames test), for forms
+    #: that change from frame to frame (drift); None when not kept.
+    s_frames: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def var_frame(self) -> np.ndarray:
+        """Noise variance of one frame per real component ``[C, H, W]``."""
+        return self.var_train * self.n_train_frames
 
     @property
     def n_freq(self) -> int:
@@ -77,17 +88,6 @@ class HeldOutData:
         r = self.whitened(prediction, part)
         return float(huber(r.real).sum() + huber(r.imag).sum())
 
-    def part(self, part: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Signal, noise variance and pixel mask of one part: ``test``, ``train``, or
-        ``test_frames`` (every usable pixel of the held-out frames: maps, not scores)."""
-        if part == "test":
-            return self.s_test, self.var_test, self.test_pixels
-        if part == "train":
-            return self.s_train, self.var_train, self.train_pixels
-        if part == "test_frames":
-            return self.s_test, self.var_test, self.usable
-        raise ValueError(part)
-
     def whitened(self, prediction: np.ndarray, part: str = "test") -> np.ndarray:
         """Complex (measured - predicted) / sigma ``[C, N]`` over a part's pixels; for depth
         sessions the real part is the amplitude residual along the measured phasor, the
@@ -106,6 +106,16 @@ class HeldOutData:
         across = a_meas * ((p / np.maximum(np.abs(p), 1e-30)) * np.conj(u)).imag
         v = var[:, mask]
         return radial / np.sqrt(v * self.radial_var_scale[:, mask]) + 1j * (across / np.sqrt(v))
+
+    def part(self, part: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(mean signal, variance, pixels) of a part: ``test`` / ``train`` (the held-out or
+        training frames on their own pixel blocks) or ``test_frames`` / ``train_frames`` (those
+        frames on every usable pixel: for forms fitted per pixel, scored on other frames)."""
+        if part in ("test", "test_frames"):
+            return self.s_test, self.var_test, self.test_pixels if part == "test" else self.usable
+        if part in ("train", "train_frames"):
+            return self.s_train, self.var_train, self.train_pixels if part == "train" else self.usable
+        raise ValueError(f"unknown part {part!r}")
 
     def n_values(self, part: str = "test") -> int:
         """Real-valued data points in one part (2 per complex signal value, 1 per offset)."""
@@ -208,4 +218,4 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
                        n_train_frames=len(train_idx), n_test_frames=len(test_idx),
                        offset_channel=bool(offset_channel),
                        sensor_config=getattr(session, "sensor_config", None), source=str(session.path),
-                       tap_limits=limits)
+                       tap_limits=limits, s_frames=s)

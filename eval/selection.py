@@ -12,14 +12,16 @@ and by a stated fraction of the current misfit, and only if no channel (depth, a
 offset: ``verdict.channel_chi2``) gets worse by more than its noise: a fit that trades one
 channel for another is not a gain. ``k`` is an effect's effective number of degrees of freedom
 (``EffectSpec.dof``; its parameter count unless a regularised flexible form says less).
-Nothing here knows what an effect does.
+An effect with a ``closed_form`` fit (a map: many values, linear in the residual) is fitted
+by it instead of the optimiser, and its ``k`` is the effective degrees of freedom that fit
+reports (the trace of its hat matrix). Nothing here knows what an effect does.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Callable, Mapping, Protocol, Sequence
+from typing import Any, Callable, Mapping, Protocol, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -61,6 +63,9 @@ class EffectSpec:
     #: beside this (simple) form and replaces it only when it earns its extra degrees of
     #: freedom on held-out data (:func:`choose_form`).
     forms: tuple["EffectSpec", ...] = ()
+    #: A closed-form fit on the training data instead of the optimiser (flexible map forms):
+    #: ``(model, data, current effects, penalty per dof) -> (values, effective dof, details)``.
+    closed_form: Callable[..., tuple[dict[str, Any], float, dict[str, Any]]] | None = None
 
     @property
     def k(self) -> float:
@@ -98,10 +103,12 @@ class Candidate:
     channels: dict[str, tuple[float, int]] = field(default_factory=dict, repr=False)
     #: The effect's form ("" its simple form, else the name of a flexible one).
     form: str = ""
-    #: Effective degrees of freedom of that form (the penalty's k).
+    #: Effective degrees of freedom of that form (the penalty's k; a closed-form fit's own).
     dof: float = 0.0
     #: Every form tried: {form: {"chi2_test", "score", "dof", "significant"}}.
     forms: dict[str, dict[str, float | bool]] = field(default_factory=dict)
+    #: What a closed-form fit reports about itself (form, strengths, parts).
+    details: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -123,6 +130,8 @@ class Selection:
     #: Held-out misfit per channel of the base twin and of the final fit.
     channels_before: dict[str, tuple[float, int]] = field(default_factory=dict)
     channels_after: dict[str, tuple[float, int]] = field(default_factory=dict)
+    #: Per cause fitted in closed form, what its fit reports (form, dof, strengths).
+    details: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     @property
     def first_round(self) -> list[Candidate]:
@@ -156,7 +165,8 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
     form chosen for it.
     """
     lib = model.library() if lib is None else lib
-    free = list(active if free is None else free)
+    # effects without optimiser parameters (closed-form maps) keep their values
+    free = [e for e in (active if free is None else free) if lib[e].params]
     fixed = {e: dict(start.get(e, {})) for e in active if e not in free}
     for e in fixed:
         for p in lib[e].params:
@@ -268,6 +278,10 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     penalty = np.log(n_test)
     active: list[str] = []
     params: EffectParams = {}
+    dofs: dict[str, float] = {}  # effective dof of the closed-form fits chosen
+
+    def k_of(e: str) -> float:
+        return dofs.get(e, work[e].k)
     base_pred = model.predict({})
     current_chi2 = data.chi2(base_pred, "test")
     current_channels = channel_chi2(data, base_pred)
@@ -277,7 +291,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                           channels_after=current_channels)
     work = dict(lib)  # each chosen effect's spec is that of its chosen form
     while len(active) < max_effects:
-        current_k = sum(work[e].k for e in active)
+        current_k = sum(k_of(e) for e in active)
         current_score = current_chi2 + current_k * penalty
         excess = max(current_chi2 - n_test, 0.0)
         round_: list[Candidate] = []
@@ -287,7 +301,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
             tried: list[Candidate] = []
             traded = False  # a form gained only by making a channel worse
             for spec in (lib[name],) + tuple(lib[name].forms):
-                if tried:
+                if tried and spec.params:
                     # a flexible form also starts where the simple one ended (its phases found)
                     names_ = {p.name for p in spec.params}
                     simple = {k: v for k, v in tried[0].params.items() if k in names_}
@@ -296,16 +310,23 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                     progress(f"fitting {name}" + (f" ({spec.form})" if spec.form else ""))
                 trial_lib = {**work, name: spec}
                 trial = active + [name]
+                k_new, details = spec.k, {}
                 # forward stagewise: the new effect is fitted with the earlier ones held; the
                 # chosen set is refitted jointly below
-                fitted, chi2_train = fit(model, data, trial, params, new_effect=name, free=[name], lib=trial_lib)
+                if spec.closed_form is not None:
+                    values, k_new, details = spec.closed_form(model, data, params, penalty)
+                    fitted = {e: params[e] for e in active} | {name: values}
+                    chi2_train = data.chi2(model.predict(fitted), "train")
+                else:
+                    fitted, chi2_train = fit(model, data, trial, params, new_effect=name, free=[name],
+                                             lib=trial_lib)
                 pred = model.predict(fitted)
                 chi2_test = data.chi2(pred, "test")
                 channels = channel_chi2(data, pred)
                 # worse than the current model or, summed over rounds, than the base twin
                 worse = sorted(set(worse_channels(current_channels, channels))
                                | set(worse_channels(selection.channels_before, channels)))
-                score = chi2_test + (current_k + spec.k) * penalty
+                score = chi2_test + (current_k + k_new) * penalty
                 gain = current_chi2 - chi2_test
                 gains = bool(current_score - score > 0 and excess > 0 and gain > min_relative_gain * excess
                              and gain > min_gain_per_value * n_test)
@@ -314,7 +335,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                                        relative_gain=gain / current_chi2 if current_chi2 > 0 else 0.0,
                                        significant=gains and not worse, n_params=len(spec.params),
                                        all_params=fitted, worse_channels=worse, at_bounds=pinned(spec, fitted[name]),
-                                       channels=channels, form=spec.form, dof=spec.k))
+                                       channels=channels, form=spec.form, dof=float(k_new), details=details))
                 traded |= gains and bool(worse)
             if traded and name not in selection.rejected_for_channels:
                 selection.rejected_for_channels.append(name)
@@ -328,6 +349,9 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         active.append(chosen.effect)
         work[chosen.effect] = lib[chosen.effect].variant(chosen.form)
         selection.forms[chosen.effect] = chosen.form
+        dofs[chosen.effect] = chosen.dof
+        if chosen.details:
+            selection.details[chosen.effect] = chosen.details
         params = chosen.all_params
         current_chi2 = chosen.chi2_test
         before_round = current_channels

@@ -36,13 +36,15 @@ def to_fitted(p: Param, value: float) -> float:
     return math.log10(value) if p.log else float(value)
 
 
-def to_effect_values(effect: str, fitted: Mapping[str, float]) -> dict[str, float]:
+def to_effect_values(effect: str, fitted: Mapping[str, Any]) -> dict[str, Any]:
     """Fitted parameters -> the effect's own parameter names (undo log scales, wrap angles
-    into their period)."""
-    out: dict[str, float] = {}
+    into their period); a closed-form fit's values (a map, its file) pass through."""
+    out: dict[str, Any] = {}
     params = EFFECTS[effect].params if effect in EFFECTS else {}
     for k, v in fitted.items():
-        if k.startswith(LOG_PREFIX):
+        if isinstance(v, (np.ndarray, str)):
+            out[k] = v
+        elif k.startswith(LOG_PREFIX):
             out[k[len(LOG_PREFIX):]] = float(10.0 ** v)
         elif k in params and params[k].periodic:
             p = params[k]
@@ -89,8 +91,20 @@ def fit_library(current: Callable[[str, str], float] | None = None,
         extra = list((extra_starts or {}).get(name, ()))
         specs = [_spec(name, form, eff.form_params(form, n_taps), current, extra) for form in ("", *eff.forms)]
         specs = [s for s in specs if s.params] or specs[:1]
-        lib[name] = dataclasses.replace(specs[0], forms=tuple(specs[1:]))
+        lib[name] = dataclasses.replace(specs[0], forms=tuple(specs[1:]), closed_form=CLOSED_FORM.get(name))
     return lib
+
+
+def _fit_offset_map(model: Any, data: HeldOutData, current: EffectParams,
+                    penalty_per_dof: float) -> tuple[dict[str, Any], float, dict[str, Any]]:
+    from tofhil.eval.linear_forms import fit_offset_map
+
+    m = fit_offset_map(model, data, current, penalty_per_dof)
+    return {"values": m.map_m}, m.dof, m.summary()
+
+
+#: Effects fitted in closed form rather than by the optimiser (``EffectSpec.closed_form``).
+CLOSED_FORM = {"range_offset_map": _fit_offset_map}
 
 
 def session_setup_for(scene: Any, data: HeldOutData) -> Any:

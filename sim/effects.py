@@ -15,7 +15,7 @@ Stages, in the order the forward model applies them (``ORDER``):
 - ``signal``: acts on the light on the sensor (an :class:`OpticalSignal`) before the pixel --
   ``illumination`` (the emitter's profile), ``stray_light`` (optics), ``offset`` (unmodulated charge), ``range_offset``, ``field_angle``,
   ``wiggling``, ``amplitude_dependent``.
-- ``pixel``: per-pixel demodulation properties -- ``fixed_pattern``.
+- ``pixel``: per-pixel demodulation properties -- ``fixed_pattern``, ``range_offset_map``.
 
 Each stage has one hook (``STAGE_HOOKS``) that its effects implement. Render-, signal- and
 pixel-stage effects apply to a cached render in milliseconds; scene-stage effects whose change
@@ -784,16 +784,82 @@ class FixedPatternEffect(Effect):
         return _rotate_phase(signal, C_M_PER_S * self.delay_s(values, signal.shape))
 
 
+class RangeOffsetMapEffect(Effect):
+    name = "range_offset_map"
+    stage = "pixel"
+    summary = ('fixed-pattern radial offset map `[H, W]` (m): per-column, per-row and per-pixel offsets of the readout; '
+               'option `file` (.npy beside the scene) or `values` (inline rows); diagnosis fits it in closed form')
+    doc = ("Fixed-pattern range offsets a real readout has and no parametric form names: a radial offset "
+           "per pixel, read from a map [H, W] in metres (the camera's size). Every harmonic's phase moves "
+           "as if the pixel read map[v, u] farther (optical path 2 map). Diagnosis fits the map in closed "
+           "form (per-column + per-row + per-pixel, ridge-regularised; eval/linear_forms.py) and writes "
+           "it as range_offset_map.npy beside diagnosis.json.")
+    params: dict[str, Param] = {}
+    options = {"file": ".npy file holding the map [H, W] in metres (relative to the scene file)",
+               "values": "the map inline: H rows of W radial offsets in metres"}
+
+    def is_off(self, values: Mapping[str, Any]) -> bool:
+        return values.get("file") is None and values.get("values") is None
+
+    def check_options(self, values: dict[str, Any], *, source: str | Path, prefix: str) -> None:
+        f = values.get("file")
+        if f is not None and values.get("values") is not None:
+            raise InputFileError("both file and values given", file=source, field=f"{prefix}.file",
+                                 expected="one of file or values")
+        if f is not None:
+            if not isinstance(f, (str, Path)) or not str(f):
+                raise InputFileError(f"got {f!r}", file=source, field=f"{prefix}.file",
+                                     expected="the path of a .npy map")
+            base = Path(str(source)).parent if Path(str(source)).is_file() else None
+            if base is not None or Path(str(f)).is_absolute():  # resolvable now: check it at load time
+                self.load(values, base_dir=base, source=source, prefix=prefix)
+        elif values.get("values") is not None:
+            self.load(values, source=source, prefix=prefix)
+
+    @staticmethod
+    def load(values: Mapping[str, Any], *, base_dir: Path | None = None, source: str | Path = "<effects>",
+             prefix: str = "effects.range_offset_map", shape: tuple[int, int] | None = None) -> np.ndarray:
+        """The map [H, W] (m), from ``file`` or ``values``; errors name the file and the field."""
+        expected = "a finite 2-D array of radial offsets in metres" + (
+            f" of shape {shape[0]} x {shape[1]} (the camera's rows x columns)" if shape else "")
+        if values.get("file") is not None:
+            f = Path(str(values["file"]))
+            if not f.is_absolute() and base_dir is not None:
+                f = base_dir / f
+            where, field_ = f, prefix + ".file"
+            try:
+                m = np.load(f, allow_pickle=False)
+            except (OSError, ValueError) as exc:
+                raise InputFileError(f"cannot read the map {f}: {exc}", file=source, field=field_,
+                                     expected="a readable .npy file") from None
+        else:
+            where, field_ = Path(str(source)), prefix + ".values"
+            try:
+                m = np.asarray(values["values"], dtype=np.float64)
+            except (TypeError, ValueError):
+                raise InputFileError("not a numeric array", file=source, field=field_, expected=expected) from None
+        if m.ndim != 2 or not np.issubdtype(m.dtype, np.number) or not np.all(np.isfinite(m)) \
+                or (shape is not None and m.shape != tuple(shape)):
+            got = f"shape {m.shape}, dtype {m.dtype}" if m.ndim else f"{m!r}"
+            raise InputFileError(f"got {got} ({where})", file=source, field=field_, expected=expected)
+        return m.astype(np.float64, copy=False)
+
+    def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
+        m = self.load(values, base_dir=ctx.base_dir, source=ctx.source, shape=signal.shape)
+        return _rotate_phase(signal, 2.0 * m)  # radial offset -> optical path
+
+
 # =============================================================================================
 # registry and application
 # =============================================================================================
 #: Forward-model order (optics before the pixel; per-pixel effects after the spatial mixing).
 ORDER = ("pose", "lens_distortion", "reflectance", "ambient", "multipath", "illumination", "stray_light", "offset",
-         "range_offset", "field_angle", "fixed_pattern", "amplitude_dependent", "wiggling")
+         "range_offset", "field_angle", "fixed_pattern", "range_offset_map", "amplitude_dependent", "wiggling")
 
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
     PoseEffect(), LensDistortionEffect(), ReflectanceEffect(), AmbientEffect(), MultipathEffect(),
     IlluminationEffect(), StrayLightEffect(), OffsetEffect(), RangeOffsetEffect(), FieldAngleEffect(), FixedPatternEffect(),
+    RangeOffsetMapEffect(),
     AmplitudeDependentEffect(), WigglingEffect())}
 assert tuple(sorted(EFFECTS)) == tuple(sorted(ORDER))
 for _e in EFFECTS.values():  # every effect implements the hook of its stage

@@ -77,8 +77,25 @@ def unmodulated_offset(rng: np.random.Generator, times_signal: float = 2.0) -> C
     return change
 
 
-def write_session(scene: Any, path: Path, change: Change | None, *, frames: int = 4, seed: int = 0) -> Path:
-    """A session of ``frames`` noisy frames of the scene's twin with ``change`` applied to its light."""
+FrameChange = Callable[[OpticalSignal, int, int], OpticalSignal]
+
+
+def linear_drift(rng: np.random.Generator, span_m: float | None = None) -> FrameChange:
+    """A range drift linear in the frame index over ``span_m`` (first to last frame), zero
+    on average over the session (warm-up: every pixel reads the same amount farther)."""
+    span = float(span_m if span_m is not None else rng.uniform(0.008, 0.015) * rng.choice([-1.0, 1.0]))
+
+    def change(signal: OpticalSignal, index: int, frames: int) -> OpticalSignal:
+        t = index / max(frames - 1, 1) - 0.5
+        return rotate_radial(signal, span * t)
+
+    return change
+
+
+def write_session(scene: Any, path: Path, change: Change | None, *, frames: int = 4, seed: int = 0,
+                  frame_change: FrameChange | None = None) -> Path:
+    """A session of ``frames`` noisy frames of the scene's twin with ``change`` applied to its
+    light, and ``frame_change`` to each frame's (given its index and the number of frames)."""
     from tofhil.depth import depth_from_raw
     from tofhil.session import SessionWriter
     from tofhil.sim.scene import scene_to_yaml
@@ -93,6 +110,7 @@ def write_session(scene: Any, path: Path, change: Change | None, *, frames: int 
     with SessionWriter(path, scene.camera, device=device, scene_text=scene_to_yaml(scene), force=True,
                        sensor_config=twin.config.to_dict(), derived=True) as w:
         for i in range(frames):
-            raw = sensor.expose(signal, seed=seed, frame_index=i, noise=True)
+            light = signal if frame_change is None else frame_change(signal, i, frames)
+            raw = sensor.expose(light, seed=seed, frame_index=i, noise=True)
             w.append(raw, depth_from_raw(raw))
     return path

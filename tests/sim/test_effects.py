@@ -20,7 +20,10 @@ from tofhil.sim.sensor import OpticalSignal, SensorConfig, SensorModel
 C = 299_792_458.0
 F = 44.0e6
 NAMES = {"stray_light", "multipath", "wiggling", "range_offset", "fixed_pattern", "amplitude_dependent",
-         "lens_distortion", "ambient", "reflectance", "pose", "offset", "field_angle", "illumination"}
+         "lens_distortion", "ambient", "reflectance", "pose", "offset", "field_angle", "illumination",
+         "range_offset_map"}
+#: Effects whose data are an option (a map), not parameters with defaults: switched on with these.
+ON_OPTIONS = {"range_offset_map": lambda cam: {"values": np.full(cam.shape, 0.01)}}
 
 
 def _cam(w: int = 24, h: int = 18) -> CameraModel:
@@ -51,7 +54,7 @@ def _ctx(cam: CameraModel) -> EffectContext:
 def test_registry_has_the_shared_vocabulary_with_sane_declarations() -> None:
     assert set(EFFECTS) == NAMES and set(ORDER) == NAMES
     for name, eff in EFFECTS.items():
-        assert eff.name == name and eff.stage in STAGES and eff.doc and eff.params
+        assert eff.name == name and eff.stage in STAGES and eff.doc and (eff.params or name in ON_OPTIONS)
         for pname, p in eff.params.items():
             assert p.lo <= p.off <= p.hi, (name, pname)
             assert p.lo <= p.on_default <= p.hi, (name, pname)
@@ -70,7 +73,8 @@ def test_signal_effects_are_identity_at_their_off_values(name: str) -> None:
     assert out.waveform == sig.waveform
     # ... and not identity when switched on with its defaults (an effect that does nothing
     # would pass the test above trivially).
-    on = apply_signal_effects(sig, parse_effects({name: {}}), _ctx(cam))
+    on = apply_signal_effects(sig, parse_effects({name: ON_OPTIONS[name](cam) if name in ON_OPTIONS else {}}),
+                              _ctx(cam))
     assert (not np.allclose(on.phasor_w, sig.phasor_w, rtol=1e-6, atol=0) or on.waveform != sig.waveform
             or not np.allclose(on.ambient_w, sig.ambient_w, rtol=1e-6, atol=0))
 

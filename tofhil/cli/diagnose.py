@@ -32,8 +32,12 @@ def _summary(res, report: Path) -> None:
     if res.causes:
         out.print(f"[bold]cause:[/bold] {' + '.join(res.causes)}")
         for e, p in res.params.items():
+            # a closed-form map reports its form and file, not numbers only
             form = f" ({res.forms[e]} form)" if res.forms.get(e) else ""
-            out.print(f"  {e}{form}: " + ", ".join(f"{k} = {v:.4g}" for k, v in p.items()), highlight=False)
+            out.print(f"  {e}{form}: " + ", ".join(f"{k} = {v:.4g}" if isinstance(v, (int, float)) else f"{k} = {v}"
+                                                   for k, v in p.items()), highlight=False)
+    if res.drift is not None and res.drift["named"]:
+        out.print(f"[bold]drift:[/bold] {lit(res.drift['text'])}", highlight=False)
     worse = [c for c, v in res.channels.items() if v["worse"]]
     if worse:
         out.print(f"[bold red]worse after the fit:[/bold red] {', '.join(worse)}")
@@ -65,16 +69,17 @@ def diagnose(session: Path = typer.Argument(..., parser=opt.existing_file,
              candidates: Optional[str] = typer.Option(None, help="Comma-separated effects to try (default: all)."),
              force: bool = typer.Option(False, "--force", help="Overwrite an earlier diagnosis in OUT.")) -> None:
     """Find what the twin gets wrong, fit it, write the extended scene and the held-out gain."""
-    from tofhil.eval.diagnose import run_diagnosis
+    from tofhil.eval.diagnose import DRIFT, run_diagnosis
     from tofhil.sim.effects import ORDER
 
     names = None
     if candidates:
         names = [c.strip() for c in candidates.split(",") if c.strip()]
-        unknown = [c for c in names if c not in ORDER]
+        known = (*ORDER, DRIFT)  # the per-frame drift is a form of its own, not a scene effect
+        unknown = [c for c in names if c not in known]
         if unknown:
             raise TofhilError(f"unknown effect(s) {', '.join(unknown)}", field="--candidates",
-                              expected="names from " + ", ".join(ORDER))
+                              expected="names from " + ", ".join(known))
     with new_output_dir(out_dir):
         res = run_diagnosis(session, scene, out_dir, force=force, progress=_progress_printer(),
                             max_effects=max_effects, candidates=names)

@@ -1,0 +1,315 @@
+"""Flexible forms fitted in closed form: the fixed-pattern range offset map, and the
+per-frame drift.
+
+A per-column, per-row or per-pixel range offset is not a few scalars, so the optimiser over
+``Param``s does not fit it. It is linear in the residual: with the twin's prediction ``P`` and
+its change ``J`` per metre of radial offset (one prediction with a uniform 1 mm map: the
+effect acts on each pixel alone, so that one evaluation is every pixel's derivative), each
+pixel's whitened residual ``z`` is ``g d + noise`` with ``g = J / sigma``. Per pixel that
+gives the weight ``a = |g|^2`` and the least-squares offset ``d = (g . z) / a`` (variance
+``1 / a``), and the map is
+
+    map[v, u] = column[u] + row[v] + pixel[v, u]
+
+- column and row offsets: weighted ridge regression, ``min sum a (d - col - row)^2 +
+  lam_c |col|^2 + lam_r |row|^2``; the two strengths (each may be infinite: that part off)
+  are chosen on the held-out pixel blocks of the *training* frames after a fit on the
+  training blocks, then the fit is redone on every usable pixel of the training frames;
+- the per-pixel part: empirical-Bayes shrinkage of what is left, ``pixel = s e`` with
+  ``s = tau^2 a / (1 + tau^2 a)`` and ``tau^2`` the variance of the true pixel offsets
+  estimated by the method of moments (0 for noise: nothing kept). It is fitted on the
+  training frames of the very pixels it is scored on, so it is scored on the held-out
+  *frames*; a session with one frame (training = held-out frame) cannot score it and it is
+  left out, with the reason. It is kept only when its expected held-out gain, ``sum s tau^2
+  a``, beats the selection's penalty for its degrees of freedom.
+
+The held-out frames are never used here: the selection scores the fitted map on them. The
+effective degrees of freedom are the trace of the hat matrix of the parts that reach the
+held-out score (columns and rows: ``tr((X'WX + L)^-1 X'WX)``; pixels: the sum of ``s`` over
+the held-out pixels), reported through :attr:`EffectSpec.dof <tofhil.eval.selection.EffectSpec>`
+so the selection penalises the map for what it can fit.
+
+The per-frame drift (:func:`fit_frame_drift`) is the same linearisation frame by frame: one
+offset per frame from its training pixels, smooth in time, scored on every frame's held-out
+pixels against a constant.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.ndimage import uniform_filter
+
+from tofhil import C_M_PER_S
+from tofhil.eval.heldout import NOISE_POOL_PX, HeldOutData
+
+#: The effect the map forms fit (``tofhil.sim.effects.RangeOffsetMapEffect``).
+MAP_EFFECT = "range_offset_map"
+#: Radial offset of the linearisation (m): small against the wrap, large against round-off.
+EPS_M = 1e-3
+#: Ridge strengths tried, relative to the median weight of a column (two per decade).
+RIDGE_GRID = 10.0 ** np.arange(-3.0, 2.01, 0.5)
+
+
+@dataclass
+class MapFit:
+    """A fitted range offset map, its parts, strengths and effective degrees of freedom."""
+
+    map_m: np.ndarray  # [H, W]
+    column_m: np.ndarray  # [W]
+    row_m: np.ndarray  # [H]
+    pixel_m: np.ndarray  # [H, W]
+    dof: float
+    dof_parts: dict[str, float] = field(default_factory=dict)
+    #: Ridge strength of each part (inf: the part is off), in whitened units per m^2.
+    strength: dict[str, float] = field(default_factory=dict)
+    #: Standard deviation of each part's offsets (m).
+    rms_m: dict[str, float] = field(default_factory=dict)
+    #: Why the per-pixel part is in or out.
+    pixel_note: str = ""
+
+    @property
+    def form(self) -> str:
+        parts = [p for p in ("column", "row", "pixel") if self.dof_parts.get(p, 0.0) > 0.0]
+        return " + ".join(parts) or "none"
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-safe flat figures (the map itself goes to a .npy file)."""
+        out: dict[str, Any] = {"form": self.form, "dof": round(self.dof, 2)}
+        for part in ("column", "row", "pixel"):
+            out[f"dof_{part}"] = round(self.dof_parts.get(part, 0.0), 2)
+            out[f"rms_mm_{part}"] = round(1e3 * self.rms_m.get(part, 0.0), 3)
+        for part, v in self.strength.items():
+            out[f"ridge_{part}"] = "off" if not np.isfinite(v) else float(f"{v:.4g}")
+        out["pixel_part"] = self.pixel_note
+        return out
+
+
+def pixel_offsets(model: Any, data: HeldOutData, current: dict[str, dict[str, Any]]
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per usable pixel of the training frames: weight ``a`` (1 / variance of the offset),
+    least-squares radial offset ``d`` (m) and the flat indices of those pixels."""
+    base = {k: v for k, v in current.items() if k != MAP_EFFECT}
+    prev = current.get(MAP_EFFECT)
+    shape = data.usable.shape
+    prev_map = np.zeros(shape) if prev is None else np.asarray(prev["values"], dtype=np.float64)
+    p0 = model.predict(base | {MAP_EFFECT: {"values": prev_map}})
+    p1 = model.predict(base | {MAP_EFFECT: {"values": prev_map + EPS_M}})
+    z = data.whitened(p0, "train_frames")  # [C, N] complex, measured - predicted
+    g = (z - data.whitened(p1, "train_frames")) / EPS_M  # d(prediction) / d(offset), whitened
+    a = (g.real ** 2 + g.imag ** 2).sum(axis=0)
+    b = (g.real * z.real + g.imag * z.imag).sum(axis=0)
+    idx = np.flatnonzero(data.usable.ravel())
+    ok = a > 0
+    d = np.where(ok, b / np.where(ok, a, 1.0), 0.0) + prev_map.ravel()[idx]
+    return a, d, idx
+
+
+def _ridge(a: np.ndarray, d: np.ndarray, u: np.ndarray, v: np.ndarray, w: int, h: int,
+           lam_c: float, lam_r: float) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+    """Weighted ridge fit of ``d ~ col[u] + row[v]``: (col, row, the trace of the hat matrix
+    split into the columns' and the rows' diagonal entries)."""
+    m = np.zeros((w + h, w + h))
+    m[np.arange(w), np.arange(w)] = np.bincount(u, a, w)
+    m[w + np.arange(h), w + np.arange(h)] = np.bincount(v, a, h)
+    cross = np.zeros((w, h))
+    np.add.at(cross, (u, v), a)
+    m[:w, w:] = cross
+    m[w:, :w] = cross.T
+    rhs = np.concatenate([np.bincount(u, a * d, w), np.bincount(v, a * d, h)])
+    reg = np.concatenate([np.full(w, lam_c), np.full(h, lam_r)])
+    on = np.isfinite(reg)  # an infinite strength: that part is off (zero), not in the system
+    x = np.zeros(w + h)
+    diag = np.zeros(w + h)
+    if on.any():
+        sub = m[np.ix_(on, on)] + np.diag(reg[on])
+        x[on] = np.linalg.solve(sub, rhs[on])
+        diag[on] = np.diag(np.linalg.solve(sub, m[np.ix_(on, on)]))
+    return x[:w], x[w:], (float(diag[:w].sum()), float(diag[w:].sum()))
+
+
+def fit_offset_map(model: Any, data: HeldOutData, current: dict[str, dict[str, Any]],
+                   penalty_per_dof: float) -> MapFit:
+    """The regularised column + row + pixel range offset map on the training frames (module
+    doc), on top of the current model ``current`` (fitted effects)."""
+    h, w = data.usable.shape
+    a, d, idx = pixel_offsets(model, data, current)
+    v, u = np.divmod(idx, w)
+    train = data.train_pixels.ravel()[idx]
+    test = data.test_pixels.ravel()[idx]
+    scale = float(np.median(np.bincount(u, a, w)[np.bincount(u, minlength=w) > 0])) if a.size else 1.0
+    grid = [np.inf] + list(scale * RIDGE_GRID)
+    # Strengths from the held-out blocks of the training frames (the held-out frames stay unseen).
+    best = (np.sum(a[test] * d[test] ** 2), np.inf, np.inf)
+    for lam_c in grid:
+        for lam_r in grid:
+            if np.isinf(lam_c) and np.isinf(lam_r):
+                continue
+            col, row, _ = _ridge(a[train], d[train], u[train], v[train], w, h, lam_c, lam_r)
+            score = float(np.sum(a[test] * (d[test] - col[u[test]] - row[v[test]]) ** 2))
+            if score < best[0]:
+                best = (score, lam_c, lam_r)
+    _, lam_c, lam_r = best
+    col, row, (dof_c, dof_r) = _ridge(a, d, u, v, w, h, lam_c, lam_r)
+    e = d - col[u] - row[v]
+    pixel = np.zeros(h * w)
+    dof_pix = 0.0
+    tau2 = max(float(np.sum(a * e * e - 1.0) / max(np.sum(a), 1e-300)), 0.0)
+    if not data.frames_held_out:
+        note = "not fitted: one frame (a per-pixel map is scored on held-out frames of the same pixels)"
+    elif tau2 == 0.0:
+        note = "not kept: the pixel-to-pixel scatter left is within the noise"
+    else:
+        s = tau2 * a / (1.0 + tau2 * a)
+        gain = float(np.sum((s * tau2 * a)[test]))
+        dof_test = float(np.sum(s[test]))
+        if gain > penalty_per_dof * dof_test:
+            pixel[idx] = s * e
+            dof_pix = dof_test
+            note = (f"kept: pixel offsets {1e3 * np.sqrt(tau2):.1f} mm rms, each shrunk by its noise "
+                    f"(mean factor {float(np.mean(s)):.2f})")
+        else:
+            note = (f"not kept: pixel offsets {1e3 * np.sqrt(tau2):.1f} mm rms are too weak against the noise of "
+                    f"{data.n_train_frames} training frame(s) to pay for their {dof_test:.0f} degrees of freedom "
+                    "(more frames would tell)")
+    # A column or row that has no usable pixel stays at 0 (ridge): so does its part of the map.
+    map_m = col[None, :] + row[:, None] + pixel.reshape(h, w)
+    dof_parts = {"column": dof_c, "row": dof_r, "pixel": dof_pix}
+    return MapFit(map_m=map_m, column_m=col, row_m=row, pixel_m=pixel.reshape(h, w), dof=dof_c + dof_r + dof_pix,
+                  dof_parts=dof_parts, strength={"column": lam_c, "row": lam_r},
+                  rms_m={"column": float(np.std(col)), "row": float(np.std(row)),
+                         "pixel": float(np.std(pixel[idx])) if idx.size else 0.0},
+                  pixel_note=note)
+
+
+# =============================================================================================
+# per-frame drift
+# =============================================================================================
+#: Smoothness strengths tried for the drift, relative to the median weight of one frame.
+DRIFT_GRID = 10.0 ** np.arange(-4.0, 4.01, 0.5)
+
+
+@dataclass
+class DriftFit:
+    """A range offset per frame, smooth in time, and its held-out test against no drift."""
+
+    offsets_m: np.ndarray  # [N] radial offset of each frame about the session's mean
+    dof: float  # effective degrees of freedom beyond the constant
+    strength: float
+    #: Held-out misfit (sum of squares over the held-out pixels of every frame) without and
+    #: with the drift, and the number of values.
+    chi2_static: float
+    chi2_drift: float
+    n_values: int
+    named: bool
+    text: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {"named": self.named, "offsets_mm": [round(1e3 * float(x), 3) for x in self.offsets_m],
+                "dof": round(self.dof, 2), "smoothness": float(f"{self.strength:.4g}"),
+                "chi2_static": round(self.chi2_static, 2), "chi2_drift": round(self.chi2_drift, 2),
+                "values": self.n_values, "text": self.text}
+
+
+def _smooth_fit(a: np.ndarray, d: np.ndarray, lam: float) -> tuple[np.ndarray, float]:
+    """``min sum a (d - x)^2 + lam |D2 x|^2`` (second differences: a straight line is free);
+    returns x and the trace of the hat matrix."""
+    n = d.size
+    w = np.diag(a)
+    p = np.zeros((0, n)) if n < 3 else np.diff(np.eye(n), 2, axis=0)
+    m = w + lam * p.T @ p
+    return np.linalg.solve(m, a * d), float(np.trace(np.linalg.solve(m, w)))
+
+
+def fit_frame_drift(model: Any, data: HeldOutData, current: dict[str, dict[str, Any]], penalty_per_dof: float,
+                    *, min_relative_gain: float = 0.02, min_gain_per_value: float = 0.02) -> DriftFit | None:
+    """A per-frame range offset (temperature, warm-up) on top of the current model.
+
+    Each frame's offset is the weighted least-squares offset of its *training* pixels
+    (linearised as for the map); the offsets are smoothed in time (second differences, the
+    strength by generalised cross-validation) and scored on the *held-out* pixels of every
+    frame against one constant offset for all frames. Named by the selection's rule: the
+    held-out gain beats ``penalty_per_dof`` per extra degree of freedom, removes
+    ``min_relative_gain`` of the excess over noise and ``min_gain_per_value`` per value.
+    None when the session keeps no frames (or fewer than 3)."""
+    frames = data.s_frames
+    if frames is None or frames.shape[0] < 3 or not data.frames_held_out:
+        return None
+    shape = data.usable.shape
+    prev = current.get(MAP_EFFECT)
+    prev_map = np.zeros(shape) if prev is None else np.asarray(prev["values"], dtype=np.float64)
+    base = {k: v for k, v in current.items() if k != MAP_EFFECT}
+    p0 = model.predict(base | {MAP_EFFECT: {"values": prev_map}})
+    p1 = model.predict(base | {MAP_EFFECT: {"values": prev_map + EPS_M}})
+    var1 = data.var_frame
+    train = data.train_pixels[data.usable]
+    test = data.test_pixels[data.usable]
+    n = frames.shape[0]
+
+    def sums(var: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Per frame: the weight and weighted residual of its training and held-out pixels,
+        and the held-out pixels' squared residual (whitened with ``var``)."""
+        at, bt, ah, bh, zz = (np.zeros(n) for _ in range(5))
+        for i in range(n):
+            one = _one_frame(data, frames[i], var)
+            z = one.whitened(p0, "train_frames")
+            g = (z - one.whitened(p1, "train_frames")) / EPS_M
+            a = (g.real ** 2 + g.imag ** 2).sum(axis=0)
+            b = (g.real * z.real + g.imag * z.imag).sum(axis=0)
+            at[i], bt[i] = a[train].sum(), b[train].sum()
+            ah[i], bh[i] = a[test].sum(), b[test].sum()
+            zz[i] = float((np.abs(z[:, test]) ** 2).sum())
+        return at, bt, ah, bh, zz
+
+    at, bt, ah, bh, zz = sums(var1)
+    d = bt / at
+    scale = float(np.median(at))
+    best = None
+    for lam in scale * DRIFT_GRID:
+        x, tr = _smooth_fit(at, d, lam)
+        rss = float(np.sum(at * (d - x) ** 2))
+        gcv = n * rss / max(n - tr, 1e-9) ** 2
+        if best is None or gcv < best[0]:
+            best = (gcv, lam, x, tr)
+    _, lam, x, tr = best
+
+    def chi2(off: np.ndarray, ah: np.ndarray, bh: np.ndarray, zz: np.ndarray) -> float:
+        # quadratic in the offset: exact for the linearised model
+        return float(np.sum(zz - 2.0 * off * bh + off * off * ah))
+
+    const = float(np.sum(bt) / np.sum(at))
+    chi2_static, chi2_drift = chi2(np.full(n, const), ah, bh, zz), chi2(x, ah, bh, zz)
+    n_values = int(test.sum() * (2 * data.n_freq + (1 if data.offset_channel else 0)) * n)
+    dof = max(tr - 1.0, 0.0)
+    gain, excess = chi2_static - chi2_drift, max(chi2_static - n_values, 0.0)
+    # named against the session's own noise estimate (conservative: it contains the drift)
+    named = bool(gain > dof * penalty_per_dof and gain > min_relative_gain * excess
+                 and gain > min_gain_per_value * n_values)
+    noise_note = ""
+    if named:
+        # The frame-to-frame scatter contains the drift; the figures are restated with the
+        # noise re-estimated from the frames with the drift taken out (same pooling).
+        k = np.zeros(frames.shape[1])
+        k[:data.n_freq] = 4.0 * np.pi * data.freq_hz / C_M_PER_S
+        clean = frames * np.exp(-1j * k[None, :, None, None] * (x - const)[:, None, None, None])
+        pool = [np.stack([uniform_filter(c, size=NOISE_POOL_PX, mode="nearest") for c in
+                          (np.abs(f - f.mean(axis=0)) ** 2).sum(axis=0)]) for f in (frames, clean)]
+        ratio = np.clip(pool[1] / np.maximum(pool[0], 1e-300), 1e-3, 1.0)
+        _, _, ah2, bh2, zz2 = sums(var1 * ratio)
+        chi2_static, chi2_drift = chi2(np.full(n, const), ah2, bh2, zz2), chi2(x, ah2, bh2, zz2)
+        noise_note = " (noise re-estimated with the drift taken out)"
+    spread = 1e3 * float(np.ptp(x))
+    text = (f"per-frame drift: the range moves by {spread:.1f} mm over {n} frames (smooth in time, "
+            f"{dof:.1f} degrees of freedom beyond a constant); on the held-out pixels of every frame it lowers "
+            f"the misfit from {chi2_static / n_values:.3f} to {chi2_drift / n_values:.3f} per value{noise_note} -- "
+            + ("named" if named else "not significant"))
+    return DriftFit(offsets_m=x - const, dof=dof, strength=lam, chi2_static=chi2_static, chi2_drift=chi2_drift,
+                    n_values=n_values, named=named, text=text)
+
+
+def _one_frame(data: HeldOutData, s: np.ndarray, var1: np.ndarray) -> HeldOutData:
+    """``data`` with one frame as its training part (the whitening of that frame)."""
+    return dataclasses.replace(data, s_train=s, var_train=var1, n_train_frames=1)
