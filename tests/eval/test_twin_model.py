@@ -13,6 +13,9 @@ def test_fit_library_is_read_from_the_params() -> None:
     assert list(lib) == list(ORDER)
     for name, spec in ((n, s) for n, simple in lib.items() for s in (simple,) + simple.forms):
         fitted = {k: p for k, p in EFFECTS[name].params.items() if p.fitted and spec.form in p.forms}
+        if spec.closed_form is not None:  # a map fitted in closed form: no optimiser parameters
+            assert not spec.params and not fitted
+            continue
         assert fitted and [fp.name.removeprefix("log10_") for fp in spec.params] == list(fitted)
         for fp in spec.params:
             p = fitted[fp.name.removeprefix("log10_")]
