@@ -60,8 +60,9 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     correlating the residual of a fit without ghost with the mirrored image, then refined
     to sub-pixel with the lobes' widths. The dictionary: one Gaussian lobe per width in
     ``sigmas`` (default :func:`default_sigmas`; many widths make any radial fall-off,
-    power-law tails included), with ``field`` the same lobes applied to ``rho^2 S`` (signed:
-    a shift-variant lobe that grows or shrinks towards the field edge), a uniform veil, the
+    power-law tails included), with ``field`` the same lobes applied to ``rho^2 S`` and to
+    ``rho^4 S`` (signed: a shift-variant lobe that grows, shrinks or widens towards the field
+    edge, to second order in ``rho^2``), a uniform veil, the
     ghost (sharp and blurred by each width), and, with ``fit_direct``, the loss ``-S_true``.
     ``weight`` (broadcastable to ``s_true``) weights pixels. ``lambdas``: strengths of a
     smoothness penalty on the lobe fractions across widths, the one with the least error on
@@ -92,6 +93,8 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     blur = GaussianBlur(s_true)
     rho2 = field_rho2((h, w), (float(cx), float(cy)))
     fblur = GaussianBlur(rho2 * s_true) if field else None
+    # Second order: a lobe whose width triples from axis to corner is not linear in rho^2.
+    fblur4 = GaussianBlur(rho2 ** 2 * s_true) if field else None
     mirror = GaussianBlur(flip_image(s_true)) if ghost else None
 
     def ghost_terms(c: tuple[float, float]) -> list[tuple[str, str, Any, np.ndarray]]:
@@ -105,6 +108,8 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     if field:
         for sg in sig:
             terms.append(("field", f"field_{sg:.3g}", (sg, sg), column(fblur(sg, sg))))
+        for sg in sig:
+            terms.append(("field4", f"field4_{sg:.3g}", (sg, sg), column(fblur4(sg, sg))))
     if veil:
         # Unit fraction spread evenly: every pixel gets sum(S) / (H W).
         terms.append(("veil", "veil", None, column(s_true.sum(axis=(-2, -1), keepdims=True) / (h * w))))
@@ -118,13 +123,13 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
         # Every weight is a fraction of light in [0, 1] (a field term in [-1, 1]); the loss at
         # most 0.9 (a lens that keeps less than a tenth of the light on its pixel is not a
         # camera). The bounds keep an ill-posed fit from trading huge terms against each other.
-        lo = np.array([-1.0 if k[0] == "field" else 0.0 for k in ts])
+        lo = np.array([-1.0 if k[0] in ("field", "field4") else 0.0 for k in ts])
         up = np.array([0.9 if k[0] == "loss" else 1.0 for k in ts])
         return lo, up
 
     def penalty(ts: list[tuple[str, str, Any, np.ndarray]]) -> np.ndarray:
         p = np.zeros((len(ts), len(ts)))
-        for kind in ("gauss", "field"):
+        for kind in ("gauss", "field", "field4"):
             idx = [i for i, k in enumerate(ts) if k[0] == kind]
             if len(idx) > 2:
                 d2 = _second_differences(len(idx))
@@ -207,11 +212,11 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
             if ghost_sig and fit_centre:
                 center = (center[0] + res.x[n_lobe], center[1] + res.x[n_lobe + 1])
     lobes, ghosts, veil_w, loss = [], [], 0.0, 0.0
-    field_w: dict[float, float] = {}
+    field_w: dict[float, list[float]] = {}
     gc = None if ghost_center_px is None else center
     for (kind, _, sxy, _), c in zip(terms, coef):
-        if kind == "field" and c != 0:
-            field_w[float(sxy[0])] = float(c)
+        if kind in ("field", "field4") and c != 0:
+            field_w.setdefault(float(sxy[0]), [0.0, 0.0])[kind == "field4"] = float(c)
         if c <= 0:
             continue
         if kind == "gauss":
@@ -223,7 +228,7 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
         elif kind == "loss":
             loss += float(c)
     # A field term is a lobe of its own (weight 0 on axis, signed growth) with its own width.
-    lobes += [GaussianLobe(0.0, s, s, fw) for s, fw in field_w.items()]
+    lobes += [GaussianLobe(0.0, s, s, fw[0], fw[1]) for s, fw in field_w.items()]
     psf = StrayLightPSF(gaussians=tuple(lobes), veil=veil_w, ghosts=tuple(ghosts), conserve=False,
                         direct=1.0 - loss)
     info = _quality(terms, coef, rhs, rnorm, float(np.linalg.norm(s_meas)), lam, scores,
@@ -262,7 +267,7 @@ def _quality(terms: list[tuple[str, str, Any, np.ndarray]], coef: np.ndarray, rh
         warnings.append("the calibration data cannot constrain " + ", ".join(weak) + " (variance inflation > 1e6): "
                         "add captures (a bright patch at other field positions, a card off-axis) or average more "
                         "frames")
-    if any(terms[i][0] == "field" for i in active) and captures == 1:
+    if any(terms[i][0] in ("field", "field4") for i in active) and captures == 1:
         warnings.append("shift-variant (field) lobes were fitted from one capture: a source at one field "
                         "position cannot tell them from the others; add a bright patch at other field positions")
     if stray_raw / sig < 1e-4:
