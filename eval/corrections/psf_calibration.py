@@ -46,7 +46,7 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
                   ghost_center_px: tuple[float, float] | str | None = None,
                   sigmas: np.ndarray | None = None, veil: bool = True, ghost: bool = True,
                   fit_direct: bool = True, weight: np.ndarray | None = None,
-                  refine: bool = True, field: bool = False,
+                  refine: bool = True, field: bool | int = False,
                   lambdas: Sequence[float] | None = None) -> StrayLightPSF:
     """Fit ``direct`` and ``h`` so that ``direct * S_true + h * S_true`` matches ``S_meas``.
 
@@ -60,9 +60,11 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     correlating the residual of a fit without ghost with the mirrored image, then refined
     to sub-pixel with the lobes' widths. The dictionary: one Gaussian lobe per width in
     ``sigmas`` (default :func:`default_sigmas`; many widths make any radial fall-off,
-    power-law tails included), with ``field`` the same lobes applied to ``rho^2 S`` and to
-    ``rho^4 S`` (signed: a shift-variant lobe that grows, shrinks or widens towards the field
-    edge, to second order in ``rho^2``), a uniform veil, the
+    power-law tails included), with ``field`` the same lobes applied to ``rho^2 S`` (signed:
+    a shift-variant lobe that grows or shrinks towards the field edge) and, with ``field=2``,
+    to ``rho^4 S`` as well (second order in ``rho^2``: a lobe that widens towards the edge;
+    not in :data:`FREE_FORM`: five captures leave it unconstrained on a shift-invariant
+    lens, see docs/evaluation.md), a uniform veil, the
     ghost (sharp and blurred by each width), and, with ``fit_direct``, the loss ``-S_true``.
     ``weight`` (broadcastable to ``s_true``) weights pixels. ``lambdas``: strengths of a
     smoothness penalty on the lobe fractions across widths, the one with the least error on
@@ -94,7 +96,7 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     rho2 = field_rho2((h, w), (float(cx), float(cy)))
     fblur = GaussianBlur(rho2 * s_true) if field else None
     # Second order: a lobe whose width triples from axis to corner is not linear in rho^2.
-    fblur4 = GaussianBlur(rho2 ** 2 * s_true) if field else None
+    fblur4 = GaussianBlur(rho2 ** 2 * s_true) if field and int(field) >= 2 else None
     mirror = GaussianBlur(flip_image(s_true)) if ghost else None
 
     def ghost_terms(c: tuple[float, float]) -> list[tuple[str, str, Any, np.ndarray]]:
@@ -108,7 +110,7 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     if field:
         for sg in sig:
             terms.append(("field", f"field_{sg:.3g}", (sg, sg), column(fblur(sg, sg))))
-        for sg in sig:
+        for sg in sig if fblur4 is not None else ():
             terms.append(("field4", f"field4_{sg:.3g}", (sg, sg), column(fblur4(sg, sg))))
     if veil:
         # Unit fraction spread evenly: every pixel gets sum(S) / (H W).
