@@ -46,7 +46,7 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
                   ghost_center_px: tuple[float, float] | str | None = None,
                   sigmas: np.ndarray | None = None, veil: bool = True, ghost: bool = True,
                   fit_direct: bool = True, weight: np.ndarray | None = None,
-                  refine: bool = True, field: bool | int = False,
+                  refine: bool = True, field: bool | int | str = False,
                   lambdas: Sequence[float] | None = None) -> StrayLightPSF:
     """Fit ``direct`` and ``h`` so that ``direct * S_true + h * S_true`` matches ``S_meas``.
 
@@ -63,8 +63,8 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     power-law tails included), with ``field`` the same lobes applied to ``rho^2 S`` (signed:
     a shift-variant lobe that grows or shrinks towards the field edge) and, with ``field=2``,
     to ``rho^4 S`` as well (second order in ``rho^2``: a lobe that widens towards the edge;
-    not in :data:`FREE_FORM`: five captures leave it unconstrained on a shift-invariant
-    lens, see docs/evaluation.md), a uniform veil, the
+    :data:`FREE_FORM` has ``field="select"``: the order chosen on held-out captures by
+    :func:`select_field_order`, order 1 here with a twin reference), a uniform veil, the
     ghost (sharp and blurred by each width), and, with ``fit_direct``, the loss ``-S_true``.
     ``weight`` (broadcastable to ``s_true``) weights pixels. ``lambdas``: strengths of a
     smoothness penalty on the lobe fractions across widths, the one with the least error on
@@ -72,6 +72,8 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     the active Gaussians' widths are optimised continuously, separately in x and y
     (variable projection). ``info`` holds the fit-quality report (:func:`_quality`).
     """
+    if field == "select":  # the order is chosen on held-out captures by calibrate_psf_target
+        field = 1
     s_meas = np.asarray(s_meas, dtype=np.complex128)
     s_true = np.asarray(s_true, dtype=np.complex128)
     if s_meas.shape != s_true.shape:
@@ -375,6 +377,9 @@ def calibrate_psf_target(s_meas: np.ndarray | Sequence[np.ndarray], cx: float, c
     if stack.ndim == 3:
         stack = stack[:, None]
     masks = np.stack([target_mask(s, threshold) for s in stack])[:, None]  # [N, 1, H, W]
+    selection = None
+    if kwargs.get("field") == "select":
+        kwargs["field"], selection = select_field_order(list(stack), cx, cy, threshold=threshold, **kwargs)
     # The target's own pixels say nothing about h (their true value is unknown): fit
     # only the background, where the true signal is known to be zero.
     kwargs.setdefault("weight", (~masks).astype(np.float64))
@@ -385,12 +390,48 @@ def calibrate_psf_target(s_meas: np.ndarray | Sequence[np.ndarray], cx: float, c
         psf = calibrate_psf(stack, s_true, cx, cy, **kwargs)
     psf.info["calibration"] = {"mode": "target", "threshold": threshold, "rounds": rounds, "captures": len(stack),
                                "target_pixels": [int(m.sum()) for m in masks]}
+    if selection is not None:
+        psf.info["field_order_selection"] = selection
     return psf
 
 
+def select_field_order(captures: Sequence[np.ndarray], cx: float, cy: float, *, threshold: float = 0.2,
+                       orders: Sequence[int] = (1, 2), **kwargs: Any) -> tuple[int, dict[str, Any]]:
+    """The order of the shift-variant lobes (1: ``rho^2``; 2: ``rho^2`` and ``rho^4``) that
+    best predicts a capture the fit has not seen: leave one capture (one field position)
+    out, fit the others, predict its background. The error that matters is the extrapolation
+    to other field positions, which held-out pixels of the same captures do not see: on a
+    shift-invariant lens the second order's extra terms, unconstrained by five positions,
+    trade against the lobes and the veil and predict a new position worse. Fewer than three
+    captures: order 1. The fits here are the quick ones (two rounds, no width refinement, no
+    smoothness search). Returns the order and the leave-one-out residuals."""
+    if len(captures) < 3:
+        # One capture cannot constrain a shift-variant lobe at all; two only at first order.
+        order = int(len(captures) > 1)
+        return order, {"orders": {}, "chosen": order, "reason": "fewer than three captures"}
+    kw = {k: v for k, v in kwargs.items() if k not in ("field", "refine", "lambdas", "weight")}
+    scores: dict[int, float] = {}
+    for order in orders:
+        err = 0.0
+        for i in range(len(captures)):
+            train = [c for j, c in enumerate(captures) if j != i]
+            psf = calibrate_psf_target(train, cx, cy, threshold=threshold, rounds=2, refine=False, field=order,
+                                       lambdas=None, **kw)
+            c = np.asarray(captures[i])
+            m = target_mask(c, threshold)
+            op = StrayLightOperator(psf, c.shape[-2:], (cx, cy))
+            r = (op.apply(np.where(m, op.invert(c), 0)) - c)[..., ~m]
+            err += float(np.sum(np.abs(r) ** 2))
+        scores[int(order)] = err
+    best = min(scores, key=scores.get)
+    return best, {"orders": {str(k): v for k, v in scores.items()}, "chosen": best,
+                  "reason": "least leave-one-capture-out residual"}
+
+
 #: The free-form calibration's options (:func:`calibrate_psf`): many widths with a
-#: shift-variant copy, a fitted ghost centre, smoothness chosen on held-out pixels.
-FREE_FORM: dict[str, Any] = {"field": True, "ghost_center_px": "fit",
+#: shift-variant copy (its order chosen on held-out captures, :func:`select_field_order`),
+#: a fitted ghost centre, smoothness chosen on held-out pixels.
+FREE_FORM: dict[str, Any] = {"field": "select", "ghost_center_px": "fit",
                              "lambdas": (0.0, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)}
 
 
@@ -429,7 +470,7 @@ def calibrate_from_sessions(capture: str | Path | Sequence[str | Path],
     if form == "free":
         # One capture sees each source at one field position: a shift-variant lobe is not
         # identifiable from it (the fit would trade it against the others).
-        kw["field"] = len(captures) > 1
+        kw["field"] = "select" if len(captures) > 2 else len(captures) > 1
     if ghost_center_px is not None:
         kw["ghost_center_px"] = ghost_center_px
     meas = [mean_s(c) for c in captures]
