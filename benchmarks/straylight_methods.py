@@ -17,8 +17,12 @@ each method removes:
 The cases as a sweep spec (measurement against the stray-light-free twin, on Dask, one
 table): ``tofhil sweep configs/sweeps/straylight_reflectance.yaml --out DIR``.
 
-``--lens-forms``: the same methods on lenses of other forms than the PSF model (power-law
-tail, ghosts off the principal point, a field-dependent lobe), see straylight_lenses.py.
+``--lens-forms``: the full table for every lens form of ``tests/straylight_lenses.py``
+(other Gaussians + veil + ghost, power-law tail, ghosts 1-10 px off the principal point, a
+field-dependent lobe): the Gaussian-form and free-form calibrations beside the thesis
+methods at their best per case (``straylight_lenses.py``). ``--noisy-cli OUT``: noisy
+captures (30 frames) corrected and compared through the CLI against each region's noise
+floor (``straylight_noisy_cli.py``).
 """
 
 from __future__ import annotations
@@ -61,7 +65,14 @@ def main(argv: list[str] | None = None) -> int:
                     help="keep the scenes' sensor as bundled (no ADC pedestal: dark taps clip at 0 DN)")
     ap.add_argument("--lens-forms", action="store_true",
                     help="instead: every lens form of tests/straylight_lenses.py (benchmarks/straylight_lenses.py)")
+    ap.add_argument("--noisy-cli", type=Path, metavar="OUT",
+                    help="instead: 30 noisy frames through the CLI against the noise floor "
+                         "(benchmarks/straylight_noisy_cli.py, its sessions and reports in OUT)")
     args = ap.parse_args(argv)
+    if args.noisy_cli:
+        import straylight_noisy_cli  # beside this script
+
+        return straylight_noisy_cli.main([str(args.noisy_cli)])
     if args.lens_forms:
         import straylight_lenses  # beside this script
 

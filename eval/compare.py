@@ -25,7 +25,7 @@ from tofhil.demod import TapLimits
 from tofhil.errors import TofhilError
 from tofhil.eval import html as H
 from tofhil.eval import metrics as M
-from tofhil.eval.corrections import correct_depth, correct_raw, get_method, load_params, parse_method_spec, resolve_params
+from tofhil.eval.corrections import correct_depth, get_method, load_params, parse_method_spec, resolve_params
 from tofhil.frames import DepthFrame
 
 MEASURED = "measured"
@@ -34,40 +34,99 @@ OUTPUTS = ("metrics.json", "report.html")
 
 @dataclass
 class Variant:
-    """One version of A: its label, mean depth frame, per-pixel temporal std and evaluation."""
+    """One version of A: its label, mean depth frame, per-pixel temporal std, the noise of
+    the mean, and its evaluation."""
 
     label: str
     frame: DepthFrame
-    temporal_std_m: np.ndarray
+    temporal_std_m: np.ndarray  # per frame
     method: str | None = None
     params: dict[str, Any] = field(default_factory=dict)
     evaluation: M.Evaluation | None = None
+    noise_m: np.ndarray | None = None  # standard deviation of the mean's distance
 
 
 # ---------------------------------------------------------------------------- loading
 
 
-def session_depth_frames(session: Any, n: int, method: str | None = None,
-                         params: dict[str, Any] | None = None, min_amplitude: float = 0.0) -> list[DepthFrame]:
-    """Depth frames of the first ``n`` frames, optionally corrected.
+def variant_frame(session: Any, n: int, method: str | None = None, params: dict[str, Any] | None = None,
+                  min_amplitude: float = 0.0, flat: Any = None) -> tuple[DepthFrame, np.ndarray]:
+    """The mean of the first ``n`` frames, optionally corrected, and the per-pixel standard
+    deviation of its distance expected from the frames' scatter.
 
-    Raw sessions are demodulated here (the same pipeline before and after correction);
-    depth-only sessions use their stored depth.
+    Raw sessions are averaged in the complex domain after the tap calibration ``flat``
+    (:func:`tofhil.eval.corrections.averaging.mean_signal`), a complex correction is applied
+    to the mean, and the mean is demodulated once (the same pipeline before and after
+    correction); depth methods filter that depth. Depth-only sessions average their stored
+    depth (:func:`tofhil.eval.metrics.mean_depth_frame`; noise = temporal std / sqrt(n)).
     """
     from tofhil.depth import depth_from_raw
+    from tofhil.eval.corrections.averaging import session_mean_signal
 
-    frames = []
-    for i in range(min(n, session.n_frames)):
-        if session.has_raw:
-            raw = session.raw_frame(i)
-            if method is None:
-                frames.append(depth_from_raw(raw, min_amplitude=min_amplitude))
-            else:
-                frames.append(correct_raw(raw, method, params, min_amplitude=min_amplitude)[1])
-        else:
-            d = session.depth_frame(i)
-            frames.append(d if method is None else correct_depth(d, method, params))
-    return frames
+    m = None if method is None else get_method(method)
+    p = {} if m is None else resolve_params(m, params)
+    p.pop("flat", None)  # the caller resolves the variant's tap calibration (both sides)
+    k = min(n, session.n_frames)
+    if not session.has_raw:
+        frame, std = M.mean_depth_frame(session.depth_frame(i) for i in range(k))
+        if m is not None:
+            frame = correct_depth(frame, method, p)
+        return frame, std / np.sqrt(k) if k > 1 else np.full(std.shape, np.nan)
+    correct = None
+    if m is not None and m.domain == "complex":
+        camera = session.camera
+        correct = lambda s: m.func(s, camera, **p)  # noqa: E731
+    ms = session_mean_signal(session, k, flat=flat, correct=correct)
+    frame = depth_from_raw(ms.raw(), min_amplitude=min_amplitude)
+    if m is not None and m.domain == "depth":
+        frame = m.func(frame, **p)
+    return frame, np.where(frame.valid, ms.distance_noise_m(), np.nan)
+
+
+def recorded_tap_calibration(session: Any) -> str | None:
+    """The tap calibration file a corrected session was made with (``tofhil correct`` with
+    ``flat=``), as recorded in its device header; None for a session without one."""
+    v = session.device.get("tap_calibration") if isinstance(session.device, dict) else None
+    return str(v) if v else None
+
+
+def _same_file(a: str | Path | None, b: str | Path | None) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return Path(a).expanduser().resolve() == Path(b).expanduser().resolve()
+
+
+def tap_calibration_plan(sessions: dict[str, tuple[Any, Path]], want: str | Path | None,
+                         origin: str) -> dict[str, Any]:
+    """What to apply to each side (``{"A": (session, path), "B": ...}``) so that both end
+    with the tap calibration ``want`` (a file, or None for none): None for a side that has
+    it already (recorded in its header), else the loaded calibration. A side that cannot get
+    it (depth only, another calibration already applied) is refused, naming its file;
+    ``origin`` says where ``want`` came from."""
+    from tofhil.eval.fixed_pattern import TapCalibration
+
+    out: dict[str, Any] = {}
+    for side, (sess, path) in sessions.items():
+        rec = recorded_tap_calibration(sess)
+        if _same_file(rec, want):
+            out[side] = None
+            continue
+        if rec is not None:
+            raise TofhilError(f"{side} was corrected with the tap calibration {rec}, {origin} asks for "
+                              f"{want if want is not None else 'none'}", file=path, field="device/tap_calibration",
+                              expected="the same tap calibration on both sides (compare --flat T.npz)")
+        if not sess.has_raw:
+            raise TofhilError(f"{side} has depth only: the tap calibration {want} ({origin}) cannot be applied to it, "
+                              "and comparing a tap-calibrated side with an uncalibrated one is wrong", file=path,
+                              field="raw/taps", expected="raw taps on both sides, or no tap calibration")
+        cal = TapCalibration.load(want)
+        taps_shape = tuple(sess.raw_frame(0).taps.shape) if sess.n_frames else None
+        if taps_shape is not None and taps_shape != cal.gain.shape:
+            raise TofhilError(f"{side}'s taps are {taps_shape}, the tap calibration {want} is {cal.gain.shape}",
+                              file=path, field="raw/taps",
+                              expected="a tap calibration made with the same camera, frequencies and taps")
+        out[side] = cal
+    return out
 
 
 def tap_health(session: Any, n: int) -> M.TapHealth:
@@ -178,7 +237,9 @@ def write_report(out: Path, metrics: dict[str, Any], variants: list[Variant],
             H.region_table([(v.label, r) for v in variants for r in v.evaluation.regions.values()]),
             f"<p class='note'>{H.esc(M.DEPTH_RMSE)}: sqrt(mean((A - B)^2)) over the region's pixels valid in A "
             "and in B (not saturated, finite, lit). compared: that fraction of the region; saturated A: fraction "
-            "of the region with a clipped tap in A. MAD: median absolute deviation from the median (raw, not "
+            "of the region with a clipped tap in A. noise floor: the RMS over those pixels of the residual's noise "
+            "expected from the averaged frames' scatter (raw sessions are averaged in the taps, before "
+            "demodulation): the RMSE noise alone would give. MAD: median absolute deviation from the median (raw, not "
             f"scaled). Cloud metrics: A's points against B's (threshold {s['threshold_m'] * 1000:g} mm); NDT: A's "
             f"points scored on B's NDT grid (cell {s['cell_size_m']:g} m). Full numbers in metrics.json.</p>",
             H.figures_html(figs)]
@@ -210,12 +271,15 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
                      row: int | None = None, column: int | None = None, max_frames: int = 10,
                      cell_size: float = 0.1, threshold: float = 0.01, min_amplitude: float = 0.0,
                      min_relative_amplitude: float = M.MIN_RELATIVE_AMPLITUDE, objects: bool = True, force: bool = False,
-                     log: Callable[[str], None] | None = None) -> dict[str, Any]:
+                     flat: str | Path | None = None, log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Compare session A with reference B, write ``metrics.json`` and ``report.html``.
 
     ``corrections`` are method specs (``"psf:psf=cal.npz"``, ``"uniform:w=2e-5"``), each
     applied to A; ``rois`` are ``"X0,Y0,X1,Y1"`` pixel boxes (half-open); ``masks`` mask
-    files (.png, .npy); ``row`` / ``column`` the cross-section. Returns the metrics.
+    files (.png, .npy); ``row`` / ``column`` the cross-section; ``flat`` a tap calibration
+    applied to both A and B (:func:`tap_calibration_plan`). Raw sessions are averaged in the
+    complex domain (:func:`variant_frame`); every region reports its noise floor. Returns the
+    metrics.
     """
     from tofhil.session import open_session
 
@@ -247,18 +311,38 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
         section = H.CrossSection.choose(shape, row, column)
         regions: list[M.Region] = [M.parse_roi(r, shape) for r in rois] + [M.load_mask(p, shape) for p in masks]
         n_a, n_b = min(max_frames, sa.n_frames), min(max_frames, sb.n_frames)
-        say(f"reference: averaging {n_b} frames of {b_path}")
-        ref, ref_std = M.mean_depth_frame(session_depth_frames(sb, max_frames, min_amplitude=min_amplitude))
+        # One tap calibration on both sides (the twin's taps carry the sensor's fixed pattern
+        # too): --flat, else the one a corrected side was made with; a correction's own flat=
+        # must be the same file.
+        sides = {"A": (sa, Path(a_path)), "B": (sb, Path(b_path))}
+        recorded = [(s, recorded_tap_calibration(x)) for s, (x, _) in sides.items()]
+        recorded = [(s, r) for s, r in recorded if r is not None]
+        want = flat if flat is not None else (recorded[0][1] if recorded else None)
+        origin = "--flat" if flat is not None else (f"the header of {recorded[0][0]}" if recorded else "")
+        for (name, params), label in zip(specs, labels):
+            f_var = params.get("flat")
+            if f_var and not _same_file(f_var, want):
+                raise TofhilError(f"correction {label!r} applies the tap calibration {f_var} to A only; "
+                                  f"compare applies one tap calibration to both sides ({want or 'none given'})",
+                                  field="--correct", expected=f"--flat {f_var} (applied to A and B) and no flat= "
+                                                              "in the correction")
+        plan = tap_calibration_plan(sides, want, origin)
+        if want is not None:
+            say(f"tap calibration {want} ({origin}) on both sides: " + ", ".join(
+                f"{s} {'applied here' if plan[s] is not None else 'already applied'}" for s in plan))
+        say(f"reference: averaging {n_b} frames of {b_path} (in the complex domain)" if sb.has_raw
+            else f"reference: averaging {n_b} frames of {b_path}")
+        ref, ref_noise = variant_frame(sb, max_frames, min_amplitude=min_amplitude, flat=plan["B"])
         health_b = tap_health(sb, max_frames)
         say(f"measured: averaging {n_a} frames of {a_path}")
         health_a = tap_health(sa, max_frames)
-        fa, std = M.mean_depth_frame(session_depth_frames(sa, max_frames, min_amplitude=min_amplitude))
-        variants = [Variant(MEASURED, fa, std)]
+        fa, noise = variant_frame(sa, max_frames, min_amplitude=min_amplitude, flat=plan["A"])
+        variants = [Variant(MEASURED, fa, noise * np.sqrt(n_a), noise_m=noise)]
         for (name, params), label in zip(specs, labels):
             p = load_params(name, params)
             say(f"correcting A with {label}")
-            f, s = M.mean_depth_frame(session_depth_frames(sa, max_frames, name, p, min_amplitude))
-            variants.append(Variant(label, f, s, name, dict(params)))
+            f, s = variant_frame(sa, max_frames, name, p, min_amplitude, flat=plan["A"])
+            variants.append(Variant(label, f, s * np.sqrt(n_a), name, dict(params), noise_m=s))
         obj_source = None
         if objects:
             for sess, tag in ((sb, "B"), (sa, "A")):
@@ -293,7 +377,12 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
                      "cross_section": {"axis": section.axis, "index": section.index},
                      "roi_convention": "X0,Y0,X1,Y1 half-open (X1, Y1 exclusive)"},
         "depth_rmse_definition": M.DEPTH_RMSE,
-        "reference_temporal_std_m_median": float(np.nanmedian(ref_std)) if np.isfinite(ref_std).any() else None,
+        "reference_temporal_std_m_median": (float(np.nanmedian(ref_noise * np.sqrt(n_b)))
+                                            if np.isfinite(ref_noise).any() else None),
+        "averaging": "raw sessions: taps averaged over frames (after the tap calibration) before demodulation; "
+                     "depth-only sessions: depth averaged",
+        "tap_calibration": {"file": None if want is None else str(want), "from": origin or None,
+                            "applied_here": {s: plan[s] is not None for s in plan}},
         "variants": {},
     }
     for f, h, path in ((ref, health_b, b_path), (fa, health_a, a_path)):
@@ -303,9 +392,12 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
                               field="depth/valid", expected="a capture with valid pixels in common with the other")
     for v in variants:
         say(f"metrics: {v.label}")
+        with np.errstate(invalid="ignore"):
+            noise_res = np.sqrt(np.nan_to_num(v.noise_m, nan=np.inf) ** 2 + np.nan_to_num(ref_noise) ** 2)
+        noise_res[~np.isfinite(noise_res)] = np.nan  # A's noise unknown (one frame): no floor
         v.evaluation = M.evaluate(v.frame, ref, regions, wrap_m=wrap_m, health_a=health_a, health_b=health_b,
                                   cloud_regions=True, cell_size=cell_size, threshold=threshold,
-                                  source=f"{a_path} vs {b_path}")
+                                  source=f"{a_path} vs {b_path}", noise_m=noise_res)
         res = v.evaluation.to_json()
         res["temporal_std_m_median"] = (float(np.nanmedian(v.temporal_std_m))
                                         if np.isfinite(v.temporal_std_m).any() else None)

@@ -155,7 +155,6 @@ def mean_taps(path: str | Path, progress: Callable[[Any, int, str], Any] | None 
     with open_session(p) as s:
         if not s.has_raw or s.n_frames == 0:
             raise TofhilError("needs raw taps (at least one frame)", file=p, field="raw/taps")
-        acc = None
-        for raw in wrap(s.raw_frames(), s.n_frames, f"reading {p.name}"):
-            acc = raw.taps.astype(np.float64) if acc is None else acc + raw.taps
-        return acc / s.n_frames, s.camera, s.theta_rad
+        from tofhil.eval.corrections.averaging import mean_taps_of
+
+        return mean_taps_of(wrap(s.raw_frames(), s.n_frames, f"reading {p.name}")), s.camera, s.theta_rad

@@ -287,14 +287,16 @@ def region_table(rows: Sequence[tuple[str, Any]], *, label: str = "variant") -> 
     from tofhil.eval.metrics import DEPTH_RMSE
 
     head = (f"<tr><th>{esc(label)}</th><th>region</th><th>pixels</th><th>compared</th><th>saturated A</th>"
-            f"<th>median (mm)</th><th>MAD (mm)</th><th>{esc(DEPTH_RMSE)} (mm)</th><th>p95 |r| (mm)</th>"
+            f"<th>median (mm)</th><th>MAD (mm)</th><th>{esc(DEPTH_RMSE)} (mm)</th><th>noise floor (mm)</th>"
+            "<th>p95 |r| (mm)</th>"
             "<th>amp. ratio</th><th>chamfer (mm)</th><th>F-score</th><th>NDT mean lik.</th><th>NVTL</th></tr>")
     body = []
     for name, r in rows:
         d = r.depth_residual_m
         c, n = r.cloud, r.ndt
         cells = [esc(name), esc(r.name), fmt(r.pixels), fmt(r.valid_both_fraction), fmt(r.saturated_fraction_a),
-                 fmt(d.median, 1e3), fmt(d.mad, 1e3), fmt(d.rmse, 1e3), fmt(d.p95_abs, 1e3),
+                 fmt(d.median, 1e3), fmt(d.mad, 1e3), fmt(d.rmse, 1e3),
+                 fmt(getattr(r, "noise_floor_m", None), 1e3), fmt(d.p95_abs, 1e3),
                  fmt(r.amplitude_ratio.median), fmt(None if c is None else c.chamfer, 1e3),
                  fmt(None if c is None else c.fscore), fmt(None if n is None else n.mean_likelihood_trilinear),
                  fmt(None if n is None else n.nvtl)]

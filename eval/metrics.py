@@ -399,6 +399,9 @@ class RegionMetrics:
     cloud: CloudMetrics | None = None
     ndt: NdtMetrics | None = None
     cloud_skipped: str | None = None
+    #: Depth noise of the residual expected from the averaged frames' scatter: the RMS over
+    #: the region's compared pixels of sqrt(sigma_A^2 + sigma_B^2). The RMSE cannot go below it.
+    noise_floor_m: float | None = None
 
     @property
     def depth_rmse_m(self) -> float:
@@ -445,6 +448,7 @@ class RegionMetrics:
             d["ndt"] = self.ndt.to_json()
         if self.cloud_skipped:
             d["cloud_skipped"] = self.cloud_skipped
+        d["noise_floor_m"] = self.noise_floor_m
         return json_safe(d)
 
 
@@ -455,14 +459,25 @@ def _fraction(flags: np.ndarray | None, mask: np.ndarray) -> float:
     return 0.0 if flags is None else float(np.count_nonzero(flags & mask)) / n
 
 
-def region_metrics(maps: ResidualMaps, region: Region) -> RegionMetrics:
-    """Statistics of the residual maps over one region's pixels valid in both."""
+def noise_floor(noise_m: np.ndarray | None, mask: np.ndarray) -> float | None:
+    """RMS of the per-pixel residual noise ``noise_m`` over ``mask`` (finite values); None
+    without a noise map or a finite value."""
+    if noise_m is None:
+        return None
+    x = np.asarray(noise_m, np.float64)[mask]
+    x = x[np.isfinite(x)]
+    return float(np.sqrt(np.mean(x * x))) if x.size else None
+
+
+def region_metrics(maps: ResidualMaps, region: Region, noise_m: np.ndarray | None = None) -> RegionMetrics:
+    """Statistics of the residual maps over one region's pixels valid in both; ``noise_m``
+    the per-pixel standard deviation of the residual expected from noise (:func:`noise_floor`)."""
     r = region.mask
     m = r & maps.valid_both
     ha, hb = maps.health_a, maps.health_b
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        return RegionMetrics(
+        return RegionMetrics(noise_floor_m=noise_floor(noise_m, m),
             name=region.name, kind=region.kind, pixels=int(r.sum()),
             valid_fraction_a=_fraction(maps.valid_a, r), valid_fraction_b=_fraction(maps.valid_b, r),
             valid_both_fraction=_fraction(maps.valid_both, r),
@@ -496,11 +511,13 @@ def evaluate(a: DepthFrame, b: DepthFrame, regions: Sequence[Region] = (), *, wr
              health_a: TapHealth | None = None, health_b: TapHealth | None = None,
              cloud_regions: bool | Sequence[str] = False, cell_size: float = 0.1, threshold: float = 0.01,
              icp_max_distance: float | None = None, include_all: bool = True,
-             source: str | None = None) -> Evaluation:
+             source: str | None = None, noise_m: np.ndarray | None = None) -> Evaluation:
     """Evaluate A against B over the whole image (unless ``include_all=False``) and ``regions``.
 
     ``cloud_regions``: True for cloud and NDT metrics in every region, or the names of the
     regions that get them. Refuses a pair with no pixel valid in both (``source`` names it).
+    ``noise_m``: per-pixel standard deviation of the residual expected from noise; each
+    region then reports its noise floor.
     """
     if not threshold > 0 or not math.isfinite(threshold):
         raise TofhilError(f"is {threshold}", field="threshold", expected="a positive distance in metres")
@@ -524,7 +541,7 @@ def evaluate(a: DepthFrame, b: DepthFrame, regions: Sequence[Region] = (), *, wr
     out: dict[str, RegionMetrics] = {}
     ndt_map = None
     for r in regs:
-        rm = region_metrics(maps, r)
+        rm = region_metrics(maps, r, noise_m)
         wanted = cloud_regions is True or (not isinstance(cloud_regions, bool) and r.name in cloud_regions)
         if wanted:
             cloud, nd, lmap, skipped = cloud_and_ndt(a, b, maps.valid_a & r.mask, maps.valid_b & r.mask,

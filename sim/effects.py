@@ -445,9 +445,9 @@ class StrayLightEffect(Effect):
         "ghost_sigma_px": Param(2.0, 0.0, 100.0, "px", "blur of the ghost"),
     }
     options = {"sigma_y_px": "sigma of the main lobe along y (default sigma_px)",
-               "gaussians": "more lobes: [[weight, sigma_x_px, sigma_y_px(, field_weight)], ...]; field_weight "
-                            "makes a lobe shift-variant: weight + field_weight rho^2 (rho = 0 at the principal "
-                            "point, 1 at the sensor's corner)",
+               "gaussians": "more lobes: [[weight, sigma_x_px, sigma_y_px(, field_weight(, field_weight4))], ...]; "
+                            "field_weight makes a lobe shift-variant: weight + field_weight rho^2 "
+                            "(+ field_weight4 rho^4; rho = 0 at the principal point, 1 at the sensor's corner)",
                "radial": "free-form lobe: {radii_px: [...], values: [per-pixel fraction at each radius], "
                          "field_values: [...], aspect: A}; piecewise linear in log r, heavy tails allowed",
                "ghost_center_px": "[x, y] the ghost mirrors through (default the principal point)",

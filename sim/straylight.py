@@ -55,12 +55,17 @@ from tofhil.schema import Schema
 class GaussianLobe:
     """A scattering lobe: ``weight`` of the light spread by a Gaussian (sigmas in pixels).
     ``field_weight`` makes it shift-variant: a source at normalised field radius ``rho`` (0 at
-    the principal point, 1 at the sensor's corner) spreads ``weight + field_weight rho^2``."""
+    the principal point, 1 at the sensor's corner) spreads ``weight + field_weight rho^2``;
+    ``field_weight4`` adds the second order, ``+ field_weight4 rho^4`` (a lobe whose *width*
+    changes across the field is a signed combination of widths whose weights vary with
+    ``rho^2`` -- a Taylor series in ``rho^2`` that first order truncates too early when the
+    width triples from axis to corner)."""
 
     weight: float
     sigma_x_px: float
     sigma_y_px: float
     field_weight: float = 0.0
+    field_weight4: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -185,7 +190,9 @@ class StrayLightPSF:
         A measured image is referred to by ``measured_file`` (written by the caller)."""
         d: dict[str, Any] = {"weight": 0.0}  # every lobe is in `gaussians`
         if self.gaussians:
-            d["gaussians"] = [[g.weight, g.sigma_x_px, g.sigma_y_px] + ([g.field_weight] if g.field_weight else [])
+            d["gaussians"] = [[g.weight, g.sigma_x_px, g.sigma_y_px]
+                              + ([g.field_weight] if g.field_weight or g.field_weight4 else [])
+                              + ([g.field_weight4] if g.field_weight4 else [])
                               for g in self.gaussians]
         if self.veil:
             d["veil"] = self.veil
@@ -595,8 +602,9 @@ class StrayLightOperator:
         self.keep: float | np.ndarray = psf.keep
         # A radial profile is not separable: it always goes through the FFT.
         self.method = ("fft" if method == "auto" or psf.radial is not None
-                       or any(g.field_weight for g in psf.gaussians) else method)
+                       or any(g.field_weight or g.field_weight4 for g in psf.gaussians) else method)
         self._field: PaddedConvolution | None = None
+        self._field4: PaddedConvolution | None = None
         rad = psf.radial
         field_lobes = [g for g in psf.gaussians if g.field_weight]
         if field_lobes or (rad is not None and rad.field_values and np.any(rad.field_values)):
@@ -614,6 +622,14 @@ class StrayLightOperator:
             self._field = PaddedConvolution(kf, self.shape, (h - 1, w - 1), workers)
             if psf.direct is None and psf.conserve:
                 self.keep = psf.keep - self._rho2 * moved  # the field lobe moves light too
+        lobes4 = [g for g in psf.gaussians if g.field_weight4]
+        if lobes4:
+            # Second order in the field: the kernel applied to rho^4 S.
+            self._rho2 = field_rho2(self.shape, self.center_px)
+            k4 = sum(g.field_weight4 * gaussian_kernel(self.shape, g.sigma_x_px, g.sigma_y_px) for g in lobes4)
+            self._field4 = PaddedConvolution(k4, self.shape, (h - 1, w - 1), workers)
+            if psf.direct is None and psf.conserve:
+                self.keep = self.keep - self._rho2 ** 2 * sum(g.field_weight4 for g in lobes4)
         self._conv: PaddedConvolution | None = None
         self._ghosts: list[PaddedConvolution] = []
         self._lobes: list[tuple[float, np.ndarray, np.ndarray]] = []
@@ -685,6 +701,8 @@ class StrayLightOperator:
             out += self._conv(s)
         if self._field is not None:
             out += self._field(self._rho2 * s)
+        if self._field4 is not None:
+            out += self._field4(self._rho2 ** 2 * s)
         return out
 
     def scatter_adjoint(self, s: np.ndarray, freq_hz: Any = None) -> np.ndarray:
@@ -705,6 +723,8 @@ class StrayLightOperator:
             out += self._conv.adjoint(s)
         if self._field is not None:
             out += self._rho2 * self._field.adjoint(s)
+        if self._field4 is not None:
+            out += self._rho2 ** 2 * self._field4.adjoint(s)
         return out
 
     def apply(self, s: np.ndarray, freq_hz: Any = None) -> np.ndarray:
@@ -838,15 +858,17 @@ def _psf_from_params(params: Mapping[str, Any], *, source: str | Path, prefix: s
                 vals.append(vals[1])
             if len(vals) == 3:
                 vals.append(0.0)
-            w, sx, sy, fw = vals
-            ok = 0 <= w <= 1 and 0 <= sx < math.inf and 0 <= sy < math.inf and -1 <= fw <= 1
+            if len(vals) == 4:
+                vals.append(0.0)
+            w, sx, sy, fw, fw4 = vals
+            ok = 0 <= w <= 1 and 0 <= sx < math.inf and 0 <= sy < math.inf and -1 <= fw <= 1 and -1 <= fw4 <= 1
         except (TypeError, ValueError):
             ok = False
         if not ok:
             raise InputFileError(f"got {g!r}", file=source, field=f"{prefix}.gaussians[{i}]",
                                  expected="[weight in [0, 1], sigma_x_px >= 0, sigma_y_px >= 0(, field_weight "
-                                          "in [-1, 1])]")
-        lobes.append(GaussianLobe(w, sx, sy, fw))
+                                          "in [-1, 1](, field_weight4 in [-1, 1]))]")
+        lobes.append(GaussianLobe(w, sx, sy, fw, fw4))
     kw["gaussians"] = tuple(lobes)
     kw["veil"] = _num(params, "veil", 0.0, source=source, prefix=prefix, hi=1.0, expected="a fraction in [0, 1]")
     ghosts: list[Ghost] = []

@@ -611,11 +611,13 @@ def open_session(path: str | Path) -> Session:
 
 
 def copy_session_header(src: Session, dst_path: str | Path, *, force: bool = False,
-                        note: str | None = None) -> SessionWriter:
-    """A new ``derived`` writer with the same camera, device and scene as ``src``."""
+                        note: str | None = None, device_extra: dict[str, Any] | None = None) -> SessionWriter:
+    """A new ``derived`` writer with the same camera, device and scene as ``src``;
+    ``device_extra`` adds keys to the device header (e.g. the tap calibration applied)."""
     device = dict(src.device)
     if note:
         device["derived"] = note
+    device.update(device_extra or {})
     return SessionWriter(dst_path, src.camera, device=device, scene_text=src.scene_text, force=force,
                          derived=True, sensor_config=src.sensor_config)
 

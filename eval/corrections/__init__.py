@@ -241,6 +241,25 @@ def correct_raw(raw: RawFrame, method: str, params: dict[str, Any] | None = None
     return raw, m.func(depth, **p)
 
 
+def correct_mean(session: Any, method: str, params: dict[str, Any] | None = None, *, n: int | None = None,
+                 min_amplitude: float = 0.0, progress: Callable[[Any, int, str], Any] | None = None
+                 ) -> tuple[RawFrame, DepthFrame]:
+    """The first ``n`` frames (default all) of a raw session averaged in the complex domain
+    and corrected -> (mean raw taps, depth). Complex methods correct the mean signal; depth
+    methods filter the depth of the mean."""
+    from tofhil.eval.corrections.averaging import session_mean_signal
+
+    m = get_method(method)
+    p = resolve_params(m, params)
+    flat = _flat_param(p.pop("flat", None))
+    correct = (lambda s: m.func(s, session.camera, **p)) if m.domain == "complex" else None
+    ms = session_mean_signal(session, n, flat=flat, correct=correct, scatter=False, progress=progress)
+    raw = ms.raw()
+    raw = replace(raw, taps=raw.taps.astype(np.float32), meta=dict(raw.meta, corrected=method))
+    depth = depth_from_raw(raw, min_amplitude=min_amplitude)
+    return raw, depth if m.domain == "complex" else m.func(depth, **p)
+
+
 def correct_depth(depth: DepthFrame, method: str, params: dict[str, Any] | None = None) -> DepthFrame:
     """Apply a depth-domain method; complex-domain ones refuse with a clear error."""
     m = get_method(method)
@@ -253,9 +272,16 @@ def correct_depth(depth: DepthFrame, method: str, params: dict[str, Any] | None 
 
 
 def correct_session(in_path: str | Path, out_path: str | Path, method: str, params: dict[str, Any] | None = None,
-                    *, force: bool = False, min_amplitude: float = 0.0,
+                    *, force: bool = False, min_amplitude: float = 0.0, average: bool = False,
                     progress: Callable[[Any, int, str], Any] | None = None) -> int:
-    """Correct every frame of a session into a new session file; returns the frame count."""
+    """Correct every frame of a session into a new session file; returns the frame count.
+
+    With ``average`` the output is ONE frame: the frames averaged in the complex domain
+    (after the tap calibration, before demodulation: :mod:`.averaging`), then corrected.
+    For the complex methods (linear in ``S``) that equals averaging the corrected frames;
+    it is one correction instead of one per frame. The tap calibration applied (``flat=``
+    as a file) is recorded in the output's device header (``tap_calibration``), so compare
+    can give the reference the same one."""
     from tofhil.session import copy_session_header, open_session
 
     in_path, out_path = Path(in_path), Path(out_path)
@@ -263,15 +289,30 @@ def correct_session(in_path: str | Path, out_path: str | Path, method: str, para
         raise TofhilError("the output must differ from the input", file=out_path)
     m = get_method(method)
     check_min_amplitude(min_amplitude)
+    flat_file = (params or {}).get("flat")
     p = load_params(m.name, params or {})  # calibration files loaded once, not per frame
     wrap = progress or (lambda it, n, desc: it)
     with open_session(in_path) as s:
         if m.domain == "complex" and not s.has_raw:
             correct_depth(s.depth_frame(0) if s.n_frames else None, method, p)  # raises the clear error
+        if average and not s.has_raw:
+            raise TofhilError("--average averages raw taps; this session has depth only", file=in_path,
+                              field="raw/taps", expected="a session with raw taps")
+        if average and s.n_frames == 0:
+            raise TofhilError("has no frame to average", file=in_path, field="n_frames", expected="at least one frame")
         note = f"{method} " + " ".join(f"{k}={v if isinstance(v, (int, float, str)) else 'calibrated'}"
                                        for k, v in p.items() if v is not None)
+        if average:
+            note += f" (mean of {s.n_frames} frames in the complex domain)"
+        extra = {}
+        if isinstance(flat_file, (str, Path)) and str(flat_file) and m.domain == "complex":
+            extra["tap_calibration"] = str(Path(flat_file).expanduser().resolve())
         # a derived writer: an error leaves nothing behind, Ctrl-C keeps the frames done
-        with copy_session_header(s, out_path, force=force, note=f"corrected: {note.strip()}") as w:
+        with copy_session_header(s, out_path, force=force, note=f"corrected: {note.strip()}",
+                                 device_extra=extra) as w:
+            if average:
+                w.append(*correct_mean(s, m.name, p, min_amplitude=min_amplitude, progress=progress))
+                return w.n_frames
             for i in wrap(range(s.n_frames), s.n_frames, f"correcting ({method})"):
                 if m.domain == "complex":
                     w.append(*correct_raw(s.raw_frame(i), m.name, p, min_amplitude=min_amplitude))

@@ -46,7 +46,7 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
                   ghost_center_px: tuple[float, float] | str | None = None,
                   sigmas: np.ndarray | None = None, veil: bool = True, ghost: bool = True,
                   fit_direct: bool = True, weight: np.ndarray | None = None,
-                  refine: bool = True, field: bool = False,
+                  refine: bool = True, field: bool | int | str = False,
                   lambdas: Sequence[float] | None = None) -> StrayLightPSF:
     """Fit ``direct`` and ``h`` so that ``direct * S_true + h * S_true`` matches ``S_meas``.
 
@@ -61,7 +61,10 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     to sub-pixel with the lobes' widths. The dictionary: one Gaussian lobe per width in
     ``sigmas`` (default :func:`default_sigmas`; many widths make any radial fall-off,
     power-law tails included), with ``field`` the same lobes applied to ``rho^2 S`` (signed:
-    a shift-variant lobe that grows or shrinks towards the field edge), a uniform veil, the
+    a shift-variant lobe that grows or shrinks towards the field edge) and, with ``field=2``,
+    to ``rho^4 S`` as well (second order in ``rho^2``: a lobe that widens towards the edge;
+    :data:`FREE_FORM` has ``field="select"``: the order chosen on held-out captures by
+    :func:`select_field_order`, order 1 here with a twin reference), a uniform veil, the
     ghost (sharp and blurred by each width), and, with ``fit_direct``, the loss ``-S_true``.
     ``weight`` (broadcastable to ``s_true``) weights pixels. ``lambdas``: strengths of a
     smoothness penalty on the lobe fractions across widths, the one with the least error on
@@ -69,6 +72,8 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     the active Gaussians' widths are optimised continuously, separately in x and y
     (variable projection). ``info`` holds the fit-quality report (:func:`_quality`).
     """
+    if field == "select":  # the order is chosen on held-out captures by calibrate_psf_target
+        field = 1
     s_meas = np.asarray(s_meas, dtype=np.complex128)
     s_true = np.asarray(s_true, dtype=np.complex128)
     if s_meas.shape != s_true.shape:
@@ -92,6 +97,8 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     blur = GaussianBlur(s_true)
     rho2 = field_rho2((h, w), (float(cx), float(cy)))
     fblur = GaussianBlur(rho2 * s_true) if field else None
+    # Second order: a lobe whose width triples from axis to corner is not linear in rho^2.
+    fblur4 = GaussianBlur(rho2 ** 2 * s_true) if field and int(field) >= 2 else None
     mirror = GaussianBlur(flip_image(s_true)) if ghost else None
 
     def ghost_terms(c: tuple[float, float]) -> list[tuple[str, str, Any, np.ndarray]]:
@@ -105,6 +112,8 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     if field:
         for sg in sig:
             terms.append(("field", f"field_{sg:.3g}", (sg, sg), column(fblur(sg, sg))))
+        for sg in sig if fblur4 is not None else ():
+            terms.append(("field4", f"field4_{sg:.3g}", (sg, sg), column(fblur4(sg, sg))))
     if veil:
         # Unit fraction spread evenly: every pixel gets sum(S) / (H W).
         terms.append(("veil", "veil", None, column(s_true.sum(axis=(-2, -1), keepdims=True) / (h * w))))
@@ -118,13 +127,13 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
         # Every weight is a fraction of light in [0, 1] (a field term in [-1, 1]); the loss at
         # most 0.9 (a lens that keeps less than a tenth of the light on its pixel is not a
         # camera). The bounds keep an ill-posed fit from trading huge terms against each other.
-        lo = np.array([-1.0 if k[0] == "field" else 0.0 for k in ts])
+        lo = np.array([-1.0 if k[0] in ("field", "field4") else 0.0 for k in ts])
         up = np.array([0.9 if k[0] == "loss" else 1.0 for k in ts])
         return lo, up
 
     def penalty(ts: list[tuple[str, str, Any, np.ndarray]]) -> np.ndarray:
         p = np.zeros((len(ts), len(ts)))
-        for kind in ("gauss", "field"):
+        for kind in ("gauss", "field", "field4"):
             idx = [i for i, k in enumerate(ts) if k[0] == kind]
             if len(idx) > 2:
                 d2 = _second_differences(len(idx))
@@ -207,11 +216,11 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
             if ghost_sig and fit_centre:
                 center = (center[0] + res.x[n_lobe], center[1] + res.x[n_lobe + 1])
     lobes, ghosts, veil_w, loss = [], [], 0.0, 0.0
-    field_w: dict[float, float] = {}
+    field_w: dict[float, list[float]] = {}
     gc = None if ghost_center_px is None else center
     for (kind, _, sxy, _), c in zip(terms, coef):
-        if kind == "field" and c != 0:
-            field_w[float(sxy[0])] = float(c)
+        if kind in ("field", "field4") and c != 0:
+            field_w.setdefault(float(sxy[0]), [0.0, 0.0])[kind == "field4"] = float(c)
         if c <= 0:
             continue
         if kind == "gauss":
@@ -223,7 +232,7 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
         elif kind == "loss":
             loss += float(c)
     # A field term is a lobe of its own (weight 0 on axis, signed growth) with its own width.
-    lobes += [GaussianLobe(0.0, s, s, fw) for s, fw in field_w.items()]
+    lobes += [GaussianLobe(0.0, s, s, fw[0], fw[1]) for s, fw in field_w.items()]
     psf = StrayLightPSF(gaussians=tuple(lobes), veil=veil_w, ghosts=tuple(ghosts), conserve=False,
                         direct=1.0 - loss)
     info = _quality(terms, coef, rhs, rnorm, float(np.linalg.norm(s_meas)), lam, scores,
@@ -262,7 +271,7 @@ def _quality(terms: list[tuple[str, str, Any, np.ndarray]], coef: np.ndarray, rh
         warnings.append("the calibration data cannot constrain " + ", ".join(weak) + " (variance inflation > 1e6): "
                         "add captures (a bright patch at other field positions, a card off-axis) or average more "
                         "frames")
-    if any(terms[i][0] == "field" for i in active) and captures == 1:
+    if any(terms[i][0] in ("field", "field4") for i in active) and captures == 1:
         warnings.append("shift-variant (field) lobes were fitted from one capture: a source at one field "
                         "position cannot tell them from the others; add a bright patch at other field positions")
     if stray_raw / sig < 1e-4:
@@ -368,6 +377,9 @@ def calibrate_psf_target(s_meas: np.ndarray | Sequence[np.ndarray], cx: float, c
     if stack.ndim == 3:
         stack = stack[:, None]
     masks = np.stack([target_mask(s, threshold) for s in stack])[:, None]  # [N, 1, H, W]
+    selection = None
+    if kwargs.get("field") == "select":
+        kwargs["field"], selection = select_field_order(list(stack), cx, cy, threshold=threshold, **kwargs)
     # The target's own pixels say nothing about h (their true value is unknown): fit
     # only the background, where the true signal is known to be zero.
     kwargs.setdefault("weight", (~masks).astype(np.float64))
@@ -378,12 +390,49 @@ def calibrate_psf_target(s_meas: np.ndarray | Sequence[np.ndarray], cx: float, c
         psf = calibrate_psf(stack, s_true, cx, cy, **kwargs)
     psf.info["calibration"] = {"mode": "target", "threshold": threshold, "rounds": rounds, "captures": len(stack),
                                "target_pixels": [int(m.sum()) for m in masks]}
+    if selection is not None:
+        psf.info["field_order_selection"] = selection
     return psf
 
 
+def select_field_order(captures: Sequence[np.ndarray], cx: float, cy: float, *, threshold: float = 0.2,
+                       orders: Sequence[int] = (1, 2), **kwargs: Any) -> tuple[int, dict[str, Any]]:
+    """The order of the shift-variant lobes (1: ``rho^2``; 2: ``rho^2`` and ``rho^4``) that
+    best predicts a capture the fit has not seen: leave one capture (one field position)
+    out, fit the others, predict its background. The error that matters is the extrapolation
+    to other field positions, which held-out pixels of the same captures do not see: on a
+    shift-invariant lens the second order's extra terms, unconstrained by five positions,
+    trade against the lobes and the veil and predict a new position worse. Fewer than three
+    captures: order 1. The fits here are the quick ones (one round, no width refinement, no
+    smoothness search: the same choice as two rounds on every test lens, at half the cost).
+    Returns the order and the leave-one-out residuals."""
+    if len(captures) < 3:
+        # One capture cannot constrain a shift-variant lobe at all; two only at first order.
+        order = int(len(captures) > 1)
+        return order, {"orders": {}, "chosen": order, "reason": "fewer than three captures"}
+    kw = {k: v for k, v in kwargs.items() if k not in ("field", "refine", "lambdas", "weight")}
+    scores: dict[int, float] = {}
+    for order in orders:
+        err = 0.0
+        for i in range(len(captures)):
+            train = [c for j, c in enumerate(captures) if j != i]
+            psf = calibrate_psf_target(train, cx, cy, threshold=threshold, rounds=1, refine=False, field=order,
+                                       lambdas=None, **kw)
+            c = np.asarray(captures[i])
+            m = target_mask(c, threshold)
+            op = StrayLightOperator(psf, c.shape[-2:], (cx, cy))
+            r = (op.apply(np.where(m, op.invert(c), 0)) - c)[..., ~m]
+            err += float(np.sum(np.abs(r) ** 2))
+        scores[int(order)] = err
+    best = min(scores, key=scores.get)
+    return best, {"orders": {str(k): v for k, v in scores.items()}, "chosen": best,
+                  "reason": "least leave-one-capture-out residual"}
+
+
 #: The free-form calibration's options (:func:`calibrate_psf`): many widths with a
-#: shift-variant copy, a fitted ghost centre, smoothness chosen on held-out pixels.
-FREE_FORM: dict[str, Any] = {"field": True, "ghost_center_px": "fit",
+#: shift-variant copy (its order chosen on held-out captures, :func:`select_field_order`),
+#: a fitted ghost centre, smoothness chosen on held-out pixels.
+FREE_FORM: dict[str, Any] = {"field": "select", "ghost_center_px": "fit",
                              "lambdas": (0.0, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)}
 
 
@@ -422,7 +471,7 @@ def calibrate_from_sessions(capture: str | Path | Sequence[str | Path],
     if form == "free":
         # One capture sees each source at one field position: a shift-variant lobe is not
         # identifiable from it (the fit would trade it against the others).
-        kw["field"] = len(captures) > 1
+        kw["field"] = "select" if len(captures) > 2 else len(captures) > 1
     if ghost_center_px is not None:
         kw["ghost_center_px"] = ghost_center_px
     meas = [mean_s(c) for c in captures]

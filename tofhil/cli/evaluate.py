@@ -58,6 +58,11 @@ def correct(session: Path = typer.Argument(..., parser=opt.existing_file, help="
                                                     help="Write the calibrated PSF here (.json)."),
             min_amplitude: float = typer.Option(0.0, "--min-amplitude", parser=opt.finite(0.0, unit="DN"),
                                                 help="Invalidate low-amplitude pixels when demodulating."),
+            average: bool = typer.Option(False, "--average",
+                                         help="Write ONE frame: all frames averaged in the complex domain (taps, "
+                                              "before demodulation), then corrected (for the complex methods the "
+                                              "same as correcting each frame and averaging, one correction "
+                                              "instead of N)."),
             force: bool = typer.Option(False, "--force", help="Overwrite OUT (and --save-psf) if they exist.")) -> None:
     """Apply one correction to every frame of a session (complex-domain ones need raw taps)."""
     from tofhil.eval.corrections import check_min_amplitude, correct_session, parse_method_spec
@@ -96,12 +101,13 @@ def correct(session: Path = typer.Argument(..., parser=opt.existing_file, help="
     elif reference or save_psf is not None or ghost_center is not None:
         raise TofhilError("--reference, --ghost-center and --save-psf need --calibrate CAL.h5", field="--calibrate")
     n = correct_session(session, out_path, name, params, force=force, min_amplitude=min_amplitude,
-                        progress=progress)
+                        average=average, progress=progress)
     if fitted is not None and save_psf is not None:
         real = fitted.save(save_psf, force=force)
         out.print(f"saved PSF (scattered fraction {fitted.info['scattered_fraction']:.4f}, direct "
                   f"{fitted.keep:.4f}) to {lit(real)}")
-    out.print(f"wrote {n} corrected frames ({lit(name)}) to {lit(out_path)}")
+    what = "mean frame" if average else "frames"
+    out.print(f"wrote {n} corrected {what} ({lit(name)}) to {lit(out_path)}")
 
 
 @app.command()
@@ -130,8 +136,16 @@ def compare(a: Path = typer.Argument(..., parser=opt.existing_file, help="Measur
                                                               "99th-percentile amplitude (shadows)."),
             no_objects: bool = typer.Option(False, "--no-objects",
                                             help="No per-object regions from the twin's scene."),
+            flat: Optional[Path] = typer.Option(None, "--flat", parser=opt.existing_file,
+                                                help="Tap calibration (.npz from tofhil calibrate-taps) applied to "
+                                                     "BOTH A and B before averaging (refused when a side has depth "
+                                                     "only or another calibration)."),
             force: bool = typer.Option(False, "--force", help="Overwrite an existing report.")) -> None:
-    """Pixel-aligned residuals, cloud and NDT metrics of A against B, before and after corrections."""
+    """Pixel-aligned residuals, cloud and NDT metrics of A against B, before and after corrections.
+
+    Raw sessions are averaged in the complex domain (taps over --frames frames, before
+    demodulation); each region's noise floor (the RMSE noise alone would give) is printed
+    beside its error."""
     from tofhil.eval.compare import compare_sessions
     from tofhil.eval.metrics import DEPTH_RMSE
 
@@ -139,9 +153,12 @@ def compare(a: Path = typer.Argument(..., parser=opt.existing_file, help="Measur
         m = compare_sessions(a, b, out_dir, corrections=correct_specs, rois=roi, masks=mask, row=row, column=column,
                              max_frames=frames, cell_size=cell_size, threshold=threshold, min_amplitude=min_amplitude,
                              min_relative_amplitude=min_relative_amplitude, objects=not no_objects, force=force,
-                             log=lambda s: console.print(s, highlight=False, markup=False))
+                             flat=flat, log=lambda s: console.print(s, highlight=False, markup=False))
     for name, v in m["variants"].items():
         out.print(compare_line(name, v["regions"]["all"]), highlight=False, markup=False)
+        for region, r in v["regions"].items():
+            if region != "all":
+                out.print(compare_line(f"  {region}", r), highlight=False, markup=False)
         for note in v["notes"]:
             out.print(f"  {note}", highlight=False, markup=False)
     out.print(f"({DEPTH_RMSE}: sqrt(mean((A - B)^2)) over the pixels valid in A and in B)", highlight=False)
@@ -149,15 +166,16 @@ def compare(a: Path = typer.Argument(..., parser=opt.existing_file, help="Measur
 
 
 def compare_line(name: str, region: dict[str, Any]) -> str:
-    """One line per variant: the region's depth RMSE (the one definition), median, MAD."""
+    """One line per variant and region: the depth RMSE (the one definition), the noise floor
+    (the RMSE noise alone would give), median, MAD."""
     from tofhil.eval.metrics import DEPTH_RMSE
 
     def mm(x: Any) -> str:
         return "-" if x is None else f"{x * 1000:.2f}"
 
     d = region["depth_residual_m"]
-    return (f"{name:24s} {DEPTH_RMSE} {mm(d['rmse'])} mm  median {mm(d['median'])} mm  MAD {mm(d['mad'])} mm  "
-            f"(n={d['n']})")
+    return (f"{name:24s} {DEPTH_RMSE} {mm(d['rmse'])} mm  noise floor {mm(region.get('noise_floor_m'))} mm  "
+            f"median {mm(d['median'])} mm  MAD {mm(d['mad'])} mm  (n={d['n']})")
 
 
 @app.command("calibrate-taps")
