@@ -57,6 +57,7 @@ class HeldOutData:
     #: isotropic noise (raw taps).
     phase_ref: np.ndarray | None = None
     radial_var_scale: np.ndarray | None = None
+    _fit_pixels: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def n_freq(self) -> int:
@@ -77,12 +78,29 @@ class HeldOutData:
         r = self.whitened(prediction, part)
         return float(huber(r.real).sum() + huber(r.imag).sum())
 
+    @property
+    def fit_pixels(self) -> np.ndarray:
+        """The training pixels a fit evaluates: all of them up to :data:`MAX_FIT_PIXELS`,
+        else every n-th in raster order (evenly spread over the image, the same set every
+        evaluation). A few parameters are fitted; tens of thousands of pixels pin them down
+        as well as a whole camera's worth, at a fraction of the cost per evaluation."""
+        if self._fit_pixels is None:
+            self._fit_pixels = subsample(self.train_pixels, MAX_FIT_PIXELS)
+        return self._fit_pixels
+
+    def _part(self, part: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if part == "test":
+            return self.s_test, self.var_test, self.test_pixels
+        if part == "fit":
+            return self.s_train, self.var_train, self.fit_pixels
+        return self.s_train, self.var_train, self.train_pixels
+
     def whitened(self, prediction: np.ndarray, part: str = "test") -> np.ndarray:
-        """Complex (measured - predicted) / sigma ``[C, N]`` over a part's pixels; for depth
+        """Complex (measured - predicted) / sigma ``[C, N]`` over a part's pixels ("test",
+        "train", or "fit": :attr:`fit_pixels`); for depth
         sessions the real part is the amplitude residual along the measured phasor, the
         imaginary the phase residual times the measured amplitude, each over its own noise."""
-        s, var, mask = ((self.s_test, self.var_test, self.test_pixels) if part == "test"
-                        else (self.s_train, self.var_train, self.train_pixels))
+        s, var, mask = self._part(part)
         r = s[:, mask] - prediction[:, mask]
         if self.phase_ref is None or self.radial_var_scale is None:
             return r / np.sqrt(var[:, mask])
@@ -99,7 +117,7 @@ class HeldOutData:
 
     def n_values(self, part: str = "test") -> int:
         """Real-valued data points in one part (2 per complex signal value, 1 per offset)."""
-        mask = self.test_pixels if part == "test" else self.train_pixels
+        mask = self._part(part)[2]
         return int(mask.sum() * (2 * self.n_freq + (1 if self.offset_channel else 0)))
 
     def whitened_residual(self, prediction: np.ndarray, part: str = "train") -> np.ndarray:
@@ -111,6 +129,21 @@ class HeldOutData:
 def depth_from_signal(s: np.ndarray, freq_hz: np.ndarray) -> np.ndarray:
     """Radial distance from the complex signal of each frequency ``[F, H, W]``."""
     return unwrap(wrapped_phase(s), freq_hz, amplitude=np.abs(s)).distance_m
+
+
+#: Most training pixels a fit evaluates (:attr:`HeldOutData.fit_pixels`); a 160 x 120 camera
+#: (9600 training pixels) is fitted on all of them.
+MAX_FIT_PIXELS = 16384
+
+
+def subsample(mask: np.ndarray, most: int) -> np.ndarray:
+    """``mask`` thinned to at most ``most`` pixels: every n-th true pixel in raster order."""
+    idx = np.flatnonzero(mask)
+    if len(idx) <= most:
+        return mask
+    out = np.zeros(mask.size, bool)
+    out[idx[::-(-len(idx) // most)]] = True
+    return out.reshape(mask.shape)
 
 
 #: Side of the square of pixels over which each pixel's frame-to-frame noise variance is pooled.
