@@ -293,7 +293,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
             reloaded = load_scene(ext_path)
         else:
             reloaded = scene_from_yaml(extended_text)
-        after_model = TwinModel(reloaded, data, render_kwargs=render_kwargs)
+        after_model = TwinModel(reloaded, data, render_kwargs=render_kwargs, renders_from=model)
         return after_model, after_model.predict({})
 
     after_model, after_pred = extend(selection.params)

@@ -63,6 +63,7 @@ class HeldOutData:
     #: Every frame's signal ``[N, C, H, W]`` (even frames train, odd frames test), for forms
     #: that change from frame to frame (drift); None when not kept.
     s_frames: np.ndarray | None = field(default=None, repr=False)
+    _fit_pixels: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def var_frame(self) -> np.ndarray:
@@ -88,8 +89,19 @@ class HeldOutData:
         r = self.whitened(prediction, part)
         return float(huber(r.real).sum() + huber(r.imag).sum())
 
+    @property
+    def fit_pixels(self) -> np.ndarray:
+        """The training pixels a fit evaluates: all of them up to :data:`MAX_FIT_PIXELS`,
+        else every n-th in raster order (evenly spread over the image, the same set every
+        evaluation). A few parameters are fitted; tens of thousands of pixels pin them down
+        as well as a whole camera's worth, at a fraction of the cost per evaluation."""
+        if self._fit_pixels is None:
+            self._fit_pixels = subsample(self.train_pixels, MAX_FIT_PIXELS)
+        return self._fit_pixels
+
     def whitened(self, prediction: np.ndarray, part: str = "test") -> np.ndarray:
-        """Complex (measured - predicted) / sigma ``[C, N]`` over a part's pixels; for depth
+        """Complex (measured - predicted) / sigma ``[C, N]`` over a part's pixels ("test",
+        "train", or "fit": :attr:`fit_pixels`); for depth
         sessions the real part is the amplitude residual along the measured phasor, the
         imaginary the phase residual times the measured amplitude, each over its own noise."""
         s, var, mask = self.part(part)
@@ -109,8 +121,11 @@ class HeldOutData:
 
     def part(self, part: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(mean signal, variance, pixels) of a part: ``test`` / ``train`` (the held-out or
-        training frames on their own pixel blocks) or ``test_frames`` / ``train_frames`` (those
-        frames on every usable pixel: for forms fitted per pixel, scored on other frames)."""
+        training frames on their own pixel blocks), ``fit`` (the training part's
+        :attr:`fit_pixels`) or ``test_frames`` / ``train_frames`` (those frames on every usable
+        pixel: for forms fitted per pixel, scored on other frames)."""
+        if part == "fit":
+            return self.s_train, self.var_train, self.fit_pixels
         if part in ("test", "test_frames"):
             return self.s_test, self.var_test, self.test_pixels if part == "test" else self.usable
         if part in ("train", "train_frames"):
@@ -119,7 +134,7 @@ class HeldOutData:
 
     def n_values(self, part: str = "test") -> int:
         """Real-valued data points in one part (2 per complex signal value, 1 per offset)."""
-        mask = self.test_pixels if part == "test" else self.train_pixels
+        mask = self.part(part)[2]
         return int(mask.sum() * (2 * self.n_freq + (1 if self.offset_channel else 0)))
 
     def whitened_residual(self, prediction: np.ndarray, part: str = "train") -> np.ndarray:
@@ -131,6 +146,21 @@ class HeldOutData:
 def depth_from_signal(s: np.ndarray, freq_hz: np.ndarray) -> np.ndarray:
     """Radial distance from the complex signal of each frequency ``[F, H, W]``."""
     return unwrap(wrapped_phase(s), freq_hz, amplitude=np.abs(s)).distance_m
+
+
+#: Most training pixels a fit evaluates (:attr:`HeldOutData.fit_pixels`); a 160 x 120 camera
+#: (9600 training pixels) is fitted on all of them.
+MAX_FIT_PIXELS = 16384
+
+
+def subsample(mask: np.ndarray, most: int) -> np.ndarray:
+    """``mask`` thinned to at most ``most`` pixels: every n-th true pixel in raster order."""
+    idx = np.flatnonzero(mask)
+    if len(idx) <= most:
+        return mask
+    out = np.zeros(mask.size, bool)
+    out[idx[::-(-len(idx) // most)]] = True
+    return out.reshape(mask.shape)
 
 
 #: Side of the square of pixels over which each pixel's frame-to-frame noise variance is pooled.

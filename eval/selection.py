@@ -156,7 +156,8 @@ def _unpack(active: Sequence[str], lib: Mapping[str, EffectSpec], x: np.ndarray)
 def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: EffectParams,
         new_effect: str | None = None, max_nfev: int = 60,
         free: Sequence[str] | None = None, lib: Mapping[str, EffectSpec] | None = None) -> tuple[EffectParams, float]:
-    """Least-squares fit of the active effects' parameters on the training data.
+    """Least-squares fit of the active effects' parameters on the training data (its
+    evaluated pixels, :attr:`HeldOutData.fit_pixels`).
 
     Only the effects in ``free`` (default: all active ones) move; the others keep their
     values in ``start``. Starts from ``start`` ("off" where it is silent) and, for
@@ -177,7 +178,7 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
         return {e: fixed[e] if e in fixed else _unpack(free, lib, x)[e] for e in active}
 
     if not params:
-        return full(np.zeros(0)), data.chi2(model.predict(full(np.zeros(0))), "train")
+        return full(np.zeros(0)), data.chi2(model.predict(full(np.zeros(0))), "fit")
     lo = np.array([p.lo for p in params])
     hi = np.array([p.hi for p in params])
     scale = np.array([p.scale for p in params])
@@ -186,7 +187,7 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
     last: dict[str, np.ndarray] = {}
 
     def residual(x: np.ndarray) -> np.ndarray:
-        r = data.whitened_residual(model.predict(full(x)), "train")
+        r = data.whitened_residual(model.predict(full(x)), "fit")
         last["x"], last["r"] = x.copy(), r
         return r
 
@@ -203,7 +204,7 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
             h = steps[j] if x[j] + steps[j] <= hi[j] else -steps[j]
             xj = x0_.copy()
             xj[j] += h
-            cols.append((data.whitened_residual(model.predict(full(xj)), "train") - r0) / h)
+            cols.append((data.whitened_residual(model.predict(full(xj)), "fit") - r0) / h)
         return np.stack(cols, axis=1)
 
     starts = [x0]

@@ -130,7 +130,10 @@ class TwinModel:
     (a :class:`~tofhil.eval.selection.ForwardModel`)."""
 
     def __init__(self, scene: Any, data: HeldOutData, *, render_kwargs: Mapping[str, Any] | None = None,
-                 cache_size: int = 8) -> None:
+                 cache_size: int = 8, renders_from: "TwinModel | None" = None) -> None:
+        """``renders_from``: a model of the same scene whose renders to share (the extended
+        scene of a diagnosis renders what the base twin already rendered, unless a
+        scene-stage effect was fitted)."""
         from tofhil.sim.sensor import waveform_from_scene
         from tofhil.sim.twin import Twin
 
@@ -143,7 +146,8 @@ class TwinModel:
             # only for single-path pixels, and wrong once stray light or multipath mixes paths
             # (the harmonic of a mixture is not the mixture of harmonics).
             kwargs["harmonics"] = tuple(sorted(set(waveform_from_scene(scene)) | {1, 3}))
-        self.twin = Twin(self.scene, render_kwargs=kwargs, cache_size=cache_size)
+        self.twin = Twin(self.scene, render_kwargs=kwargs, cache_size=cache_size,
+                         cache=renders_from.twin.cache if renders_from is not None else None)
         self.extra_starts: dict[str, list[dict[str, float]]] = {}
         self.evaluations = 0
 

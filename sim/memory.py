@@ -16,7 +16,12 @@ the arrays the renderer (:mod:`tofhil.sim.render`) and the sensor model
 - the sensor, per frame: the optical signal (``16 F NH``), the fixed pattern (``16 K``),
   expected electrons, shot and read noise and the ADC (about six float64 ``[F, K]`` arrays
   alive at once) and the depth of the frame;
-- the frames kept in memory (float32 taps) when the caller keeps them all.
+- the frames kept in memory (float32 taps) when the caller keeps them all;
+- the scene's geometry, per triangle: its float64 tables (:class:`tofhil.sim.geometry.Geometry`)
+  and one Embree BVH for each Embree scene built from the triangles -- two when the
+  compiled kernels' own scene (:mod:`tofhil.sim.embree4`) sits next to embreex's
+  (:data:`BVH_BYTES_PER_TRIANGLE` each, vertex and index buffers and the build's primitive
+  references included).
 
 ``tests/sim/test_memory.py`` checks the estimate against a measured peak.
 """
@@ -39,6 +44,13 @@ MAPS_BYTES_PER_PIXEL = 44
 CHUNK_SAMPLES = 1 << 16
 CHUNK_BYTES_PER_SAMPLE = 400
 CHUNK_BYTES_PER_SAMPLE_BOUNCE = 200
+#: Bytes per triangle of one Embree BVH as built for a robust triangle scene: the leaf
+#: triangles (Triangle4v, 3 float32 vertices each), the nodes, the vertex and index buffers
+#: and the builder's primitive references (32 B each), rounded up.
+BVH_BYTES_PER_TRIANGLE = 200
+#: Bytes per triangle of the float64 tables the renderer keeps (first vertex, normal, plane
+#: offset, vertex normals, object index).
+GEOMETRY_BYTES_PER_TRIANGLE = 140
 #: Refuse a job needing more than this fraction of the memory available now.
 AVAILABLE_FRACTION = 0.7
 
@@ -60,8 +72,9 @@ class MemoryEstimate:
 def estimate_bytes(*, width: int, height: int, render_freqs: int, harmonics: int, sensor_freqs: int, taps: int,
                    samples_per_pixel: int = 1, bounces: int = 0, separate_direct: bool = False,
                    transient_bins: int = 0, kept_frames: int = 0, signal_effects: bool = False,
-                   threads: int = 2) -> MemoryEstimate:
-    """The estimate (see the module docstring) from the job's sizes."""
+                   threads: int = 2, triangles: int = 0, bvhs: int = 2) -> MemoryEstimate:
+    """The estimate (see the module docstring) from the job's sizes; ``bvhs`` is the number
+    of Embree scenes built from the ``triangles``."""
     n = int(width) * int(height)
     spp = max(int(samples_per_pixel), 1)
     nk = int(render_freqs) * int(harmonics)
@@ -75,7 +88,8 @@ def estimate_bytes(*, width: int, height: int, render_freqs: int, harmonics: int
     running = min(threads, n_chunks)
     chunks = running * chunk_pixels * (spp * (CHUNK_BYTES_PER_SAMPLE + CHUNK_BYTES_PER_SAMPLE_BOUNCE * bounces)
                                        + 32 * nk + 8 * transient_bins)
-    fixed = n * (VIEW_BYTES_PER_PIXEL + MAPS_BYTES_PER_PIXEL)
+    geometry = int(triangles) * (GEOMETRY_BYTES_PER_TRIANGLE + int(bvhs) * BVH_BYTES_PER_TRIANGLE)
+    fixed = n * (VIEW_BYTES_PER_PIXEL + MAPS_BYTES_PER_PIXEL) + geometry
     # While tracing: accumulators and chunk buffers; at the end: accumulators and results.
     tracing = fixed + n * (32 * nk + 8 * transient_bins) + chunks
     finishing = fixed + n * (32 * nk + 16 * nk * n_complex + 16 * transient_bins)
@@ -130,6 +144,32 @@ def check_memory(estimate: MemoryEstimate, *, what: str = "the render", field: s
                                    "transient bins or frames")
 
 
+def scene_triangles(scene: Any) -> int:
+    """Triangles the scene's objects are built from (:func:`tofhil.sim.geometry.object_mesh`),
+    counted without building them."""
+    total = 0
+    for obj in scene.objects:
+        if obj.type in ("plane", "board"):
+            total += 2
+        elif obj.type == "box":
+            total += 12
+        elif obj.type == "sphere":
+            total += 20 * 4 ** int(obj.params["subdivisions"])   # icosphere
+        elif obj.type == "cylinder":
+            total += 4 * int(obj.params["sections"])              # side quads and two fans
+        else:
+            total += len(getattr(obj.mesh, "faces", ()))
+    return total
+
+
+def bvh_count() -> int:
+    """Embree scenes a geometry holds: embreex's, and the compiled kernels' own when that
+    binding loads (:attr:`tofhil.sim.geometry.Geometry.direct`)."""
+    from tofhil.sim import embree4
+
+    return 2 if embree4.library() is not None else 1
+
+
 def render_memory(scene: Any, render_kwargs: Mapping[str, Any], *, frames_kept: int = 0,
                   signal_effects: bool = False) -> MemoryEstimate:
     """The estimate for rendering ``scene`` with ``render`` arguments ``render_kwargs`` (as
@@ -147,4 +187,5 @@ def render_memory(scene: Any, render_kwargs: Mapping[str, Any], *, frames_kept: 
                           sensor_freqs=len(scene.sensor.freq_hz), taps=scene.sensor.taps,
                           samples_per_pixel=int(spp), bounces=int(bounces),
                           separate_direct=bool(render_kwargs.get("separate_direct", False)),
-                          transient_bins=bins, kept_frames=frames_kept, signal_effects=signal_effects)
+                          transient_bins=bins, kept_frames=frames_kept, signal_effects=signal_effects,
+                          triangles=scene_triangles(scene), bvhs=bvh_count())

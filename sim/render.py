@@ -306,7 +306,7 @@ class _Context:
         if self.subpixel:
             beta = self.pix_weight[pix] * d_cam[:, 2] ** 4
         else:
-            beta = self.centre_weight[pix]
+            beta = self.centre_weight[p0:p1] if spp == 1 else self.centre_weight[pix]
         if self.thin_lens:
             # Sample the aperture disk; every ray through the same pixel position meets the
             # pinhole ray on the focal plane. The lens makes optical paths to the focus point
@@ -346,7 +346,6 @@ class _Context:
             power = np.zeros(npix)
             ambient_unit = np.zeros(npix)
             trans = np.zeros((npix, max(len(edges) - 1, 1)))
-        ambient = np.zeros(npix)
         geom = self.geom
         smooth = geom.vnormal is not None
         vnormal = geom.vnormal if smooth else np.zeros((1, 3, 3))
@@ -360,7 +359,9 @@ class _Context:
         local = pix - p0
         if self.fused:
             return self._run_fused(npix, p0, p1, org, shared, dirs, path0, beta, local, U, out, acc_re, acc_im,
-                                   power, ambient_unit, edges, trans, vnormal, smooth)
+                                   power, ambient_unit, edges, trans, vnormal, smooth,
+                                   dest if dest is not None else {})
+        ambient = np.zeros(npix)
         sid = np.arange(len(pix))
         rays = 0
         for bounce in range(self.bounces + 1):
@@ -447,13 +448,20 @@ class _Context:
     def _run_fused(self, npix: int, p0: int, p1: int, org: np.ndarray, shared: bool, dirs: np.ndarray,
                    path0: np.ndarray, beta: np.ndarray, local: np.ndarray, U: np.ndarray, out: dict,
                    acc_re: np.ndarray, acc_im: np.ndarray, power: np.ndarray, ambient_unit: np.ndarray,
-                   edges: np.ndarray, trans: np.ndarray, vnormal: np.ndarray, smooth: bool) -> dict[str, np.ndarray]:
+                   edges: np.ndarray, trans: np.ndarray, vnormal: np.ndarray, smooth: bool,
+                   out_maps: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """The chunk's paths in one compiled loop that calls Embree per ray (no textures, a
         cos^n beam): no per-bounce Python round trip and no per-ray temporary arrays."""
         geom = self.geom
         n = len(dirs)
-        first_t = np.empty(n)
-        first_obj = np.empty(n, dtype=np.int32)
+        # One centre ray per pixel and the frame's maps at hand: the primary hits go straight
+        # into them (no per-chunk arrays to copy over).
+        direct_maps = "radial" in out_maps and self.spp == 1 and not self.subpixel and not self.thin_lens
+        if direct_maps:
+            first_t, first_obj = out_maps["radial"][p0:p1], out_maps["object_id"][p0:p1]
+        else:
+            first_t = np.empty(n)
+            first_obj = np.empty(n, dtype=np.int32)
         U2 = U if U.shape[0] else np.zeros((0, self.dims))
         rays = kernels.trace_paths(
             geom.direct.handle, embree4.ray_buffer(), org, shared, dirs,
@@ -462,7 +470,9 @@ class _Context:
             geom.normal, geom.plane_c, vnormal, smooth, geom.tri_object, self.rho_d, self.rho_s, self.n_s,
             self.emitter_pos, self.emitter_axis, RAY_EPSILON_M, self.cos_n, self.i0, self.k,
             acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj)
-        if not self.subpixel and not self.thin_lens:
+        if direct_maps:
+            out["maps_in_place"] = np.array(True)
+        elif not self.subpixel and not self.thin_lens:
             out["radial"], out["object_id"] = first_t[::self.spp], first_obj[::self.spp]
         else:
             hc = geom.intersect(self.t, _rotate(self.centre_rays[p0:p1], self.R))
@@ -470,7 +480,8 @@ class _Context:
             out["radial"] = hc.full(hc.t, np.inf)
             out["object_id"] = hc.full(geom.tri_object[hc.prim], -1).astype(np.int32)
         out["re"], out["im"], out["power"] = acc_re, acc_im, power
-        out["ambient"] = ambient_unit * self.ambient
+        if "in_place" not in out:     # (in place: the frame's ambient is made from ambient_unit once)
+            out["ambient"] = ambient_unit * self.ambient
         out["ambient_unit"] = ambient_unit
         out["rays"] = np.array(rays)
         if self.edges is not None:
@@ -556,8 +567,10 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
 
     nk = len(ctx.k)
     rows = 2 if nb else 1                          # no indirect row without bounces
-    acc_re = np.zeros((rows, nk, npix_total))     # [direct/indirect, f*h, pixel]
-    acc_im = np.zeros((rows, nk, npix_total))
+    # [direct/indirect, f*h, pixel]; the kernels add into its real and imaginary parts (strided
+    # views), so the result's phasors are this array reshaped, not a copy of two.
+    acc = np.zeros((rows, nk, npix_total), dtype=np.complex128)
+    acc_re, acc_im = acc.real, acc.imag
     power = np.zeros(npix_total)
     ambient = np.zeros(npix_total)
     ambient_unit = np.zeros(npix_total)
@@ -569,11 +582,12 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
 
     def store(p0: int, p1: int, r: dict[str, np.ndarray]) -> None:
         ray_count[0] += int(r["rays"])
-        ambient[p0:p1] = r["ambient"]
-        radial[p0:p1] = r["radial"]
-        oid[p0:p1] = r["object_id"]
+        if "maps_in_place" not in r:
+            radial[p0:p1] = r["radial"]
+            oid[p0:p1] = r["object_id"]
         if "in_place" in r:
             return
+        ambient[p0:p1] = r["ambient"]
         acc_re[:, :, p0:p1] = r["re"]
         acc_im[:, :, p0:p1] = r["im"]
         power[p0:p1] = r["power"]
@@ -581,7 +595,8 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
         if trans is not None:
             trans[p0:p1] = r["transient"]
 
-    dest = {"re": acc_re, "im": acc_im, "power": power, "ambient_unit": ambient_unit, "trans": trans}
+    dest = {"re": acc_re, "im": acc_im, "power": power, "ambient_unit": ambient_unit, "trans": trans,
+            "radial": radial, "object_id": oid}
     jobs = [(i, p0, min(p0 + per_chunk, npix_total), dest) for i, p0 in enumerate(starts)]
     if nthreads <= 1 or len(jobs) == 1:
         for job in jobs:
@@ -593,19 +608,16 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
             store(job[1], job[2], fut.result())
 
     shape = (len(freq), len(harm), H, W)
+    if ctx.fused and ctx.ambient != 0:
+        # the fused chunks added into ambient_unit in place; the ambient power is its multiple
+        np.multiply(ambient_unit, ctx.ambient, out=ambient)
 
-    def as_complex(re: np.ndarray, im: np.ndarray) -> np.ndarray:
-        c = np.empty(shape, dtype=np.complex128)
-        c.real = re.reshape(shape)
-        c.imag = im.reshape(shape)
-        return c
-
-    direct = as_complex(acc_re[0], acc_im[0])
+    direct = acc[0].reshape(shape)
     if nb == 0:                                      # no indirect light was traced
         indirect = np.zeros(shape, dtype=np.complex128) if separate_direct else None
         total = direct.copy() if separate_direct else direct
     else:
-        indirect = as_complex(acc_re[1], acc_im[1])
+        indirect = acc[1].reshape(shape)
         total = direct + indirect
     return RenderResult(
         freq_hz=freq, harmonics=harm, phasor=total,

@@ -88,19 +88,55 @@ def signal_from_render(scene: Any, result: Any, effects: Effects, config: Sensor
     return apply_signal_effects(signal, effects, effect_context(scene, camera, config))
 
 
+class RenderCache:
+    """Renders by content key, least recently used first out, except the pinned ones.
+
+    Diagnosis renders its base twin first and comes back to it after every fit of a
+    scene-stage effect (a pose fit renders dozens of poses in a row): the base render is
+    pinned (at most :attr:`max_pinned` renders are), so those fits do not evict it. A cache
+    may be shared by several twins of one scene (keys are by content, not by twin).
+    """
+
+    max_pinned = 4
+
+    def __init__(self, size: int = 8) -> None:
+        self.size = size
+        self.entries: OrderedDict[str, Any] = OrderedDict()
+        self.pinned: set[str] = set()
+
+    def get(self, key: str) -> Any | None:
+        hit = self.entries.get(key)
+        if hit is not None:
+            self.entries.move_to_end(key)
+        return hit
+
+    def put(self, key: str, value: Any, *, pin: bool = False) -> None:
+        self.entries[key] = value
+        if pin and len(self.pinned) < self.max_pinned:
+            self.pinned.add(key)
+        while len(self.entries) > self.size + len(self.pinned):
+            oldest = next(k for k in self.entries if k not in self.pinned)
+            del self.entries[oldest]
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+
 class Twin:
     """A scene, its resolved sensor configuration and a base effect set: the forward model.
 
     ``sensor`` defaults to the scene's interpreted ``sensor:`` block; ``effects`` (the base
     effect set, what the scene models) to its ``effects:`` block. ``render_kwargs`` are
     passed to every render (e.g. harmonics to compute explicitly). Renders are kept in a
-    least-recently-used cache of ``cache_size`` entries keyed by content; the scene is
-    treated as immutable (derive changed scenes with ``dataclasses.replace``).
+    least-recently-used cache of ``cache_size`` entries keyed by content (the render of the
+    base effect set pinned: :class:`RenderCache`), or in ``cache``, one shared with other
+    twins of the same scene; the scene is treated as immutable (derive changed scenes with
+    ``dataclasses.replace``).
     """
 
     def __init__(self, scene: Any, *, sensor: SensorConfig | None = None, effects: Mapping[str, Any] | None = None,
                  render_kwargs: Mapping[str, Any] | None = None, cache_size: int = 8,
-                 progress: Progress | None = None, frames_kept: int = 0) -> None:
+                 progress: Progress | None = None, frames_kept: int = 0, cache: RenderCache | None = None) -> None:
         from tofhil.sim.pipeline import resolve_effects, sensor_config
 
         self.scene = scene
@@ -110,7 +146,7 @@ class Twin:
         self.progress = progress
         self.frames_kept = frames_kept  # frames a caller holds at once (for the memory check)
         self.cache_size = cache_size
-        self._renders: OrderedDict[str, tuple[Any, Any]] = OrderedDict()
+        self.cache = cache if cache is not None else RenderCache(cache_size)
         self._sensors: dict[Any, SensorModel] = {}
         self.renders = 0  # renders traced (cache misses)
         self._base_render_bounces = int(scene.render.bounces)
@@ -196,10 +232,11 @@ class Twin:
         scene2 = apply_scene_effects(self.scene, scene_effects)
         args = render_arguments(scene2, effects, self.render_kwargs, freq_hz=self.config.freq_hz)
         key = content_key(self._scene_key, scene_effects, args)
-        hit = self._renders.get(key)
+        hit = self.cache.get(key)
         if hit is not None:
-            self._renders.move_to_end(key)
-            return hit
+            # (the scene of this twin: a shared cache's entry may come from another twin
+            # whose scene differs in what a render does not read, e.g. its source path)
+            return scene2, hit
         # Refuse, before anything is allocated, a job whose estimated memory (the render, the
         # sensor and the frames held at once) exceeds what the machine has.
         signal_effects = any(EFFECTS[n].stage in ("signal", "pixel") for n in effects)
@@ -207,9 +244,8 @@ class Twin:
                      source=str(getattr(scene2, "source", "")) or None)
         result = render(scene2, progress=self.progress, **args)
         self.renders += 1
-        self._renders[key] = (scene2, result)
-        while len(self._renders) > self.cache_size:
-            self._renders.popitem(last=False)
+        base = {n: v for n, v in self.base_effects.items() if EFFECTS[n].stage == "scene"}
+        self.cache.put(key, result, pin=scene_effects == base)
         return scene2, result
 
     # ------------------------------------------------------------------ light and taps
@@ -244,4 +280,4 @@ class Twin:
             yield sensor.expose(signal, seed=seed, frame_index=i, noise=noise, meta=dict(meta or {}))
 
 
-__all__ = ["Twin", "effect_context", "render_arguments", "render_key", "signal_from_render"]
+__all__ = ["RenderCache", "Twin", "effect_context", "render_arguments", "render_key", "signal_from_render"]

@@ -29,9 +29,9 @@ def depth_from_raw(frame: RawFrame, *, min_amplitude: float = 0.0,
     f, k, h, w = taps.shape
     limits = TapLimits.from_meta(frame.meta) if tap_limits is None else tap_limits
     if fused and fused_supported(taps, frame.theta_rad):
-        distance, amplitude, intensity, conflict, rng, bad, valid = fused_depth(taps, frame.theta_rad, frame.freq_hz,
-                                                                                margin, limits)
-        return _depth_frame(frame, distance, amplitude, intensity, conflict, rng, min_amplitude, bad, valid)
+        distance, amplitude, intensity, conflict, rng, valid = fused_depth(taps, frame.theta_rad, frame.freq_hz,
+                                                                           margin, limits)
+        return _depth_frame(frame, distance, amplitude, intensity, conflict, rng, min_amplitude, None, valid)
     dtype = np.float32 if taps.dtype == np.float32 else np.float64
     distance = np.empty((h, w), dtype)
     amplitude = np.empty((h, w), dtype)
@@ -55,7 +55,7 @@ def depth_from_raw(frame: RawFrame, *, min_amplitude: float = 0.0,
 
 def _depth_frame(frame: RawFrame, distance: np.ndarray, amplitude: np.ndarray, intensity: np.ndarray,
                  conflict: np.ndarray, unambiguous_range_m: float, min_amplitude: float,
-                 bad_taps: np.ndarray, valid: np.ndarray | None = None) -> DepthFrame:
+                 bad_taps: np.ndarray | None, valid: np.ndarray | None = None) -> DepthFrame:
     # A saturated or NaN tap is no measurement, whatever arithmetic made of it; nor is a
     # finite tap so large that the amplitude overflowed. (The fused kernel applies this
     # same rule in its pass and hands ``valid`` in.)

@@ -52,10 +52,12 @@ _BLOCK = 1024
 
 
 @njit(fastmath=_FASTMATH, cache=True)
-def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out_conf, out_bad, out_valid):  # pragma: no cover
+def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out_conf, out_valid):  # pragma: no cover
     """taps [F, K, N] float32 -> distance, mean amplitude, mean tap (intensity), conflict
-    (uint8), bad taps (uint8: a tap not inside the open interval (lo, hi)) and validity
-    (uint8: none of these and a finite distance and amplitude), in one pass.
+    (uint8) and validity (uint8: no conflict, no bad tap -- a tap not inside the open
+    interval (lo, hi) -- and a finite distance and amplitude), in one pass. (The bad-tap
+    map itself is not written: it only enters the validity, and every output byte written
+    is memory traffic of the same order as the taps read.)
 
     Per block of pixels: I and Q of every frequency (tap differences ``c_j - c_{j+K/2}``
     for even K, as :func:`tofhil.demod.iq`), then phase, amplitude and the unwrapping of
@@ -141,13 +143,12 @@ def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out
                 fa[j] = math.sqrt(i_ * i_ + q_ * q_)
                 fp[j] = _phase(q_, i_)
         o_int = out_int[b0:b0 + m]
-        o_bad = out_bad[b0:b0 + m]
         o_d = out_d[b0:b0 + m]
         o_amp = out_amp[b0:b0 + m]
         o_conf = out_conf[b0:b0 + m]
+        inv_n = c[11]
         for j in range(m):
-            o_int[j] = S[j] * c[11]
-            o_bad[j] = np.uint8(1) - G[j]
+            o_int[j] = S[j] * inv_n
         if nf == 1:
             scale = r[0] * inv_two_pi
             p0 = ph[0]
@@ -159,18 +160,23 @@ def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out
         elif nf == 2:
             p0, p1, a0, a1 = ph[0], ph[1], am[0], am[1]
             half_ = np.float32(0.5)
+            # The constants in registers: read from ``c`` inside the loop they would have to
+            # be reloaded after every store (the compiler cannot rule out that an output
+            # aliases ``c``), which keeps the loop from vectorising.
+            c0, c1, c2, c3, c4, c5, c6, c7 = c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]
+            rng_, inv_rng, half_margin = c[8], c[9], c[10]
             for j in range(m):
-                x = p0[j] * c[0] - p1[j] * c[1]
+                x = p0[j] * c0 - p1[j] * c1
                 e = np.floor(x + half_)
                 resid = abs(x - e)
-                u1 = p0[j] * c[2] + e * c[3]
-                u2 = p1[j] * c[4] + e * c[5]
-                w1 = c[6] * a0[j] * a0[j]
-                w2 = c[7] * a1[j] * a1[j]
+                u1 = p0[j] * c2 + e * c3
+                u2 = p1[j] * c4 + e * c5
+                w1 = c6 * a0[j] * a0[j]
+                w2 = c7 * a1[j] * a1[j]
                 d = u1 + (u2 - u1) * (w2 / (w1 + w2 + np.float32(1e-30)))
-                d = d - np.floor(d * c[9]) * c[8]
-                o_d[j] = min(d, c[8])
-                o_conf[j] = np.uint8(1) if resid > c[10] else np.uint8(0)
+                d = d - np.floor(d * inv_rng) * rng_
+                o_d[j] = min(d, rng_)
+                o_conf[j] = np.uint8(1) if resid > half_margin else np.uint8(0)
                 o_amp[j] = half_ * (a0[j] + a1[j])
         else:
             _search3(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf)
@@ -178,47 +184,81 @@ def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out
         for j in range(m):
             # As tofhil.depth._depth_frame: no conflict, no bad tap, finite distance and amplitude.
             fin = np.isfinite(o_d[j]) & np.isfinite(o_amp[j])
-            o_val[j] = np.uint8(1) if (fin & (o_conf[j] == 0) & (o_bad[j] == 0)) else np.uint8(0)
+            o_val[j] = np.uint8(1) if (fin & (o_conf[j] == 0) & (G[j] == 1)) else np.uint8(0)
+
+
+#: Most wrap counts of the reference frequency the vectorised three-frequency search unrolls
+#: (80/100/120 MHz: 4); plans with more take the same search with a runtime trip count.
+_UNROLL3 = 8
+
+
+@njit(fastmath=_FASTMATH, cache=True, inline="always")
+def _candidate(cnt, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, i2):  # pragma: no cover
+    """Wrap count ``cnt`` of the reference frequency, the others' counts by rounding: the three
+    unwrapped distances and their weighted variance (times the weight sum)."""
+    half_ = np.float32(0.5)
+    cand = wref + np.float32(cnt) * rref
+    u0 = w0 + np.floor((cand - w0) * i0 + half_) * r0
+    u1 = w1 + np.floor((cand - w1) * i1 + half_) * r1
+    u2 = w2 + np.floor((cand - w2) * i2 + half_) * r2
+    mean = (k0 * u0 + k1 * u1 + k2 * u2) * ks
+    e0, e1, e2 = u0 - mean, u1 - mean, u2 - mean
+    cost = k0 * e0 * e0 + k1 * e1 * e1 + k2 * e2 * e2
+    return cost, u0, u1, u2
 
 
 @njit(fastmath=_FASTMATH, cache=True, inline="always")
 def _search3(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf):  # pragma: no cover
     """Three frequencies: every wrap count of the reference (lowest) frequency, the others'
     counts by rounding; the candidate with the least weighted variance (as
-    :func:`tofhil.unwrap._search`), then the weighted mean wrapped into the range."""
+    :func:`tofhil.unwrap._search`; the first of equal ones), then the weighted mean wrapped
+    into the range. Up to :data:`_UNROLL3` counts the candidate loop has a constant trip
+    count (counts past the plan's cost nothing: they are never taken), so the compiler
+    unrolls it and vectorises the pixel loop."""
     inv_two_pi = np.float32(1.0 / (2.0 * math.pi))
     ref = int(c[12])
     ncount = int(c[13])
     r0, r1, r2 = r[0], r[1], r[2]
-    half_ = np.float32(0.5)
+    i0, i1, i2 = np.float32(1.0) / r0, np.float32(1.0) / r1, np.float32(1.0) / r2
+    rref = r0 if ref == 0 else (r1 if ref == 1 else r2)
+    unrolled = ncount <= _UNROLL3
+    # Every constant in a register (see the two-frequency loop), and the fit weights too.
+    rng_, inv_rng = c[8], c[9]
+    s01, s02, s12 = spacing[0, 1], spacing[0, 2], spacing[1, 2]
+    fw0, fw1, fw2 = fw[0], fw[1], fw[2]
+    ph0, ph1, ph2, am0, am1, am2 = ph[0], ph[1], ph[2], am[0], am[1], am[2]
     for j in range(m):
-        w0 = ph[0, j] * (r0 * inv_two_pi)
-        w1 = ph[1, j] * (r1 * inv_two_pi)
-        w2 = ph[2, j] * (r2 * inv_two_pi)
-        k0 = fw[0] * am[0, j] * am[0, j] + np.float32(1e-30)
-        k1 = fw[1] * am[1, j] * am[1, j] + np.float32(1e-30)
-        k2 = fw[2] * am[2, j] * am[2, j] + np.float32(1e-30)
-        ksum = k0 + k1 + k2
+        w0 = ph0[j] * (r0 * inv_two_pi)
+        w1 = ph1[j] * (r1 * inv_two_pi)
+        w2 = ph2[j] * (r2 * inv_two_pi)
+        k0 = fw0 * am0[j] * am0[j] + np.float32(1e-30)
+        k1 = fw1 * am1[j] * am1[j] + np.float32(1e-30)
+        k2 = fw2 * am2[j] * am2[j] + np.float32(1e-30)
+        ks = np.float32(1.0) / (k0 + k1 + k2)
         wref = w0 if ref == 0 else (w1 if ref == 1 else w2)
-        rref = r0 if ref == 0 else (r1 if ref == 1 else r2)
-        best_cost = np.float32(0.0)
-        b0 = b1 = b2 = np.float32(0.0)
-        for cnt in range(ncount):
-            cand = wref + np.float32(cnt) * rref
-            u0 = w0 + np.floor((cand - w0) / r0 + half_) * r0
-            u1 = w1 + np.floor((cand - w1) / r1 + half_) * r1
-            u2 = w2 + np.floor((cand - w2) / r2 + half_) * r2
-            mean = (k0 * u0 + k1 * u1 + k2 * u2) / ksum
-            cost = k0 * (u0 - mean) ** 2 + k1 * (u1 - mean) ** 2 + k2 * (u2 - mean) ** 2
-            if cnt == 0 or cost < best_cost:
-                best_cost = cost
-                b0, b1, b2 = u0, u1, u2
-        d = (k0 * b0 + k1 * b1 + k2 * b2) / ksum
-        d = d - np.floor(d * c[9]) * c[8]
-        o_d[j] = min(d, c[8])
-        conf = (abs(b0 - b1) > spacing[0, 1]) | (abs(b0 - b2) > spacing[0, 2]) | (abs(b1 - b2) > spacing[1, 2])
+        best, b0, b1, b2 = _candidate(0, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, i2)
+        if unrolled:
+            for cnt in range(1, _UNROLL3):
+                cost, u0, u1, u2 = _candidate(cnt, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, i2)
+                better = (cost < best) & (cnt < ncount)
+                best = cost if better else best
+                b0 = u0 if better else b0
+                b1 = u1 if better else b1
+                b2 = u2 if better else b2
+        else:
+            for cnt in range(1, ncount):
+                cost, u0, u1, u2 = _candidate(cnt, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, i2)
+                better = cost < best
+                best = cost if better else best
+                b0 = u0 if better else b0
+                b1 = u1 if better else b1
+                b2 = u2 if better else b2
+        d = (k0 * b0 + k1 * b1 + k2 * b2) * ks
+        d = d - np.floor(d * inv_rng) * rng_
+        o_d[j] = min(d, rng_)
+        conf = (abs(b0 - b1) > s01) | (abs(b0 - b2) > s02) | (abs(b1 - b2) > s12)
         o_conf[j] = np.uint8(1) if conf else np.uint8(0)
-        o_amp[j] = (am[0, j] + am[1, j] + am[2, j]) * np.float32(1.0 / 3.0)
+        o_amp[j] = (am0[j] + am1[j] + am2[j]) * np.float32(1.0 / 3.0)
 
 
 def fused_supported(taps: np.ndarray, theta_rad: np.ndarray) -> bool:
@@ -236,11 +276,11 @@ def fused_supported(taps: np.ndarray, theta_rad: np.ndarray) -> bool:
 
 def fused_depth(taps: np.ndarray, theta_rad: np.ndarray, freq_hz: np.ndarray, margin: float,
                 limits: TapLimits | None = None
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
-    """``(distance, amplitude mean, intensity mean, conflict, unambiguous range, bad taps,
-    valid)`` for float32 taps ``[F, K, H, W]`` with F = 1, 2 or 3; ``bad taps`` is
-    :func:`tofhil.demod.bad_tap_pixels` of ``taps`` and ``limits``; ``valid`` is the
-    validity rule of :func:`tofhil.depth.depth_from_raw` before any amplitude threshold."""
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, np.ndarray]:
+    """``(distance, amplitude mean, intensity mean, conflict, unambiguous range, valid)`` for
+    float32 taps ``[F, K, H, W]`` with F = 1, 2 or 3; ``valid`` is the validity rule of
+    :func:`tofhil.depth.depth_from_raw` before any amplitude threshold (no conflict, no tap
+    flagged by :func:`tofhil.demod.bad_tap_pixels` with ``limits``, finite results)."""
     from tofhil.demod import estimator_weights
     from tofhil.unwrap import ext_gcd, frequency_plan
 
@@ -276,8 +316,7 @@ def fused_depth(taps: np.ndarray, theta_rad: np.ndarray, freq_hz: np.ndarray, ma
     amplitude = np.empty(h * wd, np.float32)
     intensity = np.empty(h * wd, np.float32)
     conflict = np.empty(h * wd, np.uint8)
-    bad = np.empty(h * wd, np.uint8)
     valid = np.empty(h * wd, np.uint8)
-    _fused(flat, wr, wi, lo, hi, c, r, fw, spacing, distance, amplitude, intensity, conflict, bad, valid)
+    _fused(flat, wr, wi, lo, hi, c, r, fw, spacing, distance, amplitude, intensity, conflict, valid)
     return (distance.reshape(h, wd), amplitude.reshape(h, wd), intensity.reshape(h, wd),
-            conflict.view(bool).reshape(h, wd), rng, bad.view(bool).reshape(h, wd), valid.view(bool).reshape(h, wd))
+            conflict.view(bool).reshape(h, wd), rng, valid.view(bool).reshape(h, wd))

@@ -118,6 +118,23 @@ def test_render_cache_is_keyed_by_content_not_identity(scene):
     assert content_key(np.zeros(3)) != content_key(np.zeros(3, np.float32))
 
 
+def test_base_render_outlives_a_run_of_other_renders_and_is_shared(scene):
+    # a pose fit renders many poses in a row: the base render stays cached (pinned), and a
+    # twin of the same scene with another effects block (the extended scene) reuses it
+    twin = Twin(scene, effects={}, cache_size=2)
+    base = twin.expected_taps()
+    for i in range(5):
+        twin.expected_taps({"pose": {"tz": 0.001 * (i + 1)}})
+    assert twin.renders == 6 and len(twin.cache) <= 3
+    np.testing.assert_array_equal(twin.expected_taps(), base)
+    assert twin.renders == 6
+    extended = dataclasses.replace(scene, source="elsewhere.yaml")
+    other = Twin(extended, effects={"stray_light": {"weight": 0.02}}, cache=twin.cache)
+    other.expected_taps()
+    assert other.renders == 0
+    np.testing.assert_array_equal(other.expected_taps({}), base)
+
+
 def test_ambient_power_is_linear_in_the_irradiance(scene):
     lit = dataclasses.replace(scene, ambient_irradiance_w_m2=3.0)
     r = render(lit, freq_hz=[20e6])
