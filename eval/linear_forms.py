@@ -108,18 +108,24 @@ def pixel_offsets(model: Any, data: HeldOutData, current: dict[str, dict[str, An
     return a, d, idx
 
 
-def _ridge(a: np.ndarray, d: np.ndarray, u: np.ndarray, v: np.ndarray, w: int, h: int,
-           lam_c: float, lam_r: float) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
-    """Weighted ridge fit of ``d ~ col[u] + row[v]``: (col, row, the trace of the hat matrix
-    split into the columns' and the rows' diagonal entries)."""
+def _normal_equations(a: np.ndarray, d: np.ndarray, u: np.ndarray, v: np.ndarray, w: int,
+                      h: int) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted normal equations of ``d ~ col[u] + row[v]``: ``(X'WX, X'Wd)``."""
     m = np.zeros((w + h, w + h))
     m[np.arange(w), np.arange(w)] = np.bincount(u, a, w)
     m[w + np.arange(h), w + np.arange(h)] = np.bincount(v, a, h)
-    cross = np.zeros((w, h))
-    np.add.at(cross, (u, v), a)
+    cross = np.bincount(u * h + v, a, w * h).reshape(w, h)
     m[:w, w:] = cross
     m[w:, :w] = cross.T
     rhs = np.concatenate([np.bincount(u, a * d, w), np.bincount(v, a * d, h)])
+    return m, rhs
+
+
+def _ridge(m: np.ndarray, rhs: np.ndarray, w: int, lam_c: float, lam_r: float, *,
+           dof: bool = False) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+    """Weighted ridge fit from the normal equations: (col, row, the trace of the hat matrix
+    split into the columns' and the rows' diagonal entries; zeros unless ``dof``)."""
+    h = m.shape[0] - w
     reg = np.concatenate([np.full(w, lam_c), np.full(h, lam_r)])
     on = np.isfinite(reg)  # an infinite strength: that part is off (zero), not in the system
     x = np.zeros(w + h)
@@ -127,7 +133,8 @@ def _ridge(a: np.ndarray, d: np.ndarray, u: np.ndarray, v: np.ndarray, w: int, h
     if on.any():
         sub = m[np.ix_(on, on)] + np.diag(reg[on])
         x[on] = np.linalg.solve(sub, rhs[on])
-        diag[on] = np.diag(np.linalg.solve(sub, m[np.ix_(on, on)]))
+        if dof:
+            diag[on] = np.diag(np.linalg.solve(sub, m[np.ix_(on, on)]))
     return x[:w], x[w:], (float(diag[:w].sum()), float(diag[w:].sum()))
 
 
@@ -144,16 +151,17 @@ def fit_offset_map(model: Any, data: HeldOutData, current: dict[str, dict[str, A
     grid = [np.inf] + list(scale * RIDGE_GRID)
     # Strengths from the held-out blocks of the training frames (the held-out frames stay unseen).
     best = (np.sum(a[test] * d[test] ** 2), np.inf, np.inf)
+    m_train, rhs_train = _normal_equations(a[train], d[train], u[train], v[train], w, h)
     for lam_c in grid:
         for lam_r in grid:
             if np.isinf(lam_c) and np.isinf(lam_r):
                 continue
-            col, row, _ = _ridge(a[train], d[train], u[train], v[train], w, h, lam_c, lam_r)
+            col, row, _ = _ridge(m_train, rhs_train, w, lam_c, lam_r)
             score = float(np.sum(a[test] * (d[test] - col[u[test]] - row[v[test]]) ** 2))
             if score < best[0]:
                 best = (score, lam_c, lam_r)
     _, lam_c, lam_r = best
-    col, row, (dof_c, dof_r) = _ridge(a, d, u, v, w, h, lam_c, lam_r)
+    col, row, (dof_c, dof_r) = _ridge(*_normal_equations(a, d, u, v, w, h), w, lam_c, lam_r, dof=True)
     e = d - col[u] - row[v]
     pixel = np.zeros(h * w)
     dof_pix = 0.0

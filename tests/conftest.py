@@ -5,6 +5,8 @@ tests/eval, tests/cli; shared test data helpers are ``tests.real_data`` and
 from __future__ import annotations
 
 import os
+
+import tofhil  # noqa: F401  (first: it keeps BLAS on one thread before numpy is imported)
 import subprocess
 import sys
 from pathlib import Path

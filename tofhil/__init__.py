@@ -7,7 +7,16 @@ Drivers, the simulator twin and evaluation live in `tofhil.drivers`, `tofhil.sim
 `tofhil.eval`.
 """
 
-from importlib.metadata import PackageNotFoundError, version as _dist_version
+import os as _os
+
+# tofhil's parallel work runs on numba's and Embree's threads; OpenBLAS's own threads on top
+# of those spin and wait for a core, and the small solves of diagnosis then take 100x longer
+# (a 220 x 220 ridge solve: 0.1 s instead of 1 ms with the two cores busy). BLAS runs on one
+# thread unless the user chose otherwise; this must happen before numpy is first imported.
+for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    _os.environ.setdefault(_var, "1")
+
+from importlib.metadata import PackageNotFoundError, version as _dist_version  # noqa: E402
 
 try:
     __version__ = _dist_version("tofhil")

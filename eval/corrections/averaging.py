@@ -32,7 +32,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from tofhil.demod import offset, phase_to_distance, phasor, taps_from_signal
+from tofhil.demod import TapLimits, bad_tap_pixels, offset, phase_to_distance, phasor, taps_from_signal
 from tofhil.frames import RawFrame
 
 #: Frames corrected together when propagating the noise through a correction.
@@ -48,13 +48,22 @@ class MeanSignal:
     var_perp: np.ndarray     # [F, H, W] per-frame variance of S across the mean phasor's direction
     n: int
     template: RawFrame       # the first frame: camera, frequencies, tap phases, meta
+    #: [H, W] pixels with a saturated or non-finite tap in any frame (the frames' declared
+    #: limits, :func:`tofhil.demod.bad_tap_pixels`): the mean of clipped taps is no signal.
+    bad: np.ndarray | None = None
 
     def raw(self) -> RawFrame:
         """The mean as a raw frame (taps re-synthesised from ``s`` and ``B``), for
-        :func:`tofhil.depth.depth_from_raw`."""
+        :func:`tofhil.depth.depth_from_raw`. Pixels that clipped in a frame get non-finite
+        taps (invalid by the one bad-tap rule); the declared saturation levels are not passed
+        on, since re-synthesised taps of a pixel that came close to them can overshoot them
+        without any tap having clipped."""
         t = self.template
         taps = taps_from_signal(np.abs(self.s), np.angle(self.s), self.offset_b, t.theta_rad)
-        return replace(t, taps=taps, meta=dict(t.meta, frames_averaged=self.n))
+        if self.bad is not None:
+            taps[..., self.bad] = np.nan
+        meta = {k: v for k, v in t.meta.items() if k not in ("saturation_dn", "saturation_low_dn")}
+        return replace(t, taps=taps, meta=dict(meta, frames_averaged=self.n))
 
     def phase_noise_rad(self) -> np.ndarray:
         """``[F, H, W]`` standard deviation of the mean's phase (NaN where ``S = 0``)."""
@@ -99,8 +108,16 @@ def mean_signal(frame: Callable[[int], RawFrame], n: int, *, flat: Any = None,
         raise ValueError("need at least one frame")
     wrap = progress or (lambda it, k, desc: it)
     first = frame(0)
+    limits = TapLimits.from_meta(first.meta)
+    bad = np.zeros(first.taps.shape[-2:], bool)
+
+    def checked(frames: Iterable[RawFrame]) -> Iterable[RawFrame]:
+        for f in frames:
+            bad[...] |= bad_tap_pixels(f.taps, limits)
+            yield f
+
     # The tap calibration is affine and the phasor linear: both commute with the mean.
-    taps = mean_taps_of(chain([first], (frame(i) for i in wrap(range(1, n), n, "averaging frames"))))
+    taps = mean_taps_of(checked(chain([first], (frame(i) for i in wrap(range(1, n), n, "averaging frames")))))
     mean, mean_b = frame_signal(replace(first, taps=taps), flat)
     s_out = mean if correct is None else np.asarray(correct(mean))
     var = np.zeros(mean.shape)
@@ -114,7 +131,7 @@ def mean_signal(frame: Callable[[int], RawFrame], n: int, *, flat: Any = None,
                 dev = np.asarray(correct(dev))
             var += ((dev * u).imag ** 2).sum(axis=0)
         var /= n - 1
-    return MeanSignal(s_out, mean_b, var, n, first)
+    return MeanSignal(s_out, mean_b, var, n, first, bad)
 
 
 def session_mean_signal(session: Any, n: int | None = None, **kwargs: Any) -> MeanSignal:
