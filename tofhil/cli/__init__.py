@@ -15,6 +15,7 @@ import errno
 import importlib
 import os
 import shutil
+import signal
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -49,14 +50,42 @@ def lit(value: object) -> str:
     return escape(str(value))
 
 
+#: Set by the CLI's SIGINT handler. Python raises KeyboardInterrupt wherever the main thread
+#: is; when that is a weakref callback or a ``__del__`` (h5py releases its objects there) the
+#: exception is printed as "ignored" and lost, and a long simulate went on for its million
+#: frames. The long loops (every :func:`progress` step) raise it again from this flag.
+_INTERRUPT = {"requested": False}
+
+
+def _on_sigint(signum: int, frame: object) -> None:
+    _INTERRUPT["requested"] = True
+    raise KeyboardInterrupt
+
+
+def _unraisable(report: "sys.UnraisableHookArgs") -> None:
+    # A KeyboardInterrupt raised inside a weakref callback or __del__ is not lost any more
+    # (the flag re-raises it): do not print it as an ignored exception.
+    if not isinstance(report.exc_value, KeyboardInterrupt):
+        sys.__unraisablehook__(report)
+
+
+def check_interrupt() -> None:
+    """Raise KeyboardInterrupt if Ctrl-C was pressed, even if its first raise was lost."""
+    if _INTERRUPT["requested"]:
+        raise KeyboardInterrupt
+
+
 def progress(items: Iterable[T], total: int, description: str) -> Iterator[T]:
-    """Iterate with a progress bar on stderr (hidden when stderr is not a terminal)."""
+    """Iterate with a progress bar on stderr (hidden when stderr is not a terminal); each
+    step is a place where an interrupt is honoured (:func:`check_interrupt`)."""
     with Progress(TextColumn("{task.description}", markup=False), BarColumn(), MofNCompleteColumn(),
                   TimeRemainingColumn(), console=console, transient=False,
                   disable=not console.is_terminal) as bar:
         task = bar.add_task(description, total=total)
         for item in items:
+            check_interrupt()
             yield item
+            check_interrupt()
             bar.advance(task)
 
 
@@ -120,6 +149,9 @@ def main(argv: list[str] | None = None) -> None:
     interrupt exits 130 saying what was kept.
     """
     _register_command_modules()
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not when started ignoring it (nohup)
+        signal.signal(signal.SIGINT, _on_sigint)
+        sys.unraisablehook = _unraisable
     ex = _click_exceptions()
     args = sys.argv[1:] if argv is None else list(argv)
     command = typer.main.get_command(app)
