@@ -64,15 +64,7 @@ def vertex(idx, prim, tfar, bu, bv, org, shared, dirs, path_in, plane_c, normal,
         ngf[j, 0], ngf[j, 1], ngf[j, 2] = gx, gy, gz
         sx, sy, sz = gx, gy, gz
         if smooth:
-            a, b = np.float64(bu[i]), np.float64(bv[i])
-            c = 1.0 - a - b
-            sx = c * vnormal[p, 0, 0] + a * vnormal[p, 1, 0] + b * vnormal[p, 2, 0]
-            sy = c * vnormal[p, 0, 1] + a * vnormal[p, 1, 1] + b * vnormal[p, 2, 1]
-            sz = c * vnormal[p, 0, 2] + a * vnormal[p, 1, 2] + b * vnormal[p, 2, 2]
-            ln = math.sqrt(sx * sx + sy * sy + sz * sz)
-            sx, sy, sz = s * sx / ln, s * sy / ln, s * sz / ln
-            if -(sx * dx + sy * dy + sz * dz) < 0.0:
-                sx, sy, sz = gx, gy, gz
+            sx, sy, sz = _shading_normal(vnormal, p, np.float64(bu[i]), np.float64(bv[i]), s, gx, gy, gz, dx, dy, dz)
         nf[j, 0], nf[j, 1], nf[j, 2] = sx, sy, sz
         ex, ey, ez = emitter_pos[0] - px, emitter_pos[1] - py, emitter_pos[2] - pz
         r = math.sqrt(ex * ex + ey * ey + ez * ez)
@@ -102,6 +94,22 @@ def _brdf(rho, rs, ns, nx, ny, nz, ix, iy, iz, ox, oy, oz):  # pragma: no cover
         if ca > 0.0:
             f += rs * (ns + 2.0) / (2.0 * math.pi) * min(ca, 1.0) ** ns
     return f
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _shading_normal(vnormal, p, a, b, sg, gx, gy, gz, dx, dy, dz):  # pragma: no cover
+    """The vertex normals of triangle ``p`` interpolated at barycentrics ``(a, b)``, turned
+    to face the ray like the geometric normal (sign ``sg``); the geometric normal ``g`` where
+    the interpolated one faces away from the ray (a silhouette)."""
+    c = 1.0 - a - b
+    sx = c * vnormal[p, 0, 0] + a * vnormal[p, 1, 0] + b * vnormal[p, 2, 0]
+    sy = c * vnormal[p, 0, 1] + a * vnormal[p, 1, 1] + b * vnormal[p, 2, 1]
+    sz = c * vnormal[p, 0, 2] + a * vnormal[p, 1, 2] + b * vnormal[p, 2, 2]
+    ln = math.sqrt(sx * sx + sy * sy + sz * sz)
+    sx, sy, sz = sg * sx / ln, sg * sy / ln, sg * sz / ln
+    if -(sx * dx + sy * dy + sz * dz) < 0.0:
+        return gx, gy, gz
+    return sx, sy, sz
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -254,15 +262,8 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
             gx, gy, gz = sg * nx, sg * ny, sg * nz
             sx, sy, sz = gx, gy, gz
             if smooth:
-                a, b = np.float64(f[o + 15]), np.float64(f[o + 16])
-                c = 1.0 - a - b
-                sx = c * vnormal[p, 0, 0] + a * vnormal[p, 1, 0] + b * vnormal[p, 2, 0]
-                sy = c * vnormal[p, 0, 1] + a * vnormal[p, 1, 1] + b * vnormal[p, 2, 1]
-                sz = c * vnormal[p, 0, 2] + a * vnormal[p, 1, 2] + b * vnormal[p, 2, 2]
-                ln = math.sqrt(sx * sx + sy * sy + sz * sz)
-                sx, sy, sz = sg * sx / ln, sg * sy / ln, sg * sz / ln
-                if -(sx * dx + sy * dy + sz * dz) < 0.0:
-                    sx, sy, sz = gx, gy, gz
+                sx, sy, sz = _shading_normal(vnormal, p, np.float64(f[o + 15]), np.float64(f[o + 16]), sg, gx, gy, gz,
+                                             dx, dy, dz)
             ob = tri_object[p]
             rho, rs, ns = rho_d[ob], rho_s[ob], n_s[ob]
             path = path_in + t
