@@ -39,11 +39,9 @@ def calibrate_camera_cmd(
 
     if model not in DISTORTION_MODELS:
         raise TofhilError(f"got {model!r}", field="--model", expected="one of " + ", ".join(DISTORTION_MODELS))
-    if out_path.suffix.lower() not in (".yaml", ".yml"):
-        raise TofhilError("is not a .yaml file", file=out_path, field="--out", expected="a camera preset path ending in .yaml")
-    for p in (out_path, report):
-        if p is not None and p.exists() and not force:
-            raise TofhilError("already exists; refusing to overwrite (use --force)", file=p)
+    opt.check_output(out_path, force, (".yaml", ".yml"), "a camera preset path ending in .yaml")
+    if report is not None:
+        opt.check_output(report, force)
     spec = BoardSpec.parse(target, field="--target")
     cal = calibrate_sessions(sessions, spec, model=model, max_view_error_px=max_view_error, progress=progress)
     text = preset_text(cal, spec, name=name)
@@ -86,10 +84,7 @@ def colorize_cmd(recording: Path = typer.Argument(..., parser=opt.existing_file,
     from tofhil.cli import new_output_dir
     from tofhil.eval.colorize import colorize_points, k4a_inputs, session_inputs, write_ply
 
-    if out_path.suffix.lower() != ".ply":
-        raise TofhilError("is not a .ply file", file=out_path, field="--out", expected="a path ending in .ply")
-    if out_path.exists() and not force:
-        raise TofhilError("already exists; refusing to overwrite (use --force)", file=out_path)
+    opt.check_output(out_path, force, (".ply",), "a path ending in .ply")
     if report is not None:
         from tofhil.eval.colorize_report import REPORT_FILES
         from tofhil.eval.html import prepare_output_dir
@@ -155,10 +150,7 @@ def calibrate_stereo_cmd(
     from tofhil.camera import load_camera_preset
     from tofhil.eval.calibration import calibrate_stereo_sessions
 
-    if out_path.suffix.lower() not in (".yaml", ".yml"):
-        raise TofhilError("is not a .yaml file", file=out_path, field="--out", expected="a path ending in .yaml")
-    if out_path.exists() and not force:
-        raise TofhilError("already exists; refusing to overwrite (use --force)", file=out_path)
+    opt.check_output(out_path, force, (".yaml", ".yml"), "a path ending in .yaml")
     spec = BoardSpec.parse(target, field="--target")
     cal = calibrate_stereo_sessions(sessions, spec,
                                     tof_camera=load_camera_preset(tof_camera) if tof_camera else None,

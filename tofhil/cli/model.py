@@ -35,10 +35,7 @@ def model_cmd(sessions: List[Path] = typer.Argument(..., parser=opt.existing_fil
     from tofhil.eval.multiview import build_model, load_view
     from tofhil.eval.multiview_report import REPORT_FILES, write_model_report
 
-    if out_path.suffix.lower() != ".ply":
-        raise TofhilError("is not a .ply file", file=out_path, field="--out", expected="a path ending in .ply")
-    if out_path.exists() and not force:
-        raise TofhilError("already exists; refusing to overwrite (use --force)", file=out_path)
+    opt.check_output(out_path, force, (".ply",), "a path ending in .ply")
     if report is not None:
         prepare_output_dir(report, REPORT_FILES, force=force)
     if len(sessions) < 2:

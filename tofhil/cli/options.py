@@ -16,7 +16,7 @@ import stat
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["finite", "count", "odd_size", "existing_file", "new_file", "out_dir", "describe_path_problem"]
+__all__ = ["finite", "count", "odd_size", "existing_file", "new_file", "out_dir", "describe_path_problem", "check_output"]
 
 
 def _number_text(value: float) -> str:
@@ -171,3 +171,15 @@ existing_file = _path_parser("file")
 new_file = _path_parser("new file")
 #: An output directory: absent (created later) or an existing directory.
 out_dir = _path_parser("directory")
+
+
+def check_output(path: Path, force: bool, suffixes: tuple[str, ...] | None = None,
+                 expected: str = "") -> None:
+    """A command's output file (after ``new_file`` checked where it goes): the suffix its
+    format needs (``--out``; ``expected`` says what), and no overwrite without ``--force``."""
+    from tofhil.errors import TofhilError
+
+    if suffixes is not None and path.suffix.lower() not in suffixes:
+        raise TofhilError(f"is not a {suffixes[0]} file", file=path, field="--out", expected=expected)
+    if path.exists() and not force:
+        raise TofhilError("already exists; refusing to overwrite (use --force)", file=path)
