@@ -9,11 +9,8 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
 
-from tofhil.drivers.importers.k4a import read_k4a_recording
-from tofhil.drivers.importers.k4a_color import read_color_frame
-from tofhil.eval.colorize import colorize_points
+from tofhil.eval.colorize import colorize_points, k4a_inputs
 from tofhil.eval.colorize_report import cloud_view, figure_cloud, figure_edges
 from tofhil.eval.edge_alignment import edge_alignment
 
@@ -21,17 +18,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def main(path: Path) -> None:
-    rgb, ccam, t = read_color_frame(path, 0)
-    with read_k4a_recording(path) as rec:
-        _, z_mm, _ = rec.frame(0)
-        intr = rec.intrinsics
-    v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
-    x, y, ok = intr.undistort(u, v)
-    z = z_mm * 1e-3
-    valid = (z_mm > 0) & ok
-    pts = np.stack([x * z, y * z, z], axis=-1)[valid]
+    inp = k4a_inputs(path)
+    z, valid, rays, t, ccam, rgb = inp.z_m, inp.valid, inp.pixel_to_ray, inp.tof_to_color, inp.color_camera, inp.rgb
+    pts = inp.points()
     col = colorize_points(pts, t, ccam, rgb)
-    res = edge_alignment(z, valid, intr.undistort, t, ccam, rgb)
+    res = edge_alignment(z, valid, rays, t, ccam, rgb)
     out = ROOT / "docs" / "images"
     out.mkdir(exist_ok=True)
     for name, uri in (("kinect_mug_cloud.png", figure_cloud(cloud_view(pts[col.visible], col.colors[col.visible]),
@@ -41,7 +32,7 @@ def main(path: Path) -> None:
     print(json.dumps(res.to_dict(), indent=1))
     for kw in ({"search_px": 10}, {"search_px": 25}, {"search_px": 30}, {"sigma_px": 1.0}, {"sigma_px": 2.5},
                {"jump_m": 0.4}):
-        r = edge_alignment(z, valid, intr.undistort, t, ccam, rgb, **kw)
+        r = edge_alignment(z, valid, rays, t, ccam, rgb, **kw)
         print(kw, f"left {r.left.median_px:+.2f} right {r.right.median_px:+.2f} shift {r.shift_px:+.2f} "
                   f"spread {r.spread_px:+.2f} slope {r.slope:.2f} (left {r.slope_left:.2f}, right {r.slope_right:.2f})")
 

@@ -75,21 +75,11 @@ def test_kinect_colour_lands_on_the_depth_with_the_factory_calibration():
     """The real recording: colour from the factory calibration. Most depth points are seen
     by the colour camera, and the wall beside the mug that the colour camera (32 mm to the
     side) cannot see is occluded."""
-    from tofhil.drivers.importers.k4a import read_k4a_recording
-    from tofhil.drivers.importers.k4a_color import read_color_frame
+    from tofhil.eval.colorize import k4a_inputs
 
-    path = need(AZURE_KINECT_MKV)
-    rgb, color_cam, depth_to_color = read_color_frame(path)
-    assert rgb.shape == (720, 1280, 3)
-    with read_k4a_recording(path) as rec:
-        _, z_mm, _ = rec.frame(0)
-        intr = rec.intrinsics
-        v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
-        x, y, ok = intr.undistort(u, v)
-    z = z_mm * 1e-3
-    valid = (z_mm > 0) & ok
-    pts = np.stack([x * z, y * z, z], axis=-1)[valid]
-    res = colorize_points(pts, depth_to_color, color_cam, rgb)
+    inp = k4a_inputs(need(AZURE_KINECT_MKV))
+    assert inp.rgb.shape == (720, 1280, 3)
+    res = colorize_points(inp.points(), inp.tof_to_color, inp.color_camera, inp.rgb)
     assert res.visible.mean() > 0.9 and res.occluded.sum() > 1000
 
 
