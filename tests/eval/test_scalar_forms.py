@@ -15,7 +15,7 @@ import pytest
 
 from tests.eval import hidden_forms as hf
 from tests.eval import hidden_scalar_forms as hs
-from tofhil.camera import CameraModel
+from tests.eval.fake_heldout import heldout_from_signal
 from tofhil.eval.heldout import HeldOutData
 from tofhil.eval.selection import EffectParams, EffectSpec, FitParam, greedy_select
 
@@ -42,16 +42,7 @@ class RippleModel:
 
 
 def _data(truth: EffectParams, seed: int) -> HeldOutData:
-    rng = np.random.default_rng(seed)
-    s = RippleModel().predict(truth)
-    noisy = [s + SIGMA * (rng.standard_normal(s.shape) + 1j * rng.standard_normal(s.shape)) for _ in range(2)]
-    v, u = np.mgrid[0:H, 0:W]
-    train = ((v // 4 + u // 4) % 2) == 0
-    var = np.full(s.shape, SIGMA ** 2)
-    return HeldOutData(camera=CameraModel(W, H, 20.0, 20.0, W / 2, H / 2), freq_hz=np.array([20e6]),
-                       theta_rad=np.arange(4) * np.pi / 2, integration_time_s=1e-3, s_train=noisy[0],
-                       s_test=noisy[1], var_train=var, var_test=var, usable=np.ones((H, W), bool),
-                       train_pixels=train, test_pixels=~train, n_train_frames=1, n_test_frames=1)
+    return heldout_from_signal(RippleModel().predict(truth), SIGMA, seed)
 
 
 @pytest.mark.parametrize("truth, form", [({"a1": 0.2}, ""), ({"a1": 0.2, "a3": 0.1}, "harmonics")])

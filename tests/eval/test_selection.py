@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tofhil.camera import CameraModel
+from tests.eval.fake_heldout import heldout_from_signal
 from tofhil.eval.heldout import HeldOutData
 from tofhil.eval.selection import EffectParams, EffectSpec, FitParam, greedy_select
 
@@ -50,16 +50,7 @@ class FakeModel:
 
 
 def _data(truth: EffectParams, seed: int) -> HeldOutData:
-    rng = np.random.default_rng(seed)
-    s = FakeModel().predict(truth)
-    noisy = [s + SIGMA * (rng.standard_normal(s.shape) + 1j * rng.standard_normal(s.shape)) for _ in range(2)]
-    v, u = np.mgrid[0:H, 0:W]
-    train = ((v // 4 + u // 4) % 2) == 0
-    var = np.full(s.shape, SIGMA ** 2)
-    return HeldOutData(camera=CameraModel(W, H, 20.0, 20.0, W / 2, H / 2), freq_hz=np.array([20e6]),
-                       theta_rad=np.arange(4) * np.pi / 2, integration_time_s=1e-3, s_train=noisy[0],
-                       s_test=noisy[1], var_train=var, var_test=var, usable=np.ones((H, W), bool),
-                       train_pixels=train, test_pixels=~train, n_train_frames=1, n_test_frames=1)
+    return heldout_from_signal(FakeModel().predict(truth), SIGMA, seed)
 
 
 @pytest.mark.parametrize("effect, truth, tol", [

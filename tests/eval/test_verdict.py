@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from tests.eval import hidden_forms as hf
-from tofhil.camera import CameraModel
+from tests.eval.fake_heldout import heldout_from_signal
 from tofhil.eval import verdict as V
 from tofhil.eval.heldout import HeldOutData
 from tofhil.eval.selection import EffectParams, EffectSpec, FitParam, greedy_select
@@ -44,16 +44,7 @@ def test_threshold_holds_noise_and_rejects_a_real_excess():
 
 
 def _data(s_true: np.ndarray, seed: int = 0) -> HeldOutData:
-    rng = np.random.default_rng(seed)
-    noisy = [s_true + SIGMA * (rng.standard_normal(s_true.shape) + 1j * rng.standard_normal(s_true.shape))
-             for _ in range(2)]
-    v, u = np.mgrid[0:H, 0:W]
-    train = ((v // 4 + u // 4) % 2) == 0
-    var = np.full(s_true.shape, SIGMA ** 2)
-    return HeldOutData(camera=CameraModel(W, H, 20.0, 20.0, W / 2, H / 2), freq_hz=np.array([20e6]),
-                       theta_rad=np.arange(4) * np.pi / 2, integration_time_s=1e-3, s_train=noisy[0],
-                       s_test=noisy[1], var_train=var, var_test=var, usable=np.ones((H, W), bool),
-                       train_pixels=train, test_pixels=~train, n_train_frames=1, n_test_frames=1)
+    return heldout_from_signal(s_true, SIGMA, seed)
 
 
 def test_channels_split_amplitude_from_depth():
