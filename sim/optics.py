@@ -660,10 +660,7 @@ def prescription_from_dict(d: Any, *, source: str | Path = "<camera>", prefix: s
 
     if not isinstance(d, Mapping):
         raise bad(prefix, d, "a mapping with surfaces, sensor_reflectance, housing_veil")
-    for k in d:
-        if k not in _LENS_KEYS:
-            raise InputFileError(f"unknown key {k!r}", file=source, field=f"{prefix}.{k}",
-                                 expected="one of " + ", ".join(_LENS_KEYS))
+    sch.keys(d, prefix, _LENS_KEYS)
     wl = d.get("wavelength_m", wavelength_m)
     wl = 850e-9 if wl is None else sch.number(wl, f"{prefix}.wavelength_m", lo=2e-7, hi=2e-6)
     surfs = d.get("surfaces")
@@ -675,10 +672,7 @@ def prescription_from_dict(d: Any, *, source: str | Path = "<camera>", prefix: s
         f = f"{prefix}.surfaces[{idx}]"
         if not isinstance(s, Mapping):
             raise bad(f, s, "a mapping: radius_m, thickness_m, glass or n, semi_diameter_m, reflectance, stop")
-        for k in s:
-            if k not in _SURFACE_KEYS:
-                raise InputFileError(f"unknown key {k!r}", file=source, field=f"{f}.{k}",
-                                     expected="one of " + ", ".join(_SURFACE_KEYS))
+        sch.keys(s, f, _SURFACE_KEYS)
         kw: dict[str, Any] = {"name": str(s.get("name", ""))}
         if s.get("radius_m") is not None:
             r = sch.number(s["radius_m"], f"{f}.radius_m", lo=-1e3, hi=1e3)
