@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from tests import straylight_synthetic as syn
-from tofhil.cli import main
+from tests.cli_in_process import run_cli
 from tofhil.demod import taps_from_signal
 from tofhil.frames import RawFrame
 from tofhil.session import SessionWriter
@@ -19,11 +19,7 @@ from tofhil.session import SessionWriter
 
 
 def run(capsys, *args) -> tuple[int, str, str]:
-    try:
-        main([str(a) for a in args])
-        code = 0
-    except SystemExit as exc:
-        code = int(exc.code or 0)
+    code = run_cli(*args)
     cap = capsys.readouterr()
     return code, cap.out, cap.err
 

@@ -12,17 +12,9 @@ import pytest
 
 from tests import straylight_synthetic as syn  # noqa: E402
 
-from tofhil.cli import main  # noqa: E402
+from tests.cli_in_process import run_cli as run  # noqa: E402
 from tofhil.frames import DepthFrame  # noqa: E402
 from tofhil.session import SessionWriter, open_session  # noqa: E402
-
-
-def run(*args: str) -> int:
-    try:
-        main([str(a) for a in args])
-    except SystemExit as exc:
-        return int(exc.code or 0)
-    return 0
 
 
 @pytest.fixture(scope="module")

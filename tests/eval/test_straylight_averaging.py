@@ -15,7 +15,7 @@ import pytest
 
 from tests import straylight_synthetic as syn
 from tofhil import C_M_PER_S
-from tofhil.cli import main
+from tests.cli_in_process import run_cli as run
 from tofhil.demod import phasor
 from tofhil.eval.corrections import correct_mean, correct_raw
 from tofhil.eval.compare import recorded_tap_calibration, tap_calibration_plan
@@ -26,14 +26,6 @@ from tofhil.session import SessionWriter, open_session
 
 SQUARE_ROI = f"{syn.SQUARE[1].start},{syn.SQUARE[0].start},{syn.SQUARE[1].stop},{syn.SQUARE[0].stop}"
 SQUARE_REGION = "roi_" + SQUARE_ROI.replace(",", "_")
-
-
-def run(*args) -> int:
-    try:
-        main([str(a) for a in args])
-    except SystemExit as exc:
-        return int(exc.code or 0)
-    return 0
 
 
 @pytest.fixture(scope="module")
