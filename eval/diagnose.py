@@ -454,7 +454,8 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
             written.append(out / "stray_light_psf.json")
             psf_from_diagnosis(res.to_json(), out / "diagnosis.json").save(out / "stray_light_psf.json", force=True)
         written.append(out / "report.html")
-        write_report(res, out / "report.html", session_path=str(session_path), scene_path=str(scene_path))
+        write_report(res, out / "report.html", session_path=str(session_path), scene_path=str(scene_path),
+                     camera=scene.camera)
     except BaseException:
         for p in written:
             p.unlink(missing_ok=True)
