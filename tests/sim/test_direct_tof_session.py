@@ -61,6 +61,11 @@ def test_readers_that_need_taps_refuse_in_one_line(session: tuple, capsys: pytes
     err = capsys.readouterr().err
     assert "raw/taps" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not (tmp / "depth.h5").exists()
+    # diagnosis fits the correlation twin: a histogram session is refused, nothing left behind
+    assert run_cli("diagnose", tmp / "d.h5", "--scene", "corner", "--out", tmp / "diag") == 2
+    err = capsys.readouterr().err
+    assert "histograms" in err and "Traceback" not in err
+    assert not (tmp / "diag").exists()
 
 
 def test_a_histogram_session_without_its_bin_width_is_refused(session: tuple, tmp_path) -> None:
