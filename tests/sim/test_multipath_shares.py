@@ -90,3 +90,28 @@ def test_the_wavefront_loop_gives_the_same_shares(monkeypatch: pytest.MonkeyPatc
     wf = render(scene, camera=CAM, bounces=2, samples_per_pixel=16, subpixel=False, freq_hz=[44e6],
                 multipath_shares=True)
     assert np.allclose(wf.share_power_w, res.share_power_w, rtol=1e-6, atol=1e-9 * res.share_power_w.max())
+
+
+def test_simulate_report_of_a_correlation_scene_and_its_refusal(tmp_path) -> None:
+    """`tofhil simulate --report` on a (correlation) scene: the shares' means in report.json
+    (the corner: 0 < indirect < 1); an existing report is not overwritten and no session is
+    written then."""
+    import json
+
+    import yaml
+
+    from tests.cli_in_process import run_cli
+    from tofhil.sim.scene import scene_to_yaml
+
+    scene = load_scene("corner", overrides={"camera": {"width": 16, "height": 12, "fx": 11.6667, "fy": 11.6667,
+                                                       "cx": 7.5, "cy": 5.5, "pixel_pitch_m": 240e-6},
+                                            "render": {"samples_per_pixel": 4, "bounces": 1}})
+    path = tmp_path / "c.yaml"
+    path.write_text(scene_to_yaml(scene))
+    assert yaml.safe_load(path.read_text())["render"]["bounces"] == 1
+    assert run_cli("simulate", path, "--out", tmp_path / "c.h5", "--report", tmp_path / "rep") == 0
+    rep = json.loads((tmp_path / "rep" / "report.json").read_text())["multipath_shares"]
+    assert len(rep["mean_share_by_bounce"]) == 2 and 0.1 < rep["mean_share_by_bounce"][1] < 0.6
+    assert sum(rep["mean_share_by_object"].values()) == pytest.approx(1.0, abs=1e-9)
+    assert run_cli("simulate", path, "--out", tmp_path / "d.h5", "--report", tmp_path / "rep") == 2
+    assert not (tmp_path / "d.h5").exists()
