@@ -399,10 +399,14 @@ def expected_photons(scene: Any, result: Any, cfg: DirectToFConfig) -> np.ndarra
 
 def render_direct(scene: Any, *, progress: Any = None, **render_kwargs: Any) -> Any:
     """The scene's transient render on the direct-ToF configuration's path-length bins."""
+    from tofhil.sim.memory import check_memory, render_memory
     from tofhil.sim.render import render
 
-    return render(scene, freq_hz=[0.0], transient_bins=render_edges_m(scene.direct_tof), progress=progress,
-                  **render_kwargs)
+    edges = render_edges_m(scene.direct_tof)
+    kw = {"freq_hz": [0.0], "transient_bins": edges, **render_kwargs}
+    # the transient [T, H, W] is this render's largest array: refuse before allocating it
+    check_memory(render_memory(scene, kw), source=str(getattr(scene, "source", "")))
+    return render(scene, progress=progress, **kw)
 
 
 def simulate_direct(scene: Any, frames: int = 1, seed: int = 0, noise: bool = True, *, result: Any = None,
