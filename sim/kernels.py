@@ -157,7 +157,7 @@ def _sincos(x):  # pragma: no cover
 def _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, which, q, w, length):  # pragma: no cover
     """Add one light path of weight ``w`` and optical length ``length`` to pixel ``q``: its
     power, its phasor ``w exp(i k L)`` per frequency/harmonic (row ``which``: 0 direct, 1
-    indirect) and, with a transient histogram, its length bin."""
+    indirect; or :func:`share_row`) and, with a transient histogram, its length bin."""
     power[q] += w
     for m in range(nk):
         sn, cs = _sincos(k[m] * length)
@@ -169,12 +169,21 @@ def _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, which, q, w, 
             trans[q, b] += w
 
 
+@njit(nogil=True, cache=True, inline="always")
+def share_row(bounce, src, n_obj):  # pragma: no cover
+    """The accumulator row of a path: 0 direct / 1 indirect, or with ``n_obj > 0`` (multipath
+    shares) ``bounce * n_obj + src``, ``src`` the object the light came from (see render)."""
+    if n_obj == 0:
+        return 0 if bounce == 0 else 1
+    return bounce * n_obj + src
+
+
 @njit(nogil=True, cache=True)
 def connect_and_bounce(irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, path, local, which,
                        k, acc_re, acc_im, power, edges, trans, do_bounce, u1, u2, eps,
                        nb_org, nb_dir, nb_keep):  # pragma: no cover
     """Add each vertex's emitter connection ``w = beta f_r E`` with path length ``path + r1``
-    to its pixel's phasors (and transient bins), then draw the next direction cosine-weighted
+    to its pixel's phasors (row ``which[j]``) and transient bins, then draw the next direction cosine-weighted
     about the shading normal (throughput ``f_r pi``). Returns the number of continued paths;
     their rows go to ``nb_keep`` and their rays to ``nb_org``/``nb_dir``; ``beta`` is updated
     in place."""
@@ -188,7 +197,7 @@ def connect_and_bounce(irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, 
         if e > 0.0 and not blocked[j]:
             w = beta[j] * e * _brdf(rho[j], rs[j], ns[j], nx, ny, nz, wi[j, 0], wi[j, 1], wi[j, 2], ox, oy, oz)
             if w > 0.0:
-                _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, which, local[j], w, path[j] + r1[j])
+                _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, which[j], local[j], w, path[j] + r1[j])
         if not do_bounce:
             continue
         # Cosine-weighted direction in the frame of the shading normal (Duff et al. 2017).
@@ -212,7 +221,7 @@ def connect_and_bounce(irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, 
 @njit(nogil=True, cache=True)
 def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, normal, plane_c, vnormal,
                 smooth, tri_object, rho_d, rho_s, n_s, emitter_pos, emitter_axis, eps, cos_n, i0,
-                k, acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj):  # pragma: no cover
+                k, acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj, n_obj=0):  # pragma: no cover
     """Every sample's whole path in one loop, Embree called per ray (:mod:`tofhil.sim.embree4`).
 
     The same physics, in the same float32 rays, as :func:`vertex` and
@@ -221,7 +230,8 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
     throughput ``beta0[s]``, and draws bounce ``b``'s direction from ``U[s, 4 + 2b]`` and
     ``U[s, 5 + 2b]``. Uniform reflectance per object (no textures) and a cos^n beam only.
     ``first_t``/``first_obj`` get the primary hit (inf / -1 for a miss); ``ambient_unit`` the
-    first vertex's albedo * beta / pi. Returns the number of rays traced.
+    first vertex's albedo * beta / pi. ``n_obj > 0``: rows by bounce and source object
+    (:func:`share_row`). Returns the number of rays traced.
     """
     addr, o = eda.record(buf)
     f = buf
@@ -238,6 +248,7 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
         path_in = path0[s]
         beta = beta0[s]
         q = local[s]
+        src = 0
         for bounce in range(bounces + 1):
             eda.set_ray(f, u, o, np.float32(ox), np.float32(oy), np.float32(oz),
                         np.float32(dx), np.float32(dy), np.float32(dz), np.float32(1e37))
@@ -267,6 +278,8 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
             ob = tri_object[p]
             rho, rs, ns = rho_d[ob], rho_s[ob], n_s[ob]
             path = path_in + t
+            if bounce <= 1:
+                src = ob           # the seen object (direct light) or the one that lit it
             if bounce == 0:
                 first_t[s] = t
                 first_obj[s] = ob
@@ -285,8 +298,8 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
                 if not f[o + 8] < 0.0:        # tfar = -inf: blocked
                     w = beta * irr * _brdf(rho, rs, ns, sx, sy, sz, ex, ey, ez, -dx, -dy, -dz)
                     if w > 0.0:
-                        _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, 0 if bounce == 0 else 1, q, w,
-                                    path + r)
+                        _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, share_row(bounce, src, n_obj),
+                                    q, w, path + r)
             if bounce == bounces:
                 break
             ndx, ndy, ndz = _cosine_direction(U[s, 4 + 2 * bounce], U[s, 5 + 2 * bounce], sx, sy, sz)

@@ -40,7 +40,7 @@ MAX_CAMERA_SIDE_PX = 100_000
 MAX_SCENE_BYTES = 16 << 20
 
 _TOP_KEYS = ("name", "description", "params", "camera", "emitter", "ambient_irradiance_w_m2",
-             "materials", "objects", "sensor", "effects", "render", "rgb_camera")
+             "materials", "objects", "sensor", "effects", "render", "rgb_camera", "direct_tof")
 _CAMERA_KEYS = {"preset", "width", "height", "fx", "fy", "cx", "cy", "dist", "name", "pixel_pitch_m",
                 "hfov_deg", "vfov_deg", "pose", "f_number", "focus_distance_m", "lens"} | set(SENSOR_KEYS)
 
@@ -133,11 +133,21 @@ def scene_from_dict(d: dict, source: str = "<dict>", base_dir: str | Path | None
                  effects=EffectSet.parse(effects, source=source),
                  render=RenderSettings.from_dict(d.get("render"), source=source),
                  params=params, rgb_camera=p.second_camera(d.get("rgb_camera")),
+                 direct_tof=_direct_tof(d, source),
                  name=p.string(d.get("name", ""), "name"),
                  description=p.string(d.get("description", ""), "description"), source=source)
 
 
 # --------------------------------------------------------------------------- helpers
+def _direct_tof(d: dict, source: str) -> Any:
+    """The ``direct_tof:`` block (a pulsed emitter and a SPAD histogram sensor), or None."""
+    if d.get("direct_tof") is None:
+        return None
+    from tofhil.sim.direct_tof import DirectToFConfig
+
+    return DirectToFConfig.from_dict(d["direct_tof"], source=source)
+
+
 def _deep_merge(base: dict, over: dict, source: str, prefix: str = "") -> dict:
     """Merge ``over`` into a copy of ``base`` (mappings recursively, everything else replaced)."""
     if not isinstance(over, dict):

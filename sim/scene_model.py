@@ -271,6 +271,8 @@ class Scene:
     render: RenderSettings = field(default_factory=RenderSettings)
     params: dict[str, Any] = field(default_factory=dict)
     rgb_camera: SecondCamera | None = None
+    #: A pulsed emitter and SPAD histogram sensor (sim/direct_tof.py), or None: correlation ToF.
+    direct_tof: Any = None
     name: str = ""
     description: str = ""
     source: str = "<dict>"
@@ -337,4 +339,6 @@ class Scene:
         })
         if self.rgb_camera is not None:
             d["rgb_camera"] = self.rgb_camera.to_dict()
+        if self.direct_tof is not None:
+            d["direct_tof"] = self.direct_tof.to_dict()
         return to_plain(d)
