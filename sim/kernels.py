@@ -13,6 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
+from tofhil.sim import dielectric as _dielectric
 from tofhil.sim import embree4 as eda
 
 _INV_PI = 1.0 / math.pi
@@ -299,3 +300,225 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
             dx, dy, dz = ndx, ndy, ndz
             path_in = path
     return rays
+
+
+# --------------------------------------------------------------------------- dielectrics
+#: Specular events (Fresnel reflections and refractions) one camera sample may go through;
+#: the reflected branches wait on a stack of this depth. Light still in the path after that
+#: many interfaces carries less than R^(k/2) of its power (about 1e-6 for glass): dropped.
+MAX_SPECULAR = 24
+_STACK = 16
+#: A reflected branch with less than this share of its sample's starting weight is not
+#: followed (glass: after two internal round trips, R^4 ~ 3e-6): the power it would add
+#: is below 1e-6 of the sample's.
+_DROP = 1e-6
+
+
+@njit(nogil=True, cache=True)
+def trace_paths_media(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, normal, plane_c, vnormal,
+                      smooth, tri_object, rho_d, rho_s, n_s, ior, sigma_a, box_c, box_axes, box_half,
+                      emitter_pos, emitter_axis, eps, cos_n, i0,
+                      k, acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj):  # pragma: no cover
+    """:func:`trace_paths` with smooth dielectric boxes (:mod:`tofhil.sim.dielectric`).
+
+    At a glass face the path splits: the Fresnel reflection ``R`` waits on a stack, the
+    refraction ``1 - R`` (Snell) goes on (total internal reflection: the reflection only), so
+    a sample follows every specular branch with its exact weight and no extra noise. Inside
+    the glass the optical length grows by ``n d`` and the power falls by
+    ``exp(-sigma_a d)``. Specular events do not count as bounces: ``bounces`` counts diffuse
+    vertices. At a diffuse vertex the emitter is connected straight, or, where the straight
+    shadow ray meets a glass box first, along the refracted ray through the two faces of its
+    slab (:func:`tofhil.sim.dielectric.slab_link`; its two air legs must be free). Diffuse
+    surfaces inside glass are not supported (the parser and the renderer's set-up refuse
+    them); a path that still meets one is dropped.
+    """
+    addr, o = eda.record(buf)
+    f = buf
+    u = buf.view(np.uint32)
+    nk = k.shape[0]
+    nbins = edges.shape[0] - 1
+    rays = 0
+    stk = np.empty((_STACK, 14))
+    for s in range(dirs.shape[0]):
+        if shared:
+            ox, oy, oz = org[0, 0], org[0, 1], org[0, 2]
+        else:
+            ox, oy, oz = org[s, 0], org[s, 1], org[s, 2]
+        dx, dy, dz = dirs[s, 0], dirs[s, 1], dirs[s, 2]
+        # (ox, oy, oz) is the path's true vertex, (lx, ly, lz) Embree's lift off its surface:
+        # lengths are measured from the vertex, so the lifts add no path.
+        lx, ly, lz = 0.0, 0.0, 0.0
+        path_in = path0[s]
+        beta = beta0[s]
+        q = local[s]
+        bounce = 0
+        inside = -1
+        nspec = 0
+        primary = True
+        sp = 0
+        while True:
+            eda.set_ray(f, u, o, np.float32(ox + lx), np.float32(oy + ly), np.float32(oz + lz),
+                        np.float32(dx), np.float32(dy), np.float32(dz), np.float32(1e37))
+            eda.rtc_intersect1(scene, addr, 0)
+            rays += 1
+            p = u[o + 17]
+            alive = p != eda.INVALID_ID
+            if not alive and primary:
+                first_t[s] = np.inf
+                first_obj[s] = -1
+            if alive:
+                nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
+                dn = dx * nx + dy * ny + dz * nz
+                te = np.float64(f[o + 8])
+                t = te
+                if dn != 0.0:
+                    tr = (plane_c[p] - (ox * nx + oy * ny + oz * nz)) / dn
+                    if abs(tr - te) < 1e-4 * max(1.0, te):
+                        t = tr
+                px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
+                sg = 1.0 if dn < 0.0 else -1.0
+                gx, gy, gz = sg * nx, sg * ny, sg * nz
+                ob = tri_object[p]
+                if primary:
+                    first_t[s] = t
+                    first_obj[s] = ob
+                    primary = False
+                if inside >= 0:
+                    path = path_in + ior[inside] * t
+                    beta *= math.exp(-sigma_a[inside] * t)
+                else:
+                    path = path_in + t
+                if ior[ob] > 0.0:
+                    # ---- a glass face: Fresnel split
+                    if nspec >= MAX_SPECULAR or (inside >= 0 and inside != ob):
+                        alive = False                     # (nested glass: refused at set-up)
+                    else:
+                        nspec += 1
+                        n1, n2 = (1.0, ior[ob]) if inside < 0 else (ior[ob], 1.0)
+                        ci = abs(dn)
+                        refl, ct = _dielectric.fresnel(ci, n1, n2)
+                        rx, ry, rz = dx + 2.0 * ci * gx, dy + 2.0 * ci * gy, dz + 2.0 * ci * gz
+                        if refl < 1.0:
+                            if refl * beta > _DROP * beta0[s] and sp < _STACK:
+                                stk[sp, 0], stk[sp, 1], stk[sp, 2] = px, py, pz
+                                stk[sp, 3], stk[sp, 4], stk[sp, 5] = rx, ry, rz
+                                stk[sp, 6], stk[sp, 7], stk[sp, 8] = path, beta * refl, bounce
+                                stk[sp, 9], stk[sp, 10] = inside, nspec
+                                stk[sp, 11], stk[sp, 12], stk[sp, 13] = gx, gy, gz
+                                sp += 1
+                            eta = n1 / n2
+                            a = eta * ci - ct
+                            dx, dy, dz = eta * dx + a * gx, eta * dy + a * gy, eta * dz + a * gz
+                            beta *= 1.0 - refl
+                            lx, ly, lz = -eps * gx, -eps * gy, -eps * gz
+                            inside = ob if inside < 0 else -1
+                        else:                             # total internal reflection
+                            dx, dy, dz = rx, ry, rz
+                            lx, ly, lz = eps * gx, eps * gy, eps * gz
+                        ox, oy, oz = px, py, pz
+                        path_in = path
+                        continue
+                elif inside >= 0:
+                    alive = False                         # a diffuse surface inside glass
+                else:
+                    # ---- a diffuse vertex: as in trace_paths, with the emitter linked through glass
+                    sx, sy, sz = gx, gy, gz
+                    if smooth:
+                        sx, sy, sz = _shading_normal(vnormal, p, np.float64(f[o + 15]), np.float64(f[o + 16]), sg,
+                                                     gx, gy, gz, dx, dy, dz)
+                    rho, rs, ns = rho_d[ob], rho_s[ob], n_s[ob]
+                    if bounce == 0:
+                        ambient_unit[q] += beta * (rho + rs) * _INV_PI
+                    ex, ey, ez = emitter_pos[0] - px, emitter_pos[1] - py, emitter_pos[2] - pz
+                    r = math.sqrt(ex * ex + ey * ey + ez * ez)
+                    ex, ey, ez = ex / r, ey / r, ez / r
+                    w, extra, nr = _emitter_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, ex, ey, ez, r,
+                                             emitter_pos, emitter_axis, eps, cos_n, i0, normal, tri_object, ior,
+                                             sigma_a, box_c, box_axes, box_half, rho, rs, ns, -dx, -dy, -dz)
+                    rays += nr
+                    w = beta * w
+                    if w > 0.0:
+                        _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, 0 if bounce == 0 else 1, q, w,
+                                    path + extra)
+                    if bounce == bounces:
+                        alive = False
+                    else:
+                        ndx, ndy, ndz = _cosine_direction(U[s, 4 + 2 * bounce], U[s, 5 + 2 * bounce], sx, sy, sz)
+                        if ndx * gx + ndy * gy + ndz * gz <= 0.0:
+                            alive = False
+                        else:
+                            beta = beta * math.pi * _brdf(rho, rs, ns, sx, sy, sz, ndx, ndy, ndz, -dx, -dy, -dz)
+                            if beta <= 0.0:
+                                alive = False
+                            ox, oy, oz = px, py, pz
+                            lx, ly, lz = eps * gx, eps * gy, eps * gz
+                            dx, dy, dz = ndx, ndy, ndz
+                            path_in = path
+                            bounce += 1
+            if alive:
+                continue
+            if sp == 0:
+                break
+            sp -= 1                                       # the next waiting reflection
+            ox, oy, oz = stk[sp, 0], stk[sp, 1], stk[sp, 2]
+            dx, dy, dz = stk[sp, 3], stk[sp, 4], stk[sp, 5]
+            # the reflection leaves on the incoming side: lift along the mirrored direction's normal side
+            lx, ly, lz = eps * stk[sp, 11], eps * stk[sp, 12], eps * stk[sp, 13]
+            path_in, beta, bounce = stk[sp, 6], stk[sp, 7], int(stk[sp, 8])
+            inside, nspec = int(stk[sp, 9]), int(stk[sp, 10])
+            primary = False
+    return rays
+
+
+@njit(nogil=True, cache=True)
+def _emitter_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, ex, ey, ez, r, emitter_pos, emitter_axis,
+                  eps, cos_n, i0, normal, tri_object, ior, sigma_a, box_c, box_axes, box_half, rho, rs, ns,
+                  wox, woy, woz):  # pragma: no cover
+    """The emitter's contribution ``f_r E`` at a diffuse vertex (per unit throughput) and the
+    optical path from the vertex to the emitter: straight (``E = I cos / r^2``), or through the
+    slab of the glass box the straight shadow ray meets first; and the rays it traced."""
+    cs = sx * ex + sy * ey + sz * ez
+    ce = -(ex * emitter_axis[0] + ey * emitter_axis[1] + ez * emitter_axis[2])
+    if not (cs > 0.0 and ce > 0.0):
+        return 0.0, r, 0
+    ax, ay, az = px + eps * gx, py + eps * gy, pz + eps * gz
+    eda.set_ray(f, u, o, np.float32(ax), np.float32(ay), np.float32(az),
+                np.float32(ex), np.float32(ey), np.float32(ez), np.float32(r - 2.0 * eps))
+    eda.rtc_intersect1(scene, addr, 0)
+    hp = u[o + 17]
+    if hp == eda.INVALID_ID:
+        irr = i0 * _pow(ce, cos_n) * cs / (r * r)
+        return irr * _brdf(rho, rs, ns, sx, sy, sz, ex, ey, ez, wox, woy, woz), r, 1
+    gob = tri_object[hp]
+    if ior[gob] <= 0.0:
+        return 0.0, r, 1                                  # blocked by an opaque object
+    # The face it met picks the slab: the box axis along that face's normal.
+    kk = 0
+    best = -1.0
+    for j in range(3):
+        d = abs(normal[hp, 0] * box_axes[gob, j, 0] + normal[hp, 1] * box_axes[gob, j, 1]
+                + normal[hp, 2] * box_axes[gob, j, 2])
+        if d > best:
+            best, kk = d, j
+    ok, ux, uy, uz, d1, d3, x2, y2, z2, tf, geo, opl = _dielectric.slab_link(
+        px, py, pz, emitter_pos[0], emitter_pos[1], emitter_pos[2], box_c[gob], box_axes[gob], box_half[gob], kk,
+        ior[gob], sigma_a[gob])
+    if not ok:
+        return 0.0, r, 1
+    cs = sx * ux + sy * uy + sz * uz
+    ce = -(ux * emitter_axis[0] + uy * emitter_axis[1] + uz * emitter_axis[2])
+    if not (cs > 0.0 and ce > 0.0 and ux * gx + uy * gy + uz * gz > 0.0):
+        return 0.0, r, 1
+    # both air legs free (the slab's own faces end them)
+    eda.set_ray(f, u, o, np.float32(ax), np.float32(ay), np.float32(az),
+                np.float32(ux), np.float32(uy), np.float32(uz), np.float32(d1 - 2.0 * eps))
+    eda.rtc_occluded1(scene, addr, 0)
+    if f[o + 8] < 0.0:
+        return 0.0, r, 2
+    eda.set_ray(f, u, o, np.float32(x2 + eps * ux), np.float32(y2 + eps * uy), np.float32(z2 + eps * uz),
+                np.float32(ux), np.float32(uy), np.float32(uz), np.float32(d3 - 2.0 * eps))
+    eda.rtc_occluded1(scene, addr, 0)
+    if f[o + 8] < 0.0:
+        return 0.0, r, 3
+    irr = i0 * _pow(ce, cos_n) * tf * geo * cs
+    return irr * _brdf(rho, rs, ns, sx, sy, sz, ux, uy, uz, wox, woy, woz), opl, 3

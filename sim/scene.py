@@ -355,7 +355,11 @@ class _Parser(Schema):
             f = f"materials.{name}"
             if isinstance(spec, (int, float)) and not isinstance(spec, bool):
                 spec = {"reflectance": spec}
-            spec = self.mapping(spec, f, allowed=("reflectance", "glossy", "texture"), none_ok=False)
+            spec = self.mapping(spec, f, allowed=("reflectance", "glossy", "texture", "ior", "absorption_per_m"),
+                                none_ok=False)
+            if "ior" in spec or "absorption_per_m" in spec:
+                out[str(name)] = self.dielectric(spec, f, str(name))
+                continue
             rho = self.number(self.require(spec, "reflectance", f, "a number in [0, 1]"),
                               f + ".reflectance", lo=0.0, hi=1.0)
             gl = self.mapping(spec.get("glossy"), f + ".glossy", allowed=("reflectance", "exponent"))
@@ -367,6 +371,18 @@ class _Parser(Schema):
             tex = self.texture(spec.get("texture"), f + ".texture")
             out[str(name)] = Material(str(name), rho, g_rho, g_n, tex)
         return out
+
+    def dielectric(self, spec: dict, f: str, name: str) -> Material:
+        """A smooth dielectric (glass): its index and absorption; no diffuse keys."""
+        for key in ("reflectance", "glossy", "texture"):
+            if key in spec:
+                raise self.error(f"{key!r} given with ior", f + "." + key,
+                                 "either a diffuse material (reflectance, glossy, texture) or a dielectric "
+                                 "(ior, absorption_per_m): a dielectric's reflection is Fresnel's")
+        n = self.number(self.require(spec, "ior", f, "a refractive index in [1, 4] with absorption_per_m"),
+                        f + ".ior", lo=1.0, hi=4.0)
+        sig = self.number(spec.get("absorption_per_m", 0.0), f + ".absorption_per_m", lo=0.0, hi=1e6)
+        return Material(name, 0.0, ior=n, absorption_per_m=sig)
 
     def texture(self, t: Any, f: str) -> Texture | None:
         if t is None:
@@ -441,6 +457,11 @@ class _Parser(Schema):
             if not isinstance(mat, str) or mat not in materials:
                 raise self.error(f"unknown material {mat!r}", f + ".material",
                                  "one of " + ", ".join(sorted(materials)))
+            if materials[mat].ior is not None and kind != "box":
+                # the exact link to the point emitter is known through plane-parallel faces only
+                raise self.error(f"a dielectric material ({mat!r}, ior) on a {kind}", f + ".type",
+                                 "'box' (a glass slab or pane: the renderer connects the emitter through "
+                                 "plane-parallel faces only, see docs/scene-format.md)")
             pose = self.pose(o.get("pose"), f + ".pose")
             params, mesh = self._shape(kind, o, f)
             out.append(SceneObject(name=name, type=kind, material=str(mat), pose=pose,

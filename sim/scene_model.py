@@ -128,6 +128,10 @@ class Material:
 
     BRDF ``f = reflectance/pi + glossy_reflectance * (n+2)/(2 pi) * cos(alpha)**n`` with
     ``alpha`` the angle between the mirror direction of the light and the view direction.
+
+    With ``ior`` the material is a smooth dielectric instead (glass, :mod:`tofhil.sim.dielectric`):
+    Fresnel reflection and refraction at its surface, ``absorption_per_m`` inside; its
+    ``reflectance`` is 0 (no diffuse part).
     """
 
     name: str
@@ -135,8 +139,12 @@ class Material:
     glossy_reflectance: float = 0.0
     glossy_exponent: float = 0.0
     texture: Texture | None = None
+    ior: float | None = None
+    absorption_per_m: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
+        if self.ior is not None:
+            return {"ior": self.ior, "absorption_per_m": self.absorption_per_m}
         d: dict[str, Any] = {"reflectance": self.reflectance}
         if self.glossy_reflectance > 0:
             d["glossy"] = {"reflectance": self.glossy_reflectance, "exponent": self.glossy_exponent}
