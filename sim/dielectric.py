@@ -150,6 +150,66 @@ def slab_link(px, py, pz, ex, ey, ez, centre, axes, half, k, n, sigma_a):  # pra
     return True, ux, uy, uz, d1, d3, x2, y2, z2, tf, geo, opl
 
 
+# --------------------------------------------------------------------------- media
+@njit(nogil=True, cache=True, inline="always")
+def hg_phase(cos_t, g):  # pragma: no cover
+    """Henyey-Greenstein phase function (1/sr) at the cosine between the light's direction
+    before and after scattering; integrates to 1 over the sphere, mean cosine ``g``."""
+    d = 1.0 + g * g - 2.0 * g * cos_t
+    return (1.0 - g * g) / (4.0 * math.pi * d * math.sqrt(d))
+
+
+@njit(nogil=True, cache=True, inline="always")
+def hg_sample(u1, u2, g, dx, dy, dz):  # pragma: no cover
+    """A direction about the unit ``d`` drawn from the HG phase function (inverse CDF in the
+    cosine, uniform azimuth): the sampling weight phase/pdf is 1."""
+    if abs(g) < 1e-4:
+        c = 1.0 - 2.0 * u1
+    else:
+        sq = (1.0 - g * g) / (1.0 - g + 2.0 * g * u1)
+        c = (1.0 + g * g - sq * sq) / (2.0 * g)
+    c = min(1.0, max(-1.0, c))
+    sn = math.sqrt(max(0.0, 1.0 - c * c))
+    phi = 2.0 * math.pi * u2
+    sg = 1.0 if dz >= 0.0 else -1.0          # orthonormal frame about d (Duff et al. 2017)
+    aa = -1.0 / (sg + dz)
+    bb = dx * dy * aa
+    t1x, t1y, t1z = 1.0 + sg * dx * dx * aa, sg * bb, -sg * dx
+    t2x, t2y, t2z = bb, sg + dy * dy * aa, -dy
+    a, b = sn * math.cos(phi), sn * math.sin(phi)
+    return a * t1x + b * t2x + c * dx, a * t1y + b * t2y + c * dy, a * t1z + b * t2z + c * dz
+
+
+@njit(nogil=True, cache=True, inline="always")
+def box_chord(ox, oy, oz, dx, dy, dz, tmax, centre, axes, half):  # pragma: no cover
+    """``(t0, t1)``: the part of the segment ``o + t d``, ``0 <= t <= tmax``, inside the box
+    (slab method in the box's frame); ``t1 <= t0`` where it misses."""
+    t0, t1 = 0.0, tmax
+    for j in range(3):
+        o = (ox - centre[0]) * axes[j, 0] + (oy - centre[1]) * axes[j, 1] + (oz - centre[2]) * axes[j, 2]
+        d = dx * axes[j, 0] + dy * axes[j, 1] + dz * axes[j, 2]
+        if abs(d) < 1e-300:
+            if abs(o) > half[j]:
+                return 0.0, -1.0
+            continue
+        a, b = (-half[j] - o) / d, (half[j] - o) / d
+        if a > b:
+            a, b = b, a
+        t0, t1 = max(t0, a), min(t1, b)
+    return t0, t1
+
+
+@njit(nogil=True, cache=True, inline="always")
+def hash_uniform(seed, counter):  # pragma: no cover
+    """A uniform number in [0, 1) from a 64-bit seed and a counter (splitmix64): the free
+    flights' random numbers, reproducible per sample and independent of threads."""
+    z = np.uint64(seed) + np.uint64(counter + 1) * np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    z = z ^ (z >> np.uint64(31))
+    return float(z >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+
+
 # --------------------------------------------------------------------------- scene tables
 @dataclass
 class DielectricTables:
@@ -158,6 +218,8 @@ class DielectricTables:
 
     ior: np.ndarray        # [O]
     sigma_a: np.ndarray    # [O] 1/m
+    sigma_s: np.ndarray    # [O] 1/m (> 0: a scattering medium, index-matched)
+    hg_g: np.ndarray       # [O] Henyey-Greenstein anisotropy
     centre: np.ndarray     # [O, 3]
     axes: np.ndarray       # [O, 3, 3]
     half: np.ndarray       # [O, 3]
@@ -166,23 +228,27 @@ class DielectricTables:
     def any(self) -> bool:
         return bool(np.any(self.ior > 0))
 
+    @property
+    def scattering(self) -> bool:
+        return bool(np.any(self.sigma_s > 0))
+
 
 def dielectric_tables(scene) -> DielectricTables:
     """The scene's dielectric objects as :class:`DielectricTables` (boxes only: the parser
     refuses a dielectric material on any other object type)."""
     n = len(scene.objects)
-    ior, sig = np.zeros(n), np.zeros(n)
+    ior, sig, sig_s, hg = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
     centre, axes, half = np.zeros((n, 3)), np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
     for i, o in enumerate(scene.objects):
         m = scene.materials[o.material]
         if m.ior is None:
             continue
-        ior[i], sig[i] = m.ior, m.absorption_per_m
+        ior[i], sig[i], sig_s[i], hg[i] = m.ior, m.absorption_per_m, m.scattering_per_m, m.anisotropy
         R = o.pose[:3, :3]
         centre[i] = o.pose[:3, 3]
         axes[i] = (R / np.linalg.norm(R, axis=0)).T
         half[i] = np.asarray(o.params["size"], dtype=np.float64) / 2
-    return DielectricTables(ior, sig, centre, axes, half)
+    return DielectricTables(ior, sig, sig_s, hg, centre, axes, half)
 
 
 def inside_box(tab: DielectricTables, i: int, pts: np.ndarray, margin: float = 0.0) -> np.ndarray:
@@ -222,7 +288,7 @@ def glints(tab: DielectricTables, camera_pos: np.ndarray, camera_axis: np.ndarra
     out: list[Glint] = []
     c, e = np.asarray(camera_pos, float), np.asarray(emitter_pos, float)
     eps = 1e-5
-    for i in np.flatnonzero(tab.ior > 0):
+    for i in np.flatnonzero(tab.ior > 1.0):        # (index 1: no reflection)
         n = float(tab.ior[i])
         for k in range(3):
             for side in (1.0, -1.0):

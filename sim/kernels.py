@@ -316,7 +316,8 @@ _DROP = 1e-6
 
 @njit(nogil=True, cache=True)
 def trace_paths_media(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, normal, plane_c, vnormal,
-                      smooth, tri_object, rho_d, rho_s, n_s, ior, sigma_a, box_c, box_axes, box_half,
+                      smooth, tri_object, rho_d, rho_s, n_s, ior, sigma_a, sigma_s, hg_g, box_c, box_axes,
+                      box_half,
                       emitter_pos, emitter_axis, eps, cos_n, i0,
                       k, acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj):  # pragma: no cover
     """:func:`trace_paths` with smooth dielectric boxes (:mod:`tofhil.sim.dielectric`).
@@ -356,6 +357,10 @@ def trace_paths_media(scene, buf, org, shared, dirs, path0, beta0, local, U, bou
         nspec = 0
         primary = True
         sp = 0
+        seed = np.uint64(s) * np.uint64(0x632BE59BD9B4E019)
+        if U.shape[0] > 0:
+            seed = seed ^ np.uint64(U[s, 0] * 4294967296.0)
+        ctr = 0
         while True:
             eda.set_ray(f, u, o, np.float32(ox + lx), np.float32(oy + ly), np.float32(oz + lz),
                         np.float32(dx), np.float32(dy), np.float32(dz), np.float32(1e37))
@@ -366,7 +371,40 @@ def trace_paths_media(scene, buf, org, shared, dirs, path0, beta0, local, U, bou
             if not alive and primary:
                 first_t[s] = np.inf
                 first_obj[s] = -1
-            if alive:
+            scattered = False
+            if inside >= 0 and sigma_s[inside] > 0.0:
+                # ---- a scattering medium: free flight with the extinction sigma_t; a
+                # scattering event before the boundary weighs the albedo sigma_s / sigma_t
+                md = inside
+                sig_t = sigma_a[md] + sigma_s[md]
+                dfl = -math.log(1.0 - _dielectric.hash_uniform(seed, ctr)) / sig_t
+                ctr += 1
+                if dfl < (np.float64(f[o + 8]) if alive else np.inf):
+                    scattered = True
+                    px, py, pz = ox + dfl * dx, oy + dfl * dy, oz + dfl * dz
+                    path = path_in + dfl
+                    beta *= sigma_s[md] / sig_t
+                    ex, ey, ez = emitter_pos[0] - px, emitter_pos[1] - py, emitter_pos[2] - pz
+                    r = math.sqrt(ex * ex + ey * ey + ez * ez)
+                    ex, ey, ez = ex / r, ey / r, ez / r
+                    w, nr = _medium_link(scene, f, u, o, addr, px, py, pz, ex, ey, ez, r, emitter_axis, eps, cos_n,
+                                         i0, box_c[md], box_axes[md], box_half[md], sig_t)
+                    rays += nr
+                    w *= beta * _dielectric.hg_phase(dx * ex + dy * ey + dz * ez, hg_g[md])
+                    if w > 0.0:
+                        _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, 0 if bounce == 0 else 1, q, w,
+                                    path + r)
+                    if bounce == bounces or beta <= 0.0:
+                        alive = False
+                    else:
+                        dx, dy, dz = _dielectric.hg_sample(U[s, 4 + 2 * bounce], U[s, 5 + 2 * bounce], hg_g[md],
+                                                           dx, dy, dz)
+                        ox, oy, oz = px, py, pz
+                        lx, ly, lz = 0.0, 0.0, 0.0
+                        path_in = path
+                        bounce += 1
+                        alive = True
+            if alive and not scattered:
                 nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
                 dn = dx * nx + dy * ny + dz * nz
                 te = np.float64(f[o + 8])
@@ -385,7 +423,8 @@ def trace_paths_media(scene, buf, org, shared, dirs, path0, beta0, local, U, bou
                     primary = False
                 if inside >= 0:
                     path = path_in + ior[inside] * t
-                    beta *= math.exp(-sigma_a[inside] * t)
+                    if sigma_s[inside] == 0.0:          # (a scattering medium's losses: its free flights)
+                        beta *= math.exp(-sigma_a[inside] * t)
                 else:
                     path = path_in + t
                 if ior[ob] > 0.0:
@@ -434,7 +473,7 @@ def trace_paths_media(scene, buf, org, shared, dirs, path0, beta0, local, U, bou
                     ex, ey, ez = ex / r, ey / r, ez / r
                     w, extra, nr = _emitter_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, ex, ey, ez, r,
                                              emitter_pos, emitter_axis, eps, cos_n, i0, normal, tri_object, ior,
-                                             sigma_a, box_c, box_axes, box_half, rho, rs, ns, -dx, -dy, -dz)
+                                             sigma_a, sigma_s, box_c, box_axes, box_half, rho, rs, ns, -dx, -dy, -dz)
                     rays += nr
                     w = beta * w
                     if w > 0.0:
@@ -472,7 +511,7 @@ def trace_paths_media(scene, buf, org, shared, dirs, path0, beta0, local, U, bou
 
 @njit(nogil=True, cache=True)
 def _emitter_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, ex, ey, ez, r, emitter_pos, emitter_axis,
-                  eps, cos_n, i0, normal, tri_object, ior, sigma_a, box_c, box_axes, box_half, rho, rs, ns,
+                  eps, cos_n, i0, normal, tri_object, ior, sigma_a, sigma_s, box_c, box_axes, box_half, rho, rs, ns,
                   wox, woy, woz):  # pragma: no cover
     """The emitter's contribution ``f_r E`` at a diffuse vertex (per unit throughput) and the
     optical path from the vertex to the emitter: straight (``E = I cos / r^2``), or through the
@@ -492,6 +531,18 @@ def _emitter_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, ex, 
     gob = tri_object[hp]
     if ior[gob] <= 0.0:
         return 0.0, r, 1                                  # blocked by an opaque object
+    if ior[gob] == 1.0:
+        # an index-matched box (a medium): the straight ray, its extinction over the chord
+        t0, t1 = _dielectric.box_chord(px, py, pz, ex, ey, ez, r, box_c[gob], box_axes[gob], box_half[gob])
+        tr = math.exp(-(sigma_a[gob] + sigma_s[gob]) * max(0.0, t1 - t0))
+        eda.set_ray(f, u, o, np.float32(px + (t1 + eps) * ex), np.float32(py + (t1 + eps) * ey),
+                    np.float32(pz + (t1 + eps) * ez), np.float32(ex), np.float32(ey), np.float32(ez),
+                    np.float32(r - t1 - 2.0 * eps))
+        eda.rtc_occluded1(scene, addr, 0)
+        if f[o + 8] < 0.0:
+            return 0.0, r, 2
+        irr = i0 * _pow(ce, cos_n) * cs / (r * r) * tr
+        return irr * _brdf(rho, rs, ns, sx, sy, sz, ex, ey, ez, wox, woy, woz), r, 2
     # The face it met picks the slab: the box axis along that face's normal.
     kk = 0
     best = -1.0
@@ -522,3 +573,22 @@ def _emitter_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, ex, 
         return 0.0, r, 3
     irr = i0 * _pow(ce, cos_n) * tf * geo * cs
     return irr * _brdf(rho, rs, ns, sx, sy, sz, ux, uy, uz, wox, woy, woz), opl, 3
+
+
+@njit(nogil=True, cache=True)
+def _medium_link(scene, f, u, o, addr, px, py, pz, ex, ey, ez, r, emitter_axis, eps, cos_n, i0, centre, axes, half,
+                 sig_t):  # pragma: no cover
+    """The emitter's intensity over distance squared at a scattering point inside a medium
+    box, times the extinction to the box's boundary (the phase function is the caller's),
+    and the rays traced: the straight link, free beyond the box."""
+    ce = -(ex * emitter_axis[0] + ey * emitter_axis[1] + ez * emitter_axis[2])
+    if not ce > 0.0:
+        return 0.0, 0
+    _, t1 = _dielectric.box_chord(px, py, pz, ex, ey, ez, r, centre, axes, half)
+    eda.set_ray(f, u, o, np.float32(px + (t1 + eps) * ex), np.float32(py + (t1 + eps) * ey),
+                np.float32(pz + (t1 + eps) * ez), np.float32(ex), np.float32(ey), np.float32(ez),
+                np.float32(r - t1 - 2.0 * eps))
+    eda.rtc_occluded1(scene, addr, 0)
+    if f[o + 8] < 0.0:
+        return 0.0, 1
+    return i0 * _pow(ce, cos_n) / (r * r) * math.exp(-sig_t * t1), 1

@@ -298,7 +298,7 @@ class _Context:
         pix = np.arange(p0, p1) if spp == 1 else np.repeat(np.arange(p0, p1), spp)
         # [samples, D] uniforms: subpixel, lens, 2 per bounce (none needed for centre rays
         # through the pinhole without bounces).
-        need_u = self.subpixel or self.thin_lens or self.bounces > 0
+        need_u = self.subpixel or self.thin_lens or self.bounces > 0 or self.glass.scattering
         U = self.uniforms(np.random.default_rng([self.seed, chunk]), npix) if need_u else np.zeros((0, self.dims))
         if self.subpixel:
             uu = (pix % self.W) + U[:, 0] - 0.5
@@ -473,7 +473,7 @@ class _Context:
                 np.ascontiguousarray(path0, dtype=np.float64), np.ascontiguousarray(beta, dtype=np.float64),
                 np.ascontiguousarray(local, dtype=np.int64), np.ascontiguousarray(U2), self.bounces,
                 geom.normal, geom.plane_c, vnormal, smooth, geom.tri_object, self.rho_d, self.rho_s, self.n_s,
-                g.ior, g.sigma_a, g.centre, g.axes, g.half,
+                g.ior, g.sigma_a, g.sigma_s, g.hg_g, g.centre, g.axes, g.half,
                 self.emitter_pos, self.emitter_axis, RAY_EPSILON_M, self.cos_n, self.i0, self.k,
                 acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj)
         else:

@@ -131,7 +131,9 @@ class Material:
 
     With ``ior`` the material is a smooth dielectric instead (glass, :mod:`tofhil.sim.dielectric`):
     Fresnel reflection and refraction at its surface, ``absorption_per_m`` inside; its
-    ``reflectance`` is 0 (no diffuse part).
+    ``reflectance`` is 0 (no diffuse part). With ``scattering_per_m`` it is a homogeneous
+    participating medium (Henyey-Greenstein phase function, mean cosine ``anisotropy``) behind
+    an index-matched boundary (``ior`` 1).
     """
 
     name: str
@@ -141,10 +143,15 @@ class Material:
     texture: Texture | None = None
     ior: float | None = None
     absorption_per_m: float = 0.0
+    scattering_per_m: float = 0.0
+    anisotropy: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         if self.ior is not None:
-            return {"ior": self.ior, "absorption_per_m": self.absorption_per_m}
+            d = {"ior": self.ior, "absorption_per_m": self.absorption_per_m}
+            if self.scattering_per_m > 0:
+                d.update(scattering_per_m=self.scattering_per_m, anisotropy=self.anisotropy)
+            return d
         d: dict[str, Any] = {"reflectance": self.reflectance}
         if self.glossy_reflectance > 0:
             d["glossy"] = {"reflectance": self.glossy_reflectance, "exponent": self.glossy_exponent}
