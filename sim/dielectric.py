@@ -1,4 +1,5 @@
-"""Smooth dielectric objects in the twin: Fresnel interfaces and exact links through a glass slab.
+"""Glass and scattering media in the twin: Fresnel interfaces, exact links through a glass slab,
+homogeneous media (free flights, Henyey-Greenstein).
 
 A dielectric material (``ior: n``, optional ``absorption_per_m: sigma_a``) is a smooth
 interface between air (index 1) and the object's glass: every hit splits into the Fresnel
