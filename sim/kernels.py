@@ -471,14 +471,24 @@ def trace_paths_media(scene, buf, org, shared, dirs, path0, beta0, local, U, bou
                     ex, ey, ez = emitter_pos[0] - px, emitter_pos[1] - py, emitter_pos[2] - pz
                     r = math.sqrt(ex * ex + ey * ey + ez * ez)
                     ex, ey, ez = ex / r, ey / r, ez / r
-                    w, extra, nr = _emitter_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, ex, ey, ez, r,
-                                             emitter_pos, emitter_axis, eps, cos_n, i0, normal, tri_object, ior,
-                                             sigma_a, sigma_s, box_c, box_axes, box_half, rho, rs, ns, -dx, -dy, -dz)
+                    w, extra, nr, gob, kk = _emitter_link(
+                        scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, ex, ey, ez, r, emitter_pos,
+                        emitter_axis, eps, cos_n, i0, normal, tri_object, ior, sigma_a, sigma_s, box_c, box_axes,
+                        box_half, rho, rs, ns, -dx, -dy, -dz)
                     rays += nr
                     w = beta * w
                     if w > 0.0:
                         _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, 0 if bounce == 0 else 1, q, w,
                                     path + extra)
+                    if gob >= 0:                          # the slab's internal echo on the emitter's leg
+                        w, extra, nr = _slab_echo(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz,
+                                                  emitter_pos, emitter_axis, eps, cos_n, i0, gob, kk, ior, sigma_a,
+                                                  box_c, box_axes, box_half, rho, rs, ns, -dx, -dy, -dz)
+                        rays += nr
+                        w = beta * w
+                        if w > 0.0:
+                            _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, 0 if bounce == 0 else 1, q,
+                                        w, path + extra)
                     if bounce == bounces:
                         alive = False
                     else:
@@ -515,11 +525,13 @@ def _emitter_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, ex, 
                   wox, woy, woz):  # pragma: no cover
     """The emitter's contribution ``f_r E`` at a diffuse vertex (per unit throughput) and the
     optical path from the vertex to the emitter: straight (``E = I cos / r^2``), or through the
-    slab of the glass box the straight shadow ray meets first; and the rays it traced."""
+    slab of the glass box the straight shadow ray meets first; the rays it traced; and the
+    glass box and its slab axis where that slab link exists (else -1, 0), for
+    :func:`_slab_echo`."""
     cs = sx * ex + sy * ey + sz * ez
     ce = -(ex * emitter_axis[0] + ey * emitter_axis[1] + ez * emitter_axis[2])
     if not (cs > 0.0 and ce > 0.0):
-        return 0.0, r, 0
+        return 0.0, r, 0, -1, 0
     ax, ay, az = px + eps * gx, py + eps * gy, pz + eps * gz
     eda.set_ray(f, u, o, np.float32(ax), np.float32(ay), np.float32(az),
                 np.float32(ex), np.float32(ey), np.float32(ez), np.float32(r - 2.0 * eps))
@@ -527,10 +539,10 @@ def _emitter_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, ex, 
     hp = u[o + 17]
     if hp == eda.INVALID_ID:
         irr = i0 * _pow(ce, cos_n) * cs / (r * r)
-        return irr * _brdf(rho, rs, ns, sx, sy, sz, ex, ey, ez, wox, woy, woz), r, 1
+        return irr * _brdf(rho, rs, ns, sx, sy, sz, ex, ey, ez, wox, woy, woz), r, 1, -1, 0
     gob = tri_object[hp]
     if ior[gob] <= 0.0:
-        return 0.0, r, 1                                  # blocked by an opaque object
+        return 0.0, r, 1, -1, 0                                  # blocked by an opaque object
     if ior[gob] == 1.0:
         # an index-matched box (a medium): the straight ray, its extinction over the chord
         t0, t1 = _dielectric.box_chord(px, py, pz, ex, ey, ez, r, box_c[gob], box_axes[gob], box_half[gob])
@@ -540,9 +552,9 @@ def _emitter_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, ex, 
                     np.float32(r - t1 - 2.0 * eps))
         eda.rtc_occluded1(scene, addr, 0)
         if f[o + 8] < 0.0:
-            return 0.0, r, 2
+            return 0.0, r, 2, -1, 0
         irr = i0 * _pow(ce, cos_n) * cs / (r * r) * tr
-        return irr * _brdf(rho, rs, ns, sx, sy, sz, ex, ey, ez, wox, woy, woz), r, 2
+        return irr * _brdf(rho, rs, ns, sx, sy, sz, ex, ey, ez, wox, woy, woz), r, 2, -1, 0
     # The face it met picks the slab: the box axis along that face's normal.
     kk = 0
     best = -1.0
@@ -555,24 +567,69 @@ def _emitter_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, ex, 
         px, py, pz, emitter_pos[0], emitter_pos[1], emitter_pos[2], box_c[gob], box_axes[gob], box_half[gob], kk,
         ior[gob], sigma_a[gob])
     if not ok:
-        return 0.0, r, 1
+        return 0.0, r, 1, -1, 0
     cs = sx * ux + sy * uy + sz * uz
     ce = -(ux * emitter_axis[0] + uy * emitter_axis[1] + uz * emitter_axis[2])
     if not (cs > 0.0 and ce > 0.0 and ux * gx + uy * gy + uz * gz > 0.0):
-        return 0.0, r, 1
+        return 0.0, r, 1, -1, 0
     # both air legs free (the slab's own faces end them)
     eda.set_ray(f, u, o, np.float32(ax), np.float32(ay), np.float32(az),
                 np.float32(ux), np.float32(uy), np.float32(uz), np.float32(d1 - 2.0 * eps))
     eda.rtc_occluded1(scene, addr, 0)
     if f[o + 8] < 0.0:
-        return 0.0, r, 2
+        return 0.0, r, 2, -1, 0
     eda.set_ray(f, u, o, np.float32(x2 + eps * ux), np.float32(y2 + eps * uy), np.float32(z2 + eps * uz),
                 np.float32(ux), np.float32(uy), np.float32(uz), np.float32(d3 - 2.0 * eps))
     eda.rtc_occluded1(scene, addr, 0)
     if f[o + 8] < 0.0:
-        return 0.0, r, 3
-    irr = i0 * _pow(ce, cos_n) * tf * geo * cs
-    return irr * _brdf(rho, rs, ns, sx, sy, sz, ux, uy, uz, wox, woy, woz), opl, 3
+        return 0.0, r, 3, -1, 0
+    w = i0 * _pow(ce, cos_n) * tf * geo * cs * _brdf(rho, rs, ns, sx, sy, sz, ux, uy, uz, wox, woy, woz)
+    return w, opl, 3, gob, kk
+
+
+@njit(nogil=True, cache=True)
+def _slab_echo(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, emitter_pos, emitter_axis, eps, cos_n, i0,
+               gob, kk, ior, sigma_a, box_c, box_axes, box_half, rho, rs, ns, wox, woy, woz):  # pragma: no cover
+    """The emitter's light at a diffuse vertex after crossing glass box ``gob``'s slab with
+    two internal reflections (enter, reflect off the far face, off the near face, leave):
+    unfolded, a slab three times as thick to the emitter moved 2T farther along the slab's
+    normal, times the two internal Fresnel reflectances. ``(f_r E, opl, rays)``."""
+    mx, my, mz = box_axes[gob, kk, 0], box_axes[gob, kk, 1], box_axes[gob, kk, 2]
+    c = box_c[gob]
+    sgn = 1.0 if (emitter_pos[0] - px) * mx + (emitter_pos[1] - py) * my + (emitter_pos[2] - pz) * mz > 0.0 else -1.0
+    thick = 2.0 * box_half[gob, kk]
+    # the unfolded slab: from the near face, 3T thick; its centre T beyond the real one
+    vc = np.empty(3)
+    vc[0], vc[1], vc[2] = c[0] + sgn * thick * mx, c[1] + sgn * thick * my, c[2] + sgn * thick * mz
+    vh = box_half[gob].copy()
+    vh[kk] = 1.5 * thick
+    ex = emitter_pos[0] + 2.0 * sgn * thick * mx
+    ey = emitter_pos[1] + 2.0 * sgn * thick * my
+    ez = emitter_pos[2] + 2.0 * sgn * thick * mz
+    ok, ux, uy, uz, d1, d3, x2, y2, z2, tf, geo, opl = _dielectric.slab_link(
+        px, py, pz, ex, ey, ez, vc, box_axes[gob], vh, kk, ior[gob], sigma_a[gob])
+    if not ok:
+        return 0.0, opl, 0
+    cs = sx * ux + sy * uy + sz * uz
+    ce = -(ux * emitter_axis[0] + uy * emitter_axis[1] + uz * emitter_axis[2])
+    if not (cs > 0.0 and ce > 0.0 and ux * gx + uy * gy + uz * gz > 0.0):
+        return 0.0, opl, 0
+    st = math.sqrt(max(0.0, 1.0 - (abs(ux * mx + uy * my + uz * mz)) ** 2)) / ior[gob]
+    ri, _ = _dielectric.fresnel(math.sqrt(1.0 - st * st), ior[gob], 1.0)
+    # the air legs: the first is the direct link's; the last leaves the real far face
+    x2, y2, z2 = x2 - 2.0 * sgn * thick * mx, y2 - 2.0 * sgn * thick * my, z2 - 2.0 * sgn * thick * mz
+    eda.set_ray(f, u, o, np.float32(px + eps * gx), np.float32(py + eps * gy), np.float32(pz + eps * gz),
+                np.float32(ux), np.float32(uy), np.float32(uz), np.float32(d1 - 2.0 * eps))
+    eda.rtc_occluded1(scene, addr, 0)
+    if f[o + 8] < 0.0:
+        return 0.0, opl, 1
+    eda.set_ray(f, u, o, np.float32(x2 + eps * ux), np.float32(y2 + eps * uy), np.float32(z2 + eps * uz),
+                np.float32(ux), np.float32(uy), np.float32(uz), np.float32(d3 - 2.0 * eps))
+    eda.rtc_occluded1(scene, addr, 0)
+    if f[o + 8] < 0.0:
+        return 0.0, opl, 2
+    irr = i0 * _pow(ce, cos_n) * tf * ri * ri * geo * cs
+    return irr * _brdf(rho, rs, ns, sx, sy, sz, ux, uy, uz, wox, woy, woz), opl, 2
 
 
 @njit(nogil=True, cache=True)
