@@ -509,6 +509,7 @@ def main() -> int:
     ap.add_argument("--figures", type=Path, default=None, help="write the error-map PNGs into this folder")
     ap.add_argument("--skip-timing", action="store_true")
     ap.add_argument("--only-timing", action="store_true", help="skip the agreement and glass-slab parts")
+    ap.add_argument("--media-only", action="store_true", help="only the glass slab (2) and the scattering cube (4)")
     args = ap.parse_args()
     mi = load_mitsuba()
     if mi is None:
@@ -525,7 +526,7 @@ def main() -> int:
         work = Path(tmp)
         if not args.only_timing:
             print("(1) agreement (same scene, independent passes; noise from each renderer's own variance)")
-        for name, scene in () if args.only_timing else (("corner", corner_scene(emitter)),
+        for name, scene in () if args.only_timing or args.media_only else (("corner", corner_scene(emitter)),
                                                          ("tilted_plane", tilted_plane_scene(emitter))):
             geom = Tofhil(scene, 0, args.threads).geometry_radial_m()
             direct = (Tofhil(scene, 0, args.threads), Mitsuba(mi, scene, 0, "independent", work))
@@ -539,7 +540,7 @@ def main() -> int:
             glass_slab_check(mi, work, 16 if args.quick else 64)
             scattering_cube_check(mi, work, passes, spp, [0] + [b for b in args.bounces if b > 0], args.threads,
                                   args.figures)
-        if args.skip_timing:
+        if args.skip_timing or args.media_only:
             return 0
         b = args.bounces[0]
         print(f"(3) CPU time to 1 mm RMS depth error, corner 160x120, {b} bounces")

@@ -510,7 +510,8 @@ def _check_glass(scene: Scene, glass: dielectric.DielectricTables, fused: bool, 
 
     first = int(np.flatnonzero(glass.ior > 0)[0])
     if not fused:
-        raise TofhilError("glass (a material with ior) renders in the compiled path loop only",
+        raise TofhilError("glass and media (materials with ior or scattering_per_m) render in the compiled "
+                          "path loop only",
                           field=f"materials.{scene.objects[first].material}.ior",
                           expected="uniform reflectances (no textures), a cos_n beam profile, Embree 4 and "
                                    "TOFHIL_RENDER_WAVEFRONT unset")
@@ -518,7 +519,7 @@ def _check_glass(scene: Scene, glass: dielectric.DielectricTables, fused: bool, 
         f = f"objects[{i}]"
         if dielectric.inside_box(glass, i, np.stack([camera_pos, emitter_pos]), 2 * RAY_EPSILON_M).any():
             raise TofhilError(f"the camera or the emitter is inside the glass box {scene.objects[i].name!r}",
-                              field=f + ".pose", expected="the camera and the emitter outside every glass box")
+                              field=f + ".pose", expected="the camera and the emitter outside every glass or medium box")
         for j, other in enumerate(scene.objects):
             if j == i:
                 continue
