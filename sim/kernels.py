@@ -489,6 +489,22 @@ def trace_paths_media(scene, buf, org, shared, dirs, path0, beta0, local, U, bou
                         if w > 0.0:
                             _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, 0 if bounce == 0 else 1, q,
                                         w, path + extra)
+                    # the emitter's mirror images in the glass faces light this point too
+                    for gb in range(ior.shape[0]):
+                        if ior[gb] <= 1.0:
+                            continue
+                        for kk in range(3):
+                            for side in (1.0, -1.0):
+                                for back in (False, True):
+                                    w, extra, nr = _mirror_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy,
+                                                                sz, emitter_pos, emitter_axis, eps, cos_n, i0, gb, kk,
+                                                                side, back, ior, sigma_a, box_c, box_axes, box_half,
+                                                                rho, rs, ns, -dx, -dy, -dz)
+                                    rays += nr
+                                    w = beta * w
+                                    if w > 0.0:
+                                        _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins,
+                                                    0 if bounce == 0 else 1, q, w, path + extra)
                     if bounce == bounces:
                         alive = False
                     else:
@@ -649,3 +665,76 @@ def _medium_link(scene, f, u, o, addr, px, py, pz, ex, ey, ez, r, emitter_axis, 
     if f[o + 8] < 0.0:
         return 0.0, 1
     return i0 * _pow(ce, cos_n) / (r * r) * math.exp(-sig_t * t1), 1
+
+
+@njit(nogil=True, cache=True)
+def _mirror_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, emitter_pos, emitter_axis, eps, cos_n, i0,
+                 gb, kk, side, back, ior, sigma_a, box_c, box_axes, box_half, rho, rs, ns,
+                 wox, woy, woz):  # pragma: no cover
+    """The emitter's light at a diffuse vertex by a reflection in glass box ``gb``'s face
+    ``side * axis kk``: off the face itself (``back`` False: the emitter's mirror image,
+    ``R I / L^2``), or entering it, reflected off the opposite face inside and leaving it
+    again (``back`` True: unfolded, a slab twice as thick to the emitter mirrored in the
+    opposite face; ``T_F R_i G``). Both the vertex and the emitter must be on the face's outer
+    side. ``(f_r E, opl, rays)``."""
+    mx, my, mz = side * box_axes[gb, kk, 0], side * box_axes[gb, kk, 1], side * box_axes[gb, kk, 2]
+    hk = box_half[gb, kk]
+    cx, cy, cz = box_c[gb, 0] + hk * mx, box_c[gb, 1] + hk * my, box_c[gb, 2] + hk * mz     # on the face
+    hx = (px - cx) * mx + (py - cy) * my + (pz - cz) * mz
+    he = (emitter_pos[0] - cx) * mx + (emitter_pos[1] - cy) * my + (emitter_pos[2] - cz) * mz
+    if hx <= 0.0 or he <= 0.0:
+        return 0.0, 0.0, 0
+    n = ior[gb]
+    if not back:
+        ex, ey, ez = emitter_pos[0] - 2.0 * he * mx, emitter_pos[1] - 2.0 * he * my, emitter_pos[2] - 2.0 * he * mz
+        vx, vy, vz = ex - px, ey - py, ez - pz
+        L = math.sqrt(vx * vx + vy * vy + vz * vz)
+        vx, vy, vz = vx / L, vy / L, vz / L
+        d1 = L * hx / (hx + he)
+        hx_, hy_, hz_ = px + d1 * vx, py + d1 * vy, pz + d1 * vz
+        for j in range(3):
+            if j != kk:
+                a = ((hx_ - box_c[gb, 0]) * box_axes[gb, j, 0] + (hy_ - box_c[gb, 1]) * box_axes[gb, j, 1]
+                     + (hz_ - box_c[gb, 2]) * box_axes[gb, j, 2])
+                if abs(a) > box_half[gb, j]:
+                    return 0.0, 0.0, 0
+        refl, _ = _dielectric.fresnel((hx + he) / L, 1.0, n)
+        weight, geo, opl = refl, 1.0 / (L * L), L
+        d3 = L - d1
+        ox, oy, oz = hx_, hy_, hz_
+    else:
+        bx, by, bz = box_c[gb, 0] - hk * mx, box_c[gb, 1] - hk * my, box_c[gb, 2] - hk * mz  # the opposite face
+        hb = (emitter_pos[0] - bx) * mx + (emitter_pos[1] - by) * my + (emitter_pos[2] - bz) * mz
+        ex, ey, ez = emitter_pos[0] - 2.0 * hb * mx, emitter_pos[1] - 2.0 * hb * my, emitter_pos[2] - 2.0 * hb * mz
+        vc = np.empty(3)
+        vc[0], vc[1], vc[2] = bx, by, bz
+        vh = box_half[gb].copy()
+        vh[kk] = 2.0 * hk
+        ok, vx, vy, vz, d1, d3, x2, y2, z2, tf, geo, opl = _dielectric.slab_link(
+            px, py, pz, ex, ey, ez, vc, box_axes[gb], vh, kk, n, sigma_a[gb])
+        if not ok:
+            return 0.0, 0.0, 0
+        st = math.sqrt(max(0.0, 1.0 - (vx * mx + vy * my + vz * mz) ** 2)) / n
+        ri, _ = _dielectric.fresnel(math.sqrt(1.0 - st * st), n, 1.0)
+        weight = tf * ri
+        hb2 = (x2 - bx) * mx + (y2 - by) * my + (z2 - bz) * mz       # the real exit: mirrored back
+        ox, oy, oz = x2 - 2.0 * hb2 * mx, y2 - 2.0 * hb2 * my, z2 - 2.0 * hb2 * mz
+    # the last leg runs along the mirrored direction to the real emitter
+    vn = vx * mx + vy * my + vz * mz
+    lx, ly, lz = vx - 2.0 * vn * mx, vy - 2.0 * vn * my, vz - 2.0 * vn * mz
+    cs = sx * vx + sy * vy + sz * vz
+    ce = -(lx * emitter_axis[0] + ly * emitter_axis[1] + lz * emitter_axis[2])
+    if not (cs > 0.0 and ce > 0.0 and vx * gx + vy * gy + vz * gz > 0.0 and weight > 0.0):
+        return 0.0, 0.0, 0
+    eda.set_ray(f, u, o, np.float32(px + eps * gx), np.float32(py + eps * gy), np.float32(pz + eps * gz),
+                np.float32(vx), np.float32(vy), np.float32(vz), np.float32(d1 - 2.0 * eps))
+    eda.rtc_occluded1(scene, addr, 0)
+    if f[o + 8] < 0.0:
+        return 0.0, 0.0, 1
+    eda.set_ray(f, u, o, np.float32(ox + eps * lx), np.float32(oy + eps * ly), np.float32(oz + eps * lz),
+                np.float32(lx), np.float32(ly), np.float32(lz), np.float32(d3 - 2.0 * eps))
+    eda.rtc_occluded1(scene, addr, 0)
+    if f[o + 8] < 0.0:
+        return 0.0, 0.0, 2
+    irr = i0 * _pow(ce, cos_n) * weight * geo * cs
+    return irr * _brdf(rho, rs, ns, sx, sy, sz, vx, vy, vz, wox, woy, woz), opl, 2

@@ -273,3 +273,32 @@ def test_cover_glass_scene_matches_the_benchmarks_closed_form() -> None:
     # the cover's internal double reflections (share R^2/(1-R)^2, 2 n t longer) bound the error
     r = ((slab.n - 1) / (slab.n + 1)) ** 2
     assert np.abs(got - expected).max() < r * r / (1 - r) ** 2 * 2 * slab.n * slab.t_m
+
+
+def test_a_pane_behind_the_camera_mirrors_the_emitter_onto_the_wall() -> None:
+    # The emitter faces backward (axis -z) onto a pane behind the camera (front face at
+    # z = -0.3, opaque inside: absorption 2000/m kills its back-face reflection); the wall at
+    # z = 1 gets no direct light, only the emitter's mirror image at z = -0.6, with the
+    # Fresnel R at each point's incidence: E = I(theta_e) R cos(theta_s) / L^2, optical path
+    # camera leg + L.
+    d = pane_scene(z0=-0.31, t=0.01, absorption=2000.0)
+    d["emitter"]["axis"] = [0.0, 0.0, -1.0]
+    res = render(scene_from_dict(d))
+    v, u = np.mgrid[0:CAM["height"], 0:CAM["width"]].astype(float)
+    ray = np.stack([(u - CAM["cx"]) / CAM["fx"], (v - CAM["cy"]) / CAM["fy"], np.ones_like(u)], axis=-1)
+    x = ray                                                  # wall points at z = 1
+    img = np.array([0.0, 0.0, -0.6])
+    to_img = img - x
+    L = np.linalg.norm(to_img, axis=-1)
+    h = x + to_img * (1.3 / 1.6)                             # where the ray meets the face z = -0.3
+    e_dir = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    cos_e = -e_dir[..., 2]
+    refl = np.vectorize(lambda c: fresnel(c, 1.0, 1.5)[0])(1.6 / L)
+    irr = (1.0 * 2 / (2 * math.pi)) * cos_e * refl * (1.6 / L) / L ** 2
+    f = CAM["fx"] * CAM["pixel_pitch_m"]
+    cos_a = 1 / np.linalg.norm(ray, axis=-1)
+    power = 0.8 / math.pi * irr * math.pi * (f / 2.4) ** 2 * cos_a ** 4 * CAM["pixel_pitch_m"] ** 2 / f ** 2
+    k = 2 * math.pi * F_HZ / 299792458.0
+    opl = np.linalg.norm(x, axis=-1) + L
+    np.testing.assert_allclose(res.power_w, power, rtol=1e-9)
+    np.testing.assert_allclose(res.phasor[0, 0], power * np.exp(1j * k * opl), rtol=1e-9)
