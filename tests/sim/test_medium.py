@@ -120,3 +120,15 @@ def test_bad_medium_names_its_field(medium: dict, field: str) -> None:
     with pytest.raises(TofhilError) as e:
         scene_from_dict(fog_scene(medium))
     assert field in str(e.value)
+
+
+def test_glass_and_media_round_trip_through_the_scene_dict() -> None:
+    d = fog_scene({"scattering_per_m": 3.0, "absorption_per_m": 0.5, "anisotropy": 0.4})
+    d["materials"]["glass"] = {"ior": 1.6, "absorption_per_m": 2.0}
+    d["objects"].append({"name": "pane", "type": "box", "size": [1, 1, 0.01], "material": "glass",
+                         "pose": {"position": [0, 0, 0.2]}})
+    a = scene_from_dict(d)
+    b = scene_from_dict(a.to_dict())
+    assert b.materials["fog"] == a.materials["fog"] and b.materials["glass"] == a.materials["glass"]
+    assert (b.materials["fog"].ior, b.materials["fog"].scattering_per_m, b.materials["fog"].anisotropy) == (1.0, 3.0, 0.4)
+    assert (b.materials["glass"].ior, b.materials["glass"].absorption_per_m) == (1.6, 2.0)
