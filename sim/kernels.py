@@ -309,7 +309,7 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
 MAX_SPECULAR = 24
 _STACK = 16
 #: A reflected branch with less than this share of its sample's starting weight is not
-#: followed (glass: after two internal round trips, R^4 ~ 3e-6): the power it would add
+#: followed (glass of n 1.5: the third internal echo, R^6 = 4e-9, is not): the power it would add
 #: is below 1e-6 of the sample's.
 _DROP = 1e-6
 
