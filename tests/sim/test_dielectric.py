@@ -302,3 +302,13 @@ def test_a_pane_behind_the_camera_mirrors_the_emitter_onto_the_wall() -> None:
     opl = np.linalg.norm(x, axis=-1) + L
     np.testing.assert_allclose(res.power_w, power, rtol=1e-9)
     np.testing.assert_allclose(res.phasor[0, 0], power * np.exp(1j * k * opl), rtol=1e-9)
+
+
+def test_the_rgb_cameras_image_refuses_glass() -> None:
+    from tofhil.camera import CameraModel
+    from tofhil.sim.rgb import render_grey
+
+    scene = scene_from_dict(pane_scene())
+    with pytest.raises(TofhilError, match="does not model glass") as e:
+        render_grey(scene, CameraModel(**CAM), np.eye(4), samples=1)
+    assert "objects[1].material" in str(e.value)
