@@ -442,14 +442,15 @@ def glass_slab_check(mi, work: Path, spp: int) -> dict:
     glass_t = Tofhil(scene_from_dict(d), 0, 2)
     extra_t = depth_m(glass_t.render(spp, seed=3).phasor) - depth_m(plain_t.render(spp, seed=3).phasor)
     corrected = extra_ms + spawn_loss
-    # Mitsuba with two more events (max_depth 6): the cover's internal echo on the camera leg,
-    # and the target's light that the cover's back face reflects onto the target again; tofhil
-    # with one bounce has both (its splitting follows the echo; the bounce off the target
-    # meets the cover and its reflected branch returns). Mitsuba picks reflection or
-    # refraction at random, so the echo's 4 % branch is noisy: 8x the samples, the image mean.
+    # Mitsuba with four more events (max_depth 8): the cover's internal echo on the camera
+    # leg, and the target's light that the cover reflects onto the target again, off its back
+    # face (2 events) and off its front face from inside (4 events: in, reflect, out, target);
+    # tofhil with one bounce has all of them (its splitting follows the echo; the bounce off
+    # the target meets the cover and its reflected branches return). Mitsuba picks reflection
+    # or refraction at random, so its 4 % branches are noisy: 8x the samples, the image mean.
     ms6 = Mitsuba(mi, scene, 0, "independent", work,
-                  extra_shapes={"slab": mitsuba_slab_shape(slab, scene.camera_pose)}, max_depth=6)
-    plain6 = Mitsuba(mi, scene, 0, "independent", work, max_depth=6)
+                  extra_shapes={"slab": mitsuba_slab_shape(slab, scene.camera_pose)}, max_depth=8)
+    plain6 = Mitsuba(mi, scene, 0, "independent", work, max_depth=8)
     extra6_ms = depth_m(ms6.render(8 * spp, seed=5).phasor) - depth_m(plain6.render(8 * spp, seed=5).phasor) + spawn_loss
     glass_t1, plain_t1 = Tofhil(glass_t.scene, 1, 2), Tofhil(plain_t.scene, 1, 2)
     extra6_t = depth_m(glass_t1.render(spp, seed=5).phasor) - depth_m(plain_t1.render(spp, seed=5).phasor)
@@ -474,7 +475,7 @@ def glass_slab_check(mi, work: Path, spp: int) -> dict:
           f"closed form {out['tofhil_vs_closed_rms_mm']:.4f} mm RMS (max {out['tofhil_vs_closed_max_mm']:.4f}); "
           f"against Mitsuba (corrected) {out['tofhil_vs_mitsuba_rms_mm']:.4f} mm RMS "
           f"(mean {out['tofhil_vs_mitsuba_mean_mm']:+.4f} mm)")
-    print(f"    with the cover's echo and its reflections of the target (tofhil 1 bounce, {spp} spp; Mitsuba max_depth 6, "
+    print(f"    with the cover's echo and its reflections of the target (tofhil 1 bounce, {spp} spp; Mitsuba max_depth 8, "
           f"{8 * spp} spp): beyond the closed form, image mean {out['b1_tofhil_mean_mm']:+.4f} mm (tofhil) and "
           f"{out['b1_mitsuba_mean_mm']:+.4f} mm (Mitsuba, corrected); tofhil - Mitsuba {out['b1_diff_mean_mm']:+.4f} mm "
           f"(per pixel {out['b1_diff_rms_mm']:.4f} mm RMS); the echo alone moves tofhil's centre pixel "
