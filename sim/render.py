@@ -34,7 +34,7 @@ from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel
 from tofhil.errors import TofhilError
 from tofhil.progress import Progress, no_progress
-from tofhil.sim import embree4, kernels
+from tofhil.sim import dielectric, embree4, kernels
 from tofhil.sim.geometry import BATCH, RAY_EPSILON_M, Geometry, WorkerPool
 from tofhil.sim.radiometry import DEFAULT_PIXEL_PITCH_M, aperture_area_m2, pixel_area_normalized
 from tofhil.sim.scene import Scene, Texture
@@ -252,6 +252,12 @@ class _Context:
         # textures and tabulated beams take the wavefront loop below.
         self.fused = (self.geom.direct is not None and not self.textured and self.cos_n >= 0
                       and os.environ.get("TOFHIL_RENDER_WAVEFRONT", "") in ("", "0"))
+        self.glass = dielectric.dielectric_tables(scene)
+        if self.glass.any:
+            _check_glass(scene, self.glass, self.fused, t, self.emitter_pos)
+            if shares:
+                raise TofhilError("multipath shares are not computed through glass or media", field="multipath_shares",
+                                  expected="a scene without materials with ior or scattering_per_m")
 
     # ------------------------------------------------------------------ shading helpers
     def reflectance(self, obj: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -304,7 +310,7 @@ class _Context:
         pix = np.arange(p0, p1) if spp == 1 else np.repeat(np.arange(p0, p1), spp)
         # [samples, D] uniforms: subpixel, lens, 2 per bounce (none needed for centre rays
         # through the pinhole without bounces).
-        need_u = self.subpixel or self.thin_lens or self.bounces > 0
+        need_u = self.subpixel or self.thin_lens or self.bounces > 0 or self.glass.scattering
         U = self.uniforms(np.random.default_rng([self.seed, chunk]), npix) if need_u else np.zeros((0, self.dims))
         if self.subpixel:
             uu = (pix % self.W) + U[:, 0] - 0.5
@@ -481,13 +487,24 @@ class _Context:
             first_t = np.empty(n)
             first_obj = np.empty(n, dtype=np.int32)
         U2 = U if U.shape[0] else np.zeros((0, self.dims))
-        rays = kernels.trace_paths(
-            geom.direct.handle, embree4.ray_buffer(), org, shared, dirs,
-            np.ascontiguousarray(path0, dtype=np.float64), np.ascontiguousarray(beta, dtype=np.float64),
-            np.ascontiguousarray(local, dtype=np.int64), np.ascontiguousarray(U2), self.bounces,
-            geom.normal, geom.plane_c, vnormal, smooth, geom.tri_object, self.rho_d, self.rho_s, self.n_s,
-            self.emitter_pos, self.emitter_axis, RAY_EPSILON_M, self.cos_n, self.i0, self.k,
-            acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj, self.n_obj)
+        if self.glass.any:
+            g = self.glass
+            rays = kernels.trace_paths_media(
+                geom.direct.handle, embree4.ray_buffer(), org, shared, dirs,
+                np.ascontiguousarray(path0, dtype=np.float64), np.ascontiguousarray(beta, dtype=np.float64),
+                np.ascontiguousarray(local, dtype=np.int64), np.ascontiguousarray(U2), self.bounces,
+                geom.normal, geom.plane_c, vnormal, smooth, geom.tri_object, self.rho_d, self.rho_s, self.n_s,
+                g.ior, g.sigma_a, g.sigma_s, g.hg_g, g.centre, g.axes, g.half,
+                self.emitter_pos, self.emitter_axis, RAY_EPSILON_M, self.cos_n, self.i0, self.k,
+                acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj)
+        else:
+            rays = kernels.trace_paths(
+                geom.direct.handle, embree4.ray_buffer(), org, shared, dirs,
+                np.ascontiguousarray(path0, dtype=np.float64), np.ascontiguousarray(beta, dtype=np.float64),
+                np.ascontiguousarray(local, dtype=np.int64), np.ascontiguousarray(U2), self.bounces,
+                geom.normal, geom.plane_c, vnormal, smooth, geom.tri_object, self.rho_d, self.rho_s, self.n_s,
+                self.emitter_pos, self.emitter_axis, RAY_EPSILON_M, self.cos_n, self.i0, self.k,
+                acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj, self.n_obj)
         if direct_maps:
             out["maps_in_place"] = np.array(True)
         elif not self.subpixel and not self.thin_lens:
@@ -505,6 +522,63 @@ class _Context:
         if self.edges is not None:
             out["transient"] = trans
         return out
+
+
+def _check_glass(scene: Scene, glass: dielectric.DielectricTables, fused: bool, camera_pos: np.ndarray,
+                 emitter_pos: np.ndarray) -> None:
+    """Refuse the glass set-ups the renderer does not model (rather than render them wrong)."""
+    from tofhil.sim.geometry import object_mesh
+
+    first = int(np.flatnonzero(glass.ior > 0)[0])
+    if not fused:
+        raise TofhilError("glass and media (materials with ior or scattering_per_m) render in the compiled "
+                          "path loop only",
+                          field=f"materials.{scene.objects[first].material}.ior",
+                          expected="uniform reflectances (no textures), a cos_n beam profile, Embree 4 and "
+                                   "TOFHIL_RENDER_WAVEFRONT unset")
+    for i in np.flatnonzero(glass.ior > 0):
+        f = f"objects[{i}]"
+        if dielectric.inside_box(glass, i, np.stack([camera_pos, emitter_pos]), 2 * RAY_EPSILON_M).any():
+            raise TofhilError(f"the camera or the emitter is inside the glass box {scene.objects[i].name!r}",
+                              field=f + ".pose", expected="the camera and the emitter outside every glass or medium box")
+        for j, other in enumerate(scene.objects):
+            if j == i:
+                continue
+            v, _, _ = object_mesh(other)
+            v = v @ other.pose[:3, :3].T + other.pose[:3, 3]
+            if dielectric.inside_box(glass, i, v).any():
+                raise TofhilError(f"object {other.name!r} reaches into the glass box {scene.objects[i].name!r}",
+                                  field=f"objects[{j}].pose",
+                                  expected="objects outside glass boxes (surfaces inside glass are not modelled)")
+
+
+def _add_glints(ctx: "_Context", acc: np.ndarray, power: np.ndarray, trans: np.ndarray | None) -> None:
+    """The emitter's images in the glass faces (:func:`tofhil.sim.dielectric.glints`): point
+    sources that the path loop cannot hit, each added to the pixel its ray goes through."""
+    geom, cam = ctx.geom, ctx.camera
+
+    def blocked(o: np.ndarray, d: np.ndarray, dist: float) -> bool:
+        return bool(geom.embree.run(o[None].astype(np.float32), d[None].astype(np.float32),
+                                    dists=np.array([dist], np.float32), query="OCCLUDED")[0] >= 0)
+
+    def intensity(cos_e: float) -> float:
+        return float(ctx.emitter.intensity_w_sr(np.array([cos_e]))[0]) if cos_e > 0 else 0.0
+
+    for g in dielectric.glints(ctx.glass, ctx.t, ctx.R[:, 2], ctx.emitter_pos, ctx.emitter_axis, intensity,
+                               ctx.aperture_area_m2, blocked):
+        d_cam = ctx.R.T @ g.direction
+        if d_cam[2] <= 0 or g.power_w <= 0:
+            continue
+        col, row = np.rint(cam.project(d_cam)).astype(int)
+        if not (0 <= col < ctx.W and 0 <= row < ctx.H):
+            continue
+        q = row * ctx.W + col
+        acc[0, :, q] += g.power_w * np.exp(1j * ctx.k * g.opl_m)
+        power[q] += g.power_w
+        if trans is not None:
+            b = np.searchsorted(ctx.edges, g.opl_m, side="right") - 1
+            if 0 <= b < trans.shape[1]:
+                trans[q, b] += g.power_w
 
 
 def _rotate(v: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -629,6 +703,8 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
         for job, fut in (progress or no_progress)(futures, len(futures), "render"):
             store(job[1], job[2], fut.result())
 
+    if ctx.glass.any:
+        _add_glints(ctx, acc, power, trans)
     shape = (len(freq), len(harm), H, W)
     if ctx.fused and ctx.ambient != 0:
         # the fused chunks added into ambient_unit in place; the ambient power is its multiple
