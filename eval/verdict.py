@@ -14,6 +14,13 @@ frame-to-frame scatter):
   ``ALPHA`` one-sided margin of the chi-square of its ``n_c`` values (:func:`channel_margin`).
 - **a residual region**: a connected set of pixels whose 3 x 3 mean misfit is above the
   threshold for the values of that window.
+- **worth naming** (:class:`EffectSize`): a misfit far above noise can still hide a gain no
+  ToF engineer would act on. A cause is named only when the held-out RMSE of some channel, in
+  that channel's own units, falls by at least :data:`MIN_GAIN_NOISE_SHARE` of the channel's
+  noise *and* by an absolute minimum (:data:`MIN_DEPTH_GAIN_M` of depth; for amplitude and
+  offset, counts with no common unit, :data:`MIN_LEVEL_GAIN_SHARE` of the channel's median
+  level), and when no channel's held-out RMSE grows by more than
+  :data:`WORSE_SHARE_OF_MIN` of its own minimum (a smaller change is a rounding, not a loss).
 
 The verdict (:func:`verdict`) is one of ``nothing searched``, ``within noise`` (the base
 twin already is), ``explained``, ``partly explained`` (with the share of the excess
@@ -28,7 +35,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from scipy import ndimage, stats
 
-from tofhil.eval.heldout import NOISE_POOL_PX, HeldOutData, huber
+from tofhil import C_M_PER_S
+from tofhil.eval.heldout import NOISE_POOL_PX, HeldOutData, depth_from_signal, huber
 
 #: False-alarm probability of each "above noise" test (one in a thousand).
 ALPHA = 1e-3
@@ -37,6 +45,33 @@ ALPHA = 1e-3
 CHANNELS = ("depth", "amplitude", "offset")
 #: Residual regions smaller than this many pixels are not listed (single hot pixels).
 MIN_REGION_PX = 6
+
+
+def distance_defined(data: HeldOutData, *predictions: np.ndarray, sigmas: float = 3.0) -> np.ndarray:
+    """Pixels where every prediction has a signal above the noise, so that its distance means
+    something (a twin pixel in a shadow has no phase to compare)."""
+    nf = data.n_freq
+    floor = sigmas * np.sqrt(2.0 * data.var_test[:nf]).max(axis=0)
+    ok = np.ones(data.usable.shape, bool)
+    for p in predictions:
+        ok &= np.abs(p[:nf]).min(axis=0) > floor
+    return ok
+
+
+def channel_sigmas(data: HeldOutData, *, with_model_error: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel noise of the held-out mean ``[H, W]``: depth (m), from the phasor's tangential
+    variance at the best frequency; amplitude as a relative error, from its radial variance
+    (with the scene's own amplitude model error added when ``with_model_error``)."""
+    nf = data.n_freq
+    a = np.maximum(np.abs(data.s_test[:nf]), 1e-30)
+    k = (4 * np.pi * data.freq_hz / C_M_PER_S)[:, None, None]
+    var = data.var_test[:nf].real
+    sigma_depth = np.sqrt(var / a ** 2 / k ** 2).min(axis=0)
+    radial = var * (data.radial_var_scale[:nf] if data.radial_var_scale is not None else 1.0)
+    rel2 = radial / a ** 2
+    if with_model_error and data.amplitude_model_error:
+        rel2 = rel2 + data.amplitude_model_error ** 2
+    return sigma_depth, np.sqrt(rel2).mean(axis=0) / np.sqrt(nf)
 
 
 def noise_dof(data: HeldOutData) -> float:
@@ -291,3 +326,125 @@ def verdict(*, searched: bool, causes: Sequence[str], n_values: int, nu: float, 
     if worse:
         text += "; worse after the fit: " + ", ".join(worse)
     return Verdict("partly explained", text, thr, removed, list(worse), disagree)
+
+
+# ---------------------------------------------------------------------------- effect size
+
+#: A named cause lowers some channel's held-out RMSE by at least this share of its noise ...
+MIN_GAIN_NOISE_SHARE = 0.1
+#: ... and by at least this much depth RMSE (a sub-half-millimetre change is nothing a ToF
+#: engineer would correct for) ...
+MIN_DEPTH_GAIN_M = 0.5e-3
+#: ... or, for amplitude and offset (device counts: no common unit), this share of the
+#: channel's median measured level.
+MIN_LEVEL_GAIN_SHARE = 0.01
+#: A channel's RMSE is worse when it grows by more than this share of its minimum gain.
+WORSE_SHARE_OF_MIN = 0.1
+
+
+def effect_size_rule() -> str:
+    """The rule, as the report and diagnosis.json state it."""
+    return (f"a cause is named only when the held-out RMSE of some channel falls by at least "
+            f"{MIN_GAIN_NOISE_SHARE:g} x that channel's noise (rms over the held-out pixels) and by at least "
+            f"{MIN_DEPTH_GAIN_M * 1e3:g} mm of depth, or {100 * MIN_LEVEL_GAIN_SHARE:g} % of the median measured "
+            f"level of amplitude or offset; and when no channel's RMSE grows by more than {WORSE_SHARE_OF_MIN:g} x "
+            "its own minimum gain")
+
+
+@dataclass(frozen=True)
+class ChannelGain:
+    """A channel's held-out RMSE before and after, in its own units, and the gain it needs."""
+
+    channel: str
+    before: float
+    after: float
+    noise_rms: float
+    minimum: float
+    pixels: int
+
+    @property
+    def gain(self) -> float:
+        return self.before - self.after
+
+    @property
+    def enough(self) -> bool:
+        return bool(self.gain >= self.minimum)
+
+    @property
+    def worse(self) -> bool:
+        return bool(self.after - self.before > WORSE_SHARE_OF_MIN * self.minimum)
+
+    @property
+    def _unit(self) -> tuple[float, str]:
+        return (1e3, " mm") if self.channel == "depth" else (1.0, " DN")
+
+    def to_json(self) -> dict[str, Any]:
+        k, unit = self._unit
+        return {"unit": unit.strip(), "rmse_before": round(self.before * k, 4), "rmse_after": round(self.after * k, 4),
+                "gain": round(self.gain * k, 4), "noise_rms": round(self.noise_rms * k, 4),
+                "minimum_gain": round(self.minimum * k, 4), "pixels": self.pixels, "enough": self.enough,
+                "worse": self.worse}
+
+    def describe(self) -> str:
+        k, unit = self._unit
+        return (f"{self.channel} RMSE {self.before * k:.4g} -> {self.after * k:.4g}{unit} (needs -{self.minimum * k:.3g}"
+                f"{unit}" + (", worse" if self.worse else "") + ")")
+
+
+class EffectSize:
+    """Held-out RMSE per channel in its own units (depth in m: :data:`tofhil.eval.metrics.DEPTH_RMSE`
+    on the held-out pixels where both predictions have a distance; amplitude and the tap
+    offset in counts) and the minimum gain that makes a cause worth naming (module doc)."""
+
+    def __init__(self, data: HeldOutData) -> None:
+        from tofhil.eval.metrics import wrap_period
+
+        self.data = data
+        nf = data.n_freq
+        s = data.s_test
+        self._wrap = wrap_period(data.freq_hz)
+        self._meas = {"depth": depth_from_signal(s[:nf], data.freq_hz), "amplitude": np.abs(s[:nf]).mean(axis=0)}
+        sd, sa = channel_sigmas(data, with_model_error=False)
+        m = data.test_pixels
+        rms = lambda x: float(np.sqrt(np.mean(np.square(x)))) if x.size else float("nan")  # noqa: E731
+        self.noise = {"depth": rms(sd[m]), "amplitude": rms((sa * self._meas["amplitude"])[m])}
+        level = {"amplitude": float(np.median(self._meas["amplitude"][m])) if m.any() else 0.0}
+        if data.offset_channel:
+            self._meas["offset"] = s[nf].real
+            self.noise["offset"] = rms(np.sqrt(data.var_test[nf].real)[m])
+            level["offset"] = float(np.median(np.abs(s[nf].real[m]))) if m.any() else 0.0
+        self.minimum = {"depth": max(MIN_GAIN_NOISE_SHARE * self.noise["depth"], MIN_DEPTH_GAIN_M)}
+        for c, lv in level.items():
+            self.minimum[c] = max(MIN_GAIN_NOISE_SHARE * self.noise[c], MIN_LEVEL_GAIN_SHARE * lv)
+
+    def _channel(self, c: str, prediction: np.ndarray) -> np.ndarray:
+        nf = self.data.n_freq
+        if c == "depth":
+            d = depth_from_signal(prediction[:nf], self.data.freq_hz)
+            r = self._meas[c] - d
+            return r if self._wrap is None else (r + self._wrap / 2) % self._wrap - self._wrap / 2
+        if c == "amplitude":
+            return self._meas[c] - np.abs(prediction[:nf]).mean(axis=0)
+        return self._meas[c] - prediction[nf].real
+
+    def compare(self, before: np.ndarray, after: np.ndarray) -> dict[str, ChannelGain]:
+        """Each channel's held-out RMSE with ``before`` and with ``after``, on the same pixels."""
+        m = self.data.test_pixels & distance_defined(self.data, before, after)
+        out = {}
+        for c in self._meas:
+            rb, ra = self._channel(c, before)[m], self._channel(c, after)[m]
+            ok = np.isfinite(rb) & np.isfinite(ra)
+            rb, ra = rb[ok], ra[ok]
+            out[c] = ChannelGain(c, float(np.sqrt(np.mean(rb ** 2))) if rb.size else float("nan"),
+                                 float(np.sqrt(np.mean(ra ** 2))) if ra.size else float("nan"),
+                                 self.noise[c], self.minimum[c], int(ok.sum()))
+        return out
+
+    @staticmethod
+    def worth_naming(gains: Mapping[str, ChannelGain]) -> bool:
+        """Some channel gains its minimum and none is worse."""
+        return any(g.enough for g in gains.values()) and not any(g.worse for g in gains.values())
+
+    @staticmethod
+    def describe(gains: Mapping[str, ChannelGain]) -> str:
+        return ", ".join(g.describe() for g in gains.values())
