@@ -157,19 +157,55 @@ class ResidualRegion:
     objects: dict[str, float]  # object name -> share of the region's pixels
     depth_residual_mm: float  # median measured - twin
     amplitude_residual: float  # median measured - twin amplitude (DN)
+    #: The depth residual's spread about its median (rms, mm), the median noise of one pixel
+    #: (mm), and the median amplitude ratio measured / twin with its noise (relative).
+    depth_spread_mm: float = float("nan")
+    depth_sigma_mm: float = float("nan")
+    amplitude_ratio: float = float("nan")
+    amplitude_sigma: float = float("nan")
+
+    @property
+    def kind(self) -> str:
+        """What the region looks like to a ToF engineer (each part beyond
+        :data:`REGION_SIGMAS` of one pixel's noise): the capture's surface nearer or farther
+        than the twin's as a whole (an object the twin lacks or misplaces), a shape the twin's
+        surface does not follow, or the depth right and the amplitude off (a wrong material)."""
+        lim = REGION_SIGMAS * self.depth_sigma_mm
+        parts = []
+        if abs(self.depth_residual_mm) > lim:
+            parts.append("missing object (a surface nearer than the twin's)" if self.depth_residual_mm < 0
+                         else "misplaced object (the twin's surface nearer than the capture's)")
+        if self.depth_spread_mm > lim:
+            parts.append("wrong shape (the twin's surface does not follow the capture's)")
+        ratio_off = abs(np.log(self.amplitude_ratio)) > REGION_SIGMAS * self.amplitude_sigma \
+            if self.amplitude_ratio > 0 and np.isfinite(self.amplitude_sigma) else False
+        if ratio_off and not parts:
+            parts.append("wrong material (the depth right, the amplitude off)")
+        elif ratio_off:
+            parts.append("amplitude off too")
+        return "; ".join(parts) or "no consistent offset, shape or material (an excess of scatter)"
 
     def to_json(self) -> dict[str, Any]:
+        r = lambda x, n: None if not np.isfinite(x) else round(float(x), n)  # noqa: E731
         return {"pixels": self.pixels, "bbox_x0y0x1y1": list(self.bbox),
                 "misfit_per_value": round(self.misfit_per_value, 4), "objects": self.objects,
                 "depth_residual_mm": round(self.depth_residual_mm, 3),
-                "amplitude_residual": round(self.amplitude_residual, 4)}
+                "amplitude_residual": round(self.amplitude_residual, 4),
+                "depth_spread_mm": r(self.depth_spread_mm, 3), "depth_sigma_mm": r(self.depth_sigma_mm, 3),
+                "amplitude_ratio": r(self.amplitude_ratio, 4), "amplitude_sigma": r(self.amplitude_sigma, 4),
+                "kind": self.kind}
 
     def describe(self) -> str:
         on = ", ".join(f"{k} {100 * v:.0f} %" for k, v in self.objects.items()) or "no object"
         x0, y0, x1, y1 = self.bbox
-        return (f"{self.pixels} px at x {x0}-{x1 - 1}, y {y0}-{y1 - 1} (on {on}): misfit {self.misfit_per_value:.2f} "
-                f"per value, depth residual {self.depth_residual_mm:+.1f} mm, amplitude residual "
-                f"{self.amplitude_residual:+.3g} DN")
+        return (f"{self.pixels} px at x {x0}-{x1 - 1}, y {y0}-{y1 - 1} (on {on}): {self.kind}: depth residual "
+                f"{self.depth_residual_mm:+.1f} mm (spread {self.depth_spread_mm:.1f} mm, pixel noise "
+                f"{self.depth_sigma_mm:.1f} mm), amplitude x{self.amplitude_ratio:.2f} of the twin's "
+                f"({self.amplitude_residual:+.3g} DN); misfit {self.misfit_per_value:.2f} per value")
+
+
+#: A residual region's offset, shape or amplitude counts when beyond this many pixel noises.
+REGION_SIGMAS = 3.0
 
 
 def residual_regions(data: HeldOutData, prediction: np.ndarray, nu: float, object_id: np.ndarray | None = None,
@@ -180,6 +216,11 @@ def residual_regions(data: HeldOutData, prediction: np.ndarray, nu: float, objec
     the noise threshold of the window's values; the largest excess first. Also returns the
     above-noise mask."""
     img, n_px = pixel_misfit(data, prediction)
+    sigma_depth, sigma_amp = channel_sigmas(data)
+    nf = data.n_freq
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_ratio = np.log(np.abs(data.s_test[:nf]).mean(axis=0) / np.abs(prediction[:nf]).mean(axis=0))
+    log_ratio = np.where(np.isfinite(log_ratio), log_ratio, np.nan)
     ok = np.isfinite(img)
     num = ndimage.uniform_filter(np.where(ok, img, 0.0), 3, mode="constant")
     den = ndimage.uniform_filter(ok.astype(float), 3, mode="constant")
@@ -213,9 +254,16 @@ def residual_regions(data: HeldOutData, prediction: np.ndarray, nu: float, objec
             v = v[np.isfinite(v)]
             return float(np.median(v) * scale) if v.size else float("nan")
 
+        d_med = med(depth_residual_m, 1e3)
+        spread = float("nan")
+        if depth_residual_m is not None:
+            dv = depth_residual_m[full] * 1e3
+            dv = dv[np.isfinite(dv)]
+            spread = float(np.sqrt(np.mean((dv - d_med) ** 2))) if dv.size else float("nan")
         regions.append(ResidualRegion(px, (sl[1].start, sl[0].start, sl[1].stop, sl[0].stop),
                                       float(np.nanmean(img[full]) / n_px), objs,
-                                      med(depth_residual_m, 1e3), med(amplitude_residual)))
+                                      d_med, med(amplitude_residual), spread, med(sigma_depth, 1e3),
+                                      float(np.exp(med(log_ratio))), med(sigma_amp)))
     regions.sort(key=lambda r: -(r.misfit_per_value - 1.0) * r.pixels)
     return regions[:max_regions], above
 

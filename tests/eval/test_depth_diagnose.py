@@ -174,12 +174,13 @@ def test_real_near_plane_capture_is_diagnosed_end_to_end(tmp_path):
     """The ADI near-plane capture (binned 4 x 4): import, scene-from-capture, diagnose. The
     diagnosis runs on the depth path, writes its files, and never names what the scene cannot
     observe (its planes' poses were fitted to the same depth)."""
-    from tests.real_data import ADI, need
+    from tests.real_data import CAPTURES, need
     from tofhil.drivers.importers.dispatch import import_file
     from tofhil.eval.diagnose import run_diagnosis
     from tofhil.sim.from_capture import scene_from_capture
 
-    full = import_file(need(ADI / "near_plane_depth.bin"), tmp_path / "full.h5").out
+    near = CAPTURES["near"]
+    full = import_file(need(near.file), tmp_path / "full.h5").out
     with open_session(full) as s:
         d = s.depth_frame(0)
         cam = s.camera.scaled(0.25)
@@ -187,7 +188,7 @@ def test_real_near_plane_capture_is_diagnosed_end_to_end(tmp_path):
     with SessionWriter(small, cam) as w:
         w.append(depth=DepthFrame(distance_m=np.asarray(d.radial_m)[1::4, 1::4], kind="radial", camera=cam,
                                   amplitude=np.asarray(d.amplitude)[1::4, 1::4], valid=d.valid[1::4, 1::4]))
-    scene = scene_from_capture(small, tmp_path / "np.yaml", freq_hz=[40e6], wavelength_m=940e-9)
+    scene = scene_from_capture(small, tmp_path / "np.yaml", freq_hz=[near.freq_hz], wavelength_m=near.wavelength_m)
     res = run_diagnosis(small, scene.scene_path, tmp_path / "diag", max_effects=1)
     out = json.loads((tmp_path / "diag" / "diagnosis.json").read_text())
     assert (tmp_path / "diag" / "report.html").is_file()
