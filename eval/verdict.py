@@ -167,17 +167,20 @@ class ResidualRegion:
     @property
     def kind(self) -> str:
         """What the region looks like to a ToF engineer (each part beyond
-        :data:`REGION_SIGMAS` of one pixel's noise): the capture's surface nearer or farther
+        :data:`REGION_SIGMAS` of one pixel's noise and beyond the smallest gain worth naming:
+        :data:`MIN_DEPTH_GAIN_M`, :data:`MIN_LEVEL_GAIN_SHARE`): the capture's surface nearer or farther
         than the twin's as a whole (an object the twin lacks or misplaces), a shape the twin's
         surface does not follow, or the depth right and the amplitude off (a wrong material)."""
-        lim = REGION_SIGMAS * self.depth_sigma_mm
+        # (a saturated, bright pixel's noise is ~0: the absolute floor keeps 0.2 mm from reading as an object)
+        lim = max(REGION_SIGMAS * self.depth_sigma_mm, MIN_DEPTH_GAIN_M * 1e3)
         parts = []
         if abs(self.depth_residual_mm) > lim:
             parts.append("missing object (a surface nearer than the twin's)" if self.depth_residual_mm < 0
                          else "misplaced object (the twin's surface nearer than the capture's)")
         if self.depth_spread_mm > lim:
             parts.append("wrong shape (the twin's surface does not follow the capture's)")
-        ratio_off = abs(np.log(self.amplitude_ratio)) > REGION_SIGMAS * self.amplitude_sigma \
+        ratio_off = abs(np.log(self.amplitude_ratio)) > max(REGION_SIGMAS * self.amplitude_sigma,
+                                                             MIN_LEVEL_GAIN_SHARE) \
             if self.amplitude_ratio > 0 and np.isfinite(self.amplitude_sigma) else False
         if ratio_off and not parts:
             parts.append("wrong material (the depth right, the amplitude off)")

@@ -67,3 +67,17 @@ def test_amplitude_minimum_is_a_share_of_its_level_and_noise():
     assert sizes.minimum["amplitude"] == pytest.approx(1.0, rel=0.05)
     g = sizes.compare(s, s * 1.05)["amplitude"]
     assert g.worse and not g.enough
+
+
+@pytest.mark.parametrize("depth_mm, spread_mm, sigma_mm, ratio, kind", [
+    (-10.0, 2.0, 2.0, 1.0, "missing object"),      # the capture nearer: a surface the twin lacks
+    (+10.0, 2.0, 2.0, 1.0, "misplaced object"),    # the twin nearer
+    (0.5, 12.0, 2.0, 1.0, "wrong shape"),          # no offset, a spread far above the pixel noise
+    (0.3, 1.0, 2.0, 0.5, "wrong material"),        # depth right, amplitude half the twin's
+    (-0.2, 0.5, 0.0, 1.0, "no consistent"),        # a noiseless (saturated) pixel: 0.2 mm is no object
+    (1.0, 2.0, 2.0, 1.05, "no consistent"),        # everything within 3 pixel noises
+])
+def test_residual_region_says_what_it_looks_like(depth_mm, spread_mm, sigma_mm, ratio, kind):
+    r = V.ResidualRegion(50, (0, 0, 10, 5), 9.0, {"wall": 1.0}, depth_mm, 0.0, spread_mm, sigma_mm, ratio, 0.1)
+    assert r.kind.startswith(kind)
+    assert r.to_json()["kind"] == r.kind and "on wall 100 %" in r.describe()
