@@ -112,7 +112,7 @@ def effect_size_table(res: Any) -> str:
         style = " style='color:#c00;font-weight:bold'" if v["worse"] else ""
         u = H.esc(v["unit"])
         rows.append(f"<tr{style}><td>{H.esc(c)}</td><td>{v['rmse_before']:.4g} {u}</td><td>{v['rmse_after']:.4g} {u}"
-                    f"</td><td>{v['noise_rms']:.3g} {u}</td><td>{v['minimum_gain']:.3g} {u}</td>"
+                    f"</td><td>{v['noise_median_pixel']:.3g} {u}</td><td>{v['minimum_gain']:.3g} {u}</td>"
                     f"<td>{'yes' if v['enough'] else 'no'}</td><td>{'WORSE' if v['worse'] else 'no'}</td></tr>")
     rows.append(f"</table><p class='note'>{H.esc(es['rule'])}.</p>")
     if es.get("fitted_too_small"):

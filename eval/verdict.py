@@ -381,7 +381,8 @@ def verdict(*, searched: bool, causes: Sequence[str], n_values: int, nu: float, 
 
 # ---------------------------------------------------------------------------- effect size
 
-#: A named cause lowers some channel's held-out RMSE by at least this share of its noise ...
+#: A named cause lowers some channel's held-out RMSE by at least this share of its noise (the
+#: median pixel's, over the held-out pixels) ...
 MIN_GAIN_NOISE_SHARE = 0.1
 #: ... and by at least this much depth RMSE (a sub-half-millimetre change is nothing a ToF
 #: engineer would correct for) ...
@@ -396,7 +397,7 @@ WORSE_SHARE_OF_MIN = 0.1
 def effect_size_rule() -> str:
     """The rule, as the report and diagnosis.json state it."""
     return (f"a cause is named only when the held-out RMSE of some channel falls by at least "
-            f"{MIN_GAIN_NOISE_SHARE:g} x that channel's noise (rms over the held-out pixels) and by at least "
+            f"{MIN_GAIN_NOISE_SHARE:g} x that channel's noise (the median held-out pixel's) and by at least "
             f"{MIN_DEPTH_GAIN_M * 1e3:g} mm of depth, or {100 * MIN_LEVEL_GAIN_SHARE:g} % of the median measured "
             f"level of amplitude or offset; and when no channel's RMSE grows by more than {WORSE_SHARE_OF_MIN:g} x "
             "its own minimum gain")
@@ -409,7 +410,7 @@ class ChannelGain:
     channel: str
     before: float
     after: float
-    noise_rms: float
+    noise: float  # the median held-out pixel's noise
     minimum: float
     pixels: int
 
@@ -432,7 +433,7 @@ class ChannelGain:
     def to_json(self) -> dict[str, Any]:
         k, unit = self._unit
         return {"unit": unit.strip(), "rmse_before": round(self.before * k, 4), "rmse_after": round(self.after * k, 4),
-                "gain": round(self.gain * k, 4), "noise_rms": round(self.noise_rms * k, 4),
+                "gain": round(self.gain * k, 4), "noise_median_pixel": round(self.noise * k, 4),
                 "minimum_gain": round(self.minimum * k, 4), "pixels": self.pixels, "enough": self.enough,
                 "worse": self.worse}
 
@@ -457,12 +458,14 @@ class EffectSize:
         self._meas = {"depth": depth_from_signal(s[:nf], data.freq_hz), "amplitude": np.abs(s[:nf]).mean(axis=0)}
         sd, sa = channel_sigmas(data, with_model_error=False)
         m = data.test_pixels
-        rms = lambda x: float(np.sqrt(np.mean(np.square(x)))) if x.size else float("nan")  # noqa: E731
-        self.noise = {"depth": rms(sd[m]), "amplitude": rms((sa * self._meas["amplitude"])[m])}
+        # the typical pixel's noise: an rms would be ruled by the few darkest pixels (depth
+        # noise ~ 1/amplitude: a board's black squares made it 142 mm on a 4 mm capture)
+        med = lambda x: float(np.median(x)) if x.size else float("nan")  # noqa: E731
+        self.noise = {"depth": med(sd[m]), "amplitude": med((sa * self._meas["amplitude"])[m])}
         level = {"amplitude": float(np.median(self._meas["amplitude"][m])) if m.any() else 0.0}
         if data.offset_channel:
             self._meas["offset"] = s[nf].real
-            self.noise["offset"] = rms(np.sqrt(data.var_test[nf].real)[m])
+            self.noise["offset"] = med(np.sqrt(data.var_test[nf].real)[m])
             level["offset"] = float(np.median(np.abs(s[nf].real[m]))) if m.any() else 0.0
         self.minimum = {"depth": max(MIN_GAIN_NOISE_SHARE * self.noise["depth"], MIN_DEPTH_GAIN_M)}
         for c, lv in level.items():

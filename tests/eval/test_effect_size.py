@@ -46,14 +46,14 @@ def test_a_significant_but_tiny_range_shift_is_not_named(depth_mm, named):
 
 
 def test_a_channel_whose_rmse_grows_blocks_naming_whatever_the_other_gains():
-    gain = V.ChannelGain("depth", before=6e-3, after=3e-3, noise_rms=1e-3, minimum=0.5e-3, pixels=100)
-    loss = V.ChannelGain("amplitude", before=10.0, after=10.2, noise_rms=5.0, minimum=0.5, pixels=100)
-    rounding = V.ChannelGain("amplitude", before=10.0, after=10.04, noise_rms=5.0, minimum=0.5, pixels=100)
+    gain = V.ChannelGain("depth", before=6e-3, after=3e-3, noise=1e-3, minimum=0.5e-3, pixels=100)
+    loss = V.ChannelGain("amplitude", before=10.0, after=10.2, noise=5.0, minimum=0.5, pixels=100)
+    rounding = V.ChannelGain("amplitude", before=10.0, after=10.04, noise=5.0, minimum=0.5, pixels=100)
     assert gain.enough and not gain.worse and loss.worse and not rounding.worse
     assert V.EffectSize.worth_naming({"depth": gain, "amplitude": rounding})
     assert not V.EffectSize.worth_naming({"depth": gain, "amplitude": loss})
     # the Azure Kinect's wiggling (session 3): 6.39 -> 6.42 mm is no gain
-    kinect = V.ChannelGain("depth", before=6.39e-3, after=6.42e-3, noise_rms=1e-3, minimum=0.5e-3, pixels=100)
+    kinect = V.ChannelGain("depth", before=6.39e-3, after=6.42e-3, noise=1e-3, minimum=0.5e-3, pixels=100)
     assert not V.EffectSize.worth_naming({"depth": kinect, "amplitude": rounding})
     assert "6.39 -> 6.42 mm" in kinect.describe()
 
