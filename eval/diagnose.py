@@ -385,7 +385,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     ranked = [{"effect": c.effect, "params": _json_params(c.effect, c.params, c.details), "score": c.score,
                "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,
                "chi2_test": c.chi2_test, "n_params": c.n_params, "worse_channels": c.worse_channels,
-               "at_bounds": c.at_bounds, "form": c.form, "dof": round(c.dof, 2), "forms": c.forms}
+               "at_bounds": c.at_bounds, "form": c.form, "dof": round(c.dof, 2), "forms": c.forms,
+               "worth_naming": c.worth_naming, "rmse": {ch: g.to_json() for ch, g in c.rmse.items()}}
               for c in selection.first_round]
     rounds = [[{"effect": c.effect, "form": c.form, "delta_score": c.delta_score, "relative_gain": c.relative_gain,
                 "significant": c.significant, "worse_channels": c.worse_channels} for c in rnd]
