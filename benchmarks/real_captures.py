@@ -6,8 +6,9 @@ Runs each step as the CLI (a fresh process), with its wall time and peak memory 
 maximum resident set, from ``os.wait4``), and prints per capture: the verdict, what was named,
 ambiguous or unobservable, the held-out gain per channel, what the residual left shows, and
 the run time and memory of each step. The captures are those of ../shared/data/real/ (README
-there); their modulation frequencies are not recorded, so each is given the one below (its
-unambiguous range covers the capture's depths).
+there); their modulation frequencies and wavelengths are not recorded, so each is given the
+one the tests use (``tests/real_data.CAPTURES``: its unambiguous range covers the capture's
+depths), and the figures hold at that frequency.
 """
 
 from __future__ import annotations
@@ -20,13 +21,8 @@ import sys
 import time
 from pathlib import Path
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-CAPTURES = {
-    # name: (file, scene-from-capture options)
-    "near": (REAL / "adi_tof" / "near_plane_depth.bin", ["--freq-hz", "100e6"]),
-    "office": (REAL / "adi_tof" / "frame_mode2.bin", ["--freq-hz", "30e6"]),
-    "kinect": (REAL / "azure_kinect" / "recording.mkv", ["--freq-hz", "30e6", "--wavelength-m", "850e-9"]),
-}
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from tests.real_data import CAPTURES  # noqa: E402  (the settings the tests use, in one place)
 
 
 def run(args: list[str]) -> tuple[float, float, float, str]:
@@ -52,7 +48,8 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     rows = {}
     for name in args.only.split(","):
-        src, opts = CAPTURES[name]
+        cap = CAPTURES[name]
+        src, opts = cap.file, cap.options()
         d = args.out / name
         d.mkdir(exist_ok=True)
         session = d / "session.h5"
@@ -66,6 +63,7 @@ def main() -> None:
         res = json.loads((d / "diag" / "diagnosis.json").read_text())
         g = res["gain"]
         rows[name] = {
+            "freq_hz": cap.freq_hz, "wavelength_m": cap.wavelength_m,
             "verdict": res["verdict"]["kind"], "verdict_text": res["verdict"]["text"],
             "notes": res["verdict"]["notes"], "causes": res["causes"], "params": res["params"],
             "ambiguous": [a["effects"] for a in res["observability"]["ambiguous"]],
@@ -75,6 +73,10 @@ def main() -> None:
             "channels_per_value": {c: [v["before_per_value"], v["after_per_value"]] for c, v in res["channels"].items()},
             "noise": res["noise"], "residual_regions": len(res["residual_regions"]),
             "residual_structure": [f["text"] for f in res.get("residual_structure", [])],
+            "effect_size": {c: [v["rmse_before"], v["rmse_after"], v["minimum_gain"], v["unit"]]
+                            for c, v in res.get("effect_size", {}).get("channels", {}).items()},
+            "fitted_too_small": res.get("effect_size", {}).get("fitted_too_small", {}),
+            "residual_regions_text": [r["text"] for r in res["residual_regions"]],
             "steps_wall_s_peak_mib_cpu_s": {k: [round(v[0], 1), round(v[1]), round(v[2], 1)]
                                             for k, v in steps.items()},
         }

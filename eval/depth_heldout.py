@@ -225,7 +225,8 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
     ``amplitude_model_error`` (relative): how well the twin scene can know the amplitude at
     all (a scene built from the capture has one reflectance per object; its fit left this
     scatter of the log amplitude). Amplitude differences below it are no evidence: the
-    radial noise is raised to it, so the depth channel is not outweighed by texture."""
+    amplitude residual is weighed against it (:meth:`HeldOutData.whitened`), so the depth
+    channel is not outweighed by texture."""
     if not session.has_depth:
         raise TofhilError("has neither raw taps nor depth", file=session.path, field="depth/radial_m")
     freq_hz, freq_source = frequencies_for(session, scene)
@@ -310,10 +311,9 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
                  + " at the median amplitude" + conf_note)
         n_train = n_test = 1
     if amplitude_model_error:
-        floor = (amplitude_model_error * np.abs(s_test)) ** 2
-        radial_scale = np.maximum(radial_scale * var_test, floor) / var_test
         noise += (f"; amplitude known to the scene only to {100 * amplitude_model_error:.0f}% (one reflectance "
-                  "per object), so the amplitude noise is raised to that")
+                  "per object): the amplitude residual is the log ratio measured / twin over that error and the "
+                  "instrument's in quadrature")
     board = block_checkerboard(usable.shape, block_px)
     sensor = getattr(scene, "sensor", None)
     theta = np.asarray(sensor.theta_rad, float) if sensor is not None else equally_spaced_phases(4)
@@ -328,7 +328,8 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
                                  + (f"; binned {b} x {b} pixels" if b > 1 else "")
                                  + ("; the device's confidence is stored but not used as noise (frames give the "
                                     "noise)" if conf_seen and n >= 2 else "")),
-                       noise=noise, phase_ref=ref, radial_var_scale=radial_scale, frames_held_out=n >= 2,
+                       noise=noise, phase_ref=ref, radial_var_scale=radial_scale,
+                       amplitude_model_error=amplitude_model_error or None, frames_held_out=n >= 2,
                        s_frames=s_all if n >= 2 else None)
 
 

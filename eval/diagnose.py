@@ -66,6 +66,10 @@ class DiagnosisResult:
     forms: dict[str, str] = field(default_factory=dict)
     #: The per-frame drift test (``eval/linear_forms.py``): None when not searched.
     drift: dict[str, Any] | None = None
+    #: The minimum effect size for naming (``verdict.EffectSize``): the rule, each channel's
+    #: held-out RMSE base twin -> extended twin with its noise and minimum gain, and the
+    #: effects that were fitted but too small to name.
+    effect_size: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict.to_json() if self.verdict else None, "channels": self.channels,
@@ -80,19 +84,12 @@ class DiagnosisResult:
                           "offset_channel": self.data.offset_channel},
                 "data_path": self.data.channels, "noise": self.data.noise,
                 "observability": self.observability.to_json(), "residual_structure": self.structure,
-                "drift": self.drift}
+                "drift": self.drift, "effect_size": self.effect_size}
         # (the run time is in the report, not here: the same inputs give the same file, bit for bit)
 
 
-def distance_defined(data: HeldOutData, *predictions: np.ndarray, sigmas: float = 3.0) -> np.ndarray:
-    """Pixels where every prediction has a signal above the noise, so that its distance means
-    something (a twin pixel in a shadow has no phase to compare)."""
-    nf = data.n_freq
-    floor = sigmas * np.sqrt(2.0 * data.var_test[:nf]).max(axis=0)
-    ok = np.ones(data.usable.shape, bool)
-    for p in predictions:
-        ok &= np.abs(p[:nf]).min(axis=0) > floor
-    return ok
+#: (kept here too: callers import it from diagnose)
+distance_defined = V.distance_defined
 
 
 #: The region of the held-out pixels (the gain is measured there).
@@ -167,17 +164,11 @@ def residual_structure(data: HeldOutData, prediction: np.ndarray, maps: dict[str
     (:mod:`tofhil.eval.diagnose_structure`), each against the noise of its pixels: the depth
     noise from the phasor's tangential variance (the best frequency), the amplitude's as a
     relative error from its radial variance."""
-    from tofhil import C_M_PER_S
     from tofhil.eval import diagnose_structure as DS
 
     nf = data.n_freq
-    s = data.s_test[:nf]
-    a = np.maximum(np.abs(s), 1e-30)
-    k = (4 * np.pi * data.freq_hz / C_M_PER_S)[:, None, None]
-    var = data.var_test[:nf].real
-    sigma_depth = np.sqrt(var / a ** 2 / k ** 2).min(axis=0)
-    radial = var * (data.radial_var_scale[:nf] if data.radial_var_scale is not None else 1.0)
-    sigma_amp = np.sqrt(radial / a ** 2).mean(axis=0) / np.sqrt(nf)
+    a = np.maximum(np.abs(data.s_test[:nf]), 1e-30)
+    sigma_depth, sigma_amp = V.channel_sigmas(data)
     with np.errstate(divide="ignore", invalid="ignore"):
         log_amp = np.log(a.mean(axis=0) / np.abs(prediction[:nf]).mean(axis=0))
     edges = DS.edge_mask(maps["depth_measured"], data.usable, object_id)
@@ -269,8 +260,9 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         if progress:
             progress("aligning the twin (ICP)")
         model.align_pose()
+    sizes = V.EffectSize(data)
     selection = greedy_select(model, data, candidates=candidates, max_effects=max_effects,
-                              min_relative_gain=min_relative_gain, progress=progress)
+                              min_relative_gain=min_relative_gain, progress=progress, effect_size=sizes)
     # The extended scene: written, read back and re-rendered, so the gain is that of the file.
     ext_path = Path(extended_scene_path) if extended_scene_path else None
 
@@ -322,8 +314,18 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         return v, ch_after, objects_after, worse
 
     evidence = _evidence(selection, data)
+    for line in selection.too_small.values():
+        evidence.append(f"not named, its held-out gain is too small or makes a channel worse: {line}")
     verdict, ch_after, objects_after, worse = judge(after_pred, list(selection.causes))
-    if verdict.kind == "scene does not match" and selection.causes:
+    size_after = sizes.compare(base_pred, after_pred)
+    if selection.causes and not V.EffectSize.worth_naming(size_after):
+        # the extended scene as written and read back must keep the gain the selection saw
+        verdict.notes.append("fitted but not named: " + ", ".join(selection.causes) + " (as the extended scene: "
+                             + V.EffectSize.describe(size_after) + "; " + V.effect_size_rule() + ")")
+        selection.causes, selection.params = [], {}
+        after_model, after_pred = extend({})
+        verdict, ch_after, objects_after, worse = judge(after_pred, [])
+    elif verdict.kind == "scene does not match" and selection.causes:
         # No effect is named on a scene that does not match: the extended scene is the base.
         # what the fitted set would have done, on the held-out pixels (a lower misfit can come
         # with a worse depth RMSE: the misfit weighs each pixel by its noise, the RMSE does not)
@@ -370,6 +372,9 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                     "values": ch_after[c][1],
                     "noise_margin_per_value": round(V.channel_margin(ch_after[c][1]) / ch_after[c][1], 4),
                     "worse": c in worse} for c in ch_after}
+    size_after = sizes.compare(base_pred, after_pred)
+    if not selection.causes and selection.too_small and verdict.kind in ("unexplained", "scene does not match"):
+        verdict.notes.append("fitted but too small to name: " + "; ".join(selection.too_small.values()))
     regions_left, above_after = V.residual_regions(
         data, after_pred, nu, object_id, object_names, maps_after["depth_residual"], maps_after["amplitude_residual"])
     gain = {k: {"before": before[k], "after": after.get(k, float("nan"))} for k in before}
@@ -386,7 +391,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     ranked = [{"effect": c.effect, "params": _json_params(c.effect, c.params, c.details), "score": c.score,
                "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,
                "chi2_test": c.chi2_test, "n_params": c.n_params, "worse_channels": c.worse_channels,
-               "at_bounds": c.at_bounds, "form": c.form, "dof": round(c.dof, 2), "forms": c.forms}
+               "at_bounds": c.at_bounds, "form": c.form, "dof": round(c.dof, 2), "forms": c.forms,
+               "worth_naming": c.worth_naming, "rmse": {ch: g.to_json() for ch, g in c.rmse.items()}}
               for c in selection.first_round]
     rounds = [[{"effect": c.effect, "form": c.form, "delta_score": c.delta_score, "relative_gain": c.relative_gain,
                 "significant": c.significant, "worse_channels": c.worse_channels} for c in rnd]
@@ -416,7 +422,10 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                            objects={k: {"before": objects_before.get(k), "after": v} for k, v in objects_after.items()},
                            observability=observability, structure=[f.to_json() for f in structure],
                            forms={e: selection.forms.get(e, "") for e in selection.causes},
-                           drift=None if drift is None else drift.to_json())
+                           drift=None if drift is None else drift.to_json(),
+                           effect_size={"rule": V.effect_size_rule(),
+                                        "channels": {c: g.to_json() for c, g in size_after.items()},
+                                        "fitted_too_small": dict(selection.too_small)})
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,

@@ -10,6 +10,7 @@ import numpy as np
 
 from tofhil import __version__
 from tofhil.eval import html as H
+from tofhil.eval import verdict as V
 from tofhil.eval.metrics import DEPTH_RMSE
 
 
@@ -98,19 +99,49 @@ def channel_table(res: Any) -> str:
     return "".join(rows)
 
 
+def effect_size_table(res: Any) -> str:
+    """Each channel's held-out RMSE in its own units, base twin -> extended twin, and the
+    minimum gain a cause needs to be named."""
+    es = getattr(res, "effect_size", None) or {}
+    if not es.get("channels"):
+        return ""
+    rows = ["<h3>Is it worth naming? Held-out RMSE per channel in its own units</h3><table><tr><th>channel</th>"
+            "<th>base twin</th><th>extended twin</th><th>noise (rms)</th><th>minimum gain</th><th>enough</th>"
+            "<th>worse</th></tr>"]
+    for c, v in es["channels"].items():
+        style = " style='color:#c00;font-weight:bold'" if v["worse"] else ""
+        u = H.esc(v["unit"])
+        rows.append(f"<tr{style}><td>{H.esc(c)}</td><td>{v['rmse_before']:.4g} {u}</td><td>{v['rmse_after']:.4g} {u}"
+                    f"</td><td>{v['noise_median_pixel']:.3g} {u}</td><td>{v['minimum_gain']:.3g} {u}</td>"
+                    f"<td>{'yes' if v['enough'] else 'no'}</td><td>{'WORSE' if v['worse'] else 'no'}</td></tr>")
+    rows.append(f"</table><p class='note'>{H.esc(es['rule'])}.</p>")
+    if es.get("fitted_too_small"):
+        rows.append(H.notes_html(["fitted, not named: " + t for t in es["fitted_too_small"].values()], css="note"))
+    return "".join(rows)
+
+
 def residual_region_table(res: Any) -> str:
     """Where the misfit left above noise is: connected regions, by object."""
     if not res.residual_regions:
         return "<p class='note'>No connected region of the held-out frames is left above noise.</p>"
     rows = ["<h3>Left above noise</h3><table><tr><th>pixels</th><th>x0, y0, x1, y1</th><th>objects</th>"
-            "<th>misfit per value</th><th>depth residual (mm)</th><th>amplitude residual (DN)</th></tr>"]
+            "<th>what it looks like</th><th>misfit per value</th><th>depth residual (mm)</th>"
+            "<th>depth spread / pixel noise (mm)</th><th>amplitude measured / twin</th>"
+            "<th>amplitude residual (DN)</th></tr>"]
+    num = lambda x, f: "-" if x is None else format(x, f)  # noqa: E731
     for r in res.residual_regions:
         objs = ", ".join(f"{k} {100 * f:.0f} %" for k, f in r["objects"].items())
         rows.append(f"<tr><td>{r['pixels']}</td><td>{', '.join(map(str, r['bbox_x0y0x1y1']))}</td>"
-                    f"<td>{H.esc(objs)}</td><td>{r['misfit_per_value']:.2f}</td><td>{r['depth_residual_mm']:+.1f}</td>"
-                    f"<td>{r['amplitude_residual']:+.3g}</td></tr>")
+                    f"<td>{H.esc(objs)}</td><td>{H.esc(r.get('kind', ''))}</td><td>{r['misfit_per_value']:.2f}</td>"
+                    f"<td>{r['depth_residual_mm']:+.1f}</td>"
+                    f"<td>{num(r.get('depth_spread_mm'), '.1f')} / {num(r.get('depth_sigma_mm'), '.1f')}</td>"
+                    f"<td>{num(r.get('amplitude_ratio'), '.2f')}</td><td>{r['amplitude_residual']:+.3g}</td></tr>")
     rows.append("</table><p class='note'>Connected pixels (held-out frames) whose 3 x 3 mean misfit is above the "
-                "noise threshold of its values.</p>")
+                "noise threshold of its values. What it looks like: a median depth offset beyond "
+                f"{V.REGION_SIGMAS:g} x one pixel's noise is an object the twin lacks (the capture nearer) or "
+                "misplaces (the twin nearer); a spread about it beyond that, a shape the twin's surface does not "
+                "follow; the depth right and the amplitude ratio beyond that many of its noise (the scene's "
+                "amplitude model error included), a wrong material.</p>")
     return "".join(rows)
 
 
@@ -147,6 +178,7 @@ def write_report(res: Any, path: Path, *, session_path: str, scene_path: str, ca
             parts.append(H.notes_html(v.notes, css="warn"))
     parts.append(H.notes_html(res.evidence, css="note"))
     parts.append(channel_table(res))
+    parts.append(effect_size_table(res))
     parts.append(residual_region_table(res))
     parts.append(structure_list(res))
     if res.params:

@@ -27,7 +27,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from tofhil.eval.heldout import HUBER_SIGMA, HeldOutData, huber
-from tofhil.eval.verdict import channel_chi2, worse_channels
+from tofhil.eval.verdict import ChannelGain, EffectSize, channel_chi2, worse_channels
 
 EffectParams = dict[str, dict[str, float]]
 
@@ -109,6 +109,12 @@ class Candidate:
     forms: dict[str, dict[str, float | bool]] = field(default_factory=dict)
     #: What a closed-form fit reports about itself (form, strengths, parts).
     details: dict[str, Any] = field(default_factory=dict)
+    #: Held-out RMSE per channel in its own units against the current model
+    #: (:class:`tofhil.eval.verdict.EffectSize`; empty when the selection checks no effect size).
+    rmse: dict[str, ChannelGain] = field(default_factory=dict, repr=False)
+    #: False when its gain, though significant in misfit, is too small to name or makes a
+    #: channel's RMSE worse (against the current model or the base twin).
+    worth_naming: bool = True
 
 
 @dataclass
@@ -132,6 +138,9 @@ class Selection:
     channels_after: dict[str, tuple[float, int]] = field(default_factory=dict)
     #: Per cause fitted in closed form, what its fit reports (form, dof, strengths).
     details: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: Effects whose misfit gain was significant but whose RMSE gain was too small to name
+    #: (or made a channel's RMSE worse), with their figures.
+    too_small: dict[str, str] = field(default_factory=dict)
 
     @property
     def first_round(self) -> list[Candidate]:
@@ -262,7 +271,7 @@ def choose_form(tried: Sequence[Candidate], min_extra_gain: float) -> Candidate:
 
 def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequence[str] | None = None,
                   max_effects: int = 3, min_relative_gain: float = 0.02, min_gain_per_value: float = 0.02,
-                  progress: Callable[[str], None] | None = None) -> Selection:
+                  progress: Callable[[str], None] | None = None, effect_size: EffectSize | None = None) -> Selection:
     """Add effects one by one while each brings a significant held-out gain.
 
     An effect is significant when its held-out score beats the current model's (the penalty
@@ -272,6 +281,11 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     margins against chasing Monte Carlo noise or tiny model differences that no bench user
     would call a cause; and no channel gets worse beyond its noise. The best-scoring
     significant effect of a round is added.
+
+    With ``effect_size`` an effect must also be worth naming in the channels' own units: its
+    held-out RMSE gain reaches the minimum of some channel and no channel's RMSE gets worse,
+    neither against the current model nor against the base twin
+    (:meth:`tofhil.eval.verdict.EffectSize.worth_naming`).
     """
     lib = model.library()
     names = list(candidates if candidates is not None else lib)
@@ -284,6 +298,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     def k_of(e: str) -> float:
         return dofs.get(e, work[e].k)
     base_pred = model.predict({})
+    current_pred = base_pred
     current_chi2 = data.chi2(base_pred, "test")
     current_channels = channel_chi2(data, base_pred)
     baseline = current_chi2
@@ -331,16 +346,29 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                 gain = current_chi2 - chi2_test
                 gains = bool(current_score - score > 0 and excess > 0 and gain > min_relative_gain * excess
                              and gain > min_gain_per_value * n_test)
+                rmse: dict[str, ChannelGain] = {}
+                worth = True
+                if effect_size is not None and gains and not worse:
+                    rmse = effect_size.compare(current_pred, pred)
+                    worth = (EffectSize.worth_naming(rmse)
+                             and not any(g.worse for g in effect_size.compare(base_pred, pred).values()))
                 tried.append(Candidate(effect=name, params=fitted[name], chi2_train=chi2_train, chi2_test=chi2_test,
                                        score=score, delta_score=current_score - score,
                                        relative_gain=gain / current_chi2 if current_chi2 > 0 else 0.0,
-                                       significant=gains and not worse, n_params=len(spec.params),
+                                       significant=gains and not worse and worth, n_params=len(spec.params),
                                        all_params=fitted, worse_channels=worse, at_bounds=pinned(spec, fitted[name]),
-                                       channels=channels, form=spec.form, dof=float(k_new), details=details))
+                                       channels=channels, form=spec.form, dof=float(k_new), details=details,
+                                       rmse=rmse, worth_naming=worth))
                 traded |= gains and bool(worse)
             if traded and name not in selection.rejected_for_channels:
                 selection.rejected_for_channels.append(name)
-            round_.append(choose_form(tried, min_relative_gain * excess))
+            best_form = choose_form(tried, min_relative_gain * excess)
+            small = [c for c in tried if not c.worth_naming]
+            if small and not best_form.significant and name not in selection.too_small:
+                c = min(small, key=lambda c: c.score)
+                selection.too_small[name] = (f"{name}" + (f" ({c.form})" if c.form else "") + ": "
+                                             + EffectSize.describe(c.rmse))
+            round_.append(best_form)
         # ties broken by name: the ranking does not depend on the library's order
         round_.sort(key=lambda c: (c.score, c.effect))
         selection.rounds.append(round_)
@@ -356,7 +384,9 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         params = chosen.all_params
         current_chi2 = chosen.chi2_test
         before_round = current_channels
+        before_pred = current_pred
         current_channels = chosen.channels
+        current_pred = model.predict(params)
         # Refit the chosen set jointly (for one effect: more iterations from its best start;
         # geometric effects often need them); kept only if better and no channel worse.
         if progress:
@@ -365,9 +395,14 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         joint_pred = model.predict(joint)
         joint_chi2 = data.chi2(joint_pred, "test")
         joint_channels = channel_chi2(data, joint_pred)
-        if (joint_chi2 < current_chi2 and not worse_channels(before_round, joint_channels)
+        joint_ok = True
+        if effect_size is not None:
+            # the joint refit keeps what made the round's cause worth naming
+            joint_ok = (EffectSize.worth_naming(effect_size.compare(before_pred, joint_pred))
+                        and not any(g.worse for g in effect_size.compare(base_pred, joint_pred).values()))
+        if (joint_chi2 < current_chi2 and joint_ok and not worse_channels(before_round, joint_channels)
                 and not worse_channels(selection.channels_before, joint_channels)):
-            params, current_chi2, current_channels = joint, joint_chi2, joint_channels
+            params, current_chi2, current_channels, current_pred = joint, joint_chi2, joint_channels, joint_pred
     selection.causes = active
     selection.params = {e: params[e] for e in active}
     selection.final_chi2_test = current_chi2

@@ -14,6 +14,13 @@ frame-to-frame scatter):
   ``ALPHA`` one-sided margin of the chi-square of its ``n_c`` values (:func:`channel_margin`).
 - **a residual region**: a connected set of pixels whose 3 x 3 mean misfit is above the
   threshold for the values of that window.
+- **worth naming** (:class:`EffectSize`): a misfit far above noise can still hide a gain no
+  ToF engineer would act on. A cause is named only when the held-out RMSE of some channel, in
+  that channel's own units, falls by at least :data:`MIN_GAIN_NOISE_SHARE` of the channel's
+  noise *and* by an absolute minimum (:data:`MIN_DEPTH_GAIN_M` of depth; for amplitude and
+  offset, counts with no common unit, :data:`MIN_LEVEL_GAIN_SHARE` of the channel's median
+  level), and when no channel's held-out RMSE grows by more than
+  :data:`WORSE_SHARE_OF_MIN` of its own minimum (a smaller change is a rounding, not a loss).
 
 The verdict (:func:`verdict`) is one of ``nothing searched``, ``within noise`` (the base
 twin already is), ``explained``, ``partly explained`` (with the share of the excess
@@ -28,7 +35,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from scipy import ndimage, stats
 
-from tofhil.eval.heldout import NOISE_POOL_PX, HeldOutData, huber
+from tofhil import C_M_PER_S
+from tofhil.eval.heldout import NOISE_POOL_PX, HeldOutData, depth_from_signal, huber
 
 #: False-alarm probability of each "above noise" test (one in a thousand).
 ALPHA = 1e-3
@@ -37,6 +45,33 @@ ALPHA = 1e-3
 CHANNELS = ("depth", "amplitude", "offset")
 #: Residual regions smaller than this many pixels are not listed (single hot pixels).
 MIN_REGION_PX = 6
+
+
+def distance_defined(data: HeldOutData, *predictions: np.ndarray, sigmas: float = 3.0) -> np.ndarray:
+    """Pixels where every prediction has a signal above the noise, so that its distance means
+    something (a twin pixel in a shadow has no phase to compare)."""
+    nf = data.n_freq
+    floor = sigmas * np.sqrt(2.0 * data.var_test[:nf]).max(axis=0)
+    ok = np.ones(data.usable.shape, bool)
+    for p in predictions:
+        ok &= np.abs(p[:nf]).min(axis=0) > floor
+    return ok
+
+
+def channel_sigmas(data: HeldOutData, *, with_model_error: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel noise of the held-out mean ``[H, W]``: depth (m), from the phasor's tangential
+    variance at the best frequency; amplitude as a relative error, from its radial variance
+    (with the scene's own amplitude model error added when ``with_model_error``)."""
+    nf = data.n_freq
+    a = np.maximum(np.abs(data.s_test[:nf]), 1e-30)
+    k = (4 * np.pi * data.freq_hz / C_M_PER_S)[:, None, None]
+    var = data.var_test[:nf].real
+    sigma_depth = np.sqrt(var / a ** 2 / k ** 2).min(axis=0)
+    radial = var * (data.radial_var_scale[:nf] if data.radial_var_scale is not None else 1.0)
+    rel2 = radial / a ** 2
+    if with_model_error and data.amplitude_model_error:
+        rel2 = rel2 + data.amplitude_model_error ** 2
+    return sigma_depth, np.sqrt(rel2).mean(axis=0) / np.sqrt(nf)
 
 
 def noise_dof(data: HeldOutData) -> float:
@@ -122,19 +157,58 @@ class ResidualRegion:
     objects: dict[str, float]  # object name -> share of the region's pixels
     depth_residual_mm: float  # median measured - twin
     amplitude_residual: float  # median measured - twin amplitude (DN)
+    #: The depth residual's spread about its median (rms, mm), the median noise of one pixel
+    #: (mm), and the median amplitude ratio measured / twin with its noise (relative).
+    depth_spread_mm: float = float("nan")
+    depth_sigma_mm: float = float("nan")
+    amplitude_ratio: float = float("nan")
+    amplitude_sigma: float = float("nan")
+
+    @property
+    def kind(self) -> str:
+        """What the region looks like to a ToF engineer (each part beyond
+        :data:`REGION_SIGMAS` of one pixel's noise and beyond the smallest gain worth naming:
+        :data:`MIN_DEPTH_GAIN_M`, :data:`MIN_LEVEL_GAIN_SHARE`): the capture's surface nearer or farther
+        than the twin's as a whole (an object the twin lacks or misplaces), a shape the twin's
+        surface does not follow, or the depth right and the amplitude off (a wrong material)."""
+        # (a saturated, bright pixel's noise is ~0: the absolute floor keeps 0.2 mm from reading as an object)
+        lim = max(REGION_SIGMAS * self.depth_sigma_mm, MIN_DEPTH_GAIN_M * 1e3)
+        parts = []
+        if abs(self.depth_residual_mm) > lim:
+            parts.append("missing object (a surface nearer than the twin's)" if self.depth_residual_mm < 0
+                         else "misplaced object (the twin's surface nearer than the capture's)")
+        if self.depth_spread_mm > lim:
+            parts.append("wrong shape (the twin's surface does not follow the capture's)")
+        ratio_off = abs(np.log(self.amplitude_ratio)) > max(REGION_SIGMAS * self.amplitude_sigma,
+                                                             MIN_LEVEL_GAIN_SHARE) \
+            if self.amplitude_ratio > 0 and np.isfinite(self.amplitude_sigma) else False
+        if ratio_off and not parts:
+            parts.append("wrong material (the depth right, the amplitude off)")
+        elif ratio_off:
+            parts.append("amplitude off too")
+        return "; ".join(parts) or "no consistent offset, shape or material (an excess of scatter)"
 
     def to_json(self) -> dict[str, Any]:
+        r = lambda x, n: None if not np.isfinite(x) else round(float(x), n)  # noqa: E731
         return {"pixels": self.pixels, "bbox_x0y0x1y1": list(self.bbox),
                 "misfit_per_value": round(self.misfit_per_value, 4), "objects": self.objects,
                 "depth_residual_mm": round(self.depth_residual_mm, 3),
-                "amplitude_residual": round(self.amplitude_residual, 4)}
+                "amplitude_residual": round(self.amplitude_residual, 4),
+                "depth_spread_mm": r(self.depth_spread_mm, 3), "depth_sigma_mm": r(self.depth_sigma_mm, 3),
+                "amplitude_ratio": r(self.amplitude_ratio, 4), "amplitude_sigma": r(self.amplitude_sigma, 4),
+                "kind": self.kind}
 
     def describe(self) -> str:
         on = ", ".join(f"{k} {100 * v:.0f} %" for k, v in self.objects.items()) or "no object"
         x0, y0, x1, y1 = self.bbox
-        return (f"{self.pixels} px at x {x0}-{x1 - 1}, y {y0}-{y1 - 1} (on {on}): misfit {self.misfit_per_value:.2f} "
-                f"per value, depth residual {self.depth_residual_mm:+.1f} mm, amplitude residual "
-                f"{self.amplitude_residual:+.3g} DN")
+        return (f"{self.pixels} px at x {x0}-{x1 - 1}, y {y0}-{y1 - 1} (on {on}): {self.kind}: depth residual "
+                f"{self.depth_residual_mm:+.1f} mm (spread {self.depth_spread_mm:.1f} mm, pixel noise "
+                f"{self.depth_sigma_mm:.1f} mm), amplitude x{self.amplitude_ratio:.2f} of the twin's "
+                f"({self.amplitude_residual:+.3g} DN); misfit {self.misfit_per_value:.2f} per value")
+
+
+#: A residual region's offset, shape or amplitude counts when beyond this many pixel noises.
+REGION_SIGMAS = 3.0
 
 
 def residual_regions(data: HeldOutData, prediction: np.ndarray, nu: float, object_id: np.ndarray | None = None,
@@ -145,6 +219,11 @@ def residual_regions(data: HeldOutData, prediction: np.ndarray, nu: float, objec
     the noise threshold of the window's values; the largest excess first. Also returns the
     above-noise mask."""
     img, n_px = pixel_misfit(data, prediction)
+    sigma_depth, sigma_amp = channel_sigmas(data)
+    nf = data.n_freq
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_ratio = np.log(np.abs(data.s_test[:nf]).mean(axis=0) / np.abs(prediction[:nf]).mean(axis=0))
+    log_ratio = np.where(np.isfinite(log_ratio), log_ratio, np.nan)
     ok = np.isfinite(img)
     num = ndimage.uniform_filter(np.where(ok, img, 0.0), 3, mode="constant")
     den = ndimage.uniform_filter(ok.astype(float), 3, mode="constant")
@@ -178,9 +257,16 @@ def residual_regions(data: HeldOutData, prediction: np.ndarray, nu: float, objec
             v = v[np.isfinite(v)]
             return float(np.median(v) * scale) if v.size else float("nan")
 
+        d_med = med(depth_residual_m, 1e3)
+        spread = float("nan")
+        if depth_residual_m is not None:
+            dv = depth_residual_m[full] * 1e3
+            dv = dv[np.isfinite(dv)]
+            spread = float(np.sqrt(np.mean((dv - d_med) ** 2))) if dv.size else float("nan")
         regions.append(ResidualRegion(px, (sl[1].start, sl[0].start, sl[1].stop, sl[0].stop),
                                       float(np.nanmean(img[full]) / n_px), objs,
-                                      med(depth_residual_m, 1e3), med(amplitude_residual)))
+                                      d_med, med(amplitude_residual), spread, med(sigma_depth, 1e3),
+                                      float(np.exp(med(log_ratio))), med(sigma_amp)))
     regions.sort(key=lambda r: -(r.misfit_per_value - 1.0) * r.pixels)
     return regions[:max_regions], above
 
@@ -291,3 +377,128 @@ def verdict(*, searched: bool, causes: Sequence[str], n_values: int, nu: float, 
     if worse:
         text += "; worse after the fit: " + ", ".join(worse)
     return Verdict("partly explained", text, thr, removed, list(worse), disagree)
+
+
+# ---------------------------------------------------------------------------- effect size
+
+#: A named cause lowers some channel's held-out RMSE by at least this share of its noise (the
+#: median pixel's, over the held-out pixels) ...
+MIN_GAIN_NOISE_SHARE = 0.1
+#: ... and by at least this much depth RMSE (a sub-half-millimetre change is nothing a ToF
+#: engineer would correct for) ...
+MIN_DEPTH_GAIN_M = 0.5e-3
+#: ... or, for amplitude and offset (device counts: no common unit), this share of the
+#: channel's median measured level.
+MIN_LEVEL_GAIN_SHARE = 0.01
+#: A channel's RMSE is worse when it grows by more than this share of its minimum gain.
+WORSE_SHARE_OF_MIN = 0.1
+
+
+def effect_size_rule() -> str:
+    """The rule, as the report and diagnosis.json state it."""
+    return (f"a cause is named only when the held-out RMSE of some channel falls by at least "
+            f"{MIN_GAIN_NOISE_SHARE:g} x that channel's noise (the median held-out pixel's) and by at least "
+            f"{MIN_DEPTH_GAIN_M * 1e3:g} mm of depth, or {100 * MIN_LEVEL_GAIN_SHARE:g} % of the median measured "
+            f"level of amplitude or offset; and when no channel's RMSE grows by more than {WORSE_SHARE_OF_MIN:g} x "
+            "its own minimum gain")
+
+
+@dataclass(frozen=True)
+class ChannelGain:
+    """A channel's held-out RMSE before and after, in its own units, and the gain it needs."""
+
+    channel: str
+    before: float
+    after: float
+    noise: float  # the median held-out pixel's noise
+    minimum: float
+    pixels: int
+
+    @property
+    def gain(self) -> float:
+        return self.before - self.after
+
+    @property
+    def enough(self) -> bool:
+        return bool(self.gain >= self.minimum)
+
+    @property
+    def worse(self) -> bool:
+        return bool(self.after - self.before > WORSE_SHARE_OF_MIN * self.minimum)
+
+    @property
+    def _unit(self) -> tuple[float, str]:
+        return (1e3, " mm") if self.channel == "depth" else (1.0, " DN")
+
+    def to_json(self) -> dict[str, Any]:
+        k, unit = self._unit
+        return {"unit": unit.strip(), "rmse_before": round(self.before * k, 4), "rmse_after": round(self.after * k, 4),
+                "gain": round(self.gain * k, 4), "noise_median_pixel": round(self.noise * k, 4),
+                "minimum_gain": round(self.minimum * k, 4), "pixels": self.pixels, "enough": self.enough,
+                "worse": self.worse}
+
+    def describe(self) -> str:
+        k, unit = self._unit
+        return (f"{self.channel} RMSE {self.before * k:.4g} -> {self.after * k:.4g}{unit} (needs -{self.minimum * k:.3g}"
+                f"{unit}" + (", worse" if self.worse else "") + ")")
+
+
+class EffectSize:
+    """Held-out RMSE per channel in its own units (depth in m: :data:`tofhil.eval.metrics.DEPTH_RMSE`
+    on the held-out pixels where both predictions have a distance; amplitude and the tap
+    offset in counts) and the minimum gain that makes a cause worth naming (module doc)."""
+
+    def __init__(self, data: HeldOutData) -> None:
+        from tofhil.eval.metrics import wrap_period
+
+        self.data = data
+        nf = data.n_freq
+        s = data.s_test
+        self._wrap = wrap_period(data.freq_hz)
+        self._meas = {"depth": depth_from_signal(s[:nf], data.freq_hz), "amplitude": np.abs(s[:nf]).mean(axis=0)}
+        sd, sa = channel_sigmas(data, with_model_error=False)
+        m = data.test_pixels
+        # the typical pixel's noise: an rms would be ruled by the few darkest pixels (depth
+        # noise ~ 1/amplitude: a board's black squares made it 142 mm on a 4 mm capture)
+        med = lambda x: float(np.median(x)) if x.size else float("nan")  # noqa: E731
+        self.noise = {"depth": med(sd[m]), "amplitude": med((sa * self._meas["amplitude"])[m])}
+        level = {"amplitude": float(np.median(self._meas["amplitude"][m])) if m.any() else 0.0}
+        if data.offset_channel:
+            self._meas["offset"] = s[nf].real
+            self.noise["offset"] = med(np.sqrt(data.var_test[nf].real)[m])
+            level["offset"] = float(np.median(np.abs(s[nf].real[m]))) if m.any() else 0.0
+        self.minimum = {"depth": max(MIN_GAIN_NOISE_SHARE * self.noise["depth"], MIN_DEPTH_GAIN_M)}
+        for c, lv in level.items():
+            self.minimum[c] = max(MIN_GAIN_NOISE_SHARE * self.noise[c], MIN_LEVEL_GAIN_SHARE * lv)
+
+    def _channel(self, c: str, prediction: np.ndarray) -> np.ndarray:
+        nf = self.data.n_freq
+        if c == "depth":
+            d = depth_from_signal(prediction[:nf], self.data.freq_hz)
+            r = self._meas[c] - d
+            return r if self._wrap is None else (r + self._wrap / 2) % self._wrap - self._wrap / 2
+        if c == "amplitude":
+            return self._meas[c] - np.abs(prediction[:nf]).mean(axis=0)
+        return self._meas[c] - prediction[nf].real
+
+    def compare(self, before: np.ndarray, after: np.ndarray) -> dict[str, ChannelGain]:
+        """Each channel's held-out RMSE with ``before`` and with ``after``, on the same pixels."""
+        m = self.data.test_pixels & distance_defined(self.data, before, after)
+        out = {}
+        for c in self._meas:
+            rb, ra = self._channel(c, before)[m], self._channel(c, after)[m]
+            ok = np.isfinite(rb) & np.isfinite(ra)
+            rb, ra = rb[ok], ra[ok]
+            out[c] = ChannelGain(c, float(np.sqrt(np.mean(rb ** 2))) if rb.size else float("nan"),
+                                 float(np.sqrt(np.mean(ra ** 2))) if ra.size else float("nan"),
+                                 self.noise[c], self.minimum[c], int(ok.sum()))
+        return out
+
+    @staticmethod
+    def worth_naming(gains: Mapping[str, ChannelGain]) -> bool:
+        """Some channel gains its minimum and none is worse."""
+        return any(g.enough for g in gains.values()) and not any(g.worse for g in gains.values())
+
+    @staticmethod
+    def describe(gains: Mapping[str, ChannelGain]) -> str:
+        return ", ".join(g.describe() for g in gains.values())

@@ -7,6 +7,7 @@ the shared data must be there, so a missing capture is a broken set-up, not a sk
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,36 @@ import pytest
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 ADI = REAL / "adi_tof"
 AZURE_KINECT_MKV = REAL / "azure_kinect" / "recording.mkv"
+
+
+@dataclass(frozen=True)
+class CaptureSettings:
+    """What a capture's files do not record and a twin needs: the modulation frequency and
+    the emitter's wavelength, given to ``scene-from-capture`` as ``--freq-hz`` and
+    ``--wavelength-m``. The README of ../shared/data/real/ gives neither for any capture, so
+    these are stated choices, not the devices' values: each frequency is one whose unambiguous
+    range ``c / 2f`` covers the capture's depths, so nothing wraps; the wavelengths are the
+    devices' nominal ones (ADI ToF modules 940 nm, Azure Kinect 850 nm). A figure that depends on
+    the frequency (wiggling in radians of it, a phase delay) holds at this frequency only."""
+
+    file: Path
+    freq_hz: float
+    wavelength_m: float
+
+    def options(self) -> list[str]:
+        """The ``scene-from-capture`` options."""
+        return ["--freq-hz", f"{self.freq_hz:g}", "--wavelength-m", f"{self.wavelength_m:g}"]
+
+
+#: Every real capture and its settings (tests and benchmarks/real_captures.py read these).
+CAPTURES = {
+    # the plane at 0.31-0.42 m (99.9 % of the pixels below 0.47 m); 100 MHz: 1.50 m unambiguous
+    "near": CaptureSettings(ADI / "near_plane_depth.bin", 100e6, 940e-9),
+    # an office, median depth 1.77 m, at most 4.2 m; 30 MHz: 5.0 m unambiguous
+    "office": CaptureSettings(ADI / "frame_mode2.bin", 30e6, 940e-9),
+    # a mug, a table, a wall and a window up to ~2.5 m; 30 MHz: 5.0 m unambiguous
+    "kinect": CaptureSettings(AZURE_KINECT_MKV, 30e6, 850e-9),
+}
 
 
 def need(path: Path) -> Path:

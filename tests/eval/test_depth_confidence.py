@@ -48,13 +48,14 @@ def test_real_adi_office_confidence_is_calibrated_and_stated(tmp_path):
     of the binned phasor, computed here on its own)."""
     from types import SimpleNamespace
 
-    from tests.real_data import ADI, need
+    from tests.real_data import CAPTURES, need
     from tofhil.drivers.importers.dispatch import import_file
     from tofhil.eval.depth_heldout import split_depth_session
     from tofhil.session import open_session
 
-    path = import_file(need(ADI / "frame_mode2.bin"), tmp_path / "office.h5").out
-    scene = SimpleNamespace(sensor=SimpleNamespace(freq_hz=(30e6,), theta_rad=(0.0, 1.5708, 3.1416, 4.7124),
+    office = CAPTURES["office"]
+    path = import_file(need(office.file), tmp_path / "office.h5").out
+    scene = SimpleNamespace(sensor=SimpleNamespace(freq_hz=(office.freq_hz,), theta_rad=(0.0, 1.5708, 3.1416, 4.7124),
                                                    integration_time_s=1e-3))
     with open_session(path) as s:
         assert "depth/confidence" in s.datasets

@@ -23,7 +23,7 @@ from tofhil.session import SessionWriter, open_session
 from tofhil.sim.from_capture import grid_mesh, read_capture_metadata, scene_from_capture
 from tofhil.sim.pipeline import simulate_session
 from tofhil.sim.scene import load_scene
-from tests.real_data import ADI, need
+from tests.real_data import ADI, CAPTURES, need
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +112,9 @@ def near_plane_small(tmp_path_factory):
 
 
 def test_real_near_plane_scene_loads_simulates_and_sits_on_the_cloud(near_plane_small, tmp_path):
-    res = scene_from_capture(near_plane_small, tmp_path / "np.yaml", freq_hz=[100e6], wavelength_m=940e-9)
+    near = CAPTURES["near"]
+    res = scene_from_capture(near_plane_small, tmp_path / "np.yaml", freq_hz=[near.freq_hz],
+                             wavelength_m=near.wavelength_m)
     assert res.planes, "the near-plane capture shows a plane"
     with open_session(near_plane_small) as s:
         d = s.depth_frame(0)

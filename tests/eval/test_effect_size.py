@@ -1,0 +1,83 @@
+"""The minimum effect size for naming a cause (eval/verdict.py ``EffectSize``).
+
+A misfit far above noise can come with a gain no ToF engineer would act on: with a low noise,
+a 0.2 mm range shift over many pixels is hugely significant, yet it is not worth naming. The
+fake forward model of test_selection shifts the phase; the depth that shift makes is computed
+independently, through ``tofhil.demod.distance_to_phase``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.eval.fake_heldout import heldout_from_signal
+from tests.eval.test_selection import FakeModel
+from tofhil.demod import distance_to_phase
+from tofhil.eval import verdict as V
+from tofhil.eval.selection import greedy_select
+
+SIGMA = 2e-5  # per component; the signal is ~1.4: a depth noise of ~10 um at 20 MHz
+
+
+def _shifted(depth_m: float):
+    phi = float(distance_to_phase(depth_m, 20e6))
+    model = FakeModel()
+    return model, heldout_from_signal(model.predict({"shift": {"phi": phi}}), SIGMA, seed=3)
+
+
+@pytest.mark.parametrize("depth_mm, named", [(0.2, False), (2.0, True)])
+def test_a_significant_but_tiny_range_shift_is_not_named(depth_mm, named):
+    model, data = _shifted(depth_mm * 1e-3)
+    sizes = V.EffectSize(data)
+    # the noise is far below the absolute minimum, so the minimum is the 0.5 mm
+    assert sizes.noise["depth"] < 1e-4
+    assert sizes.minimum["depth"] == pytest.approx(V.MIN_DEPTH_GAIN_M)
+    plain = greedy_select(model, data, max_effects=1, candidates=["shift"])
+    assert plain.causes == ["shift"]  # significant in misfit either way
+    sel = greedy_select(model, data, max_effects=1, candidates=["shift"], effect_size=sizes)
+    assert (sel.causes == ["shift"]) is named
+    g = sizes.compare(model.predict({}), model.predict(plain.params))["depth"]
+    # the gain is the shift itself: the base model is off by it everywhere, the fit by noise
+    assert g.before == pytest.approx(depth_mm * 1e-3, rel=0.02)
+    assert g.after < 1.5 * sizes.noise["depth"]
+    if not named:
+        assert "shift" in sel.too_small and "needs -0.5 mm" in sel.too_small["shift"]
+
+
+def test_a_channel_whose_rmse_grows_blocks_naming_whatever_the_other_gains():
+    gain = V.ChannelGain("depth", before=6e-3, after=3e-3, noise=1e-3, minimum=0.5e-3, pixels=100)
+    loss = V.ChannelGain("amplitude", before=10.0, after=10.2, noise=5.0, minimum=0.5, pixels=100)
+    rounding = V.ChannelGain("amplitude", before=10.0, after=10.04, noise=5.0, minimum=0.5, pixels=100)
+    assert gain.enough and not gain.worse and loss.worse and not rounding.worse
+    assert V.EffectSize.worth_naming({"depth": gain, "amplitude": rounding})
+    assert not V.EffectSize.worth_naming({"depth": gain, "amplitude": loss})
+    # the Azure Kinect's wiggling (session 3): 6.39 -> 6.42 mm is no gain
+    kinect = V.ChannelGain("depth", before=6.39e-3, after=6.42e-3, noise=1e-3, minimum=0.5e-3, pixels=100)
+    assert not V.EffectSize.worth_naming({"depth": kinect, "amplitude": rounding})
+    assert "6.39 -> 6.42 mm" in kinect.describe()
+
+
+def test_amplitude_minimum_is_a_share_of_its_level_and_noise():
+    s = np.full((1, 16, 16), 100.0 + 0j)
+    data = heldout_from_signal(s, 1.0, seed=0)
+    sizes = V.EffectSize(data)
+    # noise 1 DN per component: 0.1 x ~1 DN against 1 % of ~100 DN
+    assert sizes.noise["amplitude"] == pytest.approx(1.0, rel=0.1)
+    assert sizes.minimum["amplitude"] == pytest.approx(1.0, rel=0.05)
+    g = sizes.compare(s, s * 1.05)["amplitude"]
+    assert g.worse and not g.enough
+
+
+@pytest.mark.parametrize("depth_mm, spread_mm, sigma_mm, ratio, kind", [
+    (-10.0, 2.0, 2.0, 1.0, "missing object"),      # the capture nearer: a surface the twin lacks
+    (+10.0, 2.0, 2.0, 1.0, "misplaced object"),    # the twin nearer
+    (0.5, 12.0, 2.0, 1.0, "wrong shape"),          # no offset, a spread far above the pixel noise
+    (0.3, 1.0, 2.0, 0.5, "wrong material"),        # depth right, amplitude half the twin's
+    (-0.2, 0.5, 0.0, 1.0, "no consistent"),        # a noiseless (saturated) pixel: 0.2 mm is no object
+    (1.0, 2.0, 2.0, 1.05, "no consistent"),        # everything within 3 pixel noises
+])
+def test_residual_region_says_what_it_looks_like(depth_mm, spread_mm, sigma_mm, ratio, kind):
+    r = V.ResidualRegion(50, (0, 0, 10, 5), 9.0, {"wall": 1.0}, depth_mm, 0.0, spread_mm, sigma_mm, ratio, 0.1)
+    assert r.kind.startswith(kind)
+    assert r.to_json()["kind"] == r.kind and "on wall 100 %" in r.describe()
