@@ -66,6 +66,9 @@ class DiagnosisResult:
     forms: dict[str, str] = field(default_factory=dict)
     #: The per-frame drift test (``eval/linear_forms.py``): None when not searched.
     drift: dict[str, Any] | None = None
+    #: Per cause, the flexible forms not chosen because the data do not identify their extra
+    #: parameters (``eval/identifiability.py``): which parameters cannot be told apart.
+    identifiability: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict.to_json() if self.verdict else None, "channels": self.channels,
@@ -80,7 +83,7 @@ class DiagnosisResult:
                           "offset_channel": self.data.offset_channel},
                 "data_path": self.data.channels, "noise": self.data.noise,
                 "observability": self.observability.to_json(), "residual_structure": self.structure,
-                "drift": self.drift}
+                "drift": self.drift, "identifiability": self.identifiability}
         # (the run time is in the report, not here: the same inputs give the same file, bit for bit)
 
 
@@ -223,6 +226,9 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
     elif not selection.causes:
         lines.append("no effect of the library explains a significant part of the held-out residual"
                      + (" (the twin is consistent with the measurement within its noise)" if excess < 0.05 * n else ""))
+    for e in selection.causes:
+        for test in selection.unidentified.get(e, ()):
+            lines.extend(test.lines)
     for c in (c for rnd in selection.rounds[:1] for c in rnd if c.details.get("pixel_part")):
         lines.append(f"{c.effect}: fitted form {c.details['form']} ({c.details['dof']:.1f} effective degrees of "
                      f"freedom); per-pixel part {c.details['pixel_part']}")
@@ -410,7 +416,9 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                            objects={k: {"before": objects_before.get(k), "after": v} for k, v in objects_after.items()},
                            observability=observability, structure=[f.to_json() for f in structure],
                            forms={e: selection.forms.get(e, "") for e in selection.causes},
-                           drift=None if drift is None else drift.to_json())
+                           drift=None if drift is None else drift.to_json(),
+                           identifiability={e: [t.to_json() for t in selection.unidentified.get(e, ())]
+                                            for e in selection.causes if selection.unidentified.get(e)})
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,

@@ -27,6 +27,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from tofhil.eval.heldout import HUBER_SIGMA, HeldOutData, huber
+from tofhil.eval.identifiability import Identifiability, assess_form
 from tofhil.eval.verdict import channel_chi2, worse_channels
 
 EffectParams = dict[str, dict[str, float]]
@@ -109,6 +110,9 @@ class Candidate:
     forms: dict[str, dict[str, float | bool]] = field(default_factory=dict)
     #: What a closed-form fit reports about itself (form, strengths, parts).
     details: dict[str, Any] = field(default_factory=dict)
+    #: Flexible forms that beat the chosen one on score but whose extra parameters the data
+    #: do not identify (:mod:`tofhil.eval.identifiability`): why each was not chosen.
+    unidentified: list[Identifiability] = field(default_factory=list)
 
 
 @dataclass
@@ -132,6 +136,9 @@ class Selection:
     channels_after: dict[str, tuple[float, int]] = field(default_factory=dict)
     #: Per cause fitted in closed form, what its fit reports (form, dof, strengths).
     details: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: Per cause, the flexible forms refused because the data do not identify their extra
+    #: parameters (which ones cannot be told apart).
+    unidentified: dict[str, list[Identifiability]] = field(default_factory=dict)
 
     @property
     def first_round(self) -> list[Candidate]:
@@ -240,7 +247,8 @@ def pinned(spec: EffectSpec, values: Mapping[str, float], rel: float = 1e-3) -> 
     return out
 
 
-def choose_form(tried: Sequence[Candidate], min_extra_gain: float) -> Candidate:
+def choose_form(tried: Sequence[Candidate], min_extra_gain: float,
+                identify: Callable[[Candidate], Identifiability] | None = None) -> Candidate:
     """The form of one effect to offer in a round, from its fits in each form (the simple
     form first, then the flexible ones from least to most flexible).
 
@@ -248,15 +256,28 @@ def choose_form(tried: Sequence[Candidate], min_extra_gain: float) -> Candidate:
     and earns its extra freedom on held-out data: its score (held-out misfit plus the
     penalty for its effective degrees of freedom) beats the current choice's, and it removes
     more than ``min_extra_gain`` more held-out misfit (the same margin an effect needs to be
-    significant). Otherwise the simpler form stays: a flexible form that adds nothing on
-    held-out data is not chosen. The chosen candidate lists every form tried in ``forms``.
+    significant), and ``identify`` (when given) finds every one of its extra parameters
+    determined by the data: a score margin can come from the optimiser's path or from
+    parameters that another one of the form reproduces (:mod:`tofhil.eval.identifiability`).
+    Otherwise the simpler form stays: a flexible form that adds nothing on held-out data is
+    not chosen. The chosen candidate lists every form tried in ``forms`` and the refused
+    unidentified ones in ``unidentified``.
     """
     chosen = tried[0]
+    refused: list[Identifiability] = []
+    checked: dict[str, bool] = {}
     for c in tried[1:]:
         if c.significant and c.score < chosen.score and chosen.chi2_test - c.chi2_test > min_extra_gain:
+            if identify is not None and c.n_params:
+                test = identify(c)
+                checked[c.form] = test.identified
+                if not test.identified:
+                    refused.append(test)
+                    continue
             chosen = c
     chosen.forms = {c.form: {"chi2_test": c.chi2_test, "score": c.score, "dof": c.dof, "significant": c.significant}
-                    for c in tried}
+                    | ({"identified": checked[c.form]} if c.form in checked else {}) for c in tried}
+    chosen.unidentified = refused
     return chosen
 
 
@@ -291,11 +312,15 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                           n_test=n_test, searched=max_effects > 0, channels_before=current_channels,
                           channels_after=current_channels)
     work = dict(lib)  # each chosen effect's spec is that of its chosen form
+
+    def identify(c: Candidate) -> Identifiability:
+        return assess_form(model, data, c.all_params, c.effect, lib[c.effect].variant(c.form), lib[c.effect], penalty)
     while len(active) < max_effects:
         current_k = sum(k_of(e) for e in active)
         current_score = current_chi2 + current_k * penalty
         excess = max(current_chi2 - n_test, 0.0)
         round_: list[Candidate] = []
+        tried_of: dict[str, list[Candidate]] = {}
         for name in names:
             if name in active:
                 continue
@@ -340,19 +365,31 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                 traded |= gains and bool(worse)
             if traded and name not in selection.rejected_for_channels:
                 selection.rejected_for_channels.append(name)
-            round_.append(choose_form(tried, min_relative_gain * excess))
+            tried_of[name] = tried
+            round_.append(choose_form(tried, min_relative_gain * excess, identify))
         # ties broken by name: the ranking does not depend on the library's order
         round_.sort(key=lambda c: (c.score, c.effect))
         selection.rounds.append(round_)
         chosen = next((c for c in round_ if c.significant), None)
         if chosen is None:
             break
+        # A flexible form the score rule refused is not tested in choose_form; its extra
+        # parameters may still be indistinguishable from the simple form's on this session
+        # (then the simple form holds them all): say so for the effect named.
+        for c in tried_of[chosen.effect]:
+            if c.form and c.form != chosen.form and c.n_params and "identified" not in chosen.forms[c.form]:
+                test = identify(c)
+                chosen.forms[c.form]["identified"] = test.identified
+                if any(g.confused for g in test.groups):
+                    chosen.unidentified.append(test)
         active.append(chosen.effect)
         work[chosen.effect] = lib[chosen.effect].variant(chosen.form)
         selection.forms[chosen.effect] = chosen.form
         dofs[chosen.effect] = chosen.dof
         if chosen.details:
             selection.details[chosen.effect] = chosen.details
+        if chosen.unidentified:
+            selection.unidentified[chosen.effect] = chosen.unidentified
         params = chosen.all_params
         current_chi2 = chosen.chi2_test
         before_round = current_channels
