@@ -10,6 +10,7 @@ with a second frequency they are separable.
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -73,6 +74,9 @@ def test_narrow_phases_k4_h3_and_h5_cannot_be_told_apart():
     lines = [ln for t in sel.unidentified["wiggle"] for ln in t.lines]
     assert any("h3 and h5 cannot be told apart with 4 taps" in ln for ln in lines), lines
     assert sel.rounds[0][0].forms["harmonics"]["identified"] is False
+    # what diagnosis.json carries: plain JSON, the pair named
+    tests = json.loads(json.dumps([t.to_json() for t in sel.unidentified["wiggle"]]))
+    assert tests[0]["groups"][0]["cannot_tell_from"] == "h3" and tests[0]["identified"] is False
 
 
 @pytest.mark.parametrize("model", [TapsModel(span_rad=1.5), TapsModel(span_rad=0.02, freq_ratio=(1.0, 1.6))],
