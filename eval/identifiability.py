@@ -90,6 +90,9 @@ class Identifiability:
     #: The session's taps per frequency and number of frequencies (for the message).
     n_taps: int = 0
     n_freq: int = 1
+    #: Tested again at the selection's final values (after the joint refit and any later
+    #: effects), the form having been chosen earlier.
+    after_later: bool = False
 
     @property
     def identified(self) -> bool:
@@ -112,11 +115,13 @@ class Identifiability:
                 why = (f"{g.group} changes nothing the data can tell {where} (chi2 {g.change_chi2:.1f} of its own, "
                        f"{g.unique_chi2:.1f} that the rest of the form cannot reproduce, below the "
                        f"{g.needed_chi2:.1f} its {len(g.params)} parameters cost)")
-            out.append(f"{self.effect}: form {self.form} not chosen: {why}")
+            verb = ("replaced by the simpler form at the final fit (after the joint refit and any later effects)"
+                    if self.after_later else "not chosen")
+            out.append(f"{self.effect}: form {self.form} {verb}: {why}")
         return out
 
     def to_json(self) -> dict[str, Any]:
-        return {"effect": self.effect, "form": self.form, "identified": self.identified,
+        return {"effect": self.effect, "form": self.form, "identified": self.identified, "after_later": self.after_later,
                 "groups": [g.to_json() for g in self.groups], "text": self.lines}
 
 

@@ -405,6 +405,34 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         if (joint_chi2 < current_chi2 and not worse_channels(before_round, joint_channels)
                 and not worse_channels(selection.channels_before, joint_channels)):
             params, current_chi2, current_channels = joint, joint_chi2, joint_channels
+    # A flexible form chosen in an early round may have stood in for an effect added later (in
+    # the demo the 5th and 7th harmonics took up part of a clock-skew pattern until
+    # fixed_pattern was fitted): test it again at the final values and, when its extra
+    # parameters are no longer identified, fall back to the simpler form if that keeps the
+    # held-out score and every channel.
+    for e in list(active):
+        spec = work[e]
+        if not spec.form or spec.closed_form is not None or not spec.params:
+            continue
+        test = assess_form(model, data, params, e, spec, lib[e], penalty)
+        if test.identified:
+            continue
+        test.after_later = True
+        start = {k: dict(v) for k, v in params.items()}
+        start[e] = {p.name: params[e][p.name] for p in lib[e].params if p.name in params[e]}
+        simple_work = {**work, e: lib[e]}
+        refit, _ = fit(model, data, active, start, free=[e], lib=simple_work)
+        pred = model.predict(refit)
+        chi2 = data.chi2(pred, "test")
+        channels = channel_chi2(data, pred)
+        k_others = sum(k_of(a) for a in active if a != e)
+        if (chi2 + (k_others + lib[e].k) * penalty <= current_chi2 + (k_others + k_of(e)) * penalty
+                and not worse_channels(current_channels, channels)
+                and not worse_channels(selection.channels_before, channels)):
+            work[e], dofs[e] = lib[e], lib[e].k
+            selection.forms[e] = ""
+            params, current_chi2, current_channels = refit, chi2, channels
+            selection.unidentified.setdefault(e, []).append(test)
     selection.causes = active
     selection.params = {e: params[e] for e in active}
     selection.final_chi2_test = current_chi2
