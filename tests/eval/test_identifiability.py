@@ -118,3 +118,19 @@ def test_a_tiny_extra_harmonic_is_not_identified_a_real_one_is():
 
 def test_param_group():
     assert [param_group(n) for n in ("h5_phase_rad", "spline_q1", "b4", "dn")] == ["h5", "spline", "b4", "dn"]
+
+
+def test_a_search_stopped_at_its_limit_says_so(tmp_path):
+    """Two hidden changes, one effect allowed: the verdict is partly explained and says the
+    search stopped at max_effects (the capture sweep's third hidden effect was never reached)."""
+    from tests.eval import hidden_forms as hf
+    from tests.eval import hidden_scalar_forms as hs
+    from tofhil.eval.diagnose import diagnose
+
+    rng = np.random.default_rng(21)
+    beam, harmonic = hs.cos_beam(rng), hs.odd_harmonics(rng, orders=(3,))
+    scene = hf.small_dark_square(40)
+    path = hf.write_session(scene, tmp_path / "two.h5", lambda s, sen: harmonic(beam(s, sen), sen), seed=21)
+    res = diagnose(path, scene, max_effects=1)
+    assert len(res.causes) == 1 and res.verdict.kind == "partly explained", (res.causes, res.verdict)
+    assert any("stopped at max_effects = 1" in n for n in res.verdict.notes), res.verdict.notes
