@@ -14,7 +14,10 @@ channel for another is not a gain. ``k`` is an effect's effective number of degr
 (``EffectSpec.dof``; its parameter count unless a regularised flexible form says less).
 An effect with a ``closed_form`` fit (a map: many values, linear in the residual) is fitted
 by it instead of the optimiser, and its ``k`` is the effective degrees of freedom that fit
-reports (the trace of its hat matrix). Nothing here knows what an effect does.
+reports (the trace of its hat matrix). A flexible form of an effect is chosen over its simple
+form only when it earns its freedom on held-out data and the data identify its extra
+parameters (:mod:`tofhil.eval.identifiability`); chosen forms are tested again at the final
+values. Nothing here knows what an effect does.
 """
 
 from __future__ import annotations
