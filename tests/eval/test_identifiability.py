@@ -98,6 +98,36 @@ def test_hidden_h3_alone_is_the_simple_form():
     assert sel.forms == {"wiggle": ""} and not sel.unidentified
 
 
+class TapsAndSkew(TapsModel):
+    """TapsModel plus a second effect: a phase ramp across the columns (a clock skew)."""
+
+    def library(self) -> dict[str, EffectSpec]:
+        return super().library() | {"skew": EffectSpec((FitParam("slope_rad", 0.0, -1.0, 1.0, 0.01),))}
+
+    def predict(self, active: EffectParams) -> np.ndarray:
+        ramp = active.get("skew", {}).get("slope_rad", 0.0) * (np.arange(W) / W - 0.5)
+        phi, self.phi = self.phi, self.phi + ramp
+        try:
+            return super().predict(active)
+        finally:
+            self.phi = phi
+
+
+def test_a_form_that_stood_in_for_a_later_effect_falls_back():
+    """The demo's case: in round 1 the 5th harmonic takes up part of a column skew, so the
+    harmonics form wins; once the skew is fitted in round 2 the 5th harmonic is not identified
+    any more and the final pass returns wiggling to its simple form, both effects named."""
+    model = TapsAndSkew(span_rad=1.5)
+    truth = {"wiggle": {"h3_amplitude": 0.05, "h3_phase_rad": 0.7}, "skew": {"slope_rad": 0.1}}
+    sel = greedy_select(model, heldout_from_signal(model.predict(truth), SIGMA, 3), max_effects=2)
+    assert sel.rounds[0][0].effect == "wiggle" and sel.rounds[0][0].form == "harmonics"
+    assert sel.causes == ["wiggle", "skew"] and sel.forms == {"wiggle": "", "skew": ""}
+    lines = [ln for t in sel.unidentified["wiggle"] for ln in t.lines]
+    assert any("replaced by the simpler form at the final fit" in ln for ln in lines), lines
+    assert set(sel.params["wiggle"]) == {"h3_amplitude", "h3_phase_rad"}
+    assert abs(sel.params["wiggle"]["h3_amplitude"] - 0.05) < 0.005 and abs(sel.params["skew"]["slope_rad"] - 0.1) < 0.01
+
+
 def test_a_tiny_extra_harmonic_is_not_identified_a_real_one_is():
     """The demo's case: a flexible fit with h5 at 0.001 beside h3 has nothing the data can
     tell in h5 (its change is below the price of its two parameters); the true h5 is."""
