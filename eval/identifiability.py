@@ -93,6 +93,8 @@ class Identifiability:
     #: Tested again at the selection's final values (after the joint refit and any later
     #: effects), the form having been chosen earlier.
     after_later: bool = False
+    #: Kept although not identified: the simpler form refitted was worse on held-out data.
+    kept: bool = False
 
     @property
     def identified(self) -> bool:
@@ -115,13 +117,16 @@ class Identifiability:
                 why = (f"{g.group} changes nothing the data can tell {where} (chi2 {g.change_chi2:.1f} of its own, "
                        f"{g.unique_chi2:.1f} that the rest of the form cannot reproduce, below the "
                        f"{g.needed_chi2:.1f} its {len(g.params)} parameters cost)")
-            verb = ("replaced by the simpler form at the final fit (after the joint refit and any later effects)"
+            verb = ("kept although not identified at the final fit (the simpler form refitted is worse on "
+                    "held-out data)" if self.kept else
+                    "replaced by the simpler form at the final fit (after the joint refit and any later effects)"
                     if self.after_later else "not chosen")
             out.append(f"{self.effect}: form {self.form} {verb}: {why}")
         return out
 
     def to_json(self) -> dict[str, Any]:
         return {"effect": self.effect, "form": self.form, "identified": self.identified, "after_later": self.after_later,
+                "kept": self.kept,
                 "groups": [g.to_json() for g in self.groups], "text": self.lines}
 
 

@@ -435,7 +435,9 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
             work[e], dofs[e] = lib[e], lib[e].k
             selection.forms[e] = ""
             params, current_chi2, current_channels = refit, chi2, channels
-            selection.unidentified.setdefault(e, []).append(test)
+        else:
+            test.kept = True  # the simpler form is worse on held-out data: said, not hidden
+        selection.unidentified.setdefault(e, []).append(test)
     selection.causes = active
     selection.params = {e: params[e] for e in active}
     selection.final_chi2_test = current_chi2
