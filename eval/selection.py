@@ -14,7 +14,10 @@ channel for another is not a gain. ``k`` is an effect's effective number of degr
 (``EffectSpec.dof``; its parameter count unless a regularised flexible form says less).
 An effect with a ``closed_form`` fit (a map: many values, linear in the residual) is fitted
 by it instead of the optimiser, and its ``k`` is the effective degrees of freedom that fit
-reports (the trace of its hat matrix). Nothing here knows what an effect does.
+reports (the trace of its hat matrix). A flexible form of an effect is chosen over its simple
+form only when it earns its freedom on held-out data and the data identify its extra
+parameters (:mod:`tofhil.eval.identifiability`); chosen forms are tested again at the final
+values. Nothing here knows what an effect does.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from tofhil.eval.heldout import HUBER_SIGMA, HeldOutData, huber
+from tofhil.eval.identifiability import Identifiability, assess_form
 from tofhil.eval.verdict import ChannelGain, EffectSize, channel_chi2, worse_channels
 
 EffectParams = dict[str, dict[str, float]]
@@ -115,6 +119,9 @@ class Candidate:
     #: False when its gain, though significant in misfit, is too small to name or makes a
     #: channel's RMSE worse (against the current model or the base twin).
     worth_naming: bool = True
+    #: Flexible forms that beat the chosen one on score but whose extra parameters the data
+    #: do not identify (:mod:`tofhil.eval.identifiability`): why each was not chosen.
+    unidentified: list[Identifiability] = field(default_factory=list)
 
 
 @dataclass
@@ -141,6 +148,9 @@ class Selection:
     #: Effects whose misfit gain was significant but whose RMSE gain was too small to name
     #: (or made a channel's RMSE worse), with their figures.
     too_small: dict[str, str] = field(default_factory=dict)
+    #: Per cause, the flexible forms refused because the data do not identify their extra
+    #: parameters (which ones cannot be told apart).
+    unidentified: dict[str, list[Identifiability]] = field(default_factory=dict)
 
     @property
     def first_round(self) -> list[Candidate]:
@@ -249,7 +259,8 @@ def pinned(spec: EffectSpec, values: Mapping[str, float], rel: float = 1e-3) -> 
     return out
 
 
-def choose_form(tried: Sequence[Candidate], min_extra_gain: float) -> Candidate:
+def choose_form(tried: Sequence[Candidate], min_extra_gain: float,
+                identify: Callable[[Candidate], Identifiability] | None = None) -> Candidate:
     """The form of one effect to offer in a round, from its fits in each form (the simple
     form first, then the flexible ones from least to most flexible).
 
@@ -257,15 +268,28 @@ def choose_form(tried: Sequence[Candidate], min_extra_gain: float) -> Candidate:
     and earns its extra freedom on held-out data: its score (held-out misfit plus the
     penalty for its effective degrees of freedom) beats the current choice's, and it removes
     more than ``min_extra_gain`` more held-out misfit (the same margin an effect needs to be
-    significant). Otherwise the simpler form stays: a flexible form that adds nothing on
-    held-out data is not chosen. The chosen candidate lists every form tried in ``forms``.
+    significant), and ``identify`` (when given) finds every one of its extra parameters
+    determined by the data: a score margin can come from the optimiser's path or from
+    parameters that another one of the form reproduces (:mod:`tofhil.eval.identifiability`).
+    Otherwise the simpler form stays: a flexible form that adds nothing on held-out data is
+    not chosen. The chosen candidate lists every form tried in ``forms`` and the refused
+    unidentified ones in ``unidentified``.
     """
     chosen = tried[0]
+    refused: list[Identifiability] = []
+    checked: dict[str, bool] = {}
     for c in tried[1:]:
         if c.significant and c.score < chosen.score and chosen.chi2_test - c.chi2_test > min_extra_gain:
+            if identify is not None and c.n_params:
+                test = identify(c)
+                checked[c.form] = test.identified
+                if not test.identified:
+                    refused.append(test)
+                    continue
             chosen = c
     chosen.forms = {c.form: {"chi2_test": c.chi2_test, "score": c.score, "dof": c.dof, "significant": c.significant}
-                    for c in tried}
+                    | ({"identified": checked[c.form]} if c.form in checked else {}) for c in tried}
+    chosen.unidentified = refused
     return chosen
 
 
@@ -306,11 +330,15 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                           n_test=n_test, searched=max_effects > 0, channels_before=current_channels,
                           channels_after=current_channels)
     work = dict(lib)  # each chosen effect's spec is that of its chosen form
+
+    def identify(c: Candidate) -> Identifiability:
+        return assess_form(model, data, c.all_params, c.effect, lib[c.effect].variant(c.form), lib[c.effect], penalty)
     while len(active) < max_effects:
         current_k = sum(k_of(e) for e in active)
         current_score = current_chi2 + current_k * penalty
         excess = max(current_chi2 - n_test, 0.0)
         round_: list[Candidate] = []
+        tried_of: dict[str, list[Candidate]] = {}
         for name in names:
             if name in active:
                 continue
@@ -362,7 +390,8 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                 traded |= gains and bool(worse)
             if traded and name not in selection.rejected_for_channels:
                 selection.rejected_for_channels.append(name)
-            best_form = choose_form(tried, min_relative_gain * excess)
+            tried_of[name] = tried
+            best_form = choose_form(tried, min_relative_gain * excess, identify)
             small = [c for c in tried if not c.worth_naming]
             if small and not best_form.significant and name not in selection.too_small:
                 c = min(small, key=lambda c: c.score)
@@ -375,12 +404,23 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         chosen = next((c for c in round_ if c.significant), None)
         if chosen is None:
             break
+        # A flexible form the score rule refused is not tested in choose_form; its extra
+        # parameters may still be indistinguishable from the simple form's on this session
+        # (then the simple form holds them all): say so for the effect named.
+        for c in tried_of[chosen.effect]:
+            if c.form and c.form != chosen.form and c.n_params and "identified" not in chosen.forms[c.form]:
+                test = identify(c)
+                chosen.forms[c.form]["identified"] = test.identified
+                if any(g.confused for g in test.groups):
+                    chosen.unidentified.append(test)
         active.append(chosen.effect)
         work[chosen.effect] = lib[chosen.effect].variant(chosen.form)
         selection.forms[chosen.effect] = chosen.form
         dofs[chosen.effect] = chosen.dof
         if chosen.details:
             selection.details[chosen.effect] = chosen.details
+        if chosen.unidentified:
+            selection.unidentified[chosen.effect] = chosen.unidentified
         params = chosen.all_params
         current_chi2 = chosen.chi2_test
         before_round = current_channels
@@ -403,6 +443,36 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         if (joint_chi2 < current_chi2 and joint_ok and not worse_channels(before_round, joint_channels)
                 and not worse_channels(selection.channels_before, joint_channels)):
             params, current_chi2, current_channels, current_pred = joint, joint_chi2, joint_channels, joint_pred
+    # A flexible form chosen in an early round may have stood in for an effect added later (in
+    # the demo the 5th and 7th harmonics took up part of a clock-skew pattern until
+    # fixed_pattern was fitted): test it again at the final values and, when its extra
+    # parameters are no longer identified, fall back to the simpler form if that keeps the
+    # held-out score and every channel.
+    for e in list(active):
+        spec = work[e]
+        if not spec.form or spec.closed_form is not None or not spec.params:
+            continue
+        test = assess_form(model, data, params, e, spec, lib[e], penalty)
+        if test.identified:
+            continue
+        test.after_later = True
+        start = {k: dict(v) for k, v in params.items()}
+        start[e] = {p.name: params[e][p.name] for p in lib[e].params if p.name in params[e]}
+        simple_work = {**work, e: lib[e]}
+        refit, _ = fit(model, data, active, start, free=[e], lib=simple_work)
+        pred = model.predict(refit)
+        chi2 = data.chi2(pred, "test")
+        channels = channel_chi2(data, pred)
+        k_others = sum(k_of(a) for a in active if a != e)
+        if (chi2 + (k_others + lib[e].k) * penalty <= current_chi2 + (k_others + k_of(e)) * penalty
+                and not worse_channels(current_channels, channels)
+                and not worse_channels(selection.channels_before, channels)):
+            work[e], dofs[e] = lib[e], lib[e].k
+            selection.forms[e] = ""
+            params, current_chi2, current_channels, current_pred = refit, chi2, channels, pred
+        else:
+            test.kept = True  # the simpler form is worse on held-out data: said, not hidden
+        selection.unidentified.setdefault(e, []).append(test)
     selection.causes = active
     selection.params = {e: params[e] for e in active}
     selection.final_chi2_test = current_chi2

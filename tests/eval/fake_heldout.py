@@ -10,8 +10,10 @@ from tofhil.camera import CameraModel
 from tofhil.eval.heldout import HeldOutData
 
 
-def heldout_from_signal(s_true: np.ndarray, sigma: float, seed: int = 0) -> HeldOutData:
-    """``s_true`` ``[1, H, W]`` plus complex Gaussian noise of ``sigma`` per component."""
+def heldout_from_signal(s_true: np.ndarray, sigma: float, seed: int = 0,
+                        freq_hz: tuple[float, ...] = (20e6,)) -> HeldOutData:
+    """``s_true`` ``[F, H, W]`` (one plane per frequency of ``freq_hz``) plus complex Gaussian
+    noise of ``sigma`` per component."""
     rng = np.random.default_rng(seed)
     noisy = [s_true + sigma * (rng.standard_normal(s_true.shape) + 1j * rng.standard_normal(s_true.shape))
              for _ in range(2)]
@@ -19,7 +21,7 @@ def heldout_from_signal(s_true: np.ndarray, sigma: float, seed: int = 0) -> Held
     v, u = np.mgrid[0:h, 0:w]
     train = ((v // 4 + u // 4) % 2) == 0
     var = np.full(s_true.shape, sigma ** 2)
-    return HeldOutData(camera=CameraModel(w, h, 20.0, 20.0, w / 2, h / 2), freq_hz=np.array([20e6]),
+    return HeldOutData(camera=CameraModel(w, h, 20.0, 20.0, w / 2, h / 2), freq_hz=np.asarray(freq_hz, dtype=float),
                        theta_rad=np.arange(4) * np.pi / 2, integration_time_s=1e-3, s_train=noisy[0],
                        s_test=noisy[1], var_train=var, var_test=var, usable=np.ones((h, w), bool),
                        train_pixels=train, test_pixels=~train, n_train_frames=1, n_test_frames=1)
