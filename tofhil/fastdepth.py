@@ -26,7 +26,7 @@ _TWO_PI = np.float32(2 * math.pi)
 _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
-@njit(inline="always", fastmath=_FASTMATH)
+@njit(inline="always", fastmath=_FASTMATH, error_model="numpy")
 def _phase(y: float, x: float) -> float:
     """atan2(y, x) mapped into [0, 2 pi).
 
@@ -51,7 +51,7 @@ def _phase(y: float, x: float) -> float:
 _BLOCK = 1024
 
 
-@njit(fastmath=_FASTMATH, cache=True)
+@njit(fastmath=_FASTMATH, error_model="numpy", cache=True)
 def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out_conf, out_valid):  # pragma: no cover
     """taps [F, K, N] float32 -> distance, mean amplitude, mean tap (intensity), conflict
     (uint8) and validity (uint8: no conflict, no bad tap -- a tap not inside the open
@@ -192,7 +192,7 @@ def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out
 _UNROLL3 = 8
 
 
-@njit(fastmath=_FASTMATH, cache=True, inline="always")
+@njit(fastmath=_FASTMATH, error_model="numpy", cache=True, inline="always")
 def _candidate(cnt, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, i2):  # pragma: no cover
     """Wrap count ``cnt`` of the reference frequency, the others' counts by rounding: the three
     unwrapped distances and their weighted variance (times the weight sum)."""
@@ -207,7 +207,7 @@ def _candidate(cnt, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, 
     return cost, u0, u1, u2
 
 
-@njit(fastmath=_FASTMATH, cache=True, inline="always")
+@njit(fastmath=_FASTMATH, error_model="numpy", cache=True, inline="always")
 def _search3(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf):  # pragma: no cover
     """Three frequencies: every wrap count of the reference (lowest) frequency, the others'
     counts by rounding; the candidate with the least weighted variance (as
