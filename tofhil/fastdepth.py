@@ -214,14 +214,24 @@ def _search3(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf):  # pragma: no co
     :func:`tofhil.unwrap._search`; the first of equal ones), then the weighted mean wrapped
     into the range. Up to :data:`_UNROLL3` counts the candidate loop has a constant trip
     count (counts past the plan's cost nothing: they are never taken), so the compiler
-    unrolls it and vectorises the pixel loop."""
+    unrolls it and vectorises the pixel loop; the choice between the two trip counts is made
+    once, outside the pixel loop (inside it, it kept the loop scalar)."""
+    if int(c[13]) <= _UNROLL3:
+        _search3_pixels(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf, _UNROLL3)
+    else:
+        _search3_pixels(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf, int(c[13]))
+
+
+@njit(fastmath=_FASTMATH, error_model="numpy", cache=True, inline="always")
+def _search3_pixels(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf, trips):  # pragma: no cover
+    """The pixel loop of :func:`_search3`, ``trips`` wrap counts per pixel (of which the
+    plan's ``c[13]`` are candidates)."""
     inv_two_pi = np.float32(1.0 / (2.0 * math.pi))
     ref = int(c[12])
     ncount = int(c[13])
     r0, r1, r2 = r[0], r[1], r[2]
     i0, i1, i2 = np.float32(1.0) / r0, np.float32(1.0) / r1, np.float32(1.0) / r2
     rref = r0 if ref == 0 else (r1 if ref == 1 else r2)
-    unrolled = ncount <= _UNROLL3
     # Every constant in a register (see the two-frequency loop), and the fit weights too.
     rng_, inv_rng = c[8], c[9]
     s01, s02, s12 = spacing[0, 1], spacing[0, 2], spacing[1, 2]
@@ -237,22 +247,13 @@ def _search3(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf):  # pragma: no co
         ks = np.float32(1.0) / (k0 + k1 + k2)
         wref = w0 if ref == 0 else (w1 if ref == 1 else w2)
         best, b0, b1, b2 = _candidate(0, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, i2)
-        if unrolled:
-            for cnt in range(1, _UNROLL3):
-                cost, u0, u1, u2 = _candidate(cnt, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, i2)
-                better = (cost < best) & (cnt < ncount)
-                best = cost if better else best
-                b0 = u0 if better else b0
-                b1 = u1 if better else b1
-                b2 = u2 if better else b2
-        else:
-            for cnt in range(1, ncount):
-                cost, u0, u1, u2 = _candidate(cnt, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, i2)
-                better = cost < best
-                best = cost if better else best
-                b0 = u0 if better else b0
-                b1 = u1 if better else b1
-                b2 = u2 if better else b2
+        for cnt in range(1, trips):
+            cost, u0, u1, u2 = _candidate(cnt, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, i2)
+            better = (cost < best) & (cnt < ncount)
+            best = cost if better else best
+            b0 = u0 if better else b0
+            b1 = u1 if better else b1
+            b2 = u2 if better else b2
         d = (k0 * b0 + k1 * b1 + k2 * b2) * ks
         d = d - np.floor(d * inv_rng) * rng_
         o_d[j] = min(d, rng_)
