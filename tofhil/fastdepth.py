@@ -216,7 +216,9 @@ def _search3(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf):  # pragma: no co
     count (counts past the plan's cost nothing: they are never taken), so the compiler
     unrolls it and vectorises the pixel loop; the choice between the two trip counts is made
     once, outside the pixel loop (inside it, it kept the loop scalar)."""
-    if int(c[13]) <= _UNROLL3:
+    if int(c[13]) <= 4:                     # 80/100/120 MHz: no work on counts past the plan's
+        _search3_pixels(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf, 4)
+    elif int(c[13]) <= _UNROLL3:
         _search3_pixels(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf, _UNROLL3)
     else:
         _search3_pixels(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf, int(c[13]))
