@@ -322,3 +322,18 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
             dx, dy, dz = ndx, ndy, ndz
             path_in = path
     return rays
+
+
+@njit(nogil=True, cache=True)
+def rotate_rows(v, R, out):  # pragma: no cover
+    """``out = v @ R.T`` for [N, 3] rows, in the numpy expression's order
+    ``(v0 R[k, 0] + v1 R[k, 1]) + v2 R[k, 2]`` (no fused multiply-add: bit-identical to it),
+    without its five [N, 3] temporaries."""
+    r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
+    r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
+    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
+    for i in range(v.shape[0]):
+        a, b, c = v[i, 0], v[i, 1], v[i, 2]
+        out[i, 0] = a * r00 + b * r01 + c * r02
+        out[i, 1] = a * r10 + b * r11 + c * r12
+        out[i, 2] = a * r20 + b * r21 + c * r22

@@ -397,7 +397,7 @@ class _Context:
                     o_full[idx] = obj
                     out["radial"], out["object_id"] = t_full[::spp], o_full[::spp]
                 else:
-                    hc = geom.intersect(self.t, _rotate(self.centre_rays[p0:p1], self.R))
+                    hc = geom.intersect(self.t, self.centre_world[p0:p1])
                     rays += npix
                     out["radial"] = hc.full(hc.t, np.inf)
                     out["object_id"] = hc.full(geom.tri_object[hc.prim], -1).astype(np.int32)
@@ -477,7 +477,7 @@ class _Context:
         elif not self.subpixel and not self.thin_lens:
             out["radial"], out["object_id"] = first_t[::self.spp], first_obj[::self.spp]
         else:
-            hc = geom.intersect(self.t, _rotate(self.centre_rays[p0:p1], self.R))
+            hc = geom.intersect(self.t, self.centre_world[p0:p1])
             rays += npix
             out["radial"] = hc.full(hc.t, np.inf)
             out["object_id"] = hc.full(geom.tri_object[hc.prim], -1).astype(np.int32)
@@ -507,7 +507,9 @@ def _rotate(v: np.ndarray, R: np.ndarray) -> np.ndarray:
     """``v @ R.T`` for [N, 3] rows without BLAS (tiny inner dimension; avoids BLAS threads)."""
     if np.array_equal(R, np.eye(3)):
         return v
-    return v[:, 0:1] * R[:, 0] + v[:, 1:2] * R[:, 1] + v[:, 2:3] * R[:, 2]
+    out = np.empty((len(v), 3))
+    kernels.rotate_rows(np.ascontiguousarray(v, dtype=np.float64), np.ascontiguousarray(R, dtype=np.float64), out)
+    return out
 
 
 def _transient_edges(scene: Scene, geom: Geometry, bins: int | Sequence[float], bounces: int,

@@ -211,3 +211,17 @@ def test_fused_loop_takes_tabulated_beams_like_the_wavefront_loop(monkeypatch: p
         np.testing.assert_allclose(x, y, rtol=0, atol=1e-12 * scale)
     np.testing.assert_allclose(a.power_w, b.power_w, rtol=1e-12, atol=1e-15 * a.power_w.max())
     assert a.rays_traced == b.rays_traced
+
+
+def test_rotation_of_ray_rows_is_the_numpy_expression() -> None:
+    """The compiled row rotation (every subpixel ray of a posed camera) is bit-identical to
+    ``v @ R.T`` written as the numpy expression it replaced, and it is a rotation."""
+    from tofhil.sim.render import _rotate
+
+    c, s = math.cos(0.3), math.sin(0.3)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    v = np.random.default_rng(0).normal(size=(500, 3))
+    out = _rotate(v, R)
+    np.testing.assert_array_equal(out, v[:, 0:1] * R[:, 0] + v[:, 1:2] * R[:, 1] + v[:, 2:3] * R[:, 2])
+    np.testing.assert_allclose(np.linalg.norm(out, axis=1), np.linalg.norm(v, axis=1), rtol=1e-14)
+    np.testing.assert_allclose(out, v @ R.T, rtol=0, atol=1e-14)
