@@ -106,6 +106,22 @@ def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out
                           & (x2 > lo) & (x2 < hi) & (x3 > lo) & (x3 < hi))
                     G[j] &= np.uint8(1) if ok else np.uint8(0)
                 continue
+            if k == 3:
+                # Three taps (odd K: no differences) likewise in one loop per pixel.
+                t0 = taps[f, 0, b0:b0 + m]
+                t1 = taps[f, 1, b0:b0 + m]
+                t2 = taps[f, 2, b0:b0 + m]
+                w0r, w1r, w2r, w0i, w1i, w2i = wr[0], wr[1], wr[2], wi[0], wi[1], wi[2]
+                for j in range(m):
+                    x0, x1, x2 = t0[j], t1[j], t2[j]
+                    i_ = w0r * x0 + w1r * x1 + w2r * x2
+                    q_ = w0i * x0 + w1i * x1 + w2i * x2
+                    fa[j] = math.sqrt(i_ * i_ + q_ * q_)
+                    fp[j] = _phase(q_, i_)
+                    S[j] += x0 + x1 + x2
+                    ok = (x0 > lo) & (x0 < hi) & (x1 > lo) & (x1 < hi) & (x2 > lo) & (x2 < hi)
+                    G[j] &= np.uint8(1) if ok else np.uint8(0)
+                continue
             fi = bi[f]
             fq = bq[f]
             fi[:m] = 0.0
