@@ -8,7 +8,9 @@ cache. The phase uses a branch-free arctangent polynomial (|error| < 1e-7 rad, a
 rounding) that the compiler vectorises; the results agree with the numpy path of
 :func:`tofhil.depth.depth_from_raw` to that level (tested). The same pass flags pixels with a
 saturated or non-finite tap (:func:`tofhil.demod.bad_tap_pixels`), so the kernels are
-compiled without the no-NaN/no-inf fast-math assumptions (a NaN tap must be seen as one).
+compiled without the no-NaN/no-inf fast-math assumptions (a NaN tap must be seen as one),
+and with numpy's error model: numba's default checks every float division for a zero divisor
+(a branch that raises), and that branch alone kept each pixel loop with a division scalar.
 """
 from __future__ import annotations
 
