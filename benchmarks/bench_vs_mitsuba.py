@@ -19,8 +19,10 @@ Printed:
       the difference, the RMS predicted noise and their ratio (1 = agreement within noise),
       the mean difference in standard errors (a bias test over all pixels) and the
       correlation of the two depth-error maps; plus each renderer's direct-only error.
-  (2) issue 16 groundwork: Mitsuba through a glass slab over the lens against the closed-form
-      extra optical path (benchmarks/glass_slab.py; tofhil has no refraction yet).
+  (2) issue 16: Mitsuba and tofhil through a glass slab over the lens against the closed-form
+      extra optical path (benchmarks/glass_slab.py).
+  (4) issue 16: a scattering cube (homogeneous medium, HG phase function) before a wall, as in
+      (1): per-pixel depth difference against both renderers' Monte Carlo noise.
   (3) CPU time (process CPU seconds, all threads) to 1 mm RMS depth error against the
       converged image, for tofhil (its default Sobol sampler) and for Mitsuba's samplers
       (independent = its default, multijitter, ...). The error of one render of N samples
@@ -160,7 +162,8 @@ def load_mitsuba():
 
 class Mitsuba:
     def __init__(self, mi, scene: Scene, bounces: int, sampler: str, workdir: Path,
-                 extra_shapes: dict | None = None, max_depth: int | None = None) -> None:
+                 extra_shapes: dict | None = None, max_depth: int | None = None,
+                 integrator: str = "transient_path") -> None:
         from tofhil.sim.geometry import object_mesh
 
         self.mi, self.sampler = mi, sampler
@@ -177,6 +180,9 @@ class Mitsuba:
         fov_x = math.degrees(2 * math.atan((W / 2) / cam.fx))
         shapes = {}
         for i, obj in enumerate(scene.objects):
+            if scene.materials[obj.material].ior is not None:
+                shapes[f"shape{i}"] = mitsuba_box(mi, obj, scene.materials[obj.material])
+                continue
             v, f, _ = object_mesh(obj)
             v = v @ obj.pose[:3, :3].T + obj.pose[:3, 3]
             path = workdir / f"{scene.name}_{i}.ply"
@@ -198,7 +204,7 @@ class Mitsuba:
                                                                   up=_any_perpendicular(axis).tolist())}
         self.scene = mi.load_dict({
             "type": "scene",
-            "integrator": {"type": "transient_path", "max_depth": max_depth or bounces + 2, "rr_depth": 1000,
+            "integrator": {"type": integrator, "max_depth": max_depth or bounces + 2, "rr_depth": 1000,
                            "camera_unwarp": False},
             "sensor": {"type": "perspective", "fov": fov_x, "fov_axis": "x", "to_world": to_world,
                        # Mitsuba starts camera rays on the near-clip plane and mitransient
@@ -230,6 +236,23 @@ class Mitsuba:
         ph, cpu = cpu_timed(go)
         # [H, W, n_freq, 2] (re, im) of exp(-i 2 pi nu L): conjugate to tofhil's sign.
         return Pass(ph[:, :, self.index, 0] - 1j * ph[:, :, self.index, 1], cpu)
+
+
+def mitsuba_box(mi, obj, mat) -> dict:
+    """A tofhil glass or medium box as a Mitsuba cube: ``dielectric`` (glass), or a ``null``
+    boundary around a ``homogeneous`` medium (index-matched, HG phase function)."""
+    half = np.asarray(obj.params["size"], dtype=np.float64) / 2
+    M = obj.pose @ np.diag([half[0], half[1], half[2], 1.0])
+    shape = {"type": "cube", "to_world": mi.ScalarTransform4f(M.tolist())}
+    if mat.scattering_per_m > 0 or mat.ior == 1.0:
+        sig_t = mat.scattering_per_m + mat.absorption_per_m
+        shape["bsdf"] = {"type": "null"}
+        shape["interior"] = {"type": "homogeneous", "sigma_t": sig_t,
+                             "albedo": mat.scattering_per_m / sig_t if sig_t > 0 else 0.0,
+                             "phase": {"type": "hg", "g": mat.anisotropy}}
+    else:
+        shape["bsdf"] = {"type": "dielectric", "int_ior": mat.ior, "ext_ior": 1.0}
+    return shape
 
 
 def _any_perpendicular(a: np.ndarray) -> np.ndarray:
@@ -379,8 +402,8 @@ def time_to_1mm(r, spps: list[int]) -> dict:
 
 
 def glass_slab_check(mi, work: Path, spp: int) -> dict:
-    """Issue 16 groundwork: Mitsuba through a cover glass against the closed form (no tofhil
-    refraction yet). The slab adds 2 specular interfaces: max_depth 2 + 2 (direct light)."""
+    """Issue 16: Mitsuba and tofhil through a cover glass against the closed form. The slab
+    adds 2 specular interfaces: Mitsuba max_depth 2 + 2 (direct light)."""
     from glass_slab import GlassSlab, mitsuba_slab_shape, opl_through_slab, opl_without_slab, tofhil_scene_without_slab
 
     from tofhil.sim.scene import scene_from_dict
@@ -416,6 +439,41 @@ def glass_slab_check(mi, work: Path, spp: int) -> dict:
            "spawn_loss_mm": 1e3 * float(np.mean(spawn_loss)),
            "diff_corrected_mean_mm": 1e3 * float(np.mean(extra_ms - extra_cf + spawn_loss)),
            "diff_corrected_rms_mm": 1e3 * float(np.sqrt(np.mean((extra_ms - extra_cf + spawn_loss) ** 2)))}
+    # tofhil's refraction (issue 16) on the same scene: its emitter beam is the compiled
+    # loop's cos^n (flat ahead, cos^0); the emitter is beside the glass, its power does not
+    # enter the depth.
+    d = tofhil_scene_without_slab(slab, freq_hz=FREQ_HZ)
+    d["emitter"]["profile"] = HEMISPHERE
+    plain_t = Tofhil(scene_from_dict(d), 0, 2)
+    d["materials"]["glass"] = {"ior": slab.n}
+    d["objects"].append({"name": "cover", "type": "box", "material": "glass",
+                         "size": [2 * slab.half_width_m, 2 * slab.half_width_m, slab.t_m],
+                         "pose": {"position": [0.0, 0.0, slab.z0_m + slab.t_m / 2]}})
+    glass_t = Tofhil(scene_from_dict(d), 0, 2)
+    extra_t = depth_m(glass_t.render(spp, seed=3).phasor) - depth_m(plain_t.render(spp, seed=3).phasor)
+    corrected = extra_ms + spawn_loss
+    # Mitsuba with four more events (max_depth 8): the cover's internal echo on the camera
+    # leg, and the target's light that the cover reflects onto the target again, off its back
+    # face (2 events) and off its front face from inside (4 events: in, reflect, out, target);
+    # tofhil with one bounce has all of them (its splitting follows the echo; the bounce off
+    # the target meets the cover and its reflected branches return). Mitsuba picks reflection
+    # or refraction at random, so its 4 % branches are noisy: 8x the samples, the image mean.
+    ms6 = Mitsuba(mi, scene, 0, "independent", work,
+                  extra_shapes={"slab": mitsuba_slab_shape(slab, scene.camera_pose)}, max_depth=8)
+    plain6 = Mitsuba(mi, scene, 0, "independent", work, max_depth=8)
+    extra6_ms = depth_m(ms6.render(8 * spp, seed=5).phasor) - depth_m(plain6.render(8 * spp, seed=5).phasor) + spawn_loss
+    glass_t1, plain_t1 = Tofhil(glass_t.scene, 1, 2), Tofhil(plain_t.scene, 1, 2)
+    extra6_t = depth_m(glass_t1.render(spp, seed=5).phasor) - depth_m(plain_t1.render(spp, seed=5).phasor)
+    out.update(echo_tofhil_centre_mm=1e3 * float(extra_t[c] - extra_cf[c]),
+               b1_mitsuba_mean_mm=1e3 * float(np.mean(extra6_ms - extra_cf)),
+               b1_tofhil_mean_mm=1e3 * float(np.mean(extra6_t - extra_cf)),
+               b1_diff_mean_mm=1e3 * float(np.mean(extra6_t - extra6_ms)),
+               b1_diff_rms_mm=1e3 * float(np.sqrt(np.mean((extra6_t - extra6_ms) ** 2))))
+    out.update(tofhil_centre_mm=1e3 * float(extra_t[c]),
+               tofhil_vs_closed_rms_mm=1e3 * float(np.sqrt(np.mean((extra_t - extra_cf) ** 2))),
+               tofhil_vs_closed_max_mm=1e3 * float(np.abs(extra_t - extra_cf).max()),
+               tofhil_vs_mitsuba_rms_mm=1e3 * float(np.sqrt(np.mean((extra_t - corrected) ** 2))),
+               tofhil_vs_mitsuba_mean_mm=1e3 * float(np.mean(extra_t - corrected)))
     print(f"(2) glass slab (n {slab.n}, t {slab.t_m * 1e3:.0f} mm over the lens, emitter beside it), Mitsuba "
           f"{spp} spp: the slab makes the centre pixel read {out['extra_centre_mitsuba_mm']:.3f} mm farther, "
           f"closed form {out['extra_centre_closed_mm']:.3f} mm ((n-1)t/2 = {(slab.n - 1) * slab.t_m / 2 * 1e3:.3f} "
@@ -423,6 +481,51 @@ def glass_slab_check(mi, work: Path, spp: int) -> dict:
           f"{out['extra_range_mm'][1]:.3f} mm and Mitsuba's differs from it by {out['diff_rms_mm']:.4f} mm RMS "
           f"(mean {out['diff_mean_mm']:+.4f} mm); Mitsuba's ray-spawn offset predicts -{out['spawn_loss_mm']:.4f} mm: "
           f"corrected for it, {out['diff_corrected_rms_mm']:.4f} mm RMS (mean {out['diff_corrected_mean_mm']:+.4f} mm)")
+    print(f"    tofhil ({spp} spp, refraction): centre pixel {out['tofhil_centre_mm']:.4f} mm farther; against the "
+          f"closed form {out['tofhil_vs_closed_rms_mm']:.4f} mm RMS (max {out['tofhil_vs_closed_max_mm']:.4f}); "
+          f"against Mitsuba (corrected) {out['tofhil_vs_mitsuba_rms_mm']:.4f} mm RMS "
+          f"(mean {out['tofhil_vs_mitsuba_mean_mm']:+.4f} mm)")
+    print(f"    with the cover's echo and its reflections of the target (tofhil 1 bounce, {spp} spp; Mitsuba max_depth 8, "
+          f"{8 * spp} spp): beyond the closed form, image mean {out['b1_tofhil_mean_mm']:+.4f} mm (tofhil) and "
+          f"{out['b1_mitsuba_mean_mm']:+.4f} mm (Mitsuba, corrected); tofhil - Mitsuba {out['b1_diff_mean_mm']:+.4f} mm "
+          f"(per pixel {out['b1_diff_rms_mm']:.4f} mm RMS); the echo alone moves tofhil's centre pixel "
+          f"{out['echo_tofhil_centre_mm']:+.4f} mm")
+    return out
+
+
+def scattering_cube_scene(emitter: dict, sigma_s: float, sigma_a: float, g: float) -> Scene:
+    """A 0.4 m cube of a homogeneous medium 1 m in front of the camera, a white wall at 1.6 m
+    behind it filling the view; the emitter at the camera centre."""
+    from tofhil.sim.scene import scene_from_dict
+
+    return scene_from_dict({
+        "name": "scattering_cube",
+        "camera": {"preset": "holmlund_thesis", "pose": {"position": [0.0, 0.0, 0.0]}},
+        "emitter": {"offset_m": [0.0, 0.0, 0.0], "power_w": 1.0, "profile": emitter},
+        "materials": {"white": {"reflectance": ALBEDO},
+                      "fog": {"scattering_per_m": sigma_s, "absorption_per_m": sigma_a, "anisotropy": g}},
+        "objects": [{"name": "wall", "type": "plane", "size": [6.0, 6.0], "material": "white",
+                     "pose": {"position": [0.0, 0.0, 1.6]}},
+                    {"name": "cube", "type": "box", "size": [0.4, 0.4, 0.4], "material": "fog",
+                     "pose": {"position": [0.0, 0.0, 1.0], "rotation_deg": [0.0, 25.0, 0.0]}}],
+        "sensor": {"freq_hz": [FREQ_HZ]},
+    })
+
+
+def scattering_cube_check(mi, work: Path, passes: int, spp: int, bounces: list[int], threads: int,
+                          figures: Path | None) -> list[dict]:
+    """A scattering cube in both renderers (Mitsuba: a null-bounded homogeneous medium,
+    transient_prbvolpath; a flat forward-hemisphere spot as the emitter, which Mitsuba links
+    through the null boundary with next-event estimation). Scattering events count as
+    bounces in both: tofhil B = Mitsuba max_depth B + 2."""
+    scene = scattering_cube_scene(HEMISPHERE, 5.0, 1.0, 0.5)
+    print("(4) scattering cube (0.4 m, sigma_s 5/m, sigma_a 1/m, HG g 0.5, rotated 25 deg) before a wall at 1.6 m")
+    geom = Tofhil(scene, 0, threads).geometry_radial_m()
+    out = []
+    for b in bounces:
+        tf = Tofhil(scene, b, threads)
+        ms = Mitsuba(mi, scene, b, "independent", work, integrator="transient_prbvolpath")
+        out.append(agreement(f"scattering_cube_B{b}", tf, ms, geom, passes, spp, None, figures))
     return out
 
 
@@ -441,6 +544,8 @@ def main() -> int:
     ap.add_argument("--compare-wavefront", action="store_true",
                     help="also time tofhil's bounce-by-bounce loop (textures take it; before session 4 "
                          "tabulated beams, the isotropic emitter among them, did too)")
+    ap.add_argument("--media-only", action="store_true", help="only the glass slab (2) and the scattering cube (4)")
+    ap.add_argument("--glass-only", action="store_true", help="with --media-only: only the glass slab (2)")
     args = ap.parse_args()
     mi = load_mitsuba()
     if mi is None:
@@ -457,7 +562,7 @@ def main() -> int:
         work = Path(tmp)
         if not args.only_timing:
             print("(1) agreement (same scene, independent passes; noise from each renderer's own variance)")
-        for name, scene in () if args.only_timing else (("corner", corner_scene(emitter)),
+        for name, scene in () if args.only_timing or args.media_only else (("corner", corner_scene(emitter)),
                                                          ("tilted_plane", tilted_plane_scene(emitter))):
             geom = Tofhil(scene, 0, args.threads).geometry_radial_m()
             direct = (Tofhil(scene, 0, args.threads), Mitsuba(mi, scene, 0, "independent", work))
@@ -469,7 +574,10 @@ def main() -> int:
         sys.path.insert(0, str(Path(__file__).resolve().parent))     # glass_slab beside this script
         if not args.only_timing:
             glass_slab_check(mi, work, 16 if args.quick else 64)
-        if args.skip_timing:
+            if not args.glass_only:
+                scattering_cube_check(mi, work, passes, spp, [0] + [b for b in args.bounces if b > 0], args.threads,
+                                      args.figures)
+        if args.skip_timing or args.media_only:
             return 0
         b = args.bounces[0]
         print(f"(3) CPU time to 1 mm RMS depth error, corner 160x120, {b} bounces")

@@ -29,27 +29,12 @@ import numpy as np
 
 from tofhil.demod import phase_to_distance
 from tofhil.eval import html
-from tofhil.sim.optics import Ghost2R, LensCamera, apply_lens, lens_model
+from tofhil.eval.optics_report import figure_ghost_psfs, ghost_group, ghost_table_html, lens_summary
+from tofhil.sim.optics import LensCamera, apply_lens, lens_model
 from tofhil.sim.scene import load_scene
 from tofhil.sim.sensor import OpticalSignal, waveform_from_scene
-from tofhil.sim.straylight import StrayLightOperator, StrayLightPSF
+from tofhil.sim.straylight import StrayLightPSF
 from tofhil.sim.twin import Twin
-
-
-def surface_kind(name: str) -> str:
-    n = name.lower()
-    return "filter" if "filter" in n else "cover glass" if "cover" in n else "sensor" if n == "sensor" else "lens"
-
-
-def ghost_group(g: Ghost2R) -> str:
-    a, b = (surface_kind(x) for x in g.name.split("-", 1))
-    if "sensor" in (a, b):
-        return "sensor"
-    if "filter" in (a, b):
-        return "filter"
-    if "cover glass" in (a, b):
-        return "cover glass"
-    return "lens"
 
 
 def distance(signal: OpticalSignal) -> np.ndarray:
@@ -124,19 +109,8 @@ def main() -> None:
                           "weight": m2.stray_light(pitch).total_weight})
     t_all = time.perf_counter() - t0
 
-    # Figures: the ghost PSF of a point source (log10 of the light per pixel over the source's).
-    h, w = cam.shape
-    panels = []
-    for label, (x, y) in (("source at the centre", (w // 2, h // 2)), ("source at half field", (w * 3 // 4, h // 2)),
-                          ("source near the corner", (w - 12, 10))):
-        src = np.zeros((h, w))
-        src[y, x] = 1.0
-        op = StrayLightOperator(replace(full, veil=0.0), (h, w), (cam.cx, cam.cy))
-        panels.append((f"ghost PSF, {label}", np.log10(np.maximum(op.scatter(src), 1e-9))))
-    fig, axes = html.grid(len(panels))
-    for ax, (title, img) in zip(axes, panels):
-        html.image_panel(fig, ax, img, title, "magma", -9.0, -3.0, "log10 fraction of the source")
-    psf_uri = html.fig_uri(fig)
+    # Figures: the ghost PSF of a point source (the library's report figure, eval/optics_report.py).
+    psf_uri = figure_ghost_psfs(cam)
     fig, axes = html.grid(len(maps))
     lim = max(float(np.nanpercentile(np.abs(e) * 1e3, 99)) for _, e in maps) or 1.0
     for ax, (title, err) in zip(axes, maps):
@@ -154,18 +128,8 @@ def main() -> None:
         table.append(f"<tr><td>{r['parameter']}</td><td>{r['value']}</td><td>{r['weight']:.4f}</td>"
                      f"<td>{r['square']:.2f}</td><td>{r['wall']:.3f}</td><td>{r['card']:.3f}</td></tr>")
     table.append("</table>")
-    gtab = ["<h2>Ghosts of the prescription</h2><table><tr><th>ghost</th><th>group</th><th>weight</th>"
-            "<th>blur sigma (px)</th><th>magnification</th><th>extra path (mm)</th><th>focus shift (mm)</th></tr>"]
-    for g in ghosts:
-        gtab.append(f"<tr><td>{html.esc(g.name)}</td><td>{ghost_group(g)}</td><td>{g.weight:.2e}</td>"
-                    f"<td>{g.sigma_m / pitch:.1f}</td><td>{g.magnification:.3f}</td>"
-                    f"<td>{g.extra_path_m * 1e3:.2f}</td><td>{g.focus_shift_m * 1e3:.3f}</td></tr>")
-    gtab.append("</table>")
-    lens_info = (f"EFL {model.efl_m * 1e3:.3f} mm, F/{model.f_number:.2f}, entrance pupil at "
-                 f"z = {model.entrance_pupil[0] * 1e3:.3f} mm, field to the corner "
-                 f"{math.degrees(float(model.field_angle(pitch * math.hypot(cam.cx, cam.cy)))):.1f} deg, "
-                 f"relative illumination at the corner "
-                 f"{float(model.relative_illumination(model.field_angle(pitch * math.hypot(cam.cx, cam.cy)))):.3f}")
+    gtab = ["<h2>Ghosts of the prescription</h2>", ghost_table_html(cam)]
+    lens_info = lens_summary(cam)
     html.write_page(out / "report.html", "Stray light from the optics: dark_square_card_lens", [
         f"<p class='note'>{html.esc(lens_info)}. Distance errors are means over each region of the noise-free "
         "distance with the stray light minus without (same lens, same render).</p>", "".join(table),

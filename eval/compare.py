@@ -224,8 +224,28 @@ def figures(variants: list[Variant], ref: DepthFrame, section: H.CrossSection,
     return out
 
 
+def twin_lens_camera(*sessions: Any) -> tuple[str, Any] | None:
+    """``(side, camera)`` of the first twin session (A or B) whose scene's camera has a lens
+    prescription: its report shows the ghost PSFs. None when no side has one (or its embedded
+    scene no longer loads: the comparison does not depend on it)."""
+    from tofhil.eval.optics_report import has_lens
+    from tofhil.sim.scene import scene_from_yaml
+
+    for side, sess in zip("AB", sessions):
+        text = getattr(sess, "scene_text", "")
+        if sess.device.get("model") != "tofhil-sim" or "lens" not in text:
+            continue
+        try:
+            cam = scene_from_yaml(text, source=f"{sess.path} (embedded scene)").camera
+        except (TofhilError, ValueError, OSError):
+            continue
+        if has_lens(cam):
+            return side, cam
+    return None
+
+
 def write_report(out: Path, metrics: dict[str, Any], variants: list[Variant],
-                 figs: list[tuple[str, str | None, str]]) -> None:
+                 figs: list[tuple[str, str | None, str]], lens: tuple[str, Any] | None = None) -> None:
     a, b = metrics["inputs"]["a"], metrics["inputs"]["b"]
     s = metrics["settings"]
     notes = sorted({n for v in variants for n in v.evaluation.validity_notes()})
@@ -243,6 +263,10 @@ def write_report(out: Path, metrics: dict[str, Any], variants: list[Variant],
             f"scaled). Cloud metrics: A's points against B's (threshold {s['threshold_m'] * 1000:g} mm); NDT: A's "
             f"points scored on B's NDT grid (cell {s['cell_size_m']:g} m). Full numbers in metrics.json.</p>",
             H.figures_html(figs)]
+    if lens is not None:
+        from tofhil.eval.optics_report import lens_section
+
+        body.extend(lens_section(lens[1], whose=f"the twin's camera (side {lens[0]})"))
     H.write_page(out / "report.html", "tofhil compare", body)
 
 
@@ -360,6 +384,7 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
         a_label = str(sa.device.get("model") or sa.device.get("name") or Path(a_path).name)
         b_label = str(sb.device.get("model") or sb.device.get("name") or Path(b_path).name)
         acquisition = {"a": sa.acquisition(), "b": sb.acquisition()}
+        lens = twin_lens_camera(sa, sb)
         mismatches = acquisition_mismatches(acquisition["a"], acquisition["b"])
         for w in mismatches:
             say(f"warning: {w}")
@@ -410,5 +435,5 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
     figs = figures(variants, ref, section, cell_size)
     out.mkdir(parents=True, exist_ok=True)
     H.write_json(out / "metrics.json", metrics)
-    write_report(out, metrics, variants, figs)
+    write_report(out, metrics, variants, figs, lens)
     return M.json_safe(metrics)

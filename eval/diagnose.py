@@ -246,6 +246,12 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     want_drift = max_effects > 0 and (candidates is None or DRIFT in candidates)
     candidates = None if candidates is None else [c for c in candidates if c != DRIFT]
     with open_session(session_path) as s:
+        if s.has_histograms or getattr(scene, "direct_tof", None) is not None:
+            # the twin diagnosed here is the correlation forward model (taps, phase, effects)
+            raise TofhilError("direct ToF (SPAD histograms) cannot be diagnosed: the twin's effects model "
+                              "correlation ToF", file=session_path if s.has_histograms else scene.source,
+                              field="histograms" if s.has_histograms else "direct_tof",
+                              expected="a correlation-ToF session and scene")
         data = split_for_diagnosis(s, scene, block_px=block_px, max_frames=max_frames, valid_mask=facts.valid_mask,
                                    amplitude_model_error=facts.amplitude_model_error)
         depth_only = not s.has_raw
@@ -454,7 +460,8 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
             written.append(out / "stray_light_psf.json")
             psf_from_diagnosis(res.to_json(), out / "diagnosis.json").save(out / "stray_light_psf.json", force=True)
         written.append(out / "report.html")
-        write_report(res, out / "report.html", session_path=str(session_path), scene_path=str(scene_path))
+        write_report(res, out / "report.html", session_path=str(session_path), scene_path=str(scene_path),
+                     camera=scene.camera)
     except BaseException:
         for p in written:
             p.unlink(missing_ok=True)

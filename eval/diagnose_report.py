@@ -131,8 +131,9 @@ def _value(v: Any) -> str:
     return f"{v:.4g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v)
 
 
-def write_report(res: Any, path: Path, *, session_path: str, scene_path: str) -> None:
-    """The diagnosis page: cause, evidence, held-out gain, per-region table, figures, ranking."""
+def write_report(res: Any, path: Path, *, session_path: str, scene_path: str, camera: Any = None) -> None:
+    """The diagnosis page: cause, evidence, held-out gain, per-region table, figures, ranking;
+    with the twin's ``camera`` a lens prescription's ghost PSFs (eval/optics_report.py)."""
     esc = H.esc
     v = res.verdict
     cause = " + ".join(res.causes) if res.causes else (v.kind if v is not None else "none")
@@ -193,4 +194,8 @@ def write_report(res: Any, path: Path, *, session_path: str, scene_path: str) ->
                      f"<td style='color:#c00'>{esc(worse)}</td><td>{esc(', '.join(r.get('at_bounds', [])))}</td>"
                      f"<td>{esc(p)}</td></tr>")
     parts.append("</table>")
+    if camera is not None:
+        from tofhil.eval.optics_report import lens_section
+
+        parts.extend(lens_section(camera, whose="the twin's camera (base scene)"))
     H.write_page(path, "tofhil diagnose", parts)

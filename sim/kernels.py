@@ -13,6 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
+from tofhil.sim import dielectric as _dielectric
 from tofhil.sim import embree4 as eda
 
 _INV_PI = 1.0 / math.pi
@@ -179,7 +180,7 @@ def _sincos(x):  # pragma: no cover
 def _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, which, q, w, length):  # pragma: no cover
     """Add one light path of weight ``w`` and optical length ``length`` to pixel ``q``: its
     power, its phasor ``w exp(i k L)`` per frequency/harmonic (row ``which``: 0 direct, 1
-    indirect) and, with a transient histogram, its length bin."""
+    indirect; or :func:`share_row`) and, with a transient histogram, its length bin."""
     power[q] += w
     for m in range(nk):
         sn, cs = _sincos(k[m] * length)
@@ -191,12 +192,21 @@ def _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, which, q, w, 
             trans[q, b] += w
 
 
+@njit(nogil=True, cache=True, inline="always")
+def share_row(bounce, src, n_obj):  # pragma: no cover
+    """The accumulator row of a path: 0 direct / 1 indirect, or with ``n_obj > 0`` (multipath
+    shares) ``bounce * n_obj + src``, ``src`` the object the light came from (see render)."""
+    if n_obj == 0:
+        return 0 if bounce == 0 else 1
+    return bounce * n_obj + src
+
+
 @njit(nogil=True, cache=True)
 def connect_and_bounce(irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, path, local, which,
                        k, acc_re, acc_im, power, edges, trans, do_bounce, u1, u2, eps,
                        nb_org, nb_dir, nb_keep):  # pragma: no cover
     """Add each vertex's emitter connection ``w = beta f_r E`` with path length ``path + r1``
-    to its pixel's phasors (and transient bins), then draw the next direction cosine-weighted
+    to its pixel's phasors (row ``which[j]``) and transient bins, then draw the next direction cosine-weighted
     about the shading normal (throughput ``f_r pi``). Returns the number of continued paths;
     their rows go to ``nb_keep`` and their rays to ``nb_org``/``nb_dir``; ``beta`` is updated
     in place."""
@@ -210,7 +220,7 @@ def connect_and_bounce(irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, 
         if e > 0.0 and not blocked[j]:
             w = beta[j] * e * _brdf(rho[j], rs[j], ns[j], nx, ny, nz, wi[j, 0], wi[j, 1], wi[j, 2], ox, oy, oz)
             if w > 0.0:
-                _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, which, local[j], w, path[j] + r1[j])
+                _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, which[j], local[j], w, path[j] + r1[j])
         if not do_bounce:
             continue
         # Cosine-weighted direction in the frame of the shading normal (Duff et al. 2017).
@@ -234,7 +244,7 @@ def connect_and_bounce(irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, 
 @njit(nogil=True, cache=True)
 def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, normal, plane_c, vnormal,
                 smooth, tri_object, rho_d, rho_s, n_s, emitter_pos, emitter_axis, eps, cos_n, i0, beam,
-                k, acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj):  # pragma: no cover
+                k, acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj, n_obj=0):  # pragma: no cover
     """Every sample's whole path in one loop, Embree called per ray (:mod:`tofhil.sim.embree4`).
 
     The same physics, in the same float32 rays, as :func:`vertex` and
@@ -244,7 +254,8 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
     ``U[s, 5 + 2b]``. Uniform reflectance per object (no textures).
     The beam: ``cos^n`` for ``cos_n >= 0``, else the table ``beam`` (:func:`_beam`).
     ``first_t``/``first_obj`` get the primary hit (inf / -1 for a miss); ``ambient_unit`` the
-    first vertex's albedo * beta / pi. Returns the number of rays traced.
+    first vertex's albedo * beta / pi. ``n_obj > 0``: rows by bounce and source object
+    (:func:`share_row`). Returns the number of rays traced.
     """
     addr, o = eda.record(buf)
     f = buf
@@ -261,6 +272,7 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
         path_in = path0[s]
         beta = beta0[s]
         q = local[s]
+        src = 0
         for bounce in range(bounces + 1):
             eda.set_ray(f, u, o, np.float32(ox), np.float32(oy), np.float32(oz),
                         np.float32(dx), np.float32(dy), np.float32(dz), np.float32(1e37))
@@ -290,6 +302,8 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
             ob = tri_object[p]
             rho, rs, ns = rho_d[ob], rho_s[ob], n_s[ob]
             path = path_in + t
+            if bounce <= 1:
+                src = ob           # the seen object (direct light) or the one that lit it
             if bounce == 0:
                 first_t[s] = t
                 first_obj[s] = ob
@@ -308,8 +322,8 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
                 if not f[o + 8] < 0.0:        # tfar = -inf: blocked
                     w = beta * irr * _brdf(rho, rs, ns, sx, sy, sz, ex, ey, ez, -dx, -dy, -dz)
                     if w > 0.0:
-                        _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, 0 if bounce == 0 else 1, q, w,
-                                    path + r)
+                        _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, share_row(bounce, src, n_obj),
+                                    q, w, path + r)
             if bounce == bounces:
                 break
             ndx, ndy, ndz = _cosine_direction(U[s, 4 + 2 * bounce], U[s, 5 + 2 * bounce], sx, sy, sz)
@@ -337,3 +351,441 @@ def rotate_rows(v, R, out):  # pragma: no cover
         out[i, 0] = a * r00 + b * r01 + c * r02
         out[i, 1] = a * r10 + b * r11 + c * r12
         out[i, 2] = a * r20 + b * r21 + c * r22
+
+
+# --------------------------------------------------------------------------- dielectrics
+#: Specular events (Fresnel reflections and refractions) one camera sample may go through;
+#: the reflected branches wait on a stack of this depth. Light still in the path after that
+#: many interfaces carries less than R^(k/2) of its power (about 1e-6 for glass): dropped.
+MAX_SPECULAR = 24
+_STACK = 16
+#: A reflected branch with less than this share of its sample's starting weight is not
+#: followed (glass of n 1.5: the third internal echo, R^6 = 4e-9, is not): the power it would add
+#: is below 1e-6 of the sample's.
+_DROP = 1e-6
+
+
+@njit(nogil=True, cache=True)
+def trace_paths_media(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, normal, plane_c, vnormal,
+                      smooth, tri_object, rho_d, rho_s, n_s, ior, sigma_a, sigma_s, hg_g, box_c, box_axes,
+                      box_half,
+                      emitter_pos, emitter_axis, eps, cos_n, i0,
+                      k, acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj):  # pragma: no cover
+    """:func:`trace_paths` with smooth dielectric boxes (:mod:`tofhil.sim.dielectric`).
+
+    At a glass face the path splits: the Fresnel reflection ``R`` waits on a stack, the
+    refraction ``1 - R`` (Snell) goes on (total internal reflection: the reflection only), so
+    a sample follows every specular branch with its exact weight and no extra noise. Inside
+    the glass the optical length grows by ``n d`` and the power falls by
+    ``exp(-sigma_a d)``. Specular events do not count as bounces: ``bounces`` counts diffuse
+    vertices. At a diffuse vertex the emitter is connected straight, or, where the straight
+    shadow ray meets a glass box first, along the refracted ray through the two faces of its
+    slab (:func:`tofhil.sim.dielectric.slab_link`; its two air legs must be free). Diffuse
+    surfaces inside glass are not supported (the parser and the renderer's set-up refuse
+    them); a path that still meets one is dropped.
+    """
+    addr, o = eda.record(buf)
+    f = buf
+    u = buf.view(np.uint32)
+    nk = k.shape[0]
+    nbins = edges.shape[0] - 1
+    rays = 0
+    stk = np.empty((_STACK, 14))
+    for s in range(dirs.shape[0]):
+        if shared:
+            ox, oy, oz = org[0, 0], org[0, 1], org[0, 2]
+        else:
+            ox, oy, oz = org[s, 0], org[s, 1], org[s, 2]
+        dx, dy, dz = dirs[s, 0], dirs[s, 1], dirs[s, 2]
+        # (ox, oy, oz) is the path's true vertex, (lx, ly, lz) Embree's lift off its surface:
+        # lengths are measured from the vertex, so the lifts add no path.
+        lx, ly, lz = 0.0, 0.0, 0.0
+        path_in = path0[s]
+        beta = beta0[s]
+        q = local[s]
+        bounce = 0
+        inside = -1
+        nspec = 0
+        primary = True
+        sp = 0
+        seed = np.uint64(s) * np.uint64(0x632BE59BD9B4E019)
+        if U.shape[0] > 0:
+            seed = seed ^ np.uint64(U[s, 0] * 4294967296.0)
+        ctr = 0
+        while True:
+            eda.set_ray(f, u, o, np.float32(ox + lx), np.float32(oy + ly), np.float32(oz + lz),
+                        np.float32(dx), np.float32(dy), np.float32(dz), np.float32(1e37))
+            eda.rtc_intersect1(scene, addr, 0)
+            rays += 1
+            p = u[o + 17]
+            alive = p != eda.INVALID_ID
+            if not alive and primary:
+                first_t[s] = np.inf
+                first_obj[s] = -1
+            scattered = False
+            if inside >= 0 and sigma_s[inside] > 0.0:
+                # ---- a scattering medium: free flight with the extinction sigma_t; a
+                # scattering event before the boundary weighs the albedo sigma_s / sigma_t
+                md = inside
+                sig_t = sigma_a[md] + sigma_s[md]
+                dfl = -math.log(1.0 - _dielectric.hash_uniform(seed, ctr)) / sig_t
+                ctr += 1
+                if dfl < (np.float64(f[o + 8]) if alive else np.inf):
+                    scattered = True
+                    px, py, pz = ox + dfl * dx, oy + dfl * dy, oz + dfl * dz
+                    path = path_in + dfl
+                    beta *= sigma_s[md] / sig_t
+                    ex, ey, ez = emitter_pos[0] - px, emitter_pos[1] - py, emitter_pos[2] - pz
+                    r = math.sqrt(ex * ex + ey * ey + ez * ez)
+                    ex, ey, ez = ex / r, ey / r, ez / r
+                    w, nr = _medium_link(scene, f, u, o, addr, px, py, pz, ex, ey, ez, r, emitter_axis, eps, cos_n,
+                                         i0, box_c[md], box_axes[md], box_half[md], sig_t)
+                    rays += nr
+                    w *= beta * _dielectric.hg_phase(dx * ex + dy * ey + dz * ez, hg_g[md])
+                    if w > 0.0:
+                        _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, 0 if bounce == 0 else 1, q, w,
+                                    path + r)
+                    if bounce == bounces or beta <= 0.0:
+                        alive = False
+                    else:
+                        dx, dy, dz = _dielectric.hg_sample(U[s, 4 + 2 * bounce], U[s, 5 + 2 * bounce], hg_g[md],
+                                                           dx, dy, dz)
+                        ox, oy, oz = px, py, pz
+                        lx, ly, lz = 0.0, 0.0, 0.0
+                        path_in = path
+                        bounce += 1
+                        alive = True
+            if alive and not scattered:
+                nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
+                dn = dx * nx + dy * ny + dz * nz
+                te = np.float64(f[o + 8])
+                t = te
+                if dn != 0.0:
+                    tr = (plane_c[p] - (ox * nx + oy * ny + oz * nz)) / dn
+                    if abs(tr - te) < 1e-4 * max(1.0, te):
+                        t = tr
+                px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
+                sg = 1.0 if dn < 0.0 else -1.0
+                gx, gy, gz = sg * nx, sg * ny, sg * nz
+                ob = tri_object[p]
+                if primary:
+                    first_t[s] = t
+                    first_obj[s] = ob
+                    primary = False
+                if inside >= 0:
+                    path = path_in + ior[inside] * t
+                    if sigma_s[inside] == 0.0:          # (a scattering medium's losses: its free flights)
+                        beta *= math.exp(-sigma_a[inside] * t)
+                else:
+                    path = path_in + t
+                if ior[ob] > 0.0:
+                    # ---- a glass face: Fresnel split
+                    if nspec >= MAX_SPECULAR or (inside >= 0 and inside != ob):
+                        alive = False                     # (nested glass: refused at set-up)
+                    else:
+                        nspec += 1
+                        n1, n2 = (1.0, ior[ob]) if inside < 0 else (ior[ob], 1.0)
+                        ci = abs(dn)
+                        refl, ct = _dielectric.fresnel(ci, n1, n2)
+                        rx, ry, rz = dx + 2.0 * ci * gx, dy + 2.0 * ci * gy, dz + 2.0 * ci * gz
+                        if refl < 1.0:
+                            if refl * beta > _DROP * beta0[s] and sp < _STACK:
+                                stk[sp, 0], stk[sp, 1], stk[sp, 2] = px, py, pz
+                                stk[sp, 3], stk[sp, 4], stk[sp, 5] = rx, ry, rz
+                                stk[sp, 6], stk[sp, 7], stk[sp, 8] = path, beta * refl, bounce
+                                stk[sp, 9], stk[sp, 10] = inside, nspec
+                                stk[sp, 11], stk[sp, 12], stk[sp, 13] = gx, gy, gz
+                                sp += 1
+                            eta = n1 / n2
+                            a = eta * ci - ct
+                            dx, dy, dz = eta * dx + a * gx, eta * dy + a * gy, eta * dz + a * gz
+                            beta *= 1.0 - refl
+                            lx, ly, lz = -eps * gx, -eps * gy, -eps * gz
+                            inside = ob if inside < 0 else -1
+                        else:                             # total internal reflection
+                            dx, dy, dz = rx, ry, rz
+                            lx, ly, lz = eps * gx, eps * gy, eps * gz
+                        ox, oy, oz = px, py, pz
+                        path_in = path
+                        continue
+                elif inside >= 0:
+                    alive = False                         # a diffuse surface inside glass
+                else:
+                    # ---- a diffuse vertex: as in trace_paths, with the emitter linked through glass
+                    sx, sy, sz = gx, gy, gz
+                    if smooth:
+                        sx, sy, sz = _shading_normal(vnormal, p, np.float64(f[o + 15]), np.float64(f[o + 16]), sg,
+                                                     gx, gy, gz, dx, dy, dz)
+                    rho, rs, ns = rho_d[ob], rho_s[ob], n_s[ob]
+                    if bounce == 0:
+                        ambient_unit[q] += beta * (rho + rs) * _INV_PI
+                    ex, ey, ez = emitter_pos[0] - px, emitter_pos[1] - py, emitter_pos[2] - pz
+                    r = math.sqrt(ex * ex + ey * ey + ez * ez)
+                    ex, ey, ez = ex / r, ey / r, ez / r
+                    w, extra, nr, gob, kk = _emitter_link(
+                        scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, ex, ey, ez, r, emitter_pos,
+                        emitter_axis, eps, cos_n, i0, normal, tri_object, ior, sigma_a, sigma_s, box_c, box_axes,
+                        box_half, rho, rs, ns, -dx, -dy, -dz)
+                    rays += nr
+                    w = beta * w
+                    if w > 0.0:
+                        _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, 0 if bounce == 0 else 1, q, w,
+                                    path + extra)
+                    if gob >= 0:                          # the slab's internal echo on the emitter's leg
+                        w, extra, nr = _slab_echo(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz,
+                                                  emitter_pos, emitter_axis, eps, cos_n, i0, gob, kk, ior, sigma_a,
+                                                  box_c, box_axes, box_half, rho, rs, ns, -dx, -dy, -dz)
+                        rays += nr
+                        w = beta * w
+                        if w > 0.0:
+                            _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, 0 if bounce == 0 else 1, q,
+                                        w, path + extra)
+                    # the emitter's mirror images in the glass faces light this point too
+                    for gb in range(ior.shape[0]):
+                        if ior[gb] <= 1.0:
+                            continue
+                        for kk in range(3):
+                            for side in (1.0, -1.0):
+                                for back in (False, True):
+                                    w, extra, nr = _mirror_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy,
+                                                                sz, emitter_pos, emitter_axis, eps, cos_n, i0, gb, kk,
+                                                                side, back, ior, sigma_a, box_c, box_axes, box_half,
+                                                                rho, rs, ns, -dx, -dy, -dz)
+                                    rays += nr
+                                    w = beta * w
+                                    if w > 0.0:
+                                        _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins,
+                                                    0 if bounce == 0 else 1, q, w, path + extra)
+                    if bounce == bounces:
+                        alive = False
+                    else:
+                        ndx, ndy, ndz = _cosine_direction(U[s, 4 + 2 * bounce], U[s, 5 + 2 * bounce], sx, sy, sz)
+                        if ndx * gx + ndy * gy + ndz * gz <= 0.0:
+                            alive = False
+                        else:
+                            beta = beta * math.pi * _brdf(rho, rs, ns, sx, sy, sz, ndx, ndy, ndz, -dx, -dy, -dz)
+                            if beta <= 0.0:
+                                alive = False
+                            ox, oy, oz = px, py, pz
+                            lx, ly, lz = eps * gx, eps * gy, eps * gz
+                            dx, dy, dz = ndx, ndy, ndz
+                            path_in = path
+                            bounce += 1
+            if alive:
+                continue
+            if sp == 0:
+                break
+            sp -= 1                                       # the next waiting reflection
+            ox, oy, oz = stk[sp, 0], stk[sp, 1], stk[sp, 2]
+            dx, dy, dz = stk[sp, 3], stk[sp, 4], stk[sp, 5]
+            # the reflection leaves on the incoming side: lift along the mirrored direction's normal side
+            lx, ly, lz = eps * stk[sp, 11], eps * stk[sp, 12], eps * stk[sp, 13]
+            path_in, beta, bounce = stk[sp, 6], stk[sp, 7], int(stk[sp, 8])
+            inside, nspec = int(stk[sp, 9]), int(stk[sp, 10])
+            primary = False
+    return rays
+
+
+@njit(nogil=True, cache=True)
+def _emitter_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, ex, ey, ez, r, emitter_pos, emitter_axis,
+                  eps, cos_n, i0, normal, tri_object, ior, sigma_a, sigma_s, box_c, box_axes, box_half, rho, rs, ns,
+                  wox, woy, woz):  # pragma: no cover
+    """The emitter's contribution ``f_r E`` at a diffuse vertex (per unit throughput) and the
+    optical path from the vertex to the emitter: straight (``E = I cos / r^2``), or through the
+    slab of the glass box the straight shadow ray meets first; the rays it traced; and the
+    glass box and its slab axis where that slab link exists (else -1, 0), for
+    :func:`_slab_echo`."""
+    cs = sx * ex + sy * ey + sz * ez
+    ce = -(ex * emitter_axis[0] + ey * emitter_axis[1] + ez * emitter_axis[2])
+    if not (cs > 0.0 and ce > 0.0):
+        return 0.0, r, 0, -1, 0
+    ax, ay, az = px + eps * gx, py + eps * gy, pz + eps * gz
+    eda.set_ray(f, u, o, np.float32(ax), np.float32(ay), np.float32(az),
+                np.float32(ex), np.float32(ey), np.float32(ez), np.float32(r - 2.0 * eps))
+    eda.rtc_intersect1(scene, addr, 0)
+    hp = u[o + 17]
+    if hp == eda.INVALID_ID:
+        irr = i0 * _pow(ce, cos_n) * cs / (r * r)
+        return irr * _brdf(rho, rs, ns, sx, sy, sz, ex, ey, ez, wox, woy, woz), r, 1, -1, 0
+    gob = tri_object[hp]
+    if ior[gob] <= 0.0:
+        return 0.0, r, 1, -1, 0                                  # blocked by an opaque object
+    if ior[gob] == 1.0:
+        # an index-matched box (a medium): the straight ray, its extinction over the chord
+        t0, t1 = _dielectric.box_chord(px, py, pz, ex, ey, ez, r, box_c[gob], box_axes[gob], box_half[gob])
+        tr = math.exp(-(sigma_a[gob] + sigma_s[gob]) * max(0.0, t1 - t0))
+        eda.set_ray(f, u, o, np.float32(px + (t1 + eps) * ex), np.float32(py + (t1 + eps) * ey),
+                    np.float32(pz + (t1 + eps) * ez), np.float32(ex), np.float32(ey), np.float32(ez),
+                    np.float32(r - t1 - 2.0 * eps))
+        eda.rtc_occluded1(scene, addr, 0)
+        if f[o + 8] < 0.0:
+            return 0.0, r, 2, -1, 0
+        irr = i0 * _pow(ce, cos_n) * cs / (r * r) * tr
+        return irr * _brdf(rho, rs, ns, sx, sy, sz, ex, ey, ez, wox, woy, woz), r, 2, -1, 0
+    # The face it met picks the slab: the box axis along that face's normal.
+    kk = 0
+    best = -1.0
+    for j in range(3):
+        d = abs(normal[hp, 0] * box_axes[gob, j, 0] + normal[hp, 1] * box_axes[gob, j, 1]
+                + normal[hp, 2] * box_axes[gob, j, 2])
+        if d > best:
+            best, kk = d, j
+    ok, ux, uy, uz, d1, d3, x2, y2, z2, tf, geo, opl = _dielectric.slab_link(
+        px, py, pz, emitter_pos[0], emitter_pos[1], emitter_pos[2], box_c[gob], box_axes[gob], box_half[gob], kk,
+        ior[gob], sigma_a[gob])
+    if not ok:
+        return 0.0, r, 1, -1, 0
+    cs = sx * ux + sy * uy + sz * uz
+    ce = -(ux * emitter_axis[0] + uy * emitter_axis[1] + uz * emitter_axis[2])
+    if not (cs > 0.0 and ce > 0.0 and ux * gx + uy * gy + uz * gz > 0.0):
+        return 0.0, r, 1, -1, 0
+    # both air legs free (the slab's own faces end them)
+    eda.set_ray(f, u, o, np.float32(ax), np.float32(ay), np.float32(az),
+                np.float32(ux), np.float32(uy), np.float32(uz), np.float32(d1 - 2.0 * eps))
+    eda.rtc_occluded1(scene, addr, 0)
+    if f[o + 8] < 0.0:
+        return 0.0, r, 2, -1, 0
+    eda.set_ray(f, u, o, np.float32(x2 + eps * ux), np.float32(y2 + eps * uy), np.float32(z2 + eps * uz),
+                np.float32(ux), np.float32(uy), np.float32(uz), np.float32(d3 - 2.0 * eps))
+    eda.rtc_occluded1(scene, addr, 0)
+    if f[o + 8] < 0.0:
+        return 0.0, r, 3, -1, 0
+    w = i0 * _pow(ce, cos_n) * tf * geo * cs * _brdf(rho, rs, ns, sx, sy, sz, ux, uy, uz, wox, woy, woz)
+    return w, opl, 3, gob, kk
+
+
+@njit(nogil=True, cache=True)
+def _slab_echo(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, emitter_pos, emitter_axis, eps, cos_n, i0,
+               gob, kk, ior, sigma_a, box_c, box_axes, box_half, rho, rs, ns, wox, woy, woz):  # pragma: no cover
+    """The emitter's light at a diffuse vertex after crossing glass box ``gob``'s slab with
+    two internal reflections (enter, reflect off the far face, off the near face, leave):
+    unfolded, a slab three times as thick to the emitter moved 2T farther along the slab's
+    normal, times the two internal Fresnel reflectances. ``(f_r E, opl, rays)``."""
+    mx, my, mz = box_axes[gob, kk, 0], box_axes[gob, kk, 1], box_axes[gob, kk, 2]
+    c = box_c[gob]
+    sgn = 1.0 if (emitter_pos[0] - px) * mx + (emitter_pos[1] - py) * my + (emitter_pos[2] - pz) * mz > 0.0 else -1.0
+    thick = 2.0 * box_half[gob, kk]
+    # the unfolded slab: from the near face, 3T thick; its centre T beyond the real one
+    vc = np.empty(3)
+    vc[0], vc[1], vc[2] = c[0] + sgn * thick * mx, c[1] + sgn * thick * my, c[2] + sgn * thick * mz
+    vh = box_half[gob].copy()
+    vh[kk] = 1.5 * thick
+    ex = emitter_pos[0] + 2.0 * sgn * thick * mx
+    ey = emitter_pos[1] + 2.0 * sgn * thick * my
+    ez = emitter_pos[2] + 2.0 * sgn * thick * mz
+    ok, ux, uy, uz, d1, d3, x2, y2, z2, tf, geo, opl = _dielectric.slab_link(
+        px, py, pz, ex, ey, ez, vc, box_axes[gob], vh, kk, ior[gob], sigma_a[gob])
+    if not ok:
+        return 0.0, opl, 0
+    cs = sx * ux + sy * uy + sz * uz
+    ce = -(ux * emitter_axis[0] + uy * emitter_axis[1] + uz * emitter_axis[2])
+    if not (cs > 0.0 and ce > 0.0 and ux * gx + uy * gy + uz * gz > 0.0):
+        return 0.0, opl, 0
+    st = math.sqrt(max(0.0, 1.0 - (abs(ux * mx + uy * my + uz * mz)) ** 2)) / ior[gob]
+    ri, _ = _dielectric.fresnel(math.sqrt(1.0 - st * st), ior[gob], 1.0)
+    # the air legs: the first is the direct link's; the last leaves the real far face
+    x2, y2, z2 = x2 - 2.0 * sgn * thick * mx, y2 - 2.0 * sgn * thick * my, z2 - 2.0 * sgn * thick * mz
+    eda.set_ray(f, u, o, np.float32(px + eps * gx), np.float32(py + eps * gy), np.float32(pz + eps * gz),
+                np.float32(ux), np.float32(uy), np.float32(uz), np.float32(d1 - 2.0 * eps))
+    eda.rtc_occluded1(scene, addr, 0)
+    if f[o + 8] < 0.0:
+        return 0.0, opl, 1
+    eda.set_ray(f, u, o, np.float32(x2 + eps * ux), np.float32(y2 + eps * uy), np.float32(z2 + eps * uz),
+                np.float32(ux), np.float32(uy), np.float32(uz), np.float32(d3 - 2.0 * eps))
+    eda.rtc_occluded1(scene, addr, 0)
+    if f[o + 8] < 0.0:
+        return 0.0, opl, 2
+    irr = i0 * _pow(ce, cos_n) * tf * ri * ri * geo * cs
+    return irr * _brdf(rho, rs, ns, sx, sy, sz, ux, uy, uz, wox, woy, woz), opl, 2
+
+
+@njit(nogil=True, cache=True)
+def _medium_link(scene, f, u, o, addr, px, py, pz, ex, ey, ez, r, emitter_axis, eps, cos_n, i0, centre, axes, half,
+                 sig_t):  # pragma: no cover
+    """The emitter's intensity over distance squared at a scattering point inside a medium
+    box, times the extinction to the box's boundary (the phase function is the caller's),
+    and the rays traced: the straight link, free beyond the box."""
+    ce = -(ex * emitter_axis[0] + ey * emitter_axis[1] + ez * emitter_axis[2])
+    if not ce > 0.0:
+        return 0.0, 0
+    _, t1 = _dielectric.box_chord(px, py, pz, ex, ey, ez, r, centre, axes, half)
+    eda.set_ray(f, u, o, np.float32(px + (t1 + eps) * ex), np.float32(py + (t1 + eps) * ey),
+                np.float32(pz + (t1 + eps) * ez), np.float32(ex), np.float32(ey), np.float32(ez),
+                np.float32(r - t1 - 2.0 * eps))
+    eda.rtc_occluded1(scene, addr, 0)
+    if f[o + 8] < 0.0:
+        return 0.0, 1
+    return i0 * _pow(ce, cos_n) / (r * r) * math.exp(-sig_t * t1), 1
+
+
+@njit(nogil=True, cache=True)
+def _mirror_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, emitter_pos, emitter_axis, eps, cos_n, i0,
+                 gb, kk, side, back, ior, sigma_a, box_c, box_axes, box_half, rho, rs, ns,
+                 wox, woy, woz):  # pragma: no cover
+    """The emitter's light at a diffuse vertex by a reflection in glass box ``gb``'s face
+    ``side * axis kk``: off the face itself (``back`` False: the emitter's mirror image,
+    ``R I / L^2``), or entering it, reflected off the opposite face inside and leaving it
+    again (``back`` True: unfolded, a slab twice as thick to the emitter mirrored in the
+    opposite face; ``T_F R_i G``). Both the vertex and the emitter must be on the face's outer
+    side. ``(f_r E, opl, rays)``."""
+    mx, my, mz = side * box_axes[gb, kk, 0], side * box_axes[gb, kk, 1], side * box_axes[gb, kk, 2]
+    hk = box_half[gb, kk]
+    cx, cy, cz = box_c[gb, 0] + hk * mx, box_c[gb, 1] + hk * my, box_c[gb, 2] + hk * mz     # on the face
+    hx = (px - cx) * mx + (py - cy) * my + (pz - cz) * mz
+    he = (emitter_pos[0] - cx) * mx + (emitter_pos[1] - cy) * my + (emitter_pos[2] - cz) * mz
+    if hx <= 0.0 or he <= 0.0:
+        return 0.0, 0.0, 0
+    n = ior[gb]
+    if not back:
+        ex, ey, ez = emitter_pos[0] - 2.0 * he * mx, emitter_pos[1] - 2.0 * he * my, emitter_pos[2] - 2.0 * he * mz
+        vx, vy, vz = ex - px, ey - py, ez - pz
+        L = math.sqrt(vx * vx + vy * vy + vz * vz)
+        vx, vy, vz = vx / L, vy / L, vz / L
+        d1 = L * hx / (hx + he)
+        hx_, hy_, hz_ = px + d1 * vx, py + d1 * vy, pz + d1 * vz
+        for j in range(3):
+            if j != kk:
+                a = ((hx_ - box_c[gb, 0]) * box_axes[gb, j, 0] + (hy_ - box_c[gb, 1]) * box_axes[gb, j, 1]
+                     + (hz_ - box_c[gb, 2]) * box_axes[gb, j, 2])
+                if abs(a) > box_half[gb, j]:
+                    return 0.0, 0.0, 0
+        refl, _ = _dielectric.fresnel((hx + he) / L, 1.0, n)
+        weight, geo, opl = refl, 1.0 / (L * L), L
+        d3 = L - d1
+        ox, oy, oz = hx_, hy_, hz_
+    else:
+        bx, by, bz = box_c[gb, 0] - hk * mx, box_c[gb, 1] - hk * my, box_c[gb, 2] - hk * mz  # the opposite face
+        hb = (emitter_pos[0] - bx) * mx + (emitter_pos[1] - by) * my + (emitter_pos[2] - bz) * mz
+        ex, ey, ez = emitter_pos[0] - 2.0 * hb * mx, emitter_pos[1] - 2.0 * hb * my, emitter_pos[2] - 2.0 * hb * mz
+        vc = np.empty(3)
+        vc[0], vc[1], vc[2] = bx, by, bz
+        vh = box_half[gb].copy()
+        vh[kk] = 2.0 * hk
+        ok, vx, vy, vz, d1, d3, x2, y2, z2, tf, geo, opl = _dielectric.slab_link(
+            px, py, pz, ex, ey, ez, vc, box_axes[gb], vh, kk, n, sigma_a[gb])
+        if not ok:
+            return 0.0, 0.0, 0
+        st = math.sqrt(max(0.0, 1.0 - (vx * mx + vy * my + vz * mz) ** 2)) / n
+        ri, _ = _dielectric.fresnel(math.sqrt(1.0 - st * st), n, 1.0)
+        weight = tf * ri
+        hb2 = (x2 - bx) * mx + (y2 - by) * my + (z2 - bz) * mz       # the real exit: mirrored back
+        ox, oy, oz = x2 - 2.0 * hb2 * mx, y2 - 2.0 * hb2 * my, z2 - 2.0 * hb2 * mz
+    # the last leg runs along the mirrored direction to the real emitter
+    vn = vx * mx + vy * my + vz * mz
+    lx, ly, lz = vx - 2.0 * vn * mx, vy - 2.0 * vn * my, vz - 2.0 * vn * mz
+    cs = sx * vx + sy * vy + sz * vz
+    ce = -(lx * emitter_axis[0] + ly * emitter_axis[1] + lz * emitter_axis[2])
+    if not (cs > 0.0 and ce > 0.0 and vx * gx + vy * gy + vz * gz > 0.0 and weight > 0.0):
+        return 0.0, 0.0, 0
+    eda.set_ray(f, u, o, np.float32(px + eps * gx), np.float32(py + eps * gy), np.float32(pz + eps * gz),
+                np.float32(vx), np.float32(vy), np.float32(vz), np.float32(d1 - 2.0 * eps))
+    eda.rtc_occluded1(scene, addr, 0)
+    if f[o + 8] < 0.0:
+        return 0.0, 0.0, 1
+    eda.set_ray(f, u, o, np.float32(ox + eps * lx), np.float32(oy + eps * ly), np.float32(oz + eps * lz),
+                np.float32(lx), np.float32(ly), np.float32(lz), np.float32(d3 - 2.0 * eps))
+    eda.rtc_occluded1(scene, addr, 0)
+    if f[o + 8] < 0.0:
+        return 0.0, 0.0, 2
+    irr = i0 * _pow(ce, cos_n) * weight * geo * cs
+    return irr * _brdf(rho, rs, ns, sx, sy, sz, vx, vy, vz, wox, woy, woz), opl, 2

@@ -77,13 +77,15 @@ def simulate(scene: Any, frames: int = 1, seed: int = 0, noise: bool = True,
 def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: int = 0, noise: bool = True,
                      force: bool = False, effects: Mapping[str, Any] | None = None,
                      render_kwargs: Mapping[str, Any] | None = None, progress: Progress | None = None,
-                     twin: Twin | None = None) -> Path:
+                     twin: Twin | None = None, report: str | Path | None = None) -> Path:
     """Write a session file (same layout as a capture): raw taps and depth per frame, the scene's
     YAML text embedded, ``device = {"model": "tofhil-sim", ...}``.
 
     With ``effects`` given, the embedded scene text carries those effects instead of the file's
     block, so the session says exactly what was simulated. ``twin`` is a :class:`Twin` of this
-    scene whose render cache to use (a sweep renders a scene once for many cases)."""
+    scene whose render cache to use (a sweep renders a scene once for many cases). ``report``:
+    a directory for ``report.html`` (eval/simulate_report.py: where each pixel's light comes
+    from, by bounce and by object, from the same render; a direct-ToF scene's histograms)."""
     from tofhil import __version__
     from tofhil.depth import depth_from_raw
     from tofhil.session import SessionWriter, check_new_path
@@ -91,6 +93,17 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
 
     out_path = Path(out_path)
     check_new_path(out_path, force)  # fail before the (slow) render
+    if report is not None:
+        from tofhil.eval.html import prepare_output_dir
+        from tofhil.eval.simulate_report import OUTPUTS
+
+        prepare_output_dir(report, OUTPUTS, force=force)
+        render_kwargs = {**dict(render_kwargs or {}), "multipath_shares": True}
+    if getattr(scene, "direct_tof", None) is not None:
+        return simulate_direct_session(scene, out_path, frames=frames, seed=seed, noise=noise, force=force,
+                                       render_kwargs=render_kwargs, progress=progress, report=report)
+    if report is not None and twin is not None:
+        twin = None      # the shares need their own render (a sweep passes no report)
     if twin is None:
         twin = Twin(scene, effects=effects, render_kwargs=render_kwargs, progress=progress)
     eff = resolve_effects(scene, effects)
@@ -124,6 +137,58 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
 
         grey = render_grey(scene, second.camera, second.tof_to_camera, samples=second.samples)
         write_rgb(out_path, [grey], second.camera, frame_index=[0], tof_to_camera=second.tof_to_camera)
+    if report is not None:
+        _write_report(report, scene, result, out_path, force=force)
+    return out_path
+
+
+def _write_report(report: str | Path, scene: Any, result: Any, out_path: Path, *, force: bool,
+                  direct: Any = None) -> None:
+    from tofhil.eval.simulate_report import write_simulate_report
+    from tofhil.sim.multipath import shares_from_render
+
+    shares = shares_from_render(result, [o.name for o in scene.objects])
+    write_simulate_report(report, scene, shares=shares, direct=direct, session_path=out_path, force=force)
+
+
+def simulate_direct_session(scene: Any, out_path: str | Path, frames: int = 1, seed: int = 0, noise: bool = True,
+                            force: bool = False, render_kwargs: Mapping[str, Any] | None = None,
+                            progress: Progress | None = None, report: str | Path | None = None) -> Path:
+    """A direct-ToF session (the scene's ``direct_tof:`` block): per frame the SPAD histograms
+    (``histograms/counts``, the peaks found in them) and the depth of the strongest peak
+    (``depth/``); no raw taps (docs/session-format.md). The correlation ``effects:`` do not
+    apply to histograms and are not recorded."""
+    from tofhil import __version__
+    from tofhil.frames import DepthFrame
+    from tofhil.session import SessionWriter
+    from tofhil.sim.direct_tof import render_direct, simulate_direct
+    from tofhil.sim.scene import scene_to_yaml
+
+    cfg = scene.direct_tof
+    result = render_direct(scene, progress=progress, **dict(render_kwargs or {}))
+    sim = simulate_direct(scene, frames=frames, seed=seed, noise=noise, result=result)
+    device = {"model": "tofhil-sim", "kind": "direct_tof", "software": f"tofhil {__version__}",
+              "scene": str(getattr(scene, "source", "")), "seed": int(seed), "noise": bool(noise),
+              "samples_per_pixel": int(result.samples_per_pixel), "bounces": int(result.bounces)}
+    attrs = {"bin_width_s": cfg.bin_width_s, "t0_s": cfg.t0_s, "cycles_per_frame": cfg.cycles_per_frame,
+             "dead_time_s": cfg.dead_time_s, "repetition_hz": cfg.repetition_hz,
+             "counts_model": "SPAD counts per bin over cycles_per_frame laser cycles (expected counts with "
+                             "noise = false); bin i spans t0_s + [i, i+1) * bin_width_s after the pulse"}
+    text = getattr(scene, "text", "") or scene_to_yaml(scene)
+    period = float(cfg.cycles_per_frame / cfg.repetition_hz)
+    with SessionWriter(out_path, scene.camera, device=device, scene_text=text, force=force, derived=True,
+                       sensor_config=None, histogram_attrs=attrs) as w:
+        for i, (counts, peaks) in enumerate(zip(sim.counts, sim.peaks)):
+            found = np.isfinite(peaks.time_s[0])
+            depth = DepthFrame(distance_m=np.where(found, peaks.distance_m[0], np.nan).astype(np.float32),
+                               kind="radial", camera=scene.camera,
+                               amplitude=(peaks.photons[0] * cfg.cycles_per_frame).astype(np.float32),
+                               intensity=(peaks.background * cfg.cycles_per_frame).astype(np.float32),
+                               valid=found, timestamp_s=i * period, sequence=i)
+            w.append(None, depth, histogram={"counts": counts, "peak_distance_m": peaks.distance_m,
+                                             "peak_counts": peaks.photons * cfg.cycles_per_frame})
+    if report is not None:
+        _write_report(report, scene, result, out_path, force=force, direct=sim)
     return out_path
 
 

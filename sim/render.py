@@ -34,7 +34,7 @@ from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel
 from tofhil.errors import TofhilError
 from tofhil.progress import Progress, no_progress
-from tofhil.sim import embree4, kernels
+from tofhil.sim import dielectric, embree4, kernels
 from tofhil.sim.geometry import BATCH, RAY_EPSILON_M, Geometry, WorkerPool
 from tofhil.sim.radiometry import DEFAULT_PIXEL_PITCH_M, aperture_area_m2, pixel_area_normalized
 from tofhil.sim.scene import Scene, Texture
@@ -63,6 +63,9 @@ class RenderResult:
     #: [H, W] ambient power on the pixel per W/m^2 of ambient irradiance (m^2): the ambient
     #: light is linear in the irradiance, so a cached render serves any ambient level.
     ambient_power_per_irradiance: np.ndarray | None = None
+    #: [B + 1, O, H, W] emitter power on the pixel (W) by bounce count (0 = direct) and by the
+    #: object the light came from (``render(..., multipath_shares=True)``; see :mod:`multipath`).
+    share_power_w: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------- set-up
@@ -189,8 +192,12 @@ class _Context:
 
     def __init__(self, scene: Scene, camera: CameraModel, freq_hz: np.ndarray, harmonics: tuple[int, ...],
                  spp: int, bounces: int, seed: int, separate: bool, transient_edges: np.ndarray | None,
-                 subpixel: bool, sampler: str, pose: np.ndarray) -> None:
+                 subpixel: bool, sampler: str, pose: np.ndarray, shares: bool = False) -> None:
         self.scene, self.camera = scene, camera
+        # Multipath shares: one accumulator row per (bounce, source object) instead of
+        # direct/indirect, and a 0 Hz channel last whose real part is the power of each row.
+        self.n_obj = len(scene.objects) if shares else 0
+        self.rows = (bounces + 1) * self.n_obj if shares else (2 if bounces else 1)
         self.geom = scene_geometry(scene)
         self.spp, self.bounces, self.seed = spp, bounces, seed
         self.sampler = sampler
@@ -207,6 +214,8 @@ class _Context:
         # Phase per metre of optical path for every (f, h), flattened [F*NH].
         self.k = (2 * np.pi / C_M_PER_S) * (np.asarray(freq_hz)[:, None] *
                                             np.asarray(harmonics, dtype=np.float64)[None, :]).ravel()
+        if shares:
+            self.k = np.append(self.k, 0.0)
         self.rho_d, self.rho_s, self.n_s = (np.asarray(a, dtype=np.float64) for a in _materials_table(scene))
         self.glossy = bool(np.any(self.rho_s > 0))
         self.textured = [(i, _object_texture(scene, o)) for i, o in enumerate(scene.objects)
@@ -245,6 +254,12 @@ class _Context:
         # wavefront loop below.
         self.fused = (self.geom.direct is not None and not self.textured
                       and os.environ.get("TOFHIL_RENDER_WAVEFRONT", "") in ("", "0"))
+        self.glass = dielectric.dielectric_tables(scene)
+        if self.glass.any:
+            _check_glass(scene, self.glass, self.fused and self.cos_n >= 0, t, self.emitter_pos)
+            if shares:
+                raise TofhilError("multipath shares are not computed through glass or media", field="multipath_shares",
+                                  expected="a scene without materials with ior or scattering_per_m")
 
     # ------------------------------------------------------------------ shading helpers
     def reflectance(self, obj: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -297,7 +312,7 @@ class _Context:
         pix = np.arange(p0, p1) if spp == 1 else np.repeat(np.arange(p0, p1), spp)
         # [samples, D] uniforms: subpixel, lens, 2 per bounce (none needed for centre rays
         # through the pinhole without bounces).
-        need_u = self.subpixel or self.thin_lens or self.bounces > 0
+        need_u = self.subpixel or self.thin_lens or self.bounces > 0 or self.glass.scattering
         U = self.uniforms(np.random.default_rng([self.seed, chunk]), npix) if need_u else np.zeros((0, self.dims))
         if self.subpixel:
             uu = (pix % self.W) + U[:, 0] - 0.5
@@ -342,7 +357,7 @@ class _Context:
             trans = dest["trans"][p0:p1] if dest.get("trans") is not None else np.zeros((npix, 1))
             out["in_place"] = np.array(True)
         else:
-            rows = 2 if self.bounces else 1      # no indirect row without bounces
+            rows = self.rows                     # no indirect row without bounces
             acc_re = np.zeros((rows, nk, npix))  # [direct/indirect, f*h, pixel]
             acc_im = np.zeros((rows, nk, npix))
             power = np.zeros(npix)
@@ -365,6 +380,7 @@ class _Context:
                                    dest if dest is not None else {})
         ambient = np.zeros(npix)
         sid = np.arange(len(pix))
+        src = np.zeros(len(pix), dtype=np.int64)     # the object the light came from (shares)
         rays = 0
         for bounce in range(self.bounces + 1):
             if bounce == 0 and shared and not self.subpixel and len(dirs) <= len(self.origin32):
@@ -388,6 +404,14 @@ class _Context:
                            self.cos_n, self.i0, x, ngf, nf, wo, wi, r1, cos_s, cos_e, t_hit, path, irr,
                            so, sd, sdist)
             obj = geom.tri_object[prim[idx]]
+            if m < len(prim):
+                src = src[idx]
+            if bounce <= 1:
+                src = obj.astype(np.int64)          # the seen object (direct) or the one that lit it
+            if self.n_obj:
+                which = bounce * self.n_obj + src
+            else:
+                which = np.full(m, 0 if bounce == 0 else 1, dtype=np.int64)
             if bounce == 0:
                 if not self.subpixel and not self.thin_lens:
                     # Centre rays from the pinhole: the primary hits are the ground truth.
@@ -432,13 +456,13 @@ class _Context:
                 nb_keep = np.zeros(0, dtype=np.int64)
             count = kernels.connect_and_bounce(
                 irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, path,
-                local, 0 if bounce == 0 else 1, self.k, acc_re, acc_im, power, edges, trans, do_bounce,
+                local, which, self.k, acc_re, acc_im, power, edges, trans, do_bounce,
                 u1, u2, RAY_EPSILON_M, nb_org, nb_dir, nb_keep)
             if not do_bounce or count == 0:
                 break
             keep = nb_keep[:count]
             org, dirs, shared = nb_org[:count], nb_dir[:count], False
-            path_in, beta, local, sid = path[keep], beta[keep], local[keep], sid[keep]
+            path_in, beta, local, sid, src = path[keep], beta[keep], local[keep], sid[keep], src[keep]
 
         out["re"], out["im"], out["power"], out["ambient"] = acc_re, acc_im, power, ambient
         out["ambient_unit"] = ambient_unit
@@ -465,13 +489,24 @@ class _Context:
             first_t = np.empty(n)
             first_obj = np.empty(n, dtype=np.int32)
         U2 = U if U.shape[0] else np.zeros((0, self.dims))
-        rays = kernels.trace_paths(
-            geom.direct.handle, embree4.ray_buffer(), org, shared, dirs,
-            np.ascontiguousarray(path0, dtype=np.float64), np.ascontiguousarray(beta, dtype=np.float64),
-            np.ascontiguousarray(local, dtype=np.int64), np.ascontiguousarray(U2), self.bounces,
-            geom.normal, geom.plane_c, vnormal, smooth, geom.tri_object, self.rho_d, self.rho_s, self.n_s,
-            self.emitter_pos, self.emitter_axis, RAY_EPSILON_M, self.cos_n, self.i0, self.beam, self.k,
-            acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj)
+        if self.glass.any:
+            g = self.glass
+            rays = kernels.trace_paths_media(
+                geom.direct.handle, embree4.ray_buffer(), org, shared, dirs,
+                np.ascontiguousarray(path0, dtype=np.float64), np.ascontiguousarray(beta, dtype=np.float64),
+                np.ascontiguousarray(local, dtype=np.int64), np.ascontiguousarray(U2), self.bounces,
+                geom.normal, geom.plane_c, vnormal, smooth, geom.tri_object, self.rho_d, self.rho_s, self.n_s,
+                g.ior, g.sigma_a, g.sigma_s, g.hg_g, g.centre, g.axes, g.half,
+                self.emitter_pos, self.emitter_axis, RAY_EPSILON_M, self.cos_n, self.i0, self.k,
+                acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj)
+        else:
+            rays = kernels.trace_paths(
+                geom.direct.handle, embree4.ray_buffer(), org, shared, dirs,
+                np.ascontiguousarray(path0, dtype=np.float64), np.ascontiguousarray(beta, dtype=np.float64),
+                np.ascontiguousarray(local, dtype=np.int64), np.ascontiguousarray(U2), self.bounces,
+                geom.normal, geom.plane_c, vnormal, smooth, geom.tri_object, self.rho_d, self.rho_s, self.n_s,
+                self.emitter_pos, self.emitter_axis, RAY_EPSILON_M, self.cos_n, self.i0, self.beam, self.k,
+                acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj, self.n_obj)
         if direct_maps:
             out["maps_in_place"] = np.array(True)
         elif not self.subpixel and not self.thin_lens:
@@ -501,6 +536,63 @@ def _beam_table(prof: Any) -> np.ndarray:
     if th[0] == 0.0 and th[-1] == 180.0 and np.all(va == va[0]):
         return np.array([[0.0], [va[0]]])
     return np.ascontiguousarray(np.stack([th, va]))
+
+
+def _check_glass(scene: Scene, glass: dielectric.DielectricTables, fused: bool, camera_pos: np.ndarray,
+                 emitter_pos: np.ndarray) -> None:
+    """Refuse the glass set-ups the renderer does not model (rather than render them wrong)."""
+    from tofhil.sim.geometry import object_mesh
+
+    first = int(np.flatnonzero(glass.ior > 0)[0])
+    if not fused:
+        raise TofhilError("glass and media (materials with ior or scattering_per_m) render in the compiled "
+                          "path loop only",
+                          field=f"materials.{scene.objects[first].material}.ior",
+                          expected="uniform reflectances (no textures), a cos_n beam profile, Embree 4 and "
+                                   "TOFHIL_RENDER_WAVEFRONT unset")
+    for i in np.flatnonzero(glass.ior > 0):
+        f = f"objects[{i}]"
+        if dielectric.inside_box(glass, i, np.stack([camera_pos, emitter_pos]), 2 * RAY_EPSILON_M).any():
+            raise TofhilError(f"the camera or the emitter is inside the glass box {scene.objects[i].name!r}",
+                              field=f + ".pose", expected="the camera and the emitter outside every glass or medium box")
+        for j, other in enumerate(scene.objects):
+            if j == i:
+                continue
+            v, _, _ = object_mesh(other)
+            v = v @ other.pose[:3, :3].T + other.pose[:3, 3]
+            if dielectric.inside_box(glass, i, v).any():
+                raise TofhilError(f"object {other.name!r} reaches into the glass box {scene.objects[i].name!r}",
+                                  field=f"objects[{j}].pose",
+                                  expected="objects outside glass boxes (surfaces inside glass are not modelled)")
+
+
+def _add_glints(ctx: "_Context", acc: np.ndarray, power: np.ndarray, trans: np.ndarray | None) -> None:
+    """The emitter's images in the glass faces (:func:`tofhil.sim.dielectric.glints`): point
+    sources that the path loop cannot hit, each added to the pixel its ray goes through."""
+    geom, cam = ctx.geom, ctx.camera
+
+    def blocked(o: np.ndarray, d: np.ndarray, dist: float) -> bool:
+        return bool(geom.embree.run(o[None].astype(np.float32), d[None].astype(np.float32),
+                                    dists=np.array([dist], np.float32), query="OCCLUDED")[0] >= 0)
+
+    def intensity(cos_e: float) -> float:
+        return float(ctx.emitter.intensity_w_sr(np.array([cos_e]))[0]) if cos_e > 0 else 0.0
+
+    for g in dielectric.glints(ctx.glass, ctx.t, ctx.R[:, 2], ctx.emitter_pos, ctx.emitter_axis, intensity,
+                               ctx.aperture_area_m2, blocked):
+        d_cam = ctx.R.T @ g.direction
+        if d_cam[2] <= 0 or g.power_w <= 0:
+            continue
+        col, row = np.rint(cam.project(d_cam)).astype(int)
+        if not (0 <= col < ctx.W and 0 <= row < ctx.H):
+            continue
+        q = row * ctx.W + col
+        acc[0, :, q] += g.power_w * np.exp(1j * ctx.k * g.opl_m)
+        power[q] += g.power_w
+        if trans is not None:
+            b = np.searchsorted(ctx.edges, g.opl_m, side="right") - 1
+            if 0 <= b < trans.shape[1]:
+                trans[q, b] += g.power_w
 
 
 def _rotate(v: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -539,7 +631,8 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
            bounces: int | None = None, seed: int | None = None, separate_direct: bool = False,
            transient_bins: int | Sequence[float] | None = None, camera: CameraModel | None = None,
            progress: Progress | None = None, threads: int | None = None, subpixel: bool | None = None,
-           sampler: str | None = None, camera_pose: np.ndarray | None = None) -> RenderResult:
+           sampler: str | None = None, camera_pose: np.ndarray | None = None,
+           multipath_shares: bool = False) -> RenderResult:
     """Render the scene's emitter light as per-pixel phasors (see the module docstring).
 
     ``freq_hz`` defaults to the scene's sensor frequencies; ``samples_per_pixel``,
@@ -548,6 +641,8 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     (mixed pixels at depth edges); one sample goes through the pixel centre. ``camera``
     replaces the scene's camera model and ``camera_pose`` (4x4 camera-to-world) its pose, e.g.
     a distorted or re-posed camera while fitting; the scene itself is not changed.
+    ``multipath_shares`` adds ``share_power_w``, the pixel's power by bounce count and by the
+    object the light came from (:mod:`tofhil.sim.multipath`), from the same paths.
     """
     cam = camera if camera is not None else scene.camera
     freq = scene.freq_hz if freq_hz is None else np.atleast_1d(np.asarray(freq_hz, dtype=np.float64))
@@ -571,7 +666,8 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
         raise TofhilError("not a rigid 4x4 transform", field="camera_pose",
                           expected="a 4x4 camera-to-world matrix with an orthonormal rotation")
     edges = None if transient_bins is None else _transient_edges(scene, geom, transient_bins, nb, pose)
-    ctx = _Context(scene, cam, freq, harm, spp, nb, seed, separate_direct, edges, sub, smp, pose)
+    ctx = _Context(scene, cam, freq, harm, spp, nb, seed, separate_direct, edges, sub, smp, pose,
+                   shares=multipath_shares)
     H, W = cam.shape
     npix_total = H * W
     # An even number of equal chunks of at most BATCH samples: balanced on two threads, and
@@ -582,7 +678,7 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     nthreads = threads or int(os.environ.get("TOFHIL_RENDER_THREADS", 0)) or min(2, os.cpu_count() or 1)
 
     nk = len(ctx.k)
-    rows = 2 if nb else 1                          # no indirect row without bounces
+    rows = ctx.rows                                # no indirect row without bounces
     # [direct/indirect, f*h, pixel]; the kernels add into its real and imaginary parts (strided
     # views), so the result's phasors are this array reshaped, not a copy of two.
     acc = np.zeros((rows, nk, npix_total), dtype=np.complex128)
@@ -623,11 +719,20 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
         for job, fut in (progress or no_progress)(futures, len(futures), "render"):
             store(job[1], job[2], fut.result())
 
+    if ctx.glass.any:
+        _add_glints(ctx, acc, power, trans)
     shape = (len(freq), len(harm), H, W)
     if ctx.fused and ctx.ambient != 0:
         # the fused chunks added into ambient_unit in place; the ambient power is its multiple
         np.multiply(ambient_unit, ctx.ambient, out=ambient)
 
+    share_power = None
+    if ctx.n_obj:
+        # rows (bounce, object) and a last 0 Hz channel: its real part is each row's power
+        share_power = acc[:, -1].real.reshape(nb + 1, ctx.n_obj, H, W).copy()
+        acc = acc[:, :-1].reshape(nb + 1, ctx.n_obj, nk - 1, npix_total).sum(axis=1)
+        if nb:
+            acc = np.stack([acc[0], acc[1:].sum(axis=0)])
     direct = acc[0].reshape(shape)
     if nb == 0:                                      # no indirect light was traced
         indirect = np.zeros(shape, dtype=np.complex128) if separate_direct else None
@@ -643,4 +748,5 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
         phasor_indirect=indirect if separate_direct else None,
         transient=None if trans is None else np.ascontiguousarray(trans.T.reshape(-1, H, W)),
         transient_edges_m=edges, camera=cam, samples_per_pixel=spp, bounces=nb,
-        rays_traced=ray_count[0], ambient_power_per_irradiance=ambient_unit.reshape(H, W))
+        rays_traced=ray_count[0], ambient_power_per_irradiance=ambient_unit.reshape(H, W),
+        share_power_w=share_power)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from tofhil.camera import CameraModel
+from tofhil.errors import TofhilError
 from tofhil.sim.geometry import RAY_EPSILON_M
 from tofhil.sim.render import _Context, scene_geometry
 from tofhil.sim.scene import Scene
@@ -33,6 +34,10 @@ def render_grey(scene: Scene, camera: CameraModel, tof_to_camera: np.ndarray, *,
     # the ToF renderer's shading context: its reflectance lookup (textures, boards)
     ctx = _Context(scene, scene.camera, np.array([1.0]), (1,), 1, 0, 0, False, None, False, "random",
                    scene.camera_pose)
+    if ctx.glass.any:      # this image is direct light off opaque surfaces only: glass would turn black
+        i = int(np.flatnonzero(ctx.glass.ior > 0)[0])
+        raise TofhilError("the RGB camera's image does not model glass or scattering media",
+                          field=f"objects[{i}].material", expected="opaque materials in a scene with an rgb_camera")
     pose = camera_pose_world(scene, tof_to_camera)
     R, t = pose[:3, :3], pose[:3, 3]
     emitter = scene.emitter_position_world()

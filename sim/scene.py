@@ -40,7 +40,7 @@ MAX_CAMERA_SIDE_PX = 100_000
 MAX_SCENE_BYTES = 16 << 20
 
 _TOP_KEYS = ("name", "description", "params", "camera", "emitter", "ambient_irradiance_w_m2",
-             "materials", "objects", "sensor", "effects", "render", "rgb_camera")
+             "materials", "objects", "sensor", "effects", "render", "rgb_camera", "direct_tof")
 _CAMERA_KEYS = {"preset", "width", "height", "fx", "fy", "cx", "cy", "dist", "name", "pixel_pitch_m",
                 "hfov_deg", "vfov_deg", "pose", "f_number", "focus_distance_m", "lens"} | set(SENSOR_KEYS)
 
@@ -133,11 +133,21 @@ def scene_from_dict(d: dict, source: str = "<dict>", base_dir: str | Path | None
                  effects=EffectSet.parse(effects, source=source),
                  render=RenderSettings.from_dict(d.get("render"), source=source),
                  params=params, rgb_camera=p.second_camera(d.get("rgb_camera")),
+                 direct_tof=_direct_tof(d, source),
                  name=p.string(d.get("name", ""), "name"),
                  description=p.string(d.get("description", ""), "description"), source=source)
 
 
 # --------------------------------------------------------------------------- helpers
+def _direct_tof(d: dict, source: str) -> Any:
+    """The ``direct_tof:`` block (a pulsed emitter and a SPAD histogram sensor), or None."""
+    if d.get("direct_tof") is None:
+        return None
+    from tofhil.sim.direct_tof import DirectToFConfig
+
+    return DirectToFConfig.from_dict(d["direct_tof"], source=source)
+
+
 def _deep_merge(base: dict, over: dict, source: str, prefix: str = "") -> dict:
     """Merge ``over`` into a copy of ``base`` (mappings recursively, everything else replaced)."""
     if not isinstance(over, dict):
@@ -177,6 +187,10 @@ def look_at_rotation(position: np.ndarray, target: np.ndarray,
 
 #: Largest coordinate accepted in a pose or size (m): beyond it float32 ray tracing fails.
 _MAX_COORD_M = 1e6
+
+
+#: Material keys of glass and scattering media (tofhil.sim.dielectric).
+_MEDIUM_KEYS = ("ior", "absorption_per_m", "scattering_per_m", "anisotropy")
 
 
 class _Parser(Schema):
@@ -355,7 +369,10 @@ class _Parser(Schema):
             f = f"materials.{name}"
             if isinstance(spec, (int, float)) and not isinstance(spec, bool):
                 spec = {"reflectance": spec}
-            spec = self.mapping(spec, f, allowed=("reflectance", "glossy", "texture"), none_ok=False)
+            spec = self.mapping(spec, f, allowed=("reflectance", "glossy", "texture") + _MEDIUM_KEYS, none_ok=False)
+            if any(k in spec for k in _MEDIUM_KEYS):
+                out[str(name)] = self.dielectric(spec, f, str(name))
+                continue
             rho = self.number(self.require(spec, "reflectance", f, "a number in [0, 1]"),
                               f + ".reflectance", lo=0.0, hi=1.0)
             gl = self.mapping(spec.get("glossy"), f + ".glossy", allowed=("reflectance", "exponent"))
@@ -367,6 +384,29 @@ class _Parser(Schema):
             tex = self.texture(spec.get("texture"), f + ".texture")
             out[str(name)] = Material(str(name), rho, g_rho, g_n, tex)
         return out
+
+    def dielectric(self, spec: dict, f: str, name: str) -> Material:
+        """A smooth dielectric (glass: index and absorption) or a scattering medium (index 1,
+        absorption, scattering, HG anisotropy); no diffuse keys."""
+        for key in ("reflectance", "glossy", "texture"):
+            if key in spec:
+                raise self.error(f"{key!r} given with ior", f + "." + key,
+                                 "either a diffuse material (reflectance, glossy, texture) or a dielectric "
+                                 "(ior, absorption_per_m): a dielectric's reflection is Fresnel's")
+        scat = "scattering_per_m" in spec
+        n = self.number(spec["ior"] if "ior" in spec or not scat else 1.0, f + ".ior", lo=1.0, hi=4.0)
+        sig = self.number(spec.get("absorption_per_m", 0.0), f + ".absorption_per_m", lo=0.0, hi=1e6)
+        sig_s = self.number(spec.get("scattering_per_m", 0.0), f + ".scattering_per_m", lo=0.0, hi=1e6)
+        g = self.number(spec.get("anisotropy", 0.0), f + ".anisotropy", lo=-0.99, hi=0.99)
+        if "anisotropy" in spec and not scat:
+            raise self.error("anisotropy without scattering_per_m", f + ".anisotropy",
+                             "scattering_per_m > 0 with it (the phase function of a scattering medium)")
+        if sig_s > 0 and n != 1.0:
+            raise self.error(f"got {n:g} for a scattering medium", f + ".ior",
+                             "1 (an index-matched boundary): refraction into a scattering medium is not modelled")
+        if "ior" not in spec and not scat:
+            raise self.error("missing", f + ".ior", "a refractive index in [1, 4] with absorption_per_m")
+        return Material(name, 0.0, ior=n, absorption_per_m=sig, scattering_per_m=sig_s, anisotropy=g)
 
     def texture(self, t: Any, f: str) -> Texture | None:
         if t is None:
@@ -441,6 +481,11 @@ class _Parser(Schema):
             if not isinstance(mat, str) or mat not in materials:
                 raise self.error(f"unknown material {mat!r}", f + ".material",
                                  "one of " + ", ".join(sorted(materials)))
+            if materials[mat].ior is not None and kind != "box":
+                # the exact link to the point emitter is known through plane-parallel faces only
+                raise self.error(f"a dielectric material ({mat!r}, ior) on a {kind}", f + ".type",
+                                 "'box' (a glass slab or pane: the renderer connects the emitter through "
+                                 "plane-parallel faces only, see docs/scene-format.md)")
             pose = self.pose(o.get("pose"), f + ".pose")
             params, mesh = self._shape(kind, o, f)
             out.append(SceneObject(name=name, type=kind, material=str(mat), pose=pose,

@@ -128,6 +128,12 @@ class Material:
 
     BRDF ``f = reflectance/pi + glossy_reflectance * (n+2)/(2 pi) * cos(alpha)**n`` with
     ``alpha`` the angle between the mirror direction of the light and the view direction.
+
+    With ``ior`` the material is a smooth dielectric instead (glass, :mod:`tofhil.sim.dielectric`):
+    Fresnel reflection and refraction at its surface, ``absorption_per_m`` inside; its
+    ``reflectance`` is 0 (no diffuse part). With ``scattering_per_m`` it is a homogeneous
+    participating medium (Henyey-Greenstein phase function, mean cosine ``anisotropy``) behind
+    an index-matched boundary (``ior`` 1).
     """
 
     name: str
@@ -135,8 +141,17 @@ class Material:
     glossy_reflectance: float = 0.0
     glossy_exponent: float = 0.0
     texture: Texture | None = None
+    ior: float | None = None
+    absorption_per_m: float = 0.0
+    scattering_per_m: float = 0.0
+    anisotropy: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
+        if self.ior is not None:
+            d = {"ior": self.ior, "absorption_per_m": self.absorption_per_m}
+            if self.scattering_per_m > 0:
+                d.update(scattering_per_m=self.scattering_per_m, anisotropy=self.anisotropy)
+            return d
         d: dict[str, Any] = {"reflectance": self.reflectance}
         if self.glossy_reflectance > 0:
             d["glossy"] = {"reflectance": self.glossy_reflectance, "exponent": self.glossy_exponent}
@@ -271,6 +286,8 @@ class Scene:
     render: RenderSettings = field(default_factory=RenderSettings)
     params: dict[str, Any] = field(default_factory=dict)
     rgb_camera: SecondCamera | None = None
+    #: A pulsed emitter and SPAD histogram sensor (sim/direct_tof.py), or None: correlation ToF.
+    direct_tof: Any = None
     name: str = ""
     description: str = ""
     source: str = "<dict>"
@@ -337,4 +354,6 @@ class Scene:
         })
         if self.rgb_camera is not None:
             d["rgb_camera"] = self.rgb_camera.to_dict()
+        if self.direct_tof is not None:
+            d["direct_tof"] = self.direct_tof.to_dict()
         return to_plain(d)

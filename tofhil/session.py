@@ -133,8 +133,12 @@ class SessionWriter:
 
     def __init__(self, path: str | Path, camera: CameraModel, *, device: dict[str, Any] | None = None,
                  scene_text: str = "", force: bool = False, extra_attrs: dict[str, Any] | None = None,
-                 derived: bool = False, sensor_config: Mapping[str, Any] | None = None) -> None:
+                 derived: bool = False, sensor_config: Mapping[str, Any] | None = None,
+                 histogram_attrs: Mapping[str, Any] | None = None) -> None:
         self.path = Path(path)
+        # Attributes of the histograms/ group of a direct-ToF session (bin_width_s, t0_s, ...).
+        self._histogram_attrs = dict(histogram_attrs or {})
+        self._has_histograms: bool | None = None
         check_new_path(self.path, force)
         self.camera = camera
         self.n_frames = 0
@@ -207,11 +211,26 @@ class SessionWriter:
         for name, dt in parts:
             self._hold(g.create_dataset(name, shape=(0,) + hw, maxshape=(None,) + hw, dtype=dt, chunks=(1,) + hw))
 
+    def _create_histograms(self, histogram: Mapping[str, np.ndarray]) -> None:
+        if "counts" not in histogram:
+            raise ValueError("a histogram frame needs its 'counts' [T, H, W]")
+        g = self._hold(self._file.create_group("histograms"))
+        for name, arr in histogram.items():
+            shape = np.shape(arr)
+            self._hold(g.create_dataset(name, shape=(0,) + shape, maxshape=(None,) + shape, dtype="f4",
+                                        chunks=(1,) + shape))
+        for k, v in self._histogram_attrs.items():
+            g.attrs[k] = v
+        self._histogram_shapes = {k: np.shape(v) for k, v in histogram.items()}
+
     # ------------------------------------------------------------------ appending
-    def append(self, raw: RawFrame | None = None, depth: DepthFrame | None = None) -> None:
-        """Write one frame (raw taps, depth, or both) and make it durable."""
+    def append(self, raw: RawFrame | None = None, depth: DepthFrame | None = None,
+               histogram: Mapping[str, np.ndarray] | None = None) -> None:
+        """Write one frame (raw taps, depth, a direct-ToF histogram, or several) and make it
+        durable. ``histogram`` maps dataset names under ``histograms/`` to this frame's arrays
+        (``counts`` [T, H, W] at least)."""
         try:
-            self._append(raw, depth)
+            self._append(raw, depth, histogram)
         except (OSError, RuntimeError) as exc:  # disk full, file size limit, I/O error: name the file
             if isinstance(exc, RuntimeError) and "errno" not in str(exc):
                 raise  # not a write failure (h5py reports those as RuntimeError with an errno)
@@ -234,9 +253,16 @@ class SessionWriter:
             ds = self._datasets[name] = self._file[name]
         return ds
 
-    def _append(self, raw: RawFrame | None, depth: DepthFrame | None) -> None:
+    def _append(self, raw: RawFrame | None, depth: DepthFrame | None,
+                histogram: Mapping[str, np.ndarray] | None = None) -> None:
         if raw is None and depth is None:
             raise ValueError("append needs a raw frame, a depth frame or both")
+        if self._has_histograms is None:
+            self._has_histograms = histogram is not None
+            if histogram is not None:
+                self._create_histograms(histogram)
+        if (histogram is not None) != self._has_histograms:
+            raise ValueError("every frame of a session must carry the same parts (histograms or not)")
         if self._has_raw is None:
             self._has_raw, self._has_depth = raw is not None, depth is not None
             if raw is not None:
@@ -248,6 +274,12 @@ class SessionWriter:
         meta = raw if raw is not None else depth
         assert meta is not None
         n = self.n_frames
+        for name, arr in (histogram or {}).items():
+            if np.shape(arr) != self._histogram_shapes.get(name):
+                raise ValueError(f"histograms/{name} is {np.shape(arr)}, the session's {self._histogram_shapes.get(name)}")
+            ds = self._dataset(f"histograms/{name}")
+            ds.resize(n + 1, axis=0)
+            ds[n] = np.asarray(arr, dtype=np.float32)
         if raw is not None:
             if raw.taps.shape != self._raw_shape:
                 raise ValueError(f"taps shape {raw.taps.shape} differs from the session's {self._raw_shape}")
@@ -419,6 +451,10 @@ class Session:
         if self.has_raw:
             self._validate_raw(hw)
             lengths["raw/taps"] = f["raw/taps"].shape[0]
+        self.has_histograms = "histograms" in f
+        if self.has_histograms:
+            self._validate_histograms(hw)
+            lengths["histograms/counts"] = f["histograms/counts"].shape[0]
         if self.has_depth:
             if "depth/radial_m" not in f:
                 self._fail("depth/radial_m", "missing", "float32 [N, H, W]")
@@ -493,6 +529,26 @@ class Session:
                 self.tap_limits_meta[key] = self._number_attr(g.attrs, f"raw.{key}", key,
                                                               "a finite number of DN (the ADC's clip level)")
 
+    def _validate_histograms(self, hw: tuple[int, int]) -> None:
+        """histograms/ (direct ToF): counts ``[N, T, H, W]`` real numbers, bin width > 0 and
+        the first bin's time (attributes)."""
+        f = self._file
+        if "histograms/counts" not in f or not isinstance(f["histograms/counts"], h5py.Dataset):
+            self._fail("histograms/counts", "missing", "float32 [N, T, H, W] counts per bin")
+        c = f["histograms/counts"]
+        if c.dtype.kind not in "fiu":
+            self._fail("histograms/counts", f"has type {c.dtype}", "real numbers (counts)")
+        if c.ndim != 4 or c.shape[2:] != hw or c.shape[1] < 2:
+            self._fail("histograms/counts", f"has shape {c.shape}", f"[N, T >= 2, {hw[0]}, {hw[1]}] (camera size)")
+        g = f["histograms"]
+        for key in ("bin_width_s", "t0_s"):
+            if key not in g.attrs:
+                self._fail(f"histograms.{key}", "missing", "a number (seconds) attribute of histograms/")
+        self.bin_width_s = self._number_attr(g.attrs, "histograms.bin_width_s", "bin_width_s",
+                                             "a positive number of seconds", positive=True)
+        self.t0_s = self._number_attr(g.attrs, "histograms.t0_s", "t0_s", "a finite number of seconds")
+        self.histogram_meta = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in g.attrs.items()}
+
     def _number_attr(self, attrs: h5py.AttributeManager, field: str, key: str, expected: str, *,
                      allow_nan: bool = False, positive: bool = False) -> float:
         try:
@@ -533,6 +589,10 @@ class Session:
 
     def raw_frame(self, i: int) -> RawFrame:
         if not self.has_raw:
+            if getattr(self, "has_histograms", False):
+                raise InputFileError("is a direct-ToF session: it holds histograms and depth, no raw taps",
+                                     file=self.path, field="raw/taps",
+                                     expected="a correlation-ToF session with raw/taps")
             raise InputFileError("has no raw taps", file=self.path, field="raw/taps")
         i = self._index(i)
         try:
@@ -565,6 +625,24 @@ class Session:
                           confidence=parts["confidence"],
                           valid=None if valid is None else valid.astype(bool), **meta)
 
+    def histogram_frame(self, i: int) -> dict[str, np.ndarray]:
+        """Frame ``i``'s direct-ToF datasets under ``histograms/`` (``counts`` [T, H, W], ...)."""
+        if not self.has_histograms:
+            raise InputFileError("has no histograms (not a direct-ToF session)", file=self.path,
+                                 field="histograms/counts", expected="a session written from a direct_tof scene")
+        i = self._index(i)
+        g = self._file["histograms"]
+        try:
+            return {k: g[k][i] for k in g if isinstance(g[k], h5py.Dataset)}
+        except (OSError, ValueError, TypeError) as exc:
+            raise InputFileError(f"frame {i} cannot be read ({_os_reason(exc)})", file=self.path,
+                                 field="histograms") from None
+
+    def histogram_edges_s(self) -> np.ndarray:
+        """The histogram's bin edges (s after the pulse's emission)."""
+        T = self._file["histograms/counts"].shape[1]
+        return self.t0_s + self.bin_width_s * np.arange(T + 1)
+
     def raw_frames(self) -> Iterator[RawFrame]:
         for i in range(self.n_frames):
             yield self.raw_frame(i)
@@ -578,6 +656,7 @@ class Session:
                              "created_utc": self.created_utc, "software_version": self.software_version,
                              "device": self.device, "camera": self.camera.to_dict(), "n_frames": self.n_frames,
                              "has_raw": self.has_raw, "has_depth": self.has_depth,
+                             "has_histograms": self.has_histograms,
                              "scene": bool(self.scene_text), "datasets": {k: list(self._file[k].shape) for k in self.datasets}}
         d.update(self.acquisition())
         d.pop("camera_model", None)

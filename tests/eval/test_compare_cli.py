@@ -137,3 +137,25 @@ def test_residual_scale_is_robust_in_the_report(tmp_path):
     assert hi < 6.0  # mm: 2-98 % of a 2 mm Gaussian is about 4 mm
     uri = H.figure_residual_maps([("r", res)])
     assert re.match(r"data:image/png;base64,", uri)
+
+
+def test_report_shows_the_ghost_psfs_of_a_twin_with_a_lens_prescription(sessions, tmp_path, capsys):
+    """B is a twin session of the bundled lens scene: compare's report draws the prescription's
+    ghost PSFs and ghost table (eval/optics_report.py); a plain session gets no lens section."""
+    from tofhil.session import open_session
+    from tofhil.sim.scene import load_scene, scene_to_yaml
+
+    s, _ = syn.scene_signal(0.05)
+    taps = taps_from_signal(np.abs(s)[None], np.angle(s)[None], np.full((1, syn.H, syn.W), 5.0), syn.THETA)
+    text = scene_to_yaml(load_scene("dark_square_card_lens"))
+    with SessionWriter(tmp_path / "twin.h5", syn.CAMERA, device={"model": "tofhil-sim"}, scene_text=text) as w:
+        w.append(RawFrame(taps=taps.astype(np.float32), freq_hz=syn.FREQ, theta_rad=syn.THETA,
+                          integration_time_s=1e-3, camera=syn.CAMERA))
+    code, _, err = run(capsys, "compare", sessions / "b.h5", tmp_path / "twin.h5", "--out", tmp_path / "r")
+    assert code == 0, err
+    page = (tmp_path / "r" / "report.html").read_text()
+    assert "Ghost PSFs" in page and "filter back-sensor" in page and "side B" in page
+    from tofhil.eval.compare import twin_lens_camera
+
+    with open_session(sessions / "b.h5") as a:
+        assert twin_lens_camera(a) is None

@@ -45,9 +45,14 @@ def simulate(scene: str = typer.Argument(..., help="A scene file (.yaml) or a bu
                                               help="Effect parameter EFFECT.PARAM=VALUE, added to the "
                                                    "scene's effects block (repeatable)."),
              no_effects: bool = typer.Option(False, "--no-effects", help="Ignore the scene's effects block."),
-             force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
+             report: Optional[Path] = typer.Option(None, "--report",
+                                                   help="Also write DIR/report.html: each pixel's light by bounce "
+                                                        "and by source object, a direct-ToF scene's histograms, a "
+                                                        "lens prescription's ghost PSFs."),
+             force: bool = typer.Option(False, "--force", help="Overwrite OUT (and the report) if it exists.")) -> None:
     """Render a scene through the twin (effects, sensor, noise) into a session file with raw taps
-    and depth, the scene text embedded."""
+    and depth, the scene text embedded; a scene with a direct_tof block gives SPAD histograms and
+    the depth of their peaks instead of taps."""
     from tofhil.sim.pipeline import simulate_session
     from tofhil.sim.scene import load_scene
 
@@ -64,8 +69,10 @@ def simulate(scene: str = typer.Argument(..., help="A scene file (.yaml) or a bu
 
         parse_effects(effects, source=f"{sc.source} with --effect")  # errors name the option
     path = simulate_session(sc, out_path, frames=frames, seed=seed, noise=not no_noise, force=force,
-                            effects=effects, progress=progress)
+                            effects=effects, progress=progress, report=report)
     out.print(f"wrote {frames} simulated frame{'s' if frames != 1 else ''} of {lit(sc.name or scene)} to {lit(path)}")
+    if report is not None:
+        out.print(f"report: {lit(report / 'report.html')}")
 
 
 @app.command("effects")
