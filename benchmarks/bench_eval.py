@@ -7,13 +7,25 @@ points and 300k measured points:
   against the 300k reference (tree built beforehand), timed in the same run;
 - robust point-to-plane ICP (Open3D, Tukey) time and its ratio to the same query.
 
-Run: /work/venv/bin/python benchmarks/bench_eval.py [--points N] [--repeat K]
+- with ``--pcl BIN`` (``tools/pcl_reference/ndt_time.cpp`` built against Debian's libpcl-dev,
+  see its header): the whole process, from two binary PCD files to the printed score, of
+  ``tofhil ndt`` and of PCL 1.13's ``NormalDistributionsTransform`` (score at the identity),
+  as CPU time of each child process (interpreter start-up and imports included), the two
+  alternated; both scores printed (they agree to ~1e-8: same cells, same d1, d2).
+
+Run: /work/venv/bin/python benchmarks/bench_eval.py [--points N] [--repeat K] [--pcl BIN [--only-pcl]]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -47,14 +59,58 @@ def best_of(fn, repeat: int) -> float:
     return min(times)
 
 
+def child_cpu_s(cmd: list[str]) -> tuple[float, str]:
+    """CPU time (user + system) of one child process run to its end, and its output."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), out
+
+
+def whole_process_vs_pcl(ref: np.ndarray, pts: np.ndarray, pcl_bin: str, repeat: int,
+                         cells: tuple[float, ...] = (0.25, 0.5)) -> None:
+    """``tofhil ndt`` and PCL's NDT score from the same binary PCD files, whole processes."""
+    import open3d as o3d
+
+    with tempfile.TemporaryDirectory() as tmp:
+        files = []
+        for name, p in (("ref", ref), ("cloud", pts)):
+            path = Path(tmp) / f"{name}.pcd"
+            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p.astype(np.float32).astype(np.float64)))
+            o3d.io.write_point_cloud(str(path), pc, write_ascii=False)
+            files.append(str(path))
+        env_py = [sys.executable, "-m", "tofhil.cli", "ndt", *files, "--json"]
+        print(f"whole process, {len(ref)} vs {len(pts)} points from binary PCD, CPU time of the child "
+              f"(median of {repeat}, alternated):")
+        for cell in cells:
+            t_us, t_pcl = [], []
+            for _ in range(repeat):
+                t, out = child_cpu_s(env_py + ["--cell-size", str(cell)])
+                t_us.append(t)
+                t, out_pcl = child_cpu_s([pcl_bin, *files, str(cell), "0.55", "6"])
+                t_pcl.append(t)
+            ours = json.loads(out)["score_per_point"]
+            theirs = float(out_pcl.split()[1])
+            a, b = float(np.median(t_us)), float(np.median(t_pcl))
+            print(f"  cell {cell:4.2f} m: tofhil ndt {a:6.2f} CPU-s, PCL {b:6.2f} CPU-s -> {a / b:4.2f}x PCL "
+                  f"(aim <= 0.5); score per point {ours:.10g} vs PCL {theirs:.10g} (diff {abs(ours - theirs):.1e})")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--points", type=int, default=300_000)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--pcl", default=None, help="tools/pcl_reference/ndt_time built: also the whole-process "
+                                                 "comparison with PCL")
+    ap.add_argument("--only-pcl", action="store_true")
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     ref = room(rng, args.points)
     pts = room(rng, args.points)
+    if args.pcl:
+        whole_process_vs_pcl(ref, pts, args.pcl, args.repeat)
+        if args.only_pcl:
+            return
 
     tree = cKDTree(ref)
     t_build_kd = best_of(lambda: cKDTree(ref), args.repeat)

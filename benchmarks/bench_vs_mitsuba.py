@@ -118,16 +118,26 @@ def cpu_timed(fn, *args, **kw):
 class Tofhil:
     name = "tofhil"
 
-    def __init__(self, scene: Scene, bounces: int, threads: int, sampler: str = "sobol") -> None:
+    def __init__(self, scene: Scene, bounces: int, threads: int, sampler: str = "sobol",
+                 wavefront: bool = False) -> None:
         self.scene, self.bounces, self.threads, self.sampler = scene, bounces, threads, sampler
-        self.label = f"tofhil ({sampler})"
+        self.wavefront = wavefront                    # the bounce-by-bounce loop instead of the fused one
+        self.label = f"tofhil ({sampler}{', wavefront loop' if wavefront else ''})"
         self.render(1, seed=0)                        # JIT warm-up and geometry build
 
     def render(self, spp: int, seed: int) -> Pass:
         from tofhil.sim.render import render
 
-        res, cpu = cpu_timed(render, self.scene, samples_per_pixel=spp, bounces=self.bounces, seed=seed,
-                             threads=self.threads, sampler=self.sampler, freq_hz=[FREQ_HZ])
+        old = os.environ.get("TOFHIL_RENDER_WAVEFRONT")
+        os.environ["TOFHIL_RENDER_WAVEFRONT"] = "1" if self.wavefront else "0"
+        try:
+            res, cpu = cpu_timed(render, self.scene, samples_per_pixel=spp, bounces=self.bounces, seed=seed,
+                                 threads=self.threads, sampler=self.sampler, freq_hz=[FREQ_HZ])
+        finally:
+            if old is None:
+                del os.environ["TOFHIL_RENDER_WAVEFRONT"]
+            else:
+                os.environ["TOFHIL_RENDER_WAVEFRONT"] = old
         return Pass(res.phasor[0, 0], cpu)
 
     def geometry_radial_m(self) -> np.ndarray:
@@ -531,6 +541,9 @@ def main() -> int:
     ap.add_argument("--figures", type=Path, default=None, help="write the error-map PNGs into this folder")
     ap.add_argument("--skip-timing", action="store_true")
     ap.add_argument("--only-timing", action="store_true", help="skip the agreement and glass-slab parts")
+    ap.add_argument("--compare-wavefront", action="store_true",
+                    help="also time tofhil's bounce-by-bounce loop (textures take it; before session 4 "
+                         "tabulated beams, the isotropic emitter among them, did too)")
     ap.add_argument("--media-only", action="store_true", help="only the glass slab (2) and the scattering cube (4)")
     ap.add_argument("--glass-only", action="store_true", help="with --media-only: only the glass slab (2)")
     args = ap.parse_args()
@@ -571,6 +584,10 @@ def main() -> int:
         spps = [16, 64] if args.quick else [256, 1024]
         scene = corner_scene(emitter)
         res = [time_to_1mm(Tofhil(scene, b, args.threads), spps)]
+        if args.compare_wavefront:
+            wf = time_to_1mm(Tofhil(scene, b, args.threads, wavefront=True), spps)
+            print(f"  fused loop / wavefront loop: CPU time to 1 mm {res[0]['cpu_1mm'] / wf['cpu_1mm']:.2f}x, "
+                  f"cost per path sample {res[0]['ns_per_sample'] / wf['ns_per_sample']:.2f}x")
         for s in args.samplers:
             res.append(time_to_1mm(Mitsuba(mi, scene, b, s, work), spps))
         best = min(res[1:], key=lambda r: r["cpu_1mm"])

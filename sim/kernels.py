@@ -32,6 +32,28 @@ def _pow(c, n):  # pragma: no cover
     return c ** n
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _beam(ce, cos_n, beam):  # pragma: no cover
+    """The emitter's relative intensity at ``cos(theta) = ce``: ``cos^n`` on the forward
+    hemisphere for ``cos_n >= 0``; else the table ``beam`` = [theta_deg, values] linearly
+    interpolated in theta as ``BeamProfile.relative`` does (np.interp: the first value before
+    the table, 0 after it); a one-column table is that value over the whole sphere (isotropic:
+    no arccos)."""
+    if cos_n >= 0.0:
+        return _pow(ce, cos_n) if ce > 0.0 else 0.0
+    nt = beam.shape[1]
+    if nt == 1:
+        return beam[1, 0]
+    th = math.acos(min(max(ce, -1.0), 1.0)) * (180.0 / math.pi)
+    if th < beam[0, 0]:
+        return beam[1, 0]
+    if th >= beam[0, nt - 1]:
+        return beam[1, nt - 1] if th == beam[0, nt - 1] else 0.0
+    j = np.searchsorted(beam[0], th, side="right") - 1
+    slope = (beam[1, j + 1] - beam[1, j]) / (beam[0, j + 1] - beam[0, j])
+    return slope * (th - beam[0, j]) + beam[1, j]
+
+
 @njit(nogil=True, cache=True)
 def vertex(idx, prim, tfar, bu, bv, org, shared, dirs, path_in, plane_c, normal, vnormal, smooth,
            emitter_pos, emitter_axis, eps, cos_n, i0,
@@ -221,7 +243,7 @@ def connect_and_bounce(irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, 
 
 @njit(nogil=True, cache=True)
 def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, normal, plane_c, vnormal,
-                smooth, tri_object, rho_d, rho_s, n_s, emitter_pos, emitter_axis, eps, cos_n, i0,
+                smooth, tri_object, rho_d, rho_s, n_s, emitter_pos, emitter_axis, eps, cos_n, i0, beam,
                 k, acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj, n_obj=0):  # pragma: no cover
     """Every sample's whole path in one loop, Embree called per ray (:mod:`tofhil.sim.embree4`).
 
@@ -229,7 +251,8 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
     :func:`connect_and_bounce` applied bounce by bounce: sample ``s`` starts at ``org`` (one
     shared row or one per sample) along ``dirs[s]`` with path length ``path0[s]`` and
     throughput ``beta0[s]``, and draws bounce ``b``'s direction from ``U[s, 4 + 2b]`` and
-    ``U[s, 5 + 2b]``. Uniform reflectance per object (no textures) and a cos^n beam only.
+    ``U[s, 5 + 2b]``. Uniform reflectance per object (no textures).
+    The beam: ``cos^n`` for ``cos_n >= 0``, else the table ``beam`` (:func:`_beam`).
     ``first_t``/``first_obj`` get the primary hit (inf / -1 for a miss); ``ambient_unit`` the
     first vertex's albedo * beta / pi. ``n_obj > 0``: rows by bounce and source object
     (:func:`share_row`). Returns the number of rays traced.
@@ -290,7 +313,7 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
             ex, ey, ez = ex / r, ey / r, ez / r
             cs = sx * ex + sy * ey + sz * ez
             ce = -(ex * emitter_axis[0] + ey * emitter_axis[1] + ez * emitter_axis[2])
-            irr = i0 * _pow(ce, cos_n) * cs / (r * r) if (cs > 0.0 and ce > 0.0) else 0.0
+            irr = i0 * _beam(ce, cos_n, beam) * cs / (r * r) if cs > 0.0 else 0.0
             if irr > 0.0:
                 eda.set_ray(f, u, o, np.float32(px + eps * gx), np.float32(py + eps * gy), np.float32(pz + eps * gz),
                             np.float32(ex), np.float32(ey), np.float32(ez), np.float32(r - 2.0 * eps))
@@ -313,6 +336,21 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
             dx, dy, dz = ndx, ndy, ndz
             path_in = path
     return rays
+
+
+@njit(nogil=True, cache=True)
+def rotate_rows(v, R, out):  # pragma: no cover
+    """``out = v @ R.T`` for [N, 3] rows, in the numpy expression's order
+    ``(v0 R[k, 0] + v1 R[k, 1]) + v2 R[k, 2]`` (no fused multiply-add: bit-identical to it),
+    without its five [N, 3] temporaries."""
+    r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
+    r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
+    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
+    for i in range(v.shape[0]):
+        a, b, c = v[i, 0], v[i, 1], v[i, 2]
+        out[i, 0] = a * r00 + b * r01 + c * r02
+        out[i, 1] = a * r10 + b * r11 + c * r12
+        out[i, 2] = a * r20 + b * r21 + c * r22
 
 
 # --------------------------------------------------------------------------- dielectrics

@@ -245,16 +245,18 @@ class _Context:
         self.origin32 = np.empty((min(camera.width * camera.height * spp, BATCH + spp), 3), dtype=np.float32)
         self.origin32[:] = self.t
         prof = scene.emitter.profile
-        # Beam profile in the kernel for cos^n (I = i0 cos^n); -1: tabulated, done in numpy.
+        # Beam profile (I = i0 p): cos^n in the kernels; -1: tabulated, `beam` for the fused
+        # loop (the wavefront loop's vertex kernel leaves it to numpy).
         self.cos_n = float(prof.n) if prof.kind == "cos_n" else -1.0
         self.i0 = scene.emitter.power_w / prof.solid_angle_norm_sr
-        # The fused path loop covers uniform reflectances and cos^n beams (the common case);
-        # textures and tabulated beams take the wavefront loop below.
-        self.fused = (self.geom.direct is not None and not self.textured and self.cos_n >= 0
+        self.beam = _beam_table(prof)
+        # The fused path loop covers uniform reflectances and any beam; textures take the
+        # wavefront loop below.
+        self.fused = (self.geom.direct is not None and not self.textured
                       and os.environ.get("TOFHIL_RENDER_WAVEFRONT", "") in ("", "0"))
         self.glass = dielectric.dielectric_tables(scene)
         if self.glass.any:
-            _check_glass(scene, self.glass, self.fused, t, self.emitter_pos)
+            _check_glass(scene, self.glass, self.fused and self.cos_n >= 0, t, self.emitter_pos)
             if shares:
                 raise TofhilError("multipath shares are not computed through glass or media", field="multipath_shares",
                                   expected="a scene without materials with ior or scattering_per_m")
@@ -419,7 +421,7 @@ class _Context:
                     o_full[idx] = obj
                     out["radial"], out["object_id"] = t_full[::spp], o_full[::spp]
                 else:
-                    hc = geom.intersect(self.t, _rotate(self.centre_rays[p0:p1], self.R))
+                    hc = geom.intersect(self.t, self.centre_world[p0:p1])
                     rays += npix
                     out["radial"] = hc.full(hc.t, np.inf)
                     out["object_id"] = hc.full(geom.tri_object[hc.prim], -1).astype(np.int32)
@@ -474,8 +476,8 @@ class _Context:
                    acc_re: np.ndarray, acc_im: np.ndarray, power: np.ndarray, ambient_unit: np.ndarray,
                    edges: np.ndarray, trans: np.ndarray, vnormal: np.ndarray, smooth: bool,
                    out_maps: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """The chunk's paths in one compiled loop that calls Embree per ray (no textures, a
-        cos^n beam): no per-bounce Python round trip and no per-ray temporary arrays."""
+        """The chunk's paths in one compiled loop that calls Embree per ray (no textures):
+        no per-bounce Python round trip and no per-ray temporary arrays."""
         geom = self.geom
         n = len(dirs)
         # One centre ray per pixel and the frame's maps at hand: the primary hits go straight
@@ -503,14 +505,14 @@ class _Context:
                 np.ascontiguousarray(path0, dtype=np.float64), np.ascontiguousarray(beta, dtype=np.float64),
                 np.ascontiguousarray(local, dtype=np.int64), np.ascontiguousarray(U2), self.bounces,
                 geom.normal, geom.plane_c, vnormal, smooth, geom.tri_object, self.rho_d, self.rho_s, self.n_s,
-                self.emitter_pos, self.emitter_axis, RAY_EPSILON_M, self.cos_n, self.i0, self.k,
+                self.emitter_pos, self.emitter_axis, RAY_EPSILON_M, self.cos_n, self.i0, self.beam, self.k,
                 acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj, self.n_obj)
         if direct_maps:
             out["maps_in_place"] = np.array(True)
         elif not self.subpixel and not self.thin_lens:
             out["radial"], out["object_id"] = first_t[::self.spp], first_obj[::self.spp]
         else:
-            hc = geom.intersect(self.t, _rotate(self.centre_rays[p0:p1], self.R))
+            hc = geom.intersect(self.t, self.centre_world[p0:p1])
             rays += npix
             out["radial"] = hc.full(hc.t, np.inf)
             out["object_id"] = hc.full(geom.tri_object[hc.prim], -1).astype(np.int32)
@@ -522,6 +524,18 @@ class _Context:
         if self.edges is not None:
             out["transient"] = trans
         return out
+
+
+def _beam_table(prof: Any) -> np.ndarray:
+    """A tabulated beam profile as the fused kernel reads it (:func:`kernels._beam`): rows
+    theta_deg and relative intensity; one column when it is the same value over the whole
+    sphere (isotropic), so the kernel skips the arccos. Empty for cos^n."""
+    if prof.kind == "cos_n":
+        return np.zeros((2, 0))
+    th, va = np.asarray(prof.theta_deg, dtype=np.float64), np.asarray(prof.values, dtype=np.float64)
+    if th[0] == 0.0 and th[-1] == 180.0 and np.all(va == va[0]):
+        return np.array([[0.0], [va[0]]])
+    return np.ascontiguousarray(np.stack([th, va]))
 
 
 def _check_glass(scene: Scene, glass: dielectric.DielectricTables, fused: bool, camera_pos: np.ndarray,
@@ -585,7 +599,9 @@ def _rotate(v: np.ndarray, R: np.ndarray) -> np.ndarray:
     """``v @ R.T`` for [N, 3] rows without BLAS (tiny inner dimension; avoids BLAS threads)."""
     if np.array_equal(R, np.eye(3)):
         return v
-    return v[:, 0:1] * R[:, 0] + v[:, 1:2] * R[:, 1] + v[:, 2:3] * R[:, 2]
+    out = np.empty((len(v), 3))
+    kernels.rotate_rows(np.ascontiguousarray(v, dtype=np.float64), np.ascontiguousarray(R, dtype=np.float64), out)
+    return out
 
 
 def _transient_edges(scene: Scene, geom: Geometry, bins: int | Sequence[float], bounces: int,

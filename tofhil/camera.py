@@ -20,6 +20,10 @@ from tofhil.yamlio import load_yaml_file
 
 DistanceKind = Literal["radial", "z"]
 
+#: Points from which :meth:`CameraModel.undistort_normalized` runs compiled (fewer: numpy,
+#: no numba import for a handful of points).
+_COMPILED_UNDISTORT_MIN = 4096
+
 
 @dataclass(frozen=True)
 class CameraModel:
@@ -85,7 +89,12 @@ class CameraModel:
         if not self.has_distortion:
             return xd, yd
         # Fixed-point inversion of the OpenCV model (as cv2.undistortPoints), run to
-        # convergence: 20 iterations reach < 1e-10 px for realistic lenses.
+        # convergence: 20 iterations reach < 1e-10 px for realistic lenses. Many points: the
+        # same arithmetic compiled (bit-identical, ~10x less CPU; numba imported only then).
+        if xd.size >= _COMPILED_UNDISTORT_MIN:
+            from tofhil.camera_kernels import undistort_arrays
+
+            return undistort_arrays(xd, yd, self.dist, 20)
         k1, k2, p1, p2, k3 = self.dist
         x, y = xd.copy(), yd.copy()
         for _ in range(20):

@@ -8,7 +8,9 @@ cache. The phase uses a branch-free arctangent polynomial (|error| < 1e-7 rad, a
 rounding) that the compiler vectorises; the results agree with the numpy path of
 :func:`tofhil.depth.depth_from_raw` to that level (tested). The same pass flags pixels with a
 saturated or non-finite tap (:func:`tofhil.demod.bad_tap_pixels`), so the kernels are
-compiled without the no-NaN/no-inf fast-math assumptions (a NaN tap must be seen as one).
+compiled without the no-NaN/no-inf fast-math assumptions (a NaN tap must be seen as one),
+and with numpy's error model: numba's default checks every float division for a zero divisor
+(a branch that raises), and that branch alone kept each pixel loop with a division scalar.
 """
 from __future__ import annotations
 
@@ -26,7 +28,7 @@ _TWO_PI = np.float32(2 * math.pi)
 _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
-@njit(inline="always", fastmath=_FASTMATH)
+@njit(inline="always", fastmath=_FASTMATH, error_model="numpy")
 def _phase(y: float, x: float) -> float:
     """atan2(y, x) mapped into [0, 2 pi).
 
@@ -51,7 +53,7 @@ def _phase(y: float, x: float) -> float:
 _BLOCK = 1024
 
 
-@njit(fastmath=_FASTMATH, cache=True)
+@njit(fastmath=_FASTMATH, error_model="numpy", cache=True)
 def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out_conf, out_valid):  # pragma: no cover
     """taps [F, K, N] float32 -> distance, mean amplitude, mean tap (intensity), conflict
     (uint8) and validity (uint8: no conflict, no bad tap -- a tap not inside the open
@@ -104,6 +106,22 @@ def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out
                     S[j] += x0 + x1 + x2 + x3
                     ok = ((x0 > lo) & (x0 < hi) & (x1 > lo) & (x1 < hi)
                           & (x2 > lo) & (x2 < hi) & (x3 > lo) & (x3 < hi))
+                    G[j] &= np.uint8(1) if ok else np.uint8(0)
+                continue
+            if k == 3:
+                # Three taps (odd K: no differences) likewise in one loop per pixel.
+                t0 = taps[f, 0, b0:b0 + m]
+                t1 = taps[f, 1, b0:b0 + m]
+                t2 = taps[f, 2, b0:b0 + m]
+                w0r, w1r, w2r, w0i, w1i, w2i = wr[0], wr[1], wr[2], wi[0], wi[1], wi[2]
+                for j in range(m):
+                    x0, x1, x2 = t0[j], t1[j], t2[j]
+                    i_ = w0r * x0 + w1r * x1 + w2r * x2
+                    q_ = w0i * x0 + w1i * x1 + w2i * x2
+                    fa[j] = math.sqrt(i_ * i_ + q_ * q_)
+                    fp[j] = _phase(q_, i_)
+                    S[j] += x0 + x1 + x2
+                    ok = (x0 > lo) & (x0 < hi) & (x1 > lo) & (x1 < hi) & (x2 > lo) & (x2 < hi)
                     G[j] &= np.uint8(1) if ok else np.uint8(0)
                 continue
             fi = bi[f]
@@ -192,7 +210,7 @@ def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out
 _UNROLL3 = 8
 
 
-@njit(fastmath=_FASTMATH, cache=True, inline="always")
+@njit(fastmath=_FASTMATH, error_model="numpy", cache=True, inline="always")
 def _candidate(cnt, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, i2):  # pragma: no cover
     """Wrap count ``cnt`` of the reference frequency, the others' counts by rounding: the three
     unwrapped distances and their weighted variance (times the weight sum)."""
@@ -207,21 +225,33 @@ def _candidate(cnt, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, 
     return cost, u0, u1, u2
 
 
-@njit(fastmath=_FASTMATH, cache=True, inline="always")
+@njit(fastmath=_FASTMATH, error_model="numpy", cache=True, inline="always")
 def _search3(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf):  # pragma: no cover
     """Three frequencies: every wrap count of the reference (lowest) frequency, the others'
     counts by rounding; the candidate with the least weighted variance (as
     :func:`tofhil.unwrap._search`; the first of equal ones), then the weighted mean wrapped
     into the range. Up to :data:`_UNROLL3` counts the candidate loop has a constant trip
     count (counts past the plan's cost nothing: they are never taken), so the compiler
-    unrolls it and vectorises the pixel loop."""
+    unrolls it and vectorises the pixel loop; the choice between the two trip counts is made
+    once, outside the pixel loop (inside it, it kept the loop scalar)."""
+    if int(c[13]) <= 4:                     # 80/100/120 MHz: no work on counts past the plan's
+        _search3_pixels(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf, 4)
+    elif int(c[13]) <= _UNROLL3:
+        _search3_pixels(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf, _UNROLL3)
+    else:
+        _search3_pixels(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf, int(c[13]))
+
+
+@njit(fastmath=_FASTMATH, error_model="numpy", cache=True, inline="always")
+def _search3_pixels(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf, trips):  # pragma: no cover
+    """The pixel loop of :func:`_search3`, ``trips`` wrap counts per pixel (of which the
+    plan's ``c[13]`` are candidates)."""
     inv_two_pi = np.float32(1.0 / (2.0 * math.pi))
     ref = int(c[12])
     ncount = int(c[13])
     r0, r1, r2 = r[0], r[1], r[2]
     i0, i1, i2 = np.float32(1.0) / r0, np.float32(1.0) / r1, np.float32(1.0) / r2
     rref = r0 if ref == 0 else (r1 if ref == 1 else r2)
-    unrolled = ncount <= _UNROLL3
     # Every constant in a register (see the two-frequency loop), and the fit weights too.
     rng_, inv_rng = c[8], c[9]
     s01, s02, s12 = spacing[0, 1], spacing[0, 2], spacing[1, 2]
@@ -237,22 +267,13 @@ def _search3(ph, am, m, c, r, fw, spacing, o_d, o_amp, o_conf):  # pragma: no co
         ks = np.float32(1.0) / (k0 + k1 + k2)
         wref = w0 if ref == 0 else (w1 if ref == 1 else w2)
         best, b0, b1, b2 = _candidate(0, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, i2)
-        if unrolled:
-            for cnt in range(1, _UNROLL3):
-                cost, u0, u1, u2 = _candidate(cnt, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, i2)
-                better = (cost < best) & (cnt < ncount)
-                best = cost if better else best
-                b0 = u0 if better else b0
-                b1 = u1 if better else b1
-                b2 = u2 if better else b2
-        else:
-            for cnt in range(1, ncount):
-                cost, u0, u1, u2 = _candidate(cnt, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, i2)
-                better = cost < best
-                best = cost if better else best
-                b0 = u0 if better else b0
-                b1 = u1 if better else b1
-                b2 = u2 if better else b2
+        for cnt in range(1, trips):
+            cost, u0, u1, u2 = _candidate(cnt, rref, wref, w0, w1, w2, k0, k1, k2, ks, r0, r1, r2, i0, i1, i2)
+            better = (cost < best) & (cnt < ncount)
+            best = cost if better else best
+            b0 = u0 if better else b0
+            b1 = u1 if better else b1
+            b2 = u2 if better else b2
         d = (k0 * b0 + k1 * b1 + k2 * b2) * ks
         d = d - np.floor(d * inv_rng) * rng_
         o_d[j] = min(d, rng_)

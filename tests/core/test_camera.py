@@ -41,6 +41,29 @@ def test_undistortion_agrees_with_opencv():
     np.testing.assert_allclose(y, ref[:, 1], atol=1e-7)
 
 
+def test_compiled_undistortion_is_the_numpy_iteration(monkeypatch: pytest.MonkeyPatch):
+    """Many points run through the compiled kernel: bit-identical to the numpy iteration, and
+    OpenCV's inverse too (a kernel that iterated wrongly would miss it)."""
+    import cv2
+
+    import tofhil.camera as camera_module
+
+    rng = np.random.default_rng(1)
+    u = rng.uniform(-0.5, 63.5, (70, 90))          # 6300 subpixel points, >= the threshold
+    v = rng.uniform(-0.5, 47.5, (70, 90))
+    compiled = DISTORTED.undistort_normalized(u, v)
+    monkeypatch.setattr(camera_module, "_COMPILED_UNDISTORT_MIN", 10**12)
+    plain = DISTORTED.undistort_normalized(u, v)
+    assert compiled[0].shape == u.shape
+    np.testing.assert_array_equal(compiled[0], plain[0])
+    np.testing.assert_array_equal(compiled[1], plain[1])
+    pts = np.stack([u.ravel(), v.ravel()], axis=-1)[:, None, :]
+    ref = cv2.undistortPoints(pts, DISTORTED.K, np.array(DISTORTED.dist),
+                              criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14))[:, 0, :]
+    np.testing.assert_allclose(compiled[0].ravel(), ref[:, 0], atol=1e-7)
+    np.testing.assert_allclose(compiled[1].ravel(), ref[:, 1], atol=1e-7)
+
+
 def test_radial_z_round_trip_and_closed_form():
     cam = CameraModel.from_fov(40, 30, 70.0)
     rng = np.random.default_rng(0)

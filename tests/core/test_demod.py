@@ -117,7 +117,9 @@ def test_depth_from_raw_plane_single_frequency():
 
 @pytest.mark.parametrize("freqs,k", [([44e6], 4), ([80e6, 100e6], 4), ([10e6, 20e6], 4), ([44e6], 3),
                                      ([80e6, 100e6], 5), ([80e6, 100e6], 8), ([20e6, 30e6, 50e6], 4),
-                                     ([80e6, 100e6, 120e6], 3), ([60e6, 80e6, 100e6], 6)])
+                                     ([80e6, 100e6, 120e6], 3), ([60e6, 80e6, 100e6], 6),
+                                     # the search's other trip counts: 5-8 and > 8 wrap counts
+                                     ([50e6, 60e6, 70e6], 4), ([90e6, 100e6, 110e6], 4)])
 @pytest.mark.parametrize("start_deg", [0.0, 37.0])
 def test_fused_path_agrees_with_general_path(freqs, k, start_deg):
     """The fused kernel (approximate arctangent, one pass over the taps) against the numpy

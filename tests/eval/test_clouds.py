@@ -141,3 +141,42 @@ def test_session_without_depth(tmp_path):
         w.append(raw=RawFrame(np.ones((1, 4, 3, 4)), np.array([20e6]), np.arange(4) * np.pi / 2, 1e-3, cam))
     with pytest.raises(InputFileError, match="no depth"):
         load_cloud(path)
+
+
+def _write_pcd_binary(path: Path, rows: np.ndarray, fields: str, sizes: str, types: str, n: int) -> None:
+    head = (f"# .PCD v0.7\nVERSION 0.7\nFIELDS {fields}\nSIZE {sizes}\nTYPE {types}\nCOUNT {' '.join('1' * len(fields.split()))}\n"
+            f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n")
+    path.write_bytes(head.encode() + rows.tobytes())
+
+
+def test_binary_pcd_read_without_open3d_equals_open3d(tmp_path):
+    """An uncompressed binary PCD is read from its bytes (no Open3D import): the same points
+    as Open3D reads, also with other fields before and between x, y, z and float64 x y z."""
+    from tofhil.eval import clouds
+
+    rng = np.random.default_rng(4)
+    p = tmp_path / "o3d.pcd"
+    _write_o3d(p, rng.normal(size=(500, 3)), ascii=False)
+    direct = clouds._read_pcd_binary(p)
+    assert direct is not None
+    np.testing.assert_array_equal(direct, clouds._read_open3d(p))
+    np.testing.assert_array_equal(load_cloud(p), direct)
+    dt = np.dtype([("rgb", "<u4"), ("x", "<f8"), ("i", "<u2"), ("y", "<f8"), ("z", "<f8")])
+    rows = np.zeros(40, dt)
+    pts = rng.normal(size=(40, 3))
+    rows["x"], rows["y"], rows["z"], rows["rgb"], rows["i"] = pts[:, 0], pts[:, 1], pts[:, 2], 7, 9
+    q = tmp_path / "mixed.pcd"
+    _write_pcd_binary(q, rows, "rgb x intensity y z", "4 8 2 8 8", "U F U F F", 40)
+    np.testing.assert_array_equal(load_cloud(q), pts)
+    # ascii: not this reader's (Open3D reads it)
+    a = tmp_path / "a.pcd"
+    _write_o3d(a, pts, ascii=True)
+    assert clouds._read_pcd_binary(a) is None
+
+
+def test_truncated_binary_pcd_is_refused(tmp_path):
+    rows = np.zeros((10, 3), "<f4")
+    p = tmp_path / "short.pcd"
+    _write_pcd_binary(p, rows[:7], "x y z", "4 4 4", "F F F", 10)
+    with pytest.raises(InputFileError, match="short.pcd: field 'POINTS'"):
+        load_cloud(p)

@@ -245,6 +245,10 @@ def test_glass_setups_the_renderer_does_not_model_are_refused(monkeypatch: pytes
     d["objects"][0]["size"] = [1.0, 1.0]
     with pytest.raises(TofhilError, match="reaches into the glass box"):
         render(scene_from_dict(d))
+    d = pane_scene()                                        # the media kernel has no beam table
+    d["emitter"]["profile"] = {"type": "table", "theta_deg": [0.0, 180.0], "relative_intensity": [1.0, 1.0]}
+    with pytest.raises(TofhilError, match="compiled path loop only"):
+        render(scene_from_dict(d))
     monkeypatch.setenv("TOFHIL_RENDER_WAVEFRONT", "1")
     with pytest.raises(TofhilError, match="compiled path loop only"):
         render(scene_from_dict(pane_scene()))
