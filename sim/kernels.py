@@ -54,6 +54,20 @@ def _beam(ce, cos_n, beam):  # pragma: no cover
     return slope * (th - beam[0, j]) + beam[1, j]
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _plane_hit(normal, plane_c, p, ox, oy, oz, dx, dy, dz, te):  # pragma: no cover
+    """Embree's float32 hit distance ``te`` refined in float64 on the plane of triangle ``p``
+    (kept when the two agree to 1e-4, i.e. not at a grazing angle), and ``d . n``."""
+    nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
+    dn = dx * nx + dy * ny + dz * nz
+    t = te
+    if dn != 0.0:
+        tr = (plane_c[p] - (ox * nx + oy * ny + oz * nz)) / dn
+        if abs(tr - te) < 1e-4 * max(1.0, te):
+            t = tr
+    return t, dn
+
+
 @njit(nogil=True, cache=True)
 def vertex(idx, prim, tfar, bu, bv, org, shared, dirs, path_in, plane_c, normal, vnormal, smooth,
            emitter_pos, emitter_axis, eps, cos_n, i0,
@@ -72,13 +86,7 @@ def vertex(idx, prim, tfar, bu, bv, org, shared, dirs, path_in, plane_c, normal,
             ox, oy, oz = org[i, 0], org[i, 1], org[i, 2]
         dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
         nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
-        dn = dx * nx + dy * ny + dz * nz
-        te = np.float64(tfar[i])
-        t = te
-        if dn != 0.0:
-            tr = (plane_c[p] - (ox * nx + oy * ny + oz * nz)) / dn
-            if abs(tr - te) < 1e-4 * max(1.0, te):
-                t = tr
+        t, dn = _plane_hit(normal, plane_c, p, ox, oy, oz, dx, dy, dz, np.float64(tfar[i]))
         px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
         x[j, 0], x[j, 1], x[j, 2] = px, py, pz
         wo[j, 0], wo[j, 1], wo[j, 2] = -dx, -dy, -dz
@@ -285,13 +293,7 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
                     first_obj[s] = -1
                 break
             nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
-            dn = dx * nx + dy * ny + dz * nz
-            te = np.float64(f[o + 8])
-            t = te
-            if dn != 0.0:
-                tr = (plane_c[p] - (ox * nx + oy * ny + oz * nz)) / dn
-                if abs(tr - te) < 1e-4 * max(1.0, te):
-                    t = tr
+            t, dn = _plane_hit(normal, plane_c, p, ox, oy, oz, dx, dy, dz, np.float64(f[o + 8]))
             px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
             sg = 1.0 if dn < 0.0 else -1.0
             gx, gy, gz = sg * nx, sg * ny, sg * nz
@@ -457,13 +459,7 @@ def trace_paths_media(scene, buf, org, shared, dirs, path0, beta0, local, U, bou
                         alive = True
             if alive and not scattered:
                 nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
-                dn = dx * nx + dy * ny + dz * nz
-                te = np.float64(f[o + 8])
-                t = te
-                if dn != 0.0:
-                    tr = (plane_c[p] - (ox * nx + oy * ny + oz * nz)) / dn
-                    if abs(tr - te) < 1e-4 * max(1.0, te):
-                        t = tr
+                t, dn = _plane_hit(normal, plane_c, p, ox, oy, oz, dx, dy, dz, np.float64(f[o + 8]))
                 px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
                 sg = 1.0 if dn < 0.0 else -1.0
                 gx, gy, gz = sg * nx, sg * ny, sg * nz
