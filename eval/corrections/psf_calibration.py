@@ -484,7 +484,7 @@ def select_field_order(captures: Sequence[np.ndarray], cx: float, cy: float, *, 
 #: The free-form calibration's options (:func:`calibrate_psf`): many widths with a
 #: shift-variant copy (its order chosen on held-out captures, :func:`select_field_order`),
 #: a fitted ghost centre, smoothness chosen on held-out pixels.
-FREE_FORM: dict[str, Any] = {"field": "select", "ghost_center_px": "fit",
+FREE_FORM: dict[str, Any] = {"field": "select", "ghost_center_px": "fit", "ghost_magnification": "fit",
                              "lambdas": (0.0, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)}
 
 

@@ -61,6 +61,21 @@ def test_fit_quality_report_warns_when_the_data_cannot_constrain_the_model():
     assert any("almost no stray light" in w for w in psf0.info["warnings"])
 
 
+def test_fit_quality_report_warns_when_no_capture_can_see_the_ghost():
+    lens = L.lenses()["gauss_other"]
+    quick = dict(rounds=1, sigmas=pc.default_sigmas(L.H, L.W)[::2], refine=False)
+    # A patch centred on the principal point: its mirror ghost lands on the patch itself, so
+    # no background pixel sees it and its weight is whatever the fit makes of nothing.
+    centred = L.patch_captures(lens)[4]
+    psf = pc.calibrate_psf_target(centred, L.CX, L.CY, **quick)
+    assert psf.info["ghost_visibility"] < 0.01
+    assert any("cannot see a ghost" in w for w in psf.info["warnings"])
+    # The card in a corner sees it: no such warning.
+    psf = pc.calibrate_psf_target(L.calibration_capture(lens), L.CX, L.CY, **quick)
+    assert psf.info["ghost_visibility"] > 0.5
+    assert not any("ghost" in w for w in psf.info["warnings"])
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["ghost_2px", "ghost_7px", "ghost_10px"])
 def test_free_form_beats_the_baseline_on_off_centre_ghosts(name):
