@@ -235,8 +235,15 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
 
         x0 = np.concatenate([np.log(np.repeat(init, 2)), np.zeros(n_gc), np.log(ghost_init),
                              [mag] if ghost_groups and fit_mag else []])
+        # The first simplex spans steps the fit can feel (scipy's default steps a parameter
+        # that starts at 0 by 2.5e-4: a centre offset would never leave the integer shift the
+        # correlation found): 10 % in width, half a pixel in the centre, 0.05 in magnification.
+        steps = np.concatenate([np.full(n_lobe, 0.1), np.full(n_gc, 0.5), np.full(n_gs, 0.1),
+                                [0.05] if ghost_groups and fit_mag else []])
+        simplex = np.vstack([x0, x0 + np.diag(steps)])
         res = minimize(lambda x: solve(x)[1], x0, method="Nelder-Mead",
-                       options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": min(80 * x0.size + 40, 600)})
+                       options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": min(80 * x0.size + 40, 600),
+                                "initial_simplex": simplex})
         c_ref, r_ref, ts = solve(res.x)
         if r_ref < rnorm:
             terms, coef, rnorm = ts, c_ref, r_ref
