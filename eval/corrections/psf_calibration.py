@@ -215,14 +215,18 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
         n_gc = 2 if ghost_groups and fit_centre else 0
         n_gs = len(ghost_groups)
 
-        def solve(x: np.ndarray) -> tuple[np.ndarray, float, list[tuple[str, str, Any, np.ndarray]]]:
-            gs = [("gauss", f"gauss_{sx:.3g}x{sy:.3g}", (sx, sy), column(blur(sx, sy)))
-                  for sx, sy in np.exp(np.clip(x[:n_lobe], LOG_SIGMA_RANGE[0], LOG_SIGMA_RANGE[1])).reshape(-1, 2)]
+        dictionary_lobes = [k for k, c in zip(terms[:n_gauss], coef[:n_gauss]) if c > 0]
+
+        def solve(x: np.ndarray, nl: int) -> tuple[np.ndarray, float, list[tuple[str, str, Any, np.ndarray]]]:
+            # nl = 0: the dictionary's active lobes as they are, only the ghost refined.
+            gs = dictionary_lobes if nl == 0 else [
+                ("gauss", f"gauss_{sx:.3g}x{sy:.3g}", (sx, sy), column(blur(sx, sy)))
+                for sx, sy in np.exp(np.clip(x[:nl], LOG_SIGMA_RANGE[0], LOG_SIGMA_RANGE[1])).reshape(-1, 2)]
             extra: list[tuple[str, str, Any, np.ndarray]] = []
             if ghost_groups:
-                c = (center[0] + x[n_lobe], center[1] + x[n_lobe + 1]) if n_gc else center
-                m = float(x[n_lobe + n_gc + n_gs]) if fit_mag else mag
-                for sg in np.exp(np.clip(x[n_lobe + n_gc:n_lobe + n_gc + n_gs], np.log(0.05), LOG_SIGMA_RANGE[1])):
+                c = (center[0] + x[nl], center[1] + x[nl + 1]) if n_gc else center
+                m = float(x[nl + n_gc + n_gs]) if fit_mag else mag
+                for sg in np.exp(np.clip(x[nl + n_gc:nl + n_gc + n_gs], np.log(0.05), LOG_SIGMA_RANGE[1])):
                     extra.append(("ghost", f"ghost_{sg:.3g}" + ("" if m == -1.0 else f"_m{m:.3g}"), (sg, sg, m),
                                   column(ghost_image(float(sg), c, m))))
             new = gs + extra
@@ -233,24 +237,28 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
             res2 = bb - 2 * cc @ np.concatenate([a_g.T @ rhs, c_f]) + cc @ gram @ cc
             return cc, float(np.sqrt(max(res2, 0.0))), new + fixed
 
-        x0 = np.concatenate([np.log(np.repeat(init, 2)), np.zeros(n_gc), np.log(ghost_init),
-                             [mag] if ghost_groups and fit_mag else []])
-        # The first simplex spans steps the fit can feel (scipy's default steps a parameter
-        # that starts at 0 by 2.5e-4: a centre offset would never leave the integer shift the
-        # correlation found): 10 % in width, half a pixel in the centre, 0.05 in magnification.
-        steps = np.concatenate([np.full(n_lobe, 0.1), np.full(n_gc, 0.5), np.full(n_gs, 0.1),
-                                [0.05] if ghost_groups and fit_mag else []])
-        simplex = np.vstack([x0, x0 + np.diag(steps)])
-        res = minimize(lambda x: solve(x)[1], x0, method="Nelder-Mead",
-                       options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": min(80 * x0.size + 40, 600),
-                                "initial_simplex": simplex})
-        c_ref, r_ref, ts = solve(res.x)
-        if r_ref < rnorm:
-            terms, coef, rnorm = ts, c_ref, r_ref
-            if n_gc:
-                center = (center[0] + res.x[n_lobe], center[1] + res.x[n_lobe + 1])
-            if ghost_groups and fit_mag:
-                mag = float(res.x[n_lobe + n_gc + n_gs])
+        # First lobes and ghost together; then, if there is a ghost, the ghost alone beside the
+        # dictionary's lobes: merging a run of active widths into one lobe can lose more than
+        # the ghost's refinement gains (three lobes a factor 4-5 apart), and the ghost's blur
+        # and magnification must not be lost with it. The better fit is kept.
+        for nl in ([n_lobe, 0] if ghost_groups else [n_lobe]):
+            x0 = np.concatenate([np.log(np.repeat(init, 2))[:nl], np.zeros(n_gc), np.log(ghost_init),
+                                 [mag] if ghost_groups and fit_mag else []])
+            # The first simplex spans steps the fit can feel (scipy's default steps a parameter
+            # that starts at 0 by 2.5e-4: a centre offset would never leave the integer shift the
+            # correlation found): 10 % in width, half a pixel in the centre, 0.05 in magnification.
+            steps = np.concatenate([np.full(nl, 0.1), np.full(n_gc, 0.5), np.full(n_gs, 0.1),
+                                    [0.05] if ghost_groups and fit_mag else []])
+            res = minimize(lambda x: solve(x, nl)[1], x0, method="Nelder-Mead",
+                           options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": min(80 * x0.size + 40, 600),
+                                    "initial_simplex": np.vstack([x0, x0 + np.diag(steps)])})
+            c_ref, r_ref, ts = solve(res.x, nl)
+            if r_ref < rnorm:
+                terms, coef, rnorm = ts, c_ref, r_ref
+                if n_gc:
+                    center = (center[0] + res.x[nl], center[1] + res.x[nl + 1])
+                if ghost_groups and fit_mag:
+                    mag = float(res.x[nl + n_gc + n_gs])
     lobes, ghosts, veil_w, loss = [], [], 0.0, 0.0
     field_w: dict[float, list[float]] = {}
     gc = None if ghost_center_px is None else center

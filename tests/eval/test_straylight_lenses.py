@@ -61,6 +61,20 @@ def test_fit_quality_report_warns_when_the_data_cannot_constrain_the_model():
     assert any("almost no stray light" in w for w in psf0.info["warnings"])
 
 
+def test_ghost_magnification_and_blur_are_fitted():
+    # The test lens's ghost is upright and magnified 1.3x about the principal point (as
+    # sim/optics.py traces them), blurred 3 px, moved pixel area by pixel area in the test:
+    # one card, the centre the principal point, magnification and blur fitted.
+    lens = L.lenses()["ghost_mag_up"]
+    w, sigma, _, m = lens.ghosts[0]
+    psf = pc.calibrate_psf_target(L.calibration_capture(lens), L.CX, L.CY, rounds=2, ghost_magnification="fit")
+    assert psf.info["ghost_magnification"] == pytest.approx(m, abs=0.02)
+    main = max(psf.ghosts, key=lambda g: g.weight)
+    assert main.magnification == pytest.approx(m, abs=0.02) and main.sigma_px == pytest.approx(sigma, abs=0.3)
+    # The calibration sees S' = (1 - W) S: the ghost's fraction of that is w / (1 - W).
+    assert main.weight == pytest.approx(w / (1 - lens.total), rel=0.05)
+
+
 def test_fit_quality_report_warns_when_no_capture_can_see_the_ghost():
     lens = L.lenses()["gauss_other"]
     quick = dict(rounds=1, sigmas=pc.default_sigmas(L.H, L.W)[::2], refine=False)
