@@ -129,12 +129,8 @@ def test_cli_calibrates_one_free_form_psf_from_several_captures(tmp_path, tofhil
     assert bad.returncode == 2 and "--psf-form" in bad.stderr
 
 
-_SHORT = {"gauss_other": "measured 94.9 % at 1 %"}
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(reason=_SHORT[n], strict=True))
-                                  if n in _SHORT else n for n in L.lenses()])
+@pytest.mark.parametrize("name", list(L.lenses()))
 def test_bench_procedure_removes_95_percent_for_every_lens_form(name):
     """The documented procedure (a card on black and a bright patch at four more field
     positions, free form) removes >= 95 % of the dark-square error at 50, 5, 2 and 1 %."""
