@@ -208,7 +208,10 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
         gi = [i for i, k in enumerate(terms) if k[0] == "ghost"]
         g_sig = np.array([terms[i][2][0] for i in gi])
         # Each run of neighbouring active blurs becomes one ghost of continuous width.
-        ghost_groups = _active_groups(coef[gi]) if gi else []
+        # A ghost the dictionary gives almost no light (< 1e-3: a lens without one) is not
+        # refined: its extra parameters only slow the lobes' refinement (r^-3 lens: 98.4 %
+        # at 1 % with it, 99.8 % without).
+        ghost_groups = _active_groups(coef[gi]) if gi and float(np.sum(coef[gi])) > GHOST_MIN_WEIGHT else []
         ghost_init = [max(float(np.average(g_sig[g], weights=coef[gi][g])), 0.3) for g in ghost_groups]
         init = np.array([np.exp(np.average(np.log(sig[g]), weights=coef[g])) for g in groups])
         n_lobe = 2 * len(groups)
@@ -338,6 +341,8 @@ def _quality(terms: list[tuple[str, str, Any, np.ndarray]], coef: np.ndarray, rh
 
 #: Variance inflation above which a component is reported as not constrained by the data.
 VIF_LIMIT = 1e6
+#: Ghost fraction of light below which the refinement leaves the ghost out.
+GHOST_MIN_WEIGHT = 1e-3
 #: Fraction of a sharp ghost's image on the fit pixels below which the ghost is reported unseen.
 GHOST_VISIBILITY_MIN = 0.1
 #: Ghost magnifications the dictionary is fitted with before the continuous refinement
