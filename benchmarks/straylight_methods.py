@@ -18,11 +18,12 @@ The cases as a sweep spec (measurement against the stray-light-free twin, on Das
 table): ``tofhil sweep configs/sweeps/straylight_reflectance.yaml --out DIR``.
 
 ``--lens-forms``: the full table for every lens form of ``tests/straylight_lenses.py``
-(other Gaussians + veil + ghost, power-law tail, ghosts 1-10 px off the principal point, a
-field-dependent lobe): the Gaussian-form and free-form calibrations beside the thesis
-methods at their best per case (``straylight_lenses.py``). ``--noisy-cli OUT``: noisy
-captures (30 frames) corrected and compared through the CLI against each region's noise
-floor (``straylight_noisy_cli.py``).
+(other Gaussians + veil + ghost, power-law tail, ghosts 1-10 px off the principal point,
+magnified ghosts, a field-dependent lobe): the Gaussian-form and free-form calibrations
+beside the thesis methods at their best per case (``straylight_lenses.py``).
+``--noisy-cli OUT``: every lens form with noisy captures (30 frames), calibrated by the
+bench procedure and corrected and compared through the CLI against each region's noise
+floor (``straylight_noisy_cli.py --lens all --bench``).
 """
 
 from __future__ import annotations
@@ -72,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.noisy_cli:
         import straylight_noisy_cli  # beside this script
 
-        return straylight_noisy_cli.main([str(args.noisy_cli)])
+        return straylight_noisy_cli.main([str(args.noisy_cli), "--lens", "all", "--bench"])
     if args.lens_forms:
         import straylight_lenses  # beside this script
 

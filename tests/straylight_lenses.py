@@ -82,12 +82,36 @@ def ghost(s: np.ndarray, c: tuple[float, float], sigma: float, pad: int = 60) ->
     return canvas[pad:pad + H, pad:pad + W]
 
 
+def magnified_ghost(s: np.ndarray, c: tuple[float, float], m: float, sigma: float, pad: int = 60,
+                    sub: int = 5) -> np.ndarray:
+    """A ghost that images the scene scaled by ``m`` about ``c`` (light at p lands at
+    ``c + m (p - c)``; ``m = -1`` is the mirror, a filter's ghost is near ``+1``): each pixel's
+    area is split into ``sub x sub`` parts, each part's light moved to its image point and
+    binned into the pixel there (a magnified pixel covers ``|m|`` pixels), then blurred, on a
+    canvas larger than the sensor; cropped. Every part of the light lands somewhere on the
+    canvas, so the ghost moves exactly its weight of the light that stays near the sensor."""
+    canvas = np.zeros((H + 2 * pad, W + 2 * pad), dtype=np.complex128)
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    offs = (np.arange(sub) + 0.5) / sub - 0.5
+    for a in offs:
+        for b in offs:
+            tx = np.floor(c[0] + m * (xs + a - c[0]) + 0.5).astype(int) + pad
+            ty = np.floor(c[1] + m * (ys + b - c[1]) + 0.5).astype(int) + pad
+            ok = (tx >= 0) & (tx < W + 2 * pad) & (ty >= 0) & (ty < H + 2 * pad)
+            np.add.at(canvas, (ty[ok], tx[ok]), s[ok] / sub ** 2)
+    if sigma > 0:
+        k = gaussian(sigma)
+        canvas = fftconvolve(canvas.real, k, mode="same") + 1j * fftconvolve(canvas.imag, k, mode="same")
+    return canvas[pad:pad + H, pad:pad + W]
+
+
 @dataclass
 class Lens:
     name: str
     lobes: list[tuple[float, np.ndarray]] = field(default_factory=list)
     veil: float = 0.0
-    ghosts: list[tuple[float, float, tuple[float, float]]] = field(default_factory=list)  # w, sigma, centre
+    #: (w, sigma, centre) mirror ghosts, or (w, sigma, centre, magnification).
+    ghosts: list[tuple] = field(default_factory=list)
     field_lobe: tuple[float, Callable[[np.ndarray], np.ndarray]] | None = None
 
     @property
@@ -101,8 +125,8 @@ class Lens:
             out = out + w * convolve(s, k)
         if self.veil:
             out = out + self.veil * s.sum() / (H * W)  # uniform over the sensor
-        for w, sg, c in self.ghosts:
-            out = out + w * ghost(s, c, sg)
+        for w, sg, c, *m in self.ghosts:
+            out = out + w * (magnified_ghost(s, c, m[0], sg) if m else ghost(s, c, sg))
         if self.field_lobe:
             w, fn = self.field_lobe
             out = out + w * fn(s)
@@ -141,6 +165,12 @@ def lenses() -> dict[str, Lens]:
     for k, off in ((1, (1, 0)), (2, (2, 1)), (7, (6, 4)), (10, (9, 5))):
         out[f"ghost_{k}px"] = Lens(f"study lens, ghost {np.hypot(*off):.1f} px off the principal point",
                                    list(study), veil=0.01, ghosts=[(0.005, 4.0, _ghost_centre(off))])
+    # Ghosts that are not mirrors (sim/optics.py traces magnifications of 1.2-1.5): upright and
+    # magnified about the principal point, and inverted, magnified and 5 px off it.
+    out["ghost_mag_up"] = Lens("study lens, upright ghost magnified 1.3x about the principal point",
+                               list(study), veil=0.01, ghosts=[(0.006, 3.0, (CX, CY), 1.3)])
+    out["ghost_mag_inv"] = Lens("study lens, inverted ghost magnified 1.2x, 5 px off the principal point",
+                                list(study), veil=0.01, ghosts=[(0.005, 3.0, _ghost_centre((4, 3)), -1.2)])
     out["field_lobe"] = Lens("field-dependent lobe (sigma 4 px on axis, 12 px in the corners) plus veil",
                              [(0.02, gaussian(20.0))], veil=0.01, field_lobe=(0.05, field_dependent_lobe))
     return out

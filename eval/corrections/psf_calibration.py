@@ -47,7 +47,8 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
                   sigmas: np.ndarray | None = None, veil: bool = True, ghost: bool = True,
                   fit_direct: bool = True, weight: np.ndarray | None = None,
                   refine: bool = True, field: bool | int | str = False,
-                  lambdas: Sequence[float] | None = None) -> StrayLightPSF:
+                  lambdas: Sequence[float] | None = None,
+                  ghost_magnification: float | str = -1.0) -> StrayLightPSF:
     """Fit ``direct`` and ``h`` so that ``direct * S_true + h * S_true`` matches ``S_meas``.
 
     Bounded least squares over all pixels (real and imaginary parts). ``s_meas`` and
@@ -101,10 +102,21 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     fblur4 = GaussianBlur(rho2 ** 2 * s_true) if field and int(field) >= 2 else None
     mirror = GaussianBlur(flip_image(s_true)) if ghost else None
 
-    def ghost_terms(c: tuple[float, float]) -> list[tuple[str, str, Any, np.ndarray]]:
-        d = ghost_shift((h, w), c)
-        return [("ghost", f"ghost_{sg:.3g}", (sg, sg), column(mirror(sg, sg, d)))
-                for sg in np.concatenate([[0.0], sig])]
+    fit_mag = isinstance(ghost_magnification, str)
+    if fit_mag and ghost_magnification != "fit":
+        raise ValueError(f"ghost_magnification must be a number or 'fit', got {ghost_magnification!r}")
+    mag = -1.0 if fit_mag else float(ghost_magnification)
+
+    def ghost_image(sg: float, c: tuple[float, float], m: float) -> np.ndarray:
+        if m == -1.0:  # the mirror: a convolution of the flipped image (one FFT for all widths)
+            return mirror(sg, sg, ghost_shift((h, w), c))
+        op = StrayLightOperator(StrayLightPSF(ghosts=(Ghost(1.0, sg, c, m),), conserve=False), (h, w), c)
+        return op.scatter(s_true)
+
+    def ghost_terms(c: tuple[float, float], m: float) -> list[tuple[str, str, Any, np.ndarray]]:
+        # Terms carry (sigma, sigma, m): the magnification travels with the column.
+        return [("ghost", f"ghost_{sg:.3g}" + ("" if m == -1.0 else f"_m{m:.3g}"), (sg, sg, m),
+                 column(ghost_image(sg, c, m))) for sg in np.concatenate([[0.0], sig])]
 
     terms: list[tuple[str, str, Any, np.ndarray]] = []
     for sg in sig:
@@ -151,6 +163,7 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
         r = a @ coef - rhs
         return coef, float(np.sqrt(r @ r))
 
+    visibility = _ghost_visibility(ghost_image(0.0, center, mag), wt.reshape(s_true.shape)) if ghost else None
     if ghost and fit_centre:
         coef0, _ = fit(terms, 0.0)
         a0 = np.stack([k[3] for k in terms], axis=1)
@@ -158,8 +171,15 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
                         (h, w), (float(cx), float(cy)))
         if d is not None:
             center = (0.5 * (d[0] + (w - 1)), 0.5 * (d[1] + (h - 1)))
+    mag_scores: dict[float, float] = {}
+    if ghost and fit_mag:
+        # Coarse: the whole dictionary with the ghost at each magnification (the mirror's centre
+        # found above; a magnified ghost about the same centre), the least residual wins.
+        for m in MAGNIFICATIONS:
+            mag_scores[m] = fit(terms + ghost_terms(center, m), 0.0)[1]
+        mag = min(mag_scores, key=mag_scores.get)
     if ghost:
-        terms += ghost_terms(center)
+        terms += ghost_terms(center, mag)
 
     # Smoothness strength on held-out pixels (real and imaginary rows of a pixel together).
     lam, scores = 0.0, {}
@@ -185,18 +205,33 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
         fixed = [k for k, c in zip(terms[n_gauss:], coef[n_gauss:]) if c != 0 and k[0] != "ghost"]
         fixed_a = np.stack([k[3] for k in fixed], axis=1) if fixed else np.zeros((rhs.size, 0))
         g_ff, c_f = fixed_a.T @ fixed_a, fixed_a.T @ rhs
-        ghost_sig = [k[2] for k, c in zip(terms, coef) if k[0] == "ghost" and c > 0]
+        gi = [i for i, k in enumerate(terms) if k[0] == "ghost"]
+        g_sig = np.array([terms[i][2][0] for i in gi])
+        # Each run of neighbouring active blurs becomes one ghost of continuous width.
+        # A ghost the dictionary gives almost no light (< 1e-3: a lens without one) is not
+        # refined: its extra parameters only slow the lobes' refinement (r^-3 lens: 98.4 %
+        # at 1 % with it, 99.8 % without).
+        ghost_groups = _active_groups(coef[gi]) if gi and float(np.sum(coef[gi])) > GHOST_MIN_WEIGHT else []
+        ghost_init = [max(float(np.average(g_sig[g], weights=coef[gi][g])), 0.3) for g in ghost_groups]
         init = np.array([np.exp(np.average(np.log(sig[g]), weights=coef[g])) for g in groups])
         n_lobe = 2 * len(groups)
+        n_gc = 2 if ghost_groups and fit_centre else 0
+        n_gs = len(ghost_groups)
 
-        def solve(x: np.ndarray) -> tuple[np.ndarray, float, list[tuple[str, str, Any, np.ndarray]]]:
-            gs = [("gauss", f"gauss_{sx:.3g}x{sy:.3g}", (sx, sy), column(blur(sx, sy)))
-                  for sx, sy in np.exp(np.clip(x[:n_lobe], LOG_SIGMA_RANGE[0], LOG_SIGMA_RANGE[1])).reshape(-1, 2)]
+        dictionary_lobes = [k for k, c in zip(terms[:n_gauss], coef[:n_gauss]) if c > 0]
+
+        def solve(x: np.ndarray, nl: int) -> tuple[np.ndarray, float, list[tuple[str, str, Any, np.ndarray]]]:
+            # nl = 0: the dictionary's active lobes as they are, only the ghost refined.
+            gs = dictionary_lobes if nl == 0 else [
+                ("gauss", f"gauss_{sx:.3g}x{sy:.3g}", (sx, sy), column(blur(sx, sy)))
+                for sx, sy in np.exp(np.clip(x[:nl], LOG_SIGMA_RANGE[0], LOG_SIGMA_RANGE[1])).reshape(-1, 2)]
             extra: list[tuple[str, str, Any, np.ndarray]] = []
-            if ghost_sig:
-                c = (center[0] + x[n_lobe], center[1] + x[n_lobe + 1]) if fit_centre else center
-                dd = ghost_shift((h, w), c)
-                extra = [("ghost", f"ghost_{s[0]:.3g}", s, column(mirror(s[0], s[1], dd))) for s in ghost_sig]
+            if ghost_groups:
+                c = (center[0] + x[nl], center[1] + x[nl + 1]) if n_gc else center
+                m = float(x[nl + n_gc + n_gs]) if fit_mag else mag
+                for sg in np.exp(np.clip(x[nl + n_gc:nl + n_gc + n_gs], np.log(0.05), LOG_SIGMA_RANGE[1])):
+                    extra.append(("ghost", f"ghost_{sg:.3g}" + ("" if m == -1.0 else f"_m{m:.3g}"), (sg, sg, m),
+                                  column(ghost_image(float(sg), c, m))))
             new = gs + extra
             a_g = np.stack([k[3] for k in new], axis=1)
             gram = np.block([[a_g.T @ a_g, a_g.T @ fixed_a], [fixed_a.T @ a_g, g_ff]])
@@ -205,16 +240,28 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
             res2 = bb - 2 * cc @ np.concatenate([a_g.T @ rhs, c_f]) + cc @ gram @ cc
             return cc, float(np.sqrt(max(res2, 0.0))), new + fixed
 
-        x0 = np.log(np.repeat(init, 2))
-        if ghost_sig and fit_centre:
-            x0 = np.concatenate([x0, [0.0, 0.0]])
-        res = minimize(lambda x: solve(x)[1], x0, method="Nelder-Mead",
-                       options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": min(80 * x0.size + 40, 400)})
-        c_ref, r_ref, ts = solve(res.x)
-        if r_ref < rnorm:
-            terms, coef, rnorm = ts, c_ref, r_ref
-            if ghost_sig and fit_centre:
-                center = (center[0] + res.x[n_lobe], center[1] + res.x[n_lobe + 1])
+        # First lobes and ghost together; then, if there is a ghost, the ghost alone beside the
+        # dictionary's lobes: merging a run of active widths into one lobe can lose more than
+        # the ghost's refinement gains (three lobes a factor 4-5 apart), and the ghost's blur
+        # and magnification must not be lost with it. The better fit is kept.
+        for nl in ([n_lobe, 0] if ghost_groups else [n_lobe]):
+            x0 = np.concatenate([np.log(np.repeat(init, 2))[:nl], np.zeros(n_gc), np.log(ghost_init),
+                                 [mag] if ghost_groups and fit_mag else []])
+            # The first simplex spans steps the fit can feel (scipy's default steps a parameter
+            # that starts at 0 by 2.5e-4: a centre offset would never leave the integer shift the
+            # correlation found): 10 % in width, half a pixel in the centre, 0.05 in magnification.
+            steps = np.concatenate([np.full(nl, 0.1), np.full(n_gc, 0.5), np.full(n_gs, 0.1),
+                                    [0.05] if ghost_groups and fit_mag else []])
+            res = minimize(lambda x: solve(x, nl)[1], x0, method="Nelder-Mead",
+                           options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": min(80 * x0.size + 40, 600),
+                                    "initial_simplex": np.vstack([x0, x0 + np.diag(steps)])})
+            c_ref, r_ref, ts = solve(res.x, nl)
+            if r_ref < rnorm:
+                terms, coef, rnorm = ts, c_ref, r_ref
+                if n_gc:
+                    center = (center[0] + res.x[nl], center[1] + res.x[nl + 1])
+                if ghost_groups and fit_mag:
+                    mag = float(res.x[nl + n_gc + n_gs])
     lobes, ghosts, veil_w, loss = [], [], 0.0, 0.0
     field_w: dict[float, list[float]] = {}
     gc = None if ghost_center_px is None else center
@@ -228,7 +275,7 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
         elif kind == "veil":
             veil_w += float(c)
         elif kind == "ghost":
-            ghosts.append(Ghost(float(c), float(sxy[0]), gc))
+            ghosts.append(Ghost(float(c), float(sxy[0]), gc, float(sxy[2])))
         elif kind == "loss":
             loss += float(c)
     # A field term is a lobe of its own (weight 0 on axis, signed growth) with its own width.
@@ -240,6 +287,16 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
     info["direct"] = 1.0 - loss
     if ghosts and fit_centre:
         info["ghost_center_px"] = [float(center[0]), float(center[1])]
+    if ghost:
+        info["ghost_visibility"] = visibility
+        if fit_mag:
+            info["ghost_magnification"] = mag
+            info["ghost_magnification_scan"] = {f"{k:g}": v for k, v in mag_scores.items()}
+        if visibility < GHOST_VISIBILITY_MIN:
+            info["warnings"].append(
+                f"the calibration cannot see a ghost through ({center[0]:.1f}, {center[1]:.1f}) px: only "
+                f"{100 * visibility:.0f} % of its image falls on the fit pixels (it lands on the target itself); its "
+                "weight, blur and centre are not constrained: add a capture with the target away from the centre")
     psf = replace(psf, info=info)
     info["scattered_fraction"] = StrayLightOperator(psf, (h, w), (cx, cy)).scattered_fraction
     return psf
@@ -284,6 +341,21 @@ def _quality(terms: list[tuple[str, str, Any, np.ndarray]], coef: np.ndarray, rh
 
 #: Variance inflation above which a component is reported as not constrained by the data.
 VIF_LIMIT = 1e6
+#: Ghost fraction of light below which the refinement leaves the ghost out.
+GHOST_MIN_WEIGHT = 1e-3
+#: Fraction of a sharp ghost's image on the fit pixels below which the ghost is reported unseen.
+GHOST_VISIBILITY_MIN = 0.1
+#: Ghost magnifications the dictionary is fitted with before the continuous refinement
+#: (``ghost_magnification="fit"``): mirrors (lens ghosts that invert) and upright ghosts
+#: (a filter's or a cover glass's, slightly magnified; sim/optics.py traces 1.2-1.5).
+MAGNIFICATIONS = (-1.5, -1.25, -1.0, -0.8, 0.8, 1.1, 1.25, 1.5)
+
+
+def _ghost_visibility(image: np.ndarray, weight: np.ndarray) -> float:
+    """Fraction (in energy) of a ghost's image that lands on the fit pixels (``weight``: the
+    square root of the pixel weights): 0 when every capture's ghost falls on its own target."""
+    total = float(np.sum(np.abs(image) ** 2))
+    return float(np.sum(np.abs(image * weight) ** 2)) / total if total > 0 else 0.0
 
 
 def _second_differences(n: int) -> np.ndarray:
@@ -432,7 +504,7 @@ def select_field_order(captures: Sequence[np.ndarray], cx: float, cy: float, *, 
 #: The free-form calibration's options (:func:`calibrate_psf`): many widths with a
 #: shift-variant copy (its order chosen on held-out captures, :func:`select_field_order`),
 #: a fitted ghost centre, smoothness chosen on held-out pixels.
-FREE_FORM: dict[str, Any] = {"field": "select", "ghost_center_px": "fit",
+FREE_FORM: dict[str, Any] = {"field": "select", "ghost_center_px": "fit", "ghost_magnification": "fit",
                              "lambdas": (0.0, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)}
 
 
