@@ -330,8 +330,8 @@ def verdict(*, searched: bool, causes: Sequence[str], n_values: int, nu: float, 
     The scene does not match the capture when the base twin's misfit is far above noise
     (:data:`FAR_FACTOR` times the threshold) and what the search found cannot be a cause:
     nothing accepted while effects that lowered the total misfit made a channel worse, an
-    accepted effect pinned at a bound of the range searched, or less than half of the excess
-    removed.
+    accepted effect pinned at a bound of the range searched while the fit still misses (misfit
+    after it above the threshold), or less than half of the excess removed.
     """
     thr = noise_threshold(n_values, nu)
     noise = noise_mean(nu)
@@ -346,7 +346,9 @@ def verdict(*, searched: bool, causes: Sequence[str], n_values: int, nu: float, 
     disagree_before = sorted(k for k, v in objects_before.items() if v["above_noise"])
     disagree = sorted(k for k, v in objects_after.items() if v["above_noise"])
     far = before_per_value > FAR_FACTOR * thr
-    pinned_any = any(pinned.get(c) for c in causes)
+    # A parameter at the bound of its range is a sign of a wrong scene only while the fit still
+    # misses: a flexible form (a spline knot) may sit at its bound and explain the data to noise.
+    pinned_any = any(pinned.get(c) for c in causes) and after_per_value > thr
     little = removed is None or removed < 0.5
     if far and ((not causes and rejected_for_channels) or pinned_any or little):
         why = []
@@ -369,8 +371,10 @@ def verdict(*, searched: bool, causes: Sequence[str], n_values: int, nu: float, 
                        f"residual (misfit {before_per_value:.2f} per value, {state}); see the residual regions",
                        thr, None, list(worse), disagree_before)
     if after_per_value <= thr and not worse:
+        at_bound = [f"{c}: {', '.join(pinned[c])} at the bound of the range searched" for c in causes if pinned.get(c)]
         return Verdict("explained", f"explained by {' + '.join(causes)}: held-out misfit after the fit "
-                       f"{after_per_value:.3f} per value is within the noise ({state})", thr, removed, [], [])
+                       f"{after_per_value:.3f} per value is within the noise ({state})", thr, removed, [], [],
+                       at_bound)
     pct = 0.0 if removed is None else 100.0 * removed
     text = (f"partly explained by {' + '.join(causes)}: {pct:.0f} % of the excess removed (misfit "
             f"{before_per_value:.2f} -> {after_per_value:.2f} per value, {state}); the rest is in the residual regions")

@@ -103,6 +103,20 @@ def test_verdict_kinds():
     assert v.kind == "partly explained" and "amplitude" in v.text
 
 
+def test_a_parameter_at_its_bound_means_a_wrong_scene_only_while_the_fit_misses():
+    kw = dict(n_values=4000, nu=75.0, worse=[], objects_before={}, objects_after={},
+              pinned={"x": ["q1"]}, rejected_for_channels=[])
+    thr = V.noise_threshold(4000, 75.0)
+    far = 20 * thr
+    # far from the capture, fitted with a parameter at its bound, and still missing: the scene
+    v = V.verdict(searched=True, causes=["x"], before_per_value=far, after_per_value=3 * thr, **kw)
+    assert v.kind == "scene does not match" and any("q1" in w for w in v.notes + [v.text])
+    # the same, but the fit brings the misfit within the noise (a spline knot at its bound): explained,
+    # and the bound is said
+    v = V.verdict(searched=True, causes=["x"], before_per_value=far, after_per_value=0.95 * thr, **kw)
+    assert v.kind == "explained" and any("q1" in n and "bound" in n for n in v.notes)
+
+
 # ------------------------------------------------------------------------------ end to end
 @pytest.fixture(scope="module")
 def scene():
