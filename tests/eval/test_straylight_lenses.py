@@ -129,8 +129,14 @@ def test_cli_calibrates_one_free_form_psf_from_several_captures(tmp_path, tofhil
     assert bad.returncode == 2 and "--psf-form" in bad.stderr
 
 
+# Every lens form; of the study lens's four ghost offsets (1, 2, 7, 10 px: one form, the ghost
+# shifted) the smallest that the whole-pixel search cannot reach exactly and the largest: each
+# bench calibration costs 50-100 CPU-s, and benchmarks/straylight_lenses.py runs all nine.
+BENCH_LENSES = [n for n in L.lenses() if n not in ("ghost_1px", "ghost_7px")]
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("name", list(L.lenses()))
+@pytest.mark.parametrize("name", BENCH_LENSES)
 def test_bench_procedure_removes_95_percent_for_every_lens_form(name):
     """The documented procedure (a card on black and a bright patch at four more field
     positions, free form) removes >= 95 % of the dark-square error at 50, 5, 2 and 1 %."""
