@@ -169,26 +169,36 @@ def test_two_causes_that_act_alike_are_reported_as_ambiguous():
     assert "cannot tell them apart" in obs.lines[0]
 
 
+def _every_nth_pixel_of_capture(name: str, step: int, first: int, tmp_path):
+    """Frame 0 of a real capture (``tests/real_data.CAPTURES``), every ``step``-th pixel from
+    ``first``, as a small depth session, and its twin scene from scene-from-capture at the
+    capture's stated frequency: (session path, scene result)."""
+    from tests.real_data import CAPTURES, need
+    from tofhil.drivers.importers.dispatch import import_file
+    from tofhil.sim.from_capture import scene_from_capture
+
+    cap = CAPTURES[name]
+    full = import_file(need(cap.file), tmp_path / "full.h5").out
+    with open_session(full) as s:
+        d = s.depth_frame(0)
+        cam = s.camera.scaled(1.0 / step)
+    pick = (slice(first, None, step), slice(first, None, step))
+    small = tmp_path / "small.h5"
+    with SessionWriter(small, cam) as w:
+        w.append(depth=DepthFrame(distance_m=np.asarray(d.radial_m)[pick], kind="radial", camera=cam,
+                                  amplitude=np.asarray(d.amplitude)[pick], valid=d.valid[pick]))
+    scene = scene_from_capture(small, tmp_path / f"{name}.yaml", freq_hz=[cap.freq_hz], wavelength_m=cap.wavelength_m)
+    return small, scene
+
+
 @pytest.mark.slow
 def test_real_near_plane_capture_is_diagnosed_end_to_end(tmp_path):
     """The ADI near-plane capture (binned 4 x 4): import, scene-from-capture, diagnose. The
     diagnosis runs on the depth path, writes its files, and never names what the scene cannot
     observe (its planes' poses were fitted to the same depth)."""
-    from tests.real_data import CAPTURES, need
-    from tofhil.drivers.importers.dispatch import import_file
     from tofhil.eval.diagnose import run_diagnosis
-    from tofhil.sim.from_capture import scene_from_capture
 
-    near = CAPTURES["near"]
-    full = import_file(need(near.file), tmp_path / "full.h5").out
-    with open_session(full) as s:
-        d = s.depth_frame(0)
-        cam = s.camera.scaled(0.25)
-    small = tmp_path / "small.h5"
-    with SessionWriter(small, cam) as w:
-        w.append(depth=DepthFrame(distance_m=np.asarray(d.radial_m)[1::4, 1::4], kind="radial", camera=cam,
-                                  amplitude=np.asarray(d.amplitude)[1::4, 1::4], valid=d.valid[1::4, 1::4]))
-    scene = scene_from_capture(small, tmp_path / "np.yaml", freq_hz=[near.freq_hz], wavelength_m=near.wavelength_m)
+    small, scene = _every_nth_pixel_of_capture("near", 4, 1, tmp_path)
     res = run_diagnosis(small, scene.scene_path, tmp_path / "diag", max_effects=1)
     out = json.loads((tmp_path / "diag" / "diagnosis.json").read_text())
     assert (tmp_path / "diag" / "report.html").is_file()
@@ -204,22 +214,10 @@ def test_real_kinect_names_no_cause_whose_held_out_gain_is_too_small(tmp_path):
     whose held-out depth RMSE went 6.39 -> 6.42 mm. Every named cause must now lower some
     channel's held-out RMSE by its stated minimum, in the channel's own units, and leave no
     channel's RMSE worse; what was fitted but too small says so, with its figures."""
-    from tests.real_data import CAPTURES, need
-    from tofhil.drivers.importers.dispatch import import_file
     from tofhil.eval import verdict as V
     from tofhil.eval.diagnose import run_diagnosis
-    from tofhil.sim.from_capture import scene_from_capture
 
-    kinect = CAPTURES["kinect"]
-    full = import_file(need(kinect.file), tmp_path / "full.h5").out
-    with open_session(full) as s:
-        d = s.depth_frame(0)
-        cam = s.camera.scaled(0.125)
-    small = tmp_path / "small.h5"  # 80 x 72: no binning, a few CPU seconds
-    with SessionWriter(small, cam) as w:
-        w.append(depth=DepthFrame(distance_m=np.asarray(d.radial_m)[3::8, 3::8], kind="radial", camera=cam,
-                                  amplitude=np.asarray(d.amplitude)[3::8, 3::8], valid=d.valid[3::8, 3::8]))
-    scene = scene_from_capture(small, tmp_path / "k.yaml", freq_hz=[kinect.freq_hz], wavelength_m=kinect.wavelength_m)
+    small, scene = _every_nth_pixel_of_capture("kinect", 8, 3, tmp_path)  # 80 x 72: no binning
     res = run_diagnosis(small, scene.scene_path, tmp_path / "diag", max_effects=1)
     out = json.loads((tmp_path / "diag" / "diagnosis.json").read_text())
     es = out["effect_size"]
