@@ -377,9 +377,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                 rmse: dict[str, ChannelGain] = {}
                 worth = True
                 if effect_size is not None and gains and not worse:
-                    rmse = effect_size.compare(current_pred, pred)
-                    worth = (EffectSize.worth_naming(rmse)
-                             and not any(g.worse for g in effect_size.compare(base_pred, pred).values()))
+                    rmse, worth = effect_size.names(current_pred, pred, base_pred)
                 tried.append(Candidate(effect=name, params=fitted[name], chi2_train=chi2_train, chi2_test=chi2_test,
                                        score=score, delta_score=current_score - score,
                                        relative_gain=gain / current_chi2 if current_chi2 > 0 else 0.0,
@@ -438,8 +436,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         joint_ok = True
         if effect_size is not None:
             # the joint refit keeps what made the round's cause worth naming
-            joint_ok = (EffectSize.worth_naming(effect_size.compare(before_pred, joint_pred))
-                        and not any(g.worse for g in effect_size.compare(base_pred, joint_pred).values()))
+            _, joint_ok = effect_size.names(before_pred, joint_pred, base_pred)
         if (joint_chi2 < current_chi2 and joint_ok and not worse_channels(before_round, joint_channels)
                 and not worse_channels(selection.channels_before, joint_channels)):
             params, current_chi2, current_channels, current_pred = joint, joint_chi2, joint_channels, joint_pred

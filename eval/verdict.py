@@ -503,6 +503,13 @@ class EffectSize:
         """Some channel gains its minimum and none is worse."""
         return any(g.enough for g in gains.values()) and not any(g.worse for g in gains.values())
 
+    def names(self, reference: np.ndarray, after: np.ndarray, base: np.ndarray) -> tuple[dict[str, ChannelGain], bool]:
+        """The gains of ``after`` over ``reference`` (the model it extends), and whether they
+        are worth naming with no channel worse than the ``base`` twin either."""
+        gains = self.compare(reference, after)
+        return gains, (self.worth_naming(gains)
+                       and not any(g.worse for g in self.compare(base, after).values()))
+
     @staticmethod
     def describe(gains: Mapping[str, ChannelGain]) -> str:
         return ", ".join(g.describe() for g in gains.values())
