@@ -73,7 +73,7 @@ def main() -> None:
             "channels_per_value": {c: [v["before_per_value"], v["after_per_value"]] for c, v in res["channels"].items()},
             "noise": res["noise"], "residual_regions": len(res["residual_regions"]),
             "residual_structure": [f["text"] for f in res.get("residual_structure", [])],
-            "effect_size": {c: [v["rmse_before"], v["rmse_after"], v["minimum_gain"], v["unit"]]
+            "effect_size": {c: [v["rmse_before"], v["rmse_after"], v["systematic_removed"], v["minimum_gain"], v["unit"]]
                             for c, v in res.get("effect_size", {}).get("channels", {}).items()},
             "fitted_too_small": res.get("effect_size", {}).get("fitted_too_small", {}),
             "residual_regions_text": [r["text"] for r in res["residual_regions"]],

@@ -26,7 +26,7 @@ from tofhil.eval import metrics as M
 from tofhil.eval.depth_heldout import observable_candidates, split_for_diagnosis
 from tofhil.eval.heldout import HeldOutData, depth_from_signal
 from tofhil.eval.linear_forms import MAP_EFFECT, fit_frame_drift
-from tofhil.eval.observability import Observability, assess
+from tofhil.eval.observability import Observability, assess, shape_ambiguities
 from tofhil.eval.selection import Selection, greedy_select
 from tofhil.eval.twin_model import TwinModel, to_effect_values
 from tofhil.eval import verdict as V
@@ -370,6 +370,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         if e == MAP_EFFECT:
             params[e] = {"file": OFFSET_MAP_FILE if map_path is not None else None} | params[e]
     observability = assess(selection, model, data, block_px=block_px, unobservable=unobservable)
+    if facts.geometry_from_depth:
+        observability.ambiguous += shape_ambiguities(list(selection.causes))
 
     # A predicted pixel is compared where its signal is above the noise and no predicted tap
     # reaches the device's clip levels (compare applies the same rule to a twin session).
@@ -386,7 +388,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                     "worse": c in worse} for c in ch_after}
     size_after = sizes.compare(base_pred, after_pred)
     if not selection.causes and selection.too_small and verdict.kind in ("unexplained", "scene does not match"):
-        verdict.notes.append("fitted but too small to name: " + "; ".join(selection.too_small.values()))
+        verdict.notes.append("fitted but not named: " + "; ".join(selection.too_small.values()))
     regions_left, above_after = V.residual_regions(
         data, after_pred, nu, object_id, object_names, maps_after["depth_residual"], maps_after["amplitude_residual"])
     gain = {k: {"before": before[k], "after": after.get(k, float("nan"))} for k in before}

@@ -100,19 +100,21 @@ def channel_table(res: Any) -> str:
 
 
 def effect_size_table(res: Any) -> str:
-    """Each channel's held-out RMSE in its own units, base twin -> extended twin, and the
-    minimum gain a cause needs to be named."""
+    """Each channel's held-out RMSE in its own units, base twin -> extended twin, the
+    systematic part removed and the minimum a cause needs to be named."""
     es = getattr(res, "effect_size", None) or {}
     if not es.get("channels"):
         return ""
     rows = ["<h3>Is it worth naming? Held-out RMSE per channel in its own units</h3><table><tr><th>channel</th>"
-            "<th>base twin</th><th>extended twin</th><th>noise (rms)</th><th>minimum gain</th><th>enough</th>"
+            "<th>base twin</th><th>extended twin</th><th>noise (median pixel)</th><th>systematic part removed</th>"
+            "<th>minimum</th><th>enough</th>"
             "<th>worse</th></tr>"]
     for c, v in es["channels"].items():
         style = " style='color:#c00;font-weight:bold'" if v["worse"] else ""
         u = H.esc(v["unit"])
         rows.append(f"<tr{style}><td>{H.esc(c)}</td><td>{v['rmse_before']:.4g} {u}</td><td>{v['rmse_after']:.4g} {u}"
-                    f"</td><td>{v['noise_median_pixel']:.3g} {u}</td><td>{v['minimum_gain']:.3g} {u}</td>"
+                    f"</td><td>{v['noise_median_pixel']:.3g} {u}</td><td>{v['systematic_removed']:.3g} {u}</td>"
+                    f"<td>{v['minimum_gain']:.3g} {u}</td>"
                     f"<td>{'yes' if v['enough'] else 'no'}</td><td>{'WORSE' if v['worse'] else 'no'}</td></tr>")
     rows.append(f"</table><p class='note'>{H.esc(es['rule'])}.</p>")
     if es.get("fitted_too_small"):

@@ -36,6 +36,15 @@ SEPARATING_CAPTURE: dict[frozenset[str], str] = {
     frozenset({"reflectance", "stray_light"}): "the same scene at a second distance",
 }
 DEFAULT_SEPARATING = "a second distance, a tilt of the surface, or a known target as independent truth"
+#: Named causes that a surface shape can mimic when the scene's geometry was fitted to the
+#: same depth (a scene from the capture without a known target): what each looks like.
+MIMICKED_BY_SHAPE = {
+    "range_offset_map": "a range pattern along rows or columns looks the same as a surface that bends along them",
+    "field_angle": "a range error growing with the field angle looks the same as a surface curved about the "
+                   "optical axis",
+}
+SHAPE_SEPARATING = ("the same scene with the camera rolled 90 degrees or moved sideways (a sensor pattern moves "
+                    "with the sensor, a surface shape with the scene), or a known flat target (--target)")
 
 
 @dataclass
@@ -95,3 +104,13 @@ def assess(selection: Selection, model: Any, data: HeldOutData, *, block_px: int
                          f"(held-out score difference {diff:.1f} is below its standard error {se:.1f}); "
                          f"a capture that would: {hint}")})
     return obs
+
+
+def shape_ambiguities(causes: list[str]) -> list[dict[str, Any]]:
+    """For a scene whose planes were fitted to the same depth: each named cause a surface
+    shape the planes lack would look the same as (the data hold no second view to tell)."""
+    return [{"round": None, "effects": [c, "surface shape"], "score_difference": None, "standard_error": None,
+             "text": (f"{c} or a surface shape the twin's planes lack, this capture cannot tell them apart: the "
+                      f"planes were fitted to the same depth, and {MIMICKED_BY_SHAPE[c]}; a capture that would: "
+                      f"{SHAPE_SEPARATING}")}
+            for c in causes if c in MIMICKED_BY_SHAPE]

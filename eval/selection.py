@@ -394,7 +394,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
             if small and not best_form.significant and name not in selection.too_small:
                 c = min(small, key=lambda c: c.score)
                 selection.too_small[name] = (f"{name}" + (f" ({c.form})" if c.form else "") + ": "
-                                             + EffectSize.describe(c.rmse))
+                                             + EffectSize.why_not(c.rmse) + ": " + EffectSize.describe(c.rmse))
             round_.append(best_form)
         # ties broken by name: the ranking does not depend on the library's order
         round_.sort(key=lambda c: (c.score, c.effect))

@@ -673,6 +673,8 @@ class CaptureFacts:
     valid_mask: np.ndarray | None = None
     #: Relative scatter of the capture's amplitude about the scene's (log-amplitude MAD).
     amplitude_model_error: float | None = None
+    #: The planes were fitted to the capture's own depth (no known target).
+    geometry_from_depth: bool = False
 
 
 def capture_scene_facts(scene: Any) -> CaptureFacts:
@@ -692,4 +694,5 @@ def capture_scene_facts(scene: Any) -> CaptureFacts:
         if p.is_file():
             mask = np.load(p).astype(bool)
     err = (meta.get("radiometry") or {}).get("log_amplitude_residual_mad")
-    return CaptureFacts(dict(meta.get("unobservable") or {}), mask, float(err) if err else None)
+    return CaptureFacts(dict(meta.get("unobservable") or {}), mask, float(err) if err else None,
+                        bool(meta.get("geometry_from_depth", False)))

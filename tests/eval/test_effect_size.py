@@ -42,19 +42,55 @@ def test_a_significant_but_tiny_range_shift_is_not_named(depth_mm, named):
     assert g.before == pytest.approx(depth_mm * 1e-3, rel=0.02)
     assert g.after < 1.5 * sizes.noise["depth"]
     if not named:
-        assert "shift" in sel.too_small and "needs -0.5 mm" in sel.too_small["shift"]
+        assert "shift" in sel.too_small and "needs 0.5 mm" in sel.too_small["shift"]
 
 
-def test_a_channel_whose_rmse_grows_blocks_naming_whatever_the_other_gains():
+def test_the_systematic_part_removed_is_the_hidden_pattern_however_strong_the_noise():
+    # a column pattern of 5.8 mm rms range error (the demo's clock skew) under 20 mm pixel noise:
+    # the RMSE falls by ~s^2 / 2 sigma only (0.8 mm, below the 2 mm minimum), the squares by
+    # exactly the pattern's variance
+    h, w, f = 96, 128, 20e6
+    pattern_m = 5.8e-3 * np.sqrt(2.0) * np.sin(2 * np.pi * np.arange(w) / 16.0)[None, :].repeat(h, 0)
+    k = float(distance_to_phase(1.0, f))  # rad per metre of range
+    truth = np.exp(1j * k * pattern_m)[None]
+    data = heldout_from_signal(truth, sigma=20e-3 * k, seed=5)  # depth noise sigma / (A k) = 20 mm
+    sizes = V.EffectSize(data)
+    assert sizes.noise["depth"] == pytest.approx(20e-3, rel=0.05)
+    assert sizes.minimum["depth"] == pytest.approx(2e-3, rel=0.05)
+    g = sizes.compare(np.ones_like(truth), truth)["depth"]
+    rms_pattern = float(np.sqrt(np.mean(pattern_m[data.test_pixels] ** 2)))
+    assert g.systematic == pytest.approx(rms_pattern, rel=0.15)
+    assert g.before - g.after < sizes.minimum["depth"]  # what the old measure compared: "too small"
+    assert g.enough and not g.worse
+    # the other way round the same pattern is added: worse, and by as much
+    back = sizes.compare(truth, np.ones_like(truth))["depth"]
+    assert back.worse and back.systematic == pytest.approx(-g.systematic, rel=0.15)
+    # a correction shrunk to a fifth of the pattern takes 0.36 of its variance off the residual
+    # (2 x 0.2 - 0.2^2): what it changes, and what the cause is worth, is the fifth
+    shrunk = sizes.compare(np.ones_like(truth), np.exp(1j * k * 0.2 * pattern_m)[None])["depth"]
+    assert np.sqrt(shrunk.before ** 2 - shrunk.after ** 2) == pytest.approx(0.6 * rms_pattern, rel=0.15)
+    assert shrunk.systematic == pytest.approx(0.2 * rms_pattern, rel=0.05)
+    # a change of the prediction far below the noise is no loss however the noise falls
+    tiny = sizes.compare(truth, truth * np.exp(1j * k * 0.02 * pattern_m))["depth"]
+    assert not tiny.worse and not tiny.enough
+
+
+def test_a_channel_that_gains_a_systematic_part_blocks_naming_whatever_the_other_gains():
     gain = V.ChannelGain("depth", before=6e-3, after=3e-3, noise=1e-3, minimum=0.5e-3, pixels=100)
-    loss = V.ChannelGain("amplitude", before=10.0, after=10.2, noise=5.0, minimum=0.5, pixels=100)
-    rounding = V.ChannelGain("amplitude", before=10.0, after=10.04, noise=5.0, minimum=0.5, pixels=100)
-    assert gain.enough and not gain.worse and loss.worse and not rounding.worse
+    loss = V.ChannelGain("amplitude", before=10.0, after=10.2, noise=5.0, minimum=0.5, pixels=100,
+                         square_change_se=0.1)
+    # the same growth of the squares within 3 standard errors of the held-out noise: a rounding
+    noise = V.ChannelGain("amplitude", before=10.0, after=10.2, noise=5.0, minimum=0.5, pixels=100,
+                          square_change_se=2.0)
+    # exact, but a systematic part of 0.2 DN, below half the 0.5 DN minimum
+    rounding = V.ChannelGain("amplitude", before=10.0, after=10.002, noise=5.0, minimum=0.5, pixels=100)
+    assert gain.enough and gain.systematic == pytest.approx(np.sqrt(27e-6))
+    assert not gain.worse and loss.worse and not noise.worse and not rounding.worse
     assert V.EffectSize.worth_naming({"depth": gain, "amplitude": rounding})
     assert not V.EffectSize.worth_naming({"depth": gain, "amplitude": loss})
-    # the Azure Kinect's wiggling (session 3): 6.39 -> 6.42 mm is no gain
+    # the Azure Kinect's wiggling (session 3): 6.39 -> 6.42 mm adds a 0.62 mm systematic part
     kinect = V.ChannelGain("depth", before=6.39e-3, after=6.42e-3, noise=1e-3, minimum=0.5e-3, pixels=100)
-    assert not V.EffectSize.worth_naming({"depth": kinect, "amplitude": rounding})
+    assert kinect.worse and not V.EffectSize.worth_naming({"depth": kinect, "amplitude": rounding})
     assert "6.39 -> 6.42 mm" in kinect.describe()
 
 

@@ -42,7 +42,7 @@ def _summary(res, report: Path) -> None:
     if worse:
         out.print(f"[bold red]worse after the fit:[/bold red] {', '.join(worse)}")
     for t in (res.effect_size or {}).get("fitted_too_small", {}).values():
-        out.print(f"  fitted, too small to name: {lit(t)}", highlight=False)
+        out.print(f"  fitted, not named: {lit(t)}", highlight=False)
     for r in res.residual_regions[:3]:
         out.print(f"  left above noise: {lit(r['text'])}", highlight=False)
     for f in res.structure[:8]:
