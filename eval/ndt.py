@@ -31,8 +31,6 @@ from dataclasses import dataclass, field
 from typing import Any, Iterable, Sequence
 
 import numpy as np
-from numba import njit
-
 from tofhil.errors import TofhilError
 
 # Cell keys pack (i, j, k) into one int64: 21 bits per axis, offset so negatives fit.
@@ -364,6 +362,75 @@ def pcl_point_scores(grid: NDTGrid, points: np.ndarray, outlier_ratio: float = 0
     return total, best, has
 
 
+def pcl_score(grid: NDTGrid, points: Any, outlier_ratio: float = 0.55) -> float:
+    """PCL's score per point alone (``NDTScore.score_per_point``, the same sum), with numpy
+    only: no numba import or kernel load (~0.6 CPU-s of a short process), no per-point
+    arrays, none of the other scores.
+
+    The neighbourhood is PCL's radius search (the cells whose *mean* lies within
+    ``cell_size`` of the point), found among the 27 cells around the point: a cell's mean
+    lies in its own cell, so no other cell can hold one; edge and corner cells whose box is
+    farther than the radius are skipped before any distance is computed. Points are taken in
+    blocks so that every temporary stays in the CPU cache. Non-finite points are ignored.
+    """
+    p = _as_points(points)
+    n = p.shape[0]
+    if n == 0 or grid.cells == 0:
+        return 0.0
+    d1, d2 = gauss_params(grid.cell_size, outlier_ratio)
+    total = 0.0
+    for a in range(0, n, _POINT_BLOCK):
+        total += _pcl_block_sum(grid, p[a:a + _POINT_BLOCK], d1, d2)
+    return total / n
+
+
+def _pcl_block_sum(grid: NDTGrid, p: np.ndarray, d1: float, d2: float) -> float:
+    """Sum of PCL's terms ``-d1 exp(-d2/2 q^T C^-1 q)`` over the points of ``p`` and their
+    cells within the radius (a term with ``d2 exp(.)`` outside [0, 1] counts 0, as PCL)."""
+    u = p / grid.cell_size
+    base = np.floor(u)
+    frac = u - base
+    base = base.astype(np.int64)
+    if grid._table is not None:
+        lo, span = grid._lo_span[:3], grid._lo_span[3:]
+        rel = base - lo
+        inside = np.flatnonzero(np.all((rel >= 1) & (rel <= span - 2), axis=1))   # else no neighbour
+        p, frac, lin = p[inside], frac[inside], _linear(rel[inside], span)
+    else:
+        nb = _Neighbours(grid, base)
+    x, y, z = _columns(p)
+    f = _columns(frac)
+    gap = {-1: [v * v for v in f], 1: [(1.0 - v) ** 2 for v in f]}   # squared box gap, cell units
+    mx, my, mz = grid._means_t
+    a0, a1, a2, a3, a4, a5 = grid._icov6_t
+    r2 = grid.cell_size ** 2
+    total = 0.0
+    for off in _OFFSETS27:
+        if grid._table is not None:
+            cells = grid._table[lin + int((off[0] * span[1] + off[1]) * span[2] + off[2])]
+        else:
+            cells = nb.at(off)
+        reach = cells >= 0
+        axes = np.flatnonzero(off)
+        if axes.size > 1:
+            g = gap[off[axes[0]]][axes[0]] + gap[off[axes[1]]][axes[1]]
+            if axes.size == 3:
+                g += gap[off[2]][2]
+            reach &= g <= 1.0
+        sel = np.flatnonzero(reach)
+        if sel.size == 0:
+            continue
+        c = cells[sel]
+        dx, dy, dz = x[sel] - mx[c], y[sel] - my[c], z[sel] - mz[c]
+        near = np.flatnonzero(dx * dx + dy * dy + dz * dz <= r2)
+        c, dx, dy, dz = c[near], dx[near], dy[near], dz[near]
+        m = (a0[c] * dx + a3[c] * dy + a4[c] * dz) * dx + (a1[c] * dy + a5[c] * dz) * dy + a2[c] * dz * dz
+        e = np.exp((-0.5 * d2) * m)
+        de = d2 * e
+        total += float(-d1 * e[(de <= 1.0) & (de >= 0.0)].sum())
+    return total
+
+
 def _all_point_terms(grid: NDTGrid, p: np.ndarray, outlier_ratio: float
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One pass over the 27 cells around each point for every per-point quantity.
@@ -418,82 +485,14 @@ def _all_point_terms(grid: NDTGrid, p: np.ndarray, outlier_ratio: float
     return lik, tri, total, best, has
 
 
-@njit(cache=True, nogil=True)
-def _point_terms_block(p, i0, i1, cell_size, table, lo_span, means_t, icov6_t, d1, d2,
-                       lik, tri, total, best, has):  # pragma: no cover
-    """:func:`_all_point_terms` with the dense table for points ``i0:i1``, one point at a
-    time: the same 27 neighbours in the same order, the same arithmetic in the same order
-    (so the same numbers), without the [N]-sized temporaries of every offset."""
-    lo0, lo1, lo2 = lo_span[0], lo_span[1], lo_span[2]
-    s0, s1, s2 = lo_span[3], lo_span[4], lo_span[5]
-    r2 = cell_size ** 2
-    gp = np.empty((3, 3))      # [offset + 1, axis] squared gap to the neighbour cell
-    tw = np.empty((3, 3))      # [offset + 1, axis] trilinear weight of the neighbour
-    for i in range(i0, i1):
-        lik[i] = 0.0
-        tri[i] = 0.0
-        total[i] = 0.0
-        best[i] = 0.0
-        has[i] = False
-        b0 = math.floor(p[i, 0] / cell_size)
-        b1 = math.floor(p[i, 1] / cell_size)
-        b2 = math.floor(p[i, 2] / cell_size)
-        r0, r1_, r2_ = int(b0) - lo0, int(b1) - lo1, int(b2) - lo2
-        if not (r0 >= 1 and r0 <= s0 - 2 and r1_ >= 1 and r1_ <= s1 - 2 and r2_ >= 1 and r2_ <= s2 - 2):
-            continue                     # outside the table's margin: no occupied neighbour
-        lin = (r0 * s1 + r1_) * s2 + r2_
-        for a in range(3):
-            f = p[i, a] / cell_size - (b0 if a == 0 else (b1 if a == 1 else b2))
-            gp[0, a] = f * f
-            gp[1, a] = 0.0
-            gp[2, a] = (1.0 - f) ** 2
-            tw[0, a] = max(0.5 - f, 0.0)
-            tw[1, a] = 1.0 - abs(f - 0.5)
-            tw[2, a] = max(f - 0.5, 0.0)
-        x, y, z = p[i, 0], p[i, 1], p[i, 2]
-        for ox in range(-1, 2):
-            for oy in range(-1, 2):
-                for oz in range(-1, 2):
-                    c = table[lin + (ox * s1 + oy) * s2 + oz]
-                    if c < 0:
-                        continue
-                    nz = (ox != 0) + (oy != 0) + (oz != 0)
-                    if nz > 1 and not (gp[ox + 1, 0] + gp[oy + 1, 1] + gp[oz + 1, 2]) <= 1.0:
-                        continue
-                    dx = x - means_t[0, c]
-                    dy = y - means_t[1, c]
-                    dz = z - means_t[2, c]
-                    dist2 = dx * dx + dy * dy + dz * dz
-                    t = icov6_t[0, c] * dx
-                    t += icov6_t[3, c] * dy
-                    t += icov6_t[4, c] * dz
-                    t *= dx
-                    u = icov6_t[1, c] * dy
-                    u += icov6_t[5, c] * dz
-                    u *= dy
-                    t += u
-                    u = icov6_t[2, c] * dz
-                    u *= dz
-                    m = t + u
-                    g = math.exp(-0.5 * m)
-                    if nz == 0:
-                        lik[i] = g
-                    w = tw[ox + 1, 0] * tw[oy + 1, 1] * tw[oz + 1, 2]
-                    tri[i] += w * g
-                    if dist2 <= r2:
-                        e = math.exp(-0.5 * d2 * m)
-                        term = -d1 * e if (d2 * e <= 1.0 and d2 * e >= 0.0) else 0.0
-                        total[i] += term
-                        best[i] = max(best[i], term)
-                        has[i] = True
-
-
 def _point_terms(grid: NDTGrid, p: np.ndarray, outlier_ratio: float
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The per-point terms: the compiled loop where the grid has a dense table, else the
     vectorised :func:`_all_point_terms`."""
     if grid._table is None or grid.cells == 0:
         return _all_point_terms(grid, p, outlier_ratio)
+    from tofhil.eval.ndt_kernels import _point_terms_block   # numba: imported only here
+
     d1, d2 = gauss_params(grid.cell_size, outlier_ratio)
     n = p.shape[0]
     lik, tri, total, best = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
