@@ -51,6 +51,8 @@ def _as_points(points: Any, name: str = "points") -> np.ndarray:
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
         raise TofhilError(f"has shape {p.shape}", field=name, expected="an N x 3 array of points")
+    if p.size and math.isfinite(p.min()) and math.isfinite(p.max()):   # no NaN, no inf: 2 passes
+        return p
     return p[np.all(np.isfinite(p), axis=1)]
 
 
@@ -118,22 +120,25 @@ class NDTGrid:
             raise TofhilError(f"is {min_points}", field="min_points", expected="at least 3 (a covariance needs 3 points)")
         if not 0.0 <= eig_floor <= 1.0:
             raise TofhilError(f"is {eig_floor}", field="eig_floor", expected="a fraction in [0, 1]")
-        p = _as_points(points)
-        ijk = np.floor(p / cell_size).astype(np.int64)
-        if p.shape[0] and np.abs(ijk).max() >= _KEY_LIMIT:
+        # Column by column: numpy's reductions and broadcasts along a 3-wide axis of an [N, 3]
+        # array run 10-40x slower than on contiguous columns (ijk.min(0): 20 ms at 300k).
+        cols = _columns(_as_points(points))
+        ijk = [np.floor(c / cell_size).astype(np.int64) for c in cols]
+        if cols[0].size and max(max(-v.min(), v.max()) for v in ijk) >= _KEY_LIMIT:
             raise TofhilError(f"cloud spans more than {_KEY_LIMIT} cells of {cell_size} m from the origin",
                               field="cell_size", expected="a larger cell size or a cloud nearer the origin")
-        keys, inverse, counts = np.unique(_pack(ijk), return_inverse=True, return_counts=True)
+        keys, inverse, counts = _occupied_cells(ijk)
         keep = counts >= min_points
         # Two-pass covariance in cell-local coordinates (better conditioned than PCL's single
         # pass; identical in exact arithmetic).
         n = counts.astype(np.float64)
-        means = np.stack([np.bincount(inverse, p[:, a], minlength=keys.size) for a in range(3)], 1) / n[:, None]
-        d = p - means[inverse]
+        mcols = [np.bincount(inverse, c, minlength=keys.size) / n for c in cols]
+        means = np.stack(mcols, 1)
+        d = [c - m.take(inverse) for c, m in zip(cols, mcols)]
         cov = np.empty((keys.size, 3, 3))
         for a in range(3):
             for b in range(a, 3):
-                s = np.bincount(inverse, d[:, a] * d[:, b], minlength=keys.size)
+                s = np.bincount(inverse, d[a] * d[b], minlength=keys.size)
                 cov[:, a, b] = cov[:, b, a] = s / np.maximum(n - 1.0, 1.0)
         keys, counts, means, cov = keys[keep], counts[keep], means[keep], cov[keep]
         evals, evecs = np.linalg.eigh(cov) if keys.size else (np.zeros((0, 3)), np.zeros((0, 3, 3)))
@@ -167,6 +172,34 @@ class NDTGrid:
     def cell_of(self, points: np.ndarray) -> np.ndarray:
         """Integer cell index ``floor(p / cell_size)`` of each point."""
         return np.floor(np.asarray(points, dtype=np.float64) / self.cell_size).astype(np.int64)
+
+
+def _occupied_cells(ijk: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``np.unique(_pack(ijk), return_inverse=True, return_counts=True)`` for the three
+    columns of cell indices: the sorted keys of the occupied cells, each point's cell number
+    and the counts. Where the bounding box of the cells is small (at most 4 cells per point)
+    by counting over its linear index, in the same order (both are lexicographic in i, j, k)
+    without sorting the points."""
+    n = ijk[0].size
+    if n:
+        lo = [int(v.min()) for v in ijk]
+        span = [int(v.max()) - a + 1 for v, a in zip(ijk, lo)]
+        size = float(span[0]) * span[1] * span[2]
+        if size <= max(4.0 * n, 1 << 16):
+            lin = ijk[0] - lo[0]
+            lin *= span[1]
+            lin += ijk[1]
+            lin -= lo[1]
+            lin *= span[2]
+            lin += ijk[2]
+            lin -= lo[2]
+            per_cell = np.bincount(lin, minlength=int(size))
+            occupied = np.flatnonzero(per_cell)
+            number = np.empty(per_cell.size, np.int64)
+            number[occupied] = np.arange(occupied.size)
+            rel = np.stack(np.unravel_index(occupied, tuple(span)), 1)
+            return _pack(rel + np.array(lo)), number.take(lin), per_cell[occupied]
+    return np.unique(_pack(np.stack(ijk, 1)), return_inverse=True, return_counts=True)
 
 
 def _linear(rel: np.ndarray, span: np.ndarray) -> np.ndarray:
@@ -392,25 +425,29 @@ def _pcl_block_sum(grid: NDTGrid, p: np.ndarray, d1: float, d2: float) -> float:
     by that offset (a view: no index arithmetic per point); every other step is a gather or
     an in-place update of the candidates (about 16 per point in a room scan, 6 within the
     radius)."""
-    u = p / grid.cell_size
-    base = np.floor(u)
-    frac = u - base
-    base = base.astype(np.int64)
+    x, y, z = _columns(p)
+    u = [c / grid.cell_size for c in (x, y, z)]
+    base = [np.floor(c) for c in u]
+    f = [a - b for a, b in zip(u, base)]                        # position inside the cell, [0, 1)
+    base = [b.astype(np.int64) for b in base]
     dense = grid._table is not None
     if dense:
-        lo, span = grid._lo_span[:3], grid._lo_span[3:]
-        rel = base - lo
-        inside = np.all((rel >= 1) & (rel <= span - 2), axis=1)    # else no neighbour at all
+        # Columns, not [N, 3] arrays: see NDTGrid.from_points.
+        lo, span = [int(v) for v in grid._lo_span[:3]], [int(v) for v in grid._lo_span[3:]]
+        rel = [b - a for b, a in zip(base, lo)]
+        inside = (rel[0] >= 1) & (rel[0] <= span[0] - 2)
+        for a in (1, 2):
+            inside &= (rel[a] >= 1) & (rel[a] <= span[a] - 2)    # else no neighbour at all
         if not inside.all():
             keep = np.flatnonzero(inside)
-            p, frac, rel = p[keep], frac[keep], rel[keep]
-        s1, s2 = int(span[1]), int(span[2])
+            x, y, z = x[keep], y[keep], z[keep]
+            f = [v[keep] for v in f]
+            rel = [v[keep] for v in rel]
+        s1, s2 = span[1], span[2]
         shift = s1 * s2 + s2 + 1                                  # minus the lowest offset's step
-        lin = _linear(rel, span) - shift                          # >= 0 inside the margin
+        lin = (rel[0] * s1 + rel[1]) * s2 + rel[2] - shift        # >= 0 inside the margin
     else:
-        nb = _Neighbours(grid, base)
-    x, y, z = _columns(p)
-    f = _columns(frac)
+        nb = _Neighbours(grid, np.stack(base, 1))
     below, above = [v * v for v in f], [(1.0 - v) ** 2 for v in f]   # squared box gaps, cell units
     mx, my, mz = grid._means_t
     a0, a1, a2, a3, a4, a5 = grid._icov6_t
