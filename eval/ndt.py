@@ -468,7 +468,7 @@ def _pcl_block_sum(grid: NDTGrid, p: np.ndarray, d1: float, d2: float) -> float:
             sel = np.flatnonzero(cells >= 0)
         if sel.size == 0:
             continue
-        c = cells.take(sel)
+        c = cells.take(sel).astype(np.intp)     # take() with int32 indices is ~7x slower
         dx = x.take(sel)
         dx -= mx.take(c)
         dy = y.take(sel)
