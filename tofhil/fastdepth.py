@@ -11,6 +11,8 @@ saturated or non-finite tap (:func:`tofhil.demod.bad_tap_pixels`), so the kernel
 compiled without the no-NaN/no-inf fast-math assumptions (a NaN tap must be seen as one),
 and with numpy's error model: numba's default checks every float division for a zero divisor
 (a branch that raises), and that branch alone kept each pixel loop with a division scalar.
+One frequency with K = 3 or 4 (nothing to unwrap) takes a single loop that writes every output
+from registers (:func:`_fused_one`), the same numbers.
 """
 from __future__ import annotations
 
