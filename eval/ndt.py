@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import math
 import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Sequence
 
@@ -578,6 +577,8 @@ def _point_terms(grid: NDTGrid, p: np.ndarray, outlier_ratio: float
     if len(spans) <= 1:
         run(0, n)
     else:
+        from concurrent.futures import ThreadPoolExecutor
+
         with ThreadPoolExecutor(min(2, os.cpu_count() or 1)) as pool:
             list(pool.map(lambda ab: run(*ab), spans))
     return lik, tri, total, best, has
