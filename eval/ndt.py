@@ -38,6 +38,7 @@ _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 _KEY_LIMIT = _KEY_OFFSET - 2          # |index| must stay below this (one cell of margin)
 _DENSE_MAX_CELLS = 1 << 25            # dense lookup table up to 32M entries (128 MB int32)
 _POINT_BLOCK = 32768                  # points per thread task of the compiled scoring loop
+_SCORE_BLOCK = 16384                  # points per block of pcl_score (its temporaries stay in L2)
 
 DEFAULT_THRESHOLDS: tuple[float, ...] = (0.1, 0.5, 0.9)
 
@@ -411,8 +412,8 @@ def pcl_score(grid: NDTGrid, points: Any, outlier_ratio: float = 0.55) -> float:
         return 0.0
     d1, d2 = gauss_params(grid.cell_size, outlier_ratio)
     total = 0.0
-    for a in range(0, n, _POINT_BLOCK):
-        total += _pcl_block_sum(grid, p[a:a + _POINT_BLOCK], d1, d2)
+    for a in range(0, n, _SCORE_BLOCK):
+        total += _pcl_block_sum(grid, p[a:a + _SCORE_BLOCK], d1, d2)
     return total / n
 
 
