@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from typing import Any, Iterable, Sequence
 
 import numpy as np
+
 from tofhil.errors import TofhilError
 
 # Cell keys pack (i, j, k) into one int64: 21 bits per axis, offset so negatives fit.

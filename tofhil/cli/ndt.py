@@ -29,7 +29,7 @@ def ndt(ref: str = typer.Argument(..., help="Reference cloud: PLY, PCD, xyz text
         d2d: bool = typer.Option(False, "--d2d", help="Also the D2D score between the two clouds' grids."),
         score_only: bool = typer.Option(
             False, "--score-only", help="Only PCL's score per point (what PCL's NDT computes), without the other "
-                                        "scores: numpy alone, no compiled kernel to load (about 3x less CPU time)."),
+                                        "scores: numpy alone, no compiled kernel to load (about half the CPU time)."),
         as_json: bool = typer.Option(False, "--json", help="Print JSON.")) -> None:
     """Score CLOUD against the NDT of REF: PCL score per point, NVTL, likelihoods.
 
