@@ -200,3 +200,37 @@ def test_detect_clipping_finds_pinned_extremes_only():
     tmin[5, :5] = -2048.0
     lim = detect_clipping(tmax, tmin)
     assert lim.high_dn == 2047.0 and lim.low_dn == -2048.0
+
+
+@pytest.mark.parametrize("k", [3, 4])
+def test_one_frequency_loop_equals_block_kernel(k):
+    """One frequency takes a single-loop kernel (no block buffers); it must give exactly the
+    numbers of the general block kernel, bad taps included."""
+    import math
+
+    from tofhil.demod import TapLimits, estimator_weights
+    from tofhil.fastdepth import _fused, fused_depth
+
+    rng = np.random.default_rng(5)
+    theta = equally_spaced_phases(k, np.radians(11.0))
+    shape = (1, 30, 40)
+    phase = rng.uniform(0, 2 * np.pi, shape)
+    taps = taps_from_signal(rng.uniform(5, 400, shape), phase, np.full(shape, 900.0), theta)
+    taps = (taps + rng.normal(0, 3.0, taps.shape)).astype(np.float32)
+    taps[0, 1, 3, 4], taps[0, 0, 5, 6], taps[0, k - 1, 7, 8], taps[0, 2, 9, 10] = np.nan, np.inf, 2047.0, -2048.0
+    taps[0, :, 11, 12] = 900.0     # zero amplitude: phase of (0, 0)
+    limits = TapLimits(2047.0, -2048.0)
+    d, amp, inten, conf, rng_m, valid = fused_depth(taps, theta, np.array([44e6]), 0.5, limits)
+    wts = estimator_weights(theta)
+    n = 30 * 40
+    ref = [np.empty(n, np.float32) for _ in range(3)] + [np.empty(n, np.uint8) for _ in range(2)]
+    c = np.zeros(14, np.float32)
+    c[8], c[9], c[11] = rng_m, 1.0 / rng_m, 1.0 / k
+    r = np.array([rng_m], np.float32)
+    lo, hi = limits.bounds(np.float32)
+    _fused(taps.reshape(1, k, n), wts.real.astype(np.float32), wts.imag.astype(np.float32), lo, hi, c, r,
+           np.ones(1, np.float32), np.zeros((3, 3), np.float32), *ref)
+    for got, want in zip((d, amp, inten, conf, valid), ref):
+        np.testing.assert_array_equal(got.reshape(-1).view(want.dtype), want)
+    assert not valid[3, 4] and not valid[9, 10] and valid.sum() == n - 4
+    assert math.isclose(rng_m, 299792458.0 / (2 * 44e6), rel_tol=1e-12)

@@ -40,6 +40,19 @@ def test_json_output(capsys):
     assert d["fraction_above"]["0.2"] >= d["fraction_above"]["0.6"]
 
 
+def test_score_only_json_and_text(capsys):
+    ref, cloud = DATA / "ref.pcd", DATA / "cloud.pcd"
+    code, out, _ = run(capsys, "ndt", str(ref), str(cloud), "--cell-size", "0.5", "--score-only", "--json")
+    assert code == 0
+    d = json.loads(out)
+    assert set(d) == {"score_per_point", "cells", "n_points", "cell_size", "outlier_ratio"}
+    s = ndt_score(load_cloud(ref), load_cloud(cloud), cell_size=0.5)
+    assert d["score_per_point"] == pytest.approx(s.score_per_point, abs=1e-12)
+    assert d["cells"] == 62
+    code, out, _ = run(capsys, "ndt", str(ref), str(cloud), "--cell-size", "0.5", "--score-only", "--d2d")
+    assert code == 0 and "score per point (PCL)" in out and "D2D" in out and "NVTL" not in out
+
+
 def test_session_frames_and_text(tmp_path, capsys):
     cam = CameraModel.from_fov(40, 30, 60.0)
     path = tmp_path / "s.h5"

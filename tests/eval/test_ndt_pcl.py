@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from tofhil.eval.clouds import load_cloud
-from tofhil.eval.ndt import NDTGrid, gauss_params, ndt_score
+from tofhil.eval.ndt import NDTGrid, gauss_params, ndt_score, pcl_score
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "pcl"
 SETTINGS = [("r050", 0.5, 0.55, 6), ("r025", 0.25, 0.55, 6), ("r030", 0.3, 0.3, 10)]
@@ -97,3 +97,20 @@ def test_score_equals_pcl_transformation_likelihood_after_align(clouds, tag, res
     assert s.score_per_point == pytest.approx(float(summ["aligned_likelihood"]), abs=TOL)
     # Registration raised PCL's score above the identity pose's.
     assert float(summ["aligned_likelihood"]) > float(summ["score_per_point"])
+
+
+@pytest.mark.parametrize("tag,res,ratio,min_pts", SETTINGS)
+def test_numpy_score_only_path_matches_pcl(clouds, tag, res, ratio, min_pts):
+    """``pcl_score`` (numpy, no compiled kernel: ``tofhil ndt --score-only``) gives PCL's
+    number, with the dense lookup table and with the sorted-key lookup alike."""
+    import dataclasses
+
+    ref, cloud = clouds
+    summ = _summary(tag)
+    grid = NDTGrid.from_points(ref, float(np.float32(res)), min_points=min_pts)
+    assert grid._table is not None
+    assert pcl_score(grid, cloud, outlier_ratio=ratio) == pytest.approx(float(summ["score_per_point"]), abs=TOL)
+    sparse = dataclasses.replace(grid, _table=None, _lo_span=None)
+    assert pcl_score(sparse, cloud, outlier_ratio=ratio) == pytest.approx(float(summ["score_per_point"]), abs=TOL)
+    aligned = load_cloud(DATA / f"pcl_{tag}_aligned.pcd")
+    assert pcl_score(grid, aligned, outlier_ratio=ratio) == pytest.approx(float(summ["aligned_likelihood"]), abs=TOL)
