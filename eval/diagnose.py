@@ -201,7 +201,8 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
         form = f" ({best.form or 'simple'} form; preferred over {', '.join(others)})" if others else ""
         lines.append(f"round {i + 1}: best {best.effect}{form} removes {100 * best.relative_gain:.1f}% of the held-out "
                      f"misfit (score gain {best.delta_score:.0f}, "
-                     + (f"{best.dof:.0f} effective degrees of freedom" if best.details else f"{best.dof:g} degrees of freedom")
+                     + (f"{best.dof:.{0 if best.details else 1}f} effective degrees of freedom" if best.details or best.prior
+                        else f"{best.dof:g} degrees of freedom")
                      + f") -- {verdict}"
                      + (f"; runner-up {runner.effect} {100 * runner.relative_gain:.1f}%" if runner else ""))
     for i, rnd in enumerate(selection.rounds):
@@ -220,6 +221,11 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
     for e in selection.causes:
         for test in selection.unidentified.get(e, ()):
             lines.extend(test.lines)
+    for e, prior in selection.priors.items():
+        if e in selection.causes:
+            lines.append(f"{e}: form {selection.forms.get(e) or 'simple'} regularised by its prior, the strength "
+                         f"({prior['prior_strength']:g}) chosen on held-out blocks of the training frames: "
+                         f"{prior['dof']:.1f} effective degrees of freedom of its {prior['params']} parameters")
     for c in (c for rnd in selection.rounds[:1] for c in rnd if c.details.get("pixel_part")):
         lines.append(f"{c.effect}: fitted form {c.details['form']} ({c.details['dof']:.1f} effective degrees of "
                      f"freedom); per-pixel part {c.details['pixel_part']}")
@@ -404,7 +410,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,
                "chi2_test": c.chi2_test, "n_params": c.n_params, "worse_channels": c.worse_channels,
                "at_bounds": c.at_bounds, "form": c.form, "dof": round(c.dof, 2), "forms": c.forms,
-               "worth_naming": c.worth_naming, "rmse": {ch: g.to_json() for ch, g in c.rmse.items()}}
+               "worth_naming": c.worth_naming, "rmse": {ch: g.to_json() for ch, g in c.rmse.items()},
+               "prior": c.prior}
               for c in selection.first_round]
     rounds = [[{"effect": c.effect, "form": c.form, "delta_score": c.delta_score, "relative_gain": c.relative_gain,
                 "significant": c.significant, "worse_channels": c.worse_channels} for c in rnd]

@@ -163,14 +163,7 @@ def assess_form(model: Any, data: HeldOutData, fitted: Mapping[str, Mapping[str,
         trial[effect] = dict(vals)
         return data.whitened_residual(model.predict(trial), "fit")
 
-    r0 = w(values)
-    cols = []
-    for p in spec.params:
-        h = 0.05 * p.scale
-        if values[p.name] + h > p.hi:
-            h = -h
-        cols.append((w({**values, p.name: values[p.name] + h}) - r0) / h)
-    jac = np.stack(cols, axis=1)
+    (r0, jac), = form_jacobian(model, data, fitted, effect, spec, ("fit",))
     groups: dict[str, list[int]] = {}
     for i, n in enumerate(names):
         groups.setdefault(param_group(n), []).append(i)
@@ -191,6 +184,31 @@ def assess_form(model: Any, data: HeldOutData, fitted: Mapping[str, Mapping[str,
                                     shared=shared, resolvable_chi2=(1.0 - shared) * max(effect_chi2, change),
                                     closest=closest))
     return out
+
+
+def form_jacobian(model: Any, data: HeldOutData, fitted: Mapping[str, Mapping[str, float]], effect: str,
+                  spec: Any, parts: tuple[str, ...] = ("fit",)) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per data part: the whitened residual at the fitted values and its Jacobian in
+    ``spec``'s parameters of ``effect`` (every other effect held). Forward differences of a
+    twentieth of each parameter's typical step, as the fit's own; one prediction per
+    parameter serves every part."""
+    values = {p.name: float(fitted[effect].get(p.name, p.off)) for p in spec.params}
+
+    def w(vals: Mapping[str, float]) -> list[np.ndarray]:
+        trial = {e: dict(v) for e, v in fitted.items()}
+        trial[effect] = dict(vals)
+        pred = model.predict(trial)
+        return [data.whitened_residual(pred, part) for part in parts]
+
+    r0 = w(values)
+    cols: list[list[np.ndarray]] = [[] for _ in parts]
+    for p in spec.params:
+        h = 0.05 * p.scale
+        if values[p.name] + h > p.hi:
+            h = -h
+        for i, r in enumerate(w({**values, p.name: values[p.name] + h})):
+            cols[i].append((r - r0[i]) / h)
+    return [(r0[i], np.stack(cols[i], axis=1) if cols[i] else np.zeros((r0[i].size, 0))) for i in range(len(parts))]
 
 
 def _shared(a: np.ndarray, b: np.ndarray) -> float:

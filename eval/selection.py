@@ -30,6 +30,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from tofhil.eval.heldout import HUBER_SIGMA, HeldOutData, huber
+from tofhil.eval.form_prior import regularise_form
 from tofhil.eval.identifiability import Identifiability, assess_form
 from tofhil.eval.verdict import ChannelGain, EffectSize, channel_chi2, worse_channels
 
@@ -70,6 +71,12 @@ class EffectSpec:
     #: A closed-form fit on the training data instead of the optimiser (flexible map forms):
     #: ``(model, data, current effects, penalty per dof) -> (values, effective dof, details)``.
     closed_form: Callable[..., tuple[dict[str, Any], float, dict[str, Any]]] | None = None
+    #: The form's prior (``Effect.roughness``): fitted values -> a vector zero for its
+    #: smoothest shape; None for none.
+    roughness: Callable[[Mapping[str, float]], np.ndarray] | None = None
+    #: The prior's strength chosen on held-out data (:mod:`tofhil.eval.form_prior`): every fit
+    #: of this spec adds ``strength * |roughness|^2`` to its misfit (0: no prior).
+    strength: float = 0.0
 
     @property
     def k(self) -> float:
@@ -122,6 +129,10 @@ class Candidate:
     #: Flexible forms that beat the chosen one on score but whose extra parameters the data
     #: do not identify (:mod:`tofhil.eval.identifiability`): why each was not chosen.
     unidentified: list[Identifiability] = field(default_factory=list)
+    #: A regularised form's prior strength (``EffectSpec.strength``) and what its choice on
+    #: held-out data reports (:class:`tofhil.eval.form_prior.PriorFit`); 0 and empty otherwise.
+    strength: float = 0.0
+    prior: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -151,6 +162,8 @@ class Selection:
     #: Per cause, the flexible forms refused because the data do not identify their extra
     #: parameters (which ones cannot be told apart).
     unidentified: dict[str, list[Identifiability]] = field(default_factory=dict)
+    #: Per cause fitted in a regularised form, its prior's strength and effective dof.
+    priors: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     @property
     def first_round(self) -> list[Candidate]:
@@ -205,8 +218,17 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
 
     last: dict[str, np.ndarray] = {}
 
+    # a regularised form's prior enters its fit as extra residuals sqrt(strength) * roughness
+    priors = [(e, lib[e]) for e in free if lib[e].roughness is not None and lib[e].strength > 0.0]
+
+    def penalty(x: np.ndarray) -> np.ndarray:
+        if not priors:
+            return np.zeros(0)
+        values = _unpack(free, lib, x)
+        return np.concatenate([np.sqrt(spec.strength) * spec.roughness(values[e]) for e, spec in priors])
+
     def residual(x: np.ndarray) -> np.ndarray:
-        r = data.whitened_residual(model.predict(full(x)), "fit")
+        r = np.concatenate([data.whitened_residual(model.predict(full(x)), "fit"), penalty(x)])
         last["x"], last["r"] = x.copy(), r
         return r
 
@@ -223,7 +245,8 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
             h = steps[j] if x[j] + steps[j] <= hi[j] else -steps[j]
             xj = x0_.copy()
             xj[j] += h
-            cols.append((data.whitened_residual(model.predict(full(xj)), "fit") - r0) / h)
+            cols.append((np.concatenate([data.whitened_residual(model.predict(full(xj)), "fit"), penalty(xj)])
+                         - r0) / h)
         return np.stack(cols, axis=1)
 
     starts = [x0]
@@ -364,7 +387,15 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                 else:
                     fitted, chi2_train = fit(model, data, trial, params, new_effect=name, free=[name],
                                              lib=trial_lib)
+                prior = regularise_form(model, data, fitted, name, spec)
+                if prior is not None:
+                    # the form's prior, its strength chosen on held-out blocks of the training
+                    # frames; the penalty charges the regularised form's effective dof
+                    fitted = {**fitted, name: prior.values}
+                    k_new = prior.dof
                 pred = model.predict(fitted)
+                if prior is not None:
+                    chi2_train = data.chi2(pred, "fit")
                 chi2_test = data.chi2(pred, "test")
                 channels = channel_chi2(data, pred)
                 # worse than the current model or, summed over rounds, than the base twin
@@ -384,7 +415,9 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                                        significant=gains and not worse and worth, n_params=len(spec.params),
                                        all_params=fitted, worse_channels=worse, at_bounds=pinned(spec, fitted[name]),
                                        channels=channels, form=spec.form, dof=float(k_new), details=details,
-                                       rmse=rmse, worth_naming=worth))
+                                       rmse=rmse, worth_naming=worth,
+                                       strength=prior.strength if prior is not None else 0.0,
+                                       prior=prior.summary() if prior is not None else {}))
                 traded |= gains and bool(worse)
             if traded and name not in selection.rejected_for_channels:
                 selection.rejected_for_channels.append(name)
@@ -412,7 +445,9 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                 if any(g.confused for g in test.groups):
                     chosen.unidentified.append(test)
         active.append(chosen.effect)
-        work[chosen.effect] = lib[chosen.effect].variant(chosen.form)
+        work[chosen.effect] = dataclasses.replace(lib[chosen.effect].variant(chosen.form), strength=chosen.strength)
+        if chosen.prior:
+            selection.priors[chosen.effect] = chosen.prior
         selection.forms[chosen.effect] = chosen.form
         dofs[chosen.effect] = chosen.dof
         if chosen.details:
@@ -466,6 +501,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                 and not worse_channels(selection.channels_before, channels)):
             work[e], dofs[e] = lib[e], lib[e].k
             selection.forms[e] = ""
+            selection.priors.pop(e, None)
             params, current_chi2, current_channels, current_pred = refit, chi2, channels, pred
         else:
             test.kept = True  # the simpler form is worse on held-out data: said, not hidden
