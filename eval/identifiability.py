@@ -95,6 +95,8 @@ class Identifiability:
     after_later: bool = False
     #: Kept although not identified: the simpler form refitted was worse on held-out data.
     kept: bool = False
+    #: The partial form fitted instead (this form without its unidentified groups), if any.
+    partial: str = ""
 
     @property
     def identified(self) -> bool:
@@ -120,13 +122,14 @@ class Identifiability:
             verb = ("kept although not identified at the final fit (the simpler form refitted is worse on "
                     "held-out data)" if self.kept else
                     "replaced by the simpler form at the final fit (after the joint refit and any later effects)"
-                    if self.after_later else "not chosen")
+                    if self.after_later else f"not chosen whole (fitted without {g.group}: {self.partial})"
+                    if self.partial else "not chosen")
             out.append(f"{self.effect}: form {self.form} {verb}: {why}")
         return out
 
     def to_json(self) -> dict[str, Any]:
         return {"effect": self.effect, "form": self.form, "identified": self.identified, "after_later": self.after_later,
-                "kept": self.kept,
+                "kept": self.kept, "partial": self.partial,
                 "groups": [g.to_json() for g in self.groups], "text": self.lines}
 
 

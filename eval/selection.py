@@ -31,10 +31,12 @@ from scipy.optimize import least_squares
 
 from tofhil.eval.heldout import HUBER_SIGMA, HeldOutData, huber
 from tofhil.eval.form_prior import regularise_form
-from tofhil.eval.identifiability import Identifiability, assess_form
+from tofhil.eval.identifiability import Identifiability, assess_form, param_group
 from tofhil.eval.verdict import ChannelGain, EffectSize, channel_chi2, worse_channels
 
 EffectParams = dict[str, dict[str, float]]
+#: How a partial form is named: its flexible form, this, and the parameter groups left out.
+PARTIAL = " without "
 
 
 @dataclass(frozen=True)
@@ -83,8 +85,21 @@ class EffectSpec:
         return float(len(self.params) if self.dof is None else self.dof)
 
     def variant(self, form: str) -> "EffectSpec":
-        """The spec of ``form`` (this one or one of its flexible forms)."""
-        return next(s for s in (self,) + tuple(self.forms) if s.form == form)
+        """The spec of ``form`` (this one or one of its flexible forms, or a partial form of
+        one: ``"harmonics without h5"``, :meth:`without`)."""
+        base, _, dropped = form.partition(PARTIAL)
+        spec = next(s for s in (self,) + tuple(self.forms) if s.form == base)
+        return spec.without(dropped.split(", ")) if dropped else spec
+
+    def without(self, groups: Sequence[str]) -> "EffectSpec":
+        """A partial form: this form with the parameter groups ``groups`` left out (held at
+        their off values; groups as :func:`tofhil.eval.identifiability.param_group`)."""
+        base, _, before = self.form.partition(PARTIAL)
+        dropped = sorted(set(groups) | set(before.split(", ") if before else ()))
+        return dataclasses.replace(
+            self, params=tuple(p for p in self.params if param_group(p.name) not in dropped),
+            starts=tuple({k: v for k, v in s.items() if param_group(k) not in dropped} for s in self.starts),
+            form=base + PARTIAL + ", ".join(dropped), forms=())
 
 
 class ForwardModel(Protocol):
@@ -283,7 +298,8 @@ def pinned(spec: EffectSpec, values: Mapping[str, float], rel: float = 1e-3) -> 
 
 
 def choose_form(tried: Sequence[Candidate], min_extra_gain: float,
-                identify: Callable[[Candidate], Identifiability] | None = None) -> Candidate:
+                identify: Callable[[Candidate], Identifiability] | None = None,
+                partial: Callable[[Candidate, list[str]], Candidate] | None = None) -> Candidate:
     """The form of one effect to offer in a round, from its fits in each form (the simple
     form first, then the flexible ones from least to most flexible).
 
@@ -294,6 +310,9 @@ def choose_form(tried: Sequence[Candidate], min_extra_gain: float,
     significant), and ``identify`` (when given) finds every one of its extra parameters
     determined by the data: a score margin can come from the optimiser's path or from
     parameters that another one of the form reproduces (:mod:`tofhil.eval.identifiability`).
+    A form whose extra groups are identified only in part (h3 and h7 but not h5) is tried
+    again without the groups the data do not identify (``partial(candidate, groups)`` fits
+    that partial form), under the same rule, until every group left is identified.
     Otherwise the simpler form stays: a flexible form that adds nothing on held-out data is
     not chosen. The chosen candidate lists every form tried in ``forms`` and the refused
     unidentified ones in ``unidentified``.
@@ -301,17 +320,27 @@ def choose_form(tried: Sequence[Candidate], min_extra_gain: float,
     chosen = tried[0]
     refused: list[Identifiability] = []
     checked: dict[str, bool] = {}
+    every = list(tried)
     for c in tried[1:]:
-        if c.significant and c.score < chosen.score and chosen.chi2_test - c.chi2_test > min_extra_gain:
+        while c.significant and c.score < chosen.score and chosen.chi2_test - c.chi2_test > min_extra_gain:
             if identify is not None and c.n_params:
                 test = identify(c)
                 checked[c.form] = test.identified
                 if not test.identified:
                     refused.append(test)
+                    drop = [g.group for g in test.groups if not g.identified]
+                    if partial is None or len(drop) == len(test.groups):
+                        break
+                    c = partial(c, drop)
+                    every.append(c)
                     continue
             chosen = c
+            break
+    for test in refused:
+        if chosen.form.startswith(test.form.partition(PARTIAL)[0] + PARTIAL):
+            test.partial = chosen.form
     chosen.forms = {c.form: {"chi2_test": c.chi2_test, "score": c.score, "dof": c.dof, "significant": c.significant}
-                    | ({"identified": checked[c.form]} if c.form in checked else {}) for c in tried}
+                    | ({"identified": checked[c.form]} if c.form in checked else {}) for c in every}
     chosen.unidentified = refused
     return chosen
 
@@ -367,11 +396,13 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                 continue
             tried: list[Candidate] = []
             traded = False  # a form gained only by making a channel worse
-            for spec in (lib[name],) + tuple(lib[name].forms):
-                if tried and spec.params:
-                    # a flexible form also starts where the simple one ended (its phases found)
+            def try_form(name: str, spec: EffectSpec, start_from: Candidate | None) -> tuple[Candidate, bool]:
+                """Fit ``name`` in ``spec``'s form and score it; and whether it gained only by
+                making a channel worse."""
+                if start_from is not None and spec.params:
+                    # a flexible form also starts where a simpler one ended (its phases found)
                     names_ = {p.name for p in spec.params}
-                    simple = {k: v for k, v in tried[0].params.items() if k in names_}
+                    simple = {k: v for k, v in start_from.params.items() if k in names_}
                     spec = dataclasses.replace(spec, starts=(simple,) + tuple(spec.starts))
                 if progress:
                     progress(f"fitting {name}" + (f" ({spec.form})" if spec.form else ""))
@@ -409,20 +440,29 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                 worth = True
                 if effect_size is not None and gains and not worse:
                     rmse, worth = effect_size.names(current_pred, pred, base_pred)
-                tried.append(Candidate(effect=name, params=fitted[name], chi2_train=chi2_train, chi2_test=chi2_test,
-                                       score=score, delta_score=current_score - score,
-                                       relative_gain=gain / current_chi2 if current_chi2 > 0 else 0.0,
-                                       significant=gains and not worse and worth, n_params=len(spec.params),
-                                       all_params=fitted, worse_channels=worse, at_bounds=pinned(spec, fitted[name]),
-                                       channels=channels, form=spec.form, dof=float(k_new), details=details,
-                                       rmse=rmse, worth_naming=worth,
-                                       strength=prior.strength if prior is not None else 0.0,
-                                       prior=prior.summary() if prior is not None else {}))
-                traded |= gains and bool(worse)
+                cand = Candidate(effect=name, params=fitted[name], chi2_train=chi2_train, chi2_test=chi2_test,
+                                 score=score, delta_score=current_score - score,
+                                 relative_gain=gain / current_chi2 if current_chi2 > 0 else 0.0,
+                                 significant=gains and not worse and worth, n_params=len(spec.params),
+                                 all_params=fitted, worse_channels=worse, at_bounds=pinned(spec, fitted[name]),
+                                 channels=channels, form=spec.form, dof=float(k_new), details=details,
+                                 rmse=rmse, worth_naming=worth,
+                                 strength=prior.strength if prior is not None else 0.0,
+                                 prior=prior.summary() if prior is not None else {})
+                return cand, gains and bool(worse)
+
+            for spec in (lib[name],) + tuple(lib[name].forms):
+                cand, traded_ = try_form(name, spec, tried[0] if tried else None)
+                tried.append(cand)
+                traded |= traded_
+
+            def partial(c: Candidate, drop: list[str]) -> Candidate:
+                # a partial form starts from the fuller form's values
+                return try_form(c.effect, lib[c.effect].variant(c.form).without(drop), c)[0]
             if traded and name not in selection.rejected_for_channels:
                 selection.rejected_for_channels.append(name)
             tried_of[name] = tried
-            best_form = choose_form(tried, min_relative_gain * excess, identify)
+            best_form = choose_form(tried, min_relative_gain * excess, identify, partial)
             small = [c for c in tried if not c.worth_naming]
             if small and not best_form.significant and name not in selection.too_small:
                 c = min(small, key=lambda c: c.score)
