@@ -89,7 +89,12 @@ def regularise_form(model: Any, data: HeldOutData, fitted: Mapping[str, Mapping[
     rough = np.stack(rough_cols, axis=1)
     m = j_fit.T @ j_fit
     pm, pg = rough.T @ rough, rough.T @ rho0
-    unit = float(np.trace(m) / max(np.trace(pm), 1e-300))
+    if not (np.isfinite(pm).all() and np.isfinite(m).all()):
+        raise ValueError(f"{effect} ({spec.form}): non-finite Jacobian at the fitted values")
+    flat = not np.trace(pm) > 1e-12 * max(float(np.abs(rho0 @ rho0)), 1.0)
+    # a prior that changes nothing to first order here (a spline of zero span has no
+    # curvature to shrink): the form stays unregularised
+    unit = 0.0 if flat else float(np.trace(m) / np.trace(pm))
 
     def step(rel: float) -> np.ndarray:
         # x0 is the (robust) fit's optimum: the data's gradient there is taken as zero, so the
@@ -104,7 +109,7 @@ def regularise_form(model: Any, data: HeldOutData, fitted: Mapping[str, Mapping[
         r = r_tune + j_tune @ step(rel)
         return float(r @ r)
 
-    rel = held_out_strength(STRENGTH_GRID, tune)
+    rel = 0.0 if flat else held_out_strength(STRENGTH_GRID, tune)
     lo, hi = np.array([p.lo for p in spec.params]), np.array([p.hi for p in spec.params])
     x = np.clip(x0 + step(rel), lo, hi)
     if rel > 0.0:
