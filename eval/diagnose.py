@@ -73,6 +73,8 @@ class DiagnosisResult:
     #: Per cause, the flexible forms not chosen because the data do not identify their extra
     #: parameters (``eval/identifiability.py``): which parameters cannot be told apart.
     identifiability: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    #: Per cause, the other families the held-out data cannot tell from it ("A or B").
+    alternatives: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict.to_json() if self.verdict else None, "channels": self.channels,
@@ -87,7 +89,8 @@ class DiagnosisResult:
                           "offset_channel": self.data.offset_channel},
                 "data_path": self.data.channels, "noise": self.data.noise,
                 "observability": self.observability.to_json(), "residual_structure": self.structure,
-                "drift": self.drift, "effect_size": self.effect_size, "identifiability": self.identifiability}
+                "drift": self.drift, "effect_size": self.effect_size, "identifiability": self.identifiability,
+                "alternatives": self.alternatives}
         # (the run time is in the report, not here: the same inputs give the same file, bit for bit)
 
 
@@ -221,6 +224,8 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
     for e in selection.causes:
         for test in selection.unidentified.get(e, ()):
             lines.extend(test.lines)
+    for e in selection.causes:
+        lines.extend(a.text for a in selection.alternatives.get(e, ()))
     for e, prior in selection.priors.items():
         if e in selection.causes:
             lines.append(f"{e}: form {selection.forms.get(e) or 'simple'} regularised by its prior, the strength "
@@ -371,6 +376,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
             verdict.notes.append(drift.text)
         elif drift.named:
             verdict.notes.append(drift.text)
+    for e in selection.causes:  # "A or B": the named cause is not the only reading of the data
+        verdict.notes.extend(a.text for a in selection.alternatives.get(e, ()))
     params = {e: _json_params(e, v, selection.details.get(e)) for e, v in selection.params.items()}
     for e in params:
         if e == MAP_EFFECT:
@@ -446,7 +453,9 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                                         "channels": {c: g.to_json() for c, g in size_after.items()},
                                         "fitted_too_small": dict(selection.too_small)},
                            identifiability={e: [t.to_json() for t in selection.unidentified.get(e, ())]
-                                            for e in selection.causes if selection.unidentified.get(e)})
+                                            for e in selection.causes if selection.unidentified.get(e)},
+                           alternatives={e: [a.to_json() for a in selection.alternatives[e]]
+                                         for e in selection.causes if e in selection.alternatives})
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,

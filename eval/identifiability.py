@@ -223,3 +223,69 @@ def _shared(a: np.ndarray, b: np.ndarray) -> float:
     if b.shape[1] == 0:
         return 0.0
     return float(min(np.linalg.svd(a.T @ b, compute_uv=False)[0] ** 2, 1.0))
+
+
+# =============================================================================================
+# across effects: another family explaining the same residual
+# =============================================================================================
+#: Squared cosine between two candidates' changes of the held-out prediction above which they
+#: explain the same residual (more than half of each one's change is the other's).
+SAME_RESIDUAL = 0.5
+
+
+@dataclass
+class Alternative:
+    """Another family's candidate the held-out data cannot tell from the one named."""
+
+    effect: str
+    form: str
+    other: str
+    other_form: str
+    #: Held-out score of the other minus the named one's (>= 0: the named one scores better).
+    score_gap: float
+    #: The gap that would tell them apart: the price of one degree of freedom (ln n).
+    needed: float
+    #: Squared cosine between the two changes of the whitened held-out prediction.
+    overlap: float
+
+    @property
+    def text(self) -> str:
+        def name(e: str, f: str) -> str:
+            return e + (f" ({f})" if f else "")
+        return (f"{name(self.effect, self.form)} or {name(self.other, self.other_form)}: the held-out data cannot "
+                f"tell them apart (their held-out scores differ by {self.score_gap:.1f}, less than the {self.needed:.1f} "
+                f"one degree of freedom costs; {100 * self.overlap:.0f} % of what one changes the other changes too); "
+                f"{self.effect} is named for its lower score")
+
+    def to_json(self) -> dict[str, Any]:
+        return {"effect": self.effect, "form": self.form, "other": self.other, "other_form": self.other_form,
+                "score_gap": round(self.score_gap, 2), "needed": round(self.needed, 2),
+                "overlap": round(self.overlap, 4), "text": self.text}
+
+
+def alternatives(model: Any, data: HeldOutData, chosen: Any, others: Any, current_pred: np.ndarray,
+                 penalty_per_dof: float) -> list[Alternative]:
+    """The candidates of other families in the same round (``others``, each an effect's best
+    form, :class:`tofhil.eval.selection.Candidate`) that explain the same held-out residual
+    as ``chosen`` about as well: significant themselves, a held-out score within one degree
+    of freedom's price of the chosen one's, and their change of the prediction more than
+    :data:`SAME_RESIDUAL` the same as the chosen one's (the whitened held-out changes from
+    ``current_pred``, the model before the round). Then the data cannot tell the families
+    apart and diagnosis says "A or B" (a flexible form of one family can take up another's
+    effect: an amplitude spline a wiggling's harmonics on a frontal wall)."""
+    out: list[Alternative] = []
+    near = [c for c in others if c.effect != chosen.effect and c.significant
+            and c.score - chosen.score < penalty_per_dof]
+    if not near:
+        return out
+    base = data.whitened_residual(current_pred, "test")
+    change = base - data.whitened_residual(model.predict(chosen.all_params), "test")
+    for c in near:
+        other = base - data.whitened_residual(model.predict(c.all_params), "test")
+        denom = float(change @ change) * float(other @ other)
+        overlap = float(change @ other) ** 2 / denom if denom > 0 else 0.0
+        if overlap > SAME_RESIDUAL:
+            out.append(Alternative(effect=chosen.effect, form=chosen.form, other=c.effect, other_form=c.form,
+                                   score_gap=float(c.score - chosen.score), needed=float(penalty_per_dof),
+                                   overlap=overlap))
+    return out

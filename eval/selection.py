@@ -31,7 +31,7 @@ from scipy.optimize import least_squares
 
 from tofhil.eval.heldout import HUBER_SIGMA, HeldOutData, huber
 from tofhil.eval.form_prior import regularise_form
-from tofhil.eval.identifiability import Identifiability, assess_form, param_group
+from tofhil.eval.identifiability import Alternative, Identifiability, alternatives, assess_form, param_group
 from tofhil.eval.verdict import ChannelGain, EffectSize, channel_chi2, worse_channels
 
 EffectParams = dict[str, dict[str, float]]
@@ -179,6 +179,9 @@ class Selection:
     unidentified: dict[str, list[Identifiability]] = field(default_factory=dict)
     #: Per cause fitted in a regularised form, its prior's strength and effective dof.
     priors: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: Per cause, the other families' candidates of its round that the held-out data cannot
+    #: tell from it ("A or B", :func:`tofhil.eval.identifiability.alternatives`).
+    alternatives: dict[str, list[Alternative]] = field(default_factory=dict)
 
     @property
     def first_round(self) -> list[Candidate]:
@@ -484,6 +487,10 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                 chosen.forms[c.form]["identified"] = test.identified
                 if any(g.confused for g in test.groups):
                     chosen.unidentified.append(test)
+        # another family that explains the same residual as well: said, "A or B"
+        alt = alternatives(model, data, chosen, round_, current_pred, penalty)
+        if alt:
+            selection.alternatives[chosen.effect] = alt
         active.append(chosen.effect)
         work[chosen.effect] = dataclasses.replace(lib[chosen.effect].variant(chosen.form), strength=chosen.strength)
         if chosen.prior:
