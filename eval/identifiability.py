@@ -243,7 +243,9 @@ class Alternative:
     other_form: str
     #: Held-out score of the other minus the named one's (>= 0: the named one scores better).
     score_gap: float
-    #: The gap that would tell them apart: the price of one degree of freedom (ln n).
+    #: The gap that would tell them apart: the larger of the price of one degree of freedom
+    #: (ln n) and twice the gap's own noise (2 x 2 |d|, d the whitened held-out difference of
+    #: the two predictions: the gap's cross term 2 r.d has that standard deviation).
     needed: float
     #: Squared cosine between the two changes of the whitened held-out prediction.
     overlap: float
@@ -253,8 +255,9 @@ class Alternative:
         def name(e: str, f: str) -> str:
             return e + (f" ({f})" if f else "")
         return (f"{name(self.effect, self.form)} or {name(self.other, self.other_form)}: the held-out data cannot "
-                f"tell them apart (their held-out scores differ by {self.score_gap:.1f}, less than the {self.needed:.1f} "
-                f"one degree of freedom costs; {100 * self.overlap:.0f} % of what one changes the other changes too); "
+                f"tell them apart (their held-out scores differ by {self.score_gap:.1f}, less than {self.needed:.1f}: "
+                f"the larger of one degree of freedom's price and twice the noise of that difference; "
+                f"{100 * self.overlap:.0f} % of what one changes the other changes too); "
                 f"{self.effect} is named for its lower score")
 
     def to_json(self) -> dict[str, Any]:
@@ -267,25 +270,28 @@ def alternatives(model: Any, data: HeldOutData, chosen: Any, others: Any, curren
                  penalty_per_dof: float) -> list[Alternative]:
     """The candidates of other families in the same round (``others``, each an effect's best
     form, :class:`tofhil.eval.selection.Candidate`) that explain the same held-out residual
-    as ``chosen`` about as well: significant themselves, a held-out score within one degree
-    of freedom's price of the chosen one's, and their change of the prediction more than
+    as ``chosen`` about as well: significant themselves, a held-out score within the larger
+    of one degree of freedom's price and twice the noise of the score difference (that noise
+    is 2 |d|, d the whitened held-out difference of the two predictions), and their change of the prediction more than
     :data:`SAME_RESIDUAL` the same as the chosen one's (the whitened held-out changes from
     ``current_pred``, the model before the round). Then the data cannot tell the families
     apart and diagnosis says "A or B" (a flexible form of one family can take up another's
     effect: an amplitude spline a wiggling's harmonics on a frontal wall)."""
     out: list[Alternative] = []
-    near = [c for c in others if c.effect != chosen.effect and c.significant
-            and c.score - chosen.score < penalty_per_dof]
+    near = [c for c in others if c.effect != chosen.effect and c.significant]
     if not near:
         return out
     base = data.whitened_residual(current_pred, "test")
-    change = base - data.whitened_residual(model.predict(chosen.all_params), "test")
+    named = data.whitened_residual(model.predict(chosen.all_params), "test")
+    change = base - named
     for c in near:
-        other = base - data.whitened_residual(model.predict(c.all_params), "test")
+        fit_other = data.whitened_residual(model.predict(c.all_params), "test")
+        other = base - fit_other
         denom = float(change @ change) * float(other @ other)
         overlap = float(change @ other) ** 2 / denom if denom > 0 else 0.0
-        if overlap > SAME_RESIDUAL:
+        diff = named - fit_other
+        needed = max(penalty_per_dof, 4.0 * float(np.sqrt(diff @ diff)))
+        if overlap > SAME_RESIDUAL and c.score - chosen.score < needed:
             out.append(Alternative(effect=chosen.effect, form=chosen.form, other=c.effect, other_form=c.form,
-                                   score_gap=float(c.score - chosen.score), needed=float(penalty_per_dof),
-                                   overlap=overlap))
+                                   score_gap=float(c.score - chosen.score), needed=needed, overlap=overlap))
     return out
