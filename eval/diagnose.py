@@ -228,9 +228,11 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
         lines.extend(a.text for a in selection.alternatives.get(e, ()))
     for e, prior in selection.priors.items():
         if e in selection.causes:
-            lines.append(f"{e}: form {selection.forms.get(e) or 'simple'} regularised by its prior, the strength "
-                         f"({prior['prior_strength']:g}) chosen on held-out blocks of the training frames: "
-                         f"{prior['dof']:.1f} effective degrees of freedom of its {prior['params']} parameters")
+            strength = (f"strength {prior['prior_strength']:g} chosen" if prior["prior_strength"] else
+                        "no shrinkage asked for")
+            lines.append(f"{e}: form {selection.forms.get(e) or 'simple'} with its prior ({strength} on held-out "
+                         f"blocks of the training frames): {prior['dof']:.1f} effective degrees of freedom of its "
+                         f"{prior['params']} parameters")
     for c in (c for rnd in selection.rounds[:1] for c in rnd if c.details.get("pixel_part")):
         lines.append(f"{c.effect}: fitted form {c.details['form']} ({c.details['dof']:.1f} effective degrees of "
                      f"freedom); per-pixel part {c.details['pixel_part']}")
