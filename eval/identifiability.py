@@ -281,11 +281,15 @@ def alternatives(model: Any, data: HeldOutData, chosen: Any, others: Any, curren
     near = [c for c in others if c.effect != chosen.effect and c.significant]
     if not near:
         return out
+    def residual(c: Any) -> np.ndarray:  # kept by the selection; else predicted again
+        r = getattr(c, "test_residual", None)
+        return data.whitened_residual(model.predict(c.all_params), "test") if r is None else r
+
     base = data.whitened_residual(current_pred, "test")
-    named = data.whitened_residual(model.predict(chosen.all_params), "test")
+    named = residual(chosen)
     change = base - named
     for c in near:
-        fit_other = data.whitened_residual(model.predict(c.all_params), "test")
+        fit_other = residual(c)
         other = base - fit_other
         denom = float(change @ change) * float(other @ other)
         overlap = float(change @ other) ** 2 / denom if denom > 0 else 0.0

@@ -148,6 +148,9 @@ class Candidate:
     #: held-out data reports (:class:`tofhil.eval.form_prior.PriorFit`); 0 and empty otherwise.
     strength: float = 0.0
     prior: dict[str, Any] = field(default_factory=dict)
+    #: The whitened held-out residual with this candidate (kept to compare candidates of
+    #: different families without predicting again: "A or B").
+    test_residual: np.ndarray | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -451,7 +454,8 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                                  channels=channels, form=spec.form, dof=float(k_new), details=details,
                                  rmse=rmse, worth_naming=worth,
                                  strength=prior.strength if prior is not None else 0.0,
-                                 prior=prior.summary() if prior is not None else {})
+                                 prior=prior.summary() if prior is not None else {},
+                                 test_residual=data.whitened_residual(pred, "test"))
                 return cand, gains and bool(worse)
 
             for spec in (lib[name],) + tuple(lib[name].forms):
