@@ -73,6 +73,8 @@ class DiagnosisResult:
     #: Per cause, the flexible forms not chosen because the data do not identify their extra
     #: parameters (``eval/identifiability.py``): which parameters cannot be told apart.
     identifiability: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    #: Per cause, the other families the held-out data cannot tell from it ("A or B").
+    alternatives: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict.to_json() if self.verdict else None, "channels": self.channels,
@@ -87,7 +89,8 @@ class DiagnosisResult:
                           "offset_channel": self.data.offset_channel},
                 "data_path": self.data.channels, "noise": self.data.noise,
                 "observability": self.observability.to_json(), "residual_structure": self.structure,
-                "drift": self.drift, "effect_size": self.effect_size, "identifiability": self.identifiability}
+                "drift": self.drift, "effect_size": self.effect_size, "identifiability": self.identifiability,
+                "alternatives": self.alternatives}
         # (the run time is in the report, not here: the same inputs give the same file, bit for bit)
 
 
@@ -201,7 +204,8 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
         form = f" ({best.form or 'simple'} form; preferred over {', '.join(others)})" if others else ""
         lines.append(f"round {i + 1}: best {best.effect}{form} removes {100 * best.relative_gain:.1f}% of the held-out "
                      f"misfit (score gain {best.delta_score:.0f}, "
-                     + (f"{best.dof:.0f} effective degrees of freedom" if best.details else f"{best.dof:g} degrees of freedom")
+                     + (f"{best.dof:.{0 if best.details else 1}f} effective degrees of freedom" if best.details or best.prior
+                        else f"{best.dof:g} degrees of freedom")
                      + f") -- {verdict}"
                      + (f"; runner-up {runner.effect} {100 * runner.relative_gain:.1f}%" if runner else ""))
     for i, rnd in enumerate(selection.rounds):
@@ -220,6 +224,15 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
     for e in selection.causes:
         for test in selection.unidentified.get(e, ()):
             lines.extend(test.lines)
+    for e in selection.causes:
+        lines.extend(a.text for a in selection.alternatives.get(e, ()))
+    for e, prior in selection.priors.items():
+        if e in selection.causes:
+            strength = (f"strength {prior['prior_strength']:g} chosen" if prior["prior_strength"] else
+                        "no shrinkage asked for")
+            lines.append(f"{e}: form {selection.forms.get(e) or 'simple'} with its prior ({strength} on held-out "
+                         f"blocks of the training frames): {prior['dof']:.1f} effective degrees of freedom of its "
+                         f"{prior['params']} parameters")
     for c in (c for rnd in selection.rounds[:1] for c in rnd if c.details.get("pixel_part")):
         lines.append(f"{c.effect}: fitted form {c.details['form']} ({c.details['dof']:.1f} effective degrees of "
                      f"freedom); per-pixel part {c.details['pixel_part']}")
@@ -365,6 +378,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
             verdict.notes.append(drift.text)
         elif drift.named:
             verdict.notes.append(drift.text)
+    for e in selection.causes:  # "A or B": the named cause is not the only reading of the data
+        verdict.notes.extend(a.text for a in selection.alternatives.get(e, ()))
     params = {e: _json_params(e, v, selection.details.get(e)) for e, v in selection.params.items()}
     for e in params:
         if e == MAP_EFFECT:
@@ -406,7 +421,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,
                "chi2_test": c.chi2_test, "n_params": c.n_params, "worse_channels": c.worse_channels,
                "at_bounds": c.at_bounds, "form": c.form, "dof": round(c.dof, 2), "forms": c.forms,
-               "worth_naming": c.worth_naming, "rmse": {ch: g.to_json() for ch, g in c.rmse.items()}}
+               "worth_naming": c.worth_naming, "rmse": {ch: g.to_json() for ch, g in c.rmse.items()},
+               "prior": c.prior}
               for c in selection.first_round]
     rounds = [[{"effect": c.effect, "form": c.form, "delta_score": c.delta_score, "relative_gain": c.relative_gain,
                 "significant": c.significant, "worse_channels": c.worse_channels} for c in rnd]
@@ -441,7 +457,9 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                                         "channels": {c: g.to_json() for c, g in size_after.items()},
                                         "fitted_too_small": dict(selection.too_small)},
                            identifiability={e: [t.to_json() for t in selection.unidentified.get(e, ())]
-                                            for e in selection.causes if selection.unidentified.get(e)})
+                                            for e in selection.causes if selection.unidentified.get(e)},
+                           alternatives={e: [a.to_json() for a in selection.alternatives[e]]
+                                         for e in selection.causes if e in selection.alternatives})
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,

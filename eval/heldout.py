@@ -136,10 +136,14 @@ class HeldOutData:
     def part(self, part: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(mean signal, variance, pixels) of a part: ``test`` / ``train`` (the held-out or
         training frames on their own pixel blocks), ``fit`` (the training part's
-        :attr:`fit_pixels`) or ``test_frames`` / ``train_frames`` (those frames on every usable
-        pixel: for forms fitted per pixel, scored on other frames)."""
+        :attr:`fit_pixels`), ``test_frames`` / ``train_frames`` (those frames on every usable
+        pixel: for forms fitted per pixel, scored on other frames) or ``tune`` (the training
+        frames on the held-out blocks: where a prior's strength is chosen, the held-out frames
+        unseen)."""
         if part == "fit":
             return self.s_train, self.var_train, self.fit_pixels
+        if part == "tune":
+            return self.s_train, self.var_train, self.test_pixels
         if part in ("test", "test_frames"):
             return self.s_test, self.var_test, self.test_pixels if part == "test" else self.usable
         if part in ("train", "train_frames"):

@@ -95,6 +95,8 @@ class Identifiability:
     after_later: bool = False
     #: Kept although not identified: the simpler form refitted was worse on held-out data.
     kept: bool = False
+    #: The partial form fitted instead (this form without its unidentified groups), if any.
+    partial: str = ""
 
     @property
     def identified(self) -> bool:
@@ -120,13 +122,14 @@ class Identifiability:
             verb = ("kept although not identified at the final fit (the simpler form refitted is worse on "
                     "held-out data)" if self.kept else
                     "replaced by the simpler form at the final fit (after the joint refit and any later effects)"
-                    if self.after_later else "not chosen")
+                    if self.after_later else f"not chosen whole (fitted without {g.group}: {self.partial})"
+                    if self.partial else "not chosen")
             out.append(f"{self.effect}: form {self.form} {verb}: {why}")
         return out
 
     def to_json(self) -> dict[str, Any]:
         return {"effect": self.effect, "form": self.form, "identified": self.identified, "after_later": self.after_later,
-                "kept": self.kept,
+                "kept": self.kept, "partial": self.partial,
                 "groups": [g.to_json() for g in self.groups], "text": self.lines}
 
 
@@ -163,14 +166,7 @@ def assess_form(model: Any, data: HeldOutData, fitted: Mapping[str, Mapping[str,
         trial[effect] = dict(vals)
         return data.whitened_residual(model.predict(trial), "fit")
 
-    r0 = w(values)
-    cols = []
-    for p in spec.params:
-        h = 0.05 * p.scale
-        if values[p.name] + h > p.hi:
-            h = -h
-        cols.append((w({**values, p.name: values[p.name] + h}) - r0) / h)
-    jac = np.stack(cols, axis=1)
+    (r0, jac), = form_jacobian(model, data, fitted, effect, spec, ("fit",))
     groups: dict[str, list[int]] = {}
     for i, n in enumerate(names):
         groups.setdefault(param_group(n), []).append(i)
@@ -193,6 +189,31 @@ def assess_form(model: Any, data: HeldOutData, fitted: Mapping[str, Mapping[str,
     return out
 
 
+def form_jacobian(model: Any, data: HeldOutData, fitted: Mapping[str, Mapping[str, float]], effect: str,
+                  spec: Any, parts: tuple[str, ...] = ("fit",)) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per data part: the whitened residual at the fitted values and its Jacobian in
+    ``spec``'s parameters of ``effect`` (every other effect held). Forward differences of a
+    twentieth of each parameter's typical step, as the fit's own; one prediction per
+    parameter serves every part."""
+    values = {p.name: float(fitted[effect].get(p.name, p.off)) for p in spec.params}
+
+    def w(vals: Mapping[str, float]) -> list[np.ndarray]:
+        trial = {e: dict(v) for e, v in fitted.items()}
+        trial[effect] = dict(vals)
+        pred = model.predict(trial)
+        return [data.whitened_residual(pred, part) for part in parts]
+
+    r0 = w(values)
+    cols: list[list[np.ndarray]] = [[] for _ in parts]
+    for p in spec.params:
+        h = 0.05 * p.scale
+        if values[p.name] + h > p.hi:
+            h = -h
+        for i, r in enumerate(w({**values, p.name: values[p.name] + h})):
+            cols[i].append((r - r0[i]) / h)
+    return [(r0[i], np.stack(cols[i], axis=1) if cols[i] else np.zeros((r0[i].size, 0))) for i in range(len(parts))]
+
+
 def _shared(a: np.ndarray, b: np.ndarray) -> float:
     """The largest squared canonical correlation between two spans (orthonormal bases): 1
     when a direction of one is also in the other; 1 for a group whose columns are all zero
@@ -202,3 +223,79 @@ def _shared(a: np.ndarray, b: np.ndarray) -> float:
     if b.shape[1] == 0:
         return 0.0
     return float(min(np.linalg.svd(a.T @ b, compute_uv=False)[0] ** 2, 1.0))
+
+
+# =============================================================================================
+# across effects: another family explaining the same residual
+# =============================================================================================
+#: Squared cosine between two candidates' changes of the held-out prediction above which they
+#: explain the same residual (more than half of each one's change is the other's).
+SAME_RESIDUAL = 0.5
+
+
+@dataclass
+class Alternative:
+    """Another family's candidate the held-out data cannot tell from the one named."""
+
+    effect: str
+    form: str
+    other: str
+    other_form: str
+    #: Held-out score of the other minus the named one's (>= 0: the named one scores better).
+    score_gap: float
+    #: The gap that would tell them apart: the larger of the price of one degree of freedom
+    #: (ln n) and twice the gap's own noise (2 x 2 |d|, d the whitened held-out difference of
+    #: the two predictions: the gap's cross term 2 r.d has that standard deviation).
+    needed: float
+    #: Squared cosine between the two changes of the whitened held-out prediction.
+    overlap: float
+
+    @property
+    def text(self) -> str:
+        def name(e: str, f: str) -> str:
+            return e + (f" ({f})" if f else "")
+        return (f"{name(self.effect, self.form)} or {name(self.other, self.other_form)}: the held-out data cannot "
+                f"tell them apart (their held-out scores differ by {self.score_gap:.1f}, less than {self.needed:.1f}: "
+                f"the larger of one degree of freedom's price and twice the noise of that difference; "
+                f"{100 * self.overlap:.0f} % of what one changes the other changes too); "
+                f"{self.effect} is named for its lower score")
+
+    def to_json(self) -> dict[str, Any]:
+        return {"effect": self.effect, "form": self.form, "other": self.other, "other_form": self.other_form,
+                "score_gap": round(self.score_gap, 2), "needed": round(self.needed, 2),
+                "overlap": round(self.overlap, 4), "text": self.text}
+
+
+def alternatives(model: Any, data: HeldOutData, chosen: Any, others: Any, current_pred: np.ndarray,
+                 penalty_per_dof: float) -> list[Alternative]:
+    """The candidates of other families in the same round (``others``, each an effect's best
+    form, :class:`tofhil.eval.selection.Candidate`) that explain the same held-out residual
+    as ``chosen`` about as well: significant themselves, a held-out score within the larger
+    of one degree of freedom's price and twice the noise of the score difference (that noise
+    is 2 |d|, d the whitened held-out difference of the two predictions), and their change of the prediction more than
+    :data:`SAME_RESIDUAL` the same as the chosen one's (the whitened held-out changes from
+    ``current_pred``, the model before the round). Then the data cannot tell the families
+    apart and diagnosis says "A or B" (a flexible form of one family can take up another's
+    effect: an amplitude spline a wiggling's harmonics on a frontal wall)."""
+    out: list[Alternative] = []
+    near = [c for c in others if c.effect != chosen.effect and c.significant]
+    if not near:
+        return out
+    def residual(c: Any) -> np.ndarray:  # kept by the selection; else predicted again
+        r = getattr(c, "test_residual", None)
+        return data.whitened_residual(model.predict(c.all_params), "test") if r is None else r
+
+    base = data.whitened_residual(current_pred, "test")
+    named = residual(chosen)
+    change = base - named
+    for c in near:
+        fit_other = residual(c)
+        other = base - fit_other
+        denom = float(change @ change) * float(other @ other)
+        overlap = float(change @ other) ** 2 / denom if denom > 0 else 0.0
+        diff = named - fit_other
+        needed = max(penalty_per_dof, 4.0 * float(np.sqrt(diff @ diff)))
+        if overlap > SAME_RESIDUAL and c.score - chosen.score < needed:
+            out.append(Alternative(effect=chosen.effect, form=chosen.form, other=c.effect, other_form=c.form,
+                                   score_gap=float(c.score - chosen.score), needed=needed, overlap=overlap))
+    return out

@@ -38,13 +38,15 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable, Sequence, TypeVar
 
 import numpy as np
 from scipy.ndimage import uniform_filter
 
 from tofhil import C_M_PER_S
 from tofhil.eval.heldout import NOISE_POOL_PX, HeldOutData
+
+T = TypeVar("T")
 
 #: The effect the map forms fit (``tofhil.sim.effects.RangeOffsetMapEffect``).
 MAP_EFFECT = "range_offset_map"
@@ -138,6 +140,20 @@ def _ridge(m: np.ndarray, rhs: np.ndarray, w: int, lam_c: float, lam_r: float, *
     return x[:w], x[w:], (float(diag[:w].sum()), float(diag[w:].sum()))
 
 
+def held_out_strength(grid: Sequence[T], score: Callable[[T], float]) -> T:
+    """The regularisation strength of ``grid`` whose fit on the training blocks scores lowest
+    on the held-out blocks (``score``); the first of equals, so a grid that starts with the
+    strongest prior keeps it unless the data ask for less. The one rule every regularised
+    form's strength is chosen by (the maps here, the optimiser's forms in
+    :mod:`tofhil.eval.form_prior`)."""
+    best, best_score = grid[0], score(grid[0])
+    for lam in grid[1:]:
+        sc = score(lam)
+        if sc < best_score:
+            best, best_score = lam, sc
+    return best
+
+
 def fit_offset_map(model: Any, data: HeldOutData, current: dict[str, dict[str, Any]],
                    penalty_per_dof: float) -> MapFit:
     """The regularised column + row + pixel range offset map on the training frames (module
@@ -150,17 +166,15 @@ def fit_offset_map(model: Any, data: HeldOutData, current: dict[str, dict[str, A
     scale = float(np.median(np.bincount(u, a, w)[np.bincount(u, minlength=w) > 0])) if a.size else 1.0
     grid = [np.inf] + list(scale * RIDGE_GRID)
     # Strengths from the held-out blocks of the training frames (the held-out frames stay unseen).
-    best = (np.sum(a[test] * d[test] ** 2), np.inf, np.inf)
     m_train, rhs_train = _normal_equations(a[train], d[train], u[train], v[train], w, h)
-    for lam_c in grid:
-        for lam_r in grid:
-            if np.isinf(lam_c) and np.isinf(lam_r):
-                continue
-            col, row, _ = _ridge(m_train, rhs_train, w, lam_c, lam_r)
-            score = float(np.sum(a[test] * (d[test] - col[u[test]] - row[v[test]]) ** 2))
-            if score < best[0]:
-                best = (score, lam_c, lam_r)
-    _, lam_c, lam_r = best
+
+    def held_out(lam: tuple[float, float]) -> float:
+        col, row, _ = _ridge(m_train, rhs_train, w, *lam)
+        return float(np.sum(a[test] * (d[test] - col[u[test]] - row[v[test]]) ** 2))
+
+    # both parts off first: a map is fitted only when it does better on the held-out blocks
+    lam_c, lam_r = held_out_strength([(np.inf, np.inf)] + [(c, r) for c in grid for r in grid
+                                                           if np.isfinite(c) or np.isfinite(r)], held_out)
     col, row, (dof_c, dof_r) = _ridge(*_normal_equations(a, d, u, v, w, h), w, lam_c, lam_r, dof=True)
     e = d - col[u] - row[v]
     pixel = np.zeros(h * w)

@@ -30,10 +30,13 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from tofhil.eval.heldout import HUBER_SIGMA, HeldOutData, huber
-from tofhil.eval.identifiability import Identifiability, assess_form
+from tofhil.eval.form_prior import regularise_form
+from tofhil.eval.identifiability import Alternative, Identifiability, alternatives, assess_form, param_group
 from tofhil.eval.verdict import ChannelGain, EffectSize, channel_chi2, worse_channels
 
 EffectParams = dict[str, dict[str, float]]
+#: How a partial form is named: its flexible form, this, and the parameter groups left out.
+PARTIAL = " without "
 
 
 @dataclass(frozen=True)
@@ -70,14 +73,33 @@ class EffectSpec:
     #: A closed-form fit on the training data instead of the optimiser (flexible map forms):
     #: ``(model, data, current effects, penalty per dof) -> (values, effective dof, details)``.
     closed_form: Callable[..., tuple[dict[str, Any], float, dict[str, Any]]] | None = None
+    #: The form's prior (``Effect.roughness``): fitted values -> a vector zero for its
+    #: smoothest shape; None for none.
+    roughness: Callable[[Mapping[str, float]], np.ndarray] | None = None
+    #: The prior's strength chosen on held-out data (:mod:`tofhil.eval.form_prior`): every fit
+    #: of this spec adds ``strength * |roughness|^2`` to its misfit (0: no prior).
+    strength: float = 0.0
 
     @property
     def k(self) -> float:
         return float(len(self.params) if self.dof is None else self.dof)
 
     def variant(self, form: str) -> "EffectSpec":
-        """The spec of ``form`` (this one or one of its flexible forms)."""
-        return next(s for s in (self,) + tuple(self.forms) if s.form == form)
+        """The spec of ``form`` (this one or one of its flexible forms, or a partial form of
+        one: ``"harmonics without h5"``, :meth:`without`)."""
+        base, _, dropped = form.partition(PARTIAL)
+        spec = next(s for s in (self,) + tuple(self.forms) if s.form == base)
+        return spec.without(dropped.split(", ")) if dropped else spec
+
+    def without(self, groups: Sequence[str]) -> "EffectSpec":
+        """A partial form: this form with the parameter groups ``groups`` left out (held at
+        their off values; groups as :func:`tofhil.eval.identifiability.param_group`)."""
+        base, _, before = self.form.partition(PARTIAL)
+        dropped = sorted(set(groups) | set(before.split(", ") if before else ()))
+        return dataclasses.replace(
+            self, params=tuple(p for p in self.params if param_group(p.name) not in dropped),
+            starts=tuple({k: v for k, v in s.items() if param_group(k) not in dropped} for s in self.starts),
+            form=base + PARTIAL + ", ".join(dropped), forms=())
 
 
 class ForwardModel(Protocol):
@@ -122,6 +144,13 @@ class Candidate:
     #: Flexible forms that beat the chosen one on score but whose extra parameters the data
     #: do not identify (:mod:`tofhil.eval.identifiability`): why each was not chosen.
     unidentified: list[Identifiability] = field(default_factory=list)
+    #: A regularised form's prior strength (``EffectSpec.strength``) and what its choice on
+    #: held-out data reports (:class:`tofhil.eval.form_prior.PriorFit`); 0 and empty otherwise.
+    strength: float = 0.0
+    prior: dict[str, Any] = field(default_factory=dict)
+    #: The whitened held-out residual with this candidate (kept to compare candidates of
+    #: different families without predicting again: "A or B").
+    test_residual: np.ndarray | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -151,6 +180,11 @@ class Selection:
     #: Per cause, the flexible forms refused because the data do not identify their extra
     #: parameters (which ones cannot be told apart).
     unidentified: dict[str, list[Identifiability]] = field(default_factory=dict)
+    #: Per cause fitted in a regularised form, its prior's strength and effective dof.
+    priors: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: Per cause, the other families' candidates of its round that the held-out data cannot
+    #: tell from it ("A or B", :func:`tofhil.eval.identifiability.alternatives`).
+    alternatives: dict[str, list[Alternative]] = field(default_factory=dict)
 
     @property
     def first_round(self) -> list[Candidate]:
@@ -205,8 +239,17 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
 
     last: dict[str, np.ndarray] = {}
 
+    # a regularised form's prior enters its fit as extra residuals sqrt(strength) * roughness
+    priors = [(e, lib[e]) for e in free if lib[e].roughness is not None and lib[e].strength > 0.0]
+
+    def penalty(x: np.ndarray) -> np.ndarray:
+        if not priors:
+            return np.zeros(0)
+        values = _unpack(free, lib, x)
+        return np.concatenate([np.sqrt(spec.strength) * spec.roughness(values[e]) for e, spec in priors])
+
     def residual(x: np.ndarray) -> np.ndarray:
-        r = data.whitened_residual(model.predict(full(x)), "fit")
+        r = np.concatenate([data.whitened_residual(model.predict(full(x)), "fit"), penalty(x)])
         last["x"], last["r"] = x.copy(), r
         return r
 
@@ -223,7 +266,8 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
             h = steps[j] if x[j] + steps[j] <= hi[j] else -steps[j]
             xj = x0_.copy()
             xj[j] += h
-            cols.append((data.whitened_residual(model.predict(full(xj)), "fit") - r0) / h)
+            cols.append((np.concatenate([data.whitened_residual(model.predict(full(xj)), "fit"), penalty(xj)])
+                         - r0) / h)
         return np.stack(cols, axis=1)
 
     starts = [x0]
@@ -260,7 +304,8 @@ def pinned(spec: EffectSpec, values: Mapping[str, float], rel: float = 1e-3) -> 
 
 
 def choose_form(tried: Sequence[Candidate], min_extra_gain: float,
-                identify: Callable[[Candidate], Identifiability] | None = None) -> Candidate:
+                identify: Callable[[Candidate], Identifiability] | None = None,
+                partial: Callable[[Candidate, list[str]], Candidate] | None = None) -> Candidate:
     """The form of one effect to offer in a round, from its fits in each form (the simple
     form first, then the flexible ones from least to most flexible).
 
@@ -271,6 +316,9 @@ def choose_form(tried: Sequence[Candidate], min_extra_gain: float,
     significant), and ``identify`` (when given) finds every one of its extra parameters
     determined by the data: a score margin can come from the optimiser's path or from
     parameters that another one of the form reproduces (:mod:`tofhil.eval.identifiability`).
+    A form whose extra groups are identified only in part (h3 and h7 but not h5) is tried
+    again without the groups the data do not identify (``partial(candidate, groups)`` fits
+    that partial form), under the same rule, until every group left is identified.
     Otherwise the simpler form stays: a flexible form that adds nothing on held-out data is
     not chosen. The chosen candidate lists every form tried in ``forms`` and the refused
     unidentified ones in ``unidentified``.
@@ -278,17 +326,27 @@ def choose_form(tried: Sequence[Candidate], min_extra_gain: float,
     chosen = tried[0]
     refused: list[Identifiability] = []
     checked: dict[str, bool] = {}
+    every = list(tried)
     for c in tried[1:]:
-        if c.significant and c.score < chosen.score and chosen.chi2_test - c.chi2_test > min_extra_gain:
+        while c.significant and c.score < chosen.score and chosen.chi2_test - c.chi2_test > min_extra_gain:
             if identify is not None and c.n_params:
                 test = identify(c)
                 checked[c.form] = test.identified
                 if not test.identified:
                     refused.append(test)
+                    drop = [g.group for g in test.groups if not g.identified]
+                    if partial is None or len(drop) == len(test.groups):
+                        break
+                    c = partial(c, drop)
+                    every.append(c)
                     continue
             chosen = c
+            break
+    for test in refused:
+        if chosen.form.startswith(test.form.partition(PARTIAL)[0] + PARTIAL):
+            test.partial = chosen.form
     chosen.forms = {c.form: {"chi2_test": c.chi2_test, "score": c.score, "dof": c.dof, "significant": c.significant}
-                    | ({"identified": checked[c.form]} if c.form in checked else {}) for c in tried}
+                    | ({"identified": checked[c.form]} if c.form in checked else {}) for c in every}
     chosen.unidentified = refused
     return chosen
 
@@ -344,11 +402,13 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                 continue
             tried: list[Candidate] = []
             traded = False  # a form gained only by making a channel worse
-            for spec in (lib[name],) + tuple(lib[name].forms):
-                if tried and spec.params:
-                    # a flexible form also starts where the simple one ended (its phases found)
+            def try_form(name: str, spec: EffectSpec, start_from: Candidate | None) -> tuple[Candidate, bool]:
+                """Fit ``name`` in ``spec``'s form and score it; and whether it gained only by
+                making a channel worse."""
+                if start_from is not None and spec.params:
+                    # a flexible form also starts where a simpler one ended (its phases found)
                     names_ = {p.name for p in spec.params}
-                    simple = {k: v for k, v in tried[0].params.items() if k in names_}
+                    simple = {k: v for k, v in start_from.params.items() if k in names_}
                     spec = dataclasses.replace(spec, starts=(simple,) + tuple(spec.starts))
                 if progress:
                     progress(f"fitting {name}" + (f" ({spec.form})" if spec.form else ""))
@@ -364,7 +424,15 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                 else:
                     fitted, chi2_train = fit(model, data, trial, params, new_effect=name, free=[name],
                                              lib=trial_lib)
+                prior = regularise_form(model, data, fitted, name, spec)
+                if prior is not None:
+                    # the form's prior, its strength chosen on held-out blocks of the training
+                    # frames; the penalty charges the regularised form's effective dof
+                    fitted = {**fitted, name: prior.values}
+                    k_new = prior.dof
                 pred = model.predict(fitted)
+                if prior is not None:
+                    chi2_train = data.chi2(pred, "fit")
                 chi2_test = data.chi2(pred, "test")
                 channels = channel_chi2(data, pred)
                 # worse than the current model or, summed over rounds, than the base twin
@@ -378,18 +446,30 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                 worth = True
                 if effect_size is not None and gains and not worse:
                     rmse, worth = effect_size.names(current_pred, pred, base_pred)
-                tried.append(Candidate(effect=name, params=fitted[name], chi2_train=chi2_train, chi2_test=chi2_test,
-                                       score=score, delta_score=current_score - score,
-                                       relative_gain=gain / current_chi2 if current_chi2 > 0 else 0.0,
-                                       significant=gains and not worse and worth, n_params=len(spec.params),
-                                       all_params=fitted, worse_channels=worse, at_bounds=pinned(spec, fitted[name]),
-                                       channels=channels, form=spec.form, dof=float(k_new), details=details,
-                                       rmse=rmse, worth_naming=worth))
-                traded |= gains and bool(worse)
+                cand = Candidate(effect=name, params=fitted[name], chi2_train=chi2_train, chi2_test=chi2_test,
+                                 score=score, delta_score=current_score - score,
+                                 relative_gain=gain / current_chi2 if current_chi2 > 0 else 0.0,
+                                 significant=gains and not worse and worth, n_params=len(spec.params),
+                                 all_params=fitted, worse_channels=worse, at_bounds=pinned(spec, fitted[name]),
+                                 channels=channels, form=spec.form, dof=float(k_new), details=details,
+                                 rmse=rmse, worth_naming=worth,
+                                 strength=prior.strength if prior is not None else 0.0,
+                                 prior=prior.summary() if prior is not None else {},
+                                 test_residual=data.whitened_residual(pred, "test"))
+                return cand, gains and bool(worse)
+
+            for spec in (lib[name],) + tuple(lib[name].forms):
+                cand, traded_ = try_form(name, spec, tried[0] if tried else None)
+                tried.append(cand)
+                traded |= traded_
+
+            def partial(c: Candidate, drop: list[str]) -> Candidate:
+                # a partial form starts from the fuller form's values
+                return try_form(c.effect, lib[c.effect].variant(c.form).without(drop), c)[0]
             if traded and name not in selection.rejected_for_channels:
                 selection.rejected_for_channels.append(name)
             tried_of[name] = tried
-            best_form = choose_form(tried, min_relative_gain * excess, identify)
+            best_form = choose_form(tried, min_relative_gain * excess, identify, partial)
             small = [c for c in tried if not c.worth_naming]
             if small and not best_form.significant and name not in selection.too_small:
                 c = min(small, key=lambda c: c.score)
@@ -411,8 +491,14 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                 chosen.forms[c.form]["identified"] = test.identified
                 if any(g.confused for g in test.groups):
                     chosen.unidentified.append(test)
+        # another family that explains the same residual as well: said, "A or B"
+        alt = alternatives(model, data, chosen, round_, current_pred, penalty)
+        if alt:
+            selection.alternatives[chosen.effect] = alt
         active.append(chosen.effect)
-        work[chosen.effect] = lib[chosen.effect].variant(chosen.form)
+        work[chosen.effect] = dataclasses.replace(lib[chosen.effect].variant(chosen.form), strength=chosen.strength)
+        if chosen.prior:
+            selection.priors[chosen.effect] = chosen.prior
         selection.forms[chosen.effect] = chosen.form
         dofs[chosen.effect] = chosen.dof
         if chosen.details:
@@ -466,6 +552,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                 and not worse_channels(selection.channels_before, channels)):
             work[e], dofs[e] = lib[e], lib[e].k
             selection.forms[e] = ""
+            selection.priors.pop(e, None)
             params, current_chi2, current_channels, current_pred = refit, chi2, channels, pred
         else:
             test.kept = True  # the simpler form is worse on held-out data: said, not hidden

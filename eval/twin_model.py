@@ -71,7 +71,12 @@ def _spec(name: str, form: str, params: Mapping[str, Param], current: Callable[[
             starts.append({**first, fitted_name(k, p): to_fitted(p, v)})
     names = {fp.name for fp in fps}
     starts += [s for s in extra if set(s) <= names]
-    return EffectSpec(tuple(fps), tuple(starts), form=form)
+    eff = EFFECTS[name]
+    rough = None
+    if form and eff.roughness(form, {}) is not None:
+        def rough(values: Mapping[str, float]) -> np.ndarray:
+            return eff.roughness(form, to_effect_values(name, values))
+    return EffectSpec(tuple(fps), tuple(starts), form=form, roughness=rough)
 
 
 def fit_library(current: Callable[[str, str], float] | None = None,

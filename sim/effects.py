@@ -173,6 +173,13 @@ class Effect:
         """Whether ``param`` changes what ``n_taps`` equally spaced taps measure (default yes)."""
         return True
 
+    def roughness(self, form: str, values: Mapping[str, Any]) -> np.ndarray | None:
+        """The prior of a flexible form: a vector that is zero for the form's smoothest
+        shape, its squared norm what diagnosis penalises, the strength chosen on held-out data
+        (:mod:`tofhil.eval.form_prior`). None: the form has no prior (its parameter count,
+        shape and the identifiability test hold it)."""
+        return None
+
     # -------------------------------------------------------------- stage hooks
     # Each stage has one hook (``STAGE_HOOKS``); an effect implements the hook of its stage.
     def apply_scene(self, scene: Any, values: Mapping[str, Any]) -> Any:
@@ -570,6 +577,18 @@ class WigglingEffect(Effect):
     def observable(self, param: str, n_taps: int) -> bool:
         return harmonic_aliases(int(param[1:param.index("_")]), n_taps)
 
+    def roughness(self, form: str, values: Mapping[str, Any]) -> np.ndarray | None:
+        # the harmonics beyond the 3rd shrink to zero: a ridge on their complex amplitudes (in
+        # units of their typical size 0.01; amplitude and phase alike, so that the phase of a
+        # small harmonic is not a free parameter); only the simple form's 3rd is smoothest
+        if form != "harmonics":
+            return None
+        out = []
+        for h in _WIGGLE_ORDERS[1:]:
+            a, psi = float(values.get(f"h{h}_amplitude", 0.0)), float(values.get(f"h{h}_phase_rad", 0.0))
+            out += [a * math.cos(psi) / 0.01, a * math.sin(psi) / 0.01]
+        return np.array(out)
+
     def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
         out = signal.copy()
         for h in self.harmonics(values):
@@ -635,6 +654,18 @@ class AmplitudeDependentEffect(Effect):
     def is_off(self, values: Mapping[str, Any]) -> bool:
         return float(values.get("error_m", 0.0)) == 0.0 and float(values.get("spline_level_m", 0.0)) == 0.0 \
             and float(values.get("spline_span_m", 0.0)) == 0.0
+
+    def roughness(self, form: str, values: Mapping[str, Any]) -> np.ndarray | None:
+        # a smoothness prior: the second differences of the spline's values at its knots, in
+        # units of 5 mm; an error linear in log A (any level and span) costs nothing
+        if form != "spline":
+            return None
+        p = self.params
+        q = np.array([float(values.get(f"spline_q{j}", p[f"spline_q{j}"].off)) for j in (1, 2, 3)])
+        knots = np.asarray(AMPLITUDE_KNOTS_LOG10_E)
+        at_knots = monotone_spline(knots, knots, float(values.get("spline_level_m", 0.0)),
+                                   float(values.get("spline_span_m", 0.0)), q)
+        return np.diff(at_knots, 2) / 0.005
 
     @staticmethod
     def error_m(values: Mapping[str, Any], amp_e: np.ndarray) -> np.ndarray:

@@ -164,3 +164,46 @@ def test_a_search_stopped_at_its_limit_says_so(tmp_path):
     res = diagnose(path, scene, max_effects=1)
     assert len(res.causes) == 1 and res.verdict.kind == "partly explained", (res.causes, res.verdict)
     assert any("stopped at max_effects = 1" in n for n in res.verdict.notes), res.verdict.notes
+
+
+class RampOrSine:
+    """Two families whose changes are nearly the same (a phase ramp ``a x`` across the columns
+    and ``b sin(x)``, x in [0, 1): they differ by ``a x^3 / 6`` to first order) and a third
+    that changes something else (``c cos(2 pi y)`` down the rows)."""
+
+    def __init__(self) -> None:
+        v, u = np.mgrid[0:H, 0:W].astype(float)
+        self.x, self.y = u / W, v / H
+        self.s0 = (1.0 + 0.3 * self.y) * np.exp(0.4j)
+
+    def library(self) -> dict[str, EffectSpec]:
+        return {"ramp": EffectSpec((FitParam("a", 0.0, -1.0, 1.0, 0.01),)),
+                "sine": EffectSpec((FitParam("b", 0.0, -1.0, 1.0, 0.01),)),
+                "rows": EffectSpec((FitParam("c", 0.0, -1.0, 1.0, 0.01),))}
+
+    def predict(self, active: EffectParams) -> np.ndarray:
+        ph = (active.get("ramp", {}).get("a", 0.0) * self.x + active.get("sine", {}).get("b", 0.0) * np.sin(self.x)
+              + active.get("rows", {}).get("c", 0.0) * np.cos(2 * np.pi * self.y))
+        return (self.s0 * np.exp(1j * ph))[None]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_two_families_the_data_cannot_tell_apart_are_said_a_or_b(seed):
+    """Issue 10, point 3: a small ramp (its x^3 / 6 difference from a sine far below the noise)
+    is explained as well by either family: whichever is named, the other is its alternative
+    ("ramp or sine"), and the family that changes something else is not."""
+    model = RampOrSine()
+    sel = greedy_select(model, heldout_from_signal(model.predict({"ramp": {"a": 0.03}}), SIGMA, seed), max_effects=1)
+    assert sel.causes in (["ramp"], ["sine"])
+    (alt,) = sel.alternatives[sel.causes[0]]
+    assert {alt.effect, alt.other} == {"ramp", "sine"} and alt.score_gap < alt.needed and alt.overlap > 0.99
+    assert " or " in alt.text and "cannot tell them apart" in alt.text
+    assert json.loads(json.dumps(alt.to_json()))["other"] == alt.other
+
+
+def test_a_large_effect_tells_the_families_apart():
+    """Ten times larger, the cubic difference costs the sine far more than a degree of freedom:
+    the ramp alone, no alternative."""
+    model = RampOrSine()
+    sel = greedy_select(model, heldout_from_signal(model.predict({"ramp": {"a": 1.0}}), SIGMA, 0), max_effects=1)
+    assert sel.causes == ["ramp"] and not sel.alternatives
