@@ -738,6 +738,13 @@ class IlluminationEffect(Effect):
                     fit=(-100.0, 100.0), step=0.1, forms=("radial",)),
     }
 
+    def roughness(self, form: str, values: Mapping[str, Any]) -> np.ndarray | None:
+        # the radial terms shrink to the simple cos^dn form: a ridge on what each changes at
+        # t = 0.5 (about the field edge of the presets), in units of 1 % of the light
+        if form != "radial":
+            return None
+        return np.array([float(values.get("b4", 0.0)) * 0.5 ** 4 / 0.01, float(values.get("b6", 0.0)) * 0.5 ** 6 / 0.01])
+
     @staticmethod
     def factor(values: Mapping[str, Any], camera: CameraModel, shape: tuple[int, int]) -> np.ndarray:
         t2 = FieldAngleEffect.tan2(camera, shape)

@@ -106,3 +106,20 @@ def test_a_partly_identified_form_is_fitted_without_what_the_data_do_not_identif
     assert abs(sel.params["ripple"]["c3"] - 0.05) < 0.005 and abs(sel.params["ripple"]["c1"] - 0.1) < 0.005
     lines = [t for t in sel.unidentified["ripple"] for t in t.lines]
     assert lines and all("fitted without" in t for t in lines), lines
+
+
+@pytest.mark.parametrize("b4, b6", [(0.8, 0.0), (0.0, -3.0), (1.5, 2.0)])
+def test_the_radial_illumination_prior_is_what_b4_and_b6_change_at_the_field_edge(b4, b6):
+    # the prior shrinks the radial form toward its simple cos^dn: it measures, in units of 1 %
+    # of the light, the change the radial terms make at t = tan(field angle) = 0.5, the same
+    # as the effect's own factor there
+    from tofhil.camera import CameraModel
+    from tofhil.sim.effects import EFFECTS
+
+    eff = EFFECTS["illumination"]
+    assert eff.roughness("", {"dn": 2.0}) is None
+    assert np.all(eff.roughness("radial", {"dn": 1.3, "b4": 0.0, "b6": 0.0}) == 0.0)
+    cam = CameraModel(3, 1, 2.0, 2.0, 1.0, 0.0)  # the pixel at u = 2, v = 0 looks at t = (2 - 1) / 2
+    assert (2 - cam.cx) / cam.fx == pytest.approx(0.5)
+    change = eff.factor({"dn": 0.0, "b4": b4, "b6": b6}, cam, (1, 3))[0, 2] - 1.0
+    assert eff.roughness("radial", {"dn": 0.0, "b4": b4, "b6": b6}).sum() * 0.01 == pytest.approx(change, rel=1e-6)
