@@ -253,7 +253,8 @@ def connect_and_bounce(irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, 
 def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, normal, plane_c, vnormal,
                 smooth, tri_object, rho_d, rho_s, n_s, emitter_pos, emitter_axis, eps, cos_n, i0, beam,
                 k, acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj, n_obj=0):  # pragma: no cover
-    """Every sample's whole path in one loop, Embree called per ray (:mod:`tofhil.sim.embree4`).
+    """Every sample's whole path in one loop, Embree called per packet of ``eda.LANES``
+    samples (:mod:`tofhil.sim.embree4`; ``buf`` from :func:`eda.packet_buffer`).
 
     The same physics, in the same float32 rays, as :func:`vertex` and
     :func:`connect_and_bounce` applied bounce by bounce: sample ``s`` starts at ``org`` (one
@@ -264,79 +265,155 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
     ``first_t``/``first_obj`` get the primary hit (inf / -1 for a miss); ``ambient_unit`` the
     first vertex's albedo * beta / pi. ``n_obj > 0``: rows by bounce and source object
     (:func:`share_row`). Returns the number of rays traced.
+
+    Consecutive samples go bounce by bounce as one packet: one ``rtcIntersect8`` for their
+    rays and one ``rtcOccluded8`` for their shadow rays, so the per-call cost of Embree and the
+    spilling around a foreign call are paid once per packet, and the shading loops between the
+    calls stay free of calls. Each sample's arithmetic is the per-ray loop's; only the order
+    in which a pixel's samples are added changes (float rounding).
     """
-    addr, o = eda.record(buf)
+    L = eda.LANES
+    o, addr = eda.packet_record(buf)
     f = buf
     u = buf.view(np.uint32)
+    so = o + 256                     # shadow-ray packet
+    vo, svo = o + 384, o + 400       # valid masks (int32: -1 on, 0 off)
+    s_addr, v_addr, sv_addr = addr + 4 * 256, addr + 4 * 384, addr + 4 * 400
     nk = k.shape[0]
     nbins = edges.shape[0] - 1
     rays = 0
-    for s in range(dirs.shape[0]):
-        if shared:
-            ox, oy, oz = org[0, 0], org[0, 1], org[0, 2]
-        else:
-            ox, oy, oz = org[s, 0], org[s, 1], org[s, 2]
-        dx, dy, dz = dirs[s, 0], dirs[s, 1], dirs[s, 2]
-        path_in = path0[s]
-        beta = beta0[s]
-        q = local[s]
-        src = 0
+    n = dirs.shape[0]
+    # Lane state: ray, path length so far, throughput, pixel, source object, sample, alive.
+    lo = np.empty((L, 3))
+    ld = np.empty((L, 3))
+    lpath = np.empty(L)
+    lbeta = np.empty(L)
+    lq = np.empty(L, np.int64)
+    lsrc = np.zeros(L, np.int64)
+    ls = np.empty(L, np.int64)
+    alive = np.zeros(L, np.bool_)
+    # Per-lane vertex results kept from the shading loop for the connection and the bounce.
+    lw = np.empty(L)                 # beta * E (the connection's weight without f_r)
+    lx = np.empty((L, 3))
+    lg = np.empty((L, 3))
+    lsn = np.empty((L, 3))
+    le = np.empty((L, 3))
+    lr = np.empty(L)
+    lpv = np.empty(L)
+    lmat = np.empty((L, 3))
+    for s0 in range(0, n, L):
+        m = min(L, n - s0)
+        for j in range(L):
+            alive[j] = j < m
+            if j < m:
+                s = s0 + j
+                if shared:
+                    lo[j, 0], lo[j, 1], lo[j, 2] = org[0, 0], org[0, 1], org[0, 2]
+                else:
+                    lo[j, 0], lo[j, 1], lo[j, 2] = org[s, 0], org[s, 1], org[s, 2]
+                ld[j, 0], ld[j, 1], ld[j, 2] = dirs[s, 0], dirs[s, 1], dirs[s, 2]
+                lpath[j] = path0[s]
+                lbeta[j] = beta0[s]
+                lq[j] = local[s]
+                lsrc[j] = 0
+                ls[j] = s
         for bounce in range(bounces + 1):
-            eda.set_ray(f, u, o, np.float32(ox), np.float32(oy), np.float32(oz),
-                        np.float32(dx), np.float32(dy), np.float32(dz), np.float32(1e37))
-            eda.rtc_intersect1(scene, addr, 0)
-            rays += 1
-            p = u[o + 17]
-            if p == eda.INVALID_ID:
+            live = 0
+            for j in range(L):
+                if alive[j]:
+                    eda.set_lane(f, u, o, j, np.float32(lo[j, 0]), np.float32(lo[j, 1]), np.float32(lo[j, 2]),
+                                 np.float32(ld[j, 0]), np.float32(ld[j, 1]), np.float32(ld[j, 2]), np.float32(1e37))
+                    u[vo + j] = eda.INVALID_ID
+                    live += 1
+                else:
+                    u[vo + j] = 0
+            if live == 0:
+                break
+            eda.rtc_intersect8(v_addr, scene, addr, 0)
+            rays += live
+            shadows = 0
+            for j in range(L):
+                u[svo + j] = 0
+                if not alive[j]:
+                    continue
+                p = u[o + 17 * L + j]
+                if p == eda.INVALID_ID:
+                    if bounce == 0:
+                        first_t[ls[j]] = np.inf
+                        first_obj[ls[j]] = -1
+                    alive[j] = False
+                    continue
+                ox, oy, oz = lo[j, 0], lo[j, 1], lo[j, 2]
+                dx, dy, dz = ld[j, 0], ld[j, 1], ld[j, 2]
+                nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
+                t, dn = _plane_hit(normal, plane_c, p, ox, oy, oz, dx, dy, dz, np.float64(f[o + 8 * L + j]))
+                px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
+                sg = 1.0 if dn < 0.0 else -1.0
+                gx, gy, gz = sg * nx, sg * ny, sg * nz
+                sx, sy, sz = gx, gy, gz
+                if smooth:
+                    sx, sy, sz = _shading_normal(vnormal, p, np.float64(f[o + 15 * L + j]),
+                                                 np.float64(f[o + 16 * L + j]), sg, gx, gy, gz, dx, dy, dz)
+                ob = tri_object[p]
+                rho, rs, ns = rho_d[ob], rho_s[ob], n_s[ob]
+                path = lpath[j] + t
+                if bounce <= 1:
+                    lsrc[j] = ob       # the seen object (direct light) or the one that lit it
                 if bounce == 0:
-                    first_t[s] = np.inf
-                    first_obj[s] = -1
-                break
-            nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
-            t, dn = _plane_hit(normal, plane_c, p, ox, oy, oz, dx, dy, dz, np.float64(f[o + 8]))
-            px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
-            sg = 1.0 if dn < 0.0 else -1.0
-            gx, gy, gz = sg * nx, sg * ny, sg * nz
-            sx, sy, sz = gx, gy, gz
-            if smooth:
-                sx, sy, sz = _shading_normal(vnormal, p, np.float64(f[o + 15]), np.float64(f[o + 16]), sg, gx, gy, gz,
-                                             dx, dy, dz)
-            ob = tri_object[p]
-            rho, rs, ns = rho_d[ob], rho_s[ob], n_s[ob]
-            path = path_in + t
-            if bounce <= 1:
-                src = ob           # the seen object (direct light) or the one that lit it
-            if bounce == 0:
-                first_t[s] = t
-                first_obj[s] = ob
-                ambient_unit[q] += beta * (rho + rs) * _INV_PI
-            ex, ey, ez = emitter_pos[0] - px, emitter_pos[1] - py, emitter_pos[2] - pz
-            r = math.sqrt(ex * ex + ey * ey + ez * ez)
-            ex, ey, ez = ex / r, ey / r, ez / r
-            cs = sx * ex + sy * ey + sz * ez
-            ce = -(ex * emitter_axis[0] + ey * emitter_axis[1] + ez * emitter_axis[2])
-            irr = i0 * _beam(ce, cos_n, beam) * cs / (r * r) if cs > 0.0 else 0.0
-            if irr > 0.0:
-                eda.set_ray(f, u, o, np.float32(px + eps * gx), np.float32(py + eps * gy), np.float32(pz + eps * gz),
-                            np.float32(ex), np.float32(ey), np.float32(ez), np.float32(r - 2.0 * eps))
-                eda.rtc_occluded1(scene, addr, 0)
-                rays += 1
-                if not f[o + 8] < 0.0:        # tfar = -inf: blocked
-                    w = beta * irr * _brdf(rho, rs, ns, sx, sy, sz, ex, ey, ez, -dx, -dy, -dz)
+                    first_t[ls[j]] = t
+                    first_obj[ls[j]] = ob
+                    ambient_unit[lq[j]] += lbeta[j] * (rho + rs) * _INV_PI
+                ex, ey, ez = emitter_pos[0] - px, emitter_pos[1] - py, emitter_pos[2] - pz
+                r = math.sqrt(ex * ex + ey * ey + ez * ez)
+                ex, ey, ez = ex / r, ey / r, ez / r
+                cs = sx * ex + sy * ey + sz * ez
+                ce = -(ex * emitter_axis[0] + ey * emitter_axis[1] + ez * emitter_axis[2])
+                irr = i0 * _beam(ce, cos_n, beam) * cs / (r * r) if cs > 0.0 else 0.0
+                lw[j] = irr
+                lx[j, 0], lx[j, 1], lx[j, 2] = px, py, pz
+                lg[j, 0], lg[j, 1], lg[j, 2] = gx, gy, gz
+                lsn[j, 0], lsn[j, 1], lsn[j, 2] = sx, sy, sz
+                le[j, 0], le[j, 1], le[j, 2] = ex, ey, ez
+                lr[j] = r
+                lpv[j] = path
+                lmat[j, 0], lmat[j, 1], lmat[j, 2] = rho, rs, ns
+                if irr > 0.0:
+                    eda.set_lane(f, u, so, j, np.float32(px + eps * gx), np.float32(py + eps * gy),
+                                 np.float32(pz + eps * gz), np.float32(ex), np.float32(ey), np.float32(ez),
+                                 np.float32(r - 2.0 * eps))
+                    u[svo + j] = eda.INVALID_ID
+                    shadows += 1
+            if shadows:
+                eda.rtc_occluded8(sv_addr, scene, s_addr, 0)
+                rays += shadows
+            for j in range(L):
+                if not alive[j]:
+                    continue
+                dx, dy, dz = ld[j, 0], ld[j, 1], ld[j, 2]
+                sx, sy, sz = lsn[j, 0], lsn[j, 1], lsn[j, 2]
+                rho, rs, ns = lmat[j, 0], lmat[j, 1], lmat[j, 2]
+                if u[svo + j] != 0 and not f[so + 8 * L + j] < 0.0:     # tfar = -inf: blocked
+                    w = lbeta[j] * lw[j] * _brdf(rho, rs, ns, sx, sy, sz, le[j, 0], le[j, 1], le[j, 2],
+                                                 -dx, -dy, -dz)
                     if w > 0.0:
-                        _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, share_row(bounce, src, n_obj),
-                                    q, w, path + r)
-            if bounce == bounces:
-                break
-            ndx, ndy, ndz = _cosine_direction(U[s, 4 + 2 * bounce], U[s, 5 + 2 * bounce], sx, sy, sz)
-            if ndx * gx + ndy * gy + ndz * gz <= 0.0:    # below the geometric surface
-                break
-            beta = beta * math.pi * _brdf(rho, rs, ns, sx, sy, sz, ndx, ndy, ndz, -dx, -dy, -dz)
-            if beta <= 0.0:
-                break
-            ox, oy, oz = px + eps * gx, py + eps * gy, pz + eps * gz
-            dx, dy, dz = ndx, ndy, ndz
-            path_in = path
+                        _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins,
+                                    share_row(bounce, lsrc[j], n_obj), lq[j], w, lpv[j] + lr[j])
+                if bounce == bounces:
+                    continue
+                s = ls[j]
+                ndx, ndy, ndz = _cosine_direction(U[s, 4 + 2 * bounce], U[s, 5 + 2 * bounce], sx, sy, sz)
+                gx, gy, gz = lg[j, 0], lg[j, 1], lg[j, 2]
+                if ndx * gx + ndy * gy + ndz * gz <= 0.0:    # below the geometric surface
+                    alive[j] = False
+                    continue
+                beta = lbeta[j] * math.pi * _brdf(rho, rs, ns, sx, sy, sz, ndx, ndy, ndz, -dx, -dy, -dz)
+                lbeta[j] = beta
+                if beta <= 0.0:
+                    alive[j] = False
+                    continue
+                lo[j, 0], lo[j, 1], lo[j, 2] = lx[j, 0] + eps * gx, lx[j, 1] + eps * gy, lx[j, 2] + eps * gz
+                ld[j, 0], ld[j, 1], ld[j, 2] = ndx, ndy, ndz
+                lpath[j] = lpv[j]
     return rays
 
 

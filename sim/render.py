@@ -501,7 +501,7 @@ class _Context:
                 acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj)
         else:
             rays = kernels.trace_paths(
-                geom.direct.handle, embree4.ray_buffer(), org, shared, dirs,
+                geom.direct.handle, embree4.packet_buffer(), org, shared, dirs,
                 np.ascontiguousarray(path0, dtype=np.float64), np.ascontiguousarray(beta, dtype=np.float64),
                 np.ascontiguousarray(local, dtype=np.int64), np.ascontiguousarray(U2), self.bounces,
                 geom.normal, geom.plane_c, vnormal, smooth, geom.tri_object, self.rho_d, self.rho_s, self.n_s,
