@@ -418,6 +418,67 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
 
 
 @njit(nogil=True, cache=True)
+def sobol_shifted(sobol, shift, U):  # pragma: no cover
+    """``U[i * spp + j] = (sobol[j] + shift[i]) mod 1``: the same Sobol' points in every
+    pixel ``i``, rotated by the pixel's random vector (Cranley-Patterson); the numpy
+    expression's arithmetic (one add, then an exact subtraction of 1), without its temporaries."""
+    spp, dims = sobol.shape
+    for i in range(shift.shape[0]):
+        for j in range(spp):
+            s = i * spp + j
+            for d in range(dims):
+                x = sobol[j, d] + shift[i, d]
+                U[s, d] = x - 1.0 if x >= 1.0 else x
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def subpixel_rays(p0, spp, width, U, fx, fy, cx, cy, dist, iterations, R, rotate, pix_weight,
+                  dirs, beta):  # pragma: no cover
+    """Sample ``s`` of pixel ``p0 + s // spp`` through the pixel position ``U[s, 0:2]`` (in
+    pixels from the pixel's corner): its unit world direction ``dirs[s]`` (the camera model's
+    undistortion, :meth:`CameraModel.pixel_rays`, then ``R``) and its weight
+    ``beta[s] = pix_weight[pixel] * z^4`` (cos^4 of the camera ray). One pass, operation by
+    operation the numpy expressions of the camera model and :func:`rotate_rows` (cos^4 to
+    an ulp)."""
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    distorted = k1 != 0.0 or k2 != 0.0 or p1 != 0.0 or p2 != 0.0 or k3 != 0.0
+    r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
+    r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
+    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
+    p, s_next = p0 - 1, 0
+    col = row = w = 0.0
+    for s in range(U.shape[0]):
+        if s == s_next:                  # a new pixel (no integer division per sample)
+            p += 1
+            s_next += spp
+            col, row = np.float64(p % width), np.float64(p // width)
+            w = pix_weight[p]
+        uu = col + U[s, 0] - 0.5
+        vv = row + U[s, 1] - 0.5
+        xd = (uu - cx) / fx
+        yd = (vv - cy) / fy
+        x, y = xd, yd
+        if distorted:
+            for _ in range(iterations):
+                r2 = x * x + y * y
+                radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+                dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+                x = (xd - dx) / radial
+                y = (yd - dy) / radial
+        nrm = math.sqrt(x * x + y * y + 1.0)
+        a, b, c = x / nrm, y / nrm, 1.0 / nrm
+        c2 = c * c
+        beta[s] = w * (c2 * c2)          # cos^4 (numpy's c**4 and libm's pow differ from it by an ulp)
+        if rotate:
+            dirs[s, 0] = a * r00 + b * r01 + c * r02
+            dirs[s, 1] = a * r10 + b * r11 + c * r12
+            dirs[s, 2] = a * r20 + b * r21 + c * r22
+        else:
+            dirs[s, 0], dirs[s, 1], dirs[s, 2] = a, b, c
+
+
+@njit(nogil=True, cache=True)
 def rotate_rows(v, R, out):  # pragma: no cover
     """``out = v @ R.T`` for [N, 3] rows, in the numpy expression's order
     ``(v0 R[k, 0] + v1 R[k, 1]) + v2 R[k, 2]`` (no fused multiply-add: bit-identical to it),

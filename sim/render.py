@@ -296,10 +296,10 @@ class _Context:
         """
         if self.sampler == "random" or self.spp == 1:
             return rng.random((npix * self.spp, self.dims))
-        shift = rng.random((npix, 1, self.dims))
-        u = (self.sobol[None, :, :] + shift).reshape(-1, self.dims)
+        shift = rng.random((npix, self.dims))
+        u = np.empty((npix * self.spp, self.dims))
         # mod 1 of a sum in [0, 2): subtracting 1 is exact and equals np.mod (which is slow).
-        np.subtract(u, 1.0, out=u, where=u >= 1.0)
+        kernels.sobol_shifted(self.sobol, shift, u)
         return u
 
     # ------------------------------------------------------------------ one chunk
@@ -314,15 +314,21 @@ class _Context:
         # through the pinhole without bounces).
         need_u = self.subpixel or self.thin_lens or self.bounces > 0 or self.glass.scattering
         U = self.uniforms(np.random.default_rng([self.seed, chunk]), npix) if need_u else np.zeros((0, self.dims))
-        if self.subpixel:
+        if self.subpixel and not self.thin_lens:
+            # Sub-pixel rays through the pinhole: generated, weighted and rotated in one
+            # compiled pass (the camera model's arithmetic, no per-sample temporaries).
+            dirs, beta = np.empty((len(U), 3)), np.empty(len(U))
+            cam = self.camera
+            kernels.subpixel_rays(p0, spp, self.W, U, cam.fx, cam.fy, cam.cx, cam.cy,
+                                  np.asarray(cam.dist, dtype=np.float64), 20, self.R,
+                                  not np.array_equal(self.R, np.eye(3)), self.pix_weight, dirs, beta)
+        elif self.subpixel:
             uu = (pix % self.W) + U[:, 0] - 0.5
             vv = (pix // self.W) + U[:, 1] - 0.5
             d_cam = self.camera.pixel_rays(uu, vv)
-        else:
-            d_cam = self.centre_rays[p0:p1] if spp == 1 else np.repeat(self.centre_rays[p0:p1], spp, axis=0)
-        if self.subpixel:
             beta = self.pix_weight[pix] * d_cam[:, 2] ** 4
         else:
+            d_cam = self.centre_rays[p0:p1] if spp == 1 else np.repeat(self.centre_rays[p0:p1], spp, axis=0)
             beta = self.centre_weight[p0:p1] if spp == 1 else self.centre_weight[pix]
         if self.thin_lens:
             # Sample the aperture disk; every ray through the same pixel position meets the
@@ -341,9 +347,7 @@ class _Context:
         else:
             path0 = np.zeros(len(pix))
             origins = self.t                  # one shared origin: the pinhole
-            if self.subpixel:
-                dirs = _rotate(d_cam, self.R)
-            else:
+            if not self.subpixel:
                 cw = self.centre_world[p0:p1]
                 dirs = cw if spp == 1 else np.repeat(cw, spp, axis=0)
 
