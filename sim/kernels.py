@@ -55,17 +55,23 @@ def _beam(ce, cos_n, beam):  # pragma: no cover
 
 
 @njit(nogil=True, cache=True, inline="always")
-def _plane_hit(normal, plane_c, p, ox, oy, oz, dx, dy, dz, te):  # pragma: no cover
-    """Embree's float32 hit distance ``te`` refined in float64 on the plane of triangle ``p``
-    (kept when the two agree to 1e-4, i.e. not at a grazing angle), and ``d . n``."""
-    nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
+def _plane_t(nx, ny, nz, pc, ox, oy, oz, dx, dy, dz, te):  # pragma: no cover
+    """Embree's float32 hit distance ``te`` refined in float64 on the plane ``n . x = pc``
+    (kept when the two agree to 1e-4, i.e. not at a grazing angle), and ``d . n``. Scalars
+    only: an array passed to a helper costs the hot loops an atomic reference count each."""
     dn = dx * nx + dy * ny + dz * nz
     t = te
     if dn != 0.0:
-        tr = (plane_c[p] - (ox * nx + oy * ny + oz * nz)) / dn
+        tr = (pc - (ox * nx + oy * ny + oz * nz)) / dn
         if abs(tr - te) < 1e-4 * max(1.0, te):
             t = tr
     return t, dn
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _plane_hit(normal, plane_c, p, ox, oy, oz, dx, dy, dz, te):  # pragma: no cover
+    """:func:`_plane_t` on the plane of triangle ``p``."""
+    return _plane_t(normal[p, 0], normal[p, 1], normal[p, 2], plane_c[p], ox, oy, oz, dx, dy, dz, te)
 
 
 @njit(nogil=True, cache=True)
@@ -272,7 +278,11 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
     calls stay free of calls. Each sample's arithmetic is the per-ray loop's; only the order
     in which a pixel's samples are added changes (float rounding).
     """
+    # No array goes to a helper inside the loops (the stores of a ray, the plane refinement,
+    # the accumulation are written out): numba would count a reference per call, an atomic
+    # operation on a cache line the other render thread shares (15 % of the time).
     L = eda.LANES
+    INV = eda.INVALID_ID
     o, addr = eda.packet_record(buf)
     f = buf
     u = buf.view(np.uint32)
@@ -301,6 +311,9 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
     lr = np.empty(L)
     lpv = np.empty(L)
     lmat = np.empty((L, 3))
+    # The beam: cos^n, one value over the whole sphere, or the table (:func:`_beam`).
+    beam_flat = cos_n < 0.0 and beam.shape[1] == 1
+    beam_c = beam[1, 0] if beam_flat else 0.0
     for s0 in range(0, n, L):
         m = min(L, n - s0)
         for j in range(L):
@@ -321,9 +334,23 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
             live = 0
             for j in range(L):
                 if alive[j]:
-                    eda.set_lane(f, u, o, j, np.float32(lo[j, 0]), np.float32(lo[j, 1]), np.float32(lo[j, 2]),
-                                 np.float32(ld[j, 0]), np.float32(ld[j, 1]), np.float32(ld[j, 2]), np.float32(1e37))
-                    u[vo + j] = eda.INVALID_ID
+                    # eda.set_lane, written out: the packet's ray j
+                    f[o + j] = np.float32(lo[j, 0])
+                    f[o + L + j] = np.float32(lo[j, 1])
+                    f[o + 2 * L + j] = np.float32(lo[j, 2])
+                    f[o + 3 * L + j] = 0.0
+                    f[o + 4 * L + j] = np.float32(ld[j, 0])
+                    f[o + 5 * L + j] = np.float32(ld[j, 1])
+                    f[o + 6 * L + j] = np.float32(ld[j, 2])
+                    f[o + 7 * L + j] = 0.0
+                    f[o + 8 * L + j] = np.float32(1e37)
+                    u[o + 9 * L + j] = INV
+                    u[o + 10 * L + j] = 0
+                    u[o + 11 * L + j] = 0
+                    u[o + 17 * L + j] = INV
+                    u[o + 18 * L + j] = INV
+                    u[o + 19 * L + j] = INV
+                    u[vo + j] = INV
                     live += 1
                 else:
                     u[vo + j] = 0
@@ -346,7 +373,7 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
                 ox, oy, oz = lo[j, 0], lo[j, 1], lo[j, 2]
                 dx, dy, dz = ld[j, 0], ld[j, 1], ld[j, 2]
                 nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
-                t, dn = _plane_hit(normal, plane_c, p, ox, oy, oz, dx, dy, dz, np.float64(f[o + 8 * L + j]))
+                t, dn = _plane_t(nx, ny, nz, plane_c[p], ox, oy, oz, dx, dy, dz, np.float64(f[o + 8 * L + j]))
                 px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
                 sg = 1.0 if dn < 0.0 else -1.0
                 gx, gy, gz = sg * nx, sg * ny, sg * nz
@@ -368,7 +395,16 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
                 ex, ey, ez = ex / r, ey / r, ez / r
                 cs = sx * ex + sy * ey + sz * ez
                 ce = -(ex * emitter_axis[0] + ey * emitter_axis[1] + ez * emitter_axis[2])
-                irr = i0 * _beam(ce, cos_n, beam) * cs / (r * r) if cs > 0.0 else 0.0
+                if cs > 0.0:
+                    if cos_n >= 0.0:
+                        bv = _pow(ce, cos_n) if ce > 0.0 else 0.0
+                    elif beam_flat:
+                        bv = beam_c
+                    else:
+                        bv = _beam(ce, cos_n, beam)
+                    irr = i0 * bv * cs / (r * r)
+                else:
+                    irr = 0.0
                 lw[j] = irr
                 lx[j, 0], lx[j, 1], lx[j, 2] = px, py, pz
                 lg[j, 0], lg[j, 1], lg[j, 2] = gx, gy, gz
@@ -378,10 +414,20 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
                 lpv[j] = path
                 lmat[j, 0], lmat[j, 1], lmat[j, 2] = rho, rs, ns
                 if irr > 0.0:
-                    eda.set_lane(f, u, so, j, np.float32(px + eps * gx), np.float32(py + eps * gy),
-                                 np.float32(pz + eps * gz), np.float32(ex), np.float32(ey), np.float32(ez),
-                                 np.float32(r - 2.0 * eps))
-                    u[svo + j] = eda.INVALID_ID
+                    # the shadow packet's ray j (eda.set_lane, written out)
+                    f[so + j] = np.float32(px + eps * gx)
+                    f[so + L + j] = np.float32(py + eps * gy)
+                    f[so + 2 * L + j] = np.float32(pz + eps * gz)
+                    f[so + 3 * L + j] = 0.0
+                    f[so + 4 * L + j] = np.float32(ex)
+                    f[so + 5 * L + j] = np.float32(ey)
+                    f[so + 6 * L + j] = np.float32(ez)
+                    f[so + 7 * L + j] = 0.0
+                    f[so + 8 * L + j] = np.float32(r - 2.0 * eps)
+                    u[so + 9 * L + j] = INV
+                    u[so + 10 * L + j] = 0
+                    u[so + 11 * L + j] = 0
+                    u[svo + j] = INV
                     shadows += 1
             if shadows:
                 eda.rtc_occluded8(sv_addr, scene, s_addr, 0)
@@ -396,8 +442,19 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
                     w = lbeta[j] * lw[j] * _brdf(rho, rs, ns, sx, sy, sz, le[j, 0], le[j, 1], le[j, 2],
                                                  -dx, -dy, -dz)
                     if w > 0.0:
-                        _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins,
-                                    share_row(bounce, lsrc[j], n_obj), lq[j], w, lpv[j] + lr[j])
+                        # _accumulate, written out
+                        q = lq[j]
+                        length = lpv[j] + lr[j]
+                        row = share_row(bounce, lsrc[j], n_obj)
+                        power[q] += w
+                        for m in range(nk):
+                            sn, cs = _sincos(k[m] * length)
+                            acc_re[row, m, q] += w * cs
+                            acc_im[row, m, q] += w * sn
+                        if nbins > 0:
+                            b = np.searchsorted(edges, length, side="right") - 1
+                            if b >= 0 and b < nbins:
+                                trans[q, b] += w
                 if bounce == bounces:
                     continue
                 s = ls[j]
