@@ -241,9 +241,7 @@ class _Context:
         self.centre_world = view["world"]
         self.centre_weight = self.pix_weight * view["cos4"]
         self.centre_world32 = view["world32"]
-        # Float32 pinhole origins for one chunk's primary rays (a chunk holds <= BATCH + spp).
-        self.origin32 = np.empty((min(camera.width * camera.height * spp, BATCH + spp), 3), dtype=np.float32)
-        self.origin32[:] = self.t
+        self._origin32: np.ndarray | None = None
         prof = scene.emitter.profile
         # Beam profile (I = i0 p): cos^n in the kernels; -1: tabulated, `beam` for the fused
         # loop (the wavefront loop's vertex kernel leaves it to numpy).
@@ -260,6 +258,17 @@ class _Context:
             if shares:
                 raise TofhilError("multipath shares are not computed through glass or media", field="multipath_shares",
                                   expected="a scene without materials with ior or scattering_per_m")
+
+    @property
+    def origin32(self) -> np.ndarray:
+        """Float32 pinhole origins for one chunk's primary rays (a chunk holds <= BATCH + spp);
+        made when the wavefront loop first needs them (the fused loop does not: 0.8 MB a frame)."""
+        if self._origin32 is None:
+            n = min(self.camera.width * self.camera.height * self.spp, BATCH + self.spp)
+            o32 = np.empty((n, 3), dtype=np.float32)
+            o32[:] = self.t
+            self._origin32 = o32
+        return self._origin32
 
     # ------------------------------------------------------------------ shading helpers
     def reflectance(self, obj: np.ndarray, x: np.ndarray) -> np.ndarray:
