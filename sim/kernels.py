@@ -155,7 +155,8 @@ def _cosine_direction(a1, a2, nx, ny, nz):  # pragma: no cover
     orthonormal frame of Duff et al. 2017 (no branch on the normal's direction but its sign)."""
     rr = math.sqrt(a1)
     phi = 2.0 * math.pi * a2
-    lx, ly, lz = rr * math.cos(phi), rr * math.sin(phi), math.sqrt(max(0.0, 1.0 - a1))
+    sn, cs = _sincos(phi)           # one shared range reduction (libm's cos and sin: two)
+    lx, ly, lz = rr * cs, rr * sn, math.sqrt(max(0.0, 1.0 - a1))
     sg = 1.0 if nz >= 0.0 else -1.0
     aa = -1.0 / (sg + nz)
     bb = nx * ny * aa
