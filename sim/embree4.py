@@ -165,27 +165,6 @@ def packet_record(buf):  # pragma: no cover
 
 
 @njit(nogil=True, cache=True, inline="always")
-def set_lane(f, u, o, lane, ox, oy, oz, dx, dy, dz, tfar):  # pragma: no cover
-    """:func:`set_ray` for lane ``lane`` of the packet at word ``o``."""
-    L = LANES
-    f[o + lane] = ox
-    f[o + L + lane] = oy
-    f[o + 2 * L + lane] = oz
-    f[o + 3 * L + lane] = 0.0
-    f[o + 4 * L + lane] = dx
-    f[o + 5 * L + lane] = dy
-    f[o + 6 * L + lane] = dz
-    f[o + 7 * L + lane] = 0.0
-    f[o + 8 * L + lane] = tfar
-    u[o + 9 * L + lane] = INVALID_ID
-    u[o + 10 * L + lane] = 0
-    u[o + 11 * L + lane] = 0
-    u[o + 17 * L + lane] = INVALID_ID
-    u[o + 18 * L + lane] = INVALID_ID
-    u[o + 19 * L + lane] = INVALID_ID
-
-
-@njit(nogil=True, cache=True, inline="always")
 def record(buf):  # pragma: no cover
     """(address, float32 word offset) of the 16-byte aligned ray record inside ``buf``."""
     base = buf.ctypes.data
@@ -211,3 +190,4 @@ def set_ray(f, u, o, ox, oy, oz, dx, dy, dz, tfar):  # pragma: no cover
     u[o + 17] = INVALID_ID
     u[o + 18] = INVALID_ID
     u[o + 19] = INVALID_ID
+

@@ -335,7 +335,7 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
             live = 0
             for j in range(L):
                 if alive[j]:
-                    # eda.set_lane, written out: the packet's ray j
+                    # ray j of the packet: set_ray's fields, each LANES words apart
                     f[o + j] = np.float32(lo[j, 0])
                     f[o + L + j] = np.float32(lo[j, 1])
                     f[o + 2 * L + j] = np.float32(lo[j, 2])
@@ -415,7 +415,7 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
                 lpv[j] = path
                 lmat[j, 0], lmat[j, 1], lmat[j, 2] = rho, rs, ns
                 if irr > 0.0:
-                    # the shadow packet's ray j (eda.set_lane, written out)
+                    # ray j of the shadow packet (the same layout)
                     f[so + j] = np.float32(px + eps * gx)
                     f[so + L + j] = np.float32(py + eps * gy)
                     f[so + 2 * L + j] = np.float32(pz + eps * gz)
