@@ -127,14 +127,41 @@ def _release(lib: ctypes.CDLL, scene: int, dev: int) -> None:
     lib.rtcReleaseDevice(dev)
 
 
+#: Rays per packet query (RTCRayHit8: AVX2's width; Embree's packet layout is the single
+#: ray's, every field widened to LANES words, so field ``i`` of lane ``l`` is word i*LANES + l).
+LANES = 8
+#: Words of a packet buffer: RTCRayHit8 (<= 256 words with instance ids), a shadow RTCRay8
+#: (128), the two valid masks (16 each), and 64-byte alignment slack.
+PACKET_WORDS = 416 + 16
+
+
 def ray_buffer() -> np.ndarray:
     """A per-thread ray record: float32 words, padded so a 16-byte aligned record fits."""
     return np.zeros(RAY_WORDS + 4, dtype=np.float32)
 
 
+def packet_buffer() -> np.ndarray:
+    """A per-thread packet record (:func:`packet_record`): a ray-hit packet, a shadow-ray
+    packet and their valid masks."""
+    return np.zeros(PACKET_WORDS, dtype=np.float32)
+
+
 # Pointers pass as uint64 (same registers as pointers in the x86-64 and AArch64 ABIs).
 rtc_intersect1 = types.ExternalFunction("rtcIntersect1", types.void(types.uint64, types.uint64, types.uint64))
 rtc_occluded1 = types.ExternalFunction("rtcOccluded1", types.void(types.uint64, types.uint64, types.uint64))
+_pk_sig = types.void(types.uint64, types.uint64, types.uint64, types.uint64)   # (valid*, scene, rays*, args*)
+rtc_intersect8 = types.ExternalFunction("rtcIntersect8", _pk_sig)
+rtc_occluded8 = types.ExternalFunction("rtcOccluded8", _pk_sig)
+
+
+@njit(nogil=True, cache=True, inline="always")
+def packet_record(buf):  # pragma: no cover
+    """(word offset of the 64-byte aligned packet record in ``buf``, its address): the hit
+    packet at ``o``, the shadow packet at ``o + 256``, their valid masks at ``o + 384`` and
+    ``o + 400``."""
+    base = buf.ctypes.data
+    addr = ((base + 63) // 64) * 64
+    return (addr - base) // 4, addr
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -163,3 +190,4 @@ def set_ray(f, u, o, ox, oy, oz, dx, dy, dz, tfar):  # pragma: no cover
     u[o + 17] = INVALID_ID
     u[o + 18] = INVALID_ID
     u[o + 19] = INVALID_ID
+

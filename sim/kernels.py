@@ -55,17 +55,23 @@ def _beam(ce, cos_n, beam):  # pragma: no cover
 
 
 @njit(nogil=True, cache=True, inline="always")
-def _plane_hit(normal, plane_c, p, ox, oy, oz, dx, dy, dz, te):  # pragma: no cover
-    """Embree's float32 hit distance ``te`` refined in float64 on the plane of triangle ``p``
-    (kept when the two agree to 1e-4, i.e. not at a grazing angle), and ``d . n``."""
-    nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
+def _plane_t(nx, ny, nz, pc, ox, oy, oz, dx, dy, dz, te):  # pragma: no cover
+    """Embree's float32 hit distance ``te`` refined in float64 on the plane ``n . x = pc``
+    (kept when the two agree to 1e-4, i.e. not at a grazing angle), and ``d . n``. Scalars
+    only: an array passed to a helper costs the hot loops an atomic reference count each."""
     dn = dx * nx + dy * ny + dz * nz
     t = te
     if dn != 0.0:
-        tr = (plane_c[p] - (ox * nx + oy * ny + oz * nz)) / dn
+        tr = (pc - (ox * nx + oy * ny + oz * nz)) / dn
         if abs(tr - te) < 1e-4 * max(1.0, te):
             t = tr
     return t, dn
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _plane_hit(normal, plane_c, p, ox, oy, oz, dx, dy, dz, te):  # pragma: no cover
+    """:func:`_plane_t` on the plane of triangle ``p``."""
+    return _plane_t(normal[p, 0], normal[p, 1], normal[p, 2], plane_c[p], ox, oy, oz, dx, dy, dz, te)
 
 
 @njit(nogil=True, cache=True)
@@ -149,7 +155,8 @@ def _cosine_direction(a1, a2, nx, ny, nz):  # pragma: no cover
     orthonormal frame of Duff et al. 2017 (no branch on the normal's direction but its sign)."""
     rr = math.sqrt(a1)
     phi = 2.0 * math.pi * a2
-    lx, ly, lz = rr * math.cos(phi), rr * math.sin(phi), math.sqrt(max(0.0, 1.0 - a1))
+    sn, cs = _sincos(phi)           # one shared range reduction (libm's cos and sin: two)
+    lx, ly, lz = rr * cs, rr * sn, math.sqrt(max(0.0, 1.0 - a1))
     sg = 1.0 if nz >= 0.0 else -1.0
     aa = -1.0 / (sg + nz)
     bb = nx * ny * aa
@@ -253,7 +260,8 @@ def connect_and_bounce(irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, 
 def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, normal, plane_c, vnormal,
                 smooth, tri_object, rho_d, rho_s, n_s, emitter_pos, emitter_axis, eps, cos_n, i0, beam,
                 k, acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj, n_obj=0):  # pragma: no cover
-    """Every sample's whole path in one loop, Embree called per ray (:mod:`tofhil.sim.embree4`).
+    """Every sample's whole path in one loop, Embree called per packet of ``eda.LANES``
+    samples (:mod:`tofhil.sim.embree4`; ``buf`` from :func:`eda.packet_buffer`).
 
     The same physics, in the same float32 rays, as :func:`vertex` and
     :func:`connect_and_bounce` applied bounce by bounce: sample ``s`` starts at ``org`` (one
@@ -264,80 +272,268 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
     ``first_t``/``first_obj`` get the primary hit (inf / -1 for a miss); ``ambient_unit`` the
     first vertex's albedo * beta / pi. ``n_obj > 0``: rows by bounce and source object
     (:func:`share_row`). Returns the number of rays traced.
+
+    Consecutive samples go bounce by bounce as one packet: one ``rtcIntersect8`` for their
+    rays and one ``rtcOccluded8`` for their shadow rays, so the per-call cost of Embree and the
+    spilling around a foreign call are paid once per packet, and the shading loops between the
+    calls stay free of calls. Each sample's arithmetic is the per-ray loop's; only the order
+    in which a pixel's samples are added changes (float rounding).
     """
-    addr, o = eda.record(buf)
+    # No array goes to a helper inside the loops (the stores of a ray, the plane refinement,
+    # the accumulation are written out): numba would count a reference per call, an atomic
+    # operation on a cache line the other render thread shares (15 % of the time).
+    L = eda.LANES
+    INV = eda.INVALID_ID
+    o, addr = eda.packet_record(buf)
     f = buf
     u = buf.view(np.uint32)
+    so = o + 256                     # shadow-ray packet
+    vo, svo = o + 384, o + 400       # valid masks (int32: -1 on, 0 off)
+    s_addr, v_addr, sv_addr = addr + 4 * 256, addr + 4 * 384, addr + 4 * 400
     nk = k.shape[0]
     nbins = edges.shape[0] - 1
     rays = 0
-    for s in range(dirs.shape[0]):
-        if shared:
-            ox, oy, oz = org[0, 0], org[0, 1], org[0, 2]
-        else:
-            ox, oy, oz = org[s, 0], org[s, 1], org[s, 2]
-        dx, dy, dz = dirs[s, 0], dirs[s, 1], dirs[s, 2]
-        path_in = path0[s]
-        beta = beta0[s]
-        q = local[s]
-        src = 0
+    n = dirs.shape[0]
+    # Lane state: ray, path length so far, throughput, pixel, source object, sample, alive.
+    lo = np.empty((L, 3))
+    ld = np.empty((L, 3))
+    lpath = np.empty(L)
+    lbeta = np.empty(L)
+    lq = np.empty(L, np.int64)
+    lsrc = np.zeros(L, np.int64)
+    ls = np.empty(L, np.int64)
+    alive = np.zeros(L, np.bool_)
+    # Per-lane vertex results kept from the shading loop for the connection and the bounce.
+    lw = np.empty(L)                 # beta * E (the connection's weight without f_r)
+    lx = np.empty((L, 3))
+    lg = np.empty((L, 3))
+    lsn = np.empty((L, 3))
+    le = np.empty((L, 3))
+    lr = np.empty(L)
+    lpv = np.empty(L)
+    lmat = np.empty((L, 3))
+    # The beam: cos^n, one value over the whole sphere, or the table (:func:`_beam`).
+    beam_flat = cos_n < 0.0 and beam.shape[1] == 1
+    beam_c = beam[1, 0] if beam_flat else 0.0
+    for s0 in range(0, n, L):
+        m = min(L, n - s0)
+        for j in range(L):
+            alive[j] = j < m
+            if j < m:
+                s = s0 + j
+                if shared:
+                    lo[j, 0], lo[j, 1], lo[j, 2] = org[0, 0], org[0, 1], org[0, 2]
+                else:
+                    lo[j, 0], lo[j, 1], lo[j, 2] = org[s, 0], org[s, 1], org[s, 2]
+                ld[j, 0], ld[j, 1], ld[j, 2] = dirs[s, 0], dirs[s, 1], dirs[s, 2]
+                lpath[j] = path0[s]
+                lbeta[j] = beta0[s]
+                lq[j] = local[s]
+                lsrc[j] = 0
+                ls[j] = s
         for bounce in range(bounces + 1):
-            eda.set_ray(f, u, o, np.float32(ox), np.float32(oy), np.float32(oz),
-                        np.float32(dx), np.float32(dy), np.float32(dz), np.float32(1e37))
-            eda.rtc_intersect1(scene, addr, 0)
-            rays += 1
-            p = u[o + 17]
-            if p == eda.INVALID_ID:
+            live = 0
+            for j in range(L):
+                if alive[j]:
+                    # ray j of the packet: set_ray's fields, each LANES words apart
+                    f[o + j] = np.float32(lo[j, 0])
+                    f[o + L + j] = np.float32(lo[j, 1])
+                    f[o + 2 * L + j] = np.float32(lo[j, 2])
+                    f[o + 3 * L + j] = 0.0
+                    f[o + 4 * L + j] = np.float32(ld[j, 0])
+                    f[o + 5 * L + j] = np.float32(ld[j, 1])
+                    f[o + 6 * L + j] = np.float32(ld[j, 2])
+                    f[o + 7 * L + j] = 0.0
+                    f[o + 8 * L + j] = np.float32(1e37)
+                    u[o + 9 * L + j] = INV
+                    u[o + 10 * L + j] = 0
+                    u[o + 11 * L + j] = 0
+                    u[o + 17 * L + j] = INV
+                    u[o + 18 * L + j] = INV
+                    u[o + 19 * L + j] = INV
+                    u[vo + j] = INV
+                    live += 1
+                else:
+                    u[vo + j] = 0
+            if live == 0:
+                break
+            eda.rtc_intersect8(v_addr, scene, addr, 0)
+            rays += live
+            shadows = 0
+            for j in range(L):
+                u[svo + j] = 0
+                if not alive[j]:
+                    continue
+                p = u[o + 17 * L + j]
+                if p == eda.INVALID_ID:
+                    if bounce == 0:
+                        first_t[ls[j]] = np.inf
+                        first_obj[ls[j]] = -1
+                    alive[j] = False
+                    continue
+                ox, oy, oz = lo[j, 0], lo[j, 1], lo[j, 2]
+                dx, dy, dz = ld[j, 0], ld[j, 1], ld[j, 2]
+                nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
+                t, dn = _plane_t(nx, ny, nz, plane_c[p], ox, oy, oz, dx, dy, dz, np.float64(f[o + 8 * L + j]))
+                px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
+                sg = 1.0 if dn < 0.0 else -1.0
+                gx, gy, gz = sg * nx, sg * ny, sg * nz
+                sx, sy, sz = gx, gy, gz
+                if smooth:
+                    sx, sy, sz = _shading_normal(vnormal, p, np.float64(f[o + 15 * L + j]),
+                                                 np.float64(f[o + 16 * L + j]), sg, gx, gy, gz, dx, dy, dz)
+                ob = tri_object[p]
+                rho, rs, ns = rho_d[ob], rho_s[ob], n_s[ob]
+                path = lpath[j] + t
+                if bounce <= 1:
+                    lsrc[j] = ob       # the seen object (direct light) or the one that lit it
                 if bounce == 0:
-                    first_t[s] = np.inf
-                    first_obj[s] = -1
-                break
-            nx, ny, nz = normal[p, 0], normal[p, 1], normal[p, 2]
-            t, dn = _plane_hit(normal, plane_c, p, ox, oy, oz, dx, dy, dz, np.float64(f[o + 8]))
-            px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
-            sg = 1.0 if dn < 0.0 else -1.0
-            gx, gy, gz = sg * nx, sg * ny, sg * nz
-            sx, sy, sz = gx, gy, gz
-            if smooth:
-                sx, sy, sz = _shading_normal(vnormal, p, np.float64(f[o + 15]), np.float64(f[o + 16]), sg, gx, gy, gz,
-                                             dx, dy, dz)
-            ob = tri_object[p]
-            rho, rs, ns = rho_d[ob], rho_s[ob], n_s[ob]
-            path = path_in + t
-            if bounce <= 1:
-                src = ob           # the seen object (direct light) or the one that lit it
-            if bounce == 0:
-                first_t[s] = t
-                first_obj[s] = ob
-                ambient_unit[q] += beta * (rho + rs) * _INV_PI
-            ex, ey, ez = emitter_pos[0] - px, emitter_pos[1] - py, emitter_pos[2] - pz
-            r = math.sqrt(ex * ex + ey * ey + ez * ez)
-            ex, ey, ez = ex / r, ey / r, ez / r
-            cs = sx * ex + sy * ey + sz * ez
-            ce = -(ex * emitter_axis[0] + ey * emitter_axis[1] + ez * emitter_axis[2])
-            irr = i0 * _beam(ce, cos_n, beam) * cs / (r * r) if cs > 0.0 else 0.0
-            if irr > 0.0:
-                eda.set_ray(f, u, o, np.float32(px + eps * gx), np.float32(py + eps * gy), np.float32(pz + eps * gz),
-                            np.float32(ex), np.float32(ey), np.float32(ez), np.float32(r - 2.0 * eps))
-                eda.rtc_occluded1(scene, addr, 0)
-                rays += 1
-                if not f[o + 8] < 0.0:        # tfar = -inf: blocked
-                    w = beta * irr * _brdf(rho, rs, ns, sx, sy, sz, ex, ey, ez, -dx, -dy, -dz)
+                    first_t[ls[j]] = t
+                    first_obj[ls[j]] = ob
+                    ambient_unit[lq[j]] += lbeta[j] * (rho + rs) * _INV_PI
+                ex, ey, ez = emitter_pos[0] - px, emitter_pos[1] - py, emitter_pos[2] - pz
+                r = math.sqrt(ex * ex + ey * ey + ez * ez)
+                ex, ey, ez = ex / r, ey / r, ez / r
+                cs = sx * ex + sy * ey + sz * ez
+                ce = -(ex * emitter_axis[0] + ey * emitter_axis[1] + ez * emitter_axis[2])
+                if cs > 0.0:
+                    if cos_n >= 0.0:
+                        bv = _pow(ce, cos_n) if ce > 0.0 else 0.0
+                    elif beam_flat:
+                        bv = beam_c
+                    else:
+                        bv = _beam(ce, cos_n, beam)
+                    irr = i0 * bv * cs / (r * r)
+                else:
+                    irr = 0.0
+                lw[j] = irr
+                lx[j, 0], lx[j, 1], lx[j, 2] = px, py, pz
+                lg[j, 0], lg[j, 1], lg[j, 2] = gx, gy, gz
+                lsn[j, 0], lsn[j, 1], lsn[j, 2] = sx, sy, sz
+                le[j, 0], le[j, 1], le[j, 2] = ex, ey, ez
+                lr[j] = r
+                lpv[j] = path
+                lmat[j, 0], lmat[j, 1], lmat[j, 2] = rho, rs, ns
+                if irr > 0.0:
+                    # ray j of the shadow packet (the same layout)
+                    f[so + j] = np.float32(px + eps * gx)
+                    f[so + L + j] = np.float32(py + eps * gy)
+                    f[so + 2 * L + j] = np.float32(pz + eps * gz)
+                    f[so + 3 * L + j] = 0.0
+                    f[so + 4 * L + j] = np.float32(ex)
+                    f[so + 5 * L + j] = np.float32(ey)
+                    f[so + 6 * L + j] = np.float32(ez)
+                    f[so + 7 * L + j] = 0.0
+                    f[so + 8 * L + j] = np.float32(r - 2.0 * eps)
+                    u[so + 9 * L + j] = INV
+                    u[so + 10 * L + j] = 0
+                    u[so + 11 * L + j] = 0
+                    u[svo + j] = INV
+                    shadows += 1
+            if shadows:
+                eda.rtc_occluded8(sv_addr, scene, s_addr, 0)
+                rays += shadows
+            for j in range(L):
+                if not alive[j]:
+                    continue
+                dx, dy, dz = ld[j, 0], ld[j, 1], ld[j, 2]
+                sx, sy, sz = lsn[j, 0], lsn[j, 1], lsn[j, 2]
+                rho, rs, ns = lmat[j, 0], lmat[j, 1], lmat[j, 2]
+                if u[svo + j] != 0 and not f[so + 8 * L + j] < 0.0:     # tfar = -inf: blocked
+                    w = lbeta[j] * lw[j] * _brdf(rho, rs, ns, sx, sy, sz, le[j, 0], le[j, 1], le[j, 2],
+                                                 -dx, -dy, -dz)
                     if w > 0.0:
-                        _accumulate(acc_re, acc_im, power, trans, edges, k, nk, nbins, share_row(bounce, src, n_obj),
-                                    q, w, path + r)
-            if bounce == bounces:
-                break
-            ndx, ndy, ndz = _cosine_direction(U[s, 4 + 2 * bounce], U[s, 5 + 2 * bounce], sx, sy, sz)
-            if ndx * gx + ndy * gy + ndz * gz <= 0.0:    # below the geometric surface
-                break
-            beta = beta * math.pi * _brdf(rho, rs, ns, sx, sy, sz, ndx, ndy, ndz, -dx, -dy, -dz)
-            if beta <= 0.0:
-                break
-            ox, oy, oz = px + eps * gx, py + eps * gy, pz + eps * gz
-            dx, dy, dz = ndx, ndy, ndz
-            path_in = path
+                        # _accumulate, written out
+                        q = lq[j]
+                        length = lpv[j] + lr[j]
+                        row = share_row(bounce, lsrc[j], n_obj)
+                        power[q] += w
+                        for m in range(nk):
+                            sn, cs = _sincos(k[m] * length)
+                            acc_re[row, m, q] += w * cs
+                            acc_im[row, m, q] += w * sn
+                        if nbins > 0:
+                            b = np.searchsorted(edges, length, side="right") - 1
+                            if b >= 0 and b < nbins:
+                                trans[q, b] += w
+                if bounce == bounces:
+                    continue
+                s = ls[j]
+                ndx, ndy, ndz = _cosine_direction(U[s, 4 + 2 * bounce], U[s, 5 + 2 * bounce], sx, sy, sz)
+                gx, gy, gz = lg[j, 0], lg[j, 1], lg[j, 2]
+                if ndx * gx + ndy * gy + ndz * gz <= 0.0:    # below the geometric surface
+                    alive[j] = False
+                    continue
+                beta = lbeta[j] * math.pi * _brdf(rho, rs, ns, sx, sy, sz, ndx, ndy, ndz, -dx, -dy, -dz)
+                lbeta[j] = beta
+                if beta <= 0.0:
+                    alive[j] = False
+                    continue
+                lo[j, 0], lo[j, 1], lo[j, 2] = lx[j, 0] + eps * gx, lx[j, 1] + eps * gy, lx[j, 2] + eps * gz
+                ld[j, 0], ld[j, 1], ld[j, 2] = ndx, ndy, ndz
+                lpath[j] = lpv[j]
     return rays
+
+
+@njit(nogil=True, cache=True)
+def sobol_shifted(sobol, shift, U):  # pragma: no cover
+    """``U[i * spp + j] = (sobol[j] + shift[i]) mod 1``: the same Sobol' points in every
+    pixel ``i``, rotated by the pixel's random vector (Cranley-Patterson); the numpy
+    expression's arithmetic (one add, then an exact subtraction of 1), without its temporaries."""
+    spp, dims = sobol.shape
+    for i in range(shift.shape[0]):
+        for j in range(spp):
+            s = i * spp + j
+            for d in range(dims):
+                x = sobol[j, d] + shift[i, d]
+                U[s, d] = x - 1.0 if x >= 1.0 else x
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def subpixel_rays(p0, spp, width, U, fx, fy, cx, cy, dist, iterations, R, rotate, pix_weight,
+                  dirs, beta):  # pragma: no cover
+    """Sample ``s`` of pixel ``p0 + s // spp`` through the pixel position ``U[s, 0:2]`` (in
+    pixels from the pixel's corner): its unit world direction ``dirs[s]`` (the camera model's
+    undistortion, :meth:`CameraModel.pixel_rays`, then ``R``) and its weight
+    ``beta[s] = pix_weight[pixel] * z^4`` (cos^4 of the camera ray). One pass, operation by
+    operation the numpy expressions of the camera model and :func:`rotate_rows` (cos^4 to
+    an ulp)."""
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    distorted = k1 != 0.0 or k2 != 0.0 or p1 != 0.0 or p2 != 0.0 or k3 != 0.0
+    r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
+    r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
+    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
+    p, s_next = p0 - 1, 0
+    col = row = w = 0.0
+    for s in range(U.shape[0]):
+        if s == s_next:                  # a new pixel (no integer division per sample)
+            p += 1
+            s_next += spp
+            col, row = np.float64(p % width), np.float64(p // width)
+            w = pix_weight[p]
+        uu = col + U[s, 0] - 0.5
+        vv = row + U[s, 1] - 0.5
+        xd = (uu - cx) / fx
+        yd = (vv - cy) / fy
+        x, y = xd, yd
+        if distorted:
+            for _ in range(iterations):
+                r2 = x * x + y * y
+                radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+                dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+                x = (xd - dx) / radial
+                y = (yd - dy) / radial
+        nrm = math.sqrt(x * x + y * y + 1.0)
+        a, b, c = x / nrm, y / nrm, 1.0 / nrm
+        c2 = c * c
+        beta[s] = w * (c2 * c2)          # cos^4 (numpy's c**4 and libm's pow differ from it by an ulp)
+        if rotate:
+            dirs[s, 0] = a * r00 + b * r01 + c * r02
+            dirs[s, 1] = a * r10 + b * r11 + c * r12
+            dirs[s, 2] = a * r20 + b * r21 + c * r22
+        else:
+            dirs[s, 0], dirs[s, 1], dirs[s, 2] = a, b, c
 
 
 @njit(nogil=True, cache=True)

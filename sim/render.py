@@ -241,9 +241,7 @@ class _Context:
         self.centre_world = view["world"]
         self.centre_weight = self.pix_weight * view["cos4"]
         self.centre_world32 = view["world32"]
-        # Float32 pinhole origins for one chunk's primary rays (a chunk holds <= BATCH + spp).
-        self.origin32 = np.empty((min(camera.width * camera.height * spp, BATCH + spp), 3), dtype=np.float32)
-        self.origin32[:] = self.t
+        self._origin32: np.ndarray | None = None
         prof = scene.emitter.profile
         # Beam profile (I = i0 p): cos^n in the kernels; -1: tabulated, `beam` for the fused
         # loop (the wavefront loop's vertex kernel leaves it to numpy).
@@ -260,6 +258,17 @@ class _Context:
             if shares:
                 raise TofhilError("multipath shares are not computed through glass or media", field="multipath_shares",
                                   expected="a scene without materials with ior or scattering_per_m")
+
+    @property
+    def origin32(self) -> np.ndarray:
+        """Float32 pinhole origins for one chunk's primary rays (a chunk holds <= BATCH + spp);
+        made when the wavefront loop first needs them (the fused loop does not: 0.8 MB a frame)."""
+        if self._origin32 is None:
+            n = min(self.camera.width * self.camera.height * self.spp, BATCH + self.spp)
+            o32 = np.empty((n, 3), dtype=np.float32)
+            o32[:] = self.t
+            self._origin32 = o32
+        return self._origin32
 
     # ------------------------------------------------------------------ shading helpers
     def reflectance(self, obj: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -296,10 +305,10 @@ class _Context:
         """
         if self.sampler == "random" or self.spp == 1:
             return rng.random((npix * self.spp, self.dims))
-        shift = rng.random((npix, 1, self.dims))
-        u = (self.sobol[None, :, :] + shift).reshape(-1, self.dims)
+        shift = rng.random((npix, self.dims))
+        u = np.empty((npix * self.spp, self.dims))
         # mod 1 of a sum in [0, 2): subtracting 1 is exact and equals np.mod (which is slow).
-        np.subtract(u, 1.0, out=u, where=u >= 1.0)
+        kernels.sobol_shifted(self.sobol, shift, u)
         return u
 
     # ------------------------------------------------------------------ one chunk
@@ -314,15 +323,21 @@ class _Context:
         # through the pinhole without bounces).
         need_u = self.subpixel or self.thin_lens or self.bounces > 0 or self.glass.scattering
         U = self.uniforms(np.random.default_rng([self.seed, chunk]), npix) if need_u else np.zeros((0, self.dims))
-        if self.subpixel:
+        if self.subpixel and not self.thin_lens:
+            # Sub-pixel rays through the pinhole: generated, weighted and rotated in one
+            # compiled pass (the camera model's arithmetic, no per-sample temporaries).
+            dirs, beta = np.empty((len(U), 3)), np.empty(len(U))
+            cam = self.camera
+            kernels.subpixel_rays(p0, spp, self.W, U, cam.fx, cam.fy, cam.cx, cam.cy,
+                                  np.asarray(cam.dist, dtype=np.float64), 20, self.R,
+                                  not np.array_equal(self.R, np.eye(3)), self.pix_weight, dirs, beta)
+        elif self.subpixel:
             uu = (pix % self.W) + U[:, 0] - 0.5
             vv = (pix // self.W) + U[:, 1] - 0.5
             d_cam = self.camera.pixel_rays(uu, vv)
-        else:
-            d_cam = self.centre_rays[p0:p1] if spp == 1 else np.repeat(self.centre_rays[p0:p1], spp, axis=0)
-        if self.subpixel:
             beta = self.pix_weight[pix] * d_cam[:, 2] ** 4
         else:
+            d_cam = self.centre_rays[p0:p1] if spp == 1 else np.repeat(self.centre_rays[p0:p1], spp, axis=0)
             beta = self.centre_weight[p0:p1] if spp == 1 else self.centre_weight[pix]
         if self.thin_lens:
             # Sample the aperture disk; every ray through the same pixel position meets the
@@ -341,9 +356,7 @@ class _Context:
         else:
             path0 = np.zeros(len(pix))
             origins = self.t                  # one shared origin: the pinhole
-            if self.subpixel:
-                dirs = _rotate(d_cam, self.R)
-            else:
+            if not self.subpixel:
                 cw = self.centre_world[p0:p1]
                 dirs = cw if spp == 1 else np.repeat(cw, spp, axis=0)
 
@@ -501,7 +514,7 @@ class _Context:
                 acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj)
         else:
             rays = kernels.trace_paths(
-                geom.direct.handle, embree4.ray_buffer(), org, shared, dirs,
+                geom.direct.handle, embree4.packet_buffer(), org, shared, dirs,
                 np.ascontiguousarray(path0, dtype=np.float64), np.ascontiguousarray(beta, dtype=np.float64),
                 np.ascontiguousarray(local, dtype=np.int64), np.ascontiguousarray(U2), self.bounces,
                 geom.normal, geom.plane_c, vnormal, smooth, geom.tri_object, self.rho_d, self.rho_s, self.n_s,

@@ -225,3 +225,52 @@ def test_rotation_of_ray_rows_is_the_numpy_expression() -> None:
     np.testing.assert_array_equal(out, v[:, 0:1] * R[:, 0] + v[:, 1:2] * R[:, 1] + v[:, 2:3] * R[:, 2])
     np.testing.assert_allclose(np.linalg.norm(out, axis=1), np.linalg.norm(v, axis=1), rtol=1e-14)
     np.testing.assert_allclose(out, v @ R.T, rtol=0, atol=1e-14)
+
+
+def test_packet_loop_with_misses_and_a_partial_last_packet(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The compiled loop traces Embree packets of 8 samples: a frame whose sample count is not
+    a multiple of 8 (13 x 7 pixels, 3 samples) with background pixels in the packets (a small
+    plane, so many rays and bounces leave the scene) gives what the bounce-by-bounce
+    wavefront loop over embreex gives, ray for ray."""
+    cam = {"width": 13, "height": 7, "fx": 12.0, "fy": 12.0, "cx": 6.0, "cy": 3.0, "pixel_pitch_m": 96e-6}
+    d = plane_scene(distance=1.2, camera=cam, size=1.0, offset=(0.02, 0.0, 0.0))
+    d["objects"].append({"name": "floor", "type": "plane", "size": [1.0, 2.0], "material": "white",
+                         "pose": {"position": [0.0, 0.4, 1.0], "rotation_deg": [90.0, 0.0, 0.0]}})
+    scene = scene_from_dict(d)
+    out = {}
+    for mode in ("1", "0"):
+        monkeypatch.setenv("TOFHIL_RENDER_WAVEFRONT", mode)
+        out[mode] = render(scene, samples_per_pixel=3, bounces=2, separate_direct=True, seed=11)
+    a, b = out["1"], out["0"]
+    assert np.isinf(a.radial_m).mean() > 0.1 and np.isfinite(a.radial_m).mean() > 0.5
+    assert np.abs(a.phasor_indirect).max() > 0
+    scale = np.abs(a.phasor).max()
+    for x, y in ((a.phasor_direct, b.phasor_direct), (a.phasor_indirect, b.phasor_indirect)):
+        np.testing.assert_allclose(x, y, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_array_equal(a.radial_m, b.radial_m)
+    assert a.rays_traced == b.rays_traced
+
+
+def test_compiled_subpixel_rays_are_the_camera_models() -> None:
+    """Sub-pixel rays made in the compiled pass are the camera model's ``pixel_rays`` (OpenCV
+    undistortion) rotated to the world, weighted by the pixel's weight times cos^4, and the
+    Sobol' points shifted per pixel are the numpy expression ``(sobol + shift) mod 1``."""
+    cam = CameraModel(width=9, height=5, fx=7.0, fy=7.5, cx=4.2, cy=1.9, dist=(-0.2, 0.05, 0.001, -0.002, 0.01))
+    spp, dims = 4, 6
+    rng = np.random.default_rng(2)
+    sobol, shift = rng.random((spp, dims)), rng.random((cam.width * cam.height, dims))
+    U = np.empty((cam.width * cam.height * spp, dims))
+    kernels.sobol_shifted(sobol, shift, U)
+    np.testing.assert_array_equal(U, np.mod(sobol[None] + shift[:, None], 1.0).reshape(-1, dims))
+    c, s = math.cos(0.4), math.sin(0.4)
+    R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    weight = rng.random(cam.width * cam.height) + 0.5
+    p0 = 7                                     # a chunk starting mid-row
+    Uc = U[p0 * spp:]
+    dirs, beta = np.empty((len(Uc), 3)), np.empty(len(Uc))
+    kernels.subpixel_rays(p0, spp, cam.width, Uc, cam.fx, cam.fy, cam.cx, cam.cy, np.asarray(cam.dist), 20, R,
+                          True, weight, dirs, beta)
+    pix = np.repeat(np.arange(p0, cam.width * cam.height), spp)
+    d_cam = cam.pixel_rays(pix % cam.width + Uc[:, 0] - 0.5, pix // cam.width + Uc[:, 1] - 0.5)
+    np.testing.assert_allclose(dirs, d_cam @ R.T, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(beta, weight[pix] * d_cam[:, 2] ** 4, rtol=1e-15)
