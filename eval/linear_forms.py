@@ -30,8 +30,8 @@ the held-out pixels), reported through :attr:`EffectSpec.dof <tofhil.eval.select
 so the selection penalises the map for what it can fit.
 
 The per-frame drift (:func:`fit_frame_drift`) is the same linearisation frame by frame: one
-offset per frame from its training pixels, smooth in time, scored on every frame's held-out
-pixels against a constant.
+offset and one scale of the modulated light per frame from its training pixels, smooth in
+time, scored on every frame's held-out pixels against constants.
 """
 
 from __future__ import annotations
@@ -216,11 +216,12 @@ DRIFT_GRID = 10.0 ** np.arange(-4.0, 4.01, 0.5)
 
 @dataclass
 class DriftFit:
-    """A range offset per frame, smooth in time, and its held-out test against no drift."""
+    """A range offset and an amplitude scale per frame, smooth in time, and their held-out
+    test against none (one constant offset and scale for every frame)."""
 
     offsets_m: np.ndarray  # [N] radial offset of each frame about the session's mean
-    dof: float  # effective degrees of freedom beyond the constant
-    strength: float
+    dof: float  # effective degrees of freedom beyond the constants
+    strength: float  # the range offsets' smoothness
     #: Held-out misfit (sum of squares over the held-out pixels of every frame) without and
     #: with the drift, and the number of values.
     chi2_static: float
@@ -228,35 +229,55 @@ class DriftFit:
     n_values: int
     named: bool
     text: str
+    #: [N] each frame's modulated light relative to the session's mean (1 = no change)
+    amplitude_scale: np.ndarray = field(default_factory=lambda: np.ones(0))
+    amplitude_strength: float = 0.0
 
     def to_json(self) -> dict[str, Any]:
         return {"named": self.named, "offsets_mm": [round(1e3 * float(x), 3) for x in self.offsets_m],
+                "amplitude_scale": [round(float(x), 5) for x in self.amplitude_scale],
                 "dof": round(self.dof, 2), "smoothness": float(f"{self.strength:.4g}"),
+                "amplitude_smoothness": float(f"{self.amplitude_strength:.4g}"),
                 "chi2_static": round(self.chi2_static, 2), "chi2_drift": round(self.chi2_drift, 2),
                 "values": self.n_values, "text": self.text}
 
 
-def _smooth_fit(a: np.ndarray, d: np.ndarray, lam: float) -> tuple[np.ndarray, float]:
-    """``min sum a (d - x)^2 + lam |D2 x|^2`` (second differences: a straight line is free);
-    returns x and the trace of the hat matrix."""
-    n = d.size
-    w = np.diag(a)
-    p = np.zeros((0, n)) if n < 3 else np.diff(np.eye(n), 2, axis=0)
-    m = w + lam * p.T @ p
-    return np.linalg.solve(m, a * d), float(np.trace(np.linalg.solve(m, w)))
+#: Relative amplitude change of the linearisation of the per-frame scale.
+EPS_SCALE = 1e-3
+
+
+def _smooth_fit_2(a: np.ndarray, b: np.ndarray, lam: tuple[float, float]) -> tuple[np.ndarray, float]:
+    """Two parameters per frame (``a`` ``[N, 2, 2]`` normal matrices, ``b`` ``[N, 2]``):
+    ``min sum (d_i - u_i)' a_i (d_i - u_i) + lam_k |D2 u_k|^2`` (second differences of each
+    parameter in time: a straight line is free); returns ``u`` ``[N, 2]`` and the trace of
+    the hat matrix."""
+    n = b.shape[0]
+    w = np.zeros((2 * n, 2 * n))
+    for k in range(2):
+        for j in range(2):
+            w[k * n:(k + 1) * n, j * n:(j + 1) * n] = np.diag(a[:, k, j])
+    d2 = np.zeros((0, n)) if n < 3 else np.diff(np.eye(n), 2, axis=0)
+    pen = np.zeros_like(w)
+    for k in range(2):
+        pen[k * n:(k + 1) * n, k * n:(k + 1) * n] = lam[k] * d2.T @ d2
+    m = w + pen
+    u = np.linalg.solve(m, np.concatenate([b[:, 0], b[:, 1]]))
+    return np.stack([u[:n], u[n:]], axis=1), float(np.trace(np.linalg.solve(m, w)))
 
 
 def fit_frame_drift(model: Any, data: HeldOutData, current: dict[str, dict[str, Any]], penalty_per_dof: float,
                     *, min_relative_gain: float = 0.02, min_gain_per_value: float = 0.02) -> DriftFit | None:
-    """A per-frame range offset (temperature, warm-up) on top of the current model.
+    """A per-frame range offset and amplitude scale (temperature, warm-up: the range and the
+    emitter's power drift) on top of the current model.
 
-    Each frame's offset is the weighted least-squares offset of its *training* pixels
-    (linearised as for the map); the offsets are smoothed in time (second differences, the
-    strength by generalised cross-validation) and scored on the *held-out* pixels of every
-    frame against one constant offset for all frames. Named by the selection's rule: the
-    held-out gain beats ``penalty_per_dof`` per extra degree of freedom, removes
-    ``min_relative_gain`` of the excess over noise and ``min_gain_per_value`` per value.
-    None when the session keeps no frames (or fewer than 3)."""
+    Each frame's offset and scale are the weighted least-squares values of its *training*
+    pixels (linearised as for the map: the offset by a radial shift of the prediction, the scale
+    by a relative change of its modulated light); they are smoothed in time (second
+    differences, each parameter's strength by generalised cross-validation) and scored on the
+    *held-out* pixels of every frame against one constant offset and scale for all frames.
+    Named by the selection's rule: the held-out gain beats ``penalty_per_dof`` per extra degree
+    of freedom, removes ``min_relative_gain`` of the excess over noise and
+    ``min_gain_per_value`` per value. None when the session keeps no frames (or fewer than 3)."""
     frames = data.s_frames
     if frames is None or frames.shape[0] < 3 or not data.frames_held_out:
         return None
@@ -266,70 +287,83 @@ def fit_frame_drift(model: Any, data: HeldOutData, current: dict[str, dict[str, 
     base = {k: v for k, v in current.items() if k != MAP_EFFECT}
     p0 = model.predict(base | {MAP_EFFECT: {"values": prev_map}})
     p1 = model.predict(base | {MAP_EFFECT: {"values": prev_map + EPS_M}})
+    nf = data.n_freq
+    p2 = p0.copy()
+    p2[:nf] = p0[:nf] * (1.0 + EPS_SCALE)  # the modulated light only: ambient does not follow the emitter
     var1 = data.var_frame
     train = data.train_pixels[data.usable]
     test = data.test_pixels[data.usable]
     n = frames.shape[0]
 
     def sums(var: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Per frame: the weight and weighted residual of its training and held-out pixels,
-        and the held-out pixels' squared residual (whitened with ``var``)."""
-        at, bt, ah, bh, zz = (np.zeros(n) for _ in range(5))
+        """Per frame: the normal matrix and weighted residual of its training and held-out
+        pixels ([N, 2, 2], [N, 2]), and the held-out pixels' squared residual (whitened with ``var``)."""
+        at, ah = np.zeros((n, 2, 2)), np.zeros((n, 2, 2))
+        bt, bh, zz = np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n)
         for i in range(n):
             one = _one_frame(data, frames[i], var)
             z = one.whitened(p0, "train_frames")
-            g = (z - one.whitened(p1, "train_frames")) / EPS_M
-            a = (g.real ** 2 + g.imag ** 2).sum(axis=0)
-            b = (g.real * z.real + g.imag * z.imag).sum(axis=0)
-            at[i], bt[i] = a[train].sum(), b[train].sum()
-            ah[i], bh[i] = a[test].sum(), b[test].sum()
+            gs = ((z - one.whitened(p1, "train_frames")) / EPS_M, (z - one.whitened(p2, "train_frames")) / EPS_SCALE)
+            for k in range(2):
+                b = (gs[k].real * z.real + gs[k].imag * z.imag).sum(axis=0)
+                bt[i, k], bh[i, k] = b[train].sum(), b[test].sum()
+                for j in range(2):
+                    a = (gs[k].real * gs[j].real + gs[k].imag * gs[j].imag).sum(axis=0)
+                    at[i, k, j], ah[i, k, j] = a[train].sum(), a[test].sum()
             zz[i] = float((np.abs(z[:, test]) ** 2).sum())
         return at, bt, ah, bh, zz
 
     at, bt, ah, bh, zz = sums(var1)
-    d = bt / at
-    scale = float(np.median(at))
+    d = np.linalg.solve(at, bt[:, :, None])[:, :, 0]
+    scales = (float(np.median(at[:, 0, 0])), float(np.median(at[:, 1, 1])))
     best = None
-    for lam in scale * DRIFT_GRID:
-        x, tr = _smooth_fit(at, d, lam)
-        rss = float(np.sum(at * (d - x) ** 2))
-        gcv = n * rss / max(n - tr, 1e-9) ** 2
-        if best is None or gcv < best[0]:
-            best = (gcv, lam, x, tr)
-    _, lam, x, tr = best
+    for lo in DRIFT_GRID:
+        for la in DRIFT_GRID:
+            lam = (scales[0] * lo, scales[1] * la)
+            u, tr = _smooth_fit_2(at, bt, lam)
+            e = d - u
+            rss = float(np.einsum("ik,ikj,ij->", e, at, e))
+            gcv = 2 * n * rss / max(2 * n - tr, 1e-9) ** 2
+            if best is None or gcv < best[0]:
+                best = (gcv, lam, u, tr)
+    _, lam, u, tr = best
 
-    def chi2(off: np.ndarray, ah: np.ndarray, bh: np.ndarray, zz: np.ndarray) -> float:
-        # quadratic in the offset: exact for the linearised model
-        return float(np.sum(zz - 2.0 * off * bh + off * off * ah))
+    def chi2(v: np.ndarray, ah: np.ndarray, bh: np.ndarray, zz: np.ndarray) -> float:
+        # quadratic in the offsets and scales: exact for the linearised model
+        return float(np.sum(zz) - 2.0 * np.sum(v * bh) + np.einsum("ik,ikj,ij->", v, ah, v))
 
-    const = float(np.sum(bt) / np.sum(at))
-    chi2_static, chi2_drift = chi2(np.full(n, const), ah, bh, zz), chi2(x, ah, bh, zz)
+    const = np.linalg.solve(at.sum(axis=0), bt.sum(axis=0))
+    static = np.broadcast_to(const, u.shape)
+    chi2_static, chi2_drift = chi2(static, ah, bh, zz), chi2(u, ah, bh, zz)
     n_values = int(test.sum() * (2 * data.n_freq + (1 if data.offset_channel else 0)) * n)
-    dof = max(tr - 1.0, 0.0)
+    dof = max(tr - 2.0, 0.0)
     gain, excess = chi2_static - chi2_drift, max(chi2_static - n_values, 0.0)
     # named against the session's own noise estimate (conservative: it contains the drift)
     named = bool(gain > dof * penalty_per_dof and gain > min_relative_gain * excess
                  and gain > min_gain_per_value * n_values)
+    x, y = u[:, 0] - const[0], u[:, 1] - const[1]
     noise_note = ""
     if named:
         # The frame-to-frame scatter contains the drift; the figures are restated with the
         # noise re-estimated from the frames with the drift taken out (same pooling).
         k = np.zeros(frames.shape[1])
-        k[:data.n_freq] = 4.0 * np.pi * data.freq_hz / C_M_PER_S
-        clean = frames * np.exp(-1j * k[None, :, None, None] * (x - const)[:, None, None, None])
+        k[:nf] = 4.0 * np.pi * data.freq_hz / C_M_PER_S
+        g = np.ones((n, frames.shape[1]))
+        g[:, :nf] = 1.0 + y[:, None]
+        clean = frames * np.exp(-1j * k[None, :, None, None] * x[:, None, None, None]) / g[:, :, None, None]
         pool = [np.stack([uniform_filter(c, size=NOISE_POOL_PX, mode="nearest") for c in
                           (np.abs(f - f.mean(axis=0)) ** 2).sum(axis=0)]) for f in (frames, clean)]
         ratio = np.clip(pool[1] / np.maximum(pool[0], 1e-300), 1e-3, 1.0)
         _, _, ah2, bh2, zz2 = sums(var1 * ratio)
-        chi2_static, chi2_drift = chi2(np.full(n, const), ah2, bh2, zz2), chi2(x, ah2, bh2, zz2)
+        chi2_static, chi2_drift = chi2(static, ah2, bh2, zz2), chi2(u, ah2, bh2, zz2)
         noise_note = " (noise re-estimated with the drift taken out)"
     spread = 1e3 * float(np.ptp(x))
-    text = (f"per-frame drift: the range moves by {spread:.1f} mm over {n} frames (smooth in time, "
-            f"{dof:.1f} degrees of freedom beyond a constant); on the held-out pixels of every frame it lowers "
-            f"the misfit from {chi2_static / n_values:.3f} to {chi2_drift / n_values:.3f} per value{noise_note} -- "
-            + ("named" if named else "not significant"))
-    return DriftFit(offsets_m=x - const, dof=dof, strength=lam, chi2_static=chi2_static, chi2_drift=chi2_drift,
-                    n_values=n_values, named=named, text=text)
+    text = (f"per-frame drift: the range moves by {spread:.1f} mm and the modulated light by "
+            f"{100 * float(np.ptp(y)):.2f} % over {n} frames (smooth in time, {dof:.1f} degrees of freedom beyond "
+            f"constants); on the held-out pixels of every frame it lowers the misfit from {chi2_static / n_values:.3f} "
+            f"to {chi2_drift / n_values:.3f} per value{noise_note} -- " + ("named" if named else "not significant"))
+    return DriftFit(offsets_m=x, dof=dof, strength=lam[0], chi2_static=chi2_static, chi2_drift=chi2_drift,
+                    n_values=n_values, named=named, text=text, amplitude_scale=1.0 + y, amplitude_strength=lam[1])
 
 
 def _one_frame(data: HeldOutData, s: np.ndarray, var1: np.ndarray) -> HeldOutData:

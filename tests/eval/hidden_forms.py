@@ -92,6 +92,21 @@ def linear_drift(rng: np.random.Generator, span_m: float | None = None) -> Frame
     return change
 
 
+def emitter_power_drift(span: float) -> FrameChange:
+    """The emitter's power changing linearly over the frames by the relative ``span`` (first to
+    last, zero on average; warm-up): its modulated light and its unmodulated part alike, the
+    ambient not."""
+
+    def change(signal: OpticalSignal, index: int, frames: int) -> OpticalSignal:
+        g = 1.0 + span * (index / max(frames - 1, 1) - 0.5)
+        out = signal.copy()
+        out.phasor_w = signal.phasor_w * g
+        out.dc_w = np.asarray(signal.dc_w) * g
+        return out
+
+    return change
+
+
 def write_session(scene: Any, path: Path, change: Change | None, *, frames: int = 4, seed: int = 0,
                   frame_change: FrameChange | None = None) -> Path:
     """A session of ``frames`` noisy frames of the scene's twin with ``change`` applied to its

@@ -205,3 +205,23 @@ def test_linear_drift_over_frames_is_named(tmp_path, scene):
     assert d["text"] in res.evidence
     # the frames' mean hides the drift; the verdict is the drift's, not "within noise"
     assert res.verdict.kind in ("explained", "partly explained") and "drift" in res.verdict.text
+
+
+def test_emitter_power_drift_over_frames_is_named_as_a_scale(tmp_path, scene):
+    """The emitter's power falling by 6 % over 8 frames (warm-up), the range unchanged: the
+    per-frame drift is named, its amplitude scale follows the hidden line and its range offsets
+    stay within noise."""
+    from tofhil.eval.diagnose import diagnose
+
+    frames, span = 8, -0.06
+    path = hf.write_session(scene, tmp_path / "power.h5", None, frames=frames, seed=23,
+                            frame_change=hf.emitter_power_drift(span))
+    res = diagnose(path, scene, max_effects=1, candidates=[MAP, "range_offset", "drift"])
+    d = res.drift
+    assert d is not None and d["named"], d
+    hidden = 1.0 + span * (np.arange(frames) / (frames - 1) - 0.5)
+    fitted = np.array(d["amplitude_scale"])
+    assert np.polyfit(np.arange(frames), fitted, 1)[0] == pytest.approx(span / (frames - 1), rel=0.25)
+    assert np.sqrt(np.mean((fitted - hidden) ** 2)) < 0.25 * abs(span)
+    assert np.ptp(d["offsets_mm"]) < 2.0  # no range drift made up for it
+    assert "modulated light" in d["text"]
