@@ -37,7 +37,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from tofhil.eval.heldout import HeldOutData
+from tofhil.eval.heldout import HeldOutData, predict_fit
 
 def param_group(name: str) -> str:
     """The group of a fitted parameter: its name up to the first underscore
@@ -161,7 +161,7 @@ def assess_form(model: Any, data: HeldOutData, fitted: Mapping[str, Mapping[str,
     def w(vals: Mapping[str, float]) -> np.ndarray:
         trial = {e: dict(v) for e, v in fitted.items()}
         trial[effect] = dict(vals)
-        return data.whitened_residual(model.predict(trial), "fit")
+        return data.whitened_residual(predict_fit(model, data, trial), "fit")
 
     r0 = w(values)
     cols = []

@@ -123,6 +123,10 @@ class Effect:
     #: Flexible forms diagnosis fits besides the simple one: form name -> what it adds. A
     #: form fits the parameters whose ``Param.forms`` name it (docs/diagnose.md, Selection).
     forms: dict[str, str] = {}
+    #: True when the effect's light at a pixel depends only on that pixel's light (a
+    #: prediction on some pixels then needs only those pixels rendered); False when it moves
+    #: light between pixels (stray light).
+    pixel_local: bool = True
 
     # -------------------------------------------------------------- values
     def off_values(self) -> dict[str, float]:
@@ -429,6 +433,7 @@ class MultipathEffect(Effect):
 class StrayLightEffect(Effect):
     name = "stray_light"
     stage = "signal"
+    pixel_local = False
     summary = 'lens scattering `S_meas = (delta + h) * S`; options below'
     doc = ("Lens scattering: S_meas = (delta + h) * S on every frequency, harmonic and on the "
            "unmodulated light (sim/straylight.py). h = a Gaussian (weight, sigma_px) + more Gaussians "
