@@ -42,7 +42,7 @@ from tofhil.camera import CameraModel
 from tofhil.errors import InputFileError
 from tofhil.schema import Schema, to_plain
 from tofhil.sim.sensor import OpticalSignal, SensorConfig
-from tofhil.sim.straylight import StrayLightOperator, StrayLightPSF
+from tofhil.sim.straylight import StrayLightOperator, StrayLightPSF, apply_lobes, lobes_only
 
 STAGES = ("scene", "render", "signal", "pixel")
 #: The hook each stage's effects implement.
@@ -499,6 +499,16 @@ class StrayLightEffect(Effect):
         psf = self.psf(values, source=ctx.source, base_dir=ctx.base_dir)
         if psf.is_identity:
             return signal
+        if lobes_only(psf):
+            # (the form diagnosis fits: the light's transform is kept while only the PSF changes)
+            n = signal.phasor_w.shape[:-2]
+            shape = signal.shape
+            stack = np.concatenate([signal.phasor_w.reshape((-1,) + shape),
+                                    np.broadcast_to(signal.dc_w, shape)[None], np.broadcast_to(signal.ambient_w, shape)[None]])
+            res = apply_lobes(psf, stack)
+            k = int(np.prod(n))
+            return dataclasses.replace(signal, phasor_w=res[:k].reshape(signal.phasor_w.shape), dc_w=res[k].real.copy(),
+                                       ambient_w=res[k + 1].real.copy(), waveform=dict(signal.waveform))
         op = StrayLightOperator(psf, signal.shape, (ctx.camera.cx, ctx.camera.cy))
         out = signal.copy()
         # Each channel's modulation frequency: a ghost's extra optical path delays its phasor.
