@@ -147,6 +147,9 @@ class Twin:
         self.frames_kept = frames_kept  # frames a caller holds at once (for the memory check)
         self.cache_size = cache_size
         self.cache = cache if cache is not None else RenderCache(cache_size)
+        # Renders of some pixels (a fit's; each Jacobian column of a scene-stage parameter is
+        # a new one): few are ever asked for again, and each holds full-frame arrays.
+        self.pixel_cache = RenderCache(2)
         self._sensors: dict[Any, SensorModel] = {}
         self.renders = 0  # renders traced (cache misses)
         self._base_render_bounces = int(scene.render.bounces)
@@ -251,7 +254,7 @@ class Twin:
         if pixels is not None:
             # a render of some pixels: its own entry (the full render, when cached, serves first)
             key = content_key(key, "pixels", np.packbits(np.asarray(pixels, dtype=bool)))
-            hit = self.cache.get(key)
+            hit = self.pixel_cache.get(key)
             if hit is not None:
                 return scene2, hit
             args = dict(args, pixels=pixels)
@@ -262,8 +265,11 @@ class Twin:
                      source=str(getattr(scene2, "source", "")) or None)
         result = render(scene2, progress=self.progress, **args)
         self.renders += 1
+        if pixels is not None:
+            self.pixel_cache.put(key, result)
+            return scene2, result
         base = {n: v for n, v in self.base_effects.items() if EFFECTS[n].stage == "scene"}
-        self.cache.put(key, result, pin=scene_effects == base and pixels is None)
+        self.cache.put(key, result, pin=scene_effects == base)
         return scene2, result
 
     # ------------------------------------------------------------------ light and taps
