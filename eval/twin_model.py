@@ -208,7 +208,16 @@ class TwinModel:
         ``pixels`` (bool ``[H, W]``): only these pixels are needed (a fit's); the others may
         then be wrong (the twin renders only the pixels asked for when that is exact)."""
         self.evaluations += 1
-        taps = self.taps(active, pixels)
+        if pixels is not None:
+            # the taps and the signal only where asked (the rest of the frame stays zero)
+            taps = self.twin.expected_taps_at(self.effects_for(active), pixels).astype(np.float64)
+            s = phasor(taps, self.data.theta_rad)[:, 0]
+            if self.data.offset_channel:
+                s = np.concatenate([s, taps.mean(axis=(0, 1))[None, 0].astype(np.complex128)])
+            out = np.zeros((s.shape[0],) + self.data.camera.shape, dtype=np.complex128)
+            out[:, pixels] = s
+            return out
+        taps = self.taps(active)
         s = phasor(taps, self.data.theta_rad)
         if self.data.offset_channel:
             s = np.concatenate([s, taps.mean(axis=(0, 1))[None].astype(np.complex128)])

@@ -409,9 +409,10 @@ class SensorModel:
             dn = np.rint(dn)
         return np.clip(dn, 0.0, cfg.adc_max_dn).astype(np.float32)
 
-    def _noise_free_taps(self, signal: OpticalSignal) -> np.ndarray:
+    def _noise_free_taps(self, signal: OpticalSignal, index: np.ndarray | None = None) -> np.ndarray:
         """``taps_dn(signal, noise=False)`` in one compiled pass over the pixels
-        (:mod:`tofhil.sim.sensor_kernels`, bit-identical to the numpy expressions)."""
+        (:mod:`tofhil.sim.sensor_kernels`, bit-identical to the numpy expressions); with
+        ``index`` (flat pixel indices) only those pixels, as ``[F, K, 1, N]``."""
         from tofhil.sim.sensor_kernels import noise_free_taps
 
         cfg = self.config
@@ -429,7 +430,13 @@ class SensorModel:
         sin_h = np.sin(hs[:, None] * theta[None, :]) if terms else np.zeros((0, theta.size))
         dc = np.ascontiguousarray(np.broadcast_to(signal.dc_w + signal.ambient_w, signal.shape), dtype=np.float64)
         gain, offset = self.fixed_pattern()
-        out = np.empty((signal.freq_hz.size, theta.size) + signal.shape, dtype=np.float32)
+        if index is not None:  # the pixels asked for, as one row
+            n = index.size
+            s = s.reshape(s.shape[:2] + (-1,))[..., index].reshape(s.shape[:2] + (1, n))
+            dc = dc.reshape(-1)[index].reshape(1, n)
+            gain = gain.reshape(gain.shape[0], -1)[:, index].reshape(gain.shape[0], 1, n)
+            offset = offset.reshape(offset.shape[0], -1)[:, index].reshape(offset.shape[0], 1, n)
+        out = np.empty((signal.freq_hz.size, theta.size) + s.shape[-2:], dtype=np.float32)
         noise_free_taps(np.ascontiguousarray(s.real), np.ascontiguousarray(s.imag), cos_h, sin_h, dc,
                         np.ascontiguousarray(gain, dtype=np.float64), np.ascontiguousarray(offset, dtype=np.float64),
                         float(cfg.tap_fraction * cfg.electrons_per_watt), float(cfg.modulation_contrast),

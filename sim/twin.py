@@ -297,6 +297,12 @@ class Twin:
         :meth:`signal`."""
         return self.sensor().taps_dn(self.signal(effects, pixels=pixels), noise=False)
 
+    def expected_taps_at(self, effects: Effects | None, pixels: np.ndarray) -> np.ndarray:
+        """:meth:`expected_taps` on the pixels of a bool mask ``[H, W]`` only, as ``[F, K, 1,
+        N]`` (row-major order of the mask; rendered only there when that is exact)."""
+        signal = self.signal(effects, pixels=pixels)
+        return self.sensor()._noise_free_taps(signal, np.flatnonzero(np.asarray(pixels, dtype=bool).ravel()))
+
     def frames(self, effects: Effects | None = None, frames: int = 1, *, seed: int = 0, noise: bool = True,
                meta: Mapping[str, Any] | None = None, first_index: int = 0) -> Iterable[RawFrame]:
         """``frames`` raw frames of one (fixed) light with independent noise per frame. The
