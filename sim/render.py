@@ -160,6 +160,7 @@ class _LRU:
 # moved camera or other materials (as while fitting) share them.
 _GEOMETRY = _LRU(4)
 _VIEWS = _LRU(4)
+_CAMERAS = _LRU(4)
 
 
 def scene_geometry(scene: Scene) -> Geometry:
@@ -172,17 +173,47 @@ def scene_geometry(scene: Scene) -> Geometry:
     return geom
 
 
-def _view_arrays(camera: CameraModel, pose: np.ndarray) -> dict[str, np.ndarray]:
+def _camera_arrays(camera: CameraModel, pixels: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Per-pixel arrays of a camera (its pose aside): centre rays, pixel area, cos^4. With
+    ``pixels`` (flat bool mask) a camera not seen whole yet gets them only there (zero
+    elsewhere; a fit of the lens distortion makes a new camera every evaluation), each value
+    computed as for the whole grid."""
+    key = content_key(camera)
+    arrays = _CAMERAS.get(key)
+    if arrays is not None:
+        return arrays
+    if pixels is None:
+        rays = camera.rays.reshape(-1, 3)
+        area = pixel_area_normalized(camera).ravel()
+    else:
+        key = content_key(key, "pixels", np.packbits(pixels))
+        arrays = _CAMERAS.get(key)
+        if arrays is not None:
+            return arrays
+        idx = np.flatnonzero(pixels)
+        v, u = np.divmod(idx, camera.width)
+        u, v = u.astype(np.float64), v.astype(np.float64)
+        rays = np.zeros((pixels.size, 3))
+        rays[idx] = camera.pixel_rays(u, v)
+        area = np.zeros(pixels.size)
+        area[idx] = pixel_area_normalized(camera, u, v)
+    arrays = {"rays": rays, "area": area, "cos4": rays[:, 2] ** 4, "key": key}
+    _CAMERAS.put(key, arrays)
+    return arrays
+
+
+def _view_arrays(camera: CameraModel, pose: np.ndarray, pixels: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Per-pixel arrays of a camera at a pose (repeated renders of one view, e.g. while
-    fitting, share them)."""
-    key = content_key(camera, pose)
+    fitting, share them; renders of one camera at other poses share its rays and areas)."""
+    cam = _camera_arrays(camera, pixels)
+    key = content_key(cam["key"], pose)
     view = _VIEWS.get(key)
     if view is not None:
         return view
-    rays = camera.rays.reshape(-1, 3)
+    rays = cam["rays"]
     world = np.array(_rotate(rays, pose[:3, :3]), dtype=np.float64)  # writable: one kernel type
-    view = {"rays": rays, "world": world, "world32": world.astype(np.float32),
-            "area": pixel_area_normalized(camera).ravel(), "cos4": rays[:, 2] ** 4}
+    view = {"rays": rays, "world": world, "world32": world.astype(np.float32), "area": cam["area"],
+            "cos4": cam["cos4"]}
     _VIEWS.put(key, view)
     return view
 
@@ -237,7 +268,7 @@ class _Context:
         self.aperture_radius_m = self.focal_m / (2 * n_f)
         self.aperture_area_m2 = aperture_area_m2(camera, n_f)
         self.focus_m = scene.focus_distance_m
-        view = _view_arrays(camera, pose)
+        view = _view_arrays(camera, pose, pixels)
         # Per-pixel weight without cos^4: A_ap * pixel area (normalised coords) / spp.
         self.pix_weight = (self.aperture_area_m2 / spp) * view["area"]
         self.ambient = scene.ambient_irradiance_w_m2

@@ -39,6 +39,16 @@ def test_pixels_equal_full_render(small_scene, kw):
         assert np.array_equal(full.phasor_indirect[..., mask], part.phasor_indirect[..., mask])
 
 
+def test_pixels_of_a_distorted_camera(small_scene):
+    # a lens-distortion fit makes a new camera every evaluation: its rays and pixel areas are
+    # then computed on the pixels asked for only, each as on the whole grid
+    cam = dataclasses.replace(small_scene.camera, dist=(0.08, -0.02, 0.001, 0.0, 0.0))
+    mask = np.random.default_rng(4).random(cam.shape) < 0.1
+    part = render(small_scene, camera=cam, pixels=mask)
+    full = render(small_scene, camera=cam)
+    assert np.array_equal(full.phasor[..., mask], part.phasor[..., mask])
+
+
 def test_bad_pixel_mask_is_refused(small_scene):
     from tofhil.errors import TofhilError
 
