@@ -103,8 +103,11 @@ def main() -> None:
     runs = [("before", dict(env, PYTHONPATH=str(args.before.resolve())))] if args.before else []
     runs.append(("this tofhil" if args.before else "", env))
     for label, run_env in runs:
-        r = subprocess.run([sys.executable, "-c", _CHILD, str(session), str(scene), str(out) + f"_{time.time_ns()}",
-                            "1" if args.profile else "0"], check=True, env=run_env, capture_output=True, text=True)
+        # (run in the work directory: a checkout's own tofhil/ in the current directory would
+        # shadow the one on PYTHONPATH and mix two versions)
+        r = subprocess.run([sys.executable, "-c", _CHILD, str(session.resolve()), str(scene.resolve()),
+                            str(out.resolve()) + f"_{time.time_ns()}", "1" if args.profile else "0"],
+                           check=True, env=run_env, capture_output=True, text=True, cwd=work)
         if args.profile:
             print(r.stderr)
         res = json.loads(r.stdout.strip().splitlines()[-1])
