@@ -475,11 +475,21 @@ _BLURS: "OrderedDict[str, GaussianBlur]" = OrderedDict()
 _BLURS_KEPT = 2
 
 
-def _blur_of(s: np.ndarray) -> GaussianBlur:
+#: The last results of :func:`apply_lobes`, by image content and PSF: a fit of an effect that
+#: acts after the stray light, with the stray light held, scatters the same light every time.
+_SCATTERED: "OrderedDict[tuple, np.ndarray]" = OrderedDict()
+_SCATTERED_KEPT = 2
+
+
+def _content(s: np.ndarray) -> str:
     h = hashlib.blake2b(digest_size=16)
     h.update(f"{s.dtype.str}{s.shape}".encode())
     h.update(np.ascontiguousarray(s).data)
-    key = h.hexdigest()
+    return h.hexdigest()
+
+
+def _blur_of(s: np.ndarray, key: str | None = None) -> GaussianBlur:
+    key = _content(s) if key is None else key
     blur = _BLURS.get(key)
     if blur is None:
         blur = _BLURS[key] = GaussianBlur(s, single=True)
@@ -500,15 +510,24 @@ def apply_lobes(psf: StrayLightPSF, s: np.ndarray) -> np.ndarray:
         raise ValueError("apply_lobes takes Gaussian lobes and a veil only")
     s = np.asarray(s)
     h, w = s.shape[-2:]
-    out = psf.keep * s.astype(np.result_type(s.dtype, np.float64))
     lobes = [g for g in psf.gaussians if g.weight]
+    image = _content(s)
+    key = (image, psf.keep, psf.veil, tuple((g.weight, g.sigma_x_px, g.sigma_y_px) for g in lobes))
+    done = _SCATTERED.get(key)
+    if done is not None:
+        _SCATTERED.move_to_end(key)
+        return done.copy()
+    out = psf.keep * s.astype(np.result_type(s.dtype, np.float64))
     if lobes:
-        blur = _blur_of(s)
+        blur = _blur_of(s, image)
         for g in lobes:
             b = blur(g.sigma_x_px, g.sigma_y_px)
             out += g.weight * (b if np.iscomplexobj(out) else b.real)
     if psf.veil:
         out += (psf.veil / (h * w)) * s.sum(axis=(-2, -1), keepdims=True)
+    _SCATTERED[key] = out.copy()
+    while len(_SCATTERED) > _SCATTERED_KEPT:
+        _SCATTERED.popitem(last=False)
     return out
 
 

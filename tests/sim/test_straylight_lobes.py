@@ -49,6 +49,7 @@ def test_transform_reused_only_for_same_content():
     rng = np.random.default_rng(2)
     s = rng.random((2, 20, 24))
     SL._BLURS.clear()
+    SL._SCATTERED.clear()
     a = StrayLightPSF.from_params({"weight": 0.04, "sigma_px": 3.0})
     b = StrayLightPSF.from_params({"weight": 0.05, "sigma_px": 5.0, "veil": 0.002})
     apply_lobes(a, s)
@@ -65,3 +66,16 @@ def test_other_forms_are_not_lobes_only():
     assert not lobes_only(StrayLightPSF.from_params({"weight": 0.04, "ghost_weight": 0.01}))
     with pytest.raises(ValueError):
         apply_lobes(StrayLightPSF.from_params({"weight": 0.04, "ghost_weight": 0.01}), np.ones((4, 4)))
+
+
+def test_same_light_and_psf_give_the_kept_result():
+    rng = np.random.default_rng(3)
+    s = rng.random((3, 16, 20)) + 1j * rng.random((3, 16, 20))
+    psf = StrayLightPSF.from_params({"weight": 0.04, "sigma_px": 3.0, "veil": 0.01})
+    a = apply_lobes(psf, s)
+    a[0, 0, 0] = 99.0  # a caller changing its result does not change the kept one
+    b = apply_lobes(psf, s.copy())
+    assert b[0, 0, 0] != 99.0
+    assert np.allclose(b, StrayLightOperator(psf, s.shape[-2:]).apply(s), atol=1e-7)
+    other = apply_lobes(StrayLightPSF.from_params({"weight": 0.04, "sigma_px": 3.5, "veil": 0.01}), s)
+    assert not np.allclose(other, b)
