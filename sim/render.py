@@ -322,7 +322,7 @@ class _Context:
                 rho[m] = self.rho_d[i] * img[row, col]
         return rho
 
-    def uniforms(self, rng: np.random.Generator, npix: int) -> np.ndarray:
+    def uniforms(self, rng: np.random.Generator, npix: int, keep_pix: np.ndarray | None = None) -> np.ndarray:
         """Per-sample uniforms in [0, 1)^D for ``npix`` pixels x ``spp`` samples.
 
         ``random``: independent uniforms (plain Monte Carlo, error ~ 1/sqrt(spp)).
@@ -331,8 +331,11 @@ class _Context:
         integrands falls faster than 1/sqrt(spp).
         """
         if self.sampler == "random" or self.spp == 1:
-            return rng.random((npix * self.spp, self.dims))
+            u = rng.random((npix * self.spp, self.dims))
+            return u if keep_pix is None else u.reshape(npix, self.spp, self.dims)[keep_pix].reshape(-1, self.dims)
         shift = rng.random((npix, 1, self.dims))
+        if keep_pix is not None:  # (drawn for every pixel of the chunk: the full render's stream)
+            shift = shift[keep_pix]
         u = (self.sobol[None, :, :] + shift).reshape(-1, self.dims)
         # mod 1 of a sum in [0, 2): subtracting 1 is exact and equals np.mod (which is slow).
         np.subtract(u, 1.0, out=u, where=u >= 1.0)
@@ -349,17 +352,15 @@ class _Context:
         # [samples, D] uniforms: subpixel, lens, 2 per bounce (none needed for centre rays
         # through the pinhole without bounces).
         need_u = self.subpixel or self.thin_lens or self.bounces > 0 or self.glass.scattering
-        U = self.uniforms(np.random.default_rng([self.seed, chunk]), npix) if need_u else np.zeros((0, self.dims))
         keep_pix = None if self.pixels is None else self.pixels[p0:p1]
         if keep_pix is not None and keep_pix.all():
             keep_pix = None
+        # (the chunk's uniforms are drawn for all its pixels, the full render's stream, and
+        # kept for the pixels asked for)
+        U = (self.uniforms(np.random.default_rng([self.seed, chunk]), npix, keep_pix) if need_u
+             else np.zeros((0, self.dims)))
         if keep_pix is not None:
-            # the chunk's uniforms are drawn for all its pixels (the full render's stream), then
-            # the samples of the pixels not asked for are dropped
-            keep = keep_pix[pix - p0]
-            pix = pix[keep]
-            if U.shape[0]:
-                U = U[keep]
+            pix = pix[keep_pix[pix - p0]]
         if self.subpixel:
             uu = (pix % self.W) + U[:, 0] - 0.5
             vv = (pix // self.W) + U[:, 1] - 0.5

@@ -472,13 +472,13 @@ def lobes_only(psf: StrayLightPSF) -> bool:
 #: The transforms of the last few images :func:`apply_lobes` scattered, by content: a fit
 #: that changes only the PSF (every stray-light Jacobian column) transforms its image once.
 _BLURS: "OrderedDict[str, GaussianBlur]" = OrderedDict()
-_BLURS_KEPT = 2
+_BLURS_KEPT = 1
 
 
 #: The last results of :func:`apply_lobes`, by image content and PSF: a fit of an effect that
 #: acts after the stray light, with the stray light held, scatters the same light every time.
 _SCATTERED: "OrderedDict[tuple, np.ndarray]" = OrderedDict()
-_SCATTERED_KEPT = 2
+_SCATTERED_KEPT = 1
 
 
 def _content(s: np.ndarray) -> str:
