@@ -8,6 +8,11 @@ diagnose``), so its peak resident memory (VmHWM) is its own. Aims: < 60 s wall, 
 
     python benchmarks/bench_diagnose.py [--size 512] [--frames 4] [--hidden stray_light.weight=0.04,...]
         [--profile]          # cProfile of the diagnosis, top 30 by cumulative time
+        [--before DIR]       # also time another tofhil (DIR on PYTHONPATH, e.g. a checkout of an
+                             # older commit laid out as a package) on the same session, first
+
+A checkout laid out as a package: ``git archive COMMIT | tar -x -C SRC``, then DIR/tofhil a
+copy of SRC/tofhil with links DIR/tofhil/{sim,eval,drivers,configs} -> SRC/{sim,...}.
 
 Prints the named causes too: a faster diagnosis must name the same ones.
 """
@@ -75,6 +80,8 @@ def main() -> None:
                     help="effect parameters hidden in the session (EFFECT.PARAM=VALUE, comma-separated)")
     ap.add_argument("--profile", action="store_true")
     ap.add_argument("--keep", type=Path, default=None, help="directory to keep the session and scene in")
+    ap.add_argument("--before", type=Path, default=None,
+                    help="another tofhil (a directory holding the package tofhil) to time first, on the same session")
     args = ap.parse_args()
     tmp = tempfile.TemporaryDirectory() if args.keep is None else None
     work = Path(tmp.name) if tmp else args.keep
@@ -93,14 +100,22 @@ def main() -> None:
         print(f"session: {args.size} x {args.size}, {args.frames} frames, hidden {args.hidden or 'nothing'} "
               f"({time.perf_counter() - t0:.1f} s to simulate)")
     out = work / "diagnosis"
-    r = subprocess.run([sys.executable, "-c", _CHILD, str(session), str(scene), str(out) + f"_{time.time_ns()}",
-                        "1" if args.profile else "0"], check=True, env=env, capture_output=True, text=True)
-    if args.profile:
-        print(r.stderr)
-    res = json.loads(r.stdout.strip().splitlines()[-1])
-    print(f"diagnosis {args.size} x {args.size}, all candidates: wall {res['wall_s']:.1f} s (aim < {AIM_S:.0f} s), "
-          f"CPU {res['cpu_s']:.1f} s, peak RSS {res['peak_rss_bytes'] / 1e9:.2f} GB (aim < {AIM_BYTES / 1e9:.0f} GB); "
-          f"named {res['causes']}, chi2/value {res['chi2']['before']:.2f} -> {res['chi2']['after_extended_scene']:.2f}")
+    runs = [("before", dict(env, PYTHONPATH=str(args.before.resolve())))] if args.before else []
+    runs.append(("this tofhil" if args.before else "", env))
+    for label, run_env in runs:
+        # (run in the work directory: a checkout's own tofhil/ in the current directory would
+        # shadow the one on PYTHONPATH and mix two versions)
+        r = subprocess.run([sys.executable, "-c", _CHILD, str(session.resolve()), str(scene.resolve()),
+                            str(out.resolve()) + f"_{time.time_ns()}", "1" if args.profile else "0"],
+                           check=True, env=run_env, capture_output=True, text=True, cwd=work)
+        if args.profile:
+            print(r.stderr)
+        res = json.loads(r.stdout.strip().splitlines()[-1])
+        print(f"{label + ': ' if label else ''}diagnosis {args.size} x {args.size}, all candidates: "
+              f"wall {res['wall_s']:.1f} s (aim < {AIM_S:.0f} s), CPU {res['cpu_s']:.1f} s, "
+              f"peak RSS {res['peak_rss_bytes'] / 1e9:.2f} GB (aim < {AIM_BYTES / 1e9:.0f} GB); "
+              f"named {res['causes']}, chi2/value {res['chi2']['before']:.4f} -> {res['chi2']['after_extended_scene']:.4f}",
+              flush=True)
     if tmp:
         tmp.cleanup()
 

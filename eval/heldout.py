@@ -14,6 +14,7 @@ frames is enough.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.ndimage import uniform_filter
@@ -159,6 +160,15 @@ class HeldOutData:
         """Real vector of (measured - predicted) / sigma over a part: what least squares minimises."""
         r = self.whitened(prediction, part)
         return np.concatenate([r.real.ravel(), r.imag.ravel()])
+
+
+def predict_fit(model: Any, data: HeldOutData, values: Any) -> np.ndarray:
+    """A prediction that is read only on the fit pixels (:attr:`HeldOutData.fit_pixels`):
+    a model that can (``predicts_pixels``) predicts only them, exact there (the rest of
+    its frame is then not the model's)."""
+    if getattr(model, "predicts_pixels", False):
+        return model.predict(values, pixels=data.fit_pixels)
+    return model.predict(values)
 
 
 def depth_from_signal(s: np.ndarray, freq_hz: np.ndarray) -> np.ndarray:

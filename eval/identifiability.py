@@ -37,7 +37,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from tofhil.eval.heldout import HeldOutData
+from tofhil.eval.heldout import HeldOutData, predict_fit
 
 def param_group(name: str) -> str:
     """The group of a fitted parameter: its name up to the first underscore
@@ -164,7 +164,7 @@ def assess_form(model: Any, data: HeldOutData, fitted: Mapping[str, Mapping[str,
     def w(vals: Mapping[str, float]) -> np.ndarray:
         trial = {e: dict(v) for e, v in fitted.items()}
         trial[effect] = dict(vals)
-        return data.whitened_residual(model.predict(trial), "fit")
+        return data.whitened_residual(predict_fit(model, data, trial), "fit")
 
     (r0, jac), = form_jacobian(model, data, fitted, effect, spec, ("fit",))
     groups: dict[str, list[int]] = {}
@@ -200,7 +200,8 @@ def form_jacobian(model: Any, data: HeldOutData, fitted: Mapping[str, Mapping[st
     def w(vals: Mapping[str, float]) -> list[np.ndarray]:
         trial = {e: dict(v) for e, v in fitted.items()}
         trial[effect] = dict(vals)
-        pred = model.predict(trial)
+        # the fit pixels alone are rendered when they are all that is read
+        pred = predict_fit(model, data, trial) if set(parts) <= {"fit"} else model.predict(trial)
         return [data.whitened_residual(pred, part) for part in parts]
 
     r0 = w(values)

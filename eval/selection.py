@@ -29,7 +29,7 @@ from typing import Any, Callable, Mapping, Protocol, Sequence
 import numpy as np
 from scipy.optimize import least_squares
 
-from tofhil.eval.heldout import HUBER_SIGMA, HeldOutData, huber
+from tofhil.eval.heldout import HUBER_SIGMA, HeldOutData, huber, predict_fit
 from tofhil.eval.form_prior import regularise_form
 from tofhil.eval.identifiability import Alternative, Identifiability, alternatives, assess_form, param_group
 from tofhil.eval.verdict import ChannelGain, EffectSize, channel_chi2, worse_channels
@@ -231,7 +231,7 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
         return {e: fixed[e] if e in fixed else _unpack(free, lib, x)[e] for e in active}
 
     if not params:
-        return full(np.zeros(0)), data.chi2(model.predict(full(np.zeros(0))), "fit")
+        return full(np.zeros(0)), data.chi2(predict_fit(model, data, full(np.zeros(0))), "fit")
     lo = np.array([p.lo for p in params])
     hi = np.array([p.hi for p in params])
     scale = np.array([p.scale for p in params])
@@ -249,7 +249,7 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
         return np.concatenate([np.sqrt(spec.strength) * spec.roughness(values[e]) for e, spec in priors])
 
     def residual(x: np.ndarray) -> np.ndarray:
-        r = np.concatenate([data.whitened_residual(model.predict(full(x)), "fit"), penalty(x)])
+        r = np.concatenate([data.whitened_residual(predict_fit(model, data, full(x)), "fit"), penalty(x)])
         last["x"], last["r"] = x.copy(), r
         return r
 
@@ -266,8 +266,8 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
             h = steps[j] if x[j] + steps[j] <= hi[j] else -steps[j]
             xj = x0_.copy()
             xj[j] += h
-            cols.append((np.concatenate([data.whitened_residual(model.predict(full(xj)), "fit"), penalty(xj)])
-                         - r0) / h)
+            cols.append((np.concatenate([data.whitened_residual(predict_fit(model, data, full(xj)), "fit"),
+                                         penalty(xj)]) - r0) / h)
         return np.stack(cols, axis=1)
 
     starts = [x0]

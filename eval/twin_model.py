@@ -201,13 +201,27 @@ class TwinModel:
         """The full effect set: the base scene's effects, overridden by the fitted ones."""
         return self.twin.effects({name: to_effect_values(name, fitted) for name, fitted in active.items()})
 
-    def taps(self, active: EffectParams) -> np.ndarray:
-        """Noise-free taps ``[F, K, H, W]`` (DN)."""
-        return self.twin.expected_taps(self.effects_for(active)).astype(np.float64)
+    def taps(self, active: EffectParams, pixels: np.ndarray | None = None) -> np.ndarray:
+        """Noise-free taps ``[F, K, H, W]`` (DN); ``pixels``: see :meth:`predict`."""
+        return self.twin.expected_taps(self.effects_for(active), pixels=pixels).astype(np.float64)
 
-    def predict(self, active: EffectParams) -> np.ndarray:
-        """Predicted channels ``[C, H, W]`` (S per frequency, then the offset if used)."""
+    #: :meth:`predict` takes ``pixels`` (a fit asks only for its pixels).
+    predicts_pixels = True
+
+    def predict(self, active: EffectParams, pixels: np.ndarray | None = None) -> np.ndarray:
+        """Predicted channels ``[C, H, W]`` (S per frequency, then the offset if used).
+        ``pixels`` (bool ``[H, W]``): only these pixels are needed (a fit's); the others may
+        then be wrong (the twin renders only the pixels asked for when that is exact)."""
         self.evaluations += 1
+        if pixels is not None:
+            # the taps and the signal only where asked (the rest of the frame stays zero)
+            taps = self.twin.expected_taps_at(self.effects_for(active), pixels).astype(np.float64)
+            s = phasor(taps, self.data.theta_rad)[:, 0]
+            if self.data.offset_channel:
+                s = np.concatenate([s, taps.mean(axis=(0, 1))[None, 0].astype(np.complex128)])
+            out = np.zeros((s.shape[0],) + self.data.camera.shape, dtype=np.complex128)
+            out[:, pixels] = s
+            return out
         taps = self.taps(active)
         s = phasor(taps, self.data.theta_rad)
         if self.data.offset_channel:

@@ -42,7 +42,7 @@ from tofhil.camera import CameraModel
 from tofhil.errors import InputFileError
 from tofhil.schema import Schema, to_plain
 from tofhil.sim.sensor import OpticalSignal, SensorConfig
-from tofhil.sim.straylight import StrayLightOperator, StrayLightPSF
+from tofhil.sim.straylight import StrayLightOperator, StrayLightPSF, apply_lobes, lobes_only
 
 STAGES = ("scene", "render", "signal", "pixel")
 #: The hook each stage's effects implement.
@@ -123,6 +123,10 @@ class Effect:
     #: Flexible forms diagnosis fits besides the simple one: form name -> what it adds. A
     #: form fits the parameters whose ``Param.forms`` name it (docs/diagnose.md, Selection).
     forms: dict[str, str] = {}
+    #: True when the effect's light at a pixel depends only on that pixel's light (a
+    #: prediction on some pixels then needs only those pixels rendered); False when it moves
+    #: light between pixels (stray light).
+    pixel_local: bool = True
 
     # -------------------------------------------------------------- values
     def off_values(self) -> dict[str, float]:
@@ -436,6 +440,7 @@ class MultipathEffect(Effect):
 class StrayLightEffect(Effect):
     name = "stray_light"
     stage = "signal"
+    pixel_local = False
     summary = 'lens scattering `S_meas = (delta + h) * S`; options below'
     doc = ("Lens scattering: S_meas = (delta + h) * S on every frequency, harmonic and on the "
            "unmodulated light (sim/straylight.py). h = a Gaussian (weight, sigma_px) + more Gaussians "
@@ -501,6 +506,16 @@ class StrayLightEffect(Effect):
         psf = self.psf(values, source=ctx.source, base_dir=ctx.base_dir)
         if psf.is_identity:
             return signal
+        if lobes_only(psf):
+            # (the form diagnosis fits: the light's transform is kept while only the PSF changes)
+            n = signal.phasor_w.shape[:-2]
+            shape = signal.shape
+            stack = np.concatenate([signal.phasor_w.reshape((-1,) + shape),
+                                    np.broadcast_to(signal.dc_w, shape)[None], np.broadcast_to(signal.ambient_w, shape)[None]])
+            res = apply_lobes(psf, stack)
+            k = int(np.prod(n))
+            return dataclasses.replace(signal, phasor_w=res[:k].reshape(signal.phasor_w.shape), dc_w=res[k].real.copy(),
+                                       ambient_w=res[k + 1].real.copy(), waveform=dict(signal.waveform))
         op = StrayLightOperator(psf, signal.shape, (ctx.camera.cx, ctx.camera.cy))
         out = signal.copy()
         # Each channel's modulation frequency: a ghost's extra optical path delays its phasor.

@@ -490,9 +490,9 @@ def sobol_shifted(sobol, shift, U):  # pragma: no cover
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def subpixel_rays(p0, spp, width, U, fx, fy, cx, cy, dist, iterations, R, rotate, pix_weight,
+def subpixel_rays(pixels, spp, width, U, fx, fy, cx, cy, dist, iterations, R, rotate, pix_weight,
                   dirs, beta):  # pragma: no cover
-    """Sample ``s`` of pixel ``p0 + s // spp`` through the pixel position ``U[s, 0:2]`` (in
+    """Sample ``s`` of pixel ``pixels[s // spp]`` through the pixel position ``U[s, 0:2]`` (in
     pixels from the pixel's corner): its unit world direction ``dirs[s]`` (the camera model's
     undistortion, :meth:`CameraModel.pixel_rays`, then ``R``) and its weight
     ``beta[s] = pix_weight[pixel] * z^4`` (cos^4 of the camera ray). One pass, operation by
@@ -503,12 +503,13 @@ def subpixel_rays(p0, spp, width, U, fx, fy, cx, cy, dist, iterations, R, rotate
     r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
     r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
     r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
-    p, s_next = p0 - 1, 0
+    i, s_next = -1, 0
     col = row = w = 0.0
     for s in range(U.shape[0]):
         if s == s_next:                  # a new pixel (no integer division per sample)
-            p += 1
+            i += 1
             s_next += spp
+            p = pixels[i]
             col, row = np.float64(p % width), np.float64(p // width)
             w = pix_weight[p]
         uu = col + U[s, 0] - 0.5

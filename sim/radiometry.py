@@ -25,14 +25,19 @@ from tofhil.sim.scene import BeamProfile
 DEFAULT_PIXEL_PITCH_M = 10e-6
 
 
-def pixel_area_normalized(camera: CameraModel) -> np.ndarray:
-    """|det d(x, y)/d(u, v)| per pixel: the pixel's area in undistorted normalised coordinates.
+def pixel_area_normalized(camera: CameraModel, u: np.ndarray | None = None,
+                          v: np.ndarray | None = None) -> np.ndarray:
+    """|det d(x, y)/d(u, v)| per pixel: the pixel's area in undistorted normalised coordinates
+    (of every pixel ``[H, W]``, or of the pixels at ``u``, ``v``).
 
     The pixel's solid angle is ``cos^3(alpha)`` times this; ``1/(fx fy)`` without distortion.
     """
+    if u is not None and v is not None:
+        u, v = np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64)
     if not camera.has_distortion:
-        return np.full(camera.shape, 1.0 / (camera.fx * camera.fy))
-    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
+        return np.full(camera.shape if u is None else u.shape, 1.0 / (camera.fx * camera.fy))
+    if u is None or v is None:
+        v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
     h = 0.5
     xu1, yu1 = camera.undistort_normalized(u + h, v)
     xu0, yu0 = camera.undistort_normalized(u - h, v)

@@ -160,6 +160,7 @@ class _LRU:
 # moved camera or other materials (as while fitting) share them.
 _GEOMETRY = _LRU(4)
 _VIEWS = _LRU(4)
+_CAMERAS = _LRU(4)
 
 
 def scene_geometry(scene: Scene) -> Geometry:
@@ -172,17 +173,47 @@ def scene_geometry(scene: Scene) -> Geometry:
     return geom
 
 
-def _view_arrays(camera: CameraModel, pose: np.ndarray) -> dict[str, np.ndarray]:
+def _camera_arrays(camera: CameraModel, pixels: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Per-pixel arrays of a camera (its pose aside): centre rays, pixel area, cos^4. With
+    ``pixels`` (flat bool mask) a camera not seen whole yet gets them only there (zero
+    elsewhere; a fit of the lens distortion makes a new camera every evaluation), each value
+    computed as for the whole grid."""
+    key = content_key(camera)
+    arrays = _CAMERAS.get(key)
+    if arrays is not None:
+        return arrays
+    if pixels is None:
+        rays = camera.rays.reshape(-1, 3)
+        area = pixel_area_normalized(camera).ravel()
+    else:
+        key = content_key(key, "pixels", np.packbits(pixels))
+        arrays = _CAMERAS.get(key)
+        if arrays is not None:
+            return arrays
+        idx = np.flatnonzero(pixels)
+        v, u = np.divmod(idx, camera.width)
+        u, v = u.astype(np.float64), v.astype(np.float64)
+        rays = np.zeros((pixels.size, 3))
+        rays[idx] = camera.pixel_rays(u, v)
+        area = np.zeros(pixels.size)
+        area[idx] = pixel_area_normalized(camera, u, v)
+    arrays = {"rays": rays, "area": area, "cos4": rays[:, 2] ** 4, "key": key}
+    _CAMERAS.put(key, arrays)
+    return arrays
+
+
+def _view_arrays(camera: CameraModel, pose: np.ndarray, pixels: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Per-pixel arrays of a camera at a pose (repeated renders of one view, e.g. while
-    fitting, share them)."""
-    key = content_key(camera, pose)
+    fitting, share them; renders of one camera at other poses share its rays and areas)."""
+    cam = _camera_arrays(camera, pixels)
+    key = content_key(cam["key"], pose)
     view = _VIEWS.get(key)
     if view is not None:
         return view
-    rays = camera.rays.reshape(-1, 3)
+    rays = cam["rays"]
     world = np.array(_rotate(rays, pose[:3, :3]), dtype=np.float64)  # writable: one kernel type
-    view = {"rays": rays, "world": world, "world32": world.astype(np.float32),
-            "area": pixel_area_normalized(camera).ravel(), "cos4": rays[:, 2] ** 4}
+    view = {"rays": rays, "world": world, "world32": world.astype(np.float32), "area": cam["area"],
+            "cos4": cam["cos4"]}
     _VIEWS.put(key, view)
     return view
 
@@ -192,8 +223,13 @@ class _Context:
 
     def __init__(self, scene: Scene, camera: CameraModel, freq_hz: np.ndarray, harmonics: tuple[int, ...],
                  spp: int, bounces: int, seed: int, separate: bool, transient_edges: np.ndarray | None,
-                 subpixel: bool, sampler: str, pose: np.ndarray, shares: bool = False) -> None:
+                 subpixel: bool, sampler: str, pose: np.ndarray, shares: bool = False,
+                 pixels: np.ndarray | None = None) -> None:
         self.scene, self.camera = scene, camera
+        # Only these pixels are traced (flat bool mask), each with exactly the samples of a
+        # full render: the chunks, their random streams and the sample order are the full
+        # render's, so a traced pixel's value is bit-identical to the full frame's.
+        self.pixels = pixels
         # Multipath shares: one accumulator row per (bounce, source object) instead of
         # direct/indirect, and a 0 Hz channel last whose real part is the power of each row.
         self.n_obj = len(scene.objects) if shares else 0
@@ -232,7 +268,7 @@ class _Context:
         self.aperture_radius_m = self.focal_m / (2 * n_f)
         self.aperture_area_m2 = aperture_area_m2(camera, n_f)
         self.focus_m = scene.focus_distance_m
-        view = _view_arrays(camera, pose)
+        view = _view_arrays(camera, pose, pixels)
         # Per-pixel weight without cos^4: A_ap * pixel area (normalised coords) / spp.
         self.pix_weight = (self.aperture_area_m2 / spp) * view["area"]
         self.ambient = scene.ambient_irradiance_w_m2
@@ -295,7 +331,7 @@ class _Context:
                 rho[m] = self.rho_d[i] * img[row, col]
         return rho
 
-    def uniforms(self, rng: np.random.Generator, npix: int) -> np.ndarray:
+    def uniforms(self, rng: np.random.Generator, npix: int, keep_pix: np.ndarray | None = None) -> np.ndarray:
         """Per-sample uniforms in [0, 1)^D for ``npix`` pixels x ``spp`` samples.
 
         ``random``: independent uniforms (plain Monte Carlo, error ~ 1/sqrt(spp)).
@@ -304,9 +340,12 @@ class _Context:
         integrands falls faster than 1/sqrt(spp).
         """
         if self.sampler == "random" or self.spp == 1:
-            return rng.random((npix * self.spp, self.dims))
+            u = rng.random((npix * self.spp, self.dims))
+            return u if keep_pix is None else u.reshape(npix, self.spp, self.dims)[keep_pix].reshape(-1, self.dims)
         shift = rng.random((npix, self.dims))
-        u = np.empty((npix * self.spp, self.dims))
+        if keep_pix is not None:  # (drawn for every pixel of the chunk: the full render's stream)
+            shift = shift[keep_pix]
+        u = np.empty((len(shift) * self.spp, self.dims))
         # mod 1 of a sum in [0, 2): subtracting 1 is exact and equals np.mod (which is slow).
         kernels.sobol_shifted(self.sobol, shift, u)
         return u
@@ -322,13 +361,22 @@ class _Context:
         # [samples, D] uniforms: subpixel, lens, 2 per bounce (none needed for centre rays
         # through the pinhole without bounces).
         need_u = self.subpixel or self.thin_lens or self.bounces > 0 or self.glass.scattering
-        U = self.uniforms(np.random.default_rng([self.seed, chunk]), npix) if need_u else np.zeros((0, self.dims))
+        keep_pix = None if self.pixels is None else self.pixels[p0:p1]
+        if keep_pix is not None and keep_pix.all():
+            keep_pix = None
+        # (the chunk's uniforms are drawn for all its pixels, the full render's stream, and
+        # kept for the pixels asked for)
+        U = (self.uniforms(np.random.default_rng([self.seed, chunk]), npix, keep_pix) if need_u
+             else np.zeros((0, self.dims)))
+        if keep_pix is not None:
+            pix = pix[keep_pix[pix - p0]]
         if self.subpixel and not self.thin_lens:
             # Sub-pixel rays through the pinhole: generated, weighted and rotated in one
             # compiled pass (the camera model's arithmetic, no per-sample temporaries).
             dirs, beta = np.empty((len(U), 3)), np.empty(len(U))
             cam = self.camera
-            kernels.subpixel_rays(p0, spp, self.W, U, cam.fx, cam.fy, cam.cx, cam.cy,
+            kernels.subpixel_rays(np.arange(p0, p1) if keep_pix is None else p0 + np.flatnonzero(keep_pix), spp,
+                                  self.W, U, cam.fx, cam.fy, cam.cx, cam.cy,
                                   np.asarray(cam.dist, dtype=np.float64), 20, self.R,
                                   not np.array_equal(self.R, np.eye(3)), self.pix_weight, dirs, beta)
         elif self.subpixel:
@@ -336,6 +384,9 @@ class _Context:
             vv = (pix // self.W) + U[:, 1] - 0.5
             d_cam = self.camera.pixel_rays(uu, vv)
             beta = self.pix_weight[pix] * d_cam[:, 2] ** 4
+        elif keep_pix is not None:
+            d_cam = self.centre_rays[pix]
+            beta = self.centre_weight[pix]
         else:
             d_cam = self.centre_rays[p0:p1] if spp == 1 else np.repeat(self.centre_rays[p0:p1], spp, axis=0)
             beta = self.centre_weight[p0:p1] if spp == 1 else self.centre_weight[pix]
@@ -356,7 +407,9 @@ class _Context:
         else:
             path0 = np.zeros(len(pix))
             origins = self.t                  # one shared origin: the pinhole
-            if not self.subpixel:
+            if keep_pix is not None and not self.subpixel:
+                dirs = self.centre_world[pix]
+            elif not self.subpixel:  # (sub-pixel rays: the compiled pass above made them)
                 cw = self.centre_world[p0:p1]
                 dirs = cw if spp == 1 else np.repeat(cw, spp, axis=0)
 
@@ -390,13 +443,13 @@ class _Context:
         if self.fused:
             return self._run_fused(npix, p0, p1, org, shared, dirs, path0, beta, local, U, out, acc_re, acc_im,
                                    power, ambient_unit, edges, trans, vnormal, smooth,
-                                   dest if dest is not None else {})
+                                   dest if dest is not None else {}, keep_pix)
         ambient = np.zeros(npix)
         sid = np.arange(len(pix))
         src = np.zeros(len(pix), dtype=np.int64)     # the object the light came from (shares)
         rays = 0
         for bounce in range(self.bounces + 1):
-            if bounce == 0 and shared and not self.subpixel and len(dirs) <= len(self.origin32):
+            if bounce == 0 and shared and not self.subpixel and keep_pix is None and len(dirs) <= len(self.origin32):
                 o32, d32 = self.origin32[:len(dirs)], self.centre_world32[p0:p1]
                 if spp > 1:
                     d32 = np.repeat(d32, spp, axis=0)
@@ -426,7 +479,10 @@ class _Context:
             else:
                 which = np.full(m, 0 if bounce == 0 else 1, dtype=np.int64)
             if bounce == 0:
-                if not self.subpixel and not self.thin_lens:
+                if keep_pix is not None:
+                    out["radial"], out["object_id"], n_c = self._centre_maps(p0, p1, keep_pix)
+                    rays += n_c
+                elif not self.subpixel and not self.thin_lens:
                     # Centre rays from the pinhole: the primary hits are the ground truth.
                     t_full = np.full(len(dirs), np.inf)
                     t_full[idx] = t_hit
@@ -484,18 +540,31 @@ class _Context:
             out["transient"] = trans
         return out
 
+    def _centre_maps(self, p0: int, p1: int, keep_pix: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """Radial distance and object of the centre ray of the chunk's pixels asked for
+        (inf / -1 elsewhere), and the rays traced."""
+        sel = np.flatnonzero(keep_pix)
+        radial = np.full(p1 - p0, np.inf)
+        oid = np.full(p1 - p0, -1, dtype=np.int32)
+        if len(sel):
+            hc = self.geom.intersect(self.t, self.centre_world[p0 + sel])
+            radial[sel] = hc.full(hc.t, np.inf)
+            oid[sel] = hc.full(self.geom.tri_object[hc.prim], -1).astype(np.int32)
+        return radial, oid, len(sel)
+
     def _run_fused(self, npix: int, p0: int, p1: int, org: np.ndarray, shared: bool, dirs: np.ndarray,
                    path0: np.ndarray, beta: np.ndarray, local: np.ndarray, U: np.ndarray, out: dict,
                    acc_re: np.ndarray, acc_im: np.ndarray, power: np.ndarray, ambient_unit: np.ndarray,
                    edges: np.ndarray, trans: np.ndarray, vnormal: np.ndarray, smooth: bool,
-                   out_maps: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+                   out_maps: dict[str, np.ndarray], keep_pix: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The chunk's paths in one compiled loop that calls Embree per ray (no textures):
         no per-bounce Python round trip and no per-ray temporary arrays."""
         geom = self.geom
         n = len(dirs)
         # One centre ray per pixel and the frame's maps at hand: the primary hits go straight
         # into them (no per-chunk arrays to copy over).
-        direct_maps = "radial" in out_maps and self.spp == 1 and not self.subpixel and not self.thin_lens
+        direct_maps = ("radial" in out_maps and self.spp == 1 and not self.subpixel and not self.thin_lens
+                       and keep_pix is None)
         if direct_maps:
             first_t, first_obj = out_maps["radial"][p0:p1], out_maps["object_id"][p0:p1]
         else:
@@ -522,6 +591,9 @@ class _Context:
                 acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj, self.n_obj)
         if direct_maps:
             out["maps_in_place"] = np.array(True)
+        elif keep_pix is not None:
+            out["radial"], out["object_id"], n_c = self._centre_maps(p0, p1, keep_pix)
+            rays += n_c
         elif not self.subpixel and not self.thin_lens:
             out["radial"], out["object_id"] = first_t[::self.spp], first_obj[::self.spp]
         else:
@@ -645,7 +717,7 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
            transient_bins: int | Sequence[float] | None = None, camera: CameraModel | None = None,
            progress: Progress | None = None, threads: int | None = None, subpixel: bool | None = None,
            sampler: str | None = None, camera_pose: np.ndarray | None = None,
-           multipath_shares: bool = False) -> RenderResult:
+           multipath_shares: bool = False, pixels: np.ndarray | None = None) -> RenderResult:
     """Render the scene's emitter light as per-pixel phasors (see the module docstring).
 
     ``freq_hz`` defaults to the scene's sensor frequencies; ``samples_per_pixel``,
@@ -656,6 +728,8 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     a distorted or re-posed camera while fitting; the scene itself is not changed.
     ``multipath_shares`` adds ``share_power_w``, the pixel's power by bounce count and by the
     object the light came from (:mod:`tofhil.sim.multipath`), from the same paths.
+    ``pixels`` (bool ``[H, W]``): trace only these pixels (a fit's pixels); each is
+    bit-identical to its value in the full render, the others are left at zero light, no hit.
     """
     cam = camera if camera is not None else scene.camera
     freq = scene.freq_hz if freq_hz is None else np.atleast_1d(np.asarray(freq_hz, dtype=np.float64))
@@ -679,9 +753,14 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
         raise TofhilError("not a rigid 4x4 transform", field="camera_pose",
                           expected="a 4x4 camera-to-world matrix with an orthonormal rotation")
     edges = None if transient_bins is None else _transient_edges(scene, geom, transient_bins, nb, pose)
-    ctx = _Context(scene, cam, freq, harm, spp, nb, seed, separate_direct, edges, sub, smp, pose,
-                   shares=multipath_shares)
     H, W = cam.shape
+    if pixels is not None:
+        pixels = np.asarray(pixels, dtype=bool)
+        if pixels.shape != (H, W):
+            raise TofhilError(f"got shape {pixels.shape}", field="pixels", expected=f"a bool mask of shape {(H, W)}")
+        pixels = None if pixels.all() else pixels.ravel()
+    ctx = _Context(scene, cam, freq, harm, spp, nb, seed, separate_direct, edges, sub, smp, pose,
+                   shares=multipath_shares, pixels=pixels)
     npix_total = H * W
     # An even number of equal chunks of at most BATCH samples: balanced on two threads, and
     # independent of the thread count (each chunk has its own random stream).
@@ -723,6 +802,8 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     dest = {"re": acc_re, "im": acc_im, "power": power, "ambient_unit": ambient_unit, "trans": trans,
             "radial": radial, "object_id": oid}
     jobs = [(i, p0, min(p0 + per_chunk, npix_total), dest) for i, p0 in enumerate(starts)]
+    if pixels is not None:  # (a chunk keeps its index: its random stream is the full render's)
+        jobs = [j for j in jobs if pixels[j[1]:j[2]].any()]
     if nthreads <= 1 or len(jobs) == 1:
         for job in jobs:
             store(job[1], job[2], ctx.run_chunk(*job))

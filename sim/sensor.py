@@ -390,6 +390,8 @@ class SensorModel:
                 noise: bool = True) -> np.ndarray:
         """Taps in DN, float32 ``[F, K, H, W]``: shot noise, full well, offsets, read noise, ADC."""
         cfg = self.config
+        if not noise:
+            return self._noise_free_taps(signal)
         mu = self.expected_electrons(signal)
         if noise:
             if rng is None:
@@ -406,6 +408,41 @@ class SensorModel:
         if noise:
             dn = np.rint(dn)
         return np.clip(dn, 0.0, cfg.adc_max_dn).astype(np.float32)
+
+    def _noise_free_taps(self, signal: OpticalSignal, index: np.ndarray | None = None) -> np.ndarray:
+        """``taps_dn(signal, noise=False)`` in one compiled pass over the pixels
+        (:mod:`tofhil.sim.sensor_kernels`, bit-identical to the numpy expressions); with
+        ``index`` (flat pixel indices) only those pixels, as ``[F, K, 1, N]``."""
+        from tofhil.sim.sensor_kernels import noise_free_taps
+
+        cfg = self.config
+        if signal.shape != self.camera.shape:
+            raise ValueError(f"signal is {signal.shape}, camera is {self.camera.shape}")
+        if signal.freq_hz.size != len(cfg.freq_hz) or not np.allclose(signal.freq_hz, cfg.freq_hz, rtol=1e-9):
+            raise ValueError(f"signal frequencies {signal.freq_hz.tolist()} differ from the sensor's "
+                             f"{list(cfg.freq_hz)}")
+        theta = self.theta_rad
+        terms = [(h, coef * signal.harmonic(h)) for h, coef in signal.waveform.items() if coef != 0]
+        shape = (signal.freq_hz.size,) + signal.shape
+        s = np.stack([t for _, t in terms]) if terms else np.zeros((0,) + shape, dtype=np.complex128)
+        hs = np.array([h for h, _ in terms], dtype=np.float64)
+        cos_h = np.cos(hs[:, None] * theta[None, :]) if terms else np.zeros((0, theta.size))
+        sin_h = np.sin(hs[:, None] * theta[None, :]) if terms else np.zeros((0, theta.size))
+        dc = np.ascontiguousarray(np.broadcast_to(signal.dc_w + signal.ambient_w, signal.shape), dtype=np.float64)
+        gain, offset = self.fixed_pattern()
+        if index is not None:  # the pixels asked for, as one row
+            n = index.size
+            s = s.reshape(s.shape[:2] + (-1,))[..., index].reshape(s.shape[:2] + (1, n))
+            dc = dc.reshape(-1)[index].reshape(1, n)
+            gain = gain.reshape(gain.shape[0], -1)[:, index].reshape(gain.shape[0], 1, n)
+            offset = offset.reshape(offset.shape[0], -1)[:, index].reshape(offset.shape[0], 1, n)
+        out = np.empty((signal.freq_hz.size, theta.size) + s.shape[-2:], dtype=np.float32)
+        noise_free_taps(np.ascontiguousarray(s.real), np.ascontiguousarray(s.imag), cos_h, sin_h, dc,
+                        np.ascontiguousarray(gain, dtype=np.float64), np.ascontiguousarray(offset, dtype=np.float64),
+                        float(cfg.tap_fraction * cfg.electrons_per_watt), float(cfg.modulation_contrast),
+                        float(cfg.dark_current_e_per_s * cfg.integration_time_s), float(cfg.full_well_e),
+                        float(cfg.conversion_gain_dn_per_e), float(cfg.black_level_dn), float(cfg.adc_max_dn), out)
+        return out
 
     def expose(self, signal: OpticalSignal, *, seed: int = 0, frame_index: int = 0, noise: bool = True,
                meta: dict[str, Any] | None = None) -> RawFrame:

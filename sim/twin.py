@@ -147,6 +147,9 @@ class Twin:
         self.frames_kept = frames_kept  # frames a caller holds at once (for the memory check)
         self.cache_size = cache_size
         self.cache = cache if cache is not None else RenderCache(cache_size)
+        # Renders of some pixels (a fit's; each Jacobian column of a scene-stage parameter is
+        # a new one): few are ever asked for again, and each holds full-frame arrays.
+        self.pixel_cache = RenderCache(2)
         self._sensors: dict[Any, SensorModel] = {}
         self.renders = 0  # renders traced (cache misses)
         self._base_render_bounces = int(scene.render.bounces)
@@ -194,12 +197,22 @@ class Twin:
         return parse_effects(effects, source=getattr(self.scene, "source", "<scene>"))
 
     # ------------------------------------------------------------------ render (cached)
-    def render(self, effects: Effects | None = None) -> tuple[Any, Any]:
+    def pixel_local(self, effects: Effects | None = None) -> bool:
+        """True when the light of every pixel of this effect set follows from that pixel's
+        render alone (no effect that moves light between pixels is on, no lens prescription
+        with ghosts): a prediction on some pixels then needs only those pixels rendered."""
+        eff = self._resolve(effects)
+        if getattr(self.scene.camera, "lens", None) is not None:
+            return False
+        return all(EFFECTS[n].pixel_local or EFFECTS[n].is_off(v) for n, v in eff.items())
+
+    def render(self, effects: Effects | None = None, *, pixels: np.ndarray | None = None) -> tuple[Any, Any]:
         """``(scene with the rendered scene-stage effects, RenderResult)`` for an effect set
         (default the base set). A scene-stage effect with a fast path (``rescale_render``)
         whose values differ from the base's is applied to the cached render of the base
         values; when that is not exact, or for the other scene-stage effects, the values are
-        rendered in."""
+        rendered in. ``pixels`` (bool ``[H, W]``): only these pixels are needed (the render
+        may trace only them, the others are then dark; a full render in the cache serves too)."""
         eff = self._resolve(effects)
         rendered: dict[str, Mapping[str, Any]] = {}
         rescaled: list[tuple[Effect, Mapping[str, Any], Mapping[str, Any]]] = []
@@ -216,7 +229,7 @@ class Twin:
             elif name in eff:
                 rendered[name] = target
         if rescaled:
-            scene2, result = self._cached_render(rendered, eff)
+            scene2, result = self._cached_render(rendered, eff, pixels)
             for e, target, base in rescaled:
                 result = e.rescale_render(result, target, base, scene2)
                 if result is None:
@@ -224,9 +237,10 @@ class Twin:
             else:
                 return scene2, result
             rendered = {name: eff[name] for name in ORDER if name in eff and EFFECTS[name].stage == "scene"}
-        return self._cached_render(rendered, eff)
+        return self._cached_render(rendered, eff, pixels)
 
-    def _cached_render(self, scene_effects: Effects, effects: Effects) -> tuple[Any, Any]:
+    def _cached_render(self, scene_effects: Effects, effects: Effects,
+                       pixels: np.ndarray | None = None) -> tuple[Any, Any]:
         from tofhil.sim.render import render
 
         scene2 = apply_scene_effects(self.scene, scene_effects)
@@ -237,6 +251,13 @@ class Twin:
             # (the scene of this twin: a shared cache's entry may come from another twin
             # whose scene differs in what a render does not read, e.g. its source path)
             return scene2, hit
+        if pixels is not None:
+            # a render of some pixels: its own entry (the full render, when cached, serves first)
+            key = content_key(key, "pixels", np.packbits(np.asarray(pixels, dtype=bool)))
+            hit = self.pixel_cache.get(key)
+            if hit is not None:
+                return scene2, hit
+            args = dict(args, pixels=pixels)
         # Refuse, before anything is allocated, a job whose estimated memory (the render, the
         # sensor and the frames held at once) exceeds what the machine has.
         signal_effects = any(EFFECTS[n].stage in ("signal", "pixel") for n in effects)
@@ -244,16 +265,23 @@ class Twin:
                      source=str(getattr(scene2, "source", "")) or None)
         result = render(scene2, progress=self.progress, **args)
         self.renders += 1
+        if pixels is not None:
+            self.pixel_cache.put(key, result)
+            return scene2, result
         base = {n: v for n, v in self.base_effects.items() if EFFECTS[n].stage == "scene"}
         self.cache.put(key, result, pin=scene_effects == base)
         return scene2, result
 
     # ------------------------------------------------------------------ light and taps
-    def signal(self, effects: Effects | None = None) -> OpticalSignal:
+    def signal(self, effects: Effects | None = None, *, pixels: np.ndarray | None = None) -> OpticalSignal:
         """Light on the sensor for an effect set (default the base set; a given set replaces
-        it, see :meth:`effects` for the base set with some parameters changed)."""
+        it, see :meth:`effects` for the base set with some parameters changed). ``pixels``
+        (bool ``[H, W]``): only these pixels' light is needed; when every effect of the set is
+        pixel-local only they are rendered (the others are then wrong), else the whole frame."""
         eff = self._resolve(effects)
-        scene2, result = self.render(eff)
+        if pixels is not None and not self.pixel_local(eff):
+            pixels = None
+        scene2, result = self.render(eff, pixels=pixels)
         return signal_from_render(scene2, result, eff, self.config)
 
     def sensor(self, camera: Any | None = None) -> SensorModel:
@@ -264,9 +292,16 @@ class Twin:
             model = self._sensors[camera] = SensorModel(self.config, camera)
         return model
 
-    def expected_taps(self, effects: Effects | None = None) -> np.ndarray:
-        """Noise-free taps in DN ``[F, K, H, W]`` (float32, as in a frame)."""
-        return self.sensor().taps_dn(self.signal(effects), noise=False)
+    def expected_taps(self, effects: Effects | None = None, *, pixels: np.ndarray | None = None) -> np.ndarray:
+        """Noise-free taps in DN ``[F, K, H, W]`` (float32, as in a frame); ``pixels`` see
+        :meth:`signal`."""
+        return self.sensor().taps_dn(self.signal(effects, pixels=pixels), noise=False)
+
+    def expected_taps_at(self, effects: Effects | None, pixels: np.ndarray) -> np.ndarray:
+        """:meth:`expected_taps` on the pixels of a bool mask ``[H, W]`` only, as ``[F, K, 1,
+        N]`` (row-major order of the mask; rendered only there when that is exact)."""
+        signal = self.signal(effects, pixels=pixels)
+        return self.sensor()._noise_free_taps(signal, np.flatnonzero(np.asarray(pixels, dtype=bool).ravel()))
 
     def frames(self, effects: Effects | None = None, frames: int = 1, *, seed: int = 0, noise: bool = True,
                meta: Mapping[str, Any] | None = None, first_index: int = 0) -> Iterable[RawFrame]:

@@ -265,12 +265,13 @@ def test_compiled_subpixel_rays_are_the_camera_models() -> None:
     c, s = math.cos(0.4), math.sin(0.4)
     R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
     weight = rng.random(cam.width * cam.height) + 0.5
-    p0 = 7                                     # a chunk starting mid-row
-    Uc = U[p0 * spp:]
+    p0 = 7                                     # a chunk starting mid-row, every other pixel of it
+    pixels = np.arange(p0, cam.width * cam.height, 2)
+    Uc = U.reshape(-1, spp, dims)[pixels].reshape(-1, dims)
     dirs, beta = np.empty((len(Uc), 3)), np.empty(len(Uc))
-    kernels.subpixel_rays(p0, spp, cam.width, Uc, cam.fx, cam.fy, cam.cx, cam.cy, np.asarray(cam.dist), 20, R,
+    kernels.subpixel_rays(pixels, spp, cam.width, Uc, cam.fx, cam.fy, cam.cx, cam.cy, np.asarray(cam.dist), 20, R,
                           True, weight, dirs, beta)
-    pix = np.repeat(np.arange(p0, cam.width * cam.height), spp)
+    pix = np.repeat(pixels, spp)
     d_cam = cam.pixel_rays(pix % cam.width + Uc[:, 0] - 0.5, pix // cam.width + Uc[:, 1] - 0.5)
     np.testing.assert_allclose(dirs, d_cam @ R.T, rtol=0, atol=1e-15)
     np.testing.assert_allclose(beta, weight[pix] * d_cam[:, 2] ** 4, rtol=1e-15)
