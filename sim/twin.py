@@ -18,7 +18,6 @@ Each effect acts through the hook of its stage (``tofhil.sim.effects.STAGE_HOOKS
 
 from __future__ import annotations
 
-import dataclasses
 from collections import OrderedDict
 from pathlib import Path
 from typing import Any, Iterable, Mapping
@@ -89,19 +88,6 @@ def signal_from_render(scene: Any, result: Any, effects: Effects, config: Sensor
     return apply_signal_effects(signal, effects, effect_context(scene, camera, config))
 
 
-def _nbytes(value: Any) -> int:
-    """The bytes of the arrays a cached render holds (a result, or a tuple holding one)."""
-    if isinstance(value, np.ndarray):
-        return value.nbytes
-    if isinstance(value, (tuple, list)):
-        return sum(_nbytes(v) for v in value)
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        # its own arrays only (a scene's meshes are shared with the scene, not the cache's)
-        return sum(getattr(value, f.name).nbytes for f in dataclasses.fields(value)
-                   if isinstance(getattr(value, f.name), np.ndarray))
-    return 0
-
-
 class RenderCache:
     """Renders by content key, least recently used first out, except the pinned ones.
 
@@ -112,15 +98,11 @@ class RenderCache:
     """
 
     max_pinned = 4
-    #: Most bytes the unpinned renders may hold together (the newest is always kept): at
-    #: camera resolution eight renders of ~50 MB each were a third of a diagnosis's memory.
-    max_bytes = 192 * 2 ** 20
 
     def __init__(self, size: int = 8) -> None:
         self.size = size
         self.entries: OrderedDict[str, Any] = OrderedDict()
         self.pinned: set[str] = set()
-        self.nbytes: dict[str, int] = {}
 
     def get(self, key: str) -> Any | None:
         hit = self.entries.get(key)
@@ -130,19 +112,11 @@ class RenderCache:
 
     def put(self, key: str, value: Any, *, pin: bool = False) -> None:
         self.entries[key] = value
-        self.entries.move_to_end(key)
-        self.nbytes[key] = _nbytes(value)
         if pin and len(self.pinned) < self.max_pinned:
             self.pinned.add(key)
-
-        def unpinned_bytes() -> int:
-            return sum(n for k, n in self.nbytes.items() if k not in self.pinned)
-
-        while (len(self.entries) > self.size + len(self.pinned)
-               or (unpinned_bytes() > self.max_bytes and len(self.entries) - len(self.pinned) > 1)):
+        while len(self.entries) > self.size + len(self.pinned):
             oldest = next(k for k in self.entries if k not in self.pinned)
             del self.entries[oldest]
-            del self.nbytes[oldest]
 
     def __len__(self) -> int:
         return len(self.entries)

@@ -143,17 +143,3 @@ def test_ambient_power_is_linear_in_the_irradiance(scene):
     assert np.all(dark.ambient_power_w == 0)
     np.testing.assert_allclose(dark.ambient_power_per_irradiance, r.ambient_power_per_irradiance, rtol=1e-12)
 
-
-def test_render_cache_holds_a_byte_budget_but_keeps_the_pinned_and_the_newest():
-    from tofhil.sim.twin import RenderCache
-
-    cache = RenderCache(size=8)
-    cache.max_bytes = 2500  # room for two of the 1 kB renders beside the pinned base
-    mb = lambda: np.zeros(125)  # noqa: E731  (1000 bytes)
-    cache.put("base", (None, mb()), pin=True)
-    for k in "abcd":
-        cache.put(k, mb())
-    assert list(cache.entries) == ["base", "c", "d"]  # the oldest unpinned went first
-    cache.put("huge", np.zeros(10_000))               # alone over the budget: kept, the rest goes
-    assert list(cache.entries) == ["base", "huge"]
-    assert cache.get("base") is not None
