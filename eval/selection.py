@@ -351,6 +351,13 @@ def choose_form(tried: Sequence[Candidate], min_extra_gain: float,
     return chosen
 
 
+def _release_residuals(candidates: Sequence[Candidate]) -> None:
+    """Drop the held-out residuals a round kept for "A or B" once it is decided: the ranking
+    keeps every round's candidates, and at camera resolution each residual is megabytes."""
+    for c in candidates:
+        c.test_residual = None
+
+
 def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequence[str] | None = None,
                   max_effects: int = 3, min_relative_gain: float = 0.02, min_gain_per_value: float = 0.02,
                   progress: Callable[[str], None] | None = None, effect_size: EffectSize | None = None) -> Selection:
@@ -481,6 +488,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         selection.rounds.append(round_)
         chosen = next((c for c in round_ if c.significant), None)
         if chosen is None:
+            _release_residuals(round_)
             break
         # A flexible form the score rule refused is not tested in choose_form; its extra
         # parameters may still be indistinguishable from the simple form's on this session
@@ -495,6 +503,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         alt = alternatives(model, data, chosen, round_, current_pred, penalty)
         if alt:
             selection.alternatives[chosen.effect] = alt
+        _release_residuals(round_)
         active.append(chosen.effect)
         work[chosen.effect] = dataclasses.replace(lib[chosen.effect].variant(chosen.form), strength=chosen.strength)
         if chosen.prior:
