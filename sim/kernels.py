@@ -13,6 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
+from tofhil.camera_kernels import undistort_step
 from tofhil.sim import dielectric as _dielectric
 from tofhil.sim import embree4 as eda
 
@@ -519,12 +520,7 @@ def subpixel_rays(pixels, spp, width, U, fx, fy, cx, cy, dist, iterations, R, ro
         x, y = xd, yd
         if distorted:
             for _ in range(iterations):
-                r2 = x * x + y * y
-                radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-                dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-                x = (xd - dx) / radial
-                y = (yd - dy) / radial
+                x, y = undistort_step(xd, yd, x, y, k1, k2, p1, p2, k3)
         nrm = math.sqrt(x * x + y * y + 1.0)
         a, b, c = x / nrm, y / nrm, 1.0 / nrm
         c2 = c * c

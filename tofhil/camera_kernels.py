@@ -17,6 +17,17 @@ from numba import njit
 _BLOCK = 256
 
 
+@njit(cache=True, error_model="numpy", nogil=True, inline="always")
+def undistort_step(xd, yd, x, y, k1, k2, p1, p2, k3):  # pragma: no cover
+    """One fixed-point step ``x = (xd - dx(x, y)) / radial(x, y)`` of one point, in the
+    numpy expression's order (scalars only: inlined into the loops that call it)."""
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return (xd - dx) / radial, (yd - dy) / radial
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
 def undistort(xd, yd, k1, k2, p1, p2, k3, iterations, x, y):  # pragma: no cover
     """Distorted normalised ``(xd, yd)`` (1-D float64) -> undistorted ``(x, y)``: the
@@ -29,14 +40,7 @@ def undistort(xd, yd, k1, k2, p1, p2, k3, iterations, x, y):  # pragma: no cover
             y[j] = yd[j]
         for _ in range(iterations):
             for j in range(b0, b1):
-                xj = x[j]
-                yj = y[j]
-                r2 = xj * xj + yj * yj
-                radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                dx = 2 * p1 * xj * yj + p2 * (r2 + 2 * xj * xj)
-                dy = p1 * (r2 + 2 * yj * yj) + 2 * p2 * xj * yj
-                x[j] = (xd[j] - dx) / radial
-                y[j] = (yd[j] - dy) / radial
+                x[j], y[j] = undistort_step(xd[j], yd[j], x[j], y[j], k1, k2, p1, p2, k3)
 
 
 def undistort_arrays(xd: np.ndarray, yd: np.ndarray, dist: tuple[float, ...], iterations: int
