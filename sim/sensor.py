@@ -363,14 +363,18 @@ class SensorModel:
             self._pattern = (np.clip(gain, 0.0, None), off)
         return self._pattern
 
+    def _check_signal(self, signal: OpticalSignal) -> None:
+        """The light is on this sensor's pixels at its frequencies."""
+        if signal.shape != self.camera.shape:
+            raise ValueError(f"signal is {signal.shape}, camera is {self.camera.shape}")
+        freq = self.config.freq_hz
+        if signal.freq_hz.size != len(freq) or not np.allclose(signal.freq_hz, freq, rtol=1e-9):
+            raise ValueError(f"signal frequencies {signal.freq_hz.tolist()} differ from the sensor's {list(freq)}")
+
     def expected_electrons(self, signal: OpticalSignal) -> np.ndarray:
         """Mean collected charge per tap, ``[F, K, H, W]`` electrons (before saturation)."""
         cfg = self.config
-        if signal.shape != self.camera.shape:
-            raise ValueError(f"signal is {signal.shape}, camera is {self.camera.shape}")
-        if signal.freq_hz.size != len(cfg.freq_hz) or not np.allclose(signal.freq_hz, cfg.freq_hz, rtol=1e-9):
-            raise ValueError(f"signal frequencies {signal.freq_hz.tolist()} differ from the sensor's "
-                             f"{list(cfg.freq_hz)}")
+        self._check_signal(signal)
         e_w = cfg.tap_fraction * cfg.electrons_per_watt
         theta = self.theta_rad
         dc = (signal.dc_w + signal.ambient_w)[None, None]  # [1, 1, H, W]
@@ -393,20 +397,13 @@ class SensorModel:
         if not noise:
             return self._noise_free_taps(signal)
         mu = self.expected_electrons(signal)
-        if noise:
-            if rng is None:
-                raise ValueError("noise=True needs a random generator")
-            q = shot_noise(mu, rng)
-        else:
-            q = mu
+        if rng is None:
+            raise ValueError("noise=True needs a random generator")
+        q = shot_noise(mu, rng)
         q = np.minimum(q, cfg.full_well_e)  # saturation: the well holds no more charge
         _, offset = self.fixed_pattern()
-        v = q + offset[None]
-        if noise:
-            v = read_noise(v, cfg.read_noise_e, rng)  # type: ignore[arg-type]
-        dn = v * cfg.conversion_gain_dn_per_e + cfg.black_level_dn
-        if noise:
-            dn = np.rint(dn)
+        v = read_noise(q + offset[None], cfg.read_noise_e, rng)
+        dn = np.rint(v * cfg.conversion_gain_dn_per_e + cfg.black_level_dn)
         return np.clip(dn, 0.0, cfg.adc_max_dn).astype(np.float32)
 
     def _noise_free_taps(self, signal: OpticalSignal, index: np.ndarray | None = None) -> np.ndarray:
@@ -416,11 +413,7 @@ class SensorModel:
         from tofhil.sim.sensor_kernels import noise_free_taps
 
         cfg = self.config
-        if signal.shape != self.camera.shape:
-            raise ValueError(f"signal is {signal.shape}, camera is {self.camera.shape}")
-        if signal.freq_hz.size != len(cfg.freq_hz) or not np.allclose(signal.freq_hz, cfg.freq_hz, rtol=1e-9):
-            raise ValueError(f"signal frequencies {signal.freq_hz.tolist()} differ from the sensor's "
-                             f"{list(cfg.freq_hz)}")
+        self._check_signal(signal)
         theta = self.theta_rad
         terms = [(h, coef * signal.harmonic(h)) for h, coef in signal.waveform.items() if coef != 0]
         shape = (signal.freq_hz.size,) + signal.shape
