@@ -219,3 +219,26 @@ def test_cli_roi_is_half_open(tmp_path: Path) -> None:
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr and "roi" in bad.stderr
     assert not (tmp_path / "bad.h5").exists()
+
+
+def test_a_sigterm_lost_in_a_destructor_is_raised_again_at_the_next_frame(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A KeyboardInterrupt raised inside h5py's __del__ or a weakref callback is swallowed by Python;
+    the capture's SIGTERM handler must leave the flag the capture loop checks, as Ctrl-C's does
+    (CI once saw a SIGTERMed 100000-frame capture run on)."""
+    import tofhil.cli as cli
+    from tofhil.cli.devices import _sigterm_as_interrupt
+
+    monkeypatch.setitem(cli._INTERRUPT, "requested", False)
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        _sigterm_as_interrupt()
+        handler = signal.getsignal(signal.SIGTERM)
+        try:  # what Python does to an exception raised in a destructor: print and drop it
+            handler(signal.SIGTERM, None)
+        except KeyboardInterrupt:
+            pass
+        steps = cli.progress(iter(range(10)), 10, "frames")
+        with pytest.raises(KeyboardInterrupt):
+            next(steps)
+    finally:
+        signal.signal(signal.SIGTERM, previous)

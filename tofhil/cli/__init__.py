@@ -56,7 +56,8 @@ def lit(value: object) -> str:
 _INTERRUPT = {"requested": False}
 
 
-def _on_sigint(signum: int, frame: object) -> None:
+def on_interrupt_signal(signum: int, frame: object) -> None:
+    """Ctrl-C or SIGTERM: raise KeyboardInterrupt now, and remember it for :func:`check_interrupt`."""
     _INTERRUPT["requested"] = True
     raise KeyboardInterrupt
 
@@ -160,7 +161,7 @@ def main(argv: list[str] | None = None) -> None:
     args = sys.argv[1:] if argv is None else list(argv)
     _register_command_modules(args)
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not when started ignoring it (nohup)
-        signal.signal(signal.SIGINT, _on_sigint)
+        signal.signal(signal.SIGINT, on_interrupt_signal)
         sys.unraisablehook = _unraisable
     ex = _click_exceptions()
     command = typer.main.get_command(app)

@@ -10,7 +10,7 @@ from typing import Optional
 
 import typer
 
-from tofhil.cli import app, console, out, progress
+from tofhil.cli import app, console, on_interrupt_signal, out, progress
 from tofhil.cli import options as opt
 from tofhil.errors import DeviceError
 
@@ -26,10 +26,12 @@ def _parse_roi(text: str | None) -> tuple[int, int, int, int] | None:
 
 
 def _sigterm_as_interrupt() -> None:
-    """SIGTERM ends a capture like Ctrl-C: the session is closed with every frame saved."""
-    def handler(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt
-    signal.signal(signal.SIGTERM, handler)
+    """SIGTERM ends a capture like Ctrl-C: the session is closed with every frame saved.
+
+    The same handler as Ctrl-C's: it also sets the flag the capture loop checks, since a
+    KeyboardInterrupt raised inside h5py's ``__del__`` or a weakref callback is lost (a lost
+    SIGTERM let a 100000-frame capture run on)."""
+    signal.signal(signal.SIGTERM, on_interrupt_signal)
 
 
 @app.command()
