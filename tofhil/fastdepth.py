@@ -56,6 +56,24 @@ def _phase(y: float, x: float) -> float:
 _BLOCK = 1024
 
 
+@njit(inline="always", fastmath=_FASTMATH, error_model="numpy")
+def _iq4(x0, x1, x2, x3, w0r, w1r, w0i, w1i, lo, hi):  # pragma: no cover
+    """Four taps -> I, Q, their sum and whether every tap is inside (lo, hi): the arithmetic
+    :func:`_fused` and :func:`_fused_one` share (I/Q from the differences c_j - c_{j+2})."""
+    d0 = x0 - x2
+    d1 = x1 - x3
+    ok = ((x0 > lo) & (x0 < hi) & (x1 > lo) & (x1 < hi)
+          & (x2 > lo) & (x2 < hi) & (x3 > lo) & (x3 < hi))
+    return w0r * d0 + w1r * d1, w0i * d0 + w1i * d1, x0 + x1 + x2 + x3, ok
+
+
+@njit(inline="always", fastmath=_FASTMATH, error_model="numpy")
+def _iq3(x0, x1, x2, w0r, w1r, w2r, w0i, w1i, w2i, lo, hi):  # pragma: no cover
+    """Three taps (odd K: no differences) -> I, Q, their sum and whether every tap is inside (lo, hi)."""
+    ok = (x0 > lo) & (x0 < hi) & (x1 > lo) & (x1 < hi) & (x2 > lo) & (x2 < hi)
+    return w0r * x0 + w1r * x1 + w2r * x2, w0i * x0 + w1i * x1 + w2i * x2, x0 + x1 + x2, ok
+
+
 @njit(fastmath=_FASTMATH, error_model="numpy", cache=True)
 def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out_conf, out_valid):  # pragma: no cover
     """taps [F, K, N] float32 -> distance, mean amplitude, mean tap (intensity), conflict
@@ -99,16 +117,10 @@ def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out
                 t3 = taps[f, 3, b0:b0 + m]
                 w0r, w1r, w0i, w1i = wr[0], wr[1], wi[0], wi[1]
                 for j in range(m):
-                    x0, x1, x2, x3 = t0[j], t1[j], t2[j], t3[j]
-                    d0 = x0 - x2
-                    d1 = x1 - x3
-                    i_ = w0r * d0 + w1r * d1
-                    q_ = w0i * d0 + w1i * d1
+                    i_, q_, s4, ok = _iq4(t0[j], t1[j], t2[j], t3[j], w0r, w1r, w0i, w1i, lo, hi)
                     fa[j] = math.sqrt(i_ * i_ + q_ * q_)
                     fp[j] = _phase(q_, i_)
-                    S[j] += x0 + x1 + x2 + x3
-                    ok = ((x0 > lo) & (x0 < hi) & (x1 > lo) & (x1 < hi)
-                          & (x2 > lo) & (x2 < hi) & (x3 > lo) & (x3 < hi))
+                    S[j] += s4
                     G[j] &= np.uint8(1) if ok else np.uint8(0)
                 continue
             if k == 3:
@@ -118,13 +130,10 @@ def _fused(taps, wr, wi, lo, hi, c, r, fw, spacing, out_d, out_amp, out_int, out
                 t2 = taps[f, 2, b0:b0 + m]
                 w0r, w1r, w2r, w0i, w1i, w2i = wr[0], wr[1], wr[2], wi[0], wi[1], wi[2]
                 for j in range(m):
-                    x0, x1, x2 = t0[j], t1[j], t2[j]
-                    i_ = w0r * x0 + w1r * x1 + w2r * x2
-                    q_ = w0i * x0 + w1i * x1 + w2i * x2
+                    i_, q_, s3, ok = _iq3(t0[j], t1[j], t2[j], w0r, w1r, w2r, w0i, w1i, w2i, lo, hi)
                     fa[j] = math.sqrt(i_ * i_ + q_ * q_)
                     fp[j] = _phase(q_, i_)
-                    S[j] += x0 + x1 + x2
-                    ok = (x0 > lo) & (x0 < hi) & (x1 > lo) & (x1 < hi) & (x2 > lo) & (x2 < hi)
+                    S[j] += s3
                     G[j] &= np.uint8(1) if ok else np.uint8(0)
                 continue
             fi = bi[f]
@@ -221,37 +230,24 @@ def _fused_one(taps, wr, wi, lo, hi, scale, inv_n, out_d, out_amp, out_int, out_
         t0, t1, t2, t3 = taps[0, 0], taps[0, 1], taps[0, 2], taps[0, 3]
         w0r, w1r, w0i, w1i = wr[0], wr[1], wi[0], wi[1]
         for j in range(n):
-            x0, x1, x2, x3 = t0[j], t1[j], t2[j], t3[j]
-            d0 = x0 - x2
-            d1 = x1 - x3
-            i_ = w0r * d0 + w1r * d1
-            q_ = w0i * d0 + w1i * d1
+            i_, q_, s, ok = _iq4(t0[j], t1[j], t2[j], t3[j], w0r, w1r, w0i, w1i, lo, hi)
             a = math.sqrt(i_ * i_ + q_ * q_)
             d = _phase(q_, i_) * scale
-            s = np.float32(0.0)
-            s += x0 + x1 + x2 + x3
             out_int[j] = s * inv_n
             out_d[j] = d
             out_amp[j] = a
-            ok = ((x0 > lo) & (x0 < hi) & (x1 > lo) & (x1 < hi)
-                  & (x2 > lo) & (x2 < hi) & (x3 > lo) & (x3 < hi))
             fin = np.isfinite(d) & np.isfinite(a)
             out_valid[j] = np.uint8(1) if (ok & fin) else np.uint8(0)
     else:
         t0, t1, t2 = taps[0, 0], taps[0, 1], taps[0, 2]
         w0r, w1r, w2r, w0i, w1i, w2i = wr[0], wr[1], wr[2], wi[0], wi[1], wi[2]
         for j in range(n):
-            x0, x1, x2 = t0[j], t1[j], t2[j]
-            i_ = w0r * x0 + w1r * x1 + w2r * x2
-            q_ = w0i * x0 + w1i * x1 + w2i * x2
+            i_, q_, s, ok = _iq3(t0[j], t1[j], t2[j], w0r, w1r, w2r, w0i, w1i, w2i, lo, hi)
             a = math.sqrt(i_ * i_ + q_ * q_)
             d = _phase(q_, i_) * scale
-            s = np.float32(0.0)
-            s += x0 + x1 + x2
             out_int[j] = s * inv_n
             out_d[j] = d
             out_amp[j] = a
-            ok = (x0 > lo) & (x0 < hi) & (x1 > lo) & (x1 < hi) & (x2 > lo) & (x2 < hi)
             fin = np.isfinite(d) & np.isfinite(a)
             out_valid[j] = np.uint8(1) if (ok & fin) else np.uint8(0)
 
