@@ -449,7 +449,7 @@ def test_scene_file_hostile_values(case: str, body: str, inputs: dict[str, Path]
     scene.write_text(__import__("yaml").safe_dump(base | extra))
     out = tmp_path / "out"
     out.mkdir()
-    res = run("simulate", scene, "--out", "s.h5", cwd=out, timeout=30)
+    res = run("simulate", scene, "--out", "s.h5", cwd=out, timeout=120)
     assert_refused(res)
     assert list(out.iterdir()) == []
 
@@ -459,5 +459,5 @@ def test_non_utf8_scene(tmp_path: Path) -> None:
     scene.write_bytes(SMALL_SCENE.replace("small_wall", "sm\xe4ll").encode("latin-1"))
     out = tmp_path / "out"
     out.mkdir()
-    res = run("simulate", scene, "--out", "s.h5", cwd=out, timeout=30)
+    res = run("simulate", scene, "--out", "s.h5", cwd=out, timeout=120)
     assert_refused(res, contains=("latin1.yaml",))

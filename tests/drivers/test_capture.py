@@ -176,7 +176,7 @@ def test_an_interrupted_capture_says_how_many_frames_it_kept(tmp_path: Path, sig
             time.sleep(0.05)
         assert out.exists(), "capture never started"
         proc.send_signal(sig)
-        stdout, stderr = proc.communicate(timeout=30)
+        stdout, stderr = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
