@@ -232,13 +232,7 @@ def _read_session(path: Path, frame: int) -> np.ndarray:
     from tofhil.session import open_session
 
     with open_session(path) as s:
-        if not s.has_depth:
-            raise InputFileError("has no depth frames", file=path, field="depth/radial_m",
-                                 expected="a session with depth (run 'tofhil depth' first)")
-        if not -s.n_frames <= frame < s.n_frames:
-            raise InputFileError(f"has no frame {frame}", file=path, field="frame",
-                                 expected=f"a frame index in 0..{s.n_frames - 1}")
-        return s.depth_frame(frame).points()
+        return s.requested_depth_frame(frame, field="frame").points()
 
 
 def load_cloud(source: str | Path) -> np.ndarray:

@@ -151,13 +151,7 @@ def session_inputs(path: str | Path, frame: int = 0, tof_to_color: np.ndarray | 
         raise InputFileError("missing", file=path, field="rgb.tof_to_camera",
                              expected="the ToF -> camera extrinsics (or --extrinsics from tofhil calibrate-stereo)")
     with open_session(path) as s:
-        if not s.has_depth:
-            raise InputFileError("has no depth frames", file=path, field="depth/radial_m",
-                                 expected="a session with depth (run 'tofhil depth' first)")
-        if not 0 <= frame < s.n_frames:
-            raise InputFileError(f"has {s.n_frames} frames", file=path, field="--frame",
-                                 expected=f"an index below {s.n_frames}")
-        d = s.depth_frame(frame)
+        d = s.requested_depth_frame(frame)
     cam = d.camera
     valid = cam.valid_mask(d.distance_m, d.valid)
     z = np.asarray(d.distance_m if d.kind != "radial" else cam.radial_to_z(d.distance_m), dtype=np.float64)

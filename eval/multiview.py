@@ -81,10 +81,7 @@ def load_view(path: str | Path) -> View:
 
     path = Path(path)
     with open_session(path) as s:
-        if not s.has_depth:
-            raise InputFileError("has no depth frames", file=path, field="depth/radial_m",
-                                 expected="a session with depth (run 'tofhil depth' first)")
-        frame, _ = mean_depth_frame(s.depth_frames())
+        frame, _ = mean_depth_frame(s.depth_frames())   # a session without depth: InputFileError
         text = s.scene_text
     cam = frame.camera
     mask = cam.valid_mask(frame.distance_m, frame.valid)

@@ -466,14 +466,8 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
         raise TofhilError("already exists; refusing to overwrite (use --force)", file=existing[0], field="--out")
 
     with open_session(session_path) as s:
-        if not s.has_depth:
-            raise TofhilError("has no depth frames", file=session_path, field="depth/radial_m",
-                              expected="a session with depth (tofhil import / tofhil depth)")
-        if not 0 <= frame < s.n_frames:
-            raise TofhilError(f"is {frame}", file=session_path, field="--frame",
-                              expected=f"a frame index 0..{s.n_frames - 1}")
+        df = s.requested_depth_frame(frame)
         freqs, wl, freq_src = _frequencies(s, freq_hz, wavelength_m)
-        df = s.depth_frame(frame)
         cam = s.camera
     radial = np.asarray(df.radial_m, np.float64)
     valid = np.asarray(df.valid, bool) & np.isfinite(radial) & (radial > 0)

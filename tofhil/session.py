@@ -609,7 +609,8 @@ class Session:
 
     def depth_frame(self, i: int) -> DepthFrame:
         if not self.has_depth:
-            raise InputFileError("has no depth frames", file=self.path, field="depth/radial_m")
+            raise InputFileError("has no depth frames", file=self.path, field="depth/radial_m",
+                                 expected="a session with depth (tofhil import, or tofhil depth on raw taps)")
         i = self._index(i)
         g = self._file["depth"]
         get = lambda name: g[name][i] if name in g else None  # noqa: E731
@@ -624,6 +625,14 @@ class Session:
                           amplitude=parts["amplitude"], intensity=parts["intensity"],
                           confidence=parts["confidence"],
                           valid=None if valid is None else valid.astype(bool), **meta)
+
+    def requested_depth_frame(self, frame: int, field: str = "--frame") -> DepthFrame:
+        """Depth frame ``frame`` as a user asked for it (negative counts from the end): a
+        session without depth or an index outside it is a user error naming ``field``."""
+        if self.has_depth and not -self.n_frames <= frame < self.n_frames:
+            raise InputFileError(f"has no frame {frame} ({self.n_frames} frames)", file=self.path, field=field,
+                                 expected=f"a frame index in 0..{self.n_frames - 1}")
+        return self.depth_frame(frame)
 
     def histogram_frame(self, i: int) -> dict[str, np.ndarray]:
         """Frame ``i``'s direct-ToF datasets under ``histograms/`` (``counts`` [T, H, W], ...)."""
