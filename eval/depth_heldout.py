@@ -108,6 +108,32 @@ def binned_camera(camera: CameraModel, b: int) -> CameraModel:
                    cx=(camera.cx + 0.5) * f - 0.5, cy=(camera.cy + 0.5) * f - 0.5)
 
 
+def _with_usable_neighbours(usable: np.ndarray) -> np.ndarray:
+    """Usable pixels whose 4 neighbours are usable too (the border excluded): where the
+    high-pass of :func:`_highpass_on_phasor` sees no invalid pixel."""
+    ok = usable.copy()
+    ok[1:] &= usable[:-1]
+    ok[:-1] &= usable[1:]
+    ok[:, 1:] &= usable[:, :-1]
+    ok[:, :-1] &= usable[:, 1:]
+    ok[0], ok[-1], ok[:, 0], ok[:, -1] = False, False, False, False
+    return ok
+
+
+def _highpass_on_phasor(sf: np.ndarray) -> np.ndarray:
+    """``sf - mean(4 neighbours)`` rotated onto each pixel's phasor: imaginary part across
+    it (phase, i.e. depth), real part along it (amplitude)."""
+    nb = 0.25 * (np.roll(sf, 1, 0) + np.roll(sf, -1, 0) + np.roll(sf, 1, 1) + np.roll(sf, -1, 1))
+    return (sf - nb) * np.conj(_unit(sf))
+
+
+def _robust_noise_variance(hp: np.ndarray) -> float:
+    """Noise variance from high-pass values: (1.4826 MAD)^2 / 1.25 (the 4-neighbour
+    high-pass of white noise has variance ``1.25 sigma^2``)."""
+    mad = float(np.median(np.abs(hp - np.median(hp))))
+    return (1.4826 * mad) ** 2 / 1.25
+
+
 def spatial_noise_variance(s: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-frequency noise variances of ``s [F, H, W]`` across (tangential: phase, i.e. depth)
     and along (radial: amplitude) each pixel's phasor, from the local spatial scatter: the
@@ -115,23 +141,15 @@ def spatial_noise_variance(s: np.ndarray, usable: np.ndarray) -> tuple[np.ndarra
     of white noise has variance ``1.25 sigma^2``), over pixels whose neighbours are all usable.
     Fine amplitude texture the twin's per-object reflectance cannot follow counts as radial
     scatter: it is not a cause any effect of the library could explain."""
-    ok = usable.copy()
-    ok[1:] &= usable[:-1]
-    ok[:-1] &= usable[1:]
-    ok[:, 1:] &= usable[:, :-1]
-    ok[:, :-1] &= usable[:, 1:]
-    ok[0], ok[-1], ok[:, 0], ok[:, -1] = False, False, False, False
+    ok = _with_usable_neighbours(usable)
     if ok.sum() < 20:
         raise TofhilError(f"has {int(ok.sum())} pixels with usable neighbours", field="depth/valid",
                           expected="at least 20 to estimate the noise")
     tang, rad = [], []
     for sf in s:
-        nb = 0.25 * (np.roll(sf, 1, 0) + np.roll(sf, -1, 0) + np.roll(sf, 1, 1) + np.roll(sf, -1, 1))
-        unit = sf[ok] / np.maximum(np.abs(sf[ok]), 1e-30)
-        hp = (sf - nb)[ok] * np.conj(unit)
-        for comp, out in ((hp.imag, tang), (hp.real, rad)):
-            mad = float(np.median(np.abs(comp - np.median(comp))))
-            out.append(max((1.4826 * mad) ** 2 / 1.25, 1e-30))
+        hp = _highpass_on_phasor(sf)[ok]
+        tang.append(max(_robust_noise_variance(hp.imag), 1e-30))
+        rad.append(max(_robust_noise_variance(hp.real), 1e-30))
     return np.asarray(tang), np.asarray(rad)
 
 
@@ -168,22 +186,11 @@ def confidence_noise(s: np.ndarray, usable: np.ndarray, confidence: np.ndarray
         n_cls = edges.size - 1
         cls = np.clip(np.searchsorted(edges, confidence, side="right") - 1, 0, n_cls - 1)
     # the high-pass over every usable pixel (neighbours of any class), then its scatter per class
-    inner = usable.copy()
-    inner[1:] &= usable[:-1]
-    inner[:-1] &= usable[1:]
-    inner[:, 1:] &= usable[:, :-1]
-    inner[:, :-1] &= usable[:, 1:]
-    inner[0], inner[-1], inner[:, 0], inner[:, -1] = False, False, False, False
-    inner &= ok
-    hp2 = []
-    for sf in s:
-        nb = 0.25 * (np.roll(sf, 1, 0) + np.roll(sf, -1, 0) + np.roll(sf, 1, 1) + np.roll(sf, -1, 1))
-        hp2.append(((sf - nb) * np.conj(_unit(sf))).imag)
-    hp = np.stack(hp2)
+    inner = _with_usable_neighbours(usable) & ok
+    hp = np.stack([_highpass_on_phasor(sf).imag for sf in s])
 
     def robust_var(m: np.ndarray) -> float:
-        x = hp[:, m]
-        return float(np.mean([(1.4826 * np.median(np.abs(c - np.median(c)))) ** 2 / 1.25 for c in x]))
+        return float(np.mean([_robust_noise_variance(c) for c in hp[:, m]]))
 
     v_all = robust_var(inner)
     centres, logv, w = [], [], []
