@@ -361,39 +361,10 @@ def pcl_point_scores(grid: NDTGrid, points: np.ndarray, outlier_ratio: float = 0
 
     Returns ``(sum_score [N], nearest_score [N], has_neighbour [N])``: the sum (PCL's
     score), the largest term (Autoware's nearest-voxel score) and whether any cell mean is
-    within the radius.
+    within the radius. Computed by the vectorised 27-offset pass (:func:`_all_point_terms`),
+    the one numpy definition of the terms that the compiled loop is tested against.
     """
-    p = _as_points(points)
-    d1, d2 = gauss_params(grid.cell_size, outlier_ratio)
-    r2 = grid.cell_size ** 2
-    base = grid.cell_of(p)
-    frac = p / grid.cell_size - base            # position inside the cell, [0, 1)
-    # Squared gap (in cell units) from the point to the lower / upper neighbour cell:
-    # a neighbour whose box is farther than the radius cannot hold a mean within it.
-    gap = {-1: frac ** 2, 0: np.zeros_like(frac), 1: (1.0 - frac) ** 2}
-    total = np.zeros(p.shape[0])
-    best = np.zeros(p.shape[0])
-    has = np.zeros(p.shape[0], dtype=bool)
-    nb = _Neighbours(grid, base)
-    cols = _columns(p)
-    for off in _OFFSETS27:
-        cells = nb.at(off)
-        reach = cells >= 0
-        if np.count_nonzero(off) > 1:
-            reach &= (gap[off[0]][:, 0] + gap[off[1]][:, 1] + gap[off[2]][:, 2]) <= 1.0
-        sel = np.flatnonzero(reach)
-        if sel.size == 0:
-            continue
-        c = np.take(cells, sel)
-        dx, dy, dz = _deltas(grid, _take(cols, sel), c)
-        near = dx * dx + dy * dy + dz * dz <= r2
-        sel, c = sel[near], c[near]
-        e = np.exp(-0.5 * d2 * _quad_d(grid, dx[near], dy[near], dz[near], c))
-        term = np.where((d2 * e <= 1.0) & (d2 * e >= 0.0), -d1 * e, 0.0)
-        total[sel] += term
-        best[sel] = np.maximum(best[sel], term)
-        has[sel] = True
-    return total, best, has
+    return _all_point_terms(grid, _as_points(points), outlier_ratio)[2:]
 
 
 def pcl_score(grid: NDTGrid, points: Any, outlier_ratio: float = 0.55) -> float:
