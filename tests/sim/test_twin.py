@@ -143,3 +143,23 @@ def test_ambient_power_is_linear_in_the_irradiance(scene):
     assert np.all(dark.ambient_power_w == 0)
     np.testing.assert_allclose(dark.ambient_power_per_irradiance, r.ambient_power_per_irradiance, rtol=1e-12)
 
+
+
+def test_render_cache_bounds_the_bytes_of_its_unpinned_renders():
+    # renders as small arrays: a budget of 3 of them keeps the 3 newest, the pinned one
+    # aside, and a render larger than the whole budget is still kept when it is the newest
+    from tofhil.sim.twin import RenderCache
+
+    @dataclasses.dataclass
+    class Fake:
+        a: np.ndarray
+
+    each = Fake(np.zeros(128)).a.nbytes
+    cache = RenderCache(size=8, max_bytes=3 * each)
+    cache.put("base", Fake(np.zeros(128)), pin=True)
+    for i in range(5):
+        cache.put(f"r{i}", Fake(np.zeros(128)))
+    assert list(cache.entries) == ["base", "r2", "r3", "r4"]
+    cache.put("big", Fake(np.zeros(1024)))
+    assert list(cache.entries) == ["base", "big"]
+    assert cache.get("base") is not None and cache.get("r4") is None
