@@ -498,9 +498,9 @@ def _blur_of(s: np.ndarray, key: str | None = None) -> GaussianBlur:
     key = _content(s) if key is None else key
     blur = _BLURS.get(key)
     if blur is None:
-        blur = _BLURS[key] = GaussianBlur(s, single=True)
-        while len(_BLURS) > _BLURS_KEPT:
+        while len(_BLURS) >= _BLURS_KEPT:  # (before the new one: never two frames' worth at once)
             _BLURS.popitem(last=False)
+        blur = _BLURS[key] = GaussianBlur(s, single=True)
     else:
         _BLURS.move_to_end(key)
     return blur
@@ -523,6 +523,8 @@ def apply_lobes(psf: StrayLightPSF, s: np.ndarray) -> np.ndarray:
     if done is not None:
         _SCATTERED.move_to_end(key)
         return done.copy()
+    while len(_SCATTERED) >= _SCATTERED_KEPT:  # (a miss: the kept result is another light's or PSF's)
+        _SCATTERED.popitem(last=False)
     out = psf.keep * s.astype(np.result_type(s.dtype, np.float64))
     if lobes:
         blur = _blur_of(s, image)
@@ -532,8 +534,6 @@ def apply_lobes(psf: StrayLightPSF, s: np.ndarray) -> np.ndarray:
     if psf.veil:
         out += (psf.veil / (h * w)) * s.sum(axis=(-2, -1), keepdims=True)
     _SCATTERED[key] = out.copy()
-    while len(_SCATTERED) > _SCATTERED_KEPT:
-        _SCATTERED.popitem(last=False)
     return out
 
 
