@@ -447,7 +447,13 @@ class GaussianBlur:
         self.workers = workers
         self.ctype = np.complex64 if single else np.complex128
         self.fshape = fft_shape((self.h, self.w), (2 * self.h - 1, 2 * self.w - 1), (self.h - 1, self.w - 1))
-        self._sf = sfft.fft2(s.astype(self.ctype, copy=False) if single else s, s=self.fshape, axes=(-2, -1),
+        self.stack = s.shape[:-2]
+        flat = s.reshape((-1, self.h, self.w))
+        # An image that is zero everywhere (the ambient light of a scene without any) blurs to
+        # zero: neither transformed nor blurred.
+        self._lit = np.flatnonzero([np.any(x) for x in flat])
+        lit = flat if len(self._lit) == len(flat) else flat[self._lit]
+        self._sf = sfft.fft2(lit.astype(self.ctype, copy=False) if single else lit, s=self.fshape, axes=(-2, -1),
                              workers=workers)
 
     def __call__(self, sigma_x_px: float, sigma_y_px: float,
@@ -459,12 +465,11 @@ class GaussianBlur:
         # Inverse along x, crop to the sensor's columns, then along y: half the work. One image
         # of the stack at a time: the padded temporaries are one image's, not the stack's
         # (at 512 x 512 a stack of 4 needed ~100 MB of them; each 1-D transform is the same).
-        sf = self._sf.reshape((-1,) + self._sf.shape[-2:])
-        out = np.empty((sf.shape[0], self.h, self.w), dtype=self.ctype)
-        for i in range(sf.shape[0]):
-            t = sfft.ifft(sf[i] * fx, axis=-1, workers=self.workers)[:, self.w - 1:2 * self.w - 1]
+        out = np.zeros((int(np.prod(self.stack)), self.h, self.w), dtype=self.ctype)
+        for sf, i in zip(self._sf, self._lit):
+            t = sfft.ifft(sf * fx, axis=-1, workers=self.workers)[:, self.w - 1:2 * self.w - 1]
             out[i] = sfft.ifft(t * fy[:, None], axis=-2, workers=self.workers)[self.h - 1:2 * self.h - 1, :]
-        return out.reshape(self._sf.shape[:-2] + (self.h, self.w))
+        return out.reshape(self.stack + (self.h, self.w))
 
 
 def lobes_only(psf: StrayLightPSF) -> bool:
