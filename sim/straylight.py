@@ -452,9 +452,13 @@ class GaussianBlur:
         # An image that is zero everywhere (the ambient light of a scene without any) blurs to
         # zero: neither transformed nor blurred.
         self._lit = np.flatnonzero([np.any(x) for x in flat])
-        lit = flat if len(self._lit) == len(flat) else flat[self._lit]
-        self._sf = sfft.fft2(lit.astype(self.ctype, copy=False) if single else lit, s=self.fshape, axes=(-2, -1),
-                             workers=workers)
+        if len(self._lit) == len(flat):
+            lit = flat.astype(self.ctype, copy=False) if single else flat
+        else:  # (one copy of the lit images, in the transform's precision)
+            lit = np.empty((len(self._lit), self.h, self.w), dtype=self.ctype if single else flat.dtype)
+            for j, i in enumerate(self._lit):
+                lit[j] = flat[i]
+        self._sf = sfft.fft2(lit, s=self.fshape, axes=(-2, -1), workers=workers)
 
     def __call__(self, sigma_x_px: float, sigma_y_px: float,
                  offset_px: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
@@ -532,7 +536,7 @@ def apply_lobes(psf: StrayLightPSF, s: np.ndarray) -> np.ndarray:
         return done.copy()
     while len(_SCATTERED) >= _SCATTERED_KEPT:  # (a miss: the kept result is another light's or PSF's)
         _SCATTERED.popitem(last=False)
-    out = psf.keep * s.astype(np.result_type(s.dtype, np.float64))
+    out = np.multiply(s, psf.keep, dtype=np.result_type(s.dtype, np.float64))  # (no copy of s first)
     if lobes:
         blur = _blur_of(s, image)
         for g in lobes:

@@ -114,7 +114,7 @@ class RenderCache:
 
     max_pinned = 4
 
-    def __init__(self, size: int = 8, max_bytes: int = 64 * 2 ** 20) -> None:
+    def __init__(self, size: int = 8, max_bytes: int = 32 * 2 ** 20) -> None:
         self.size = size
         self.max_bytes = max_bytes
         self.entries: OrderedDict[str, Any] = OrderedDict()
@@ -139,6 +139,12 @@ class RenderCache:
             oldest = unpinned.pop(0)
             held -= self._nbytes.pop(oldest)
             del self.entries[oldest]
+
+    def clear(self) -> None:
+        """Drop every render (the pinned ones too)."""
+        self.entries.clear()
+        self.pinned.clear()
+        self._nbytes.clear()
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -290,6 +296,10 @@ class Twin:
         if pixels is not None:
             self.pixel_cache.put(key, result)
             return scene2, result
+        # A whole frame ends a fit on some pixels (its fitted values predicted) or is one of a
+        # fit on whole frames: the renders of some pixels are not asked for again (the next
+        # fit's values differ) and hold whole-frame arrays.
+        self.pixel_cache.clear()
         base = {n: v for n, v in self.base_effects.items() if EFFECTS[n].stage == "scene"}
         self.cache.put(key, result, pin=scene_effects == base)
         return scene2, result

@@ -163,3 +163,19 @@ def test_render_cache_bounds_the_bytes_of_its_unpinned_renders():
     cache.put("big", Fake(np.zeros(1024)))
     assert list(cache.entries) == ["base", "big"]
     assert cache.get("base") is not None and cache.get("r4") is None
+
+
+def test_a_whole_frame_drops_the_renders_of_some_pixels(scene):
+    # the renders of a fit's pixels are not asked for again once a whole frame is rendered
+    # (the fit ended): they go, and a pixel asked for again is rendered again, the same
+    twin = Twin(scene, effects={})
+    pixels = np.zeros(scene.camera.shape, dtype=bool)
+    pixels[::7, ::5] = True
+    moved = {"pose": {"tz": 0.002}}
+    first = twin.expected_taps_at(moved, pixels)
+    assert len(twin.pixel_cache) == 1
+    whole = twin.expected_taps(moved)
+    assert len(twin.pixel_cache) == 0
+    again = twin.expected_taps_at(moved, pixels)  # (the whole frame serves now)
+    np.testing.assert_array_equal(again, first)
+    np.testing.assert_array_equal(again[:, :, 0], whole[:, :, pixels])
