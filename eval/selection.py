@@ -33,6 +33,7 @@ from tofhil.eval.heldout import HUBER_SIGMA, HeldOutData, huber, predict_fit
 from tofhil.eval.form_prior import regularise_form
 from tofhil.eval.identifiability import Alternative, Identifiability, alternatives, assess_form, param_group
 from tofhil.eval.verdict import ChannelGain, EffectSize, channel_chi2, worse_channels
+from tofhil.sim.memory import release_free_memory
 
 EffectParams = dict[str, dict[str, float]]
 #: How a partial form is named: its flexible form, this, and the parameter groups left out.
@@ -417,6 +418,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                     names_ = {p.name for p in spec.params}
                     simple = {k: v for k, v in start_from.params.items() if k in names_}
                     spec = dataclasses.replace(spec, starts=(simple,) + tuple(spec.starts))
+                release_free_memory()  # (the last fit's frame-sized temporaries)
                 if progress:
                     progress(f"fitting {name}" + (f" ({spec.form})" if spec.form else ""))
                 trial_lib = {**work, name: spec}

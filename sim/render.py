@@ -159,8 +159,10 @@ class _LRU:
 # Embree scenes and per-pixel view arrays, keyed by content: renders of one scene with a
 # moved camera or other materials (as while fitting) share them.
 _GEOMETRY = _LRU(4)
-_VIEWS = _LRU(4)
-_CAMERAS = _LRU(4)
+# (two each: at camera resolution an entry is 10-20 MB, and a fit makes a new pose or camera
+# every evaluation; the base camera's rays stay cached on its CameraModel)
+_VIEWS = _LRU(2)
+_CAMERAS = _LRU(2)
 
 
 def scene_geometry(scene: Scene) -> Geometry:

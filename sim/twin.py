@@ -18,6 +18,7 @@ Each effect acts through the hook of its stage (``tofhil.sim.effects.STAGE_HOOKS
 
 from __future__ import annotations
 
+import dataclasses
 from collections import OrderedDict
 from pathlib import Path
 from typing import Any, Iterable, Mapping
@@ -88,6 +89,15 @@ def signal_from_render(scene: Any, result: Any, effects: Effects, config: Sensor
     return apply_signal_effects(signal, effects, effect_context(scene, camera, config))
 
 
+def _nbytes(value: Any) -> int:
+    """The bytes of the arrays a render result holds (its own fields; the camera's are not
+    counted)."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return sum(getattr(value, f.name).nbytes for f in dataclasses.fields(value)
+                   if isinstance(getattr(value, f.name), np.ndarray))
+    return 0
+
+
 class RenderCache:
     """Renders by content key, least recently used first out, except the pinned ones.
 
@@ -95,14 +105,21 @@ class RenderCache:
     scene-stage effect (a pose fit renders dozens of poses in a row): the base render is
     pinned (at most :attr:`max_pinned` renders are), so those fits do not evict it. A cache
     may be shared by several twins of one scene (keys are by content, not by twin).
+
+    The unpinned renders are bounded both in number (``size``) and in bytes (``max_bytes``;
+    the newest is always kept): at camera resolution a render is 20-60 MB, and the renders
+    of a scene-stage fit (one per evaluation, with stray light in the set) are almost never
+    asked for again, except the last (the fitted values, predicted once more).
     """
 
     max_pinned = 4
 
-    def __init__(self, size: int = 8) -> None:
+    def __init__(self, size: int = 8, max_bytes: int = 32 * 2 ** 20) -> None:
         self.size = size
+        self.max_bytes = max_bytes
         self.entries: OrderedDict[str, Any] = OrderedDict()
         self.pinned: set[str] = set()
+        self._nbytes: dict[str, int] = {}
 
     def get(self, key: str) -> Any | None:
         hit = self.entries.get(key)
@@ -112,11 +129,22 @@ class RenderCache:
 
     def put(self, key: str, value: Any, *, pin: bool = False) -> None:
         self.entries[key] = value
+        self.entries.move_to_end(key)
+        self._nbytes[key] = _nbytes(value)
         if pin and len(self.pinned) < self.max_pinned:
             self.pinned.add(key)
-        while len(self.entries) > self.size + len(self.pinned):
-            oldest = next(k for k in self.entries if k not in self.pinned)
+        unpinned = [k for k in self.entries if k not in self.pinned]
+        held = sum(self._nbytes[k] for k in unpinned)
+        while unpinned[:-1] and (len(unpinned) > self.size or held > self.max_bytes):
+            oldest = unpinned.pop(0)
+            held -= self._nbytes.pop(oldest)
             del self.entries[oldest]
+
+    def clear(self) -> None:
+        """Drop every render (the pinned ones too)."""
+        self.entries.clear()
+        self.pinned.clear()
+        self._nbytes.clear()
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -149,7 +177,7 @@ class Twin:
         self.cache = cache if cache is not None else RenderCache(cache_size)
         # Renders of some pixels (a fit's; each Jacobian column of a scene-stage parameter is
         # a new one): few are ever asked for again, and each holds full-frame arrays.
-        self.pixel_cache = RenderCache(2)
+        self.pixel_cache = RenderCache(2, max_bytes=32 * 2 ** 20)
         self._sensors: dict[Any, SensorModel] = {}
         self.renders = 0  # renders traced (cache misses)
         self._base_render_bounces = int(scene.render.bounces)
@@ -268,6 +296,10 @@ class Twin:
         if pixels is not None:
             self.pixel_cache.put(key, result)
             return scene2, result
+        # A whole frame ends a fit on some pixels (its fitted values predicted) or is one of a
+        # fit on whole frames: the renders of some pixels are not asked for again (the next
+        # fit's values differ) and hold whole-frame arrays.
+        self.pixel_cache.clear()
         base = {n: v for n, v in self.base_effects.items() if EFFECTS[n].stage == "scene"}
         self.cache.put(key, result, pin=scene_effects == base)
         return scene2, result

@@ -80,3 +80,16 @@ def test_same_light_and_psf_give_the_kept_result():
     assert np.allclose(b, StrayLightOperator(psf, s.shape[-2:]).apply(s), atol=1e-7)
     other = apply_lobes(StrayLightPSF.from_params({"weight": 0.04, "sigma_px": 3.5, "veil": 0.01}), s)
     assert not np.allclose(other, b)
+
+
+def test_blur_of_a_stack_with_a_dark_image_is_each_image_blurred_alone():
+    # the dark image (no ambient light) is skipped: its blur is exactly zero, and the other
+    # images' blurs are those of each image on its own, against the direct sum too
+    rng = np.random.default_rng(3)
+    s = rng.random((3, 30, 40)) + 1j * rng.random((3, 30, 40))
+    s[1] = 0.0
+    both = SL.GaussianBlur(s)(3.0, 2.0)
+    assert both.shape == s.shape and not np.any(both[1])
+    for i in (0, 2):
+        np.testing.assert_array_equal(both[i], SL.GaussianBlur(s[i])(3.0, 2.0))
+        np.testing.assert_allclose(both[i], _direct(s[i], 1.0, 3.0, 2.0, 0.0, 0.0), atol=1e-9 * np.abs(s[i]).sum())

@@ -143,3 +143,39 @@ def test_ambient_power_is_linear_in_the_irradiance(scene):
     assert np.all(dark.ambient_power_w == 0)
     np.testing.assert_allclose(dark.ambient_power_per_irradiance, r.ambient_power_per_irradiance, rtol=1e-12)
 
+
+
+def test_render_cache_bounds_the_bytes_of_its_unpinned_renders():
+    # renders as small arrays: a budget of 3 of them keeps the 3 newest, the pinned one
+    # aside, and a render larger than the whole budget is still kept when it is the newest
+    from tofhil.sim.twin import RenderCache
+
+    @dataclasses.dataclass
+    class Fake:
+        a: np.ndarray
+
+    each = Fake(np.zeros(128)).a.nbytes
+    cache = RenderCache(size=8, max_bytes=3 * each)
+    cache.put("base", Fake(np.zeros(128)), pin=True)
+    for i in range(5):
+        cache.put(f"r{i}", Fake(np.zeros(128)))
+    assert list(cache.entries) == ["base", "r2", "r3", "r4"]
+    cache.put("big", Fake(np.zeros(1024)))
+    assert list(cache.entries) == ["base", "big"]
+    assert cache.get("base") is not None and cache.get("r4") is None
+
+
+def test_a_whole_frame_drops_the_renders_of_some_pixels(scene):
+    # the renders of a fit's pixels are not asked for again once a whole frame is rendered
+    # (the fit ended): they go, and a pixel asked for again is rendered again, the same
+    twin = Twin(scene, effects={})
+    pixels = np.zeros(scene.camera.shape, dtype=bool)
+    pixels[::7, ::5] = True
+    moved = {"pose": {"tz": 0.002}}
+    first = twin.expected_taps_at(moved, pixels)
+    assert len(twin.pixel_cache) == 1
+    whole = twin.expected_taps(moved)
+    assert len(twin.pixel_cache) == 0
+    again = twin.expected_taps_at(moved, pixels)  # (the whole frame serves now)
+    np.testing.assert_array_equal(again, first)
+    np.testing.assert_array_equal(again[:, :, 0], whole[:, :, pixels])
