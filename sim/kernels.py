@@ -152,12 +152,22 @@ def _shading_normal(vnormal, p, a, b, sg, gx, gy, gz, dx, dy, dz):  # pragma: no
 
 @njit(nogil=True, cache=True, inline="always")
 def _cosine_direction(a1, a2, nx, ny, nz):  # pragma: no cover
-    """A cosine-weighted direction about the unit normal ``n`` from two uniform numbers, in the
-    orthonormal frame of Duff et al. 2017 (no branch on the normal's direction but its sign)."""
-    rr = math.sqrt(a1)
-    phi = 2.0 * math.pi * a2
+    """A cosine-weighted direction about the unit normal ``n`` from two uniform numbers: the
+    unit square mapped onto the disk by Shirley and Chiu's concentric map (area-preserving,
+    so uniform on the disk; it keeps the square's strata compact, where the polar map
+    ``sqrt(a1), 2 pi a2`` stretches them into thin wedges), lifted to the hemisphere
+    (Malley), in the orthonormal frame of Duff et al. 2017 (no branch on the normal's
+    direction but its sign)."""
+    a = 2.0 * a1 - 1.0
+    b = 2.0 * a2 - 1.0
+    if a * a > b * b:
+        rr, phi = a, (0.25 * math.pi) * (b / a)
+    elif b != 0.0:
+        rr, phi = b, 0.5 * math.pi - (0.25 * math.pi) * (a / b)
+    else:
+        rr, phi = 0.0, 0.0
     sn, cs = _sincos(phi)           # one shared range reduction (libm's cos and sin: two)
-    lx, ly, lz = rr * cs, rr * sn, math.sqrt(max(0.0, 1.0 - a1))
+    lx, ly, lz = rr * cs, rr * sn, math.sqrt(max(0.0, 1.0 - rr * rr))
     sg = 1.0 if nz >= 0.0 else -1.0
     aa = -1.0 / (sg + nz)
     bb = nx * ny * aa
