@@ -25,7 +25,12 @@ Printed:
       (1): per-pixel depth difference against both renderers' Monte Carlo noise.
   (3) CPU time (process CPU seconds, all threads) to 1 mm RMS depth error against the
       converged image, for tofhil (its default Sobol sampler) and for Mitsuba's samplers
-      (independent = its default, multijitter, ...). The error of one render of N samples
+      (independent = its default, multijitter, ...), on the corner and on the tilted plane
+      (over the pixels seen whole: :func:`interior_pixels`; on the plane with B bounces
+      too, where no bounce returns light, so its error is the direct light's over the
+      sub-pixel positions). A "sample" is one path in both renderers (tofhil's paths may
+      share camera rays, see docs/scene-format.md; the CPU time to 1 mm does not depend on
+      what a sample is). The error of one render of N samples
       per pixel is measured from two renders with different seeds,
       ``rms = sqrt(mean (d1 - d2)^2 / 2)``; the spp for 1 mm comes from a power-law fit
       ``rms = a N^-alpha`` over the measured N (measured where it brackets 1 mm).
@@ -554,6 +559,8 @@ def main() -> int:
     ap.add_argument("--figures", type=Path, default=None, help="write the error-map PNGs into this folder")
     ap.add_argument("--skip-timing", action="store_true")
     ap.add_argument("--only-timing", action="store_true", help="skip the agreement and glass-slab parts")
+    ap.add_argument("--spps", type=int, nargs="+", default=None,
+                    help="samples per pixel for the corner's timing (default 256 1024; --quick 16 64)")
     ap.add_argument("--timing-corner-only", action="store_true", help="time the corner only, not the tilted plane")
     ap.add_argument("--compare-wavefront", action="store_true",
                     help="also time tofhil's bounce-by-bounce loop (textures take it; before session 4 "
@@ -597,7 +604,8 @@ def main() -> int:
         from tofhil.sim import render as tofhil_render
 
         share = getattr(tofhil_render, "camera_ray_share", lambda n, nb: 1)
-        for name, scene, spps in (("corner", corner_scene(emitter), [16, 64] if args.quick else [256, 1024]),
+        corner_spps = args.spps or ([16, 64] if args.quick else [256, 1024])
+        for name, scene, spps in (("corner", corner_scene(emitter), corner_spps),
                                   ("tilted plane", tilted_plane_scene(emitter), [4, 16])):
             if name != "corner" and args.timing_corner_only:
                 continue
