@@ -617,6 +617,8 @@ class _Context:
 #: At most this many consecutive samples of a pixel continue one camera ray (a divisor of the
 #: compiled loop's packet of 8, so a group never straddles two packets).
 CAMERA_RAY_SHARE = 4
+#: Sub-pixel positions (camera rays) per pixel below which samples do not share them.
+MIN_CAMERA_RAYS = 64
 
 
 def camera_ray_share(spp: int, bounces: int) -> int:
@@ -629,12 +631,15 @@ def camera_ray_share(spp: int, bounces: int) -> int:
     added once, for the group), and each sample draws its own bounces from there. A sample
     is still one path: ``samples_per_pixel`` paths per pixel, ``spp / share`` sub-pixel
     positions. Unbiased (each path is distributed as before; only the paths of a group are
-    correlated). At least 4 sub-pixel positions per pixel are kept; none without bounces.
+    correlated). None without bounces, and at least :data:`MIN_CAMERA_RAYS` sub-pixel
+    positions per pixel are kept: where the direct light's sub-pixel variation is the error
+    (a plane seen obliquely, no multipath), fewer positions would cost more than the rays
+    saved (tilted plane at 16 spp: 1.08 mm with 4 positions, 0.36 mm with 16).
     """
     if bounces <= 0:
         return 1
     share = CAMERA_RAY_SHARE
-    while share > 1 and (spp % share or spp // share < 4):
+    while share > 1 and (spp % share or spp // share < MIN_CAMERA_RAYS):
         share //= 2
     return share
 

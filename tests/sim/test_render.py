@@ -216,18 +216,19 @@ def test_fused_loop_takes_tabulated_beams_like_the_wavefront_loop(monkeypatch: p
 @pytest.mark.parametrize("sampler", ["sobol", "random"])
 def test_samples_sharing_a_camera_ray_are_the_paths_of_the_wavefront_loop(monkeypatch: pytest.MonkeyPatch,
                                                                          sampler: str) -> None:
-    """With bounces and 16 samples, groups of 4 consecutive samples of a pixel continue one
+    """With bounces and 256 samples, groups of 4 consecutive samples of a pixel continue one
     camera ray (the sampler gives them the same camera uniforms): the compiled loop traces
     that ray and its emitter connection once per group and adds the connection 4 times over;
     the wavefront loop traces every sample's copy. Same phasors, transients and ambient;
     fewer rays, by at most the followers' camera and shadow rays."""
     from tofhil.sim import render as render_mod
 
-    d = plane_scene(distance=1.2, camera=small_camera(), size=2.0, offset=(0.02, 0.0, 0.0))
+    cam = {"width": 10, "height": 8, "fx": 7.3, "fy": 7.3, "cx": 4.5, "cy": 3.5, "pixel_pitch_m": 384e-6}
+    d = plane_scene(distance=1.2, camera=cam, size=2.0, offset=(0.02, 0.0, 0.0))
     d["objects"].append({"name": "floor", "type": "plane", "size": [1.0, 2.0], "material": "white",
                          "pose": {"position": [0.0, 0.3, 1.0], "rotation_deg": [90.0, 0.0, 0.0]}})
     scene = scene_from_dict(d)
-    spp = 16
+    spp = 256
     assert render_mod.camera_ray_share(spp, 2) == 4
     grabbed = []
     uniforms = render_mod._Context.uniforms
@@ -253,10 +254,10 @@ def test_samples_sharing_a_camera_ray_are_the_paths_of_the_wavefront_loop(monkey
     assert a.rays_traced - 2 * followers <= b.rays_traced <= a.rays_traced - followers   # b: the compiled loop
 
 
-def test_camera_ray_share_keeps_four_sub_pixel_positions_and_none_without_bounces() -> None:
+def test_camera_ray_share_keeps_64_sub_pixel_positions_and_none_without_bounces() -> None:
     from tofhil.sim.render import camera_ray_share
 
-    assert [camera_ray_share(n, 2) for n in (1, 2, 4, 6, 8, 12, 16, 24, 1024)] == [1, 1, 1, 1, 2, 2, 4, 4, 4]
+    assert [camera_ray_share(n, 2) for n in (1, 16, 64, 128, 192, 256, 384, 1024)] == [1, 1, 1, 2, 2, 4, 4, 4]
     assert camera_ray_share(1024, 0) == 1
 
 
