@@ -514,37 +514,18 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
     return rays
 
 
-@njit(nogil=True, cache=True, inline="always")
-def _fmix32(h):  # pragma: no cover
-    """MurmurHash3's 32-bit finaliser: a bijection of 32-bit integers that mixes every bit."""
-    h ^= h >> 16
-    h = (h * 0x85EBCA6B) & 0xFFFFFFFF
-    h ^= h >> 13
-    h = (h * 0xC2B2AE35) & 0xFFFFFFFF
-    h ^= h >> 16
-    return h
-
-
 @njit(nogil=True, cache=True)
-def sobol_digital_shift(sobol, shift, U, jitter=None, cam_keep=0, share=1):  # pragma: no cover
-    """``U[i * spp + j, d] = (v + 1/2) / 2^32`` with ``v = sobol[j, d] XOR shift[i, d]``: the
-    same 32-bit Sobol' points in every pixel ``i``, digitally shifted by the pixel's random
-    vector. With ``jitter`` (a second random vector per pixel) the camera columns ``d < 4``
-    keep only the high bits ``cam_keep`` of ``v``, the bits that fix the point's cell in the
-    net of the camera points (one per group of ``share`` samples), and take the rest from a
-    hash of ``jitter[i, d]`` and the point's index: each point moves uniformly within its
-    cell, independently of the others (jittered strata: on a tilted plane the sub-pixel error
-    falls as N^-1.5 instead of N^-1), and every sample stays uniform on [0, 1)^D."""
+def sobol_digital_shift(sobol, shift, U):  # pragma: no cover
+    """``U[i * spp + j, d] = ((sobol[j, d] XOR shift[i, d]) + 1/2) / 2^32``: the same 32-bit
+    Sobol' points in every pixel ``i``, digitally shifted by the pixel's random vector. With a
+    uniform shift every sample is uniform on the 2^32 grid (cell midpoints) and a pixel's points
+    keep the net's stratification."""
     spp, dims = sobol.shape
     for i in range(shift.shape[0]):
         for j in range(spp):
             s = i * spp + j
             for d in range(dims):
-                v = sobol[j, d] ^ shift[i, d]
-                if jitter is not None and d < 4:
-                    h = (jitter[i, d] + np.uint32(j // share) * np.uint32(0x9E3779B9)) & 0xFFFFFFFF
-                    v = (v & cam_keep) | (np.uint32(_fmix32(h)) & ~np.uint32(cam_keep))
-                U[s, d] = (np.float64(v) + 0.5) * 2.3283064365386963e-10
+                U[s, d] = (np.float64(sobol[j, d] ^ shift[i, d]) + 0.5) * 2.3283064365386963e-10
 
 
 @njit(nogil=True, cache=True, error_model="numpy")

@@ -241,10 +241,6 @@ class _Context:
         self.share = camera_ray_share(spp, bounces)
         if sampler == "sobol" and spp > 1:
             self.sobol = _sobol_points(spp, bounces, self.share)
-            # the high bits that fix a camera point's cell in the net of the spp / share camera
-            # points (ceil(log2) of their number); the sampler jitters below them
-            m = math.ceil(math.log2(spp // self.share))
-            self.cam_keep = np.uint32(((1 << 32) - 1) ^ ((1 << (32 - m)) - 1))
         self.subpixel = subpixel and spp > 1
         self.thin_lens = scene.thin_lens
         self.H, self.W = camera.shape
@@ -340,8 +336,7 @@ class _Context:
         random 32-bit vector per pixel (a random digital shift): every sample is uniform on
         [0, 1)^D (unbiased per pixel) and each pixel's points keep the Sobol' net structure
         (a Cranley-Patterson rotation, used before, does not: on the corner it needed 1.14x the
-        samples for 1 mm); the camera columns are jittered within their cells besides (a second
-        random vector per pixel; :func:`kernels.sobol_digital_shift`).
+        samples for 1 mm).
         Either way the camera columns 0-3 are the same within each group of ``share``
         consecutive samples of a pixel: they continue one camera ray (:func:`camera_ray_share`).
         """
@@ -351,11 +346,11 @@ class _Context:
                 g = u.reshape(-1, self.share, self.dims)
                 g[:, 1:, :4] = g[:, :1, :4]
             return u if keep_pix is None else u.reshape(npix, self.spp, self.dims)[keep_pix].reshape(-1, self.dims)
-        shift = rng.integers(0, 1 << 32, (2, npix, self.dims), dtype=np.uint32)
+        shift = rng.integers(0, 1 << 32, (npix, self.dims), dtype=np.uint32)
         if keep_pix is not None:  # (drawn for every pixel of the chunk: the full render's stream)
-            shift = shift[:, keep_pix]
-        u = np.empty((shift.shape[1] * self.spp, self.dims))
-        kernels.sobol_digital_shift(self.sobol, shift[0], u, shift[1], self.cam_keep, self.share)
+            shift = shift[keep_pix]
+        u = np.empty((len(shift) * self.spp, self.dims))
+        kernels.sobol_digital_shift(self.sobol, shift, u)
         return u
 
     # ------------------------------------------------------------------ one chunk

@@ -254,32 +254,6 @@ def test_samples_sharing_a_camera_ray_are_the_paths_of_the_wavefront_loop(monkey
     assert a.rays_traced - 2 * followers <= b.rays_traced <= a.rays_traced - followers   # b: the compiled loop
 
 
-def test_sobol_camera_columns_are_jittered_strata_and_uniform() -> None:
-    """The Sobol' sampler's camera columns: within a pixel, the spp / share camera points
-    (256 spp, 2 bounces: 64) fall one in each of 64 equal intervals of every coordinate (the
-    net's strata), shared by each group of 4 samples, at positions that differ from stratum to
-    stratum (jittered, not one offset for all); over pixels uniform (chi-square, 16 bins,
-    99.9 % quantile 37.7). The bounce columns: one point in each of 256 strata per pixel."""
-    from tofhil.sim import render as render_mod
-
-    scene = scene_from_dict(plane_scene(camera=small_camera()))
-    ctx = render_mod._Context(scene, scene.camera, np.array([F_HZ]), (1,), 256, 2, 0, False, None, True, "sobol",
-                              scene.camera_pose)
-    assert ctx.share == 4
-    npix = 300
-    U = ctx.uniforms(np.random.default_rng(3), npix).reshape(npix, 256, 8)
-    cam = U[:, ::4, :4]
-    assert np.all(U[:, :, :4].reshape(npix, 64, 4, 4) == cam[:, :, None, :])
-    for c in range(4):
-        np.testing.assert_array_equal(np.sort(np.floor(cam[:, :, c] * 64), axis=1), np.tile(np.arange(64), (npix, 1)))
-        counts, _ = np.histogram(cam[:, :, c], bins=16, range=(0, 1))
-        assert np.sum((counts - cam[:, :, c].size / 16) ** 2 / (cam[:, :, c].size / 16)) < 37.7
-    offsets = (cam[:, :, 0] * 64) % 1.0                 # position within the stratum
-    assert np.std(offsets[0]) > 0.2                     # varies across one pixel's strata (uniform: 0.29)
-    for c in range(4, 8):
-        np.testing.assert_array_equal(np.sort(np.floor(U[:, :, c] * 256), axis=1), np.tile(np.arange(256), (npix, 1)))
-
-
 def test_camera_ray_share_keeps_64_sub_pixel_positions_and_none_without_bounces() -> None:
     from tofhil.sim.render import camera_ray_share
 
