@@ -160,12 +160,14 @@ def _cosine_direction(a1, a2, nx, ny, nz):  # pragma: no cover
     direction but its sign)."""
     a = 2.0 * a1 - 1.0
     b = 2.0 * a2 - 1.0
-    if a * a > b * b:
-        rr, phi = a, (0.25 * math.pi) * (b / a)
-    elif b != 0.0:
-        rr, phi = b, 0.5 * math.pi - (0.25 * math.pi) * (a / b)
-    else:
-        rr, phi = 0.0, 0.0
+    # Selects, not branches (which half of the square is random: a branch on it is
+    # mispredicted half the time); one division either way (a = b = 0: the pole).
+    use_a = a * a > b * b
+    rr = a if use_a else b
+    num = b if use_a else a
+    den = rr if rr != 0.0 else 1.0
+    q = (0.25 * math.pi) * (num / den)
+    phi = q if use_a else 0.5 * math.pi - q
     sn, cs = _sincos(phi)           # one shared range reduction (libm's cos and sin: two)
     lx, ly, lz = rr * cs, rr * sn, math.sqrt(max(0.0, 1.0 - rr * rr))
     sg = 1.0 if nz >= 0.0 else -1.0
