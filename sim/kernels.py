@@ -152,12 +152,24 @@ def _shading_normal(vnormal, p, a, b, sg, gx, gy, gz, dx, dy, dz):  # pragma: no
 
 @njit(nogil=True, cache=True, inline="always")
 def _cosine_direction(a1, a2, nx, ny, nz):  # pragma: no cover
-    """A cosine-weighted direction about the unit normal ``n`` from two uniform numbers, in the
-    orthonormal frame of Duff et al. 2017 (no branch on the normal's direction but its sign)."""
-    rr = math.sqrt(a1)
-    phi = 2.0 * math.pi * a2
+    """A cosine-weighted direction about the unit normal ``n`` from two uniform numbers: the
+    unit square mapped onto the disk by Shirley and Chiu's concentric map (area-preserving,
+    so uniform on the disk; it keeps the square's strata compact, where the polar map
+    ``sqrt(a1), 2 pi a2`` stretches them into thin wedges), lifted to the hemisphere
+    (Malley), in the orthonormal frame of Duff et al. 2017 (no branch on the normal's
+    direction but its sign)."""
+    a = 2.0 * a1 - 1.0
+    b = 2.0 * a2 - 1.0
+    # Selects, not branches (which half of the square is random: a branch on it is
+    # mispredicted half the time); one division either way (a = b = 0: the pole).
+    use_a = a * a > b * b
+    rr = a if use_a else b
+    num = b if use_a else a
+    den = rr if rr != 0.0 else 1.0
+    q = (0.25 * math.pi) * (num / den)
+    phi = q if use_a else 0.5 * math.pi - q
     sn, cs = _sincos(phi)           # one shared range reduction (libm's cos and sin: two)
-    lx, ly, lz = rr * cs, rr * sn, math.sqrt(max(0.0, 1.0 - a1))
+    lx, ly, lz = rr * cs, rr * sn, math.sqrt(max(0.0, 1.0 - rr * rr))
     sg = 1.0 if nz >= 0.0 else -1.0
     aa = -1.0 / (sg + nz)
     bb = nx * ny * aa
@@ -260,7 +272,8 @@ def connect_and_bounce(irr, blocked, rho, rs, ns, nf, ngf, wo, wi, r1, x, beta, 
 @njit(nogil=True, cache=True)
 def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, normal, plane_c, vnormal,
                 smooth, tri_object, rho_d, rho_s, n_s, emitter_pos, emitter_axis, eps, cos_n, i0, beam,
-                k, acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj, n_obj=0):  # pragma: no cover
+                k, acc_re, acc_im, power, ambient_unit, edges, trans, first_t, first_obj, n_obj=0,
+                share=1):  # pragma: no cover
     """Every sample's whole path in one loop, Embree called per packet of ``eda.LANES``
     samples (:mod:`tofhil.sim.embree4`; ``buf`` from :func:`eda.packet_buffer`).
 
@@ -272,7 +285,11 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
     The beam: ``cos^n`` for ``cos_n >= 0``, else the table ``beam`` (:func:`_beam`).
     ``first_t``/``first_obj`` get the primary hit (inf / -1 for a miss); ``ambient_unit`` the
     first vertex's albedo * beta / pi. ``n_obj > 0``: rows by bounce and source object
-    (:func:`share_row`). Returns the number of rays traced.
+    (:func:`share_row`). ``share > 1`` (a divisor of ``eda.LANES``): each group of ``share``
+    consecutive samples continues the camera ray of its first (:func:`render.camera_ray_share`):
+    that ray and its emitter connection are traced once, the connection added ``share`` times
+    over, and every sample of the group bounces on with its own uniforms. Returns the number
+    of rays traced.
 
     Consecutive samples go bounce by bounce as one packet: one ``rtcIntersect8`` for their
     rays and one ``rtcOccluded8`` for their shadow rays, so the per-call cost of Embree and the
@@ -335,7 +352,7 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
         for bounce in range(bounces + 1):
             live = 0
             for j in range(L):
-                if alive[j]:
+                if alive[j] and (bounce > 0 or j % share == 0):
                     # ray j of the packet: set_ray's fields, each LANES words apart
                     f[o + j] = np.float32(lo[j, 0])
                     f[o + L + j] = np.float32(lo[j, 1])
@@ -364,6 +381,27 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
             for j in range(L):
                 u[svo + j] = 0
                 if not alive[j]:
+                    continue
+                if bounce == 0 and j % share != 0:
+                    # a follower: the group's camera ray and first vertex (lane j - j % share,
+                    # done in this loop already); its emitter connection is the leader's
+                    lead = j - j % share
+                    if not alive[lead]:
+                        first_t[ls[j]] = np.inf
+                        first_obj[ls[j]] = -1
+                        alive[j] = False
+                        continue
+                    lo[j, 0], lo[j, 1], lo[j, 2] = lo[lead, 0], lo[lead, 1], lo[lead, 2]
+                    ld[j, 0], ld[j, 1], ld[j, 2] = ld[lead, 0], ld[lead, 1], ld[lead, 2]
+                    lbeta[j] = lbeta[lead]
+                    lsrc[j] = lsrc[lead]
+                    first_t[ls[j]] = first_t[ls[lead]]
+                    first_obj[ls[j]] = first_obj[ls[lead]]
+                    lw[j], lr[j], lpv[j] = lw[lead], lr[lead], lpv[lead]
+                    for c in range(3):
+                        lx[j, c], lg[j, c], lsn[j, c] = lx[lead, c], lg[lead, c], lsn[lead, c]
+                        le[j, c], lmat[j, c] = le[lead, c], lmat[lead, c]
+                    ambient_unit[lq[j]] += lbeta[j] * (lmat[j, 0] + lmat[j, 1]) * _INV_PI
                     continue
                 p = u[o + 17 * L + j]
                 if p == eda.INVALID_ID:
@@ -443,6 +481,8 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
                 if u[svo + j] != 0 and not f[so + 8 * L + j] < 0.0:     # tfar = -inf: blocked
                     w = lbeta[j] * lw[j] * _brdf(rho, rs, ns, sx, sy, sz, le[j, 0], le[j, 1], le[j, 2],
                                                  -dx, -dy, -dz)
+                    if bounce == 0:
+                        w *= share                   # the group's connection, traced once
                     if w > 0.0:
                         # _accumulate, written out
                         q = lq[j]
@@ -477,17 +517,17 @@ def trace_paths(scene, buf, org, shared, dirs, path0, beta0, local, U, bounces, 
 
 
 @njit(nogil=True, cache=True)
-def sobol_shifted(sobol, shift, U):  # pragma: no cover
-    """``U[i * spp + j] = (sobol[j] + shift[i]) mod 1``: the same Sobol' points in every
-    pixel ``i``, rotated by the pixel's random vector (Cranley-Patterson); the numpy
-    expression's arithmetic (one add, then an exact subtraction of 1), without its temporaries."""
+def sobol_digital_shift(sobol, shift, U):  # pragma: no cover
+    """``U[i * spp + j, d] = ((sobol[j, d] XOR shift[i, d]) + 1/2) / 2^32``: the same 32-bit
+    Sobol' points in every pixel ``i``, digitally shifted by the pixel's random vector. With a
+    uniform shift every sample is uniform on the 2^32 grid (cell midpoints) and a pixel's points
+    keep the net's stratification."""
     spp, dims = sobol.shape
     for i in range(shift.shape[0]):
         for j in range(spp):
             s = i * spp + j
             for d in range(dims):
-                x = sobol[j, d] + shift[i, d]
-                U[s, d] = x - 1.0 if x >= 1.0 else x
+                U[s, d] = (np.float64(sobol[j, d] ^ shift[i, d]) + 0.5) * 2.3283064365386963e-10
 
 
 @njit(nogil=True, cache=True, error_model="numpy")

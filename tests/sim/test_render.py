@@ -213,6 +213,54 @@ def test_fused_loop_takes_tabulated_beams_like_the_wavefront_loop(monkeypatch: p
     assert a.rays_traced == b.rays_traced
 
 
+@pytest.mark.parametrize("sampler", ["sobol", "random"])
+def test_samples_sharing_a_camera_ray_are_the_paths_of_the_wavefront_loop(monkeypatch: pytest.MonkeyPatch,
+                                                                         sampler: str) -> None:
+    """With bounces and 256 samples, groups of 4 consecutive samples of a pixel continue one
+    camera ray (the sampler gives them the same camera uniforms): the compiled loop traces
+    that ray and its emitter connection once per group and adds the connection 4 times over;
+    the wavefront loop traces every sample's copy. Same phasors, transients and ambient;
+    fewer rays, by at most the followers' camera and shadow rays."""
+    from tofhil.sim import render as render_mod
+
+    cam = {"width": 10, "height": 8, "fx": 7.3, "fy": 7.3, "cx": 4.5, "cy": 3.5, "pixel_pitch_m": 384e-6}
+    d = plane_scene(distance=1.2, camera=cam, size=2.0, offset=(0.02, 0.0, 0.0))
+    d["objects"].append({"name": "floor", "type": "plane", "size": [1.0, 2.0], "material": "white",
+                         "pose": {"position": [0.0, 0.3, 1.0], "rotation_deg": [90.0, 0.0, 0.0]}})
+    scene = scene_from_dict(d)
+    spp = 256
+    assert render_mod.camera_ray_share(spp, 2) == 4
+    grabbed = []
+    uniforms = render_mod._Context.uniforms
+    monkeypatch.setattr(render_mod._Context, "uniforms",
+                        lambda self, *a: grabbed.append(uniforms(self, *a)) or grabbed[-1])
+    out = {}
+    for mode in ("1", "0"):
+        monkeypatch.setenv("TOFHIL_RENDER_WAVEFRONT", mode)
+        out[mode] = render(scene, samples_per_pixel=spp, bounces=2, transient_bins=16, separate_direct=True,
+                           seed=7, sampler=sampler)
+    U = grabbed[-1].reshape(-1, 4, 8)
+    assert np.all(U[:, 1:, :4] == U[:, :1, :4])                  # one camera ray per group
+    assert np.all(U[:, 1:, 4:] != U[:, :1, 4:])                  # each sample its own bounces
+    a, b = out["1"], out["0"]
+    scale = np.abs(a.phasor).max()
+    assert scale > 0 and np.abs(a.phasor_indirect).max() > 0.01 * scale
+    for x, y in ((a.phasor_direct, b.phasor_direct), (a.phasor_indirect, b.phasor_indirect)):
+        np.testing.assert_allclose(x, y, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(a.transient, b.transient, rtol=0, atol=1e-12 * a.transient.max())
+    np.testing.assert_allclose(a.ambient_power_per_irradiance, b.ambient_power_per_irradiance, rtol=1e-12)
+    np.testing.assert_array_equal(a.radial_m, b.radial_m)
+    followers = a.phasor.shape[-1] * a.phasor.shape[-2] * spp * 3 // 4
+    assert a.rays_traced - 2 * followers <= b.rays_traced <= a.rays_traced - followers   # b: the compiled loop
+
+
+def test_camera_ray_share_keeps_64_sub_pixel_positions_and_none_without_bounces() -> None:
+    from tofhil.sim.render import camera_ray_share
+
+    assert [camera_ray_share(n, 2) for n in (1, 16, 64, 128, 192, 256, 384, 1024)] == [1, 1, 1, 2, 2, 4, 4, 4]
+    assert camera_ray_share(1024, 0) == 1
+
+
 def test_rotation_of_ray_rows_is_the_numpy_expression() -> None:
     """The compiled row rotation (every subpixel ray of a posed camera) is bit-identical to
     ``v @ R.T`` written as the numpy expression it replaced, and it is a rotation."""
@@ -254,14 +302,17 @@ def test_packet_loop_with_misses_and_a_partial_last_packet(monkeypatch: pytest.M
 def test_compiled_subpixel_rays_are_the_camera_models() -> None:
     """Sub-pixel rays made in the compiled pass are the camera model's ``pixel_rays`` (OpenCV
     undistortion) rotated to the world, weighted by the pixel's weight times cos^4, and the
-    Sobol' points shifted per pixel are the numpy expression ``(sobol + shift) mod 1``."""
+    Sobol' points digitally shifted per pixel are the numpy expression
+    ``((sobol ^ shift) + 1/2) / 2^32``."""
     cam = CameraModel(width=9, height=5, fx=7.0, fy=7.5, cx=4.2, cy=1.9, dist=(-0.2, 0.05, 0.001, -0.002, 0.01))
     spp, dims = 4, 6
     rng = np.random.default_rng(2)
-    sobol, shift = rng.random((spp, dims)), rng.random((cam.width * cam.height, dims))
+    sobol = rng.integers(0, 1 << 32, (spp, dims), dtype=np.uint32)
+    shift = rng.integers(0, 1 << 32, (cam.width * cam.height, dims), dtype=np.uint32)
     U = np.empty((cam.width * cam.height * spp, dims))
-    kernels.sobol_shifted(sobol, shift, U)
-    np.testing.assert_array_equal(U, np.mod(sobol[None] + shift[:, None], 1.0).reshape(-1, dims))
+    kernels.sobol_digital_shift(sobol, shift, U)
+    np.testing.assert_array_equal(U, ((sobol[None] ^ shift[:, None]) + 0.5).reshape(-1, dims) / 2.0 ** 32)
+    assert U.min() > 0.0 and U.max() < 1.0
     c, s = math.cos(0.4), math.sin(0.4)
     R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
     weight = rng.random(cam.width * cam.height) + 0.5
