@@ -235,8 +235,11 @@ class _Parser(Schema):
         if "look_at" in p:
             target = self.position(p["look_at"], f"{field}.look_at")
             up = self.vector(p.get("up", [0, -1, 0]), f"{field}.up", 3, lo=-1e6, hi=1e6)
-            with np.errstate(all="ignore"):
-                rot = look_at_rotation(pos, target, up) if np.linalg.norm(target - pos) > 0 else None
+            try:
+                with np.errstate(all="ignore"):
+                    rot = look_at_rotation(pos, target, up) if np.linalg.norm(target - pos) > 0 else None
+            except ValueError:  # up along the viewing direction (or zero): no "down" to orient by
+                rot = None
             if rot is None or not np.all(np.isfinite(rot)):
                 raise self.error("look_at equals position or is parallel to up", f"{field}.look_at",
                                  "a target point away from position, not along up")

@@ -97,6 +97,16 @@ def test_pose_conventions() -> None:
     np.testing.assert_allclose(s.camera_pose[:3, 2], [1, 0, 0], atol=1e-12)
 
 
+@pytest.mark.parametrize("up", [[0, 0, 1], [0, 0, -2], [0, 0, 0]])
+def test_look_at_along_up_is_a_field_error(up: list[float]) -> None:
+    """An ``up`` along the viewing direction (or zero) leaves no "down" to orient the camera by:
+    the pose's field is named, not a bare ValueError (hypothesis found it)."""
+    d = base()
+    d["camera"]["pose"] = {"position": [0, 0, 0], "look_at": [0, 0, 5], "up": up}
+    with pytest.raises(InputFileError, match="camera.pose.look_at"):
+        scene_from_dict(d)
+
+
 def test_beam_profile_normalisation_conserves_power() -> None:
     d = base()
     for prof in ({"type": "cos_n", "n": 3.0},
