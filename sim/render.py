@@ -660,7 +660,7 @@ def _sobol_points(spp: int, bounces: int, share: int) -> np.ndarray:
     with warnings.catch_warnings():       # balance is best for 2^m points; any n is valid
         warnings.simplefilter("ignore")
         pts = qmc.Sobol(nb + 4, scramble=False, bits=32).random(spp)
-        cam = pts[:, nb:] if share == 1 else qmc.Sobol(nb + 4, scramble=False, bits=32).random(spp // share)[:, nb:]
+    cam = pts[:spp // share, nb:]   # (an unscrambled sequence's first spp / share points)
     out = np.empty((spp, nb + 4), dtype=np.uint32)
     # (Sobol' floats with 32 bits are k / 2^32 exactly)
     out[:, 4:] = np.ldexp(pts[:, :nb], 32).astype(np.uint32)
