@@ -177,7 +177,7 @@ class Twin:
         self.cache = cache if cache is not None else RenderCache(cache_size)
         # Renders of some pixels (a fit's; each Jacobian column of a scene-stage parameter is
         # a new one): few are ever asked for again, and each holds full-frame arrays.
-        self.pixel_cache = RenderCache(2, max_bytes=32 * 2 ** 20)
+        self.pixel_cache = RenderCache(2)
         self._sensors: dict[Any, SensorModel] = {}
         self.renders = 0  # renders traced (cache misses)
         self._base_render_bounces = int(scene.render.bounces)
