@@ -249,8 +249,12 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
         values = _unpack(free, lib, x)
         return np.concatenate([np.sqrt(spec.strength) * spec.roughness(values[e]) for e, spec in priors])
 
+    def stacked(x: np.ndarray) -> np.ndarray:
+        """The fit pixels' whitened residual and the priors' penalty residuals at ``x``."""
+        return np.concatenate([data.whitened_residual(predict_fit(model, data, full(x)), "fit"), penalty(x)])
+
     def residual(x: np.ndarray) -> np.ndarray:
-        r = np.concatenate([data.whitened_residual(predict_fit(model, data, full(x)), "fit"), penalty(x)])
+        r = stacked(x)
         last["x"], last["r"] = x.copy(), r
         return r
 
@@ -267,8 +271,7 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
             h = steps[j] if x[j] + steps[j] <= hi[j] else -steps[j]
             xj = x0_.copy()
             xj[j] += h
-            cols.append((np.concatenate([data.whitened_residual(predict_fit(model, data, full(xj)), "fit"),
-                                         penalty(xj)]) - r0) / h)
+            cols.append((stacked(xj) - r0) / h)   # (not residual(): the last point stays x's)
         return np.stack(cols, axis=1)
 
     starts = [x0]
