@@ -33,7 +33,7 @@ AIM_BYTES = 1e9
 
 _CHILD = r"""
 import cProfile, json, pstats, resource, sys, time
-from tofhil.eval.diagnose import run_diagnosis
+from tofhil.eval.diagnose.run import run_diagnosis
 session, scene, out, profile = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4] == "1"
 t0, c0 = time.perf_counter(), time.process_time()
 prof = cProfile.Profile() if profile else None

@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from tofhil.eval.matching import apply_transform, icp
-from tofhil.eval.ndt import NDTGrid, ndt_score
+from tofhil.eval.metrics.matching import apply_transform, icp
+from tofhil.eval.metrics.ndt import NDTGrid, ndt_score
 
 
 def room(rng: np.random.Generator, n: int) -> np.ndarray:

@@ -4,7 +4,7 @@
 
 Runs the same sweep (``wall_card``, one render per card reflectance, seeds sharing it,
 each case simulate + compare against the twin) four ways: a bare loop over
-``tofhil.eval.sweep.run_case`` (no records, no table), the engine in this process
+``tofhil.app.sweep.run_case`` (no records, no table), the engine in this process
 (``workers=0``), a LocalCluster of 1 worker process and one of 2. Prints the wall time of
 each, the speed-up of 2 workers over 1, and the per-case overhead of the engine (in process
 and on Dask, the cluster's start-up counted separately) against the bare loop.
@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from tofhil.eval import sweep as S
+from tofhil.app import sweep as S
 
 
 def spec(cases: int, scale: float) -> S.SweepSpec:

@@ -42,7 +42,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from tofhil.eval.diagnose import diagnose
+from tofhil.eval.diagnose.run import diagnose
 from tofhil.sim.pipeline import simulate_session
 from tofhil.sim.scene import load_scene
 

@@ -10,9 +10,9 @@ import sys
 from pathlib import Path
 
 
-from tofhil.eval.colorize import colorize_points, k4a_inputs
-from tofhil.eval.colorize_report import cloud_view, figure_cloud, figure_edges
-from tofhil.eval.edge_alignment import edge_alignment
+from tofhil.eval.rgb.colorize import colorize_points, k4a_inputs
+from tofhil.eval.rgb.report import cloud_view, figure_cloud, figure_edges
+from tofhil.eval.rgb.edge_alignment import edge_alignment
 
 ROOT = Path(__file__).resolve().parents[1]
 

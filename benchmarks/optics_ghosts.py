@@ -28,8 +28,8 @@ from typing import Any
 import numpy as np
 
 from tofhil.demod import phase_to_distance
-from tofhil.eval import html
-from tofhil.eval.optics_report import figure_ghost_psfs, ghost_group, ghost_table_html, lens_summary
+from tofhil.eval.reports import html
+from tofhil.eval.reports.optics import figure_ghost_psfs, ghost_group, ghost_table_html, lens_summary
 from tofhil.sim.optics import LensCamera, apply_lens, lens_model
 from tofhil.sim.scene import load_scene
 from tofhil.sim.sensor import OpticalSignal, waveform_from_scene
@@ -109,7 +109,7 @@ def main() -> None:
                           "weight": m2.stray_light(pitch).total_weight})
     t_all = time.perf_counter() - t0
 
-    # Figures: the ghost PSF of a point source (the library's report figure, eval/optics_report.py).
+    # Figures: the ghost PSF of a point source (the library's report figure, eval/reports/optics.py).
     psf_uri = figure_ghost_psfs(cam)
     fig, axes = html.grid(len(maps))
     lim = max(float(np.nanpercentile(np.abs(e) * 1e3, 99)) for _, e in maps) or 1.0

@@ -26,7 +26,7 @@ from scipy.optimize import minimize_scalar
 from tofhil.demod import phasor, phase_to_distance, wrapped_phase
 from tofhil.eval.corrections import psf_calibration as pc
 from tofhil.eval.corrections import straylight as sl
-from tofhil.eval.fixed_pattern import TapCalibration, calibrate_taps
+from tofhil.eval.calibration.taps import TapCalibration, calibrate_taps
 from tofhil.sim.straylight import StrayLightPSF
 
 #: The optics of the study's "camera": a narrow and two wide lobes, a veil and a ghost

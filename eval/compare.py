@@ -3,8 +3,8 @@
 A is the measurement (a bench or emulated session), B the reference (the twin's render or
 a ground truth) taken with the same camera model. Each variant of A -- as measured, and
 after each requested correction -- is reduced to the temporal mean of its frames and
-evaluated against B's mean by :func:`tofhil.eval.metrics.evaluate` (residual maps,
-regions, cloud and NDT metrics); the page is drawn by :mod:`tofhil.eval.html`.
+evaluated against B's mean by :func:`tofhil.eval.metrics.core.evaluate` (residual maps,
+regions, cloud and NDT metrics); the page is drawn by :mod:`tofhil.eval.reports.html`.
 ``metrics.json`` holds every number; ``report.html`` is one self-contained file.
 
 Pixels with a clipped (saturated) or non-finite tap in any averaged frame are invalid, and
@@ -23,8 +23,8 @@ import numpy as np
 from tofhil import __version__
 from tofhil.demod import TapLimits
 from tofhil.errors import TofhilError
-from tofhil.eval import html as H
-from tofhil.eval import metrics as M
+from tofhil.eval.reports import html as H
+from tofhil.eval.metrics import core as M
 from tofhil.eval.corrections import correct_depth, get_method, load_params, parse_method_spec, resolve_params
 from tofhil.frames import DepthFrame
 
@@ -58,7 +58,7 @@ def variant_frame(session: Any, n: int, method: str | None = None, params: dict[
     (:func:`tofhil.eval.corrections.averaging.mean_signal`), a complex correction is applied
     to the mean, and the mean is demodulated once (the same pipeline before and after
     correction); depth methods filter that depth. Depth-only sessions average their stored
-    depth (:func:`tofhil.eval.metrics.mean_depth_frame`; noise = temporal std / sqrt(n)).
+    depth (:func:`tofhil.eval.metrics.core.mean_depth_frame`; noise = temporal std / sqrt(n)).
     """
     from tofhil.depth import depth_from_raw
     from tofhil.eval.corrections.averaging import session_mean_signal
@@ -103,7 +103,7 @@ def tap_calibration_plan(sessions: dict[str, tuple[Any, Path]], want: str | Path
     it already (recorded in its header), else the loaded calibration. A side that cannot get
     it (depth only, another calibration already applied) is refused, naming its file;
     ``origin`` says where ``want`` came from."""
-    from tofhil.eval.fixed_pattern import TapCalibration
+    from tofhil.eval.calibration.taps import TapCalibration
 
     out: dict[str, Any] = {}
     for side, (sess, path) in sessions.items():
@@ -170,7 +170,7 @@ def object_id_map(session: Any) -> tuple[np.ndarray | None, dict[int, str]]:
 
 
 def _mask_shadows(frame: DepthFrame, min_relative_amplitude: float, regions: list[np.ndarray]) -> None:
-    """Invalidate unlit pixels (:func:`tofhil.eval.metrics.lit_pixels`, relative to each
+    """Invalidate unlit pixels (:func:`tofhil.eval.metrics.core.lit_pixels`, relative to each
     object's own amplitude)."""
     lit = M.lit_pixels(frame.amplitude, min_relative_amplitude, regions)
     if lit is not None:
@@ -188,7 +188,7 @@ def _masked(frame: DepthFrame, img: np.ndarray | None, valid: np.ndarray | None 
 
 def figures(variants: list[Variant], ref: DepthFrame, section: H.CrossSection,
             cell_size: float) -> list[tuple[str, str | None, str]]:
-    """The compare page's figures, each drawn by :mod:`tofhil.eval.html`."""
+    """The compare page's figures, each drawn by :mod:`tofhil.eval.reports.html`."""
     ev = [(v.label, v.evaluation) for v in variants]
     ref_valid = ev[0][1].maps.valid_b
     dist = [("reference (B)", _masked(ref, ref.radial_m, ref_valid))] + \
@@ -228,7 +228,7 @@ def twin_lens_camera(*sessions: Any) -> tuple[str, Any] | None:
     """``(side, camera)`` of the first twin session (A or B) whose scene's camera has a lens
     prescription: its report shows the ghost PSFs. None when no side has one (or its embedded
     scene no longer loads: the comparison does not depend on it)."""
-    from tofhil.eval.optics_report import has_lens
+    from tofhil.eval.reports.optics import has_lens
     from tofhil.sim.scene import scene_from_yaml
 
     for side, sess in zip("AB", sessions):
@@ -264,7 +264,7 @@ def write_report(out: Path, metrics: dict[str, Any], variants: list[Variant],
             f"points scored on B's NDT grid (cell {s['cell_size_m']:g} m). Full numbers in metrics.json.</p>",
             H.figures_html(figs)]
     if lens is not None:
-        from tofhil.eval.optics_report import lens_section
+        from tofhil.eval.reports.optics import lens_section
 
         body.extend(lens_section(lens[1], whose=f"the twin's camera (side {lens[0]})"))
     H.write_page(out / "report.html", "tofhil compare", body)

@@ -180,7 +180,7 @@ class Effect:
     def roughness(self, form: str, values: Mapping[str, Any]) -> np.ndarray | None:
         """The prior of a flexible form: a vector that is zero for the form's smoothest
         shape, its squared norm what diagnosis penalises, the strength chosen on held-out data
-        (:mod:`tofhil.eval.form_prior`). None: the form has no prior (its parameter count,
+        (:mod:`tofhil.eval.diagnose.form_prior`). None: the form has no prior (its parameter count,
         shape and the identifiability test hold it)."""
         return None
 
@@ -845,7 +845,7 @@ class RangeOffsetMapEffect(Effect):
     doc = ("Fixed-pattern range offsets a real readout has and no parametric form names: a radial offset "
            "per pixel, read from a map [H, W] in metres (the camera's size). Every harmonic's phase moves "
            "as if the pixel read map[v, u] farther (optical path 2 map). Diagnosis fits the map in closed "
-           "form (per-column + per-row + per-pixel, ridge-regularised; eval/linear_forms.py) and writes "
+           "form (per-column + per-row + per-pixel, ridge-regularised; eval/diagnose/linear_forms.py) and writes "
            "it as range_offset_map.npy beside diagnosis.json.")
     params: dict[str, Param] = {}
     options = {"file": ".npy file holding the map [H, W] in metres (relative to the scene file)",

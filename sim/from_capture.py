@@ -130,7 +130,7 @@ class BoardFit:
     """A board found in the amplitude image: its pose (photogrammetry) and the pixels it covers."""
 
     spec: Any                    # tofhil.boards.BoardSpec
-    pose: Any                    # tofhil.eval.targets.BoardPose
+    pose: Any                    # tofhil.targets.BoardPose
     plane_to_camera: np.ndarray  # 4x4: the twin's centred board plane -> camera
     pixels: np.ndarray           # bool [H, W]: the sheet's outline, one pixel wider (mixed pixels)
 
@@ -146,7 +146,7 @@ def fit_board(amplitude: np.ndarray, cam: CameraModel, target: Any) -> BoardFit:
     import cv2
 
     from tofhil.boards import BoardSpec
-    from tofhil.eval.targets import board_pose_from_amplitude
+    from tofhil.targets import board_pose_from_amplitude
 
     spec = BoardSpec.parse(target, source="--target", field="--target")
     pose = board_pose_from_amplitude(amplitude, cam, spec)
@@ -447,7 +447,7 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
     """Build the twin scene of one frame of a session and write it (plus its sidecars).
 
     ``target``: a board the capture shows (:class:`tofhil.boards.BoardSpec` or its text): its
-    pose comes from the amplitude image (photogrammetry, :func:`tofhil.eval.targets.board_pose_from_amplitude`),
+    pose comes from the amplitude image (photogrammetry, :func:`tofhil.targets.board_pose_from_amplitude`),
     not from the depth, and it is written as a ``board`` object; the range offset and the
     pose are then observable (the board is truth the depth did not decide)."""
     from tofhil.sim.scene import load_scene, scene_from_yaml

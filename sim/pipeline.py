@@ -84,7 +84,7 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
     With ``effects`` given, the embedded scene text carries those effects instead of the file's
     block, so the session says exactly what was simulated. ``twin`` is a :class:`Twin` of this
     scene whose render cache to use (a sweep renders a scene once for many cases). ``report``:
-    a directory for ``report.html`` (eval/simulate_report.py: where each pixel's light comes
+    a directory for ``report.html`` (eval/reports/simulate.py: where each pixel's light comes
     from, by bounce and by object, from the same render; a direct-ToF scene's histograms)."""
     from tofhil import __version__
     from tofhil.depth import depth_from_raw
@@ -94,8 +94,8 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
     out_path = Path(out_path)
     check_new_path(out_path, force)  # fail before the (slow) render
     if report is not None:
-        from tofhil.eval.html import prepare_output_dir
-        from tofhil.eval.simulate_report import OUTPUTS
+        from tofhil.eval.reports.html import prepare_output_dir
+        from tofhil.eval.reports.simulate import OUTPUTS
 
         prepare_output_dir(report, OUTPUTS, force=force)
         render_kwargs = {**dict(render_kwargs or {}), "multipath_shares": True}
@@ -144,7 +144,7 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
 
 def _write_report(report: str | Path, scene: Any, result: Any, out_path: Path, *, force: bool,
                   direct: Any = None) -> None:
-    from tofhil.eval.simulate_report import write_simulate_report
+    from tofhil.eval.reports.simulate import write_simulate_report
     from tofhil.sim.multipath import shares_from_render
 
     shares = shares_from_render(result, [o.name for o in scene.objects])

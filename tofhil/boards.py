@@ -8,7 +8,7 @@ spec gives
   at an integer number of texels per square so that every square edge falls on a texel
   edge; the twin maps it onto a plane of :attr:`BoardSpec.size_m` (``type: board`` objects);
 - the board's 3-D points in its own frame (:meth:`BoardSpec.corner_points`) and the OpenCV
-  board object (:meth:`BoardSpec.cv_board`) the detector uses (:mod:`tofhil.eval.targets`).
+  board object (:meth:`BoardSpec.cv_board`) the detector uses (:mod:`tofhil.targets`).
 
 Board frame (OpenCV's): origin at the pattern's top-left corner (inside the margin), x
 along the columns (right on the printed sheet), y along the rows (down), z into the board.

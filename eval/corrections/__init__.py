@@ -26,7 +26,7 @@ every command refuses the same bad values with the same message. Methods (see
 
 Families live in their own modules: ``straylight`` (thesis methods, PSF deconvolution,
 loading a PSF), ``psf_calibration`` (fitting a PSF), ``depth`` (depth filters); tap
-calibration is ``tofhil.eval.fixed_pattern``.
+calibration is ``tofhil.eval.calibration.taps``.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ from tofhil.depth import depth_from_raw
 from tofhil.errors import TofhilError
 from tofhil.eval.corrections import depth as dm
 from tofhil.eval.corrections import straylight as sl
-from tofhil.eval.fixed_pattern import TapCalibration
+from tofhil.eval.calibration.taps import TapCalibration
 from tofhil.frames import DepthFrame, RawFrame
 
 

@@ -1,4 +1,4 @@
-"""Depth-domain corrections (the SR4000 study's filters of ``eval/depth_filters.py``) on
+"""Depth-domain corrections (the SR4000 study's filters of ``eval/corrections/depth_filters.py``) on
 depth frames, with the bounds that depend on the image (windows no larger than it)."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 
 from tofhil.errors import TofhilError
-from tofhil.eval import depth_filters as df
+from tofhil.eval.corrections import depth_filters as df
 from tofhil.frames import DepthFrame
 
 

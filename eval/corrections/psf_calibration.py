@@ -534,7 +534,7 @@ def calibrate_from_sessions(capture: str | Path | Sequence[str | Path],
     shift-variant lobes when there are several captures, fitted ghost centre, regularised).
     Refuses a degenerate fit."""
     from tofhil.demod import phasor
-    from tofhil.eval.fixed_pattern import mean_taps
+    from tofhil.eval.calibration.taps import mean_taps
 
     if not 0 < target_threshold < 1:
         raise TofhilError(f"got {target_threshold!r}", field="target_threshold", expected="a fraction in (0, 1)")

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from tofhil.camera import CameraModel
-from tofhil.eval.heldout import HeldOutData
+from tofhil.eval.diagnose.heldout import HeldOutData
 
 
 def heldout_from_signal(s_true: np.ndarray, sigma: float, seed: int = 0,

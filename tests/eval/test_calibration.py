@@ -9,7 +9,7 @@ import json
 import pytest
 
 from tofhil.camera import load_camera_preset
-from tofhil.eval.calibration import calibrate_camera, max_model_difference_px
+from tofhil.eval.calibration.camera import calibrate_camera, max_model_difference_px
 from tofhil.sim.pipeline import simulate_session
 from tofhil.sim.scene import load_scene
 

@@ -9,7 +9,7 @@ import pytest
 
 from tofhil.camera import CameraModel
 from tofhil.errors import InputFileError
-from tofhil.eval.clouds import load_cloud, parse_session_spec
+from tofhil.eval.metrics.clouds import load_cloud, parse_session_spec
 from tofhil.frames import DepthFrame
 from tofhil.open3d_loader import open3d
 from tofhil.session import SessionWriter
@@ -152,7 +152,7 @@ def _write_pcd_binary(path: Path, rows: np.ndarray, fields: str, sizes: str, typ
 def test_binary_pcd_read_without_open3d_equals_open3d(tmp_path):
     """An uncompressed binary PCD is read from its bytes (no Open3D import): the same points
     as Open3D reads, also with other fields before and between x, y, z and float64 x y z."""
-    from tofhil.eval import clouds
+    from tofhil.eval.metrics import clouds
 
     rng = np.random.default_rng(4)
     p = tmp_path / "o3d.pcd"

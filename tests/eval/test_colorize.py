@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from tofhil.camera import CameraModel
-from tofhil.eval.colorize import colorize_points, write_ply
+from tofhil.eval.rgb.colorize import colorize_points, write_ply
 from tests.real_data import AZURE_KINECT_MKV, need
 
 
@@ -75,7 +75,7 @@ def test_kinect_colour_lands_on_the_depth_with_the_factory_calibration():
     """The real recording: colour from the factory calibration. Most depth points are seen
     by the colour camera, and the wall beside the mug that the colour camera (32 mm to the
     side) cannot see is occluded."""
-    from tofhil.eval.colorize import k4a_inputs
+    from tofhil.eval.rgb.colorize import k4a_inputs
 
     inp = k4a_inputs(need(AZURE_KINECT_MKV))
     assert inp.rgb.shape == (720, 1280, 3)
@@ -115,8 +115,8 @@ def test_colorize_reads_a_session_with_an_rgb_group(tofhil_cli, tmp_path):
     does not, so its silhouette there is another physical edge (the face's far edge)."""
     import json
 
-    from tofhil.eval.colorize import session_inputs
-    from tofhil.eval.edge_alignment import edge_alignment
+    from tofhil.eval.rgb.colorize import session_inputs
+    from tofhil.eval.rgb.edge_alignment import edge_alignment
     from tofhil.sim.pipeline import simulate_session
     from tofhil.sim.scene import load_scene
 

@@ -1,4 +1,4 @@
-"""The evaluation core (eval/metrics.py): robust statistics, regions, residual maps, temporal means."""
+"""The evaluation core (eval/metrics/core.py): robust statistics, regions, residual maps, temporal means."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from tofhil.camera import CameraModel
 from tofhil.errors import TofhilError
-from tofhil.eval import metrics as M
+from tofhil.eval.metrics import core as M
 from tofhil.frames import DepthFrame
 
 CAM = CameraModel.from_fov(20, 10, 60.0)
@@ -165,7 +165,7 @@ def test_no_pixel_valid_in_both_is_refused():
 
 
 def test_residual_colour_scale_ignores_outliers():
-    from tofhil.eval import html as H
+    from tofhil.eval.reports import html as H
 
     rng = np.random.default_rng(0)
     res = rng.normal(0.0, 0.003, (60, 80))
@@ -176,7 +176,7 @@ def test_residual_colour_scale_ignores_outliers():
 
 
 def test_cross_section_choice():
-    from tofhil.eval import html as H
+    from tofhil.eval.reports import html as H
 
     assert H.CrossSection.choose((10, 20)) == H.CrossSection("row", 5)
     s = H.CrossSection.choose((10, 20), column=19)

@@ -128,7 +128,7 @@ def test_failed_diagnose_leaves_no_folder(sessions, tmp_path, capsys):
 def test_residual_scale_is_robust_in_the_report(tmp_path):
     # One pixel 2 m off must not set the residual colour scale: read the colourbar's range
     # back from the figure code (the same function the reports call).
-    from tofhil.eval import html as H
+    from tofhil.eval.reports import html as H
 
     rng = np.random.default_rng(0)
     res = rng.normal(0.0, 0.002, (syn.H, syn.W))
@@ -141,7 +141,7 @@ def test_residual_scale_is_robust_in_the_report(tmp_path):
 
 def test_report_shows_the_ghost_psfs_of_a_twin_with_a_lens_prescription(sessions, tmp_path, capsys):
     """B is a twin session of the bundled lens scene: compare's report draws the prescription's
-    ghost PSFs and ghost table (eval/optics_report.py); a plain session gets no lens section."""
+    ghost PSFs and ghost table (eval/reports/optics.py); a plain session gets no lens section."""
     from tofhil.session import open_session
     from tofhil.sim.scene import load_scene, scene_to_yaml
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tofhil.eval.metrics import lit_pixels
+from tofhil.eval.metrics.core import lit_pixels
 
 
 def test_a_dark_object_is_valid_relative_to_its_own_amplitude():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from tofhil.camera import CameraModel
-from tofhil.eval import depth_filters as df
+from tofhil.eval.corrections import depth_filters as df
 
 from tests.real_data import ADI, need
 

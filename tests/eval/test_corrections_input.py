@@ -64,7 +64,7 @@ def test_windows_are_bounded_by_the_image(spec: str) -> None:
 
 
 def test_median_of_a_large_window_matches_a_direct_median() -> None:
-    from tofhil.eval.depth_filters import median_smooth
+    from tofhil.eval.corrections.depth_filters import median_smooth
 
     rng = np.random.default_rng(0)
     d = rng.random((30, 40))
@@ -77,7 +77,7 @@ def test_median_of_a_large_window_matches_a_direct_median() -> None:
 
 def test_all_nan_flat_is_not_a_calibration() -> None:
     from tofhil.demod import equally_spaced_phases
-    from tofhil.eval.fixed_pattern import calibrate_taps
+    from tofhil.eval.calibration.taps import calibrate_taps
 
     flat = np.full((1, 4, 6, 8), np.nan)
     with pytest.raises(TofhilError) as err:

@@ -1,4 +1,4 @@
-"""The device's confidence as a noise source of a one-frame depth session (eval/depth_heldout.py):
+"""The device's confidence as a noise source of a one-frame depth session (eval/diagnose/depth_heldout.py):
 used, at the noise ratio it was made with, when it predicts the local scatter; refused when it
 does not. Synthetic phasors with known per-pixel noise, no rendering."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tofhil.eval.depth_heldout import confidence_noise, depth_phasor
+from tofhil.eval.diagnose.depth_heldout import confidence_noise, depth_phasor
 
 H, W = 60, 80
 
@@ -50,7 +50,7 @@ def test_real_adi_office_confidence_is_calibrated_and_stated(tmp_path):
 
     from tests.real_data import CAPTURES, need
     from tofhil.drivers.importers.dispatch import import_file
-    from tofhil.eval.depth_heldout import split_depth_session
+    from tofhil.eval.diagnose.depth_heldout import split_depth_session
     from tofhil.session import open_session
 
     office = CAPTURES["office"]

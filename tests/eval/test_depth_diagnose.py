@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 
 from tofhil.camera import CameraModel
-from tofhil.eval.depth_heldout import (OFFSET_ONLY_EFFECTS, depth_phasor, observable_candidates,
+from tofhil.eval.diagnose.depth_heldout import (OFFSET_ONLY_EFFECTS, depth_phasor, observable_candidates,
                                        spatial_noise_variance, split_depth_session)
-from tofhil.eval.diagnose import diagnose
+from tofhil.eval.diagnose.run import diagnose
 from tofhil.frames import DepthFrame
 from tofhil.session import SessionWriter, open_session
 from tofhil.sim.pipeline import simulate_session
@@ -123,7 +123,7 @@ class _TwoNamesOneCause:
     does something else: the data cannot tell the first two apart."""
 
     def __init__(self, base: np.ndarray) -> None:
-        from tofhil.eval.selection import EffectSpec, FitParam
+        from tofhil.eval.diagnose.selection import EffectSpec, FitParam
 
         self.base = base
         spec = EffectSpec((FitParam("g", 0.0, -0.5, 0.5, 0.05),))
@@ -141,9 +141,9 @@ class _TwoNamesOneCause:
     
 
 def test_two_causes_that_act_alike_are_reported_as_ambiguous():
-    from tofhil.eval.heldout import HeldOutData
-    from tofhil.eval.observability import assess
-    from tofhil.eval.selection import greedy_select
+    from tofhil.eval.diagnose.heldout import HeldOutData
+    from tofhil.eval.diagnose.observability import assess
+    from tofhil.eval.diagnose.selection import greedy_select
 
     rng = np.random.default_rng(3)
     h, w = 32, 32
@@ -151,7 +151,7 @@ def test_two_causes_that_act_alike_are_reported_as_ambiguous():
     truth = base * 1.1
     noise = lambda: rng.normal(0, 1.0, base.shape) + 1j * rng.normal(0, 1.0, base.shape)  # noqa: E731
     usable = np.ones((h, w), bool)
-    from tofhil.eval.heldout import block_checkerboard
+    from tofhil.eval.diagnose.heldout import block_checkerboard
 
     board = block_checkerboard((h, w), 8)
     data = HeldOutData(camera=CameraModel.from_fov(w, h, 60.0), freq_hz=np.array([20e6]),
@@ -196,7 +196,7 @@ def test_real_near_plane_capture_is_diagnosed_end_to_end(tmp_path):
     """The ADI near-plane capture (binned 4 x 4): import, scene-from-capture, diagnose. The
     diagnosis runs on the depth path, writes its files, and never names what the scene cannot
     observe (its planes' poses were fitted to the same depth)."""
-    from tofhil.eval.diagnose import run_diagnosis
+    from tofhil.eval.diagnose.run import run_diagnosis
 
     small, scene = _every_nth_pixel_of_capture("near", 4, 1, tmp_path)
     res = run_diagnosis(small, scene.scene_path, tmp_path / "diag", max_effects=1)
@@ -208,7 +208,7 @@ def test_real_near_plane_capture_is_diagnosed_end_to_end(tmp_path):
     assert not {"range_offset", "pose", "ambient"} & {c["effect"] for c in res.ranked}
     # a range pattern or a field-angle error named on planes fitted to the same depth is said to
     # be indistinguishable from a surface shape the planes lack
-    from tofhil.eval.observability import MIMICKED_BY_SHAPE
+    from tofhil.eval.diagnose.observability import MIMICKED_BY_SHAPE
 
     pairs = [a["effects"] for a in out["observability"]["ambiguous"]]
     assert all([c, "surface shape"] in pairs for c in res.causes if c in MIMICKED_BY_SHAPE)
@@ -221,8 +221,8 @@ def test_real_kinect_names_no_cause_whose_held_out_gain_is_too_small(tmp_path):
     whose held-out depth RMSE went 6.39 -> 6.42 mm. Every named cause must now lower some
     channel's held-out RMSE by its stated minimum, in the channel's own units, and leave no
     channel's RMSE worse; what was fitted but too small says so, with its figures."""
-    from tofhil.eval import verdict as V
-    from tofhil.eval.diagnose import run_diagnosis
+    from tofhil.eval.diagnose import verdict as V
+    from tofhil.eval.diagnose.run import run_diagnosis
 
     small, scene = _every_nth_pixel_of_capture("kinect", 8, 3, tmp_path)  # 80 x 72: no binning
     res = run_diagnosis(small, scene.scene_path, tmp_path / "diag", max_effects=1)
@@ -251,7 +251,7 @@ def test_amplitude_model_error_does_not_bias_a_fitted_level():
     against e times the *measured* amplitude gave exp(-1.5 e^2) (the ADI office's x0.55)."""
     from scipy.optimize import minimize_scalar
 
-    from tofhil.eval.heldout import HeldOutData
+    from tofhil.eval.diagnose.heldout import HeldOutData
 
     rng = np.random.default_rng(4)
     h, w, e = 30, 40, 0.6

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tofhil.eval.diagnose import diagnose
+from tofhil.eval.diagnose.run import diagnose
 from tofhil.sim.pipeline import simulate_session
 from tofhil.sim.scene import load_scene
 

@@ -1,4 +1,4 @@
-"""Residual structure (eval/diagnose_structure.py): each part is found when it is there, at the
+"""Residual structure (eval/diagnose/structure.py): each part is found when it is there, at the
 size it was made, and nothing is reported on pure noise (synthetic maps, no rendering)."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tofhil.eval.diagnose_structure import channel_structure, edge_mask
+from tofhil.eval.diagnose.structure import channel_structure, edge_mask
 
 H, W = 60, 80
 SIGMA = 0.5e-3  # m

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tofhil.camera import CameraModel
-from tofhil.eval.edge_alignment import SLOPE_RANGE, edge_alignment
+from tofhil.eval.rgb.edge_alignment import SLOPE_RANGE, edge_alignment
 from tests.real_data import AZURE_KINECT_MKV, need
 
 DEPTH_CAM = CameraModel(width=160, height=120, fx=100.0, fy=100.0, cx=79.5, cy=59.5)

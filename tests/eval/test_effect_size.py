@@ -1,4 +1,4 @@
-"""The minimum effect size for naming a cause (eval/verdict.py ``EffectSize``).
+"""The minimum effect size for naming a cause (eval/diagnose/verdict.py ``EffectSize``).
 
 A misfit far above noise can come with a gain no ToF engineer would act on: with a low noise,
 a 0.2 mm range shift over many pixels is hugely significant, yet it is not worth naming. The
@@ -14,8 +14,8 @@ import pytest
 from tests.eval.fake_heldout import heldout_from_signal
 from tests.eval.test_selection import FakeModel
 from tofhil.demod import distance_to_phase
-from tofhil.eval import verdict as V
-from tofhil.eval.selection import greedy_select
+from tofhil.eval.diagnose import verdict as V
+from tofhil.eval.diagnose.selection import greedy_select
 
 SIGMA = 2e-5  # per component; the signal is ~1.4: a depth noise of ~10 um at 20 MHz
 

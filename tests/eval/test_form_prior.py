@@ -1,7 +1,7 @@
 """The prior of a flexible form, its strength chosen on held-out data (issue 10, point 1).
 
 A forward model linear in its parameters (a signal times ``1 + sum_k c_k cos(k u)``), so
-that the linearisation :mod:`tofhil.eval.form_prior` makes is exact and its answer can be
+that the linearisation :mod:`tofhil.eval.diagnose.form_prior` makes is exact and its answer can be
 checked against the penalised least-squares solution and the hat-matrix trace computed here
 from the design matrix, independently of the module's Jacobian.
 """
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from tests.eval.fake_heldout import heldout_from_signal
-from tofhil.eval.form_prior import regularise_form
-from tofhil.eval.selection import EffectParams, EffectSpec, FitParam, greedy_select
+from tofhil.eval.diagnose.form_prior import regularise_form
+from tofhil.eval.diagnose.selection import EffectParams, EffectSpec, FitParam, greedy_select
 
 H = W = 24
 SIGMA = 0.02

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from tests.eval.fake_heldout import heldout_from_signal
-from tofhil.eval.identifiability import assess_form, param_group
-from tofhil.eval.selection import EffectParams, EffectSpec, FitParam, greedy_select
+from tofhil.eval.diagnose.identifiability import assess_form, param_group
+from tofhil.eval.diagnose.selection import EffectParams, EffectSpec, FitParam, greedy_select
 
 H = W = 24
 SIGMA = 0.02
@@ -155,7 +155,7 @@ def test_a_search_stopped_at_its_limit_says_so(tmp_path):
     search stopped at max_effects (the capture sweep's third hidden effect was never reached)."""
     from tests.eval import hidden_forms as hf
     from tests.eval import hidden_scalar_forms as hs
-    from tofhil.eval.diagnose import diagnose
+    from tofhil.eval.diagnose.run import diagnose
 
     rng = np.random.default_rng(21)
     beam, harmonic = hs.cos_beam(rng), hs.odd_harmonics(rng, orders=(3,))

@@ -1,4 +1,4 @@
-"""Flexible map forms fitted in closed form (eval/linear_forms.py): the fixed-pattern range
+"""Flexible map forms fitted in closed form (eval/diagnose/linear_forms.py): the fixed-pattern range
 offset map (per column, row and pixel) and the per-frame drift.
 
 The hidden offsets are made here by rotating every harmonic's phase of the twin's light
@@ -88,8 +88,8 @@ def column_pixel_diagnosis(tmp_path_factory, scene):
     """Hidden per-column (8 mm) + per-pixel (6 mm) offsets, diagnosed with the extended scene
     written to a directory (the map file goes beside it) and diagnosis.json as the CLI writes
     it (the report's figures are left out: slow, and tested elsewhere)."""
-    from tofhil.eval import html as H
-    from tofhil.eval.diagnose import diagnose
+    from tofhil.eval.reports import html as H
+    from tofhil.eval.diagnose.run import diagnose
 
     tmp = tmp_path_factory.mktemp("colpix")
     col, hidden = hidden_column_pixel(11, scene.camera.shape)
@@ -139,7 +139,7 @@ def test_offset_map_file_holds_the_hidden_map(column_pixel_diagnosis):
 def test_extended_scene_loads_the_map_and_reproduces_the_gain(column_pixel_diagnosis):
     """The extended scene (base scene + the map file) is what the 'after' figures come from:
     loaded on its own, it predicts the held-out data with the reported misfit."""
-    from tofhil.eval.twin_model import TwinModel
+    from tofhil.eval.diagnose.twin_model import TwinModel
     from tofhil.sim.scene import load_scene
 
     res, out, _, _ = column_pixel_diagnosis
@@ -152,7 +152,7 @@ def test_extended_scene_loads_the_map_and_reproduces_the_gain(column_pixel_diagn
 def test_null_sessions_name_no_map(tmp_path, scene):
     """Five sessions with nothing hidden: neither the regularised map nor the drift is named
     (they do not fit noise), and nothing else on the candidate list either."""
-    from tofhil.eval.diagnose import diagnose
+    from tofhil.eval.diagnose.run import diagnose
 
     named = []
     for seed in range(5):
@@ -167,7 +167,7 @@ def test_null_sessions_name_no_map(tmp_path, scene):
 def test_one_frame_depth_session_says_why_no_pixel_map(tmp_path, scene):
     """With one frame the training and held-out frames are the same: the per-pixel part
     cannot be scored, and the diagnosis says so."""
-    from tofhil.eval.diagnose import diagnose
+    from tofhil.eval.diagnose.run import diagnose
     from tofhil.session import SessionWriter
     from tofhil.sim.scene import scene_to_yaml
 
@@ -188,7 +188,7 @@ def test_one_frame_depth_session_says_why_no_pixel_map(tmp_path, scene):
 def test_linear_drift_over_frames_is_named(tmp_path, scene):
     """A range drift linear over the frames (12 mm first to last, zero on average): named as
     the per-frame drift, its offsets follow the hidden line, and no map is named for it."""
-    from tofhil.eval.diagnose import diagnose
+    from tofhil.eval.diagnose.run import diagnose
 
     frames, span = 8, 0.012
     path = hf.write_session(scene, tmp_path / "drift.h5", None, frames=frames, seed=21,
@@ -211,7 +211,7 @@ def test_emitter_power_drift_over_frames_is_named_as_a_scale(tmp_path, scene):
     """The emitter's power falling by 6 % over 8 frames (warm-up), the range unchanged: the
     per-frame drift is named, its amplitude scale follows the hidden line and its range offsets
     stay within noise."""
-    from tofhil.eval.diagnose import diagnose
+    from tofhil.eval.diagnose.run import diagnose
 
     frames, span = 8, -0.06
     path = hf.write_session(scene, tmp_path / "power.h5", None, frames=frames, seed=23,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tofhil.errors import TofhilError
-from tofhil.eval.matching import (apply_transform, chamfer, cloud_metrics, fscore, hausdorff, icp,
+from tofhil.eval.metrics.matching import (apply_transform, chamfer, cloud_metrics, fscore, hausdorff, icp,
                                   precision_recall)
 
 from tests.real_data import adi_office_points

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from tofhil.eval.compare import compare_sessions
-from tofhil.eval.diagnose import HELD_OUT, HELD_OUT_MASK, run_diagnosis
-from tofhil.eval.metrics import DEPTH_RMSE
+from tofhil.eval.diagnose.run import HELD_OUT, HELD_OUT_MASK, run_diagnosis
+from tofhil.eval.metrics.core import DEPTH_RMSE
 from tofhil.sim.pipeline import simulate_session
 from tofhil.sim.scene import load_scene, scene_to_yaml
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from tests.conftest import run_tofhil
-from tofhil.eval.clouds import load_cloud
-from tofhil.eval.multiview import (NDT_PASS, load_view, pose_error, sample_scene_surface, score_model,
+from tofhil.eval.metrics.clouds import load_cloud
+from tofhil.eval.multiview.model import (NDT_PASS, load_view, pose_error, sample_scene_surface, score_model,
                                    visible_from)
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tofhil.errors import TofhilError
-from tofhil.eval.ndt import (NDTGrid, cell_likelihood, d2d_score, gauss_params, multi_resolution,
+from tofhil.eval.metrics.ndt import (NDTGrid, cell_likelihood, d2d_score, gauss_params, multi_resolution,
                              ndt_score, pcl_point_scores, trilinear_likelihood, trilinear_weights)
 
 from tests.real_data import adi_office_points
@@ -372,7 +372,7 @@ def test_trilinear_weights_reproduce_linear_functions():
 def test_compiled_point_loop_equals_vectorised_terms(cell: float) -> None:
     """The compiled per-point loop and the vectorised 27-offset pass give the same per-point
     terms, for points inside the reference, beside it and far outside the dense table."""
-    from tofhil.eval.ndt import _all_point_terms, _point_terms
+    from tofhil.eval.metrics.ndt import _all_point_terms, _point_terms
 
     rng = np.random.default_rng(5)
     ref = rng.normal(scale=[0.5, 0.3, 0.05], size=(20000, 3)) + [0.2, -0.1, 1.0]

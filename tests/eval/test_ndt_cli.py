@@ -10,8 +10,8 @@ import pytest
 
 from tofhil.camera import CameraModel
 from tofhil.cli import main
-from tofhil.eval.clouds import load_cloud
-from tofhil.eval.ndt import ndt_score
+from tofhil.eval.metrics.clouds import load_cloud
+from tofhil.eval.metrics.ndt import ndt_score
 from tofhil.frames import DepthFrame
 from tofhil.session import SessionWriter
 

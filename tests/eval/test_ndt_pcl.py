@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tofhil.eval.clouds import load_cloud
-from tofhil.eval.ndt import NDTGrid, gauss_params, ndt_score, pcl_score
+from tofhil.eval.metrics.clouds import load_cloud
+from tofhil.eval.metrics.ndt import NDTGrid, gauss_params, ndt_score, pcl_score
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "pcl"
 SETTINGS = [("r050", 0.5, 0.55, 6), ("r025", 0.25, 0.55, 6), ("r030", 0.3, 0.3, 10)]

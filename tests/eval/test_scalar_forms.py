@@ -16,8 +16,8 @@ import pytest
 from tests.eval import hidden_forms as hf
 from tests.eval import hidden_scalar_forms as hs
 from tests.eval.fake_heldout import heldout_from_signal
-from tofhil.eval.heldout import HeldOutData
-from tofhil.eval.selection import EffectParams, EffectSpec, FitParam, greedy_select
+from tofhil.eval.diagnose.heldout import HeldOutData
+from tofhil.eval.diagnose.selection import EffectParams, EffectSpec, FitParam, greedy_select
 
 H = W = 24
 SIGMA = 0.02
@@ -66,7 +66,7 @@ def scene():
 
 
 def _diagnose(scene, tmp_path, change, seed, **kw):
-    from tofhil.eval.diagnose import diagnose
+    from tofhil.eval.diagnose.run import diagnose
 
     path = hf.write_session(scene, tmp_path / f"s{seed}.h5", change, seed=seed)
     return diagnose(path, scene, max_effects=2, **kw)

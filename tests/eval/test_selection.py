@@ -1,4 +1,4 @@
-"""Held-out model selection (eval/selection.py) on a small fake forward model.
+"""Held-out model selection (eval/diagnose/selection.py) on a small fake forward model.
 
 The fake stands in for the twin through the ``ForwardModel`` protocol: a complex image with
 three candidate effects of known form -- a gain (linear), a phase shift (non-linear) and a
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from tests.eval.fake_heldout import heldout_from_signal
-from tofhil.eval.heldout import HeldOutData
-from tofhil.eval.selection import EffectParams, EffectSpec, FitParam, greedy_select
+from tofhil.eval.diagnose.heldout import HeldOutData
+from tofhil.eval.diagnose.selection import EffectParams, EffectSpec, FitParam, greedy_select
 
 H = W = 24
 SIGMA = 0.02

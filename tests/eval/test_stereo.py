@@ -8,7 +8,7 @@ import pytest
 
 from tofhil.camera import CameraModel
 from tofhil.depth import depth_from_raw
-from tofhil.eval.calibration import calibrate_stereo
+from tofhil.eval.calibration.camera import calibrate_stereo
 from tofhil.sim.pipeline import simulate
 from tofhil.sim.rgb import render_grey
 from tofhil.sim.scene import _rotation_xyz, load_scene

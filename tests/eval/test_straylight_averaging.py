@@ -20,7 +20,7 @@ from tofhil.demod import phasor
 from tofhil.eval.corrections import correct_mean, correct_raw
 from tofhil.eval.compare import recorded_tap_calibration, tap_calibration_plan
 from tofhil.eval.corrections.averaging import mean_signal, session_mean_signal
-from tofhil.eval.fixed_pattern import TapCalibration
+from tofhil.eval.calibration.taps import TapCalibration
 from tofhil.frames import DepthFrame
 from tofhil.session import SessionWriter, open_session
 

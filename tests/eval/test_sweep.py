@@ -18,7 +18,7 @@ import pytest
 import yaml
 
 from tofhil.errors import TofhilError
-from tofhil.eval import sweep as S
+from tofhil.app import sweep as S
 
 #: 4 tiny cases (wall_card at 40 x 30): two card reflectances x two seeds, a weak stray light
 #: in the measurement, compared with the twin that lacks it.

@@ -8,7 +8,7 @@ import pytest
 
 from tofhil.depth import depth_from_raw
 from tofhil.errors import TofhilError
-from tofhil.eval.targets import board_pose_from_amplitude, detect_board, to_8bit
+from tofhil.targets import board_pose_from_amplitude, detect_board, to_8bit
 from tofhil.sim.pipeline import simulate
 from tofhil.sim.scene import load_scene
 

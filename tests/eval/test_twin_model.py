@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from tofhil.eval.twin_model import fit_library, to_effect_values
+from tofhil.eval.diagnose.twin_model import fit_library, to_effect_values
 from tofhil.sim.effects import EFFECTS, ORDER
 
 

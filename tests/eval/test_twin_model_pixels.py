@@ -9,8 +9,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from tofhil.eval.heldout import HeldOutData, predict_fit
-from tofhil.eval.twin_model import TwinModel
+from tofhil.eval.diagnose.heldout import HeldOutData, predict_fit
+from tofhil.eval.diagnose.twin_model import TwinModel
 from tofhil.sim.scene import load_scene
 
 

@@ -1,4 +1,4 @@
-"""Verdicts that never overclaim (eval/verdict.py, the selection's channel rule, diagnose).
+"""Verdicts that never overclaim (eval/diagnose/verdict.py, the selection's channel rule, diagnose).
 
 Unit tests check the noise threshold against simulated noise, the channel split against
 residuals of known direction, and the selection's refusal of a fit that trades one channel
@@ -18,9 +18,9 @@ import pytest
 
 from tests.eval import hidden_forms as hf
 from tests.eval.fake_heldout import heldout_from_signal
-from tofhil.eval import verdict as V
-from tofhil.eval.heldout import HeldOutData
-from tofhil.eval.selection import EffectParams, EffectSpec, FitParam, greedy_select
+from tofhil.eval.diagnose import verdict as V
+from tofhil.eval.diagnose.heldout import HeldOutData
+from tofhil.eval.diagnose.selection import EffectParams, EffectSpec, FitParam, greedy_select
 
 H, W = 24, 24
 SIGMA = 0.02
@@ -140,12 +140,12 @@ def _check_consistent(res) -> None:
 
 def test_column_and_pixel_offsets_from_few_frames_are_partly_the_offset_map(tmp_path, scene):
     """Random per-column (8 mm) and per-pixel (6 mm) range offsets in 4 frames: the columns
-    are the fixed-pattern offset map (a flexible form, eval/linear_forms.py); the per-pixel
+    are the fixed-pattern offset map (a flexible form, eval/diagnose/linear_forms.py); the per-pixel
     part, against the noise of 2 training frames, cannot pay for its freedom, so the verdict
     is "partly explained", shows where the rest is and says that more frames would tell
     (tests/eval/test_linear_forms.py: with 32 frames the pixel part is found too)."""
     path = hf.write_session(scene, tmp_path / "cols.h5", hf.column_row_offsets(np.random.default_rng(1)), seed=3)
-    from tofhil.eval.diagnose import diagnose
+    from tofhil.eval.diagnose.run import diagnose
 
     res = diagnose(path, scene, max_effects=2)
     _check_consistent(res)
@@ -161,7 +161,7 @@ def test_unmodulated_offset_is_the_offset_effect_and_explained(tmp_path, scene):
     """A uniform unmodulated light twice the signal (the issue: ambient + a veil at its bound
     + lens distortion, depth RMSE 15.8 -> 32 mm, amplitude RMSE 0.22 -> 2.0): the offset
     effect (unmodulated charge that is not scene ambient) is named alone and explains it."""
-    from tofhil.eval.diagnose import diagnose
+    from tofhil.eval.diagnose.run import diagnose
 
     path = hf.write_session(scene, tmp_path / "unmod.h5", hf.unmodulated_offset(np.random.default_rng(2)), seed=4)
     res = diagnose(path, scene, max_effects=2)
@@ -174,7 +174,7 @@ def test_unmodulated_offset_is_the_offset_effect_and_explained(tmp_path, scene):
 
 
 def test_field_angle_error_is_named_and_explained(tmp_path, scene):
-    from tofhil.eval.diagnose import diagnose
+    from tofhil.eval.diagnose.run import diagnose
     from tofhil.sim.pipeline import simulate_session
 
     c2 = float(np.random.default_rng(9).uniform(0.03, 0.06))
@@ -192,7 +192,7 @@ def test_field_angle_error_is_named_and_explained(tmp_path, scene):
 
 
 def test_log_amplitude_error_verdict_is_consistent(tmp_path, scene):
-    from tofhil.eval.diagnose import diagnose
+    from tofhil.eval.diagnose.run import diagnose
 
     path = hf.write_session(scene, tmp_path / "loga.h5", hf.log_amplitude_error(np.random.default_rng(3)), seed=5)
     res = diagnose(path, scene, max_effects=2)
@@ -203,7 +203,7 @@ def test_log_amplitude_error_verdict_is_consistent(tmp_path, scene):
 
 def test_wrong_scene_names_no_effect(tmp_path, scene):
     """A capture of the corner diagnosed against the plain wall: the scene does not match."""
-    from tofhil.eval.diagnose import diagnose
+    from tofhil.eval.diagnose.run import diagnose
     from tofhil.sim.scene import load_scene
 
     corner = load_scene("corner")
@@ -234,7 +234,7 @@ def test_max_effects_zero_says_nothing_was_searched(tmp_path, scene, tofhil_cli)
 
 
 def test_diagnosis_json_is_repeatable_bit_for_bit(tmp_path, scene):
-    from tofhil.eval.diagnose import run_diagnosis
+    from tofhil.eval.diagnose.run import run_diagnosis
     from tofhil.sim.scene import scene_to_yaml
 
     scene_path = tmp_path / "twin.yaml"

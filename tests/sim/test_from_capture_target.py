@@ -60,7 +60,7 @@ def test_board_pose_from_amplitude_within_1_mm_and_0_1_deg(board_capture):
 
 @pytest.mark.slow
 def test_range_offset_named_with_target_and_unobservable_without(board_capture):
-    from tofhil.eval.diagnose import diagnose
+    from tofhil.eval.diagnose.run import diagnose
 
     path, _, with_target, tmp = board_capture
     without = scene_from_capture(path, tmp / "without.yaml", freq_hz=[44e6], wavelength_m=850e-9)

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 import yaml
 
-from tofhil.eval.heldout import split_session
+from tofhil.eval.diagnose.heldout import split_session
 from tofhil.eval.compare import acquisition_mismatches
-from tofhil.eval.twin_model import TwinModel, session_scene
+from tofhil.eval.diagnose.twin_model import TwinModel, session_scene
 from tofhil.session import open_session
 from tofhil.sim.pipeline import simulate_session
 from tofhil.sim.scene import scene_from_dict
@@ -152,7 +152,7 @@ def test_older_session_without_the_attribute_still_opens(tmp_path) -> None:
 def test_a_940nm_preset_scene_is_diagnosed_at_940nm(tmp_path) -> None:
     """Issue 11: a scene on a 940 nm preset that does not repeat the wavelength was re-rendered
     at 850 nm by diagnosis, which then named reflectance x 1.106 (= 940/850)."""
-    from tofhil.eval.diagnose import diagnose
+    from tofhil.eval.diagnose.run import diagnose
 
     preset = _preset(tmp_path, width=64, height=48, fx=60.0, fy=60.0, cx=31.5, cy=23.5)
     scene = _scene(preset, {"integration_time_s": 3e-4, "read_noise_e": 5.0})

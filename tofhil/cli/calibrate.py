@@ -35,7 +35,7 @@ def calibrate_camera_cmd(
         force: bool = typer.Option(False, "--force", help="Overwrite OUT (and --report) if they exist.")) -> None:
     """Calibrate the camera from amplitude images of a board (OpenCV): fx, fy, cx, cy and distortion."""
     from tofhil.boards import BoardSpec
-    from tofhil.eval.calibration import DISTORTION_MODELS, calibrate_sessions, preset_text
+    from tofhil.eval.calibration.camera import DISTORTION_MODELS, calibrate_sessions, preset_text
 
     if model not in DISTORTION_MODELS:
         raise TofhilError(f"got {model!r}", field="--model", expected="one of " + ", ".join(DISTORTION_MODELS))
@@ -82,12 +82,12 @@ def colorize_cmd(recording: Path = typer.Argument(..., parser=opt.existing_file,
     import numpy as np
 
     from tofhil.cli import new_output_dir
-    from tofhil.eval.colorize import colorize_points, k4a_inputs, session_inputs, write_ply
+    from tofhil.eval.rgb.colorize import colorize_points, k4a_inputs, session_inputs, write_ply
 
     opt.check_output(out_path, force, (".ply",), "a path ending in .ply")
     if report is not None:
-        from tofhil.eval.colorize_report import REPORT_FILES
-        from tofhil.eval.html import prepare_output_dir
+        from tofhil.eval.rgb.report import REPORT_FILES
+        from tofhil.eval.reports.html import prepare_output_dir
 
         prepare_output_dir(report, REPORT_FILES, force=force)
     if recording.suffix.lower() in (".h5", ".hdf5"):
@@ -113,13 +113,13 @@ def colorize_cmd(recording: Path = typer.Argument(..., parser=opt.existing_file,
             f"{int(len(pts) - res.visible.sum() - res.occluded.sum())} outside the colour image")
     edges = None
     if report is not None:
-        from tofhil.eval.edge_alignment import edge_alignment
+        from tofhil.eval.rgb.edge_alignment import edge_alignment
 
         edges = edge_alignment(inp.z_m, inp.valid, inp.pixel_to_ray, inp.tof_to_color, inp.color_camera, inp.rgb)
     write_ply(out_path, pts[keep], res.colors[keep])
     out.print(f"{text}; wrote {int(keep.sum())} points to {lit(out_path)}", highlight=False, soft_wrap=True)
     if edges is not None:
-        from tofhil.eval.colorize_report import cloud_view, write_colorize_report
+        from tofhil.eval.rgb.report import cloud_view, write_colorize_report
 
         with new_output_dir(report):
             write_colorize_report(report, cloud_img=cloud_view(pts[res.visible], res.colors[res.visible]),
@@ -148,7 +148,7 @@ def calibrate_stereo_cmd(
 
     from tofhil.boards import BoardSpec
     from tofhil.camera import load_camera_preset
-    from tofhil.eval.calibration import calibrate_stereo_sessions
+    from tofhil.eval.calibration.camera import calibrate_stereo_sessions
 
     opt.check_output(out_path, force, (".yaml", ".yml"), "a path ending in .yaml")
     spec = BoardSpec.parse(target, field="--target")

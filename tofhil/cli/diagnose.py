@@ -24,7 +24,7 @@ def _progress_printer() -> callable:
 
 
 def _summary(res, report: Path) -> None:
-    from tofhil.eval.metrics import DEPTH_RMSE
+    from tofhil.eval.metrics.core import DEPTH_RMSE
 
     g = res.gain
     if res.verdict is not None:
@@ -71,7 +71,7 @@ def diagnose(session: Path = typer.Argument(..., parser=opt.existing_file,
              candidates: Optional[str] = typer.Option(None, help="Comma-separated effects to try (default: all)."),
              force: bool = typer.Option(False, "--force", help="Overwrite an earlier diagnosis in OUT.")) -> None:
     """Find what the twin gets wrong, fit it, write the extended scene and the held-out gain."""
-    from tofhil.eval.diagnose import DRIFT, run_diagnosis
+    from tofhil.eval.diagnose.run import DRIFT, run_diagnosis
     from tofhil.sim.effects import ORDER
 
     names = None
@@ -100,7 +100,7 @@ def demo(out_dir: Path = typer.Option(Path("demo-out"), "--out", parser=opt.out_
     from tofhil.drivers.capture import capture
     from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
     from tofhil.drivers.tofcam635.sources import TOFCAM635_OVERRIDES, SimulatedSource
-    from tofhil.eval.diagnose import run_diagnosis
+    from tofhil.eval.diagnose.run import run_diagnosis
     from tofhil.cli.evaluate import compare_line
     from tofhil.eval.compare import compare_sessions
     from tofhil.sim.pipeline import simulate_session

@@ -82,7 +82,7 @@ def correct(session: Path = typer.Argument(..., parser=opt.existing_file, help="
         if "psf" in params:
             raise TofhilError("give either psf=FILE or --calibrate, not both", field="psf:psf")
         from tofhil.eval.corrections.psf_calibration import calibrate_from_sessions
-        from tofhil.eval.fixed_pattern import TapCalibration
+        from tofhil.eval.calibration.taps import TapCalibration
 
         flat = TapCalibration.load(params["flat"]) if params.get("flat") else None
         if psf_form not in ("gaussian", "free"):
@@ -147,7 +147,7 @@ def compare(a: Path = typer.Argument(..., parser=opt.existing_file, help="Measur
     demodulation); each region's noise floor (the RMSE noise alone would give) is printed
     beside its error."""
     from tofhil.eval.compare import compare_sessions
-    from tofhil.eval.metrics import DEPTH_RMSE
+    from tofhil.eval.metrics.core import DEPTH_RMSE
 
     with new_output_dir(out_dir):
         m = compare_sessions(a, b, out_dir, corrections=correct_specs, rois=roi, masks=mask, row=row, column=column,
@@ -168,7 +168,7 @@ def compare(a: Path = typer.Argument(..., parser=opt.existing_file, help="Measur
 def compare_line(name: str, region: dict[str, Any]) -> str:
     """One line per variant and region: the depth RMSE (the one definition), the noise floor
     (the RMSE noise alone would give), median, MAD."""
-    from tofhil.eval.metrics import DEPTH_RMSE
+    from tofhil.eval.metrics.core import DEPTH_RMSE
 
     def mm(x: Any) -> str:
         return "-" if x is None else f"{x * 1000:.2f}"
@@ -188,7 +188,7 @@ def calibrate_taps_cmd(flat: Path = typer.Option(..., "--flat", parser=opt.exist
                                                           help="Balance the taps of each pixel only."),
                        force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
     """Per-tap offsets (dark) and gains (flat) for flat=T.npz of tofhil correct."""
-    from tofhil.eval.fixed_pattern import TapCalibration, calibrate_taps, mean_taps
+    from tofhil.eval.calibration.taps import TapCalibration, calibrate_taps, mean_taps
 
     real = TapCalibration.file_path(out_path)
     if real.exists() and not force:

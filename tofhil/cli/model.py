@@ -30,10 +30,10 @@ def model_cmd(sessions: List[Path] = typer.Argument(..., parser=opt.existing_fil
               force: bool = typer.Option(False, "--force", help="Overwrite OUT and the report files.")) -> None:
     """Register the views (FPFH/RANSAC then ICP, pose graph), fuse them (TSDF) into a model and,
     for simulated views, score it against the scene's geometry (NDT, Chamfer, F-score) with per-view pose errors."""
-    from tofhil.eval.colorize import write_ply
-    from tofhil.eval.html import prepare_output_dir
-    from tofhil.eval.multiview import build_model, load_view
-    from tofhil.eval.multiview_report import REPORT_FILES, write_model_report
+    from tofhil.eval.rgb.colorize import write_ply
+    from tofhil.eval.reports.html import prepare_output_dir
+    from tofhil.eval.multiview.model import build_model, load_view
+    from tofhil.eval.multiview.report import REPORT_FILES, write_model_report
 
     opt.check_output(out_path, force, (".ply",), "a path ending in .ply")
     if report is not None:

@@ -36,8 +36,8 @@ def ndt(ref: str = typer.Argument(..., help="Reference cloud: PLY, PCD, xyz text
     With several --cell-size values the first gives the top-level numbers and JSON gains
     "resolutions": {R: {...}} for all of them.
     """
-    from tofhil.eval.clouds import load_cloud
-    from tofhil.eval.ndt import DEFAULT_THRESHOLDS, NDTGrid, d2d_score, gauss_params, ndt_score, pcl_score
+    from tofhil.eval.metrics.clouds import load_cloud
+    from tofhil.eval.metrics.ndt import DEFAULT_THRESHOLDS, NDTGrid, d2d_score, gauss_params, ndt_score, pcl_score
 
     sizes = list(cell_size) if cell_size else [0.1]
     for r in sizes:

@@ -32,7 +32,7 @@ def _log(start: float):
 
 def _run(spec, out_dir: Path, scheduler: Optional[str], workers: Optional[int], resume: bool, force: bool,
          retry_failed: bool = False) -> None:
-    from tofhil.eval.sweep import expand_cases, run_sweep
+    from tofhil.app.sweep import expand_cases, run_sweep
 
     start = time.monotonic()
     n = len(expand_cases(spec))
@@ -54,7 +54,7 @@ def sweep(spec_file: Path = typer.Argument(..., parser=opt.existing_file, help="
           scheduler: Optional[str] = _SCHEDULER, workers: Optional[int] = _WORKERS,
           resume: bool = _RESUME, force: bool = _FORCE, retry_failed: bool = _RETRY) -> None:
     """Run a sweep: every case of the spec as one Dask task, one table of results and a report."""
-    from tofhil.eval.sweep import load_spec
+    from tofhil.app.sweep import load_spec
 
     _run(load_spec(spec_file), out_dir, scheduler, workers, resume, force, retry_failed)
 
@@ -67,7 +67,7 @@ def batch_diagnose(sessions: List[str] = typer.Argument(..., help="Session files
                    scheduler: Optional[str] = _SCHEDULER, workers: Optional[int] = _WORKERS,
                    resume: bool = _RESUME, force: bool = _FORCE, retry_failed: bool = _RETRY) -> None:
     """Diagnose every session against one scene; one summary table."""
-    from tofhil.eval.sweep import batch_spec, session_list
+    from tofhil.app.sweep import batch_spec, session_list
 
     spec = batch_spec("diagnose", session_list(sessions), scene=scene, max_effects=max_effects)
     _run(spec, out_dir, scheduler, workers, resume, force, retry_failed)
@@ -86,7 +86,7 @@ def batch_compare(sessions: List[str] = typer.Argument(..., help="Session files,
                   resume: bool = _RESUME, force: bool = _FORCE, retry_failed: bool = _RETRY) -> None:
     """Compare every session with one reference (or the twin); one summary table."""
     from tofhil.errors import TofhilError
-    from tofhil.eval.sweep import batch_spec, session_list
+    from tofhil.app.sweep import batch_spec, session_list
 
     if (reference is None) == (scene is None):
         raise TofhilError("give exactly one of --reference and --scene", field="--reference",

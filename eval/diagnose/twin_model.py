@@ -21,8 +21,8 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from tofhil.demod import phasor
-from tofhil.eval.heldout import HeldOutData, depth_from_signal
-from tofhil.eval.selection import EffectParams, EffectSpec, FitParam
+from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal
+from tofhil.eval.diagnose.selection import EffectParams, EffectSpec, FitParam
 from tofhil.sim.effects import EFFECTS, ORDER, Param
 
 LOG_PREFIX = "log10_"
@@ -102,7 +102,7 @@ def fit_library(current: Callable[[str, str], float] | None = None,
 
 def _fit_offset_map(model: Any, data: HeldOutData, current: EffectParams,
                     penalty_per_dof: float) -> tuple[dict[str, Any], float, dict[str, Any]]:
-    from tofhil.eval.linear_forms import fit_offset_map
+    from tofhil.eval.diagnose.linear_forms import fit_offset_map
 
     m = fit_offset_map(model, data, current, penalty_per_dof)
     return {"values": m.map_m}, m.dof, m.summary()
@@ -132,7 +132,7 @@ def session_scene(scene: Any, data: HeldOutData) -> Any:
 
 class TwinModel:
     """Predicts the measured channels for a set of extra effects on top of the base scene
-    (a :class:`~tofhil.eval.selection.ForwardModel`)."""
+    (a :class:`~tofhil.eval.diagnose.selection.ForwardModel`)."""
 
     def __init__(self, scene: Any, data: HeldOutData, *, render_kwargs: Mapping[str, Any] | None = None,
                  cache_size: int = 8, renders_from: "TwinModel | None" = None) -> None:
@@ -173,7 +173,7 @@ class TwinModel:
         """
         from scipy.spatial.transform import Rotation
 
-        from tofhil.eval.matching import icp
+        from tofhil.eval.metrics.matching import icp
 
         nf = self.data.n_freq
         pred = self.predict({})

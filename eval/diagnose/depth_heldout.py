@@ -48,7 +48,7 @@ from tofhil.depth import saturated_amplitude
 from tofhil import C_M_PER_S
 from tofhil.demod import distance_to_phase, equally_spaced_phases
 from tofhil.errors import TofhilError
-from tofhil.eval.heldout import HeldOutData, block_checkerboard
+from tofhil.eval.diagnose.heldout import HeldOutData, block_checkerboard
 from tofhil.session import Session
 
 #: Effects that act only on the tap offset: not observable without raw taps.
@@ -344,7 +344,7 @@ def split_for_diagnosis(session: Session, scene: Any, *, block_px: int = 8, max_
                         valid_mask: np.ndarray | None = None, amplitude_model_error: float | None = None
                         ) -> HeldOutData:
     """Raw taps when the session has them, else its depth and amplitude (this module)."""
-    from tofhil.eval.heldout import split_session
+    from tofhil.eval.diagnose.heldout import split_session
 
     if session.has_raw:
         return split_session(session, block_px=block_px, max_frames=max_frames)

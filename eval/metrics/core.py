@@ -303,7 +303,7 @@ def check_aligned(a: DepthFrame, b: DepthFrame) -> dict[str, Any]:
 
 @dataclass
 class CloudMetrics:
-    """A's points against B's (:func:`tofhil.eval.matching.cloud_metrics`), with ICP when asked."""
+    """A's points against B's (:func:`tofhil.eval.metrics.matching.cloud_metrics`), with ICP when asked."""
 
     chamfer: float
     hausdorff: float
@@ -323,7 +323,7 @@ class CloudMetrics:
 
 @dataclass
 class NdtMetrics:
-    """A's points scored on B's NDT grid (:func:`tofhil.eval.ndt.ndt_score`)."""
+    """A's points scored on B's NDT grid (:func:`tofhil.eval.metrics.ndt.ndt_score`)."""
 
     cell_size: float
     score_per_point: float
@@ -351,8 +351,8 @@ def cloud_and_ndt(a: DepthFrame, b: DepthFrame, valid_a: np.ndarray, valid_b: np
     Returns the metrics, the per-pixel trilinear NDT likelihood of A's points (NaN where A
     has no point), and why they were skipped (``None`` when computed).
     """
-    from tofhil.eval.matching import cloud_metrics, icp
-    from tofhil.eval.ndt import ndt_score
+    from tofhil.eval.metrics.matching import cloud_metrics, icp
+    from tofhil.eval.metrics.ndt import ndt_score
 
     ma = a.camera.valid_mask(a.distance_m, valid_a)
     mb = b.camera.valid_mask(b.distance_m, valid_b)

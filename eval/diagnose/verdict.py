@@ -45,7 +45,7 @@ import numpy as np
 from scipy import ndimage, stats
 
 from tofhil import C_M_PER_S
-from tofhil.eval.heldout import NOISE_POOL_PX, HeldOutData, depth_from_signal, huber
+from tofhil.eval.diagnose.heldout import NOISE_POOL_PX, HeldOutData, depth_from_signal, huber
 
 #: False-alarm probability of each "above noise" test (one in a thousand).
 ALPHA = 1e-3
@@ -478,12 +478,12 @@ class ChannelGain:
 
 
 class EffectSize:
-    """Held-out RMSE per channel in its own units (depth in m: :data:`tofhil.eval.metrics.DEPTH_RMSE`
+    """Held-out RMSE per channel in its own units (depth in m: :data:`tofhil.eval.metrics.core.DEPTH_RMSE`
     on the held-out pixels where both predictions have a distance; amplitude and the tap
     offset in counts) and the minimum gain that makes a cause worth naming (module doc)."""
 
     def __init__(self, data: HeldOutData) -> None:
-        from tofhil.eval.metrics import wrap_period
+        from tofhil.eval.metrics.core import wrap_period
 
         self.data = data
         nf = data.n_freq

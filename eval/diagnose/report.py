@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 
 from tofhil import __version__
-from tofhil.eval import html as H
-from tofhil.eval import verdict as V
-from tofhil.eval.metrics import DEPTH_RMSE
+from tofhil.eval.reports import html as H
+from tofhil.eval.diagnose import verdict as V
+from tofhil.eval.metrics.core import DEPTH_RMSE
 
 
 def _usable(res: Any, img: np.ndarray) -> np.ndarray:
@@ -166,7 +166,7 @@ def _value(v: Any) -> str:
 
 def write_report(res: Any, path: Path, *, session_path: str, scene_path: str, camera: Any = None) -> None:
     """The diagnosis page: cause, evidence, held-out gain, per-region table, figures, ranking;
-    with the twin's ``camera`` a lens prescription's ghost PSFs (eval/optics_report.py)."""
+    with the twin's ``camera`` a lens prescription's ghost PSFs (eval/reports/optics.py)."""
     esc = H.esc
     v = res.verdict
     cause = " + ".join(res.causes) if res.causes else (v.kind if v is not None else "none")
@@ -229,7 +229,7 @@ def write_report(res: Any, path: Path, *, session_path: str, scene_path: str, ca
                      f"<td>{esc(p)}</td></tr>")
     parts.append("</table>")
     if camera is not None:
-        from tofhil.eval.optics_report import lens_section
+        from tofhil.eval.reports.optics import lens_section
 
         parts.extend(lens_section(camera, whose="the twin's camera (base scene)"))
     H.write_page(path, "tofhil diagnose", parts)

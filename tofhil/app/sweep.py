@@ -656,7 +656,7 @@ def _run_case_steps(spec: SweepSpec, case: Case, cdir: Path) -> dict[str, Any]:
         metrics.update(compare_metrics(m))
         metrics["compare.seconds"] = time.perf_counter() - t
     if spec.diagnose is not None:
-        from tofhil.eval.diagnose import run_diagnosis
+        from tofhil.eval.diagnose.run import run_diagnosis
         from tofhil.sim.scene import scene_to_yaml
 
         scene_path = cdir / "twin_scene.yaml"
@@ -811,7 +811,7 @@ def twin_scene_for_capture(spec: SweepSpec, case: Case, session_path: Path, cdir
 # ----------------------------------------------------------------------------- records and table
 def write_record(out_dir: str | Path, record: Mapping[str, Any]) -> Path:
     """Write ``cases/CASE_ID.json`` atomically (a temporary file renamed over it)."""
-    from tofhil.eval.metrics import json_safe
+    from tofhil.eval.metrics.core import json_safe
 
     cases = Path(out_dir) / "cases"
     cases.mkdir(parents=True, exist_ok=True)
@@ -901,7 +901,7 @@ def write_report(df: Any, spec: SweepSpec, out_dir: str | Path) -> Path:
     cases with their errors, and the table."""
     import pandas as pd
 
-    from tofhil.eval import html as H
+    from tofhil.eval.reports import html as H
 
     out = Path(out_dir)
     axes = [a for a in spec.axes if a in df.columns and df[a].nunique(dropna=True) > 1] or \

@@ -7,8 +7,8 @@ from __future__ import annotations
 from pathlib import Path
 import numpy as np
 
-from tofhil.eval.html import esc, fig_uri, fmt, notes_html, pyplot, write_json, write_page
-from tofhil.eval.multiview import MultiViewModel
+from tofhil.eval.reports.html import esc, fig_uri, fmt, notes_html, pyplot, write_json, write_page
+from tofhil.eval.multiview.model import MultiViewModel
 
 REPORT_FILES = ("model.html", "model.json")
 

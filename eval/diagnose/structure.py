@@ -17,7 +17,7 @@ the parts an engineer names, each tested against the noise of the same pixels:
   :data:`MIN_SPOT_PX`), placed on the object and flagged when they touch its outline.
 
 A part is reported when its chi-square against the pixel noise exceeds the ``1 - ALPHA``
-quantile for its degrees of freedom (:mod:`tofhil.eval.verdict`), and when it is larger than
+quantile for its degrees of freedom (:mod:`tofhil.eval.diagnose.verdict`), and when it is larger than
 ``min_fraction`` of the noise in rms (the twin cannot be asked to follow the device's
 sub-noise texture). All coordinates are those of the diagnosis grid (binned pixels).
 """
@@ -30,7 +30,7 @@ from typing import Any, Mapping
 import numpy as np
 from scipy import ndimage, stats
 
-from tofhil.eval.verdict import ALPHA
+from tofhil.eval.diagnose.verdict import ALPHA
 
 #: Fewest pixels for an object's smooth fit and for a spot.
 MIN_OBJECT_PX = 40

@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from tofhil.eval.edge_alignment import SLOPE_RANGE, EdgeAlignment
-from tofhil.eval.html import esc, fig_uri, pyplot, write_json, write_page
+from tofhil.eval.rgb.edge_alignment import SLOPE_RANGE, EdgeAlignment
+from tofhil.eval.reports.html import esc, fig_uri, pyplot, write_json, write_page
 
 REPORT_FILES = ("colorize.html", "colorize.json")
 

@@ -22,14 +22,14 @@ import numpy as np
 
 from tofhil.demod import bad_tap_pixels
 from tofhil.errors import TofhilError
-from tofhil.eval import metrics as M
-from tofhil.eval.depth_heldout import observable_candidates, split_for_diagnosis
-from tofhil.eval.heldout import HeldOutData, depth_from_signal
-from tofhil.eval.linear_forms import MAP_EFFECT, fit_frame_drift
-from tofhil.eval.observability import Observability, assess, shape_ambiguities
-from tofhil.eval.selection import Selection, greedy_select
-from tofhil.eval.twin_model import TwinModel, to_effect_values
-from tofhil.eval import verdict as V
+from tofhil.eval.metrics import core as M
+from tofhil.eval.diagnose.depth_heldout import observable_candidates, split_for_diagnosis
+from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal
+from tofhil.eval.diagnose.linear_forms import MAP_EFFECT, fit_frame_drift
+from tofhil.eval.diagnose.observability import Observability, assess, shape_ambiguities
+from tofhil.eval.diagnose.selection import Selection, greedy_select
+from tofhil.eval.diagnose.twin_model import TwinModel, to_effect_values
+from tofhil.eval.diagnose import verdict as V
 from tofhil.frames import DepthFrame
 from tofhil.session import open_session
 
@@ -50,7 +50,7 @@ class DiagnosisResult:
     maps: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
     evaluations: dict[str, M.Evaluation] = field(repr=False, default_factory=dict)
     seconds: float = 0.0
-    #: What the diagnosis claims (``eval/verdict.py``), and the figures behind it.
+    #: What the diagnosis claims (``eval/diagnose/verdict.py``), and the figures behind it.
     verdict: V.Verdict | None = None
     #: Held-out misfit per channel before and after, with its noise margin and a "worse" flag.
     channels: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -60,18 +60,18 @@ class DiagnosisResult:
     objects: dict[str, dict[str, Any]] = field(default_factory=dict)
     observability: Observability = field(default_factory=Observability)
     #: What the residual left looks like: edges, smooth field errors, fixed patterns, spots
-    #: (``eval/diagnose_structure.py``), each above its noise.
+    #: (``eval/diagnose/structure.py``), each above its noise.
     structure: list[dict[str, Any]] = field(default_factory=list)
     #: Per cause, the form fitted ("" the effect's simple form, else a flexible form's name).
     forms: dict[str, str] = field(default_factory=dict)
-    #: The per-frame drift test (``eval/linear_forms.py``): None when not searched.
+    #: The per-frame drift test (``eval/diagnose/linear_forms.py``): None when not searched.
     drift: dict[str, Any] | None = None
     #: The minimum effect size for naming (``verdict.EffectSize``): the rule, each channel's
     #: held-out RMSE base twin -> extended twin with its noise and minimum gain, and the
     #: effects that were fitted but too small to name.
     effect_size: dict[str, Any] = field(default_factory=dict)
     #: Per cause, the flexible forms not chosen because the data do not identify their extra
-    #: parameters (``eval/identifiability.py``): which parameters cannot be told apart.
+    #: parameters (``eval/diagnose/identifiability.py``): which parameters cannot be told apart.
     identifiability: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     #: Per cause, the other families the held-out data cannot tell from it ("A or B").
     alternatives: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
@@ -121,7 +121,7 @@ def heldout_frames(data: HeldOutData, prediction: np.ndarray, defined: np.ndarra
     """The held-out measurement and a prediction as depth frames (radial distance and mean
     amplitude from the complex signal): measured pixels are valid where usable (signal above
     noise, no clipped tap), predicted ones where ``defined``; both only where lit
-    (:func:`tofhil.eval.metrics.lit_pixels`)."""
+    (:func:`tofhil.eval.metrics.core.lit_pixels`)."""
     nf = data.n_freq
     cam = data.camera
     s_meas, s_pred = data.s_test[:nf], prediction[:nf]
@@ -167,10 +167,10 @@ def heldout_metrics(data: HeldOutData, prediction: np.ndarray, defined: np.ndarr
 def residual_structure(data: HeldOutData, prediction: np.ndarray, maps: dict[str, np.ndarray], object_id: np.ndarray,
                        object_names: dict[int, str]) -> list[Any]:
     """The structures of the depth and amplitude residual left by ``prediction``
-    (:mod:`tofhil.eval.diagnose_structure`), each against the noise of its pixels: the depth
+    (:mod:`tofhil.eval.diagnose.structure`), each against the noise of its pixels: the depth
     noise from the phasor's tangential variance (the best frequency), the amplitude's as a
     relative error from its radial variance."""
-    from tofhil.eval import diagnose_structure as DS
+    from tofhil.eval.diagnose import structure as DS
 
     nf = data.n_freq
     a = np.maximum(np.abs(data.s_test[:nf]), 1e-30)
@@ -470,8 +470,8 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
     A run that fails leaves nothing behind: the files it wrote are removed, and the output
     directory too when this run created it.
     """
-    from tofhil.eval import html as H
-    from tofhil.eval.diagnose_report import write_report
+    from tofhil.eval.reports import html as H
+    from tofhil.eval.diagnose.report import write_report
     from tofhil.sim.scene import load_scene
 
     names = ("diagnosis.json", "report.html", "extended_scene.yaml", HELD_OUT_MASK, "stray_light_psf.json",

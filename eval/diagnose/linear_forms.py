@@ -26,7 +26,7 @@ gives the weight ``a = |g|^2`` and the least-squares offset ``d = (g . z) / a`` 
 The held-out frames are never used here: the selection scores the fitted map on them. The
 effective degrees of freedom are the trace of the hat matrix of the parts that reach the
 held-out score (columns and rows: ``tr((X'WX + L)^-1 X'WX)``; pixels: the sum of ``s`` over
-the held-out pixels), reported through :attr:`EffectSpec.dof <tofhil.eval.selection.EffectSpec>`
+the held-out pixels), reported through :attr:`EffectSpec.dof <tofhil.eval.diagnose.selection.EffectSpec>`
 so the selection penalises the map for what it can fit.
 
 The per-frame drift (:func:`fit_frame_drift`) is the same linearisation frame by frame: one
@@ -44,7 +44,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter
 
 from tofhil import C_M_PER_S
-from tofhil.eval.heldout import NOISE_POOL_PX, HeldOutData
+from tofhil.eval.diagnose.heldout import NOISE_POOL_PX, HeldOutData
 
 T = TypeVar("T")
 
@@ -145,7 +145,7 @@ def held_out_strength(grid: Sequence[T], score: Callable[[T], float]) -> T:
     on the held-out blocks (``score``); the first of equals, so a grid that starts with the
     strongest prior keeps it unless the data ask for less. The one rule every regularised
     form's strength is chosen by (the maps here, the optimiser's forms in
-    :mod:`tofhil.eval.form_prior`)."""
+    :mod:`tofhil.eval.diagnose.form_prior`)."""
     best, best_score = grid[0], score(grid[0])
     for lam in grid[1:]:
         sc = score(lam)

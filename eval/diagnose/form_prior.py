@@ -8,7 +8,7 @@ linear in log amplitude); the regularised fit minimises
     |r(x)|^2 + lam |rho(x)|^2
 
 (``r`` the whitened training residual, ``rho`` the roughness). The strength ``lam`` is chosen
-on held-out data by the rule the offset maps use (:func:`tofhil.eval.linear_forms.held_out_strength`):
+on held-out data by the rule the offset maps use (:func:`tofhil.eval.diagnose.linear_forms.held_out_strength`):
 linearised about the unregularised fit ``x0`` (``r ~ r0 + J d``, ``rho ~ rho0 + R d``), the step
 
     d(lam) = -(J'J + lam R'R)^+ (J' r0 + lam R' rho0)
@@ -31,9 +31,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from tofhil.eval.heldout import HeldOutData, huber
-from tofhil.eval.identifiability import form_jacobian
-from tofhil.eval.linear_forms import held_out_strength
+from tofhil.eval.diagnose.heldout import HeldOutData, huber
+from tofhil.eval.diagnose.identifiability import form_jacobian
+from tofhil.eval.diagnose.linear_forms import held_out_strength
 
 #: Strengths tried, relative to the ratio of the data's and the prior's curvature (two per
 #: decade, the strongest first; 0 is the unregularised form).

@@ -22,8 +22,8 @@ Truth (a simulated view's session embeds its resolved scene: camera pose and mes
 scene's surfaces sampled uniformly by area and kept where at least one view's camera sees them
 (inside its image, first hit along the ray), so that recall counts what the views could see.
 The model is put in the world with the first view's true pose (its anchor) and scored there,
-without any further alignment: NDT (:mod:`tofhil.eval.ndt`) of the model points on the truth's
-grid, Chamfer and F-score (:mod:`tofhil.eval.matching`). Per-view pose errors compare
+without any further alignment: NDT (:mod:`tofhil.eval.metrics.ndt`) of the model points on the truth's
+grid, Chamfer and F-score (:mod:`tofhil.eval.metrics.matching`). Per-view pose errors compare
 ``true_pose[0] @ estimated[i]`` with ``true_pose[i]`` (view 0 is exact by construction).
 """
 
@@ -76,7 +76,7 @@ class View:
 
 def load_view(path: str | Path) -> View:
     """The temporal mean of a session's depth frames as a :class:`View`."""
-    from tofhil.eval.metrics import mean_depth_frame
+    from tofhil.eval.metrics.core import mean_depth_frame
     from tofhil.session import open_session
 
     path = Path(path)
@@ -410,8 +410,8 @@ class ModelScore:
 def score_model(model_world: np.ndarray, truth: np.ndarray, *, cell_m: float = NDT_CELL_M,
                 threshold_m: float = FSCORE_THRESHOLD_M, truth_total: int | None = None) -> ModelScore:
     """Score model points (world frame) against truth points: NDT on the truth's grid, Chamfer, F-score."""
-    from tofhil.eval.matching import cloud_metrics
-    from tofhil.eval.ndt import ndt_score
+    from tofhil.eval.metrics.matching import cloud_metrics
+    from tofhil.eval.metrics.ndt import ndt_score
 
     s = ndt_score(truth, model_world, cell_size=cell_m)
     c = cloud_metrics(model_world, truth, threshold=threshold_m)

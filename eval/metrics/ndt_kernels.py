@@ -1,8 +1,8 @@
-"""The compiled per-point loop of :mod:`tofhil.eval.ndt` (numba).
+"""The compiled per-point loop of :mod:`tofhil.eval.metrics.ndt` (numba).
 
-A module of its own so that importing :mod:`tofhil.eval.ndt` does not import numba (about
+A module of its own so that importing :mod:`tofhil.eval.metrics.ndt` does not import numba (about
 0.3 CPU-s, and as much again to load the cached kernel): ``tofhil ndt --score
-score_per_point`` computes PCL's score with numpy alone (:func:`tofhil.eval.ndt.pcl_score`).
+score_per_point`` computes PCL's score with numpy alone (:func:`tofhil.eval.metrics.ndt.pcl_score`).
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from tofhil.eval.colorize import project
+from tofhil.eval.rgb.colorize import project
 
 #: The self-check passes when the measured shift follows the predicted one with a slope in this range.
 SLOPE_RANGE = (0.8, 1.2)

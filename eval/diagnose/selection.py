@@ -16,7 +16,7 @@ An effect with a ``closed_form`` fit (a map: many values, linear in the residual
 by it instead of the optimiser, and its ``k`` is the effective degrees of freedom that fit
 reports (the trace of its hat matrix). A flexible form of an effect is chosen over its simple
 form only when it earns its freedom on held-out data and the data identify its extra
-parameters (:mod:`tofhil.eval.identifiability`); chosen forms are tested again at the final
+parameters (:mod:`tofhil.eval.diagnose.identifiability`); chosen forms are tested again at the final
 values. Nothing here knows what an effect does.
 """
 
@@ -29,10 +29,10 @@ from typing import Any, Callable, Mapping, Protocol, Sequence
 import numpy as np
 from scipy.optimize import least_squares
 
-from tofhil.eval.heldout import HUBER_SIGMA, HeldOutData, huber, predict_fit
-from tofhil.eval.form_prior import regularise_form
-from tofhil.eval.identifiability import Alternative, Identifiability, alternatives, assess_form, param_group
-from tofhil.eval.verdict import ChannelGain, EffectSize, channel_chi2, worse_channels
+from tofhil.eval.diagnose.heldout import HUBER_SIGMA, HeldOutData, huber, predict_fit
+from tofhil.eval.diagnose.form_prior import regularise_form
+from tofhil.eval.diagnose.identifiability import Alternative, Identifiability, alternatives, assess_form, param_group
+from tofhil.eval.diagnose.verdict import ChannelGain, EffectSize, channel_chi2, worse_channels
 from tofhil.sim.memory import release_free_memory
 
 EffectParams = dict[str, dict[str, float]]
@@ -77,7 +77,7 @@ class EffectSpec:
     #: The form's prior (``Effect.roughness``): fitted values -> a vector zero for its
     #: smoothest shape; None for none.
     roughness: Callable[[Mapping[str, float]], np.ndarray] | None = None
-    #: The prior's strength chosen on held-out data (:mod:`tofhil.eval.form_prior`): every fit
+    #: The prior's strength chosen on held-out data (:mod:`tofhil.eval.diagnose.form_prior`): every fit
     #: of this spec adds ``strength * |roughness|^2`` to its misfit (0: no prior).
     strength: float = 0.0
 
@@ -94,7 +94,7 @@ class EffectSpec:
 
     def without(self, groups: Sequence[str]) -> "EffectSpec":
         """A partial form: this form with the parameter groups ``groups`` left out (held at
-        their off values; groups as :func:`tofhil.eval.identifiability.param_group`)."""
+        their off values; groups as :func:`tofhil.eval.diagnose.identifiability.param_group`)."""
         base, _, before = self.form.partition(PARTIAL)
         dropped = sorted(set(groups) | set(before.split(", ") if before else ()))
         return dataclasses.replace(
@@ -137,16 +137,16 @@ class Candidate:
     #: What a closed-form fit reports about itself (form, strengths, parts).
     details: dict[str, Any] = field(default_factory=dict)
     #: Held-out RMSE per channel in its own units against the current model
-    #: (:class:`tofhil.eval.verdict.EffectSize`; empty when the selection checks no effect size).
+    #: (:class:`tofhil.eval.diagnose.verdict.EffectSize`; empty when the selection checks no effect size).
     rmse: dict[str, ChannelGain] = field(default_factory=dict, repr=False)
     #: False when its gain, though significant in misfit, is too small to name or makes a
     #: channel's RMSE worse (against the current model or the base twin).
     worth_naming: bool = True
     #: Flexible forms that beat the chosen one on score but whose extra parameters the data
-    #: do not identify (:mod:`tofhil.eval.identifiability`): why each was not chosen.
+    #: do not identify (:mod:`tofhil.eval.diagnose.identifiability`): why each was not chosen.
     unidentified: list[Identifiability] = field(default_factory=list)
     #: A regularised form's prior strength (``EffectSpec.strength``) and what its choice on
-    #: held-out data reports (:class:`tofhil.eval.form_prior.PriorFit`); 0 and empty otherwise.
+    #: held-out data reports (:class:`tofhil.eval.diagnose.form_prior.PriorFit`); 0 and empty otherwise.
     strength: float = 0.0
     prior: dict[str, Any] = field(default_factory=dict)
     #: The whitened held-out residual with this candidate (kept to compare candidates of
@@ -184,7 +184,7 @@ class Selection:
     #: Per cause fitted in a regularised form, its prior's strength and effective dof.
     priors: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: Per cause, the other families' candidates of its round that the held-out data cannot
-    #: tell from it ("A or B", :func:`tofhil.eval.identifiability.alternatives`).
+    #: tell from it ("A or B", :func:`tofhil.eval.diagnose.identifiability.alternatives`).
     alternatives: dict[str, list[Alternative]] = field(default_factory=dict)
 
     @property
@@ -319,7 +319,7 @@ def choose_form(tried: Sequence[Candidate], min_extra_gain: float,
     more than ``min_extra_gain`` more held-out misfit (the same margin an effect needs to be
     significant), and ``identify`` (when given) finds every one of its extra parameters
     determined by the data: a score margin can come from the optimiser's path or from
-    parameters that another one of the form reproduces (:mod:`tofhil.eval.identifiability`).
+    parameters that another one of the form reproduces (:mod:`tofhil.eval.diagnose.identifiability`).
     A form whose extra groups are identified only in part (h3 and h7 but not h5) is tried
     again without the groups the data do not identify (``partial(candidate, groups)`` fits
     that partial form), under the same rule, until every group left is identified.
@@ -378,7 +378,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     With ``effect_size`` an effect must also be worth naming in the channels' own units: its
     held-out RMSE gain reaches the minimum of some channel and no channel's RMSE gets worse,
     neither against the current model nor against the base twin
-    (:meth:`tofhil.eval.verdict.EffectSize.worth_naming`).
+    (:meth:`tofhil.eval.diagnose.verdict.EffectSize.worth_naming`).
     """
     lib = model.library()
     names = list(candidates if candidates is not None else lib)

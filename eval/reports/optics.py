@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from tofhil.eval import html as H
+from tofhil.eval.reports import html as H
 
 
 def surface_kind(name: str) -> str:

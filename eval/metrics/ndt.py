@@ -531,7 +531,7 @@ def _point_terms(grid: NDTGrid, p: np.ndarray, outlier_ratio: float
     vectorised :func:`_all_point_terms`."""
     if grid._table is None or grid.cells == 0:
         return _all_point_terms(grid, p, outlier_ratio)
-    from tofhil.eval.ndt_kernels import _point_terms_block   # numba: imported only here
+    from tofhil.eval.metrics.ndt_kernels import _point_terms_block   # numba: imported only here
 
     d1, d2 = gauss_params(grid.cell_size, outlier_ratio)
     n = p.shape[0]

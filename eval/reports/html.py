@@ -64,7 +64,7 @@ def prepare_output_dir(path: str | Path, names: Sequence[str], *, force: bool) -
 
 
 def write_json(path: Path, payload: dict[str, Any]) -> None:
-    from tofhil.eval.metrics import json_safe
+    from tofhil.eval.metrics.core import json_safe
 
     path.write_text(json.dumps(json_safe(payload), indent=2), encoding="utf-8")
 
@@ -284,7 +284,7 @@ def figure_cross_section(section: CrossSection, reference: tuple[str, np.ndarray
 
 def region_table(rows: Sequence[tuple[str, Any]], *, label: str = "variant") -> str:
     """The per-region table every report shows: one row per (label, RegionMetrics)."""
-    from tofhil.eval.metrics import DEPTH_RMSE
+    from tofhil.eval.metrics.core import DEPTH_RMSE
 
     head = (f"<tr><th>{esc(label)}</th><th>region</th><th>pixels</th><th>compared</th><th>saturated A</th>"
             f"<th>median (mm)</th><th>MAD (mm)</th><th>{esc(DEPTH_RMSE)} (mm)</th><th>noise floor (mm)</th>"

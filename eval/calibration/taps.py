@@ -30,7 +30,7 @@ import numpy as np
 
 from tofhil.demod import phasor
 from tofhil.errors import InputFileError, TofhilError
-from tofhil.eval.tagged_npz import load_tagged_npz
+from tofhil.eval.calibration.side_files import load_tagged_npz
 
 FORMAT = "tofhil.tap_calibration.v1"
 

@@ -1,7 +1,7 @@
 """Camera calibration from amplitude images of a board: intrinsics and OpenCV distortion.
 
 Each view is one session (one board pose); its frames' amplitudes are averaged (the board
-does not move, the noise does). The board is found in every view (:mod:`tofhil.eval.targets`),
+does not move, the noise does). The board is found in every view (:mod:`tofhil.targets`),
 ``cv2.calibrateCameraExtended`` fits the intrinsics and the distortion of the chosen model to
 all views at once, and views whose reprojection error stands out are rejected (each with its
 reason) before the final fit. The result is a :class:`tofhil.camera.CameraModel` written as
@@ -19,7 +19,7 @@ import numpy as np
 from tofhil.boards import BoardSpec
 from tofhil.camera import CameraModel
 from tofhil.errors import TofhilError
-from tofhil.eval.targets import BoardDetection, amplitude_image, detect_board
+from tofhil.targets import BoardDetection, amplitude_image, detect_board
 from tofhil.progress import Progress
 
 #: Distortion models: the coefficients of (k1, k2, p1, p2, k3) that are fitted.

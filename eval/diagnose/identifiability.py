@@ -18,7 +18,7 @@ The test, per group of extra parameters ``g`` (the parameters sharing a name pre
   columns (the profiled chi-square gain of ``g``, a likelihood-ratio statistic);
 - ``g`` is **identified** when that unique part exceeds its degrees of freedom times the
   selection's penalty per degree of freedom (ln n, the same BIC price
-  :func:`tofhil.eval.selection.greedy_select` charges).
+  :func:`tofhil.eval.diagnose.selection.greedy_select` charges).
 
 Whether ``g`` *could* be told apart does not depend on how large the fit happened to make
 it (in a degenerate pair the optimiser splits the error arbitrarily, or leaves ``g`` near
@@ -37,7 +37,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from tofhil.eval.heldout import HeldOutData, predict_fit
+from tofhil.eval.diagnose.heldout import HeldOutData, predict_fit
 
 def param_group(name: str) -> str:
     """The group of a fitted parameter: its name up to the first underscore
@@ -270,7 +270,7 @@ class Alternative:
 def alternatives(model: Any, data: HeldOutData, chosen: Any, others: Any, current_pred: np.ndarray,
                  penalty_per_dof: float) -> list[Alternative]:
     """The candidates of other families in the same round (``others``, each an effect's best
-    form, :class:`tofhil.eval.selection.Candidate`) that explain the same held-out residual
+    form, :class:`tofhil.eval.diagnose.selection.Candidate`) that explain the same held-out residual
     as ``chosen`` about as well: significant themselves, a held-out score within the larger
     of one degree of freedom's price and twice the noise of the score difference (that noise
     is 2 |d|, d the whitened held-out difference of the two predictions), and their change of the prediction more than

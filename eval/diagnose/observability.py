@@ -12,7 +12,7 @@ Two statements a diagnosis owes its reader besides the cause it names:
   correlated by the optics. Then the diagnosis says "A or B, this capture cannot tell them
   apart" and which capture would.
 
-A post-step on :class:`tofhil.eval.selection.Selection`; the selection itself is unchanged.
+A post-step on :class:`tofhil.eval.diagnose.selection.Selection`; the selection itself is unchanged.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from tofhil.eval.heldout import HeldOutData, huber
-from tofhil.eval.selection import Candidate, Selection
+from tofhil.eval.diagnose.heldout import HeldOutData, huber
+from tofhil.eval.diagnose.selection import Candidate, Selection
 
 #: The capture that separates two effects (an unordered pair), for the ambiguity message.
 SEPARATING_CAPTURE: dict[frozenset[str], str] = {

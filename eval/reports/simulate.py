@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from tofhil import __version__
-from tofhil.eval import html as H
+from tofhil.eval.reports import html as H
 
 #: Files a simulate report writes.
 OUTPUTS = ("report.html", "report.json")
@@ -108,7 +108,7 @@ def write_simulate_report(out_dir: str | Path, scene: Any, *, shares: Any = None
                                  "max_photons_per_cycle": float(direct.expected_photons.sum(axis=0).max())}
     body = [f"<p class='note'>scene: {H.esc(payload['scene'])}<br>session: {H.esc(session_path)}<br>"
             f"tofhil {__version__}</p>", H.figures_html(figs)]
-    from tofhil.eval.optics_report import lens_section
+    from tofhil.eval.reports.optics import lens_section
 
     body.extend(lens_section(scene.camera, whose="the scene's camera"))
     out.mkdir(parents=True, exist_ok=True)

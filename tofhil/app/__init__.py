@@ -1,0 +1,7 @@
+"""The application layer: the code that drives drivers, the simulator twin and evaluation together.
+
+The library packages depend on the core only (and eval on sim); what connects all three lives
+here, beside the CLI, which is its one user interface: ``sweep`` (many cases simulated or
+captured, compared and diagnosed, on Dask) and ``emulators`` (the emulated cameras given the
+twin's frame sources). Nothing in ``tofhil.drivers``, ``tofhil.sim`` or ``tofhil.eval`` imports it.
+"""
