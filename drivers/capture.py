@@ -15,8 +15,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
+from tofhil.outputs import refuse_existing
 from tofhil.drivers.base import CaptureSettings, DeviceDisconnected, Driver, Frame
-from tofhil.errors import DeviceError, InputFileError
+from tofhil.errors import DeviceError
 from tofhil.session import SessionWriter
 
 
@@ -55,9 +56,7 @@ def capture(driver: Driver, out_path: str | Path, n_frames: int, settings: Captu
         raise DeviceError("grayscale frames have no place in a session file", field="--mode",
                           expected="dcs or distance")
     out_path = Path(out_path)
-    if out_path.exists() and not force:  # fail before touching the device, not after the first frame
-        raise InputFileError("already exists; refusing to overwrite recorded data (use --force to replace it)",
-                             file=out_path)
+    refuse_existing(out_path, force, recorded=True)  # fail before touching the device, not after the first frame
     driver.configure(settings)
     device = driver.info().to_dict() | {"settings": settings.to_dict(), "spec": driver.spec}
     start = time.monotonic()

@@ -21,6 +21,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from tofhil import __version__
+from tofhil.outputs import prepare_output_dir
 from tofhil.demod import TapLimits
 from tofhil.errors import TofhilError
 from tofhil.eval.reports import html as H
@@ -318,7 +319,7 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
         raise TofhilError(f"is {min_amplitude}", field="--min-amplitude", expected="an amplitude >= 0")
     if max_frames < 1:
         raise TofhilError(f"is {max_frames}", field="--frames", expected="an integer >= 1")
-    out = H.prepare_output_dir(out_dir, OUTPUTS, force=force)
+    out = prepare_output_dir(out_dir, OUTPUTS, force=force)
     specs = [parse_method_spec(c) for c in corrections]
     labels = list(corrections)
     if len(set(labels)) != len(labels):

@@ -88,13 +88,14 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
     from, by bounce and by object, from the same render; a direct-ToF scene's histograms)."""
     from tofhil import __version__
     from tofhil.depth import depth_from_raw
-    from tofhil.session import SessionWriter, check_new_path
+    from tofhil.outputs import check_new_path
+    from tofhil.session import SessionWriter
     from tofhil.sim.scene import scene_to_yaml
 
     out_path = Path(out_path)
     check_new_path(out_path, force)  # fail before the (slow) render
     if report is not None:
-        from tofhil.eval.reports.html import prepare_output_dir
+        from tofhil.outputs import prepare_output_dir
         from tofhil.eval.reports.simulate import OUTPUTS
 
         prepare_output_dir(report, OUTPUTS, force=force)

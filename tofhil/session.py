@@ -23,27 +23,13 @@ from tofhil import __version__
 from tofhil.camera import CameraModel
 from tofhil.errors import InputFileError, Interrupted
 from tofhil.frames import DepthFrame, RawFrame
+from tofhil.outputs import check_new_path, remove_partial
 from tofhil.schema import to_plain
 
 FORMAT = "tofhil.session"
 FORMAT_VERSION = 1
 
 
-def check_new_path(path: Path, force: bool) -> None:
-    """Refuse to replace an existing file unless forced, and to write anywhere but a regular
-    file in an existing directory (never a directory, a device such as /dev/full, a pipe)."""
-    if path.is_dir():
-        raise InputFileError("is a directory", file=path, expected="a file name for the output")
-    if path.exists() and not path.is_file():
-        raise InputFileError("is not a regular file (a device or a pipe); refusing to write to it", file=path)
-    if path.exists() and not force:
-        raise InputFileError("already exists; refusing to overwrite recorded data "
-                             "(use --force to replace it)", file=path)
-    parent = path.parent
-    if not parent.exists():
-        raise InputFileError("directory does not exist", file=parent)
-    if not parent.is_dir():
-        raise InputFileError("is not a directory", file=parent)
 
 
 def _os_reason(exc: BaseException) -> str:
@@ -710,9 +696,3 @@ def copy_session_header(src: Session, dst_path: str | Path, *, force: bool = Fal
                          derived=True, sensor_config=src.sensor_config)
 
 
-def remove_partial(path: str | Path) -> None:
-    """Remove a file this process created but could not finish (never a user's file)."""
-    try:
-        os.remove(path)
-    except FileNotFoundError:
-        pass

@@ -22,6 +22,7 @@ from typing import Sequence
 import h5py
 import numpy as np
 
+from tofhil.outputs import refuse_existing
 from tofhil.camera import CameraModel
 from tofhil.errors import InputFileError
 
@@ -46,9 +47,7 @@ def write_rgb(path: str | Path, images: Sequence[np.ndarray], camera: CameraMode
     idx = np.arange(len(arr)) if frame_index is None else np.asarray(frame_index, dtype=np.int64)
     with h5py.File(path, "a") as f:
         if "rgb" in f:
-            if not force:
-                raise InputFileError("already has an rgb group; refusing to overwrite (use --force)",
-                                     file=path, field="rgb")
+            refuse_existing(path, force, what="already has an rgb group", field="rgb", recorded=True)
             del f["rgb"]
         g = f.create_group("rgb")
         g.create_dataset("images", data=arr)

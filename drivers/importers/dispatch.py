@@ -36,7 +36,8 @@ from tofhil.camera import CameraModel, load_camera_preset
 from tofhil.drivers.importers import adi
 from tofhil.errors import InputFileError, TofhilError
 from tofhil.frames import DepthFrame
-from tofhil.session import SessionWriter, open_session, remove_partial
+from tofhil.outputs import partial_path, refuse_existing, remove_partial
+from tofhil.session import SessionWriter, open_session
 
 FORMATS = ("adi-interleaved", "adi-pair", "k4a-mkv", "session")
 
@@ -115,10 +116,8 @@ def _write(out: Path, camera: CameraModel, device: dict[str, Any], items: Iterab
     only when complete, so a failed import leaves neither a half-written file nor (with
     ``--force``) a destroyed previous one.
     """
-    if out.exists() and not force:
-        raise InputFileError("already exists; refusing to overwrite recorded data "
-                             "(use --force to replace it)", file=out)
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.partial")
+    refuse_existing(out, force, recorded=True)
+    tmp = partial_path(out)
     writer = SessionWriter(tmp, camera, device=device, scene_text=scene_text, force=True)
     try:
         for i, (raw, depth) in enumerate(items):
@@ -204,9 +203,7 @@ def import_file(path: str | Path, out: str | Path, *, camera: str | Path | Camer
         raise TofhilError(f"unknown format {fmt!r}", field="--format", expected=" | ".join(FORMATS))
     if out.exists() and out.resolve() == src.resolve():
         raise InputFileError("the output must differ from the input", file=out, field="--out")
-    if out.exists() and not force:
-        raise InputFileError("already exists; refusing to overwrite recorded data "
-                             "(use --force to replace it)", file=out)
+    refuse_existing(out, force, recorded=True)
     if not out.parent.is_dir():
         raise InputFileError("directory does not exist", file=out.parent, field="--out",
                              expected="an existing directory")

@@ -59,27 +59,15 @@ class TapCalibration:
     def save(self, path: str | Path, *, force: bool = False) -> Path:
         """Write the calibration (.npz); refuses to overwrite without ``force``. Returns the
         real path (``.npz`` added when missing)."""
-        import os
-        import tempfile
+        from tofhil.outputs import atomic_file, refuse_existing
 
         p = self.file_path(path)
-        if p.exists() and not force:
-            raise TofhilError("already exists; refusing to overwrite (use --force)", file=p)
+        refuse_existing(p, force)
         if not (np.all(np.isfinite(self.offset_dn)) and np.all(np.isfinite(self.gain)) and np.all(self.gain > 0)):
             raise TofhilError("the calibration has non-finite offsets or gains", file=p, field="gain",
                               expected="finite offsets and positive gains")
-        try:
-            fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
-        except OSError as exc:
-            raise TofhilError(f"cannot write here ({exc.strerror})", file=p, expected="a writable directory") from None
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez_compressed(f, offset_dn=self.offset_dn, gain=self.gain, info=json.dumps(self.info),
-                                    format=FORMAT)
-            os.replace(tmp, p)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_file(p) as f:
+            np.savez_compressed(f, offset_dn=self.offset_dn, gain=self.gain, info=json.dumps(self.info), format=FORMAT)
         return p
 
     @classmethod

@@ -20,6 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from tofhil.outputs import prepare_output_dir, refuse_existing
 from tofhil.demod import bad_tap_pixels
 from tofhil.errors import TofhilError
 from tofhil.eval.metrics import core as M
@@ -476,13 +477,9 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
 
     names = ("diagnosis.json", "report.html", "extended_scene.yaml", HELD_OUT_MASK, "stray_light_psf.json",
              OFFSET_MAP_FILE)
-    try:
-        out = H.prepare_output_dir(out_dir, names, force=force)
-    except TofhilError as exc:
-        if "refusing" not in str(exc):
-            raise
-        raise TofhilError("already holds a diagnosis; refusing to overwrite (use --force)", file=out_dir,
-                          expected="an empty or new directory") from None
+    if Path(out_dir).is_dir() and any((Path(out_dir) / n).exists() for n in names):
+        refuse_existing(out_dir, force, what="already holds a diagnosis", expected="an empty or new directory")
+    out = prepare_output_dir(out_dir, names, force=force)
     scene = load_scene(scene_path)
     created = not out.exists()
     written: list[Path] = []

@@ -7,7 +7,6 @@ from tofhil.faces import lazy_face
 
 __all__, __getattr__, __dir__ = lazy_face(__name__, {
     "write_page": "html",
-    "prepare_output_dir": "html",
     "write_json": "html",
     "write_simulate_report": "simulate",
     "lens_section": "optics",

@@ -50,17 +50,6 @@ def fmt(x: Any, scale: float = 1.0) -> str:
 # ---------------------------------------------------------------------------- output
 
 
-def prepare_output_dir(path: str | Path, names: Sequence[str], *, force: bool) -> Path:
-    """Check that ``path`` can take a report: a directory (or a new one) holding none of
-    ``names`` unless ``force``. Creates nothing: callers create it when they write."""
-    out = Path(path)
-    if out.exists() and not out.is_dir():
-        raise TofhilError("is a file, not a directory", file=out, field="--out",
-                          expected="a directory for the report (new or existing)")
-    existing = [n for n in names if (out / n).exists()]
-    if existing and not force:
-        raise TofhilError("already exists; refusing to overwrite (use --force)", file=out / existing[0])
-    return out
 
 
 def write_json(path: Path, payload: dict[str, Any]) -> None:

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from tofhil import __version__
+from tofhil.outputs import prepare_output_dir
 from tofhil.eval.reports import html as H
 
 #: Files a simulate report writes.
@@ -83,7 +84,7 @@ def figure_direct_maps(sim: Any, frame: int = 0) -> str:
 def write_simulate_report(out_dir: str | Path, scene: Any, *, shares: Any = None, direct: Any = None,
                           session_path: str | Path = "", force: bool = False) -> Path:
     """Write ``report.html`` and ``report.json`` into ``out_dir``; returns the page's path."""
-    out = H.prepare_output_dir(out_dir, OUTPUTS, force=force)
+    out = prepare_output_dir(out_dir, OUTPUTS, force=force)
     figs: list[tuple[str, str | None, str]] = []
     payload: dict[str, Any] = {"software": f"tofhil {__version__}", "scene": str(getattr(scene, "source", "")),
                                "session": str(session_path)}

@@ -87,7 +87,7 @@ def colorize_cmd(recording: Path = typer.Argument(..., parser=opt.existing_file,
     opt.check_output(out_path, force, (".ply",), "a path ending in .ply")
     if report is not None:
         from tofhil.eval.rgb.report import REPORT_FILES
-        from tofhil.eval.reports.html import prepare_output_dir
+        from tofhil.outputs import prepare_output_dir
 
         prepare_output_dir(report, REPORT_FILES, force=force)
     if recording.suffix.lower() in (".h5", ".hdf5"):

@@ -9,6 +9,7 @@ from typing import Optional
 
 import typer
 
+from tofhil.outputs import refuse_existing
 from tofhil.cli import app, console, lit, new_output_dir, out
 from tofhil.cli import options as opt
 from tofhil.errors import TofhilError
@@ -113,9 +114,8 @@ def demo(out_dir: Path = typer.Option(Path("demo-out"), "--out", parser=opt.out_
     if out_dir.exists() and not out_dir.is_dir():
         raise TofhilError("is a file, not a directory", file=out_dir, field="--out",
                           expected="a directory for the demo's files (new or existing)")
-    if out_dir.exists() and any((out_dir / n).exists() for n in names) and not force:
-        raise TofhilError("already holds a demo; refusing to overwrite it (use --force or another --out)",
-                          file=out_dir, expected="an empty or new directory")
+    if any((out_dir / n).exists() for n in names):
+        refuse_existing(out_dir, force, what="already holds a demo", expected="an empty or new directory (or --force)")
     # The demo's inputs are emulated, so a demo that fails or is interrupted removes the folder
     # it created (a rerun is not blocked by half a demo); an existing folder is left as it was.
     with new_output_dir(out_dir):

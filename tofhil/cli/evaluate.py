@@ -7,6 +7,7 @@ from typing import Any, Optional
 
 import typer
 
+from tofhil.outputs import refuse_existing
 from tofhil.cli import app, console, lit, new_output_dir, out, progress
 from tofhil.cli import options as opt
 from tofhil.errors import TofhilError
@@ -75,8 +76,8 @@ def correct(session: Path = typer.Argument(..., parser=opt.existing_file, help="
                           field="--method")
     # Refuse before any work: nothing is written when an output exists.
     for target in (out_path, save_psf):
-        if target is not None and target.exists() and not force:
-            raise TofhilError("already exists; refusing to overwrite (use --force)", file=target)
+        if target is not None:
+            refuse_existing(target, force)
     fitted = None
     if calibrate:
         if "psf" in params:
@@ -191,8 +192,7 @@ def calibrate_taps_cmd(flat: Path = typer.Option(..., "--flat", parser=opt.exist
     from tofhil.eval.calibration.taps import TapCalibration, calibrate_taps, mean_taps
 
     real = TapCalibration.file_path(out_path)
-    if real.exists() and not force:
-        raise TofhilError("already exists; refusing to overwrite (use --force)", file=real)
+    refuse_existing(real, force)
     f_taps, _cam, theta = mean_taps(flat, progress)
     d_taps = None
     if dark is not None:

@@ -31,7 +31,7 @@ def model_cmd(sessions: List[Path] = typer.Argument(..., parser=opt.existing_fil
     """Register the views (FPFH/RANSAC then ICP, pose graph), fuse them (TSDF) into a model and,
     for simulated views, score it against the scene's geometry (NDT, Chamfer, F-score) with per-view pose errors."""
     from tofhil.eval.rgb.colorize import write_ply
-    from tofhil.eval.reports.html import prepare_output_dir
+    from tofhil.outputs import prepare_output_dir
     from tofhil.eval.multiview.model import build_model, load_view
     from tofhil.eval.multiview.report import REPORT_FILES, write_model_report
 

@@ -178,8 +178,8 @@ def check_output(path: Path, force: bool, suffixes: tuple[str, ...] | None = Non
     """A command's output file (after ``new_file`` checked where it goes): the suffix its
     format needs (``--out``; ``expected`` says what), and no overwrite without ``--force``."""
     from tofhil.errors import TofhilError
+    from tofhil.outputs import refuse_existing
 
     if suffixes is not None and path.suffix.lower() not in suffixes:
         raise TofhilError(f"is not a {suffixes[0]} file", file=path, field="--out", expected=expected)
-    if path.exists() and not force:
-        raise TofhilError("already exists; refusing to overwrite (use --force)", file=path)
+    refuse_existing(path, force)
