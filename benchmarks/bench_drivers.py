@@ -31,7 +31,7 @@ from tofhil.drivers.capture import capture
 from tofhil.drivers.tofcam635.driver import TofCam635
 from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
 from tofhil.drivers.tofcam635.profile import dcs_to_canonical
-from tofhil.drivers.tofcam635.sources import AnalyticWall
+from tofhil.sim.sources import AnalyticWall
 
 SENSOR_FPS = 50.0  # TOFcam635 manual: up to 50 TOF measurements per second
 UART_BYTES_PER_S = 10e6 / 10  # 10 Mbit/s, 8N1

@@ -81,7 +81,8 @@ def bench_depthai(n: int) -> None:
         print("depthai not installed, skipped")
         return
     from tofhil.drivers.base import CaptureSettings
-    from tofhil.drivers.depthai.driver import DepthAIToF, PlaneScene
+    from tofhil.drivers.depthai.driver import DepthAIToF
+    from tofhil.sim.sources import PlaneScene
 
     def rate(fps: float) -> float:
         dev = DepthAIToF("depthai-sim", host_scene=PlaneScene(fps=fps))

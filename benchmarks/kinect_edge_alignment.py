@@ -10,7 +10,8 @@ import sys
 from pathlib import Path
 
 
-from tofhil.eval.rgb.colorize import colorize_points, k4a_inputs
+from tofhil.drivers.importers.k4a_color import read_depth_with_color
+from tofhil.eval.rgb.colorize import colorize_points
 from tofhil.eval.rgb.report import cloud_view, figure_cloud, figure_edges
 from tofhil.eval.rgb.edge_alignment import edge_alignment
 
@@ -18,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def main(path: Path) -> None:
-    inp = k4a_inputs(path)
+    inp = read_depth_with_color(path)
     z, valid, rays, t, ccam, rgb = inp.z_m, inp.valid, inp.pixel_to_ray, inp.tof_to_color, inp.color_camera, inp.rgb
     pts = inp.points()
     col = colorize_points(pts, t, ccam, rgb)

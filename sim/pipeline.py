@@ -9,6 +9,7 @@ into one frame with given effects; ``prepare_render`` applies the scene-stage ef
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -74,18 +75,42 @@ def simulate(scene: Any, frames: int = 1, seed: int = 0, noise: bool = True,
                             meta={"effects": effects_to_block(twin.base_effects)}))
 
 
+@dataclass
+class SimulatedSession:
+    """A simulation written to a session file, with what a report of it draws on."""
+
+    path: Path
+    render: Any          #: the render result (with multipath shares when they were asked for)
+    direct: Any = None   #: a direct-ToF scene's simulation (histograms and peaks)
+
+    def multipath_shares(self, scene: Any) -> Any:
+        """Where each pixel's light comes from, by bounce and by object (needs ``multipath_shares``)."""
+        from tofhil.sim.multipath import shares_from_render
+
+        return shares_from_render(self.render, [o.name for o in scene.objects])
+
+
 def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: int = 0, noise: bool = True,
                      force: bool = False, effects: Mapping[str, Any] | None = None,
                      render_kwargs: Mapping[str, Any] | None = None, progress: Progress | None = None,
-                     twin: Twin | None = None, report: str | Path | None = None) -> Path:
+                     twin: Twin | None = None) -> Path:
+    """Write a session file (same layout as a capture) and return its path: :func:`write_simulation`."""
+    return write_simulation(scene, out_path, frames=frames, seed=seed, noise=noise, force=force, effects=effects,
+                            render_kwargs=render_kwargs, progress=progress, twin=twin).path
+
+
+def write_simulation(scene: Any, out_path: str | Path, frames: int = 1, seed: int = 0, noise: bool = True,
+                     force: bool = False, effects: Mapping[str, Any] | None = None,
+                     render_kwargs: Mapping[str, Any] | None = None, progress: Progress | None = None,
+                     twin: Twin | None = None, multipath_shares: bool = False) -> SimulatedSession:
     """Write a session file (same layout as a capture): raw taps and depth per frame, the scene's
     YAML text embedded, ``device = {"model": "tofhil-sim", ...}``.
 
     With ``effects`` given, the embedded scene text carries those effects instead of the file's
     block, so the session says exactly what was simulated. ``twin`` is a :class:`Twin` of this
-    scene whose render cache to use (a sweep renders a scene once for many cases). ``report``:
-    a directory for ``report.html`` (eval/reports/simulate.py: where each pixel's light comes
-    from, by bounce and by object, from the same render; a direct-ToF scene's histograms)."""
+    scene whose render cache to use (a sweep renders a scene once for many cases).
+    ``multipath_shares``: the render also keeps where each pixel's light comes from, for a
+    report (``tofhil simulate --report``)."""
     from tofhil import __version__
     from tofhil.depth import depth_from_raw
     from tofhil.outputs import check_new_path
@@ -94,17 +119,13 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
 
     out_path = Path(out_path)
     check_new_path(out_path, force)  # fail before the (slow) render
-    if report is not None:
-        from tofhil.outputs import prepare_output_dir
-        from tofhil.eval.reports.simulate import OUTPUTS
-
-        prepare_output_dir(report, OUTPUTS, force=force)
+    if multipath_shares:
         render_kwargs = {**dict(render_kwargs or {}), "multipath_shares": True}
     if getattr(scene, "direct_tof", None) is not None:
-        return simulate_direct_session(scene, out_path, frames=frames, seed=seed, noise=noise, force=force,
-                                       render_kwargs=render_kwargs, progress=progress, report=report)
-    if report is not None and twin is not None:
-        twin = None      # the shares need their own render (a sweep passes no report)
+        return write_direct_simulation(scene, out_path, frames=frames, seed=seed, noise=noise, force=force,
+                                       render_kwargs=render_kwargs, progress=progress)
+    if multipath_shares and twin is not None:
+        twin = None      # the shares need their own render (a sweep asks for none)
     if twin is None:
         twin = Twin(scene, effects=effects, render_kwargs=render_kwargs, progress=progress)
     eff = resolve_effects(scene, effects)
@@ -138,23 +159,20 @@ def simulate_session(scene: Any, out_path: str | Path, frames: int = 1, seed: in
 
         grey = render_grey(scene, second.camera, second.tof_to_camera, samples=second.samples)
         write_rgb(out_path, [grey], second.camera, frame_index=[0], tof_to_camera=second.tof_to_camera)
-    if report is not None:
-        _write_report(report, scene, result, out_path, force=force)
-    return out_path
-
-
-def _write_report(report: str | Path, scene: Any, result: Any, out_path: Path, *, force: bool,
-                  direct: Any = None) -> None:
-    from tofhil.eval.reports.simulate import write_simulate_report
-    from tofhil.sim.multipath import shares_from_render
-
-    shares = shares_from_render(result, [o.name for o in scene.objects])
-    write_simulate_report(report, scene, shares=shares, direct=direct, session_path=out_path, force=force)
+    return SimulatedSession(out_path, result)
 
 
 def simulate_direct_session(scene: Any, out_path: str | Path, frames: int = 1, seed: int = 0, noise: bool = True,
                             force: bool = False, render_kwargs: Mapping[str, Any] | None = None,
-                            progress: Progress | None = None, report: str | Path | None = None) -> Path:
+                            progress: Progress | None = None) -> Path:
+    """A direct-ToF session and its path: :func:`write_direct_simulation`."""
+    return write_direct_simulation(scene, out_path, frames=frames, seed=seed, noise=noise, force=force,
+                                   render_kwargs=render_kwargs, progress=progress).path
+
+
+def write_direct_simulation(scene: Any, out_path: str | Path, frames: int = 1, seed: int = 0, noise: bool = True,
+                            force: bool = False, render_kwargs: Mapping[str, Any] | None = None,
+                            progress: Progress | None = None) -> SimulatedSession:
     """A direct-ToF session (the scene's ``direct_tof:`` block): per frame the SPAD histograms
     (``histograms/counts``, the peaks found in them) and the depth of the strongest peak
     (``depth/``); no raw taps (docs/session-format.md). The correlation ``effects:`` do not
@@ -188,9 +206,7 @@ def simulate_direct_session(scene: Any, out_path: str | Path, frames: int = 1, s
                                valid=found, timestamp_s=i * period, sequence=i)
             w.append(None, depth, histogram={"counts": counts, "peak_distance_m": peaks.distance_m,
                                              "peak_counts": peaks.photons * cfg.cycles_per_frame})
-    if report is not None:
-        _write_report(report, scene, result, out_path, force=force, direct=sim)
-    return out_path
+    return SimulatedSession(Path(out_path), result, direct=sim)
 
 
 def expected_taps(scene: Any, render_result: Any, effects: Mapping[str, Any] | None = None) -> np.ndarray:

@@ -21,6 +21,12 @@ settings.register_profile("ci", derandomize=True, deadline=None)
 settings.register_profile("dev", deadline=None)
 settings.load_profile("ci" if os.environ.get("CI", "").lower() == "true" else "dev")
 
+# Tests open emulated devices from specs (``emulator:SCENE``, ``depthai-sim:1.0``) as the CLI
+# does: give the emulators the twin's frame sources, as the CLI does at start.
+from tofhil.app.emulators import connect_emulators  # noqa: E402
+
+connect_emulators()
+
 
 def run_tofhil(*args: str | Path, cwd: str | Path | None = None, timeout: float = 300,
                input_text: str | None = None) -> subprocess.CompletedProcess:

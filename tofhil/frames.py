@@ -93,3 +93,23 @@ class DepthFrame:
     def point_cloud(self) -> Any:
         """An Open3D point cloud, amplitude as grey intensity when known."""
         return self.camera.point_cloud(self.distance_m, self.kind, self.valid, self.amplitude)
+
+
+@dataclass
+class DepthWithColor:
+    """A depth image with its rays and a colour image with its camera and the ToF -> colour
+    transform: what colouring a cloud needs, from a session's ``rgb/`` group or a recording."""
+
+    z_m: np.ndarray                  # [H, W] depth along the optical axis (NaN or invalid where not valid)
+    valid: np.ndarray                # [H, W] bool
+    pixel_to_ray: Any                # (u, v) -> (x, y, ok): normalised ray coordinates of depth pixels
+    tof_to_color: np.ndarray         # 4x4
+    color_camera: Any
+    rgb: np.ndarray                  # [h, w, 3] uint8
+
+    def points(self) -> np.ndarray:
+        """Depth-camera points ``[N, 3]`` of the valid pixels (row-major)."""
+        v, u = np.mgrid[0:self.z_m.shape[0], 0:self.z_m.shape[1]].astype(np.float64)
+        x, y, _ = self.pixel_to_ray(u, v)
+        z = self.z_m
+        return np.stack([x * z, y * z, z], axis=-1)[self.valid]

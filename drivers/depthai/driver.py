@@ -27,9 +27,9 @@ each pixel's ray. The driver reads the setting and converts to radial. With
 model has zero distortion; otherwise the factory coefficients are used.
 
 Specs: ``depthai`` (first device), ``depthai:DEVICE_ID_OR_IP``; ``depthai-sim`` (a host
-pipeline rendering a plane, see :class:`PlaneScene`; ``depthai-sim:DIST_M`` sets the
+pipeline rendering a plane, :class:`tofhil.sim.sources.PlaneScene`, given by the application; ``depthai-sim:DIST_M`` sets the
 plane's distance; ``depthai-sim:SCENE`` sends frames of the simulator twin for a scene
-name or file, see :class:`TwinScene`).
+name or file, :class:`tofhil.sim.sources.TwinScene`).
 """
 
 from __future__ import annotations
@@ -43,10 +43,10 @@ from typing import Any, Callable
 import numpy as np
 
 from tofhil.camera import CameraModel, load_camera_preset
-from tofhil.demod import distance_to_phase
 from tofhil.drivers.base import (CaptureSettings, DeviceDisconnected, DeviceEntry, DeviceError, DeviceInfo,
                                  Driver, Frame, FrameDropped, register_driver)
-from tofhil.errors import TofhilError
+from tofhil.drivers.sources import frame_source
+from tofhil.frame_source import DepthScene
 from tofhil.frames import DepthFrame
 
 OUTPUTS = ("depth", "amplitude", "intensity", "phase", "raw")
@@ -228,112 +228,6 @@ class SequencePairer:
 
 
 # --------------------------------------------------------------------------- host source
-@dataclass
-class PlaneScene:
-    """What the host source renders: a Lambertian plane seen by a co-located emitter, with the
-    twin's radiometry (:func:`tofhil.sim.radiometry.plane_view`).
-
-    The plane is ``n . X = distance_m`` in the camera frame, its normal tilted by
-    ``tilt_deg`` about the camera's x axis. Per pixel with unit ray ``r``: radial distance
-    ``d = distance_m / (n . r)``; amplitude (counts) ``= k * albedo * p(theta) * cos(incidence) *
-    cos^4(off-axis angle) / d^2`` (the emitter's ``cos^n`` beam, inverse square, Lambertian
-    reflection, the lens's cos^4 law), ``k`` = ``amplitude_at_1m``; intensity = amplitude
-    + ``ambient``; phase = ``2*pi*f*(2d)/c`` wrapped at the 80 MHz base frequency.
-    """
-
-    distance_m: float = 1.0
-    tilt_deg: float = 0.0
-    albedo: float = 0.8
-    amplitude_at_1m: float = 2000.0
-    ambient: float = 50.0
-    #: The emitter's beam ``p(theta) = cos^n`` (the twin's default n = 1).
-    profile_cos_n: float = 1.0
-    fps: float = 30.0
-    #: Fault injection for tests: sequence numbers whose ``amplitude`` message is not sent.
-    drop_amplitude_of: tuple[int, ...] = ()
-    n_frames: int | None = None
-
-    def camera_model(self) -> CameraModel:
-        return load_camera_preset(PRESET)
-
-    def render_frames(self, camera: CameraModel) -> list[dict[str, np.ndarray]]:
-        return [self.render(camera)]
-
-    def render(self, camera: CameraModel) -> dict[str, np.ndarray]:
-        from tofhil.sim.radiometry import Plane, plane_relative_amplitude, plane_view
-        from tofhil.sim.scene import BeamProfile
-
-        plane = Plane.tilted(self.distance_m, self.tilt_deg, self.albedo)
-        profile = BeamProfile("cos_n", n=self.profile_cos_n)
-        try:
-            d = plane_view(camera, plane, power_w=1.0, profile=profile).radial_m
-        except TofhilError:
-            raise DeviceError("the plane does not cover the field of view", field="tilt_deg",
-                              expected="a tilt smaller than 90 deg minus half the field of view") from None
-        amp = self.amplitude_at_1m * plane_relative_amplitude(camera, plane, profile)
-        phase = distance_to_phase(d, BASE_FREQ_HZ)
-        return {"radial_m": d, "z_m": d * camera.ray_z, "amplitude": amp, "intensity": amp + self.ambient,
-                "phase": phase}
-
-
-@dataclass
-class TwinScene:
-    """What the host source sends: frames of the simulator twin (``tofhil.sim``) for a scene.
-
-    The scene (a bundled name or a YAML path) is rendered once and exposed ``realisations``
-    times with independent noise (``tofhil.sim.pipeline.simulate``); each raw frame is
-    demodulated by the core (``depth_from_raw``) and sent as the device would: depth in mm,
-    amplitude and intensity (offset) in the twin's DN, the wrapped phase of the first
-    frequency. The frames cycle; the camera is the scene's.
-    """
-
-    scene: str
-    realisations: int = 4
-    seed: int = 0
-    fps: float = 30.0
-    drop_amplitude_of: tuple[int, ...] = ()
-    n_frames: int | None = None
-
-    def _load(self) -> Any:
-        from tofhil.sim.scene import load_scene
-
-        return load_scene(self.scene)
-
-    def camera_model(self) -> CameraModel:
-        return self._load().camera
-
-    def color(self) -> tuple[np.ndarray, CameraModel, np.ndarray]:
-        """The scene's second camera (``rgb_camera``): its grey image as 8-bit RGB (scaled to the
-        99.5th percentile), its camera and the true ToF -> camera transform."""
-        from tofhil.sim.rgb import render_grey
-
-        sc = self._load()
-        second = sc.rgb_camera
-        if second is None:
-            raise DeviceError(f"scene {self.scene!r} has no rgb_camera block", field="color",
-                              expected="a scene with a second camera (docs/scene-format.md) or color: false")
-        grey = np.nan_to_num(np.asarray(render_grey(sc, second.camera, second.tof_to_camera, samples=second.samples),
-                                        dtype=np.float64))
-        top = float(np.percentile(grey, 99.5))
-        g8 = np.clip(np.round(255.0 * grey / top), 0, 255).astype(np.uint8) if top > 0 else np.zeros(grey.shape,
-                                                                                                        np.uint8)
-        return np.repeat(g8[..., None], 3, axis=2), second.camera, np.asarray(second.tof_to_camera, dtype=np.float64)
-
-    def render_frames(self, camera: CameraModel) -> list[dict[str, np.ndarray]]:
-        from tofhil.depth import depth_from_raw
-        from tofhil.sim.pipeline import simulate
-
-        out = []
-        for raw in simulate(self._load(), frames=self.realisations, seed=self.seed):
-            d = depth_from_raw(raw)
-            radial = np.where(d.valid, d.radial_m, 0.0)
-            f0 = float(raw.freq_hz[0])
-            out.append({"radial_m": radial, "z_m": radial * camera.ray_z,
-                        "amplitude": np.nan_to_num(d.amplitude), "intensity": np.nan_to_num(d.intensity),
-                        "phase": distance_to_phase(radial, f0)})
-        return out
-
-
 _HOST_SOURCE_CLASS: Any = None
 
 
@@ -353,7 +247,7 @@ def host_source_class() -> Any:
             self.outs = {name: self.createOutput() for name in OUTPUTS + ("rgb",)}
             self.color_image: np.ndarray | None = None
             self.frames: list[dict[str, np.ndarray]] = []
-            self.scene: Any = PlaneScene()
+            self.scene: Any = None             # the DepthScene, from setup()
             self.sent = 0
             self.done = threading.Event()
 
@@ -442,19 +336,13 @@ class DepthAIToF(Driver):
 
     scheme = "depthai"
 
-    def __init__(self, spec: str = "depthai", *, host_scene: PlaneScene | TwinScene | None = None,
+    def __init__(self, spec: str = "depthai", *, host_scene: DepthScene | None = None,
                  camera: CameraModel | None = None) -> None:
         super().__init__(spec)
         scheme, _, rest = spec.partition(":")
         self.host = scheme.lower() == "depthai-sim" or host_scene is not None
         if self.host and host_scene is None:
-            try:
-                host_scene = PlaneScene(distance_m=float(rest)) if rest else PlaneScene()
-            except ValueError:
-                host_scene = TwinScene(scene=rest)  # a scene name or file for the twin
-            if isinstance(host_scene, PlaneScene) and not host_scene.distance_m > 0:
-                raise DeviceError(f"bad spec {spec!r}", field="--device",
-                                  expected="depthai-sim, depthai-sim:DISTANCE_M (> 0) or depthai-sim:SCENE")
+            host_scene = frame_source("depthai", rest or None)
         self.device_id = "" if self.host else rest
         self.host_scene = host_scene
         self._camera = camera

@@ -20,9 +20,10 @@ from typing import Any
 
 import numpy as np
 
-from tofhil.drivers.importers.k4a import PARAM_NAMES, K4AIntrinsics
+from tofhil.drivers.importers.k4a import PARAM_NAMES, K4AIntrinsics, read_k4a_recording
 from tofhil.drivers.importers.mkv import open_mkv
 from tofhil.errors import InputFileError
+from tofhil.frames import DepthWithColor
 
 #: Colour resolutions: (calibration image size the 4096 x 3072 sensor is scaled to, crop offset).
 COLOR_MODES: dict[tuple[int, int], tuple[tuple[int, int], tuple[int, int]]] = {
@@ -118,3 +119,19 @@ def read_color_frame(path: str | Path, index: int = 0) -> tuple[np.ndarray, K4AI
                                  expected="the factory calibration attachment") from None
     h, w = bgr.shape[:2]
     return bgr[..., ::-1].copy(), color_intrinsics(calib, w, h, source=path), depth_to_color(calib, source=path)
+
+
+def read_depth_with_color(path: str | Path, frame: int = 0) -> DepthWithColor:
+    """Depth and colour frame ``frame`` of an Azure Kinect recording with the factory calibration."""
+    rgb, color_cam, depth_to_color = read_color_frame(path, frame)
+    with read_k4a_recording(path) as rec:
+        if frame >= len(rec):
+            raise InputFileError(f"has {len(rec)} depth frames", file=path, field="--frame",
+                                 expected=f"an index below {len(rec)}")
+        _, z_mm, _ = rec.frame(frame)
+        intr = rec.intrinsics
+        v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
+        ok = intr.undistort(u, v)[2]    # the exact factory rays (z-depth: point = (x z, y z, z))
+    valid = (z_mm > 0) & ok
+    return DepthWithColor(z_m=z_mm * 1e-3, valid=valid, pixel_to_ray=intr.undistort, tof_to_color=depth_to_color,
+                          color_camera=color_cam, rgb=rgb)

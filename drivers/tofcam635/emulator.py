@@ -9,12 +9,13 @@ Two transports carry it: an in-process pyusb backend
 (:mod:`tofhil.drivers.tofcam635.usb_backend`), and a pseudo-terminal
 (:mod:`tofhil.drivers.tofcam635.pty`).
 
-Images come from an :class:`ImageSource` that returns noise-free canonical taps, rendered
+Images come from the :class:`tofhil.frame_source.ImageSource` its caller gives it (the
+simulator twin's are in :mod:`tofhil.sim.sources`; opened from a spec, the one the
+application connected, :mod:`tofhil.drivers.sources`): noise-free canonical taps, rendered
 once per modulation frequency (cached) and scaled with the integration time; the emulator
-adds per-frame noise, converts to the
-device's DCS (12-bit, mid-scale 2048, differential so the offset cancels) and, like the
-firmware, computes distance and amplitude from them. Sources and noise:
-:mod:`tofhil.drivers.tofcam635.sources`; faults: :mod:`tofhil.drivers.tofcam635.faults`.
+adds the source's per-frame noise, converts to the device's DCS (12-bit, mid-scale 2048,
+differential so the offset cancels) and, like the firmware, computes distance and amplitude
+from them. Faults: :mod:`tofhil.drivers.tofcam635.faults`.
 
 :class:`FaultPlan` injects CRC errors, truncated replies, garbage between packets, silent
 timeouts, USB stalls and disconnects (with reconnection) on image replies.
@@ -36,7 +37,8 @@ from tofhil.drivers.tofcam635 import protocol as P
 from tofhil.drivers.tofcam635.driver import TofCam635
 from tofhil.drivers.tofcam635.faults import FaultPlan
 from tofhil.drivers.tofcam635.profile import TOFCAM635, DeviceProfile, canonical_phases, canonical_to_dcs
-from tofhil.drivers.tofcam635.sources import AnalyticWall, ImageSource, NoiseModel, source_from_spec
+from tofhil.drivers.sources import frame_source
+from tofhil.frame_source import ImageSource, TapNoise
 
 
 # --------------------------------------------------------------------------- the camera
@@ -59,10 +61,10 @@ class Epc635Emulator:
     FIRMWARE = (3, 49)
     HW_VERSION = 2
 
-    def __init__(self, source: ImageSource | None = None, *, profile: DeviceProfile = TOFCAM635,
-                 noise: NoiseModel | None = None, faults: FaultPlan | None = None, seed: int = 0,
+    def __init__(self, source: ImageSource, *, profile: DeviceProfile = TOFCAM635,
+                 noise: TapNoise | None = None, faults: FaultPlan | None = None, seed: int = 0,
                  frame_interval_s: float = 0.0) -> None:
-        self.source = source or AnalyticWall()
+        self.source = source
         self.profile = profile
         self.noise = self.source.noise_model() if noise is None else noise
         self.faults = faults or FaultPlan()
@@ -330,7 +332,7 @@ class EmulatedTofCam635(TofCam635):
         from tofhil.drivers.tofcam635.usb_backend import EmulatorBackend
 
         _, scene = spec.partition(":")[::2]
-        self.emulator = emulator or Epc635Emulator(source_from_spec(scene or None))
+        self.emulator = emulator or Epc635Emulator(frame_source("tofcam635", scene or None))
         self.usb_backend = EmulatorBackend([self.emulator])
         super().__init__("usb", backend=self.usb_backend)
         self.spec = spec

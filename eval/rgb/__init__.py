@@ -5,7 +5,6 @@ from tofhil.faces import lazy_face
 
 __all__, __getattr__, __dir__ = lazy_face(__name__, {
     "colorize_points": "colorize",
-    "ColorizeInputs": "colorize",
     "write_ply": "colorize",
     "edge_alignment": "edge_alignment",
     "write_colorize_report": "report",

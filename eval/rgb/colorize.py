@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from tofhil.frames import DepthWithColor
+
 #: Depth tolerance of the z-buffer: absolute (m) plus relative to the depth.
 Z_TOLERANCE_M = 0.01
 Z_TOLERANCE_REL = 0.01
@@ -105,25 +107,6 @@ def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray) -> Path:
     return path
 
 
-@dataclass
-class ColorizeInputs:
-    """A depth image with its rays and a colour image with its camera and the ToF -> colour transform."""
-
-    z_m: np.ndarray                  # [H, W] depth along the optical axis (NaN or invalid where not valid)
-    valid: np.ndarray                # [H, W] bool
-    pixel_to_ray: Any                # (u, v) -> (x, y, ok): normalised ray coordinates of depth pixels
-    tof_to_color: np.ndarray         # 4x4
-    color_camera: Any
-    rgb: np.ndarray                  # [h, w, 3] uint8
-
-    def points(self) -> np.ndarray:
-        """Depth-camera points ``[N, 3]`` of the valid pixels (row-major)."""
-        v, u = np.mgrid[0:self.z_m.shape[0], 0:self.z_m.shape[1]].astype(np.float64)
-        x, y, _ = self.pixel_to_ray(u, v)
-        z = self.z_m
-        return np.stack([x * z, y * z, z], axis=-1)[self.valid]
-
-
 def grey_to_rgb(img: np.ndarray) -> np.ndarray:
     """A float grey image (e.g. the twin's radiance) as uint8 RGB, scaled to its 99.5th percentile."""
     g = np.nan_to_num(np.asarray(img, dtype=np.float64))
@@ -132,7 +115,7 @@ def grey_to_rgb(img: np.ndarray) -> np.ndarray:
     return np.repeat(g8[..., None], 3, axis=2)
 
 
-def session_inputs(path: str | Path, frame: int = 0, tof_to_color: np.ndarray | None = None) -> ColorizeInputs:
+def session_inputs(path: str | Path, frame: int = 0, tof_to_color: np.ndarray | None = None) -> DepthWithColor:
     """Depth frame ``frame`` of a session and its ``rgb/`` group's image taken with that frame
     (``tof_to_color`` default: the group's ``tof_to_camera``, as calibrate-stereo finds it)."""
     from tofhil.errors import InputFileError
@@ -162,25 +145,5 @@ def session_inputs(path: str | Path, frame: int = 0, tof_to_color: np.ndarray | 
 
     img = rgb.images[int(where[0])]
     img = img if img.ndim == 3 and img.dtype == np.uint8 else grey_to_rgb(img)
-    return ColorizeInputs(z_m=np.where(valid, z, np.nan), valid=valid, pixel_to_ray=pixel_to_ray, tof_to_color=t,
+    return DepthWithColor(z_m=np.where(valid, z, np.nan), valid=valid, pixel_to_ray=pixel_to_ray, tof_to_color=t,
                           color_camera=rgb.camera, rgb=img)
-
-
-def k4a_inputs(path: str | Path, frame: int = 0) -> ColorizeInputs:
-    """Depth and colour frame ``frame`` of an Azure Kinect recording with the factory calibration."""
-    from tofhil.drivers.importers.k4a import read_k4a_recording
-    from tofhil.drivers.importers.k4a_color import read_color_frame
-    from tofhil.errors import InputFileError
-
-    rgb, color_cam, depth_to_color = read_color_frame(path, frame)
-    with read_k4a_recording(path) as rec:
-        if frame >= len(rec):
-            raise InputFileError(f"has {len(rec)} depth frames", file=path, field="--frame",
-                                 expected=f"an index below {len(rec)}")
-        _, z_mm, _ = rec.frame(frame)
-        intr = rec.intrinsics
-        v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
-        ok = intr.undistort(u, v)[2]    # the exact factory rays (z-depth: point = (x z, y z, z))
-    valid = (z_mm > 0) & ok
-    return ColorizeInputs(z_m=z_mm * 1e-3, valid=valid, pixel_to_ray=intr.undistort, tof_to_color=depth_to_color,
-                          color_camera=color_cam, rgb=rgb)

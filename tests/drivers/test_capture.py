@@ -20,7 +20,7 @@ from tofhil.drivers.base import CaptureSettings
 from tofhil.drivers.capture import capture
 from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
 from tofhil.drivers.tofcam635.faults import FaultPlan
-from tofhil.drivers.tofcam635.sources import AnalyticWall, NoiseModel, WallSpec
+from tofhil.sim.sources import AnalyticWall, NoiseModel, WallSpec
 from tofhil.errors import DeviceError, InputFileError
 from tofhil.session import open_session
 

@@ -16,7 +16,8 @@ pytest.importorskip("depthai")
 from tofhil import C_M_PER_S  # noqa: E402
 from tofhil.camera import load_camera_preset  # noqa: E402
 from tofhil.drivers.base import CaptureSettings, DeviceError, create_driver, open_device  # noqa: E402
-from tofhil.drivers.depthai.driver import DepthAIToF, PlaneScene, SequencePairer, ToFSettings  # noqa: E402
+from tofhil.drivers.depthai.driver import DepthAIToF, SequencePairer, ToFSettings  # noqa: E402
+from tofhil.sim.sources import PlaneScene  # noqa: E402
 from tofhil.errors import TofhilError  # noqa: E402
 from tofhil.session import SessionWriter, open_session  # noqa: E402
 
@@ -175,7 +176,7 @@ def test_twin_frames_flow_through_the_queues(tmp_path):
     """depthai-sim:SCENE sends the simulator twin's frames; what arrives is the twin's depth
     (demodulated by the core) to the millimetre, and the bundled wall is where the scene says."""
     from tofhil.depth import depth_from_raw
-    from tofhil.drivers.depthai.driver import TwinScene
+    from tofhil.sim.sources import TwinScene
     from tofhil.sim.pipeline import simulate
     from tofhil.sim.scene import load_scene
 
@@ -203,7 +204,7 @@ def test_colour_stream_is_recorded_beside_tof_in_the_rgb_group(tmp_path):
     in device time, and a capture writes them into the session's rgb/ group with the scene's camera
     and true extrinsics."""
     from tofhil.drivers.capture import capture
-    from tofhil.drivers.depthai.driver import TwinScene
+    from tofhil.sim.sources import TwinScene
     from tofhil.session_rgb import read_rgb
     from tofhil.sim.rgb import render_grey
     from tofhil.sim.scene import load_scene, scene_to_yaml

@@ -14,7 +14,7 @@ from tofhil.drivers.base import CaptureSettings, DeviceDisconnected
 from tofhil.drivers.tofcam635 import protocol as P
 from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
 from tofhil.drivers.tofcam635.faults import FaultPlan
-from tofhil.drivers.tofcam635.sources import AnalyticWall, NoiseModel, WallSpec
+from tofhil.sim.sources import AnalyticWall, NoiseModel, WallSpec
 from tofhil.errors import DeviceError
 
 NO_NOISE = NoiseModel(read_noise_dn=0.0, electrons_per_dn=math.inf)

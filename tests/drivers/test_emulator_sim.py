@@ -10,7 +10,7 @@ import pytest
 from tofhil.depth import depth_from_raw
 from tofhil.drivers.base import CaptureSettings
 from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
-from tofhil.drivers.tofcam635.sources import HIDDEN_TRUTH_EFFECTS, TOFCAM635_OVERRIDES, SimulatedSource
+from tofhil.sim.sources import HIDDEN_TRUTH_EFFECTS, TOFCAM635_OVERRIDES, SimulatedSource
 from tofhil.frames import RawFrame
 
 pytest.importorskip("tofhil.sim.pipeline")

@@ -17,7 +17,7 @@ from tofhil.depth import depth_from_raw
 from tofhil.drivers.tofcam635 import protocol as P
 from tofhil.drivers.base import CaptureSettings, list_devices, open_device
 from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
-from tofhil.drivers.tofcam635.sources import AnalyticWall, NoiseModel, WallSpec
+from tofhil.sim.sources import AnalyticWall, NoiseModel, WallSpec
 from tofhil.drivers.tofcam635.usb_backend import EmulatorBackend
 from tofhil.drivers.tofcam635.driver import TofCam635
 from tofhil.errors import DeviceError

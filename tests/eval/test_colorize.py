@@ -75,9 +75,9 @@ def test_kinect_colour_lands_on_the_depth_with_the_factory_calibration():
     """The real recording: colour from the factory calibration. Most depth points are seen
     by the colour camera, and the wall beside the mug that the colour camera (32 mm to the
     side) cannot see is occluded."""
-    from tofhil.eval.rgb.colorize import k4a_inputs
+    from tofhil.drivers.importers.k4a_color import read_depth_with_color
 
-    inp = k4a_inputs(need(AZURE_KINECT_MKV))
+    inp = read_depth_with_color(need(AZURE_KINECT_MKV))
     assert inp.rgb.shape == (720, 1280, 3)
     res = colorize_points(inp.points(), inp.tof_to_color, inp.color_camera, inp.rgb)
     assert res.visible.mean() > 0.9 and res.occluded.sum() > 1000

@@ -769,7 +769,7 @@ def capture_case(spec: SweepSpec, case: Case, cdir: Path) -> tuple[Path, dict[st
     scene_text = ""
     if emulates_bench(spec):
         from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
-        from tofhil.drivers.tofcam635.sources import HIDDEN_TRUTH_EFFECTS, TOFCAM635_OVERRIDES, SimulatedSource
+        from tofhil.sim.sources import HIDDEN_TRUTH_EFFECTS, TOFCAM635_OVERRIDES, SimulatedSource
         from tofhil.sim.scene import scene_to_yaml
 
         # the bench as the emulated TOFcam635 sees it (its camera and sensor model); the twin

@@ -116,6 +116,9 @@ def _version_callback(value: bool) -> None:
 def _root(version: Optional[bool] = typer.Option(None, "--version", callback=_version_callback,
                                                  is_eager=True, help="Show the version and exit.")) -> None:
     """tofhil: capture, simulate, compare and diagnose ToF cameras."""
+    from tofhil.app.emulators import connect_emulators
+
+    connect_emulators()  # emulator[:SCENE] and depthai-sim[:SCENE] render through the twin
 
 
 #: Commands that run with their own module alone: every other command module costs imports

@@ -82,7 +82,8 @@ def colorize_cmd(recording: Path = typer.Argument(..., parser=opt.existing_file,
     import numpy as np
 
     from tofhil.cli import new_output_dir
-    from tofhil.eval.rgb.colorize import colorize_points, k4a_inputs, session_inputs, write_ply
+    from tofhil.drivers.importers.k4a_color import read_depth_with_color
+    from tofhil.eval.rgb.colorize import colorize_points, session_inputs, write_ply
 
     opt.check_output(out_path, force, (".ply",), "a path ending in .ply")
     if report is not None:
@@ -105,7 +106,7 @@ def colorize_cmd(recording: Path = typer.Argument(..., parser=opt.existing_file,
         if extrinsics is not None:
             raise TofhilError("applies to sessions only", field="--extrinsics",
                               expected="no --extrinsics with a Kinect recording (its factory calibration is used)")
-        inp = k4a_inputs(recording, frame)
+        inp = read_depth_with_color(recording, frame)
     pts = inp.points()
     res = colorize_points(pts, inp.tof_to_color, inp.color_camera, inp.rgb)
     keep = np.ones(len(pts), bool) if keep_occluded else res.visible

@@ -127,7 +127,7 @@ def emulate(scene: Optional[str] = typer.Option(None, "--scene", help="Scene fil
     """Run the TOFcam635 emulator until stopped (Ctrl-C or SIGTERM)."""
     from tofhil.drivers.tofcam635.emulator import Epc635Emulator
     from tofhil.drivers.tofcam635.faults import FaultPlan
-    from tofhil.drivers.tofcam635.sources import source_from_spec
+    from tofhil.sim.sources import source_from_spec
     from tofhil.drivers.tofcam635.pty import PtyServer
 
     if frame_rate is not None and not (math.isfinite(frame_rate) and frame_rate > 0):

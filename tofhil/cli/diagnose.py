@@ -100,7 +100,7 @@ def demo(out_dir: Path = typer.Option(Path("demo-out"), "--out", parser=opt.out_
     from tofhil.drivers.base import CaptureSettings
     from tofhil.drivers.capture import capture
     from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
-    from tofhil.drivers.tofcam635.sources import TOFCAM635_OVERRIDES, SimulatedSource
+    from tofhil.sim.sources import TOFCAM635_OVERRIDES, SimulatedSource
     from tofhil.eval.diagnose.run import run_diagnosis
     from tofhil.cli.evaluate import compare_line
     from tofhil.eval.compare import compare_sessions

@@ -53,7 +53,7 @@ def simulate(scene: str = typer.Argument(..., help="A scene file (.yaml) or a bu
     """Render a scene through the twin (effects, sensor, noise) into a session file with raw taps
     and depth, the scene text embedded; a scene with a direct_tof block gives SPAD histograms and
     the depth of their peaks instead of taps."""
-    from tofhil.sim.pipeline import simulate_session
+    from tofhil.sim.pipeline import write_simulation
     from tofhil.sim.scene import load_scene
 
     overrides = {"params": _parse_assignments(param, "--param")} if param else None
@@ -68,8 +68,19 @@ def simulate(scene: str = typer.Argument(..., help="A scene file (.yaml) or a bu
         from tofhil.sim.effects import parse_effects
 
         parse_effects(effects, source=f"{sc.source} with --effect")  # errors name the option
-    path = simulate_session(sc, out_path, frames=frames, seed=seed, noise=not no_noise, force=force,
-                            effects=effects, progress=progress, report=report)
+    if report is not None:
+        from tofhil.eval.reports.simulate import OUTPUTS
+        from tofhil.outputs import prepare_output_dir
+
+        prepare_output_dir(report, OUTPUTS, force=force)  # refuse before the (slow) render
+    sim = write_simulation(sc, out_path, frames=frames, seed=seed, noise=not no_noise, force=force,
+                           effects=effects, progress=progress, multipath_shares=report is not None)
+    path = sim.path
+    if report is not None:
+        from tofhil.eval.reports.simulate import write_simulate_report
+
+        write_simulate_report(report, sc, shares=sim.multipath_shares(sc), direct=sim.direct, session_path=path,
+                              force=force)
     out.print(f"wrote {frames} simulated frame{'s' if frames != 1 else ''} of {lit(sc.name or scene)} to {lit(path)}")
     if report is not None:
         out.print(f"report: {lit(report / 'report.html')}")
