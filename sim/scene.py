@@ -97,10 +97,23 @@ def scene_from_yaml(text: str, source: str = "<string>", base_dir: str | Path | 
         raise InputFileError("the file is not a mapping", file=source,
                              expected="a YAML mapping with camera, emitter, materials, objects")
     if overrides:
+        _check_declared_params(data, overrides, source)
         data = _deep_merge(data, overrides, source)
     scene = scene_from_dict(data, source=source, base_dir=base_dir)
     scene.text = text if not overrides else scene_to_yaml(scene)
     return scene
+
+
+def _check_declared_params(data: dict, overrides: dict, source: str) -> None:
+    """A parameter set from outside (``--param NAME=V``, a sweep axis) must be one the scene
+    declares: an unknown name would otherwise change nothing, silently."""
+    given = overrides.get("params") or {}
+    declared = data.get("params") if isinstance(data.get("params"), dict) else {}
+    unknown = [name for name in given if name not in declared]
+    if unknown:
+        raise InputFileError(f"declares no parameter {unknown[0]!r}", file=source, field=f"params.{unknown[0]}",
+                             expected=("one of " + ", ".join(sorted(map(str, declared)))) if declared
+                             else "no --param: the scene has no params block")
 
 
 def scene_to_yaml(scene: Scene) -> str:

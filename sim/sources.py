@@ -186,12 +186,16 @@ def source_from_spec(scene: str | None) -> ImageSource:
     """``None`` -> :func:`default_source`; ``wall:1.5`` -> analytic wall at 1.5 m; else a scene file/name."""
     if scene is None or scene == "":
         return default_source()
-    if scene.startswith("wall"):
+    if scene == "wall" or scene.startswith("wall:"):  # not wall_card: a scene of its own
         _, _, dist = scene.partition(":")
         try:
-            return AnalyticWall(WallSpec(distance_m=float(dist) if dist else 1.0))
+            distance_m = float(dist) if dist else 1.0
         except ValueError:
-            raise DeviceError(f"bad wall distance {dist!r}", field="--scene", expected="wall:METRES") from None
+            distance_m = math.nan
+        if not (math.isfinite(distance_m) and distance_m > 0):
+            raise DeviceError(f"bad wall distance {dist!r} in scene {scene!r}", field="--scene",
+                              expected="wall:METRES with a distance > 0, a scene name or a scene file")
+        return AnalyticWall(WallSpec(distance_m=distance_m))
     return SimulatedSource(scene)
 
 

@@ -195,6 +195,12 @@ NUMERIC = [
     ("simulate-frames--1", ["simulate", "{scene}", "--out", "{out}/s.h5", "--frames", "-1"], "--frames"),
     ("simulate-frames-1.5", ["simulate", "{scene}", "--out", "{out}/s.h5", "--frames", "1.5"], "--frames"),
     ("simulate-seed--1", ["simulate", "{scene}", "--out", "{out}/s.h5", "--seed", "-1"], "--seed"),
+    # a parameter the scene does not declare: named, with the scene's own (it changed nothing before)
+    ("simulate-param-unknown", ["simulate", "dark_square", "--out", "{out}/s.h5", "--param", "wal_distance_m=2"],
+     "declares no parameter 'wal_distance_m' (expected one of square_reflectance, square_size_m, wall_distance_m"),
+    # an analytic wall behind the camera: the error names the scene given
+    ("emulate-wall-negative", ["emulate", "--scene", "wall:-1", "--pty"], "in scene 'wall:-1'"),
+    ("emulate-wall-text", ["emulate", "--scene", "wall:far", "--pty"], "bad wall distance 'far' in scene 'wall:far'"),
     ("simulate-seed-nan", ["simulate", "{scene}", "--out", "{out}/s.h5", "--seed", "nan"], "--seed"),
     # depth
     *[(f"depth-margin-{v}", ["depth", G, "--out", "{out}/d.h5", "--margin", v], "--margin")
