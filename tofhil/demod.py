@@ -149,6 +149,11 @@ def differential_to_taps(tap_a: np.ndarray, tap_b: np.ndarray, theta_rad: np.nda
     return np.take(taps, order, axis=-3), np.mod(phases[order], 2 * np.pi)
 
 
+def radians_per_metre(freq_hz: float | np.ndarray) -> np.ndarray:
+    """Phase per metre of radial distance, ``4 pi f / c`` (the light goes there and back)."""
+    return 4.0 * np.pi * np.asarray(freq_hz) / C_M_PER_S
+
+
 def phase_to_distance(phase_rad: np.ndarray, freq_hz: float | np.ndarray) -> np.ndarray:
     """Phase in [0, 2*pi) -> radial distance ``d = c*phi/(4*pi*f)`` (wrapped at ``c/2f``)."""
     return np.asarray(phase_rad) * (C_M_PER_S / (4.0 * np.pi * np.asarray(freq_hz)))
@@ -156,7 +161,7 @@ def phase_to_distance(phase_rad: np.ndarray, freq_hz: float | np.ndarray) -> np.
 
 def distance_to_phase(distance_m: np.ndarray, freq_hz: float | np.ndarray) -> np.ndarray:
     """Radial distance -> phase ``phi = 4*pi*f*d/c`` wrapped into [0, 2*pi)."""
-    return np.mod(np.asarray(distance_m) * (4.0 * np.pi * np.asarray(freq_hz) / C_M_PER_S), 2 * np.pi)
+    return np.mod(np.asarray(distance_m) * radians_per_metre(freq_hz), 2 * np.pi)
 
 
 def wrapped_phase(s: np.ndarray) -> np.ndarray:

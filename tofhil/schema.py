@@ -37,6 +37,15 @@ def describe_range(lo: float | None = None, hi: float | None = None, *, lo_open:
     return what
 
 
+def in_range(x: float, lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
+             hi_open: bool = False) -> bool:
+    """Whether ``x`` lies in the range (``None``: no bound on that side; ends open or closed):
+    the one rule every range check of a file, a command option or a method parameter uses."""
+    if lo is not None and (x < lo or (lo_open and x == lo)):
+        return False
+    return not (hi is not None and (x > hi or (hi_open and x == hi)))
+
+
 def _show(value: Any) -> str:
     """A short representation of a bad value for a message (never a megabyte of text)."""
     text = repr(value)
@@ -77,9 +86,7 @@ class Schema:
             raise self.bad(value, field, exp)
         if math.isinf(x) and not allow_inf:
             raise self.bad(value, field, exp)
-        if lo is not None and (x < lo or (lo_open and x == lo)):
-            raise self.bad(value, field, exp)
-        if hi is not None and (x > hi or (hi_open and x == hi)):
+        if not in_range(x, lo, hi, lo_open=lo_open, hi_open=hi_open):
             raise self.bad(value, field, exp)
         return x
 

@@ -45,6 +45,7 @@ from tofhil.eval.corrections import depth as dm
 from tofhil.eval.corrections import straylight as sl
 from tofhil.eval.calibration.taps import TapCalibration
 from tofhil.frames import DepthFrame, RawFrame
+from tofhil.schema import in_range
 
 
 @dataclass(frozen=True)
@@ -73,8 +74,7 @@ class Param:
             x = float(value)
         except (TypeError, ValueError):
             raise TofhilError(f"got {value!r}", field=field, expected=what) from None
-        ok = math.isfinite(x) and (x > self.lo if self.lo_open else x >= self.lo) and \
-            (x < self.hi if self.hi_open else x <= self.hi)
+        ok = math.isfinite(x) and in_range(x, self.lo, self.hi, lo_open=self.lo_open, hi_open=self.hi_open)
         if self.type is int:
             ok = ok and x.is_integer() and (not self.odd or int(x) % 2 == 1)
         if not ok:

@@ -41,11 +41,10 @@ import warnings
 from typing import Any, Sequence
 
 import numpy as np
-from scipy.ndimage import uniform_filter
 
+from tofhil.eval.metrics.noise import NOISE_POOL_PX, phasor_depth_sigma, pooled_variance, robust_sigma
 from tofhil.camera import CameraModel
 from tofhil.depth import saturated_amplitude
-from tofhil import C_M_PER_S
 from tofhil.demod import distance_to_phase, equally_spaced_phases
 from tofhil.errors import TofhilError
 from tofhil.eval.diagnose.heldout import HeldOutData, block_checkerboard
@@ -130,8 +129,7 @@ def _highpass_on_phasor(sf: np.ndarray) -> np.ndarray:
 def _robust_noise_variance(hp: np.ndarray) -> float:
     """Noise variance from high-pass values: (1.4826 MAD)^2 / 1.25 (the 4-neighbour
     high-pass of white noise has variance ``1.25 sigma^2``)."""
-    mad = float(np.median(np.abs(hp - np.median(hp))))
-    return (1.4826 * mad) ** 2 / 1.25
+    return robust_sigma(hp) ** 2 / 1.25
 
 
 def spatial_noise_variance(s: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -282,7 +280,7 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
 
         def pooled(x: np.ndarray) -> np.ndarray:
             v = (x ** 2).sum(axis=0) / (n - 1)
-            v = np.stack([uniform_filter(c, size=5, mode="nearest") for c in v])
+            v = pooled_variance(v)
             return np.maximum(v, max(float(np.median(v)) * 1e-3, 1e-30))
 
         var_t, var_r = pooled(dev.imag), pooled(dev.real)
@@ -290,7 +288,7 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
         var_train, var_test = var_t / len(train_idx), var_t / len(test_idx)
         radial_scale = var_r / var_t
         noise = (f"frame-to-frame scatter of the phasor over {n} frames, across (depth) and along "
-                 "(amplitude) it separately, pooled over 5 x 5 pixels")
+                 f"(amplitude) it separately, pooled over {NOISE_POOL_PX} x {NOISE_POOL_PX} pixels")
         n_train, n_test = len(train_idx), len(test_idx)
     else:
         s_train = s_test = s_all[0]
@@ -309,8 +307,7 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
                 conf_note = ("; the device's confidence was calibrated against the local scatter and does not "
                              "predict it (per-class scatter equal within its error): not used" + conf_note)
         amp_med = [max(float(np.median(np.abs(s_all[0][k][usable]))), 1e-30) for k in range(freq_hz.size)]
-        sigma_mm = [1e3 * math.sqrt(v) / amp_med[k] / (4 * math.pi * freq_hz[k] / C_M_PER_S)
-                    for k, v in enumerate(var_t)]
+        sigma_mm = [1e3 * float(phasor_depth_sigma(v, amp_med[k], freq_hz[k])) for k, v in enumerate(var_t)]
         sigma_a = [100 * math.sqrt(v) / amp_med[k] for k, v in enumerate(var_r)]
         noise = ("local spatial scatter of one frame (1.4826 MAD of the phasor's high-pass, across and along "
                  "the phasor): depth noise " + ", ".join(f"{x:.2f} mm" for x in sigma_mm)

@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.ndimage import uniform_filter
 
+from tofhil.eval.metrics.noise import pooled_variance
 from tofhil.camera import CameraModel
 from tofhil.demod import TapLimits, bad_extremes, clip_limits, phasor, wrapped_phase
 from tofhil.errors import TofhilError
@@ -191,9 +191,6 @@ def subsample(mask: np.ndarray, most: int) -> np.ndarray:
     return out.reshape(mask.shape)
 
 
-#: Side of the square of pixels over which each pixel's frame-to-frame noise variance is pooled.
-NOISE_POOL_PX = 5
-
 #: Whitened residual (noise standard deviations) beyond which the misfit grows linearly.
 HUBER_SIGMA = 5.0
 
@@ -250,7 +247,7 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
     mean_all = s.mean(axis=0)
     dev2 = np.abs(s - mean_all[None]) ** 2
     var_frame = dev2.sum(axis=0) / max(n - 1, 1)
-    var_frame = np.stack([uniform_filter(v, size=NOISE_POOL_PX, mode="nearest") for v in var_frame])
+    var_frame = pooled_variance(var_frame)
     floor = max(float(np.median(var_frame)) * 1e-3, 1e-12)
     var_frame = np.maximum(var_frame, floor)
     # Per real component: a complex channel's E|noise|^2 splits evenly into its real and

@@ -41,10 +41,10 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence, TypeVar
 
 import numpy as np
-from scipy.ndimage import uniform_filter
 
-from tofhil import C_M_PER_S
-from tofhil.eval.diagnose.heldout import NOISE_POOL_PX, HeldOutData
+from tofhil.demod import radians_per_metre
+from tofhil.eval.diagnose.heldout import HeldOutData
+from tofhil.eval.metrics.noise import pooled_variance
 
 T = TypeVar("T")
 
@@ -347,12 +347,11 @@ def fit_frame_drift(model: Any, data: HeldOutData, current: dict[str, dict[str, 
         # The frame-to-frame scatter contains the drift; the figures are restated with the
         # noise re-estimated from the frames with the drift taken out (same pooling).
         k = np.zeros(frames.shape[1])
-        k[:nf] = 4.0 * np.pi * data.freq_hz / C_M_PER_S
+        k[:nf] = radians_per_metre(data.freq_hz)
         g = np.ones((n, frames.shape[1]))
         g[:, :nf] = 1.0 + y[:, None]
         clean = frames * np.exp(-1j * k[None, :, None, None] * x[:, None, None, None]) / g[:, :, None, None]
-        pool = [np.stack([uniform_filter(c, size=NOISE_POOL_PX, mode="nearest") for c in
-                          (np.abs(f - f.mean(axis=0)) ** 2).sum(axis=0)]) for f in (frames, clean)]
+        pool = [pooled_variance((np.abs(f - f.mean(axis=0)) ** 2).sum(axis=0)) for f in (frames, clean)]
         ratio = np.clip(pool[1] / np.maximum(pool[0], 1e-300), 1e-3, 1.0)
         _, _, ah2, bh2, zz2 = sums(var1 * ratio)
         chi2_static, chi2_drift = chi2(static, ah2, bh2, zz2), chi2(u, ah2, bh2, zz2)

@@ -30,6 +30,7 @@ from typing import Any, Mapping
 import numpy as np
 from scipy import ndimage, stats
 
+from tofhil.eval.metrics.noise import robust_sigma
 from tofhil.eval.diagnose.verdict import ALPHA
 
 #: Fewest pixels for an object's smooth fit and for a spot.
@@ -94,7 +95,7 @@ def _fmt(x: float, channel: str) -> str:
 def _robust_fit(X: np.ndarray, y: np.ndarray) -> np.ndarray:
     coef = np.linalg.lstsq(X, y, rcond=None)[0]
     r = y - X @ coef
-    mad = 1.4826 * np.median(np.abs(r - np.median(r)))
+    mad = robust_sigma(r)
     keep = np.abs(r) <= 4.0 * max(mad, 1e-300)
     if keep.sum() > X.shape[1] * 3:
         coef = np.linalg.lstsq(X[keep], y[keep], rcond=None)[0]

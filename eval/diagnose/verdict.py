@@ -44,8 +44,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from scipy import ndimage, stats
 
-from tofhil import C_M_PER_S
-from tofhil.eval.diagnose.heldout import NOISE_POOL_PX, HeldOutData, depth_from_signal, huber
+from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal, huber
+from tofhil.eval.metrics.noise import NOISE_POOL_PX, phasor_depth_sigma
 
 #: False-alarm probability of each "above noise" test (one in a thousand).
 ALPHA = 1e-3
@@ -73,9 +73,8 @@ def channel_sigmas(data: HeldOutData, *, with_model_error: bool = True) -> tuple
     (with the scene's own amplitude model error added when ``with_model_error``)."""
     nf = data.n_freq
     a = np.maximum(np.abs(data.s_test[:nf]), 1e-30)
-    k = (4 * np.pi * data.freq_hz / C_M_PER_S)[:, None, None]
     var = data.var_test[:nf].real
-    sigma_depth = np.sqrt(var / a ** 2 / k ** 2).min(axis=0)
+    sigma_depth = phasor_depth_sigma(var, a, data.freq_hz[:, None, None]).min(axis=0)
     radial = var * (data.radial_var_scale[:nf] if data.radial_var_scale is not None else 1.0)
     rel2 = radial / a ** 2
     if with_model_error and data.amplitude_model_error:
@@ -85,7 +84,7 @@ def channel_sigmas(data: HeldOutData, *, with_model_error: bool = True) -> tuple
 
 def noise_dof(data: HeldOutData) -> float:
     """Degrees of freedom of the noise variance estimate: every frame's deviation from the
-    pixel mean (N - 1 per pixel), pooled over the ``NOISE_POOL_PX`` square of ``heldout``."""
+    pixel mean (N - 1 per pixel), pooled over the ``NOISE_POOL_PX`` square (:mod:`tofhil.eval.metrics.noise`)."""
     n = data.n_train_frames + data.n_test_frames
     return float(max(n - 1, 1) * NOISE_POOL_PX ** 2)
 

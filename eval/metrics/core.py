@@ -27,13 +27,13 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from tofhil.eval.metrics.noise import MAD_TO_SIGMA
 from tofhil.demod import TapLimits, bad_extremes, clip_limits
 from tofhil.errors import TofhilError, require_input_file
 from tofhil.schema import to_plain
 from tofhil.frames import DepthFrame
 
 #: MAD -> standard deviation for a Gaussian distribution.
-MAD_TO_SIGMA = 1.4826
 
 #: The name of the headline figure, printed wherever it is printed.
 DEPTH_RMSE = "depth RMSE over pixels valid in both"

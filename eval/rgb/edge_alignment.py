@@ -28,6 +28,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from tofhil.eval.metrics.noise import robust_sigma
 from tofhil.eval.rgb.colorize import project
 
 #: The self-check passes when the measured shift follows the predicted one with a slope in this range.
@@ -127,7 +128,7 @@ def _side(d: np.ndarray) -> SideOffsets:
     if d.size == 0:
         return SideOffsets(0, float("nan"), float("nan"))
     med = float(np.median(d))
-    return SideOffsets(int(d.size), med, float(1.4826 * np.median(np.abs(d - med))))
+    return SideOffsets(int(d.size), med, robust_sigma(d))
 
 
 def _measure(points: np.ndarray, sides: np.ndarray, tof_to_color: np.ndarray, color_camera: Any, grad: np.ndarray,

@@ -19,25 +19,17 @@ from typing import Callable
 __all__ = ["finite", "count", "odd_size", "existing_file", "new_file", "out_dir", "describe_path_problem", "check_output"]
 
 
-def _number_text(value: float) -> str:
-    return f"{value:g}"
-
-
 def _interval(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool, unit: str) -> str:
-    u = f" {unit}" if unit else ""
-    if lo is not None and hi is not None:
-        return (f"a finite number in {'(' if lo_open else '['}{_number_text(lo)}, "
-                f"{_number_text(hi)}{')' if hi_open else ']'}{u}")
-    if lo is not None:
-        return f"a finite number {'>' if lo_open else '>='} {_number_text(lo)}{u}"
-    if hi is not None:
-        return f"a finite number {'<' if hi_open else '<='} {_number_text(hi)}{u}"
-    return f"a finite number{u}"
+    from tofhil.schema import describe_range
+
+    return describe_range(lo, hi, lo_open=lo_open, hi_open=hi_open, what="a finite number") + (f" {unit}" if unit else "")
 
 
 def finite(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False, hi_open: bool = False,
            unit: str = "") -> Callable[[object], float]:
     """A finite float within ``[lo, hi]`` (either end optional, ``*_open`` excludes it)."""
+    from tofhil.schema import in_range
+
     expected = _interval(lo, hi, lo_open, hi_open, unit)
 
     def parse(text: object) -> float:
@@ -48,9 +40,7 @@ def finite(lo: float | None = None, hi: float | None = None, *, lo_open: bool = 
                 value = float(str(text).strip())
             except ValueError:
                 raise ValueError(f"{text!s} is not a number (expected {expected})") from None
-        bad = (not math.isfinite(value) or (lo is not None and (value <= lo if lo_open else value < lo))
-               or (hi is not None and (value >= hi if hi_open else value > hi)))
-        if bad:
+        if not (math.isfinite(value) and in_range(value, lo, hi, lo_open=lo_open, hi_open=hi_open)):
             raise ValueError(f"{text!s} is out of range (expected {expected})")
         return value
 
