@@ -240,22 +240,9 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
     return lines
 
 
-def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_relative_gain: float = 0.02,
-             candidates: list[str] | None = None, block_px: int = 8, max_frames: int | None = None,
-             render_kwargs: dict[str, Any] | None = None, progress: Callable[[str], None] | None = None,
-             extended_scene_path: str | Path | None = None) -> DiagnosisResult:
-    """Run the diagnosis loop on a session against a base scene (a Scene object)."""
-    from tofhil.sim.scene import load_scene, scene_from_yaml, scene_to_yaml
-
-    t0 = time.perf_counter()
-    from tofhil.sim.from_capture import capture_scene_facts
-
-    facts = capture_scene_facts(scene)
-    unobservable = facts.unobservable
-    # the per-frame drift is a form of its own (not an effect of the scene): searched unless
-    # a candidate list leaves it out
-    want_drift = max_effects > 0 and (candidates is None or DRIFT in candidates)
-    candidates = None if candidates is None else [c for c in candidates if c != DRIFT]
+def _held_out_data(session_path: str | Path, scene: Any, facts: Any, *, block_px: int,
+                   max_frames: int | None) -> tuple[HeldOutData, bool]:
+    """The session split into training and held-out data, and whether it has depth only."""
     with open_session(session_path) as s:
         if s.has_histograms or getattr(scene, "direct_tof", None) is not None:
             # the twin diagnosed here is the correlation forward model (taps, phase, effects)
@@ -265,40 +252,31 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                               expected="a correlation-ToF session and scene")
         data = split_for_diagnosis(s, scene, block_px=block_px, max_frames=max_frames, valid_mask=facts.valid_mask,
                                    amplitude_model_error=facts.amplitude_model_error)
-        depth_only = not s.has_raw
-    candidates, unobservable = observable_candidates(candidates, data, depth_only=depth_only, unobservable=unobservable)
-    if progress:
-        progress(f"channels: {data.channels}; noise: {data.noise}")
-    if data.test_pixels.sum() < 20:
-        raise TofhilError("too few usable pixels (signal above noise, not saturated) to diagnose",
-                          file=session_path, field="raw/taps")
-    model = TwinModel(scene, data, render_kwargs=render_kwargs)
-    if progress:
-        progress(model.setup.note)
-    base_pred = model.predict({})
-    if candidates is None or "pose" in candidates:
-        if progress:
-            progress("aligning the twin (ICP)")
-        model.align_pose()
-    sizes = V.EffectSize(data)
-    selection = greedy_select(model, data, candidates=candidates, max_effects=max_effects,
-                              min_relative_gain=min_relative_gain, progress=progress, effect_size=sizes)
-    # The extended scene: written, read back and re-rendered, so the gain is that of the file.
-    ext_path = Path(extended_scene_path) if extended_scene_path else None
+        return data, not s.has_raw
 
-    map_path = ext_path.parent / OFFSET_MAP_FILE if ext_path is not None else None
 
-    def extend(fitted: dict[str, dict[str, Any]]) -> tuple[TwinModel, np.ndarray]:
-        if map_path is not None:
+class _ExtendedScene:
+    """The base scene with the fitted effects: written (with a range offset map beside it),
+    read back and re-rendered, so that the gain reported is that of the file."""
+
+    def __init__(self, model: TwinModel, data: HeldOutData, ext_path: Path | None,
+                 render_kwargs: dict[str, Any] | None) -> None:
+        self.model, self.data, self.path, self.render_kwargs = model, data, ext_path, render_kwargs
+        self.map_path = ext_path.parent / OFFSET_MAP_FILE if ext_path is not None else None
+
+    def text(self, fitted: dict[str, dict[str, Any]]) -> tuple[str, dict[str, dict[str, Any]]]:
+        from tofhil.sim.scene import scene_to_yaml
+
+        if self.map_path is not None:
             if MAP_EFFECT in fitted:
                 # the map goes to a .npy file beside the extended scene, which names it
-                np.save(map_path, np.asarray(fitted[MAP_EFFECT]["values"], dtype=np.float64))
-                fitted = fitted | {MAP_EFFECT: {"file": str(map_path.resolve())}}
+                np.save(self.map_path, np.asarray(fitted[MAP_EFFECT]["values"], dtype=np.float64))
+                fitted = fitted | {MAP_EFFECT: {"file": str(self.map_path.resolve())}}
             else:
-                map_path.unlink(missing_ok=True)
-        ext_scene = dataclasses.replace(model.scene, effects=model.extended_effects_block(fitted))
+                self.map_path.unlink(missing_ok=True)
+        ext_scene = dataclasses.replace(self.model.scene, effects=self.model.extended_effects_block(fitted))
         extended_text = scene_to_yaml(ext_scene)
-        if map_path is not None and MAP_EFFECT in fitted:
+        if self.map_path is not None and MAP_EFFECT in fitted:
             # the file named relative to the scene file: the output directory can be moved
             import yaml
 
@@ -306,36 +284,49 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
             doc = yaml.safe_load(body)
             doc["effects"][MAP_EFFECT]["file"] = OFFSET_MAP_FILE
             extended_text = header + "\n" + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
-        if ext_path is not None:
-            ext_path.write_text(extended_text)
-            reloaded = load_scene(ext_path)
+        return extended_text, fitted
+
+    def __call__(self, fitted: dict[str, dict[str, Any]]) -> tuple[TwinModel, np.ndarray]:
+        from tofhil.sim.scene import load_scene, scene_from_yaml
+
+        extended_text, _ = self.text(fitted)
+        if self.path is not None:
+            self.path.write_text(extended_text)
+            reloaded = load_scene(self.path)
         else:
             reloaded = scene_from_yaml(extended_text)
-        after_model = TwinModel(reloaded, data, render_kwargs=render_kwargs, renders_from=model)
+        after_model = TwinModel(reloaded, self.data, render_kwargs=self.render_kwargs, renders_from=self.model)
         return after_model, after_model.predict({})
 
-    after_model, after_pred = extend(selection.params)
-    result = model.base_render()
-    object_id = np.asarray(result.object_id)
-    object_names = {i: o.name for i, o in enumerate(model.scene.objects)}
-    nu = V.noise_dof(data)
-    n = max(data.n_values("test"), 1)
-    objects_before = V.object_misfits(data, base_pred, nu, object_id, object_names)
 
-    def judge(after_pred: np.ndarray, causes: list[str]) -> tuple[V.Verdict, dict, dict, list[str]]:
+class _Judge:
+    """The verdict on a prediction of the held-out data, with its per-channel and per-object misfits."""
+
+    def __init__(self, data: HeldOutData, selection: Selection, base_pred: np.ndarray, object_id: np.ndarray,
+                 object_names: dict[int, str]) -> None:
+        self.data, self.selection, self.object_id, self.object_names = data, selection, object_id, object_names
+        self.nu = V.noise_dof(data)
+        self.n = max(data.n_values("test"), 1)
+        self.objects_before = V.object_misfits(data, base_pred, self.nu, object_id, object_names)
+
+    def __call__(self, after_pred: np.ndarray, causes: list[str]) -> tuple[V.Verdict, dict, dict, list[str]]:
+        data, selection = self.data, self.selection
         ch_after = V.channel_chi2(data, after_pred)
         worse = V.worse_channels(selection.channels_before, ch_after)
-        objects_after = V.object_misfits(data, after_pred, nu, object_id, object_names)
-        v = V.verdict(searched=selection.searched, causes=causes, n_values=n, nu=nu,
-                      before_per_value=selection.baseline_chi2_test / n,
-                      after_per_value=data.chi2(after_pred, "test") / n, worse=worse,
-                      objects_before=objects_before, objects_after=objects_after, pinned=selection.at_bounds,
+        objects_after = V.object_misfits(data, after_pred, self.nu, self.object_id, self.object_names)
+        v = V.verdict(searched=selection.searched, causes=causes, n_values=self.n, nu=self.nu,
+                      before_per_value=selection.baseline_chi2_test / self.n,
+                      after_per_value=data.chi2(after_pred, "test") / self.n, worse=worse,
+                      objects_before=self.objects_before, objects_after=objects_after, pinned=selection.at_bounds,
                       rejected_for_channels=selection.rejected_for_channels)
         return v, ch_after, objects_after, worse
 
-    evidence = _evidence(selection, data)
-    for line in selection.too_small.values():
-        evidence.append(f"not named, its held-out gain is too small or makes a channel worse: {line}")
+
+def _settle(selection: Selection, data: HeldOutData, sizes: V.EffectSize, judge: _Judge, extend: _ExtendedScene,
+            base_pred: np.ndarray, after_pred: np.ndarray, after_model: TwinModel, max_effects: int) -> tuple:
+    """The verdict on the extended scene as written: a set that loses its gain there, or that
+    was fitted to a scene that does not match, is "fitted but not named" and the extended
+    scene is the base again."""
     verdict, ch_after, objects_after, worse = judge(after_pred, list(selection.causes))
     size_after = sizes.compare(base_pred, after_pred)
     if selection.causes and not V.EffectSize.worth_naming(size_after):
@@ -365,26 +356,119 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         # clock-skew pattern was left out, or taken up by lens_distortion in older code).
         verdict.notes.append(f"the search stopped at max_effects = {max_effects}: the excess left may hold a "
                              "further effect (diagnose again with a larger --max-effects)")
+    return verdict, ch_after, objects_after, worse, after_model, after_pred
+
+
+def _with_drift(verdict: V.Verdict, drift: Any, judge: _Judge, evidence: list[str]) -> V.Verdict:
+    """The frames' mean hides a drift (it inflates the frame-to-frame noise instead): a named
+    drift is the verdict where nothing else was, on the held-out pixels of every frame."""
+    if drift is None:
+        return verdict
+    evidence.append(drift.text)
+    if drift.named and verdict.kind in ("within noise", "unexplained"):
+        verdict = V.verdict(searched=True, causes=[DRIFT], n_values=drift.n_values, nu=judge.nu,
+                            before_per_value=drift.chi2_static / drift.n_values,
+                            after_per_value=drift.chi2_drift / drift.n_values, worse=[],
+                            objects_before=judge.objects_before, objects_after=judge.objects_before, pinned={},
+                            rejected_for_channels=[])
+        verdict.notes.append(drift.text)
+    elif drift.named:
+        verdict.notes.append(drift.text)
+    return verdict
+
+
+def _ranking(selection: Selection) -> tuple[list[dict[str, Any]], list[list[dict[str, Any]]]]:
+    """The first round's candidates in full and every round's in brief, as JSON."""
+    ranked = [{"effect": c.effect, "params": _json_params(c.effect, c.params, c.details), "score": c.score,
+               "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,
+               "chi2_test": c.chi2_test, "n_params": c.n_params, "worse_channels": c.worse_channels,
+               "at_bounds": c.at_bounds, "form": c.form, "dof": round(c.dof, 2), "forms": c.forms,
+               "worth_naming": c.worth_naming, "rmse": {ch: g.to_json() for ch, g in c.rmse.items()},
+               "prior": c.prior}
+              for c in selection.first_round]
+    rounds = [[{"effect": c.effect, "form": c.form, "delta_score": c.delta_score, "relative_gain": c.relative_gain,
+                "significant": c.significant, "worse_channels": c.worse_channels} for c in rnd]
+              for rnd in selection.rounds]
+    return ranked, rounds
+
+
+def _signature_maps(model: TwinModel, data: HeldOutData, selection: Selection) -> dict[str, np.ndarray]:
+    """Each selected effect's signature: how it changes the twin's depth and amplitude."""
+    maps = {}
+    nf = data.n_freq
+    p_with = model.predict(selection.params)
+    for e in selection.causes:
+        p_without = model.predict({k: v for k, v in selection.params.items() if k != e})
+        change = M.wrapped_difference(depth_from_signal(p_with[:nf], data.freq_hz),
+                                      depth_from_signal(p_without[:nf], data.freq_hz), data.unambiguous_range_m)
+        maps[f"signature_depth_{e}"] = np.where(distance_defined(data, p_with, p_without), change, np.nan)
+        maps[f"signature_amplitude_{e}"] = (np.abs(p_with[:nf]) - np.abs(p_without[:nf])).mean(axis=0)
+    return maps
+
+
+def _rmse_worse_notes(verdict: V.Verdict, gain: dict[str, dict[str, float]]) -> None:
+    """The misfit weighs each pixel by its noise and caps outliers; the RMSE does neither. A
+    named cause that leaves an unweighted figure worse is said, not hidden."""
+    for k, label, scale, unit in (("depth_rmse_m", "depth RMSE", 1e3, " mm"), ("amplitude_rmse", "amplitude RMSE", 1.0, "")):
+        b, a = gain[k]["before"], gain[k]["after"]
+        if np.isfinite(a) and np.isfinite(b) and a > 1.005 * b:  # (0.5 %: not a rounding)
+            verdict.notes.append(f"held-out {label} {b * scale:.4g} -> {a * scale:.4g}{unit} is worse after the fit: "
+                                 "the misfit that chose the cause weighs pixels by their noise and caps outliers, "
+                                 "the RMSE does not")
+
+
+def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_relative_gain: float = 0.02,
+             candidates: list[str] | None = None, block_px: int = 8, max_frames: int | None = None,
+             render_kwargs: dict[str, Any] | None = None, progress: Callable[[str], None] | None = None,
+             extended_scene_path: str | Path | None = None) -> DiagnosisResult:
+    """Run the diagnosis loop on a session against a base scene (a Scene object)."""
+    from tofhil.sim.from_capture import capture_scene_facts
+
+    t0 = time.perf_counter()
+    facts = capture_scene_facts(scene)
+    # the per-frame drift is a form of its own (not an effect of the scene): searched unless
+    # a candidate list leaves it out
+    want_drift = max_effects > 0 and (candidates is None or DRIFT in candidates)
+    candidates = None if candidates is None else [c for c in candidates if c != DRIFT]
+    data, depth_only = _held_out_data(session_path, scene, facts, block_px=block_px, max_frames=max_frames)
+    candidates, unobservable = observable_candidates(candidates, data, depth_only=depth_only,
+                                                     unobservable=facts.unobservable)
+    if progress:
+        progress(f"channels: {data.channels}; noise: {data.noise}")
+    if data.test_pixels.sum() < 20:
+        raise TofhilError("too few usable pixels (signal above noise, not saturated) to diagnose",
+                          file=session_path, field="raw/taps")
+    model = TwinModel(scene, data, render_kwargs=render_kwargs)
+    if progress:
+        progress(model.setup.note)
+    base_pred = model.predict({})
+    if candidates is None or "pose" in candidates:
+        if progress:
+            progress("aligning the twin (ICP)")
+        model.align_pose()
+    sizes = V.EffectSize(data)
+    selection = greedy_select(model, data, candidates=candidates, max_effects=max_effects,
+                              min_relative_gain=min_relative_gain, progress=progress, effect_size=sizes)
+    ext_path = Path(extended_scene_path) if extended_scene_path else None
+    extend = _ExtendedScene(model, data, ext_path, render_kwargs)
+    after_model, after_pred = extend(selection.params)
+    object_id = np.asarray(model.base_render().object_id)
+    object_names = {i: o.name for i, o in enumerate(model.scene.objects)}
+    judge = _Judge(data, selection, base_pred, object_id, object_names)
+    n = judge.n
+
+    evidence = _evidence(selection, data)
+    for line in selection.too_small.values():
+        evidence.append(f"not named, its held-out gain is too small or makes a channel worse: {line}")
+    verdict, ch_after, objects_after, worse, after_model, after_pred = _settle(
+        selection, data, sizes, judge, extend, base_pred, after_pred, after_model, max_effects)
     drift = fit_frame_drift(model, data, selection.params, float(np.log(n))) if want_drift else None
-    if drift is not None:
-        evidence.append(drift.text)
-        if drift.named and verdict.kind in ("within noise", "unexplained"):
-            # the frames' mean hides a drift (it inflates the frame-to-frame noise instead): the
-            # verdict is the drift's, on the held-out pixels of every frame
-            verdict = V.verdict(searched=True, causes=[DRIFT], n_values=drift.n_values, nu=nu,
-                                before_per_value=drift.chi2_static / drift.n_values,
-                                after_per_value=drift.chi2_drift / drift.n_values, worse=[],
-                                objects_before=objects_before, objects_after=objects_before, pinned={},
-                                rejected_for_channels=[])
-            verdict.notes.append(drift.text)
-        elif drift.named:
-            verdict.notes.append(drift.text)
+    verdict = _with_drift(verdict, drift, judge, evidence)
     for e in selection.causes:  # "A or B": the named cause is not the only reading of the data
         verdict.notes.extend(a.text for a in selection.alternatives.get(e, ()))
     params = {e: _json_params(e, v, selection.details.get(e)) for e, v in selection.params.items()}
-    for e in params:
-        if e == MAP_EFFECT:
-            params[e] = {"file": OFFSET_MAP_FILE if map_path is not None else None} | params[e]
+    if MAP_EFFECT in params:
+        params[MAP_EFFECT] = {"file": OFFSET_MAP_FILE if extend.map_path is not None else None} | params[MAP_EFFECT]
     observability = assess(selection, model, data, block_px=block_px, unobservable=unobservable)
     if facts.geometry_from_depth:
         observability.ambiguous += shape_ambiguities(list(selection.causes))
@@ -406,38 +490,15 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     if not selection.causes and selection.too_small and verdict.kind in ("unexplained", "scene does not match"):
         verdict.notes.append("fitted but not named: " + "; ".join(selection.too_small.values()))
     regions_left, above_after = V.residual_regions(
-        data, after_pred, nu, object_id, object_names, maps_after["depth_residual"], maps_after["amplitude_residual"])
+        data, after_pred, judge.nu, object_id, object_names, maps_after["depth_residual"],
+        maps_after["amplitude_residual"])
     gain = {k: {"before": before[k], "after": after.get(k, float("nan"))} for k in before}
     if selection.causes and verdict is not None:
-        # The misfit weighs each pixel by its noise and caps outliers; the RMSE does neither.
-        # A named cause that leaves an unweighted figure worse is said, not hidden.
-        for k, label, scale, unit in (("depth_rmse_m", "depth RMSE", 1e3, " mm"), ("amplitude_rmse", "amplitude RMSE", 1.0, "")):
-            b, a = gain[k]["before"], gain[k]["after"]
-            if np.isfinite(a) and np.isfinite(b) and a > 1.005 * b:  # (0.5 %: not a rounding)
-                verdict.notes.append(f"held-out {label} {b * scale:.4g} -> {a * scale:.4g}{unit} is worse after the fit: "
-                                     "the misfit that chose the cause weighs pixels by their noise and caps outliers, "
-                                     "the RMSE does not")
+        _rmse_worse_notes(verdict, gain)
     regions = {"before": ev_before.to_json()["regions"], "after": ev_after.to_json()["regions"]}
-    ranked = [{"effect": c.effect, "params": _json_params(c.effect, c.params, c.details), "score": c.score,
-               "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,
-               "chi2_test": c.chi2_test, "n_params": c.n_params, "worse_channels": c.worse_channels,
-               "at_bounds": c.at_bounds, "form": c.form, "dof": round(c.dof, 2), "forms": c.forms,
-               "worth_naming": c.worth_naming, "rmse": {ch: g.to_json() for ch, g in c.rmse.items()},
-               "prior": c.prior}
-              for c in selection.first_round]
-    rounds = [[{"effect": c.effect, "form": c.form, "delta_score": c.delta_score, "relative_gain": c.relative_gain,
-                "significant": c.significant, "worse_channels": c.worse_channels} for c in rnd]
-              for rnd in selection.rounds]
+    ranked, rounds = _ranking(selection)
     maps = {f"{k}_before": v for k, v in maps_before.items()} | {f"{k}_after": v for k, v in maps_after.items()}
-    # Each selected effect's signature: how it changes the twin's depth and amplitude.
-    nf = data.n_freq
-    p_with = model.predict(selection.params)
-    for e in selection.causes:
-        p_without = model.predict({k: v for k, v in selection.params.items() if k != e})
-        change = M.wrapped_difference(depth_from_signal(p_with[:nf], data.freq_hz),
-                                    depth_from_signal(p_without[:nf], data.freq_hz), data.unambiguous_range_m)
-        maps[f"signature_depth_{e}"] = np.where(distance_defined(data, p_with, p_without), change, np.nan)
-        maps[f"signature_amplitude_{e}"] = (np.abs(p_with[:nf]) - np.abs(p_without[:nf])).mean(axis=0)
+    maps |= _signature_maps(model, data, selection)
     maps["above_noise_after"] = np.where(data.usable, above_after, np.nan)
     structure = residual_structure(data, after_pred, maps_after, object_id, object_names)
     return DiagnosisResult(cause=selection.causes[0] if selection.causes else None, causes=list(selection.causes),
@@ -450,7 +511,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                            data=data, maps=maps, evaluations={"before": ev_before, "after": ev_after},
                            seconds=time.perf_counter() - t0, verdict=verdict, channels=channels,
                            residual_regions=[r.to_json() | {"text": r.describe()} for r in regions_left],
-                           objects={k: {"before": objects_before.get(k), "after": v} for k, v in objects_after.items()},
+                           objects={k: {"before": judge.objects_before.get(k), "after": v}
+                                    for k, v in objects_after.items()},
                            observability=observability, structure=[f.to_json() for f in structure],
                            forms={e: selection.forms.get(e, "") for e in selection.causes},
                            drift=None if drift is None else drift.to_json(),

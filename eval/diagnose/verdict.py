@@ -45,6 +45,7 @@ import numpy as np
 from scipy import ndimage, stats
 
 from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal, huber
+from tofhil.eval.metrics.core import rmse
 from tofhil.eval.metrics.noise import NOISE_POOL_PX, phasor_depth_sigma
 
 #: False-alarm probability of each "above noise" test (one in a thousand).
@@ -528,10 +529,8 @@ class EffectSize:
             # before^2 - after^2 = mean(2 r_b delta - delta^2): the noise in r_b moves it by
             # 2 mean(n delta), of standard error 2 sqrt(sum(sigma^2 delta^2)) / n
             se = 2.0 * float(np.sqrt(np.sum((sig * (rb - ra)) ** 2))) / n
-            out[c] = ChannelGain(c, float(np.sqrt(np.mean(rb ** 2))) if rb.size else float("nan"),
-                                 float(np.sqrt(np.mean(ra ** 2))) if ra.size else float("nan"),
-                                 self.noise[c], self.minimum[c], int(ok.sum()), se,
-                                 float(np.sqrt(np.mean((rb - ra) ** 2))) if rb.size else float("nan"))
+            out[c] = ChannelGain(c, rmse(rb), rmse(ra), self.noise[c], self.minimum[c], int(ok.sum()), se,
+                                 rmse(rb - ra))
         return out
 
     @staticmethod

@@ -14,6 +14,7 @@ __all__, __getattr__, __dir__ = lazy_face(__name__, {
     "Region": "core",
     "region_metrics": "core",
     "stats": "core",
+    "rmse": "core",
     "json_safe": "core",
     "DEPTH_RMSE": "core",
     "MAD_TO_SIGMA": "noise",

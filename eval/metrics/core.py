@@ -141,6 +141,13 @@ class Stats:
         return json_safe(asdict(self))
 
 
+def rmse(x: np.ndarray) -> float:
+    """Root mean square of residuals (NaN when there are none): the one RMSE every report's
+    figure and every effect size is."""
+    x = np.asarray(x, dtype=np.float64)
+    return float(np.sqrt(np.mean(x * x))) if x.size else float("nan")
+
+
 def stats(values: np.ndarray) -> Stats:
     """median, MAD, sigma_mad, mean, std, RMSE, p95 of |x|, count of the finite values."""
     x = np.asarray(values, dtype=np.float64).ravel()
@@ -151,7 +158,7 @@ def stats(values: np.ndarray) -> Stats:
     med = float(np.median(x))
     mad = float(np.median(np.abs(x - med)))
     return Stats(n=int(x.size), median=med, mad=mad, sigma_mad=MAD_TO_SIGMA * mad, mean=float(x.mean()),
-                 std=float(x.std()), rmse=float(np.sqrt(np.mean(x * x))),
+                 std=float(x.std()), rmse=rmse(x),
                  p95_abs=float(np.percentile(np.abs(x), 95)), mean_abs=float(np.abs(x).mean()))
 
 
