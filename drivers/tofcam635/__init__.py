@@ -1,2 +1,2 @@
 """The ESPROS TOFcam635 (epc635): wire protocol, transports, pyusb driver, and its emulator
-(firmware state machine, image sources, faults, pyusb backend, pseudo-terminal server)."""
+(firmware state machine on an injected image source, faults, pyusb backend, pseudo-terminal server)."""

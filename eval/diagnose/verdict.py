@@ -19,10 +19,11 @@ frame-to-frame scatter):
   systematic part of the held-out residual it takes away, ``sqrt(before^2 - after^2)`` of the
   channel's RMSE in its own units: noise adds the same variance to both RMSEs, so the
   difference of the squares is the systematic variance removed, whereas the difference of
-  the RMSEs shrinks as ``s^2 / 2 sigma`` under a noise ``sigma`` (a 5.8 mm clock skew under
-  11 mm pixel noise lowers the RMSE by 1.5 mm only), capped by the rms of the correction
-  itself (a ridge-shrunk map of 0.2 mm can take 0.7 mm of variance off a residual that has
-  more along it: what the cause changes is 0.2 mm). A cause is named only when that part
+  the RMSEs shrinks as ``s^2 / 2 sigma`` under a noise ``sigma`` (a systematic part half the
+  noise lowers the RMSE by an eighth of the noise only), capped by the rms of the correction
+  itself (a ridge-shrunk correction can take more variance off a residual that has more along
+  it than its own rms: what the cause changes is that rms; docs/diagnose.md has the cases that
+  showed both). A cause is named only when that part
   reaches :data:`MIN_GAIN_NOISE_SHARE` of the channel's noise *and* an absolute minimum
   (:data:`MIN_DEPTH_GAIN_M` of depth; for amplitude and offset, counts with no common unit,
   :data:`MIN_LEVEL_GAIN_SHARE` of the channel's median level), and when no channel gains a
