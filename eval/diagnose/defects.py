@@ -1,0 +1,180 @@
+"""Defective pixels, found before any fit: a finding of their own, never a scene mismatch.
+
+Real sensors have pixels that do not measure the light in front of them: stuck or dead
+(the same taps in every frame), hot or blinking (a temporal scatter far above what the
+pixel's signal level predicts), taps off the correlation model (for K >= 4 the part of the
+taps no ``B + A cos(phi - theta_k)`` can make, far beyond its neighbours'), and isolated
+spatial outliers (one pixel far from neighbours that agree with each other). A depth
+camera's defects are depths of zero or none where the camera says the pixel is valid,
+isolated outliers, and flying pixels at depth edges (mixed returns of two surfaces).
+
+Each test compares a pixel with a model of the whole image or with its own neighbours, not
+with an absolute level: a pattern every pixel shares (a tap gain imbalance, a harmonic) is
+the diagnosis's to explain, not a defect. The thresholds are far in the tails of the noise
+(stated with each kind), so that a capture without defects has none, and the mask they make
+is taken out of both the training and the held-out pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from tofhil.eval.metrics.noise import MAD_TO_SIGMA
+
+#: A pixel's temporal variance this many times (or this fraction of) what the noise model
+#: predicts at its signal level is hot / blinking (or stuck). With N frames the sample
+#: variance of K F taps has N - 1 degrees of freedom per tap: a ratio of 16 has a probability
+#: below 1e-12 for N = 4, K F = 4.
+NOISY_RATIO = 16.0
+STUCK_RATIO = 1.0 / 25.0
+#: Below this predicted temporal spread (DN) a pixel whose taps repeat may just be quantised.
+MIN_SPREAD_FOR_STUCK_DN = 0.5
+#: An off-model tap residual or a spatial deviation this many robust standard deviations
+#: beyond the neighbourhood's is a defect.
+OUTLIER_SIGMAS = 10.0
+#: The neighbourhood (pixels on a side) a pixel is compared with.
+NEIGHBOURHOOD_PX = 5
+
+KINDS = {
+    "stuck": "stuck or dead (the same taps in every frame)",
+    "noisy": "hot or blinking (temporal scatter far above the noise model at its signal level)",
+    "off_model": "taps off the correlation model (a part no B + A cos(phi - theta) makes, far beyond its neighbours')",
+    "outlier": "isolated spatial outliers (far from neighbours that agree with each other)",
+    "no_depth": "no depth (zero or none) where the camera marks the pixel valid",
+    "flying": "flying pixels at depth edges (mixed returns of two surfaces)",
+}
+
+
+@dataclass
+class Defects:
+    """The defective pixels of a capture, by kind (bool maps ``[H, W]``; a pixel may be in several)."""
+
+    shape: tuple[int, int]
+    kinds: dict[str, np.ndarray] = field(default_factory=dict)
+    #: How each kind was tested (what the data allowed: e.g. no stuck test on one frame).
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def mask(self) -> np.ndarray:
+        out = np.zeros(self.shape, bool)
+        for m in self.kinds.values():
+            out |= m
+        return out
+
+    @property
+    def count(self) -> int:
+        return int(self.mask.sum())
+
+    def text(self) -> str:
+        n, total = self.count, int(np.prod(self.shape))
+        if n == 0:
+            return "no defective pixels found"
+        parts = [f"{int(m.sum())} {KINDS[k].split(' (')[0]}" for k, m in self.kinds.items() if m.any()]
+        return (f"{n} pixel{'s' if n != 1 else ''} ({100.0 * n / total:.2g} %) defective: " + ", ".join(parts)
+                + "; excluded from the fit and the held-out figures")
+
+    def to_json(self) -> dict[str, Any]:
+        total = int(np.prod(self.shape))
+        return {"pixels": self.count, "fraction": self.count / total if total else 0.0,
+                "kinds": {k: {"pixels": int(m.sum()), "what": KINDS[k]} for k, m in self.kinds.items()},
+                "text": self.text(), "notes": list(self.notes)}
+
+
+def _local_median(img: np.ndarray, size: int = NEIGHBOURHOOD_PX) -> np.ndarray:
+    return ndimage.median_filter(img, size=size, mode="nearest")
+
+
+def _robust_line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """``y ~ a + b x`` (a, b >= 0) through the medians of y in 20 quantile bins of x: a noise
+    model (read + shot noise) that a few defective pixels cannot pull."""
+    edges = np.unique(np.quantile(x, np.linspace(0.0, 1.0, 21)))
+    if edges.size < 3:
+        return float(np.median(y)), 0.0
+    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, edges.size - 2)
+    xm = np.array([np.median(x[idx == i]) for i in range(edges.size - 1) if np.any(idx == i)])
+    ym = np.array([np.median(y[idx == i]) for i in range(edges.size - 1) if np.any(idx == i)])
+    b, a = np.polyfit(xm, ym, 1) if xm.size >= 2 else (0.0, float(ym.mean()))
+    if b < 0:
+        b, a = 0.0, float(np.median(ym))
+    return max(float(a), 0.0), float(b)
+
+
+def _isolated(values: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """Pixels far from every one of their 8 neighbours: the smallest difference exceeds
+    ``OUTLIER_SIGMAS`` times both the neighbours' robust spread and the noise of a difference
+    of two pixels. A corner or an edge, where some neighbours share the pixel's value, is not
+    an outlier; a single pixel that differs from all of them is."""
+    h, w = values.shape
+    padded = np.pad(values, 1, mode="reflect")  # off the image: the mirrored interior neighbour
+    nb = np.stack([padded[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
+                   for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx])        # [8, H, W]
+    nearest = np.abs(nb - values[None]).min(axis=0)
+    med = np.median(nb, axis=0)
+    spread = MAD_TO_SIGMA * np.median(np.abs(nb - med[None]), axis=0)
+    scale = np.maximum(spread, np.sqrt(2.0) * noise)
+    return nearest > OUTLIER_SIGMAS * np.maximum(scale, 1e-12)
+
+
+def raw_defects(taps: np.ndarray, theta_rad: np.ndarray) -> Defects:
+    """Defects of raw-tap frames ``taps[N, F, K, H, W]`` (DN) with tap phases ``theta_rad[K]``."""
+    taps = np.asarray(taps, dtype=np.float64)
+    n, nf, k, h, w = taps.shape
+    d = Defects((h, w))
+    mean = taps.mean(axis=0)                                      # [F, K, H, W]
+    level = mean.mean(axis=(0, 1))                                # the pixel's mean tap level
+    if n >= 3:
+        var = taps.var(axis=0, ddof=1).mean(axis=(0, 1))          # temporal variance per tap
+        a, b = _robust_line(level.ravel(), var.ravel())
+        predicted = a + b * level
+        d.kinds["noisy"] = var > NOISY_RATIO * np.maximum(predicted, 1e-12)
+        if float(np.median(predicted)) > MIN_SPREAD_FOR_STUCK_DN ** 2:
+            spread = taps.std(axis=0, ddof=1).max(axis=(0, 1))    # every tap must hold still
+            d.kinds["stuck"] = spread ** 2 < STUCK_RATIO * predicted
+        else:
+            d.notes.append(f"no stuck-pixel test: the noise predicted ({np.sqrt(np.median(predicted)):.2g} DN) "
+                           "is below the quantisation that makes repeated taps likely")
+        noise_mean = np.sqrt(np.maximum(predicted, 0.0) / n)
+    else:
+        d.notes.append(f"{n} frame(s): no temporal tests (stuck, hot); 3 or more frames allow them")
+        noise_mean = np.zeros((h, w))
+    if k >= 4:
+        # the taps' part outside B + A cos(phi - theta_k), per frequency, of the frame mean
+        e = np.exp(1j * np.asarray(theta_rad, dtype=np.float64))[None, :, None, None]
+        s = (2.0 / k) * (mean * e).sum(axis=1, keepdims=True)
+        model = mean.mean(axis=1, keepdims=True) + (s * np.conj(e)).real
+        off = np.sqrt(((mean - model) ** 2).mean(axis=(0, 1)))
+        local = _local_median(off)
+        spread = MAD_TO_SIGMA * _local_median(np.abs(off - local))
+        d.kinds["off_model"] = off - local > OUTLIER_SIGMAS * np.maximum(np.maximum(spread, noise_mean), 1e-12)
+    amp = np.abs((2.0 / k) * (mean * np.exp(1j * np.asarray(theta_rad))[None, :, None, None]).sum(axis=1)).mean(axis=0)
+    d.kinds["outlier"] = _isolated(level, noise_mean) | _isolated(amp, noise_mean)
+    if "stuck" in d.kinds:  # a stuck pixel is one defect, not also an outlier
+        for kind in ("outlier", "off_model", "noisy"):
+            if kind in d.kinds:
+                d.kinds[kind] &= ~d.kinds["stuck"]
+    return d
+
+
+def depth_defects(radial_m: np.ndarray, valid: np.ndarray, camera: Any, noise_m: np.ndarray | None = None,
+                  *, flying_angle_deg: float = 10.0) -> Defects:
+    """Defects of a depth frame ``[H, W]`` (radial metres, the camera's validity): no depth
+    where valid, isolated outliers against ``noise_m`` (the depth noise per pixel), and
+    flying pixels (the SR4000 study's jump-edge angle test, :mod:`..corrections.depth_filters`)."""
+    from tofhil.eval.corrections.depth_filters import jump_edge_angle
+
+    r = np.asarray(radial_m, dtype=np.float64)
+    valid = np.asarray(valid, bool)
+    d = Defects(r.shape)
+    d.kinds["no_depth"] = valid & ~(np.isfinite(r) & (r > 0))
+    ok = valid & ~d.kinds["no_depth"]
+    filled = np.where(ok, r, np.nan)
+    med = np.nanmedian(filled) if ok.any() else 0.0
+    filled = np.where(ok, r, med)
+    noise = np.zeros(r.shape) if noise_m is None else np.nan_to_num(np.asarray(noise_m, dtype=np.float64))
+    d.kinds["outlier"] = _isolated(filled, noise) & ok
+    d.kinds["flying"] = ok & jump_edge_angle(filled, ok, camera, min_angle_deg=flying_angle_deg) & ~d.kinds["outlier"]
+    return d
