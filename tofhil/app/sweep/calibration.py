@@ -8,13 +8,13 @@ then uses ``calibration/psf.json``. A finished calibration is reused by ``--resu
 
 from __future__ import annotations
 
-import os
 import shutil
 from pathlib import Path
 from typing import Callable
 
 from tofhil.app.sweep.cases import load_with_camera
 from tofhil.app.sweep.spec import SweepSpec
+from tofhil.outputs import atomic_path, remove_partial
 
 def calibrated_psf_path(out_dir: str | Path) -> Path:
     """Where a sweep directory keeps its calibrated PSF."""
@@ -28,20 +28,40 @@ def run_calibration(spec: SweepSpec, out: Path, say: Callable[[str], None]) -> P
     the scene's own effects and the spec's ``effects`` (the lens under test; not the cases'
     axes), with the spec's noise; with ``reference: twin`` each is fitted against its
     stray-light-free, noise-free twin, with ``none`` as bright targets on a dark background.
-    A finished calibration is reused by ``--resume`` (the spec, and so the calibration, is
-    the same)."""
+    The captures and the PSF are written to a temporary directory renamed onto
+    ``calibration/`` when the fit is done, so ``calibration/psf.json`` is a finished
+    calibration; it is reused by ``--resume`` (the spec, and so the calibration, is the same)."""
     from tofhil.eval.corrections.psf_calibration import calibrate_from_sessions
-    from tofhil.sim.effects import effects_to_block
-    from tofhil.sim.pipeline import resolve_effects, simulate_session
 
     cal = spec.calibrate
     path = calibrated_psf_path(out)
     if path.is_file():
         say(f"calibration: reusing {path}")
         return path
-    work = path.parent.with_name("calibration.tmp")
-    shutil.rmtree(work, ignore_errors=True)
-    work.mkdir(parents=True)
+    for stale in out.glob(f".{path.parent.name}.*.partial"):  # the work of a killed earlier attempt
+        remove_partial(stale)
+    with atomic_path(path.parent) as work:
+        work.mkdir(parents=True)
+        captures, refs = _calibration_captures(spec, work, say)
+        gc = cal["ghost_center"]
+        psf = calibrate_from_sessions(captures, refs or None, form=cal["form"],
+                                      ghost_center_px=tuple(gc) if isinstance(gc, list) else gc)
+        for warning in psf.info.get("warnings", []):
+            say(f"warning: PSF calibration: {warning}")
+        say(f"PSF calibrated: residual {100 * psf.info['relative_residual']:.2f} % of the calibration's stray light, "
+            f"condition {psf.info['condition']:.3g}")
+        psf.save(work / "psf.json", force=True)
+        shutil.rmtree(path.parent, ignore_errors=True)  # a calibration/ without psf.json: not a result
+    return path
+
+
+def _calibration_captures(spec: SweepSpec, work: Path, say: Callable[[str], None]) -> tuple[list[Path], list[Path]]:
+    """Simulate the calibration captures (and, with ``reference: twin``, their stray-light-free
+    references) into ``work``."""
+    from tofhil.sim.effects import effects_to_block
+    from tofhil.sim.pipeline import resolve_effects, simulate_session
+
+    cal = spec.calibrate
     captures, refs = [], []
     camera = {k: v[0] for k, v in spec.axes.items() if k.startswith("camera.")}  # one value (validated)
     for i, params in enumerate(cal["captures"]):
@@ -56,15 +76,4 @@ def run_calibration(spec: SweepSpec, out: Path, say: Callable[[str], None]) -> P
             plain = {k: v for k, v in eff.items() if k != "stray_light"}
             refs.append(simulate_session(scene, work / f"reference_{i}.h5", frames=1, noise=False,
                                          effects=plain))
-    gc = cal["ghost_center"]
-    psf = calibrate_from_sessions(captures, refs or None, form=cal["form"],
-                                  ghost_center_px=tuple(gc) if isinstance(gc, list) else gc)
-    for warning in psf.info.get("warnings", []):
-        say(f"warning: PSF calibration: {warning}")
-    say(f"PSF calibrated: residual {100 * psf.info['relative_residual']:.2f} % of the calibration's stray light, "
-        f"condition {psf.info['condition']:.3g}")
-    psf.save(work / "psf.json", force=True)
-    shutil.rmtree(path.parent, ignore_errors=True)
-    os.replace(work, path.parent)
-    return path
-
+    return captures, refs

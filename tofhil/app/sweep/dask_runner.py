@@ -28,6 +28,7 @@ from tofhil.app.sweep.results import read_records, results_table, write_record, 
 from tofhil.app.sweep.run import plain_params, run_case
 from tofhil.app.sweep.spec import SweepSpec
 from tofhil.errors import Interrupted, TofhilError
+from tofhil.outputs import atomic_path, refuse_existing
 from tofhil.progress import Progress, no_progress
 
 #: What a sweep directory holds (a directory holding any of them holds a sweep).
@@ -72,11 +73,9 @@ def prepare_sweep_dir(spec: SweepSpec, out_dir: str | Path, *, resume: bool, for
             raise TofhilError("holds a sweep of another spec (its cases differ); refusing to mix them", file=out,
                               expected="the same spec to --resume, or --force to start over")
         return out
-    if held and not force:
-        raise TofhilError("already holds a sweep; refusing to overwrite (use --resume to continue it, "
-                          "--force to start over)", file=out / held[0])
-    if force:
-        for n in held:
+    if held:
+        refuse_existing(out / held[0], force, what="already holds a sweep (use --resume to continue it)")
+        for n in held:  # forced: the earlier sweep's files go
             p = out / n
             shutil.rmtree(p) if p.is_dir() else p.unlink()
     return out
@@ -96,9 +95,8 @@ def _save_spec(spec: SweepSpec, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     meta = {"cases": _spec_fingerprint(spec), "source": spec.source, "spec": json.loads(json.dumps(
         {k: v for k, v in spec.to_dict().items() if k != "text"}, default=str))}
-    tmp = out / "spec.yaml.tmp"
-    tmp.write_text(yaml.safe_dump(meta, sort_keys=False), encoding="utf-8")
-    os.replace(tmp, out / "spec.yaml")
+    with atomic_path(out / "spec.yaml") as tmp:
+        tmp.write_text(yaml.safe_dump(meta, sort_keys=False), encoding="utf-8")
 
 
 def local_client(workers: int | None = None, **kwargs: Any) -> Any:

@@ -9,26 +9,26 @@ against each swept axis, the failed cases, the table) are rebuilt from those fil
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
 
 from tofhil.app.sweep.cases import effects_label
+from tofhil.outputs import atomic_path
 
 if TYPE_CHECKING:
     from tofhil.app.sweep.spec import SweepSpec
 
 
 def write_record(out_dir: str | Path, record: Mapping[str, Any]) -> Path:
-    """Write ``cases/CASE_ID.json`` atomically (a temporary file renamed over it)."""
+    """Write ``cases/CASE_ID.json`` atomically (a temporary file renamed over it: a kill
+    leaves the old record or the new one, never half of one)."""
     from tofhil.eval.metrics.core import json_safe
 
     cases = Path(out_dir) / "cases"
     cases.mkdir(parents=True, exist_ok=True)
     path = cases / f"{record['id']}.json"
-    tmp = path.with_suffix(f".json.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(json_safe(dict(record)), indent=1), encoding="utf-8")
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:  # a plain file (the umask's mode), as the table's
+        tmp.write_text(json.dumps(json_safe(dict(record)), indent=1), encoding="utf-8")
     return path
 
 
@@ -76,12 +76,10 @@ def results_table(records: Iterable[Mapping[str, Any]], axes: Sequence[str]) -> 
 def write_table(df: Any, out_dir: str | Path) -> None:
     """``results.parquet`` and ``results.csv`` (each written to a temporary name first)."""
     out = Path(out_dir)
-    pq = out / "results.parquet.tmp"
-    df.to_parquet(pq, index=False)
-    os.replace(pq, out / "results.parquet")
-    csv = out / "results.csv.tmp"
-    df.to_csv(csv, index=False)
-    os.replace(csv, out / "results.csv")
+    with atomic_path(out / "results.parquet") as tmp:
+        df.to_parquet(tmp, index=False)
+    with atomic_path(out / "results.csv") as tmp:
+        df.to_csv(tmp, index=False)
 
 
 # ----------------------------------------------------------------------------- the report page
