@@ -31,8 +31,9 @@ from tofhil.errors import Interrupted, TofhilError
 from tofhil.outputs import atomic_path, refuse_existing
 from tofhil.progress import Progress, no_progress
 
-#: What a sweep directory holds (a directory holding any of them holds a sweep).
-OUTPUTS = ("results.parquet", "results.csv", "report.html", "spec.yaml", "cases")
+#: What a sweep directory holds (a directory holding any of them holds a sweep): --force removes
+#: all of it (an earlier calibration too: it was fitted for that sweep's spec), --resume keeps it.
+OUTPUTS = ("results.parquet", "results.csv", "report.html", "spec.yaml", "cases", "calibration")
 
 
 class SweepInterrupted(Interrupted):
