@@ -18,20 +18,17 @@ the GIL, and chunks write disjoint pixel ranges.
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
 import math
 import os
-import threading
 import warnings
-from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
 from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel
+from tofhil.content_cache import LRUCache, content_digest
 from tofhil.errors import TofhilError
 from tofhil.progress import Progress, no_progress
 from tofhil.sim import dielectric, embree4, kernels
@@ -89,13 +86,10 @@ def _object_texture(scene: Scene, obj: Any) -> Texture | None:
 
 
 def content_key(*parts: Any) -> str:
-    """A digest of what ``parts`` hold (numbers, strings, arrays, mappings, sequences,
-    dataclasses and meshes, recursively), not of which Python objects they are: equal content
-    gives equal keys, whatever object identity or dictionary order."""
-    h = hashlib.sha256()
-    for p in parts:
-        _feed(h, p)
-    return h.hexdigest()
+    """A digest of what ``parts`` hold (:func:`tofhil.content_cache.content_digest`), a
+    Scene's fields that do not change a render left out: equal content gives equal keys,
+    whatever object identity or dictionary order."""
+    return content_digest(*parts, skip_fields={Scene: _NOT_RENDERED})
 
 
 #: Scene fields that do not change a render (effects and expression parameters are applied
@@ -103,66 +97,13 @@ def content_key(*parts: Any) -> str:
 _NOT_RENDERED = frozenset({"effects", "params", "source", "text", "name", "description", "rgb_camera"})
 
 
-def _feed(h: Any, x: Any) -> None:
-    if x is None or isinstance(x, (bool, int, float, complex, str, np.generic)):
-        h.update(f"{type(x).__name__}:{x!r};".encode())
-    elif isinstance(x, np.ndarray):
-        h.update(f"nd:{x.dtype.str}:{x.shape};".encode())
-        h.update(np.ascontiguousarray(x).tobytes() if x.dtype != object else repr(x.tolist()).encode())
-    elif isinstance(x, Mapping):
-        h.update(f"map:{len(x)};".encode())
-        for k in sorted(x, key=repr):
-            _feed(h, k)
-            _feed(h, x[k])
-    elif isinstance(x, (list, tuple)):
-        h.update(f"seq:{len(x)};".encode())
-        for v in x:
-            _feed(h, v)
-    elif dataclasses.is_dataclass(x) and not isinstance(x, type):
-        h.update(f"dc:{type(x).__qualname__};".encode())
-        skip = _NOT_RENDERED if isinstance(x, Scene) else ()
-        for f in dataclasses.fields(x):
-            if f.name not in skip:
-                h.update(f"{f.name}=".encode())
-                _feed(h, getattr(x, f.name))
-    elif hasattr(x, "vertices") and hasattr(x, "faces"):  # a trimesh mesh: its triangles
-        h.update(b"mesh;")
-        _feed(h, np.asarray(x.vertices))
-        _feed(h, np.asarray(x.faces))
-    else:
-        h.update(f"{type(x).__qualname__}:{x!r};".encode())
-
-
-class _LRU:
-    """A small thread-safe least-recently-used map (content key -> value)."""
-
-    def __init__(self, size: int) -> None:
-        self.size = size
-        self._items: OrderedDict[str, Any] = OrderedDict()
-        self._lock = threading.Lock()
-
-    def get(self, key: str) -> Any | None:
-        with self._lock:
-            v = self._items.get(key)
-            if v is not None:
-                self._items.move_to_end(key)
-            return v
-
-    def put(self, key: str, value: Any) -> None:
-        with self._lock:
-            self._items[key] = value
-            self._items.move_to_end(key)
-            while len(self._items) > self.size:
-                self._items.popitem(last=False)
-
-
 # Embree scenes and per-pixel view arrays, keyed by content: renders of one scene with a
 # moved camera or other materials (as while fitting) share them.
-_GEOMETRY = _LRU(4)
+_GEOMETRY = LRUCache(4, thread_safe=True)
 # (two each: at camera resolution an entry is 10-20 MB, and a fit makes a new pose or camera
 # every evaluation; the base camera's rays stay cached on its CameraModel)
-_VIEWS = _LRU(2)
-_CAMERAS = _LRU(2)
+_VIEWS = LRUCache(2, thread_safe=True)
+_CAMERAS = LRUCache(2, thread_safe=True)
 
 
 def scene_geometry(scene: Scene) -> Geometry:

@@ -37,8 +37,6 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass, field, replace
-import hashlib
-from collections import OrderedDict
 from functools import cached_property
 from pathlib import Path
 from typing import Any, Mapping
@@ -49,6 +47,7 @@ from scipy.special import erf
 
 from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel
+from tofhil.content_cache import LRUCache, content_digest
 from tofhil.errors import InputFileError, TofhilError, require_input_file
 from tofhil.schema import Schema
 
@@ -486,34 +485,23 @@ def lobes_only(psf: StrayLightPSF) -> bool:
 
 #: The transforms of the last few images :func:`apply_lobes` scattered, by content: a fit
 #: that changes only the PSF (every stray-light Jacobian column) transforms its image once.
-_BLURS: "OrderedDict[str, GaussianBlur]" = OrderedDict()
 _BLURS_KEPT = 1
+_BLURS = LRUCache(_BLURS_KEPT)
 
 
 #: The last results of :func:`apply_lobes`, by image content and PSF: a fit of an effect that
 #: acts after the stray light, with the stray light held, scatters the same light every time.
-_SCATTERED: "OrderedDict[tuple, np.ndarray]" = OrderedDict()
 _SCATTERED_KEPT = 1
-
-
-def _content(s: np.ndarray) -> str:
-    # SHA-256 (hardware-accelerated on current CPUs: 12 ms for a 512 x 512 stack of 4, blake2b
-    # 25 ms; the digest was 7 % of a 512 x 512 diagnosis)
-    h = hashlib.sha256()
-    h.update(f"{s.dtype.str}{s.shape}".encode())
-    h.update(np.ascontiguousarray(s).data)
-    return h.hexdigest()
+_SCATTERED = LRUCache(_SCATTERED_KEPT)
 
 
 def _blur_of(s: np.ndarray, key: str | None = None) -> GaussianBlur:
-    key = _content(s) if key is None else key
+    key = content_digest(s) if key is None else key
     blur = _BLURS.get(key)
     if blur is None:
-        while len(_BLURS) >= _BLURS_KEPT:  # (before the new one: never two frames' worth at once)
-            _BLURS.popitem(last=False)
-        blur = _BLURS[key] = GaussianBlur(s, single=True)
-    else:
-        _BLURS.move_to_end(key)
+        _BLURS.make_room()  # (before the new one: never two frames' worth at once)
+        blur = GaussianBlur(s, single=True)
+        _BLURS.put(key, blur)
     return blur
 
 
@@ -528,14 +516,12 @@ def apply_lobes(psf: StrayLightPSF, s: np.ndarray) -> np.ndarray:
     s = np.asarray(s)
     h, w = s.shape[-2:]
     lobes = [g for g in psf.gaussians if g.weight]
-    image = _content(s)
+    image = content_digest(s)
     key = (image, psf.keep, psf.veil, tuple((g.weight, g.sigma_x_px, g.sigma_y_px) for g in lobes))
     done = _SCATTERED.get(key)
     if done is not None:
-        _SCATTERED.move_to_end(key)
         return done.copy()
-    while len(_SCATTERED) >= _SCATTERED_KEPT:  # (a miss: the kept result is another light's or PSF's)
-        _SCATTERED.popitem(last=False)
+    _SCATTERED.make_room()  # (a miss: the kept result is another light's or PSF's)
     out = np.multiply(s, psf.keep, dtype=np.result_type(s.dtype, np.float64))  # (no copy of s first)
     if lobes:
         blur = _blur_of(s, image)
@@ -544,7 +530,7 @@ def apply_lobes(psf: StrayLightPSF, s: np.ndarray) -> np.ndarray:
             out += g.weight * (b if np.iscomplexobj(out) else b.real)
     if psf.veil:
         out += (psf.veil / (h * w)) * s.sum(axis=(-2, -1), keepdims=True)
-    _SCATTERED[key] = out.copy()
+    _SCATTERED.put(key, out.copy())
     return out
 
 
