@@ -1,4 +1,4 @@
-"""Calibration of the stray-light PSF (the one type of ``sim/straylight.py``) from captures.
+"""Calibration of the stray-light PSF (the one type of ``sim/straylight/``) from captures.
 
 ``h`` is fitted from a calibration capture whose stray-light-free signal is known (the twin's
 render without stray light, or a bright target on a dark background) as a non-negative

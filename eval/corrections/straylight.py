@@ -1,4 +1,4 @@
-"""Stray-light corrections of complex ToF images, built on the optics of ``sim/straylight.py``.
+"""Stray-light corrections of complex ToF images, built on the optics of ``sim/straylight/``.
 
 Stray light spreads a fraction of every pixel's complex signal ``S = A exp(i phi)`` over the
 sensor: ``S_meas = (delta + h) * S`` (the one PSF type, :class:`StrayLightPSF`). Because it
@@ -44,7 +44,7 @@ def inverse_filter_gaussian(s: np.ndarray, sigma_h: float, sigma_v: float, w: fl
     """Thesis method 2: Wiener-like inverse filter of ``delta + w * G(sigma_h, sigma_v)``.
 
     ``H`` is the transfer function of ``delta + w G`` (the pixel-integrated Gaussian of
-    ``sim/straylight.py``) on the zero-padded grid; ``mu = 0`` is the plain inverse
+    ``sim/straylight/``) on the zero-padded grid; ``mu = 0`` is the plain inverse
     (``|H| >= 1 - w`` never vanishes for ``w < 1``). The result is cropped back.
     """
     s = np.asarray(s)
