@@ -799,7 +799,7 @@ def apply_lens(signal: Any, camera: CameraModel, *, psf: StrayLightPSF | None = 
     stray-light PSF instead of the prescription's, e.g. a subset of its ghosts)."""
     if not isinstance(camera, LensCamera) or camera.lens is None:
         return signal
-    from tofhil.sim.effects import _rotate_phase
+    from tofhil.sim.effects.base import _rotate_phase
 
     st = camera.stage if psf is None else lens_stage(camera, psf=psf)
     if signal.shape != camera.shape:
