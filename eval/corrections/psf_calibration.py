@@ -401,6 +401,8 @@ def _find_ghost(resid: np.ndarray, s_true: np.ndarray, weight: np.ndarray, shape
     residual ``A c - b`` (weighted rows) of a fit without ghost: normalised cross-correlation
     over integer shifts within ``search_px`` (default 0.4 of the sensor's larger side) of the
     principal point's mirror."""
+    # (A search over every shift, the full [2H-1, 2W-1] correlation of two images: scipy's
+    # 'full' fftconvolve, not the PSF's same-size operator of sim/straylight/.)
     from scipy.signal import fftconvolve
 
     h, w = shape

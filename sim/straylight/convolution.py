@@ -33,12 +33,17 @@ def fft_shape(image_shape: tuple[int, int], kernel_shape: tuple[int, int],
 @dataclass
 class PaddedConvolution:
     """``S -> S * kernel`` (linear, 'same' size, kernel centre at ``center``) for images of a
-    fixed shape, with the kernel's FFT computed once. ``adjoint`` is the correlation."""
+    fixed shape, with the kernel's FFT computed once. ``adjoint`` is the correlation,
+    ``regularised_inverse`` the (Wiener-like) inverse filter on the same padded grid.
+
+    ``fft_size``: a padded grid larger than the least one without wrap-around (for both
+    directions), e.g. for an inverse filter, whose own impulse response has long tails."""
 
     kernel: np.ndarray
     image_shape: tuple[int, int]
     center: tuple[int, int] | None = None
     workers: int | None = None
+    fft_size: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         self.kernel = np.asarray(self.kernel)
@@ -51,6 +56,12 @@ class PaddedConvolution:
         kh, kw = self.kernel.shape
         self._adj_center = (kh - 1 - self.center[0], kw - 1 - self.center[1])
         self.fshape_adj = fft_shape(self.image_shape, self.kernel.shape, self._adj_center)
+        if self.fft_size is not None:
+            size = (int(self.fft_size[0]), int(self.fft_size[1]))
+            if any(n < max(a, b) for n, a, b in zip(size, self.fshape, self.fshape_adj)):
+                raise ValueError(f"fft_size {size} is smaller than the padding the kernel needs "
+                                 f"({self.fshape}, adjoint {self.fshape_adj})")
+            self.fshape = self.fshape_adj = size
 
     @cached_property
     def _kfft(self) -> np.ndarray:
@@ -78,6 +89,21 @@ class PaddedConvolution:
 
     def __call__(self, s: np.ndarray) -> np.ndarray:
         return self._run(s, self._kfft, self.fshape, self.center)  # type: ignore[arg-type]
+
+    def regularised_inverse(self, s: np.ndarray, mu: float = 0.0) -> np.ndarray:
+        """``F^-1[conj(K) F[S] / (|K|^2 + mu)]`` on the padded grid, cropped to the image
+        (complex): the inverse of the convolution for ``mu = 0`` where ``K`` does not vanish, a
+        Wiener-like regularised inverse for ``mu > 0``. ``conj(K)`` is the adjoint's transfer
+        function (the flipped conjugate kernel), so the window kept is the adjoint's."""
+        s = np.asarray(s)
+        if s.shape[-2:] != tuple(self.image_shape):
+            raise ValueError(f"image is {s.shape[-2:]}, operator built for {tuple(self.image_shape)}")
+        h, w = self.image_shape
+        cy, cx = self._adj_center
+        kf = self._kfft_adj
+        sf = sfft.fft2(s, s=self.fshape_adj, axes=(-2, -1), workers=self.workers)
+        full = sfft.ifft2(sf * kf / (np.abs(kf) ** 2 + mu), axes=(-2, -1), workers=self.workers)
+        return full[..., cy:cy + h, cx:cx + w]
 
     def adjoint(self, s: np.ndarray) -> np.ndarray:
         return self._run(s, self._kfft_adj, self.fshape_adj, self._adj_center)
