@@ -101,6 +101,9 @@ def atomic_file(path: str | Path, mode: str = "wb", **open_kwargs: Any) -> Itera
         with os.fdopen(fd, mode, **open_kwargs) as f:
             yield f
         os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        raise TofhilError(f"cannot write ({exc.strerror or exc})", file=path, expected="a writable file") from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
