@@ -14,17 +14,29 @@ from tofhil.cli import options as opt
 @app.command("import")
 def import_(file: Path = typer.Argument(..., parser=opt.existing_file,
                                         help="The capture: ADI .bin (interleaved or *_depth*.bin "
-                                                  "with its *_ir*.bin), Azure Kinect .mkv, or a tofhil session."),
+                                                  "with its *_ir*.bin), Azure Kinect .mkv, ROS 2 bag .mcap, "
+                                                  "or a tofhil session."),
             out_path: Path = typer.Option(..., "--out", parser=opt.new_file, help="The session file to write (.h5)."),
             camera: Optional[str] = typer.Option(None, "--camera", help="Camera preset name or YAML file "
                                                  "(default: the file's own calibration, or an assumed preset)."),
             fmt: Optional[str] = typer.Option(None, "--format", help="Force the format: adi-interleaved | "
-                                              "adi-pair | k4a-mkv | session (default: detected)."),
+                                              "adi-pair | k4a-mkv | ros2-mcap | session (default: detected)."),
             salvage: bool = typer.Option(False, "--salvage", help="Import the complete frames of a "
                                          "truncated recording instead of refusing it."),
             adi_max_confidence: Optional[int] = typer.Option(None, "--adi-max-confidence", parser=opt.count(0, 255),
                                                              help="ADI: mark "
                                                              "pixels whose confidence byte exceeds N invalid."),
+            depth_topic: Optional[str] = typer.Option(None, "--depth-topic", help="ROS 2 bag: the depth Image "
+                                                      "topic (16UC1 mm or 32FC1 m; default: the one depth-like topic)."),
+            amplitude_topic: Optional[str] = typer.Option(None, "--amplitude-topic", help="ROS 2 bag: the IR / "
+                                                          "amplitude Image topic (default: found by name and encoding)."),
+            confidence_topic: Optional[str] = typer.Option(None, "--confidence-topic", help="ROS 2 bag: a "
+                                                           "confidence Image topic (default: one named confidence)."),
+            info_topic: Optional[str] = typer.Option(None, "--info-topic", help="ROS 2 bag: the depth camera's "
+                                                     "CameraInfo topic (default: the only one, or the depth topic's)."),
+            depth_kind: Optional[str] = typer.Option(None, "--depth-kind",
+                                                     help="ROS 2 bag: what the depth images hold, z | radial "
+                                                     "(default: the bag's tofhil metadata, else z as in ROS)."),
             force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
     """Turn a real capture into a session: radial depth (m), amplitude, validity, camera model."""
     from tofhil.drivers.importers.dispatch import import_file
@@ -33,11 +45,14 @@ def import_(file: Path = typer.Argument(..., parser=opt.existing_file,
         if console.is_terminal and (i == n or i % 10 == 0):
             console.print(f"imported {i}/{n} frames", end="\r")
 
+    topics = {"depth": depth_topic, "amplitude": amplitude_topic, "confidence": confidence_topic, "info": info_topic}
     result = import_file(file, out_path, camera=camera, force=force, fmt=fmt, salvage=salvage,
-                         adi_max_confidence=adi_max_confidence, on_frame=on_frame)
+                         adi_max_confidence=adi_max_confidence, topics=topics, depth_kind=depth_kind,
+                         on_frame=on_frame)
     cam = result.camera
     out.print(f"wrote {result.n_frames} frame(s) from {lit(file)} ({lit(result.format)}) to {lit(result.out)}")
     out.print(f"camera {lit(cam.name or '-')} {cam.width}x{cam.height} fx={cam.fx:.2f} fy={cam.fy:.2f} "
               f"cx={cam.cx:.2f} cy={cam.cy:.2f} dist={[round(v, 6) for v in cam.dist]}")
     for note in result.notes:
         out.print(f"note: {lit(note)}")
+
