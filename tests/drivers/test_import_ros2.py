@@ -7,6 +7,7 @@ mcap-ros2-support, CDR with ros2msg schemas, as rosbag2 writes them).
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
@@ -377,6 +378,54 @@ def _read(bag: Path) -> tuple[dict, dict, dict]:
             msgs.setdefault(channel.topic, []).append(msg)
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
     return {"counts": counts, "schemas": schemas}, msgs, meta
+
+
+def test_export_with_the_twin_reads_back_with_the_mcap_reader(twin_session, tmp_path):
+    out = tmp_path / "wall.mcap"
+    r = run_tofhil("export", twin_session, "--out", out, "--scene", "wall", timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "/tofhil/twin/depth/radial: 3 message(s)" in r.stdout
+    info_, msgs, meta = _read(out)
+    topics = {"/tofhil/depth/radial": ros2.IMAGE, "/tofhil/amplitude": ros2.IMAGE, "/tofhil/camera_info": ros2.CAMERA_INFO,
+              "/tofhil/points": ros2.POINT_CLOUD2, "/tofhil/twin/depth/radial": ros2.IMAGE,
+              "/tofhil/twin/amplitude": ros2.IMAGE, "/tofhil/twin/points": ros2.POINT_CLOUD2,
+              "/tofhil/residual/depth/radial": ros2.IMAGE}
+    assert info_["schemas"] == topics and set(info_["counts"].values()) == {3}
+    tofhil_meta = {k: json.loads(v) if v[:1] in "{[" else v for k, v in meta["tofhil"].items()}
+    assert tofhil_meta["depth_kind"] == "radial" and tofhil_meta["topics"]["/tofhil/depth/radial"]["kind"] == "radial"
+    assert tofhil_meta["topics"]["/tofhil/residual/depth/radial"]["role"] == "residual_depth"
+    with open_session(twin_session) as s:
+        cam = s.camera
+        for i in range(3):
+            d = s.depth_frame(i)
+            img = msgs["/tofhil/depth/radial"][i]
+            assert (img.encoding, img.width, img.height, img.header.frame_id) == ("32FC1", cam.width, cam.height,
+                                                                                   "tofhil_camera")
+            depth = np.frombuffer(img.data, "<f4").reshape(cam.shape)
+            assert np.array_equal(depth[d.valid], d.radial_m[d.valid]) and np.isnan(depth[~d.valid]).all()
+            stamp = img.header.stamp.sec + img.header.stamp.nanosec * 1e-9
+            assert stamp == pytest.approx(d.timestamp_s, abs=1e-9)
+            amp = np.frombuffer(msgs["/tofhil/amplitude"][i].data, "<f4").reshape(cam.shape)
+            assert np.array_equal(amp, d.amplitude)
+            twin = np.frombuffer(msgs["/tofhil/twin/depth/radial"][i].data, "<f4").reshape(cam.shape)
+            res = np.frombuffer(msgs["/tofhil/residual/depth/radial"][i].data, "<f4").reshape(cam.shape)
+            both = d.valid & np.isfinite(twin)
+            np.testing.assert_allclose(res[both], depth[both].astype(np.float64) - twin[both], atol=1e-6)
+            assert abs(np.nanmedian(res)) < 0.01          # a wall against its own twin: noise only
+            cloud = msgs["/tofhil/points"][i]
+            assert cloud.width == int(d.valid.sum()) and cloud.point_step == 16
+            pts = np.frombuffer(cloud.data, "<f4").reshape(-1, 4)
+            np.testing.assert_allclose(pts[:, :3], d.points(), atol=1e-5)
+            ci = msgs["/tofhil/camera_info"][i]
+            assert ci.distortion_model == "plumb_bob" and list(ci.k) == [cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1]
+    r = run_tofhil("export", twin_session, "--out", out, timeout=120)
+    assert r.returncode == 2 and "--force" in r.stderr and "Traceback" not in r.stderr
+    # the export (twin topics and all) imports back: the session's depth is found by its role
+    res = import_file(out, tmp_path / "back.h5")
+    with open_session(res.out) as b, open_session(twin_session) as s:
+        assert b.device["topics"]["depth"] == "/tofhil/depth/radial" and b.camera == s.camera
+        assert np.array_equal(b.depth_frame(2).radial_m[s.depth_frame(2).valid],
+                              s.depth_frame(2).radial_m[s.depth_frame(2).valid])
 
 
 def test_export_of_a_depth_session_without_timestamps(tmp_path):

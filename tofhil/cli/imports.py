@@ -1,4 +1,5 @@
-"""``tofhil import``: real captures from other tools -> tofhil sessions."""
+"""``tofhil import`` and ``tofhil export``: captures from other tools -> tofhil sessions, and
+sessions (with the twin's render) -> ROS 2 MCAP bags for robotics tools such as Foxglove."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import typer
 
 from tofhil.cli import app, console, lit, out
 from tofhil.cli import options as opt
+from tofhil.errors import TofhilError
 
 
 @app.command("import")
@@ -56,3 +58,32 @@ def import_(file: Path = typer.Argument(..., parser=opt.existing_file,
     for note in result.notes:
         out.print(f"note: {lit(note)}")
 
+
+@app.command("export")
+def export(session: Path = typer.Argument(..., parser=opt.existing_file, help="A session file (.h5)."),
+           out_path: Path = typer.Option(..., "--out", parser=opt.new_file, help="The MCAP file to write (.mcap)."),
+           scene: Optional[str] = typer.Option(None, "--scene", help="A scene file or bundled scene name: also "
+                                               "write the twin's render of it for the session's camera and the "
+                                               "residual depth (measured - twin)."),
+           depth_kind: str = typer.Option("radial", "--depth-kind", help="Depth images as radial distance (as the "
+                                          "session stores it) or z along the optical axis (ROS's depth convention)."),
+           force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
+    """Write a session as a ROS 2 bag (MCAP) that Foxglove opens: depth, amplitude, CameraInfo and a
+    point cloud per frame, and with --scene the twin's depth, amplitude, cloud and the residual."""
+    from tofhil.app.export import export_mcap
+
+    if out_path.suffix.lower() != ".mcap":
+        raise TofhilError("is not a .mcap file", file=out_path, field="--out", expected="an output name ending in .mcap")
+
+    def on_frame(i: int, n: int) -> None:
+        if console.is_terminal and (i == n or i % 10 == 0):
+            console.print(f"exported {i}/{n} frames", end="\r")
+
+    result = export_mcap(session, out_path, scene=scene, force=force, depth_kind=depth_kind, on_frame=on_frame)
+    out.print(f"wrote {result.n_frames} frame(s) of {lit(session)} to {lit(result.out)}")
+    for topic, n in result.counts.items():
+        info = result.topics.get(topic, {})
+        what = ", ".join(str(v) for v in (info.get("encoding"), info.get("kind")) if v)
+        out.print(f"  {lit(topic)}: {n} message(s){' (' + lit(what) + ')' if what else ''}")
+    for note in result.notes:
+        out.print(f"note: {lit(note)}")
