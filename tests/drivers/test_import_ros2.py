@@ -297,6 +297,18 @@ def test_truncated_bag_is_refused_unless_salvaged(tmp_path):
     assert 0 < res.n_frames < 40 and any("truncated" in n for n in res.notes)
 
 
+def test_a_damaged_chunk_is_one_clear_error(tmp_path):
+    bag = plane_bag(tmp_path / "d.mcap", camera(), n=40)
+    data = bytearray(bag.read_bytes())
+    data[len(data) // 2] ^= 0xFF              # inside a compressed chunk: its CRC no longer matches
+    bad = tmp_path / "damaged.mcap"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(InputFileError) as e:
+        import_file(bad, tmp_path / "x.h5")
+    assert e.value.field == "MCAP records" and str(bad) in str(e.value)
+    assert not (tmp_path / "x.h5").exists() and not list(tmp_path.glob(".*partial"))
+
+
 def test_wrong_encoding_on_the_depth_topic_names_the_topic_and_encoding(tmp_path):
     cam = camera()
     bag = plane_bag(tmp_path / "e.mcap", cam, encoding="32FC1", depth_encoding_override="rgb8")
