@@ -118,6 +118,14 @@ class CameraModel:
         """``dist`` in the 12 slots the lens arithmetic reads (:func:`lens_models.kernel_coeffs`)."""
         return lens_models.kernel_coeffs(self.distortion_model, self.dist)
 
+    def with_added_distortion(self, deltas: dict[str, float]) -> "CameraModel":
+        """The camera with ``deltas`` (coefficient name -> value) added to its coefficients of
+        those names. Names its model lacks are left out (a fisheye has no p1, p2; plumb_bob no
+        k4..k6): they do not change this camera's rays."""
+        names = self.coefficient_names
+        dist = tuple(v + float(deltas.get(n, 0.0)) for n, v in zip(names, self.dist))
+        return replace(self, dist=dist)
+
     def scaled(self, factor: float) -> "CameraModel":
         """The same lens on a sensor resampled by ``factor`` (binning < 1, supersampling > 1)."""
         w, h = int(round(self.width * factor)), int(round(self.height * factor))

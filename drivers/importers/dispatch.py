@@ -164,11 +164,12 @@ def _import_k4a(rec: Any, src: Path, out: Path, camera: str | Path | CameraModel
                    "depth_conversion": ("radial = z * |(x, y, 1)| with the factory rational model's rays"
                                         if camera is None else f"radial = z / ray_z of {origin}"),
                    "amplitude": "active IR, device counts",
-                   "camera_source": "calibration.json (refit to OpenCV 5-parameter)" if camera is None else origin,
+                   "camera_source": (f"calibration.json ({rec.fit.method})" if camera is None else origin),
                    "camera_fit": rec.fit.to_dict(), "k4a_tags": rec.tags, "k4a_calibration": rec.calibration,
                    "timestamps": "device time = block time + K4A_START_OFFSET_NS"})
-    notes.append(f"lens: rational model refit to OpenCV 5-parameter, max residual "
-                 f"{rec.fit.max_residual_px:.3f} px (rms {rec.fit.rms_residual_px:.3f} px) over "
+    exact = rec.fit.camera.distortion_model == "rational"
+    notes.append(f"lens: {'factory rational model kept exactly' if exact else 'rational model refit to OpenCV 5-parameter'}"
+                 f", max residual {rec.fit.max_residual_px:.3g} px (rms {rec.fit.rms_residual_px:.3g} px) over "
                  f"{rec.fit.n_pixels} pixels")
 
     def k4a_frames() -> Any:

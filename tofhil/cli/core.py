@@ -28,7 +28,8 @@ def info(session: Path = typer.Argument(..., parser=opt.existing_file, help="A s
               f"{lit(summary['software_version'])}, created {lit(summary['created_utc'])})")
     out.print(f"device    {lit(json.dumps(summary['device']))}")
     out.print(f"camera    {lit(cam.get('name') or '-')} {cam['width']}x{cam['height']}  fx={cam['fx']:.2f} "
-              f"fy={cam['fy']:.2f} cx={cam['cx']:.2f} cy={cam['cy']:.2f} dist={cam['dist']}")
+              f"fy={cam['fy']:.2f} cx={cam['cx']:.2f} cy={cam['cy']:.2f} {cam.get('model', 'plumb_bob')} "
+              f"dist={cam['dist']}")
     out.print(f"frames    {summary['n_frames']}   raw={summary['has_raw']} depth={summary['has_depth']} "
               f"scene={'embedded' if summary['scene'] else 'none'}")
     if summary["has_raw"]:
