@@ -108,7 +108,7 @@ def resolve_camera(camera: str | Path | CameraModel | None, default: str | Camer
 
 def _write(out: Path, camera: CameraModel, device: dict[str, Any], items: Iterable[tuple[Any, Any]],
            force: bool, n_total: int, on_frame: Callable[[int, int], None] | None,
-           scene_text: str = "") -> int:
+           scene_text: str = "", tap_dtype: Any = None) -> int:
     """Write ``(raw, depth)`` frames to a new session.
 
     The session is written beside ``out`` under a temporary name and renamed onto ``out``
@@ -119,7 +119,7 @@ def _write(out: Path, camera: CameraModel, device: dict[str, Any], items: Iterab
         raise InputFileError("already exists; refusing to overwrite recorded data "
                              "(use --force to replace it)", file=out)
     tmp = out.with_name(f".{out.name}.{os.getpid()}.partial")
-    writer = SessionWriter(tmp, camera, device=device, scene_text=scene_text, force=True)
+    writer = SessionWriter(tmp, camera, device=device, scene_text=scene_text, force=True, tap_dtype=tap_dtype)
     try:
         for i, (raw, depth) in enumerate(items):
             writer.append(raw=raw, depth=depth)
@@ -268,7 +268,8 @@ def import_file(path: str | Path, out: str | Path, *, camera: str | Path | Camer
                                    sequence=d.sequence, temperature_c=d.temperature_c)
                 yield raw, d
 
-        n = _write(out, cam, device, session_items(), force, s.n_frames, on_frame, scene_text=s.scene_text)
+        n = _write(out, cam, device, session_items(), force, s.n_frames, on_frame, scene_text=s.scene_text,
+                   tap_dtype=s.integer_tap_dtype)      # integer taps stay in their type
         if s.n_frames < max(s.dataset_lengths.values()):
             notes.append(f"source had {max(s.dataset_lengths.values())} partly written frames; "
                          f"copied the {s.n_frames} complete ones")

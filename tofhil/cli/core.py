@@ -57,7 +57,7 @@ def depth(session: Path = typer.Argument(..., parser=opt.existing_file, help="A 
         if not s.has_raw:
             raise TofhilError("has no raw taps to demodulate", file=session, field="raw/taps")
         with SessionWriter(out_path, s.camera, device=s.device, scene_text=s.scene_text, force=force,
-                           derived=True) as w:
+                           derived=True, tap_dtype=s.integer_tap_dtype) as w:  # (taps copied as stored)
             for raw in progress(s.raw_frames(), s.n_frames, "demodulating"):
                 w.append(raw, depth_from_raw(raw, min_amplitude=min_amplitude, margin=margin))
             n = w.n_frames
