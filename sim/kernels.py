@@ -539,16 +539,18 @@ def subpixel_rays(pixels, spp, width, U, fx, fy, cx, cy, dist, iterations, R, ro
     inversion, :meth:`CameraModel.pixel_rays`, then ``R``) and its weight
     ``beta[s] = pix_weight[pixel] * z^4`` (cos^4 of the camera ray). ``dist``: the lens
     coefficients in OpenCV's order (Brown-Conrady: up to 12, missing ones zero; ``fisheye``:
-    k1..k4); ``iterations``: Newton iterations at most. A sample through a point the lens maps
+    k1..k4), or :attr:`CameraModel.kernel_coeffs` (13: the model's reach last);
+    ``iterations``: Newton iterations at most. A sample through a point the lens maps
     no ray to (beyond the fold of its model) or 90 degrees or more off axis gets weight 0 (and
     the optical axis as a direction, so Embree sees a finite ray). One pass, operation by
     operation the numpy expressions of the camera model and :func:`rotate_rows` (cos^4 to
     an ulp)."""
-    c = np.zeros(12)
+    c = np.zeros(13)
+    c[12] = math.pi if fisheye else np.inf   # the model's reach, when dist does not give it
     distorted = fisheye
-    for j in range(min(dist.shape[0], 12)):
+    for j in range(min(dist.shape[0], 13)):
         c[j] = dist[j]
-        distorted = distorted or dist[j] != 0.0
+        distorted = distorted or (j < 12 and dist[j] != 0.0)
     r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
     r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
     r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]

@@ -390,7 +390,7 @@ class _Context:
             cam = self.camera
             kernels.subpixel_rays(np.arange(p0, p1) if keep_pix is None else p0 + np.flatnonzero(keep_pix), spp,
                                   self.W, U, cam.fx, cam.fy, cam.cx, cam.cy,
-                                  np.asarray(cam.dist, dtype=np.float64), LENS_MAX_ITER, self.R,
+                                  np.asarray(cam.kernel_coeffs), LENS_MAX_ITER, self.R,
                                   not np.array_equal(self.R, np.eye(3)), self.pix_weight, dirs, beta,
                                   cam.is_fisheye)
         elif self.subpixel:

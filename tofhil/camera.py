@@ -113,10 +113,13 @@ class CameraModel:
         """Names of the ``dist`` coefficients, in order (``k1, k2, p1, p2, k3, ...``)."""
         return next(n for n in lens_models.COEFFICIENTS[self.distortion_model] if len(n) == len(self.dist))
 
-    @property
+    @cached_property
     def kernel_coeffs(self) -> np.ndarray:
-        """``dist`` in the 12 slots the lens arithmetic reads (:func:`lens_models.kernel_coeffs`)."""
-        return lens_models.kernel_coeffs(self.distortion_model, self.dist)
+        """``dist`` in the slots the lens arithmetic reads, and the model's reach
+        (:func:`lens_models.kernel_coeffs`; computed once per camera)."""
+        c = lens_models.kernel_coeffs(self.distortion_model, self.dist)
+        c.setflags(write=False)
+        return c
 
     def with_added_distortion(self, deltas: dict[str, float]) -> "CameraModel":
         """The camera with ``deltas`` (coefficient name -> value) added to its coefficients of
@@ -252,10 +255,14 @@ class CameraModel:
         return self.rays[mask] * radial[mask][:, None]
 
     def valid_mask(self, distance_m: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+        """Pixels with a point: ``valid`` (if given), a finite distance > 0, and a ray (a lens
+        model maps none to the pixels beyond its fold)."""
         d = np.asarray(distance_m)
         mask = np.isfinite(d) & (d > 0)
         if valid is not None:
             mask &= np.asarray(valid, dtype=bool)
+        if self.has_distortion and d.shape == self.shape:
+            mask &= np.isfinite(self.ray_z)
         return mask
 
     def point_cloud(self, distance_m: np.ndarray, kind: DistanceKind = "radial",

@@ -32,7 +32,8 @@ _CONVERGED = lm.CONVERGED_RESIDUAL
 @njit(cache=True, error_model="numpy", nogil=True, inline="always")
 def brown_undistort(xd, yd, c, max_iter):  # pragma: no cover
     """Distorted normalised ``(xd, yd)`` -> undistorted ``(x, y)``; NaN where the model has
-    no inverse (no convergence, or a root beyond the fold: det J <= 0)."""
+    no inverse (no convergence, or a root beyond the model's reach ``c[12]``:
+    :func:`tofhil.lens_models.model_reach`)."""
     x, y = xd, yd
     fx, fy = brown_distort(x, y, c)
     ex, ey = xd - fx, yd - fy
@@ -61,7 +62,8 @@ def brown_undistort(xd, yd, c, max_iter):  # pragma: no cover
         if t * (abs(sx) + abs(sy)) <= _STEP_TOL * (1.0 + abs(x) + abs(y)):
             break
     j00, j01, j10, j11 = brown_jacobian(x, y, c)
-    if not (r <= _CONVERGED * (1.0 + abs(xd) + abs(yd)) and j00 * j11 - j01 * j10 > 0.0):
+    if not (r <= _CONVERGED * (1.0 + abs(xd) + abs(yd)) and j00 * j11 - j01 * j10 > 0.0
+            and x * x + y * y <= c[12]):
         return math.nan, math.nan
     return x, y
 
@@ -96,7 +98,7 @@ def fisheye_theta(td, c, max_iter):  # pragma: no cover
         if step <= _STEP_TOL * (1.0 + th):
             break
     f, df = fisheye_theta_d(th, c)
-    if not (r <= _CONVERGED * (1.0 + td) and df > 0.0):
+    if not (r <= _CONVERGED * (1.0 + td) and df > 0.0 and th <= c[12]):
         return math.nan
     return th
 
@@ -135,7 +137,8 @@ def _flat(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
 
 def undistort_arrays(xd: np.ndarray, yd: np.ndarray, coeffs: np.ndarray, max_iter: int = lm.MAX_ITER
                      ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`brown_undistort` on arrays of any (equal) shape; ``coeffs`` float64[12]."""
+    """:func:`brown_undistort` on arrays of any (equal) shape; ``coeffs`` float64[13]
+    (:func:`tofhil.lens_models.kernel_coeffs`)."""
     shape = np.broadcast_shapes(np.shape(xd), np.shape(yd))
     a, b = _flat(xd, shape), _flat(yd, shape)
     x, y = np.empty_like(a), np.empty_like(b)

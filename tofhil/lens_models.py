@@ -63,11 +63,62 @@ def expected_dist(model: str) -> str:
     return f"{count} finite numbers ({names}) for model {model!r}"
 
 
+#: Slot of :func:`kernel_coeffs` holding the reach of the model (see :func:`model_reach`).
+REACH = 12
+
+
 def kernel_coeffs(model: str, dist: tuple[float, ...]) -> np.ndarray:
-    """The 12-slot coefficient vector the arithmetic below reads (missing terms zero)."""
-    c = np.zeros(12)
+    """The 13-slot vector the arithmetic below reads: the coefficients (missing terms zero)
+    and, in slot :data:`REACH`, the model's reach (:func:`model_reach`)."""
+    c = np.zeros(13)
     c[:len(dist)] = dist
+    c[REACH] = model_reach(model, c)
     return c
+
+
+def model_reach(model: str, c: np.ndarray) -> float:
+    """Where the model stops being a lens: the first fold of its radial function, beyond which
+    a larger angle no longer images farther out (a barrel ``k1 < 0`` turning back, a rational
+    denominator's pole, a fisheye polynomial turning over). For Brown-Conrady the largest
+    undistorted ``r^2`` of the first monotone branch of ``r g(r^2)``; for the fisheye the largest
+    ``theta`` (at most pi) of ``theta_d(theta)``. Inverse solutions beyond it belong to another
+    branch of the polynomial, not to the lens: the inversion refuses them (NaN), as the Azure
+    Kinect SDK refuses pixels beyond its calibration's radius. inf / pi: the model never folds
+    in the range searched (r up to 100, i.e. 89.4 degrees off axis)."""
+    with np.errstate(all="ignore"):
+        if model == "fisheye":
+            th = np.linspace(0.0, math.pi, 200001)
+            bad = np.flatnonzero(~(fisheye_theta_d(th, c)[1] > 0))
+            if bad.size == 0:
+                return math.pi
+
+            def slope(t: float) -> float:
+                return float(fisheye_theta_d(np.array(t), c)[1])
+            lo, hi = float(th[bad[0] - 1]), float(th[bad[0]])
+        else:
+            if not any(c[[0, 1, 4, 5, 6, 7]]):
+                return math.inf                       # radially a pinhole: no fold
+
+            def slopes(rr: np.ndarray) -> np.ndarray:    # d(r g(r^2))/dr = g + 2 r^2 g'
+                r2 = rr * rr
+                num = 1 + r2 * (c[0] + r2 * (c[1] + r2 * c[4]))
+                den = 1 + r2 * (c[5] + r2 * (c[6] + r2 * c[7]))
+                dnum = c[0] + r2 * (2 * c[1] + r2 * 3 * c[4])
+                dden = c[5] + r2 * (2 * c[6] + r2 * 3 * c[7])
+                g = num / den
+                return np.where(den > 0, g + 2 * r2 * (dnum * den - num * dden) / (den * den), -1.0)
+
+            def slope(t: float) -> float:
+                return float(slopes(np.array(t)))
+            r = np.concatenate([np.linspace(0.0, 10.0, 200001)[:-1], np.linspace(10.0, 100.0, 20001)])
+            bad = np.flatnonzero(~(slopes(r) > 0))
+            if bad.size == 0:
+                return math.inf
+            lo, hi = float(r[bad[0] - 1]), float(r[bad[0]])
+        for _ in range(60):                               # bisect the sign change
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if slope(mid) > 0 else (lo, mid)
+    return lo if model == "fisheye" else lo * lo
 
 
 # --------------------------------------------------------------------------- arithmetic
@@ -113,8 +164,8 @@ def fisheye_theta_d(theta: Any, c: np.ndarray) -> tuple[Any, Any]:
 def brown_undistort(xd: np.ndarray, yd: np.ndarray, c: np.ndarray, max_iter: int = MAX_ITER
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Distorted normalised -> undistorted, Newton with step halving, every point to its own
-    convergence; NaN where the model has no inverse (no convergence, or a root beyond the fold
-    of the radial function, where ``det J <= 0``). Element by element the operations of
+    convergence; NaN where the model has no inverse (no convergence, or a root beyond the
+    model's reach: :func:`model_reach`). Element by element the operations of
     :func:`tofhil.camera_kernels.brown_undistort` (bit-identical results)."""
     xd = np.asarray(xd, dtype=np.float64)
     yd = np.asarray(yd, dtype=np.float64)
@@ -152,7 +203,8 @@ def brown_undistort(xd: np.ndarray, yd: np.ndarray, c: np.ndarray, max_iter: int
             ex, ey, r = np.where(active, exn, ex), np.where(active, eyn, ey), np.where(active, rn, r)
             active &= ~(t * (np.abs(sx) + np.abs(sy)) <= STEP_TOL * (1.0 + np.abs(x) + np.abs(y)))
         j00, j01, j10, j11 = brown_jacobian(x, y, c)
-        ok = (r <= CONVERGED_RESIDUAL * (1.0 + np.abs(xd) + np.abs(yd))) & (j00 * j11 - j01 * j10 > 0.0)
+        ok = (r <= CONVERGED_RESIDUAL * (1.0 + np.abs(xd) + np.abs(yd))) & (j00 * j11 - j01 * j10 > 0.0) \
+            & (x * x + y * y <= c[REACH])
     return np.where(ok, x, np.nan), np.where(ok, y, np.nan)
 
 
@@ -189,5 +241,5 @@ def fisheye_theta(td: np.ndarray, c: np.ndarray, max_iter: int = MAX_ITER) -> np
             th, e, r, df = (np.where(active, a, b) for a, b in ((thn, th), (en, e), (rn, r), (dfn, df)))
             active &= ~(step <= STEP_TOL * (1.0 + th))
         _, df = fisheye_theta_d(th, c)
-        ok = (r <= CONVERGED_RESIDUAL * (1.0 + td)) & (df > 0.0)
+        ok = (r <= CONVERGED_RESIDUAL * (1.0 + td)) & (df > 0.0) & (th <= c[REACH])
     return np.where(td == 0.0, 0.0, np.where(ok, th, np.nan))

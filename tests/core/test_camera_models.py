@@ -205,3 +205,36 @@ def test_bad_model_or_dist_names_the_field() -> None:
         check_distortion(Schema("s.yaml"), base | {"model": "rational", "dist": [0] * 5}, "camera.")
     with pytest.raises(ValueError, match="dist has 5 numbers"):
         CameraModel(4, 3, 2.0, 2.0, 1.5, 1.0, dist=(0,) * 5, distortion_model="fisheye")
+
+
+def test_point_clouds_leave_out_pixels_without_a_ray() -> None:
+    """The Azure Kinect lens over a 120 degree field (its WFOV mode): the corners beyond the
+    model's fold have no ray and no point, whatever distance the image holds there."""
+    from tofhil.camera import load_camera_preset
+
+    cam = load_camera_preset("azure_kinect_wfov")
+    no_ray = ~np.isfinite(cam.ray_z)
+    assert 0.02 < no_ray.mean() < 0.1 and no_ray[0, 0] and not no_ray[cam.height // 2, cam.width // 2]
+    pts = cam.points(np.full(cam.shape, 2.0))
+    assert len(pts) == (~no_ray).sum() and np.all(np.isfinite(pts))
+
+
+def test_model_reach_is_the_first_fold_and_rays_beyond_it_are_refused() -> None:
+    """The reach is the first fold of the radial function (closed form for ``r (1 + k1 r^2)``:
+    ``r*^2 = 1 / (3 |k1|)``); the Azure Kinect lens folds at 72.7 degrees (its calibration is
+    good to 60): a 73 or 76 degree ray still projects into the WFOV image, but the pixel it lands
+    on sees the ray of the lens's own branch, or none, never the far branch's."""
+    from tofhil.camera import load_camera_preset
+
+    barrel = CameraModel(400, 400, 100.0, 100.0, 0.0, 0.0, dist=(-0.3, 0, 0, 0, 0))
+    assert barrel.kernel_coeffs[12] == pytest.approx(1 / 0.9, rel=1e-12)
+    assert np.isinf(PLUMB.kernel_coeffs[12]) and FISHEYE.kernel_coeffs[12] == pytest.approx(np.pi)
+    cam = load_camera_preset("azure_kinect_wfov")
+    reach_deg = np.degrees(np.arctan(np.sqrt(cam.kernel_coeffs[12])))
+    assert 70.0 < reach_deg < 75.0
+    for deg in (73.0, 76.0):                 # beyond the reach, towards the image corner
+        t, az = np.radians(deg), np.pi / 4
+        uv = cam.project(np.array([np.sin(t) * np.cos(az), np.sin(t) * np.sin(az), np.cos(t)]))
+        assert 0 <= uv[0] < cam.width and 0 <= uv[1] < cam.height
+        seen = cam.pixel_rays(uv[0], uv[1])
+        assert np.isnan(seen).all() or np.degrees(np.arccos(seen[2])) < reach_deg
