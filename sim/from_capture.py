@@ -336,7 +336,7 @@ def write_plane_outline(cam: CameraModel, p: PlanePatch, path: Path, stride: int
 
 
 def _camera_block(cam: CameraModel) -> dict[str, Any]:
-    d = {k: v for k, v in cam.to_dict().items() if k in ("width", "height", "fx", "fy", "cx", "cy", "dist",
+    d = {k: v for k, v in cam.to_dict().items() if k in ("width", "height", "fx", "fy", "cx", "cy", "model", "dist",
                                                            "pixel_pitch_m")}
     d["f_number"] = 1.2  # ASSUMED (no lens data in a depth capture); scales with the fitted power
     return d

@@ -13,7 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
-from tofhil.camera_kernels import undistort_step
+from tofhil.camera_kernels import pixel_ray
 from tofhil.sim import dielectric as _dielectric
 from tofhil.sim import embree4 as eda
 
@@ -533,15 +533,24 @@ def sobol_digital_shift(sobol, shift, U):  # pragma: no cover
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def subpixel_rays(pixels, spp, width, U, fx, fy, cx, cy, dist, iterations, R, rotate, pix_weight,
-                  dirs, beta):  # pragma: no cover
+                  dirs, beta, fisheye=False):  # pragma: no cover
     """Sample ``s`` of pixel ``pixels[s // spp]`` through the pixel position ``U[s, 0:2]`` (in
     pixels from the pixel's corner): its unit world direction ``dirs[s]`` (the camera model's
-    undistortion, :meth:`CameraModel.pixel_rays`, then ``R``) and its weight
-    ``beta[s] = pix_weight[pixel] * z^4`` (cos^4 of the camera ray). One pass, operation by
+    inversion, :meth:`CameraModel.pixel_rays`, then ``R``) and its weight
+    ``beta[s] = pix_weight[pixel] * z^4`` (cos^4 of the camera ray). ``dist``: the lens
+    coefficients in OpenCV's order (Brown-Conrady: up to 12, missing ones zero; ``fisheye``:
+    k1..k4), or :attr:`CameraModel.kernel_coeffs` (13: the model's reach last);
+    ``iterations``: Newton iterations at most. A sample through a point the lens maps
+    no ray to (beyond the fold of its model) or 90 degrees or more off axis gets weight 0 (and
+    the optical axis as a direction, so Embree sees a finite ray). One pass, operation by
     operation the numpy expressions of the camera model and :func:`rotate_rows` (cos^4 to
     an ulp)."""
-    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
-    distorted = k1 != 0.0 or k2 != 0.0 or p1 != 0.0 or p2 != 0.0 or k3 != 0.0
+    c = np.zeros(13)
+    c[12] = math.pi if fisheye else np.inf   # the model's reach, when dist does not give it
+    distorted = fisheye
+    for j in range(min(dist.shape[0], 13)):
+        c[j] = dist[j]
+        distorted = distorted or (j < 12 and dist[j] != 0.0)
     r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
     r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
     r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
@@ -558,20 +567,23 @@ def subpixel_rays(pixels, spp, width, U, fx, fy, cx, cy, dist, iterations, R, ro
         vv = row + U[s, 1] - 0.5
         xd = (uu - cx) / fx
         yd = (vv - cy) / fy
-        x, y = xd, yd
         if distorted:
-            for _ in range(iterations):
-                x, y = undistort_step(xd, yd, x, y, k1, k2, p1, p2, k3)
-        nrm = math.sqrt(x * x + y * y + 1.0)
-        a, b, c = x / nrm, y / nrm, 1.0 / nrm
-        c2 = c * c
-        beta[s] = w * (c2 * c2)          # cos^4 (numpy's c**4 and libm's pow differ from it by an ulp)
-        if rotate:
-            dirs[s, 0] = a * r00 + b * r01 + c * r02
-            dirs[s, 1] = a * r10 + b * r11 + c * r12
-            dirs[s, 2] = a * r20 + b * r21 + c * r22
+            a, b, c3 = pixel_ray(xd, yd, fisheye, c, iterations)
         else:
-            dirs[s, 0], dirs[s, 1], dirs[s, 2] = a, b, c
+            nrm = math.sqrt(xd * xd + yd * yd + 1.0)
+            a, b, c3 = xd / nrm, yd / nrm, 1.0 / nrm
+        if not (c3 > 0.0):               # no ray (NaN) or none in front of the lens
+            a, b, c3 = 0.0, 0.0, 1.0
+            beta[s] = 0.0
+        else:
+            c2 = c3 * c3
+            beta[s] = w * (c2 * c2)      # cos^4 (numpy's c**4 and libm's pow differ from it by an ulp)
+        if rotate:
+            dirs[s, 0] = a * r00 + b * r01 + c3 * r02
+            dirs[s, 1] = a * r10 + b * r11 + c3 * r12
+            dirs[s, 2] = a * r20 + b * r21 + c3 * r22
+        else:
+            dirs[s, 0], dirs[s, 1], dirs[s, 2] = a, b, c3
 
 
 @njit(nogil=True, cache=True)

@@ -29,6 +29,7 @@ import numpy as np
 from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel
 from tofhil.content_cache import LRUCache, content_digest
+from tofhil.lens_models import MAX_ITER as LENS_MAX_ITER
 from tofhil.errors import TofhilError
 from tofhil.progress import Progress, no_progress
 from tofhil.sim import dielectric, embree4, kernels
@@ -140,7 +141,13 @@ def _camera_arrays(camera: CameraModel, pixels: np.ndarray | None = None) -> dic
         rays[idx] = camera.pixel_rays(u, v)
         area = np.zeros(pixels.size)
         area[idx] = pixel_area_normalized(camera, u, v)
-    arrays = {"rays": rays, "area": area, "cos4": rays[:, 2] ** 4, "key": key}
+    # A pixel the lens maps no ray to (beyond the fold of its model) or whose ray points 90
+    # degrees or more off axis (a fisheye) sees nothing: weight 0, a finite ray for Embree.
+    ok = np.isfinite(rays).all(axis=1) & (rays[:, 2] > 0)
+    if not ok.all():
+        rays = np.where(ok[:, None], rays, np.array([0.0, 0.0, 1.0]))
+    area = np.where(ok & np.isfinite(area), area, 0.0)
+    arrays = {"rays": rays, "area": area, "cos4": rays[:, 2] ** 4, "key": key, "ok": ok}
     _CAMERAS.put(key, arrays)
     return arrays
 
@@ -156,7 +163,7 @@ def _view_arrays(camera: CameraModel, pose: np.ndarray, pixels: np.ndarray | Non
     rays = cam["rays"]
     world = np.array(_rotate(rays, pose[:3, :3]), dtype=np.float64)  # writable: one kernel type
     view = {"rays": rays, "world": world, "world32": world.astype(np.float32), "area": cam["area"],
-            "cos4": cam["cos4"]}
+            "cos4": cam["cos4"], "ok": cam["ok"]}
     _VIEWS.put(key, view)
     return view
 
@@ -217,6 +224,7 @@ class _Context:
         self.centre_world = view["world"]
         self.centre_weight = self.pix_weight * view["cos4"]
         self.centre_world32 = view["world32"]
+        self.centre_ok = view["ok"]          # false: the pixel has no ray (it sees nothing)
         self._origin32: np.ndarray | None = None
         prof = scene.emitter.profile
         # Beam profile (I = i0 p): cos^n in the kernels; -1: tabulated, `beam` for the fused
@@ -348,13 +356,16 @@ class _Context:
             cam = self.camera
             kernels.subpixel_rays(np.arange(p0, p1) if keep_pix is None else p0 + np.flatnonzero(keep_pix), spp,
                                   self.W, U, cam.fx, cam.fy, cam.cx, cam.cy,
-                                  np.asarray(cam.dist, dtype=np.float64), 20, self.R,
-                                  not np.array_equal(self.R, np.eye(3)), self.pix_weight, dirs, beta)
+                                  np.asarray(cam.kernel_coeffs), LENS_MAX_ITER, self.R,
+                                  not np.array_equal(self.R, np.eye(3)), self.pix_weight, dirs, beta,
+                                  cam.is_fisheye)
         elif self.subpixel:
             uu = (pix % self.W) + U[:, 0] - 0.5
             vv = (pix // self.W) + U[:, 1] - 0.5
             d_cam = self.camera.pixel_rays(uu, vv)
-            beta = self.pix_weight[pix] * d_cam[:, 2] ** 4
+            no_ray = ~(d_cam[:, 2] > 0)       # (as the compiled pass: weight 0, a finite ray)
+            d_cam[no_ray] = (0.0, 0.0, 1.0)
+            beta = np.where(no_ray, 0.0, self.pix_weight[pix] * d_cam[:, 2] ** 4)
         elif keep_pix is not None:
             d_cam = self.centre_rays[pix]
             beta = self.centre_weight[pix]
@@ -841,6 +852,9 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
 
     if ctx.glass.any:
         _add_glints(ctx, acc, power, trans)
+    if not ctx.centre_ok.all():              # pixels without a ray see nothing
+        radial[~ctx.centre_ok] = np.inf
+        oid[~ctx.centre_ok] = -1
     shape = (len(freq), len(harm), H, W)
     if ctx.fused and ctx.ambient != 0:
         # the fused chunks added into ambient_unit in place; the ambient power is its multiple

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from tofhil.camera import CameraModel, camera_presets_dir, list_camera_presets
+from tofhil.camera import CameraModel, camera_presets_dir, check_distortion, list_camera_presets
 from tofhil.errors import InputFileError
 from tofhil.schema import Schema, to_plain
 from tofhil.sim.scene_expressions import substitute
@@ -41,7 +41,7 @@ MAX_SCENE_BYTES = 16 << 20
 
 _TOP_KEYS = ("name", "description", "params", "camera", "emitter", "ambient_irradiance_w_m2",
              "materials", "objects", "sensor", "effects", "render", "rgb_camera", "direct_tof")
-_CAMERA_KEYS = {"preset", "width", "height", "fx", "fy", "cx", "cy", "dist", "name", "pixel_pitch_m",
+_CAMERA_KEYS = {"preset", "width", "height", "fx", "fy", "cx", "cy", "model", "dist", "name", "pixel_pitch_m",
                 "hfov_deg", "vfov_deg", "pose", "f_number", "focus_distance_m", "lens"} | set(SENSOR_KEYS)
 
 
@@ -290,8 +290,7 @@ class _Parser(Schema):
         for key in ("hfov_deg", "vfov_deg"):
             if c.get(key) is not None:
                 self.number(c[key], f"camera.{key}", lo=0.0, hi=180.0, lo_open=True, hi_open=True)
-        if "dist" in c:
-            self.numbers(c["dist"], "camera.dist", n=5, lo=-1e6, hi=1e6, expected="5 numbers (k1, k2, p1, p2, k3)")
+        check_distortion(self, c, "camera.")      # model known, dist of its length
         if "preset" in c:
             name = self.string(c["preset"], "camera.preset", nonempty=True, expected="a camera preset name or file")
             preset = Path(name) if Path(name).suffix else camera_presets_dir() / f"{name}.yaml"
@@ -314,7 +313,7 @@ class _Parser(Schema):
     def second_camera(self, c: Any) -> SecondCamera | None:
         if c is None:
             return None
-        c = dict(self.mapping(c, "rgb_camera", allowed={"preset", "width", "height", "fx", "fy", "cx", "cy", "dist",
+        c = dict(self.mapping(c, "rgb_camera", allowed={"preset", "width", "height", "fx", "fy", "cx", "cy", "model", "dist",
                                                           "name", "pixel_pitch_m", "hfov_deg", "vfov_deg", "pose",
                                                           "samples"}))
         pose = self.pose(c.pop("pose", None), "rgb_camera.pose")
@@ -325,8 +324,7 @@ class _Parser(Schema):
         for key in ("fx", "fy", "cx", "cy"):
             if key in c:
                 self.number(c[key], f"rgb_camera.{key}", lo=-1e9, hi=1e9)
-        if "dist" in c:
-            self.numbers(c["dist"], "rgb_camera.dist", n=5, lo=-1e6, hi=1e6, expected="5 numbers (k1, k2, p1, p2, k3)")
+        check_distortion(self, c, "rgb_camera.")
         camera = CameraModel.from_dict(c, source=self.source, prefix="rgb_camera.")
         return SecondCamera(camera=camera, pose=pose, samples=samples)
 

@@ -1,7 +1,11 @@
-"""Pinhole camera model with OpenCV distortion: rays, projection, radial <-> z, point clouds.
+"""Camera model with OpenCV's lens models: rays, projection, radial <-> z, point clouds.
 
 Conventions (ARCHITECTURE.md): x right, y down, z forward; intrinsics ``fx fy cx cy`` in
-pixels with pixel centres at integer coordinates; distortion ``(k1, k2, p1, p2, k3)``.
+pixels with pixel centres at integer coordinates. Distortion: OpenCV's 5-parameter model
+``(k1, k2, p1, p2, k3)`` (``plumb_bob``, the default), its rational model with optional thin
+prism ``(k1, k2, p1, p2, k3, k4, k5, k6[, s1, s2, s3, s4])`` (``rational``) or ``cv2.fisheye``'s
+equidistant model ``(k1, k2, k3, k4)`` (``fisheye``); the formulas are in
+:mod:`tofhil.lens_models`.
 """
 
 from __future__ import annotations
@@ -15,7 +19,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+from tofhil import lens_models
 from tofhil.errors import InputFileError
+from tofhil.lens_models import DistortionModel
+from tofhil.schema import Schema
 from tofhil.yamlio import load_yaml_file
 
 DistanceKind = Literal["radial", "z"]
@@ -27,7 +34,12 @@ _COMPILED_UNDISTORT_MIN = 4096
 
 @dataclass(frozen=True)
 class CameraModel:
-    """Intrinsics, distortion and sensor geometry of a ToF camera."""
+    """Intrinsics, distortion and sensor geometry of a ToF camera.
+
+    ``dist`` holds the coefficients of ``distortion_model`` in OpenCV's order
+    (:data:`tofhil.lens_models.COEFFICIENTS`): 5 for ``plumb_bob``, 8 or 12 for ``rational``,
+    4 for ``fisheye``. In files the model is the camera's ``model`` key.
+    """
 
     width: int
     height: int
@@ -35,16 +47,22 @@ class CameraModel:
     fy: float
     cx: float
     cy: float
-    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    dist: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
     name: str = ""
     pixel_pitch_m: float | None = None
     #: Extra preset facts (modulation frequencies, wavelength, sources); not used in geometry.
     extra: dict[str, Any] = field(default_factory=dict, compare=False, hash=False)
+    #: ``plumb_bob`` | ``rational`` | ``fisheye`` (:mod:`tofhil.lens_models`).
+    distortion_model: DistortionModel = "plumb_bob"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dist", tuple(float(v) for v in self.dist))
-        if len(self.dist) != 5:
-            raise ValueError(f"dist must have 5 numbers (k1, k2, p1, p2, k3), got {len(self.dist)}")
+        model = lens_models.ALIASES.get(self.distortion_model, self.distortion_model)
+        object.__setattr__(self, "distortion_model", model)
+        if model not in lens_models.COEFFICIENTS:
+            raise ValueError(f"distortion model {model!r} is not one of {', '.join(lens_models.MODELS)}")
+        if len(self.dist) not in {len(n) for n in lens_models.COEFFICIENTS[model]}:
+            raise ValueError(f"dist has {len(self.dist)} numbers (expected {lens_models.expected_dist(model)})")
         if self.width <= 0 or self.height <= 0:
             raise ValueError("width and height must be positive")
         if not (self.fx > 0 and self.fy > 0):
@@ -54,9 +72,22 @@ class CameraModel:
     @classmethod
     def from_fov(cls, width: int, height: int, hfov_deg: float, vfov_deg: float | None = None,
                  **kwargs: Any) -> "CameraModel":
-        """An undistorted camera with the principal point at the image centre."""
-        fx = (width / 2.0) / np.tan(np.radians(hfov_deg) / 2.0)
-        fy = fx if vfov_deg is None else (height / 2.0) / np.tan(np.radians(vfov_deg) / 2.0)
+        """A camera with the principal point at the image centre whose image edges are at
+        ``hfov_deg`` (and ``vfov_deg``): through the pinhole for ``plumb_bob``/``rational``
+        (the distortion, if any, is not counted), through the fisheye mapping
+        ``theta_d(theta)`` for ``fisheye``."""
+        model = lens_models.ALIASES.get(kwargs.get("distortion_model", "plumb_bob"),
+                                        kwargs.get("distortion_model", "plumb_bob"))
+        if model == "fisheye":
+            c = lens_models.kernel_coeffs(model, tuple(kwargs.get("dist", (0.0,) * 4)))
+
+            def half(fov: float) -> float:
+                return float(lens_models.fisheye_theta_d(np.radians(fov) / 2.0, c)[0])
+        else:
+            def half(fov: float) -> float:
+                return float(np.tan(np.radians(fov) / 2.0))
+        fx = (width / 2.0) / half(hfov_deg)
+        fy = fx if vfov_deg is None else (height / 2.0) / half(vfov_deg)
         return cls(width=width, height=height, fx=float(fx), fy=float(fy),
                    cx=(width - 1) / 2.0, cy=(height - 1) / 2.0, **kwargs)
 
@@ -70,7 +101,33 @@ class CameraModel:
 
     @property
     def has_distortion(self) -> bool:
-        return any(v != 0.0 for v in self.dist)
+        """Whether pixels map to rays other than the pinhole's (a fisheye always does)."""
+        return self.distortion_model == "fisheye" or any(v != 0.0 for v in self.dist)
+
+    @property
+    def is_fisheye(self) -> bool:
+        return self.distortion_model == "fisheye"
+
+    @property
+    def coefficient_names(self) -> tuple[str, ...]:
+        """Names of the ``dist`` coefficients, in order (``k1, k2, p1, p2, k3, ...``)."""
+        return next(n for n in lens_models.COEFFICIENTS[self.distortion_model] if len(n) == len(self.dist))
+
+    @cached_property
+    def kernel_coeffs(self) -> np.ndarray:
+        """``dist`` in the slots the lens arithmetic reads, and the model's reach
+        (:func:`lens_models.kernel_coeffs`; computed once per camera)."""
+        c = lens_models.kernel_coeffs(self.distortion_model, self.dist)
+        c.setflags(write=False)
+        return c
+
+    def with_added_distortion(self, deltas: dict[str, float]) -> "CameraModel":
+        """The camera with ``deltas`` (coefficient name -> value) added to its coefficients of
+        those names. Names its model lacks are left out (a fisheye has no p1, p2; plumb_bob no
+        k4..k6): they do not change this camera's rays."""
+        names = self.coefficient_names
+        dist = tuple(v + float(deltas.get(n, 0.0)) for n, v in zip(names, self.dist))
+        return replace(self, dist=dist)
 
     def scaled(self, factor: float) -> "CameraModel":
         """The same lens on a sensor resampled by ``factor`` (binning < 1, supersampling > 1)."""
@@ -80,51 +137,82 @@ class CameraModel:
                        pixel_pitch_m=None if self.pixel_pitch_m is None else self.pixel_pitch_m / factor)
 
     # ------------------------------------------------------------------ geometry
+    def _fisheye_thetas(self, td: np.ndarray) -> np.ndarray:
+        """Field angle of each distorted radius (compiled for many points)."""
+        if td.size >= _COMPILED_UNDISTORT_MIN:
+            from tofhil.camera_kernels import fisheye_theta_arrays
+
+            return fisheye_theta_arrays(td, self.kernel_coeffs)
+        return lens_models.fisheye_theta(td, self.kernel_coeffs)
+
     def undistort_normalized(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel coordinates -> undistorted normalised image coordinates (x/z, y/z)."""
+        """Pixel coordinates -> undistorted normalised image coordinates (x/z, y/z).
+
+        Each point is inverted to convergence (Newton, :mod:`tofhil.lens_models`): exact to
+        rounding at any field angle the model reaches. NaN where the model maps no ray to the
+        pixel (beyond the fold of its radial function) and, for a fisheye, where the ray is
+        90 degrees or more off axis (it has no x/z: use :meth:`pixel_rays`).
+        """
         u = np.asarray(u, dtype=np.float64)
         v = np.asarray(v, dtype=np.float64)
         xd = (u - self.cx) / self.fx
         yd = (v - self.cy) / self.fy
         if not self.has_distortion:
             return xd, yd
-        # Fixed-point inversion of the OpenCV model (as cv2.undistortPoints), run to
-        # convergence: 20 iterations reach < 1e-10 px for realistic lenses. Many points: the
-        # same arithmetic compiled (bit-identical, ~10x less CPU; numba imported only then).
+        if self.is_fisheye:
+            td = np.hypot(xd, yd)
+            theta = self._fisheye_thetas(td)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                k = np.where(td > 0, np.tan(theta) / np.where(td > 0, td, 1.0), 1.0)
+                k = np.where(theta < np.pi / 2, k, np.nan)
+            return xd * k, yd * k
+        # Many points: the same arithmetic compiled (bit-identical; numba imported only then).
         if xd.size >= _COMPILED_UNDISTORT_MIN:
             from tofhil.camera_kernels import undistort_arrays
 
-            return undistort_arrays(xd, yd, self.dist, 20)
-        k1, k2, p1, p2, k3 = self.dist
-        x, y = xd.copy(), yd.copy()
-        for _ in range(20):
-            r2 = x * x + y * y
-            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-            dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-            x = (xd - dx) / radial
-            y = (yd - dy) / radial
-        return x, y
+            return undistort_arrays(xd, yd, self.kernel_coeffs)
+        return lens_models.brown_undistort(xd, yd, self.kernel_coeffs)
 
     def distort_normalized(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Undistorted normalised coordinates -> distorted normalised coordinates."""
-        k1, k2, p1, p2, k3 = self.dist
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        return xd, yd
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        c = self.kernel_coeffs
+        if self.is_fisheye:
+            r = np.hypot(x, y)
+            td, _ = lens_models.fisheye_theta_d(np.arctan(r), c)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                k = np.where(r > 0, td / np.where(r > 0, r, 1.0), 1.0)
+            return x * k, y * k
+        return lens_models.brown_distort(x, y, c)
 
     def project(self, points: np.ndarray) -> np.ndarray:
-        """Camera-frame points ``[..., 3]`` -> pixel coordinates ``[..., 2]`` (with distortion)."""
+        """Camera-frame points ``[..., 3]`` -> pixel coordinates ``[..., 2]`` (with distortion).
+
+        A fisheye projects by the angle to the optical axis, so points at or beyond 90 degrees
+        (z <= 0) project too; the other models divide by z."""
         p = np.asarray(points, dtype=np.float64)
-        x = p[..., 0] / p[..., 2]
-        y = p[..., 1] / p[..., 2]
-        xd, yd = self.distort_normalized(x, y)
+        if self.is_fisheye:
+            rho = np.hypot(p[..., 0], p[..., 1])
+            td, _ = lens_models.fisheye_theta_d(np.arctan2(rho, p[..., 2]), self.kernel_coeffs)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                k = np.where(rho > 0, td / np.where(rho > 0, rho, 1.0), 0.0)
+            xd, yd = p[..., 0] * k, p[..., 1] * k
+        else:
+            xd, yd = self.distort_normalized(p[..., 0] / p[..., 2], p[..., 1] / p[..., 2])
         return np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], axis=-1)
 
     def pixel_rays(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Unit ray directions ``[..., 3]`` through (possibly subpixel) pixel coordinates."""
+        """Unit ray directions ``[..., 3]`` through (possibly subpixel) pixel coordinates
+        (NaN where the model maps no ray to the pixel)."""
+        if self.is_fisheye:
+            xd = (np.asarray(u, dtype=np.float64) - self.cx) / self.fx
+            yd = (np.asarray(v, dtype=np.float64) - self.cy) / self.fy
+            td = np.hypot(xd, yd)
+            theta = self._fisheye_thetas(td)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                s = np.where(td > 0, np.sin(theta) / np.where(td > 0, td, 1.0), 1.0)
+            return np.stack([xd * s, yd * s, np.cos(theta)], axis=-1)
         x, y = self.undistort_normalized(u, v)
         d = np.stack([x, y, np.ones_like(x)], axis=-1)
         return d / np.linalg.norm(d, axis=-1, keepdims=True)
@@ -167,10 +255,14 @@ class CameraModel:
         return self.rays[mask] * radial[mask][:, None]
 
     def valid_mask(self, distance_m: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+        """Pixels with a point: ``valid`` (if given), a finite distance > 0, and a ray (a lens
+        model maps none to the pixels beyond its fold)."""
         d = np.asarray(distance_m)
         mask = np.isfinite(d) & (d > 0)
         if valid is not None:
             mask &= np.asarray(valid, dtype=bool)
+        if self.has_distortion and d.shape == self.shape:
+            mask &= np.isfinite(self.ray_z)
         return mask
 
     def point_cloud(self, distance_m: np.ndarray, kind: DistanceKind = "radial",
@@ -191,7 +283,8 @@ class CameraModel:
     # ------------------------------------------------------------------ serialisation
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"width": self.width, "height": self.height, "fx": self.fx,
-                             "fy": self.fy, "cx": self.cx, "cy": self.cy, "dist": list(self.dist)}
+                             "fy": self.fy, "cx": self.cx, "cy": self.cy,
+                             "model": self.distortion_model, "dist": list(self.dist)}
         if self.name:
             d["name"] = self.name
         if self.pixel_pitch_m is not None:
@@ -217,10 +310,22 @@ class CameraModel:
             # its geometry: a 940 nm preset with another resolution is still 940 nm
             merged = base.to_dict() | dict(base.extra) | overrides
             return cls.from_dict(merged, source=source, prefix=prefix)
+        model = check_model(Schema(source), d.get("model", "plumb_bob"), f"{prefix}model")
+        n_default = len(lens_models.COEFFICIENTS[model][0])
+        dist = d.get("dist", [0.0] * n_default)
+        try:
+            dist_t = tuple(float(v) for v in dist)
+        except (TypeError, ValueError):
+            dist_t = ()
+        if len(dist_t) not in {len(n) for n in lens_models.COEFFICIENTS[model]} \
+                or not all(math.isfinite(v) for v in dist_t):
+            raise InputFileError(f"got {dist!r}", file=source, field=f"{prefix}dist",
+                                 expected=lens_models.expected_dist(model))
         if "hfov_deg" in d and "fx" not in d:
             try:
                 cam = cls.from_fov(int(d["width"]), int(d["height"]), float(d["hfov_deg"]),
-                                   None if d.get("vfov_deg") is None else float(d["vfov_deg"]))
+                                   None if d.get("vfov_deg") is None else float(d["vfov_deg"]),
+                                   distortion_model=model, dist=dist_t)
             except KeyError as exc:
                 raise InputFileError("missing", file=source, field=f"{prefix}{exc.args[0]}",
                                      expected="an integer") from None
@@ -238,19 +343,11 @@ class CameraModel:
             except (TypeError, ValueError, OverflowError):
                 raise InputFileError(f"got {d[key]!r}", file=source, field=f"{prefix}{key}",
                                      expected="a finite number") from None
-        dist = d.get("dist", [0.0] * 5)
-        try:
-            dist_t = tuple(float(v) for v in dist)
-        except (TypeError, ValueError):
-            dist_t = ()
-        if len(dist_t) != 5 or not all(math.isfinite(v) for v in dist_t):
-            raise InputFileError(f"got {dist!r}", file=source, field=f"{prefix}dist",
-                                 expected="5 finite numbers (k1, k2, p1, p2, k3)")
         pitch = d.get("pixel_pitch_m")
         extra = {k: v for k, v in d.items()
-                 if k not in ("width", "height", "fx", "fy", "cx", "cy", "dist", "name", "pixel_pitch_m")}
+                 if k not in ("width", "height", "fx", "fy", "cx", "cy", "dist", "model", "name", "pixel_pitch_m")}
         try:
-            return cls(dist=dist_t, name=str(d.get("name", "")),
+            return cls(dist=dist_t, name=str(d.get("name", "")), distortion_model=model,
                        pixel_pitch_m=None if pitch is None else float(pitch), extra=extra, **values)
         except ValueError as exc:
             raise InputFileError(str(exc), file=source, field=prefix.rstrip(".") or "camera") from None
@@ -263,6 +360,32 @@ class CameraModel:
             raise InputFileError(f"not valid JSON ({exc.msg})", file=source, field="camera",
                                  expected="JSON text with width, height, fx, fy, cx, cy, dist") from None
         return cls.from_dict(d, source=source)
+
+
+def check_model(schema: Schema, value: Any, field: str) -> str:
+    """A camera's ``model`` (``plumb_bob`` | ``rational`` | ``fisheye``, or a ROS name of one)
+    as its canonical name; anything else is an error naming ``field``."""
+    schema.enum(value, field, lens_models.MODELS + tuple(lens_models.ALIASES))
+    return lens_models.ALIASES.get(value, value)
+
+
+def check_distortion(schema: Schema, camera: dict[str, Any], prefix: str, *, bound: float = 1e6
+                     ) -> None:
+    """A camera mapping's ``model`` and ``dist`` as a file states them (scene files and presets
+    through :class:`tofhil.schema.Schema`): the model known, ``dist`` the model's length of
+    numbers within +-``bound``. Errors name ``{prefix}model`` or ``{prefix}dist``."""
+    model = check_model(schema, camera.get("model", "plumb_bob"), f"{prefix}model")
+    if "dist" in camera:
+        if "model" not in camera and "preset" in camera:
+            # the preset's model decides the length: checked on the merged camera
+            # (CameraModel.from_dict, the same field named)
+            schema.numbers(camera["dist"], f"{prefix}dist", max_len=12, lo=-bound, hi=bound)
+            return
+        lengths = sorted({len(n) for n in lens_models.COEFFICIENTS[model]})
+        schema.numbers(camera["dist"], f"{prefix}dist", min_len=lengths[0], max_len=lengths[-1],
+                       lo=-bound, hi=bound, expected=lens_models.expected_dist(model))
+        if len(camera["dist"]) not in lengths:
+            raise schema.bad(camera["dist"], f"{prefix}dist", lens_models.expected_dist(model))
 
 
 def camera_presets_dir() -> Path:

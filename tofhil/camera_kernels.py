@@ -1,55 +1,155 @@
-"""Compiled inversion of the OpenCV lens distortion (numba), for :meth:`CameraModel.undistort_normalized`.
+"""Compiled lens models (numba), per point: :mod:`tofhil.lens_models`' arithmetic compiled
+unchanged, and the Newton loops over it.
 
-The renderer undistorts every subpixel sample and every re-fitted camera's pixel grid: 20
-fixed-point iterations as numpy expressions are ~540 passes over arrays that do not fit in
-the cache (the largest part of a 512 x 512 diagnosis). Here each block of points stays in
-the L1 cache for all 20 iterations and the loop over the block vectorises. The arithmetic is
-the numpy expression's, operation by operation (no fast-math: no reassociation, no fused
-multiply-add), so the results are bit-identical to it.
+Shared by :meth:`CameraModel.undistort_normalized` (many points: each point's Newton
+iterations stay in registers, where the numpy version makes a dozen array passes per
+iteration) and the renderer's sub-pixel rays (:func:`tofhil.sim.kernels.subpixel_rays`), so
+both invert a lens the same way. The loops do the numpy version's operations in the same
+order (no fast-math: no reassociation, no fused multiply-add), so for the Brown-Conrady family
+the results are bit-identical to it. Coefficients: :func:`tofhil.lens_models.kernel_coeffs`.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
-#: Points per block: x, y, xd, yd of a block (4 x 8 kB) stay in the L1 cache.
-_BLOCK = 256
+from tofhil import lens_models as lm
+
+_inline = njit(cache=True, error_model="numpy", nogil=True, inline="always")
+brown_distort = _inline(lm.brown_distort)
+brown_jacobian = _inline(lm.brown_jacobian)
+fisheye_theta_d = _inline(lm.fisheye_theta_d)
+
+_MAX_HALVINGS = lm.MAX_HALVINGS
+_STEP_TOL = lm.STEP_TOL
+_ROUNDING = lm.ROUNDING_RESIDUAL
+_CONVERGED = lm.CONVERGED_RESIDUAL
 
 
 @njit(cache=True, error_model="numpy", nogil=True, inline="always")
-def undistort_step(xd, yd, x, y, k1, k2, p1, p2, k3):  # pragma: no cover
-    """One fixed-point step ``x = (xd - dx(x, y)) / radial(x, y)`` of one point, in the
-    numpy expression's order (scalars only: inlined into the loops that call it)."""
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return (xd - dx) / radial, (yd - dy) / radial
+def brown_undistort(xd, yd, c, max_iter):  # pragma: no cover
+    """Distorted normalised ``(xd, yd)`` -> undistorted ``(x, y)``; NaN where the model has
+    no inverse (no convergence, or a root beyond the model's reach ``c[12]``:
+    :func:`tofhil.lens_models.model_reach`)."""
+    x, y = xd, yd
+    fx, fy = brown_distort(x, y, c)
+    ex, ey = xd - fx, yd - fy
+    r = abs(ex) + abs(ey)
+    for _ in range(max_iter):
+        if r == 0.0:
+            break
+        j00, j01, j10, j11 = brown_jacobian(x, y, c)
+        det = j00 * j11 - j01 * j10
+        if not (det != 0.0 and math.isfinite(det)):
+            break
+        sx = (j11 * ex - j01 * ey) / det
+        sy = (j00 * ey - j10 * ex) / det
+        t = 1.0
+        xn, yn, exn, eyn, rn = x, y, ex, ey, r
+        for _h in range(_MAX_HALVINGS):
+            xn = x + t * sx
+            yn = y + t * sy
+            fx, fy = brown_distort(xn, yn, c)
+            exn, eyn = xd - fx, yd - fy
+            rn = abs(exn) + abs(eyn)
+            if rn <= r or r < _ROUNDING:
+                break
+            t = t * 0.5
+        x, y, ex, ey, r = xn, yn, exn, eyn, rn
+        if t * (abs(sx) + abs(sy)) <= _STEP_TOL * (1.0 + abs(x) + abs(y)):
+            break
+    j00, j01, j10, j11 = brown_jacobian(x, y, c)
+    if not (r <= _CONVERGED * (1.0 + abs(xd) + abs(yd)) and j00 * j11 - j01 * j10 > 0.0
+            and x * x + y * y <= c[12]):
+        return math.nan, math.nan
+    return x, y
+
+
+@njit(cache=True, error_model="numpy", nogil=True, inline="always")
+def fisheye_theta(td, c, max_iter):  # pragma: no cover
+    """Distorted radius ``theta_d`` -> field angle ``theta`` in [0, pi] (NaN: no inverse)."""
+    if td == 0.0:
+        return 0.0
+    th = min(td, math.pi)
+    f, df = fisheye_theta_d(th, c)
+    e = td - f
+    r = abs(e)
+    for _ in range(max_iter):
+        if r == 0.0:
+            break
+        if not (df > 0.0 and math.isfinite(df)):
+            break
+        s = e / df
+        t = 1.0
+        thn, en, rn = th, e, r
+        for _h in range(_MAX_HALVINGS):
+            thn = min(max(th + t * s, 0.0), math.pi)
+            f, df = fisheye_theta_d(thn, c)
+            en = td - f
+            rn = abs(en)
+            if rn <= r or r < _ROUNDING:
+                break
+            t = t * 0.5
+        step = abs(thn - th)
+        th, e, r = thn, en, rn
+        if step <= _STEP_TOL * (1.0 + th):
+            break
+    f, df = fisheye_theta_d(th, c)
+    if not (r <= _CONVERGED * (1.0 + td) and df > 0.0 and th <= c[12]):
+        return math.nan
+    return th
+
+
+@njit(cache=True, error_model="numpy", nogil=True, inline="always")
+def pixel_ray(xd, yd, fisheye, c, max_iter):  # pragma: no cover
+    """Distorted normalised ``(xd, yd)`` -> the unit ray ``(a, b, c)`` (NaN: no ray), as
+    :meth:`CameraModel.pixel_rays`."""
+    if fisheye:
+        td = math.sqrt(xd * xd + yd * yd)
+        if td == 0.0:
+            return 0.0, 0.0, 1.0
+        th = fisheye_theta(td, c, max_iter)
+        s = math.sin(th) / td
+        return xd * s, yd * s, math.cos(th)
+    x, y = brown_undistort(xd, yd, c, max_iter)
+    nrm = math.sqrt(x * x + y * y + 1.0)
+    return x / nrm, y / nrm, 1.0 / nrm
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def undistort(xd, yd, k1, k2, p1, p2, k3, iterations, x, y):  # pragma: no cover
-    """Distorted normalised ``(xd, yd)`` (1-D float64) -> undistorted ``(x, y)``: the
-    fixed-point iteration ``x = (xd - dx(x, y)) / radial(x, y)`` from ``x = xd``."""
-    n = xd.shape[0]
-    for b0 in range(0, n, _BLOCK):
-        b1 = min(n, b0 + _BLOCK)
-        for j in range(b0, b1):
-            x[j] = xd[j]
-            y[j] = yd[j]
-        for _ in range(iterations):
-            for j in range(b0, b1):
-                x[j], y[j] = undistort_step(xd[j], yd[j], x[j], y[j], k1, k2, p1, p2, k3)
+def _undistort_brown(xd, yd, c, max_iter, x, y):  # pragma: no cover
+    for j in range(xd.shape[0]):
+        x[j], y[j] = brown_undistort(xd[j], yd[j], c, max_iter)
 
 
-def undistort_arrays(xd: np.ndarray, yd: np.ndarray, dist: tuple[float, ...], iterations: int
+@njit(cache=True, error_model="numpy", nogil=True)
+def _fisheye_thetas(td, c, max_iter, out):  # pragma: no cover
+    for j in range(td.shape[0]):
+        out[j] = fisheye_theta(td[j], c, max_iter)
+
+
+def _flat(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    return np.ascontiguousarray(np.broadcast_to(a, shape), dtype=np.float64).ravel()
+
+
+def undistort_arrays(xd: np.ndarray, yd: np.ndarray, coeffs: np.ndarray, max_iter: int = lm.MAX_ITER
                      ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`undistort` on arrays of any (equal) shape."""
+    """:func:`brown_undistort` on arrays of any (equal) shape; ``coeffs`` float64[13]
+    (:func:`tofhil.lens_models.kernel_coeffs`)."""
     shape = np.broadcast_shapes(np.shape(xd), np.shape(yd))
-    a = np.ascontiguousarray(np.broadcast_to(xd, shape), dtype=np.float64).ravel()
-    b = np.ascontiguousarray(np.broadcast_to(yd, shape), dtype=np.float64).ravel()
+    a, b = _flat(xd, shape), _flat(yd, shape)
     x, y = np.empty_like(a), np.empty_like(b)
-    k1, k2, p1, p2, k3 = (float(v) for v in dist)
-    undistort(a, b, k1, k2, p1, p2, k3, iterations, x, y)
+    _undistort_brown(a, b, np.ascontiguousarray(coeffs, dtype=np.float64), int(max_iter), x, y)
     return x.reshape(shape), y.reshape(shape)
+
+
+def fisheye_theta_arrays(td: np.ndarray, coeffs: np.ndarray, max_iter: int = lm.MAX_ITER) -> np.ndarray:
+    """:func:`fisheye_theta` on an array of distorted radii."""
+    shape = np.shape(td)
+    a = _flat(td, shape)
+    out = np.empty_like(a)
+    _fisheye_thetas(a, np.ascontiguousarray(coeffs, dtype=np.float64), int(max_iter), out)
+    return out.reshape(shape)

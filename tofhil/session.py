@@ -5,6 +5,11 @@ flushed, and only then is the root attribute ``n_frames`` raised and flushed aga
 writer killed at any instant leaves a file whose ``n_frames`` counts only frames whose
 data reached the file; readers trust ``n_frames`` when present, and otherwise the shortest
 per-frame dataset.
+
+Raw taps are stored compactly: in the device's integer type when its taps are integers
+(the TOFcam635's int16 DN), else float32, one frame per chunk through HDF5's shuffle and
+gzip filters (built into every HDF5 library: MATLAB and h5py read them without plugins).
+Readers return float taps either way (an integer store converts exactly).
 """
 
 from __future__ import annotations
@@ -28,6 +33,26 @@ from tofhil.schema import to_plain
 
 FORMAT = "tofhil.session"
 FORMAT_VERSION = 1
+
+#: How :class:`SessionWriter` stores raw taps: ``compact`` (the default: integer taps in their
+#: own type, else float32; shuffle + gzip per frame chunk) or ``float32`` (float32 without
+#: filters: the layout of files written before, for tools that map the data without HDF5).
+TAP_STORAGE = ("compact", "float32")
+#: gzip level of compact taps: level 1 compresses the TOFcam635's 12-bit taps within a few per
+#: cent of level 6 at a fraction of the CPU (benchmarks/bench_session_storage.py).
+TAP_GZIP_LEVEL = 1
+#: Integer types a compact session stores taps in (HDF5's standard integers, which MATLAB reads
+#: as the same classes).
+TAP_INTEGER_TYPES = ("int8", "uint8", "int16", "uint16", "int32", "uint32")
+
+
+def tap_read_dtype(stored: np.dtype) -> np.dtype:
+    """The float type a stored tap type reads as, exactly: float32 for float32 and the 8 and
+    16-bit integers (every value representable), float64 for wider integers and float64."""
+    stored = np.dtype(stored)
+    if stored == np.float32 or (stored.kind in "iu" and stored.itemsize <= 2):
+        return np.dtype(np.float32)
+    return np.dtype(np.float64)
 
 
 
@@ -120,7 +145,19 @@ class SessionWriter:
     def __init__(self, path: str | Path, camera: CameraModel, *, device: dict[str, Any] | None = None,
                  scene_text: str = "", force: bool = False, extra_attrs: dict[str, Any] | None = None,
                  derived: bool = False, sensor_config: Mapping[str, Any] | None = None,
-                 histogram_attrs: Mapping[str, Any] | None = None) -> None:
+                 histogram_attrs: Mapping[str, Any] | None = None, tap_storage: str = "compact",
+                 tap_dtype: str | np.dtype | None = None) -> None:
+        """``tap_storage``: see :data:`TAP_STORAGE`. ``tap_dtype`` (compact only): store the
+        taps in this integer type even when frames hand them over as floats (a copy of an
+        integer session: its reader's floats are exact integers); every frame's taps must
+        then be integers in its range. Without it the first frame's taps decide: an integer
+        array keeps its type, anything else is float32."""
+        if tap_storage not in TAP_STORAGE:
+            raise ValueError(f"tap_storage {tap_storage!r} is not one of {', '.join(TAP_STORAGE)}")
+        if tap_dtype is not None and np.dtype(tap_dtype).name not in TAP_INTEGER_TYPES + ("float32",):
+            raise ValueError(f"tap_dtype {np.dtype(tap_dtype)} is not one of {', '.join(TAP_INTEGER_TYPES)}, float32")
+        self.tap_storage = tap_storage
+        self._tap_dtype = None if tap_dtype is None else np.dtype(tap_dtype)
         self.path = Path(path)
         # Attributes of the histograms/ group of a direct-ToF session (bin_width_s, t0_s, ...).
         self._histogram_attrs = dict(histogram_attrs or {})
@@ -176,8 +213,20 @@ class SessionWriter:
     def _create_raw(self, frame: RawFrame) -> None:
         g = self._hold(self._file.create_group("raw"))
         shape = frame.taps.shape
-        self._hold(g.create_dataset("taps", shape=(0,) + shape, maxshape=(None,) + shape, dtype="f4",
-                         chunks=(1,) + shape))
+        filters: dict[str, Any] = {}
+        dtype = np.dtype(np.float32)
+        if self.tap_storage == "compact":
+            # One frame per chunk as before (a frame is complete or absent after a crash),
+            # shuffled (the high bytes of 12-bit DN are nearly constant) and deflated.
+            filters = {"shuffle": True, "compression": "gzip", "compression_opts": TAP_GZIP_LEVEL}
+            given = np.dtype(frame.taps.dtype)
+            if self._tap_dtype is not None:
+                dtype = self._tap_dtype
+            elif given.kind in "iu" and given.name in TAP_INTEGER_TYPES:
+                dtype = np.dtype(given.name)        # the device's type, native byte order
+        self._hold(g.create_dataset("taps", shape=(0,) + shape, maxshape=(None,) + shape, dtype=dtype,
+                                    chunks=(1,) + shape, **filters))
+        self._tap_store = dtype
         self._hold(g.create_dataset("freq_hz", data=np.asarray(frame.freq_hz, dtype="f8")))
         self._hold(g.create_dataset("theta_rad", data=np.asarray(frame.theta_rad, dtype="f8")))
         g.attrs["integration_time_s"] = float(frame.integration_time_s)
@@ -271,9 +320,10 @@ class SessionWriter:
                 raise ValueError(f"taps shape {raw.taps.shape} differs from the session's {self._raw_shape}")
             if raw.camera.shape != self.camera.shape:
                 raise ValueError("frame camera size differs from the session's camera")
+            taps = self._taps_to_store(raw.taps)
             ds = self._dataset("raw/taps")
             ds.resize(n + 1, axis=0)
-            ds[n] = raw.taps.astype(np.float32, copy=False)
+            ds[n] = taps
         if depth is not None:
             radial = depth.radial_m
             amp = depth.amplitude if depth.amplitude is not None else np.full(radial.shape, np.nan)
@@ -296,6 +346,24 @@ class SessionWriter:
         self.n_frames = n + 1
         self._file.attrs["n_frames"] = self.n_frames
         self._file.flush()  # ... before the count that makes it visible
+
+    def _taps_to_store(self, taps: np.ndarray) -> np.ndarray:
+        """The frame's taps in the stored type; an integer store takes only exact integers in
+        its range (a float tap would be rounded: refused, naming the frame)."""
+        store = self._tap_store
+        if store.kind == "f":
+            return np.asarray(taps).astype(store, copy=False)
+        a = np.asarray(taps)
+        if a.dtype == store:
+            return a
+        info = np.iinfo(store)
+        with np.errstate(invalid="ignore"):
+            ok = a.dtype.kind in "iu" or bool(np.all(np.isfinite(a)) and np.all(a == np.rint(a)))
+        if not ok or a.min(initial=0) < info.min or a.max(initial=0) > info.max:
+            raise ValueError(f"frame {self.n_frames}: raw taps are not {store} integers "
+                             f"(the session stores taps as {store}; values {a.min()}..{a.max()}, "
+                             f"dtype {a.dtype})")
+        return a.astype(store)
 
     def close(self) -> None:
         """Finish the file (a derived output is renamed into place)."""
@@ -553,6 +621,18 @@ class Session:
 
     # ------------------------------------------------------------------ access
     @property
+    def stored_tap_dtype(self) -> np.dtype | None:
+        """The type ``raw/taps`` is stored in (None without raw taps): what a copy of the taps
+        passes as ``SessionWriter(tap_dtype=...)`` to stay as compact when it is an integer."""
+        return np.dtype(self._file["raw/taps"].dtype) if self.has_raw else None
+
+    @property
+    def integer_tap_dtype(self) -> np.dtype | None:
+        """:attr:`stored_tap_dtype` when it is one of :data:`TAP_INTEGER_TYPES`, else None."""
+        dt = self.stored_tap_dtype
+        return dt if dt is not None and dt.name in TAP_INTEGER_TYPES else None
+
+    @property
     def datasets(self) -> list[str]:
         names: list[str] = []
         self._file.visit(lambda k: names.append(k) if isinstance(self._file[k], h5py.Dataset) else None)
@@ -588,7 +668,7 @@ class Session:
             raise InputFileError(f"frame {i} cannot be read ({_os_reason(exc)})", file=self.path,
                                  field="raw/taps") from None
         if taps.dtype != np.float32 and taps.dtype != np.float64:
-            taps = taps.astype(np.float32)  # integer DN from another tool
+            taps = taps.astype(tap_read_dtype(taps.dtype))  # integer DN: exact in the float type
         return RawFrame(taps=taps, freq_hz=self.freq_hz, theta_rad=self.theta_rad,
                         integration_time_s=self.integration_time_s, camera=self.camera,
                         meta=dict(self.tap_limits_meta), **meta)

@@ -304,6 +304,19 @@ def _aruco_corners(img8: np.ndarray, spec: BoardSpec) -> tuple[np.ndarray | None
 
 
 # --------------------------------------------------------------------------- pose
+def opencv_points(camera: CameraModel, image_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(image points, K, dist) for OpenCV's pinhole solvers (solvePnP, stereoCalibrate): the
+    camera's own for plumb_bob and rational (OpenCV takes 5, 8 or 12 coefficients); a
+    fisheye's points undistorted to the pinhole with the same K and no distortion (OpenCV's
+    pinhole solvers have no fisheye model; the points must lie less than 90 degrees off axis)."""
+    img = np.asarray(image_points, dtype=np.float64)
+    if not camera.is_fisheye:
+        return img, camera.K, np.asarray(camera.dist, dtype=np.float64)
+    x, y = camera.undistort_normalized(img[..., 0], img[..., 1])
+    pin = np.stack([camera.fx * x + camera.cx, camera.fy * y + camera.cy], axis=-1)
+    return pin, camera.K, np.zeros(5)
+
+
 def board_pose(detection: BoardDetection, camera: CameraModel) -> BoardPose:
     """The board's pose from its detected corners (solvePnP, IPPE then LM refinement)."""
     import cv2
@@ -315,13 +328,13 @@ def board_pose(detection: BoardDetection, camera: CameraModel) -> BoardPose:
                           f"{camera.width}x{camera.height}", field="camera", expected="the image's camera")
     obj = detection.object_points.astype(np.float64)
     img = detection.image_points.astype(np.float64)
-    K, dist = camera.K, np.asarray(camera.dist, dtype=np.float64)
-    ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
+    pin, K, dist = opencv_points(camera, img)
+    ok, rvec, tvec = cv2.solvePnP(obj, pin, K, dist, flags=cv2.SOLVEPNP_IPPE)
     if not ok:
-        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+        ok, rvec, tvec = cv2.solvePnP(obj, pin, K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
     if not ok:
         raise TofhilError("solvePnP found no pose", field="target", expected="a board seen in the image")
-    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec)
+    rvec, tvec = cv2.solvePnPRefineLM(obj, pin, K, dist, rvec, tvec)
     T = np.eye(4)
     T[:3, :3] = cv2.Rodrigues(rvec)[0]
     T[:3, 3] = tvec.ravel()

@@ -231,6 +231,26 @@ class SequencePairer:
 _HOST_SOURCE_CLASS: Any = None
 
 
+def factory_lens(calib: Any, socket: Any) -> tuple[str, tuple[float, ...], dict[str, float]]:
+    """(model, dist, terms left out) of a socket's factory lens (``dai.CalibrationHandler``):
+    ``Fisheye`` -> ``fisheye`` (k1..k4); ``Perspective`` -> OpenCV's 14 coefficients as the
+    shortest model that holds them (``plumb_bob``, ``rational`` with or without thin prism).
+    The sensor tilt (tau_x, tau_y) has no place in these models: left out when not zero,
+    and said so."""
+    dai = _dai()
+    coeffs = [float(c) for c in calib.getDistortionCoefficients(socket)]
+    kind = getattr(calib, "getDistortionModel", None)
+    if kind is not None and kind(socket) == dai.CameraModel.Fisheye:
+        return "fisheye", tuple((coeffs + [0.0] * 4)[:4]), {}
+    c = (coeffs + [0.0] * 14)[:14]
+    dropped = {name: v for name, v in zip(("tau_x", "tau_y"), c[12:14]) if v != 0.0}
+    if any(c[8:12]):
+        return "rational", tuple(c[:12]), dropped
+    if any(c[5:8]):
+        return "rational", tuple(c[:8]), dropped
+    return "plumb_bob", tuple(c[:5]), dropped
+
+
 def host_source_class() -> Any:
     """The :class:`HostToFSource` class (defined lazily: it subclasses a depthai type)."""
     global _HOST_SOURCE_CLASS
@@ -404,13 +424,14 @@ class DepthAIToF(Driver):
         """Intrinsics (and distortion unless the node undistorts) from the factory calibration."""
         w, h = self._sensor_size
         k = np.asarray(self._calib.getCameraIntrinsics(self._socket, w, h), dtype=float)
-        dist = [0.0] * 5
+        model, dist = "plumb_bob", (0.0,) * 5
         if not self.tof.enable_distortion_correction:
-            coeffs = list(self._calib.getDistortionCoefficients(self._socket)) + [0.0] * 14
-            dist = coeffs[:5]  # (k1, k2, p1, p2, k3); k4..k6 are left out (noted in info)
-            self._info.extra["rational_terms_dropped"] = coeffs[5:8]
-        return CameraModel(width=w, height=h, fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2], dist=tuple(dist),
-                           name=f"{PRESET} (factory calibration)", extra=dict(load_camera_preset(PRESET).extra))
+            model, dist, dropped = factory_lens(self._calib, self._socket)
+            if dropped:
+                self._info.extra["lens_terms_dropped"] = dropped
+        return CameraModel(width=w, height=h, fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2], dist=dist,
+                           distortion_model=model, name=f"{PRESET} (factory calibration)",
+                           extra=dict(load_camera_preset(PRESET).extra))
 
     def _build(self) -> None:
         """Create the pipeline, its outputs' queues and start it."""
@@ -469,9 +490,12 @@ class DepthAIToF(Driver):
         kw: dict[str, Any] = {} if self.tof.fps is None else {"fps": float(self.tof.fps)}
         out = cam.requestOutput((w, h), dai.ImgFrame.Type.RGB888i, **kw)
         k = np.asarray(self._calib.getCameraIntrinsics(socket, w, h), dtype=float)
-        dist = (list(self._calib.getDistortionCoefficients(socket)) + [0.0] * 5)[:5]
+        model, dist, dropped = factory_lens(self._calib, socket)
+        if dropped:
+            self._info.extra["color_lens_terms_dropped"] = dropped
         self.rgb_camera = CameraModel(width=w, height=h, fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2],
-                                      dist=tuple(dist), name=f"{socket.name} colour (factory calibration)")
+                                      dist=dist, distortion_model=model,
+                                      name=f"{socket.name} colour (factory calibration)")
         self.tof_to_rgb = np.asarray(self._calib.getCameraExtrinsics(self._socket, socket,
                                                                      unit=dai.LengthUnit.METER), dtype=float)
         self._info.extra["color_socket"] = socket.name

@@ -116,7 +116,7 @@ def resolve_camera(camera: str | Path | CameraModel | None, default: str | Camer
 
 def _write(out: Path, camera: CameraModel, device: dict[str, Any], items: Iterable[tuple[Any, Any]],
            force: bool, n_total: int, on_frame: Callable[[int, int], None] | None,
-           scene_text: str = "") -> int:
+           scene_text: str = "", tap_dtype: Any = None) -> int:
     """Write ``(raw, depth)`` frames to a new session.
 
     The session is written beside ``out`` under a temporary name and renamed onto ``out``
@@ -125,7 +125,7 @@ def _write(out: Path, camera: CameraModel, device: dict[str, Any], items: Iterab
     """
     refuse_existing(out, force, recorded=True)
     tmp = partial_path(out)
-    writer = SessionWriter(tmp, camera, device=device, scene_text=scene_text, force=True)
+    writer = SessionWriter(tmp, camera, device=device, scene_text=scene_text, force=True, tap_dtype=tap_dtype)
     try:
         for i, (raw, depth) in enumerate(items):
             writer.append(raw=raw, depth=depth)
@@ -170,11 +170,12 @@ def _import_k4a(rec: Any, src: Path, out: Path, camera: str | Path | CameraModel
                    "depth_conversion": ("radial = z * |(x, y, 1)| with the factory rational model's rays"
                                         if camera is None else f"radial = z / ray_z of {origin}"),
                    "amplitude": "active IR, device counts",
-                   "camera_source": "calibration.json (refit to OpenCV 5-parameter)" if camera is None else origin,
+                   "camera_source": (f"calibration.json ({rec.fit.method})" if camera is None else origin),
                    "camera_fit": rec.fit.to_dict(), "k4a_tags": rec.tags, "k4a_calibration": rec.calibration,
                    "timestamps": "device time = block time + K4A_START_OFFSET_NS"})
-    notes.append(f"lens: rational model refit to OpenCV 5-parameter, max residual "
-                 f"{rec.fit.max_residual_px:.3f} px (rms {rec.fit.rms_residual_px:.3f} px) over "
+    exact = rec.fit.camera.distortion_model == "rational"
+    notes.append(f"lens: {'factory rational model kept exactly' if exact else 'rational model refit to OpenCV 5-parameter'}"
+                 f", max residual {rec.fit.max_residual_px:.3g} px (rms {rec.fit.rms_residual_px:.3g} px) over "
                  f"{rec.fit.n_pixels} pixels")
 
     def k4a_frames() -> Any:
@@ -298,7 +299,8 @@ def import_file(path: str | Path, out: str | Path, *, camera: str | Path | Camer
                                    sequence=d.sequence, temperature_c=d.temperature_c)
                 yield raw, d
 
-        n = _write(out, cam, device, session_items(), force, s.n_frames, on_frame, scene_text=s.scene_text)
+        n = _write(out, cam, device, session_items(), force, s.n_frames, on_frame, scene_text=s.scene_text,
+                   tap_dtype=s.integer_tap_dtype)      # integer taps stay in their type
         if s.n_frames < max(s.dataset_lengths.values()):
             notes.append(f"source had {max(s.dataset_lengths.values())} partly written frames; "
                          f"copied the {s.n_frames} complete ones")

@@ -16,13 +16,14 @@ radial distance, so ``radial = z * |(x, y, 1)|`` with ``(x, y)`` the undistorted
 normalised coordinates of each pixel under the full factory model.
 
 Lens model: the factory model is Brown-Conrady with a *rational* radial term
-``(1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)``; OpenCV's 5-parameter model
-(ours) has no denominator. We keep fx, fy, cx, cy and refit ``(k1, k2, p1, p2, k3)`` by linear
-least squares so that the 5-parameter model maps each pixel's true ray back onto that
-pixel, over every pixel inside the calibration's metric radius, and report the largest
-and RMS reprojection residual in pixels. The original calibration is kept verbatim in the
-session's device JSON, and the radial distances are computed with the exact rational
-model, not with the refit.
+``(1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)``: OpenCV's rational model,
+which the session's camera holds exactly (``model: rational``, ``dist = (k1, k2, p1, p2, k3,
+k4, k5, k6)``). Only a calibration with a centre of distortion ``(codx, cody)`` off the
+principal point (the SDK's BrownConrady model leaves it at 0) is not an OpenCV model; it is
+refitted to ``(k1, k2, p1, p2, k3)`` by linear least squares so that the 5-parameter model maps
+each pixel's true ray back onto that pixel. Either way the largest and RMS reprojection
+residual in pixels are reported, the original calibration is kept verbatim in the session's
+device JSON, and the radial distances are computed with the exact factory model.
 """
 
 from __future__ import annotations
@@ -79,6 +80,15 @@ class K4AIntrinsics:
         yd = yp * d + (rs + 2 * yp * yp) * self.p1 + 2 * xp * yp * self.p2 + self.cody
         return xd, yd
 
+    def camera_model(self, name: str = "") -> CameraModel | None:
+        """The factory model as OpenCV's rational model, exactly; None when the centre of
+        distortion is off the principal point (no OpenCV model has that term)."""
+        if self.codx != 0.0 or self.cody != 0.0:
+            return None
+        k1, k2, k3, k4, k5, k6 = self.k
+        return CameraModel(width=self.width, height=self.height, fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy,
+                           dist=(k1, k2, self.p1, self.p2, k3, k4, k5, k6), distortion_model="rational", name=name)
+
     def undistort(self, u: np.ndarray, v: np.ndarray, iters: int = 50) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Pixel -> undistorted normalised coordinates and a validity mask.
 
@@ -109,16 +119,22 @@ class K4AIntrinsics:
         return x, y, valid
 
 
+#: How the session's camera was made from the factory model (the device JSON's ``camera_fit``).
+EXACT_METHOD = "the factory rational Brown-Conrady model as OpenCV's rational model (k1..k6, p1, p2), exactly"
+REFIT_METHOD = ("OpenCV (k1,k2,p1,p2,k3) least-squares refit of the factory rational Brown-Conrady model "
+                "(its centre of distortion is off the principal point); fx, fy, cx, cy kept")
+
+
 @dataclass
 class CameraFit:
     camera: CameraModel
     max_residual_px: float
     rms_residual_px: float
     n_pixels: int
+    method: str = REFIT_METHOD
 
     def to_dict(self) -> dict[str, Any]:
-        return {"method": "OpenCV (k1,k2,p1,p2,k3) least-squares refit of the factory rational "
-                          "Brown-Conrady model; fx, fy, cx, cy kept",
+        return {"method": self.method,
                 "max_residual_px": self.max_residual_px, "rms_residual_px": self.rms_residual_px,
                 "pixels_fitted": self.n_pixels}
 
@@ -234,6 +250,24 @@ def intrinsics_from_calibration(calib: dict[str, Any], depth_mode: str, *, sourc
                          k=(p["k1"], p["k2"], p["k3"], p["k4"], p["k5"], p["k6"]), p1=p["p1"], p2=p["p2"],
                          codx=p["codx"], cody=p["cody"],
                          metric_radius=float(cam.get("MetricRadius") or math.inf))
+
+
+def factory_camera(intr: K4AIntrinsics, name: str = "azure_kinect_depth", step: int = 2,
+                   support: np.ndarray | None = None) -> CameraFit:
+    """The session's camera of the factory model: exact (rational) when OpenCV can hold it,
+    else :func:`fit_opencv_model`; residuals of the factory rays reprojected, in pixels, over
+    the pixels that see anything (``support``) inside the metric radius."""
+    cam = intr.camera_model(name)
+    if cam is None:
+        return fit_opencv_model(intr, name, step, support)
+    v, u = np.mgrid[0:intr.height:step, 0:intr.width:step].astype(np.float64)
+    x, y, ok = intr.undistort(u, v)
+    if support is not None and support[::step, ::step].sum() > 1000:
+        ok &= support[::step, ::step]
+    uv = cam.project(np.stack([x[ok], y[ok], np.ones(int(ok.sum()))], axis=1))
+    res = np.hypot(uv[:, 0] - u[ok], uv[:, 1] - v[ok])
+    return CameraFit(cam, float(res.max(initial=0.0)), float(np.sqrt(np.mean(res ** 2))) if res.size else 0.0,
+                     int(res.size), EXACT_METHOD)
 
 
 def fit_opencv_model(intr: K4AIntrinsics, name: str = "azure_kinect_depth", step: int = 2,
@@ -358,5 +392,5 @@ def _read(mkv: MatroskaFile, path: Path, max_frames: int | None, salvage: bool) 
     support = np.zeros((intr.height, intr.width), bool)
     for i in range(min(len(refs), 30)):
         support |= rec.frame(i)[1] > 0
-    rec.fit = fit_opencv_model(intr, support=support)
+    rec.fit = factory_camera(intr, support=support)
     return rec

@@ -293,7 +293,7 @@ class TofCam635(Driver):
         int_time_s = h.int_time_0 * 1e-6 if h.int_time_0 else (self.settings.integration_time_s or math.nan)
         if mode == "dcs":
             taps, theta = dcs_to_canonical(P.decode_dcs(img), self.profile)
-            raw = RawFrame(taps=taps[None].astype(np.float32), freq_hz=[freq], theta_rad=theta,
+            raw = RawFrame(taps=taps[None], freq_hz=[freq], theta_rad=theta,   # int16 DN, as the device gives them
                            integration_time_s=int_time_s, camera=camera, timestamp_s=ts, sequence=seq,
                            temperature_c=h.temperature_c, meta=meta)
             return Frame(raw=raw, sequence=seq, timestamp_s=ts)

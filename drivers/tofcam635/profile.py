@@ -41,8 +41,12 @@ TOFCAM635 = DeviceProfile(
 
 
 def dcs_to_canonical(dcs: np.ndarray, profile: DeviceProfile = TOFCAM635) -> tuple[np.ndarray, np.ndarray]:
-    """Device DCS ``[4, H, W]`` (12-bit around 2048) -> canonical taps (DN, offset removed) and phases."""
-    taps = np.asarray(dcs, dtype=np.float32) - np.float32(profile.dcs_offset)
+    """Device DCS ``[4, H, W]`` (12-bit around 2048) -> canonical taps (DN, offset removed) and
+    phases. The taps stay integers in the device's own type (int16: -2048..2047), so a session
+    stores them as the device delivered them (docs/session-format.md)."""
+    d = np.asarray(dcs)
+    wide = d.astype(np.int32) - np.int32(profile.dcs_offset)   # (no int16 wrap on a corrupt value)
+    taps = wide.astype(np.int16) if wide.size == 0 or (wide.min() >= -32768 and wide.max() <= 32767) else wide
     return profile.taps.to_canonical(taps)
 
 

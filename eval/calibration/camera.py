@@ -19,12 +19,22 @@ import numpy as np
 from tofhil.boards import BoardSpec
 from tofhil.camera import CameraModel
 from tofhil.errors import TofhilError
-from tofhil.targets import BoardDetection, amplitude_image, detect_board
+from tofhil.targets import BoardDetection, amplitude_image, detect_board, opencv_points
 from tofhil.progress import Progress
 
-#: Distortion models: the coefficients of (k1, k2, p1, p2, k3) that are fitted.
+#: Distortion models: the coefficients fitted. ``none`` .. ``full``: of plumb_bob's (k1, k2, p1,
+#: p2, k3); ``rational``: OpenCV's rational model (``CALIB_RATIONAL_MODEL``: k1..k6, p1, p2);
+#: ``thin_prism``: rational + thin prism (``CALIB_THIN_PRISM_MODEL``: s1..s4 too); ``fisheye``:
+#: ``cv2.fisheye.calibrate`` (k1..k4, equidistant).
 DISTORTION_MODELS = {"none": (), "k1": ("k1",), "k1k2": ("k1", "k2"), "k1k2p": ("k1", "k2", "p1", "p2"),
-                     "full": ("k1", "k2", "p1", "p2", "k3")}
+                     "full": ("k1", "k2", "p1", "p2", "k3"),
+                     "rational": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+                     "thin_prism": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4"),
+                     "fisheye": ("k1", "k2", "k3", "k4")}
+#: The camera model (tofhil.lens_models) each calibration model gives.
+CAMERA_MODEL = {"rational": "rational", "thin_prism": "rational", "fisheye": "fisheye"}
+#: OpenCV's order of calibrateCameraExtended's standard deviations after fx, fy, cx, cy.
+_STD_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tau_x", "tau_y")
 #: Fewest views a calibration accepts (each view gives a homography: 3 fix the intrinsics).
 MIN_VIEWS = 3
 #: Fewest corners for a view to take part.
@@ -103,6 +113,10 @@ def mean_amplitude(session_path: str | Path) -> tuple[np.ndarray, CameraModel]:
 def _flags(model: str) -> int:
     import cv2
 
+    if model == "rational":
+        return cv2.CALIB_RATIONAL_MODEL
+    if model == "thin_prism":
+        return cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_THIN_PRISM_MODEL
     fitted = set(DISTORTION_MODELS[model])
     flags = 0
     for name, flag in (("k1", cv2.CALIB_FIX_K1), ("k2", cv2.CALIB_FIX_K2), ("k3", cv2.CALIB_FIX_K3)):
@@ -163,8 +177,11 @@ def calibrate_camera(images: Sequence[tuple[str, np.ndarray]], target: BoardSpec
                               field="SESSIONS", expected=f"at least {MIN_VIEWS} views with the whole board in sight")
         obj = [v.detection.object_points.astype(np.float32) for v in used]
         img = [v.detection.image_points.astype(np.float32) for v in used]
-        result = cv2.calibrateCameraExtended(obj, img, (w, h), None, None, flags=flags,
-                                             criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12))
+        if model == "fisheye":
+            result = _fisheye_calibrate(obj, img, (w, h), base)
+        else:
+            result = cv2.calibrateCameraExtended(obj, img, (w, h), None, None, flags=flags,
+                                                 criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12))
         per_view = np.asarray(result[7]).ravel()
         for v, e in zip(used, per_view):
             v.rms_px = float(e)
@@ -181,16 +198,51 @@ def calibrate_camera(images: Sequence[tuple[str, np.ndarray]], target: BoardSpec
         T[:3, :3] = cv2.Rodrigues(r)[0]
         T[:3, 3] = np.asarray(t).ravel()
         v.board_to_camera = T
-    d = np.zeros(5)
+    n_coef = len(DISTORTION_MODELS[model]) if model in CAMERA_MODEL else 5
+    d = np.zeros(n_coef)
     dist = np.asarray(dist, dtype=np.float64).ravel()
-    d[:min(5, dist.size)] = dist[:5]
+    d[:min(n_coef, dist.size)] = dist[:n_coef]
     fields = {"width": w, "height": h, "fx": float(K[0, 0]), "fy": float(K[1, 1]),
-              "cx": float(K[0, 2]), "cy": float(K[1, 2]), "dist": tuple(float(x) for x in d)}
+              "cx": float(K[0, 2]), "cy": float(K[1, 2]), "dist": tuple(float(x) for x in d),
+              "distortion_model": CAMERA_MODEL.get(model, "plumb_bob")}
     camera = replace(base, **fields) if base is not None else CameraModel(**fields)
     std = np.asarray(std_int, dtype=np.float64).ravel()
-    names = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"]
+    names = ("fx", "fy", "cx", "cy") + (DISTORTION_MODELS[model] if model == "fisheye" else _STD_NAMES)
     std_d = {n: float(s) for n, s in zip(names, std) if n in ("fx", "fy", "cx", "cy") or n in DISTORTION_MODELS[model]}
     return CameraCalibration(camera=camera, rms_px=float(rms), views=views, model=model, std_intrinsics=std_d)
+
+
+def _fisheye_calibrate(obj: list[np.ndarray], img: list[np.ndarray], size: tuple[int, int],
+                       base: CameraModel | None) -> tuple[Any, ...]:
+    """``cv2.fisheye.calibrate`` in the shape of ``calibrateCameraExtended``'s answer: (rms,
+    K, D, rvecs, tvecs, std of the intrinsics, -, per-view RMS). The fisheye solver gives no
+    standard deviations (NaN) and no per-view errors (computed here by reprojection). It
+    starts from the base camera's intrinsics when it is a fisheye of the same size."""
+    import cv2
+
+    # (1, N, 3) per view: the layout cv2.fisheye.calibrate accepts in OpenCV 4 and 5 alike
+    objs = [o.reshape(1, -1, 3).astype(np.float64) for o in obj]
+    imgs = [i.reshape(1, -1, 2).astype(np.float64) for i in img]
+    def flag(name: str) -> int:  # OpenCV 4 has them in cv2.fisheye, OpenCV 5 in cv2 (other values)
+        return int(getattr(cv2.fisheye, name, None) or getattr(cv2, name))
+
+    flags = flag("CALIB_RECOMPUTE_EXTRINSIC") | flag("CALIB_FIX_SKEW")
+    K0, D0 = np.zeros((3, 3)), np.zeros((4, 1))
+    if base is not None and base.is_fisheye:
+        K0, D0 = base.K.copy(), np.asarray(base.dist, dtype=np.float64).reshape(4, 1)
+        flags |= flag("CALIB_USE_INTRINSIC_GUESS")
+    try:
+        rms, K, D, rvecs, tvecs = cv2.fisheye.calibrate(
+            objs, imgs, size, K0, D0, flags=flags,
+            criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12))
+    except cv2.error as exc:
+        raise TofhilError(f"cv2.fisheye.calibrate failed ({str(exc).strip().splitlines()[-1]})", field="--model",
+                          expected="board views spread over the field of a fisheye lens") from None
+    per_view = []
+    for o, i, r, t in zip(objs, imgs, rvecs, tvecs):
+        proj, _ = cv2.fisheye.projectPoints(o.reshape(-1, 1, 3), r, t, K, D)
+        per_view.append(float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - i.reshape(-1, 2)) ** 2, axis=-1)))))
+    return rms, K, D, rvecs, tvecs, np.full(8, np.nan), None, np.asarray(per_view)
 
 
 def calibrate_sessions(sessions: Sequence[str | Path], target: BoardSpec | str | dict, *, model: str = "k1k2p",
@@ -283,7 +335,11 @@ def calibrate_stereo(pairs: Sequence[tuple[str, np.ndarray, np.ndarray]], target
     if len(obj) < 1:
         raise TofhilError(f"no usable view pair of {len(views)}", field="SESSIONS",
                           expected="views where both cameras see the board")
-    da_, db_ = np.asarray(tof_camera.dist, float), np.asarray(other_camera.dist, float)
+    # (a fisheye's corners as its pinhole would see them: OpenCV's stereo solver is pinhole)
+    img_a = [opencv_points(tof_camera, i)[0].astype(np.float32) for i in img_a]
+    img_b = [opencv_points(other_camera, i)[0].astype(np.float32) for i in img_b]
+    _, _, da_ = opencv_points(tof_camera, np.zeros((0, 2)))
+    _, _, db_ = opencv_points(other_camera, np.zeros((0, 2)))
     out = cv2.stereoCalibrateExtended(obj, img_a, img_b, tof_camera.K, da_, other_camera.K, db_,
                                       (tof_camera.width, tof_camera.height), np.eye(3), np.zeros((3, 1)),
                                       flags=cv2.CALIB_FIX_INTRINSIC,

@@ -300,8 +300,8 @@ def check_aligned(a: DepthFrame, b: DepthFrame) -> dict[str, Any]:
     if a.camera.shape != b.camera.shape:
         raise TofhilError(f"images are {a.camera.shape} and {b.camera.shape}", field="camera",
                           expected="two sessions with the same camera model (pixel-aligned comparison)")
-    same = (a.camera.fx, a.camera.fy, a.camera.cx, a.camera.cy, a.camera.dist) == \
-           (b.camera.fx, b.camera.fy, b.camera.cx, b.camera.cy, b.camera.dist)
+    same = (a.camera.fx, a.camera.fy, a.camera.cx, a.camera.cy, a.camera.distortion_model, a.camera.dist) == \
+           (b.camera.fx, b.camera.fy, b.camera.cx, b.camera.cy, b.camera.distortion_model, b.camera.dist)
     return {"same_intrinsics": bool(same)}
 
 

@@ -364,7 +364,7 @@ def visible_from(scene: Any, points: np.ndarray, cameras: Sequence[CameraModel],
     seen = np.zeros(len(points), dtype=bool)
     for cam, pose in zip(cameras, poses):
         pc = (points - pose[:3, 3]) @ pose[:3, :3]       # world -> camera
-        front = pc[:, 2] > 1e-6
+        front = (pc[:, 2] > 1e-6) | cam.is_fisheye     # (a fisheye images points beside and behind it too)
         uv = np.full((len(points), 2), -1.0)
         uv[front] = cam.project(pc[front])
         inside = front & (uv[:, 0] > -0.5) & (uv[:, 0] < cam.width - 0.5) & (uv[:, 1] > -0.5) \

@@ -141,7 +141,7 @@ def session_inputs(path: str | Path, frame: int = 0, tof_to_color: np.ndarray | 
 
     def pixel_to_ray(u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         x, y = cam.undistort_normalized(np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64))
-        return x, y, np.ones(np.shape(x), bool)
+        return x, y, np.isfinite(x) & np.isfinite(y)      # (no ray, or a fisheye's beyond 90 degrees)
 
     img = rgb.images[int(where[0])]
     img = img if img.ndim == 3 and img.dtype == np.uint8 else grey_to_rgb(img)

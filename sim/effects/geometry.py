@@ -50,7 +50,9 @@ class LensDistortionEffect(Effect):
     rank = 20
     summary = "OpenCV coefficients added to the camera's; the renderer's rays follow them"
     doc = ("Lens distortion the camera model lacks: OpenCV coefficients added to the camera's "
-           "(k1, k2, p1, p2, k3). The renderer's pixel rays follow the distorted model.")
+           "(k1, k2, p1, p2, k3; of a rational camera the same five, of a fisheye k1, k2, k3 of its "
+           "theta polynomial, p1 and p2 then changing nothing). The renderer's pixel rays follow the "
+           "distorted model.")
     params = {
         "k1": Param(0.0, -1.0, 1.0, "", "radial r^2 coefficient", fit=(-0.5, 0.5), step=0.01,
                      starts=(-0.1, 0.1, -0.25, 0.25)),
@@ -62,5 +64,4 @@ class LensDistortionEffect(Effect):
 
     def apply_scene(self, scene: Any, values: Mapping[str, Any]) -> Any:
         cam = scene.camera
-        dist = tuple(a + float(values[k]) for a, k in zip(cam.dist, ("k1", "k2", "p1", "p2", "k3")))
-        return dataclasses.replace(scene, camera=dataclasses.replace(cam, dist=dist))
+        return dataclasses.replace(scene, camera=cam.with_added_distortion({k: float(values[k]) for k in self.params}))

@@ -345,8 +345,14 @@ def test_lens_distortion_bends_the_pixel_rays() -> None:
     # Planes at z = 1 (wall) and 0.999 (patch): radial distance along each (distorted-model)
     # pixel ray is z / ray_z.
     z = np.where(res.object_id == 1, 0.999, 1.0)
-    np.testing.assert_allclose(res.radial_m, z / warped.camera.ray_z, rtol=1e-6)
-    assert not np.allclose(res.radial_m, z / scene.camera.ray_z, rtol=1e-3)
+    # k1 = -0.3 maps no ray beyond the distorted radius 2 / (3 sqrt(0.9)) (the fold of
+    # r (1 + k1 r^2)): the image corners there see nothing
+    cam = warped.camera
+    v, u = np.mgrid[0:cam.height, 0:cam.width]
+    has_ray = np.hypot((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy) < 2 / (3 * np.sqrt(0.9))
+    np.testing.assert_array_equal(np.isfinite(res.radial_m), has_ray)
+    np.testing.assert_allclose(res.radial_m[has_ray], (z / warped.camera.ray_z)[has_ray], rtol=1e-6)
+    assert not np.allclose(res.radial_m[has_ray], (z / scene.camera.ray_z)[has_ray], rtol=1e-3)
 
 
 def test_forward_on_a_cached_render_does_not_render(monkeypatch) -> None:

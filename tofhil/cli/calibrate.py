@@ -25,7 +25,9 @@ def calibrate_camera_cmd(
         out_path: Path = typer.Option(..., "--out", parser=opt.new_file, help="Camera preset to write (.yaml)."),
         model: str = typer.Option("k1k2p", "--model",
                                   help="Distortion coefficients fitted: none | k1 | k1k2 | k1k2p (k1, k2, p1, p2) | "
-                                       "full (k1, k2, p1, p2, k3)."),
+                                       "full (k1, k2, p1, p2, k3) | rational (OpenCV CALIB_RATIONAL_MODEL: "
+                                       "k1..k6, p1, p2) | thin_prism (rational + CALIB_THIN_PRISM_MODEL: s1..s4) | "
+                                       "fisheye (cv2.fisheye.calibrate: k1..k4, equidistant)."),
         max_view_error: float = typer.Option(1.0, "--max-view-error", parser=opt.finite(0.0, lo_open=True, unit="px"),
                                              help="A view is rejected when its RMS reprojection error exceeds this "
                                                   "and 3x the median view's."),
@@ -52,7 +54,7 @@ def calibrate_camera_cmd(
         state = f"RMS {v.rms_px:.4f} px" if v.used else f"rejected: {v.reason}"
         out.print(f"{lit(v.name)}: {v.corners} corners, {lit(state)}", highlight=False, soft_wrap=True)
     c = cal.camera
-    out.print(f"fx {c.fx:.3f}  fy {c.fy:.3f}  cx {c.cx:.3f}  cy {c.cy:.3f}  dist "
+    out.print(f"fx {c.fx:.3f}  fy {c.fy:.3f}  cx {c.cx:.3f}  cy {c.cy:.3f}  {c.distortion_model} dist "
               + " ".join(f"{d:.5g}" for d in c.dist) + f"  (RMS {cal.rms_px:.4f} px over {len(cal.used)} views)",
               highlight=False, soft_wrap=True)
     out.print(f"wrote camera preset to {lit(out_path)}", highlight=False, soft_wrap=True)

@@ -28,7 +28,8 @@ def info(session: Path = typer.Argument(..., parser=opt.existing_file, help="A s
               f"{lit(summary['software_version'])}, created {lit(summary['created_utc'])})")
     out.print(f"device    {lit(json.dumps(summary['device']))}")
     out.print(f"camera    {lit(cam.get('name') or '-')} {cam['width']}x{cam['height']}  fx={cam['fx']:.2f} "
-              f"fy={cam['fy']:.2f} cx={cam['cx']:.2f} cy={cam['cy']:.2f} dist={cam['dist']}")
+              f"fy={cam['fy']:.2f} cx={cam['cx']:.2f} cy={cam['cy']:.2f} {cam.get('model', 'plumb_bob')} "
+              f"dist={cam['dist']}")
     out.print(f"frames    {summary['n_frames']}   raw={summary['has_raw']} depth={summary['has_depth']} "
               f"scene={'embedded' if summary['scene'] else 'none'}")
     if summary["has_raw"]:
@@ -56,7 +57,7 @@ def depth(session: Path = typer.Argument(..., parser=opt.existing_file, help="A 
         if not s.has_raw:
             raise TofhilError("has no raw taps to demodulate", file=session, field="raw/taps")
         with SessionWriter(out_path, s.camera, device=s.device, scene_text=s.scene_text, force=force,
-                           derived=True) as w:
+                           derived=True, tap_dtype=s.integer_tap_dtype) as w:  # (taps copied as stored)
             for raw in progress(s.raw_frames(), s.n_frames, "demodulating"):
                 w.append(raw, depth_from_raw(raw, min_amplitude=min_amplitude, margin=margin))
             n = w.n_frames

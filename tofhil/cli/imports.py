@@ -54,7 +54,7 @@ def import_(file: Path = typer.Argument(..., parser=opt.existing_file,
     cam = result.camera
     out.print(f"wrote {result.n_frames} frame(s) from {lit(file)} ({lit(result.format)}) to {lit(result.out)}")
     out.print(f"camera {lit(cam.name or '-')} {cam.width}x{cam.height} fx={cam.fx:.2f} fy={cam.fy:.2f} "
-              f"cx={cam.cx:.2f} cy={cam.cy:.2f} dist={[round(v, 6) for v in cam.dist]}")
+              f"cx={cam.cx:.2f} cy={cam.cy:.2f} {cam.distortion_model} dist={[round(v, 6) for v in cam.dist]}")
     for note in result.notes:
         out.print(f"note: {lit(note)}")
 
