@@ -24,6 +24,7 @@ from tofhil.outputs import prepare_output_dir, refuse_existing
 from tofhil.demod import bad_tap_pixels
 from tofhil.errors import TofhilError
 from tofhil.eval.metrics import core as M
+from tofhil.eval.diagnose.channels import residual_by_channel, sensor_noise_variance
 from tofhil.eval.diagnose.depth_heldout import observable_candidates, split_for_diagnosis
 from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal
 from tofhil.eval.diagnose.linear_forms import MAP_EFFECT, fit_frame_drift
@@ -76,6 +77,10 @@ class DiagnosisResult:
     identifiability: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     #: Per cause, the other families the held-out data cannot tell from it ("A or B").
     alternatives: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    #: The defective pixels found before any fit (``eval/diagnose/defects.py``), excluded.
+    defects: dict[str, Any] = field(default_factory=dict)
+    #: The held-out residual by channel (``eval/diagnose/channels.py``), base twin and extended.
+    channel_table: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict.to_json() if self.verdict else None, "channels": self.channels,
@@ -91,7 +96,7 @@ class DiagnosisResult:
                 "data_path": self.data.channels, "noise": self.data.noise,
                 "observability": self.observability.to_json(), "residual_structure": self.structure,
                 "drift": self.drift, "effect_size": self.effect_size, "identifiability": self.identifiability,
-                "alternatives": self.alternatives}
+                "alternatives": self.alternatives, "defects": self.defects, "residual_by_channel": self.channel_table}
         # (the run time is in the report, not here: the same inputs give the same file, bit for bit)
 
 
@@ -417,6 +422,18 @@ def _rmse_worse_notes(verdict: V.Verdict, gain: dict[str, dict[str, float]]) -> 
                                  "the RMSE does not")
 
 
+def _channel_tables(data: HeldOutData, model: TwinModel, after_model: TwinModel, base_pred: np.ndarray,
+                    after_pred: np.ndarray) -> dict[str, Any]:
+    """The held-out residual by channel with the base twin and with the extended one."""
+    noise = sensor_noise_variance(data)
+    out = {}
+    for key, m, pred in (("before", model, base_pred), ("after", after_model, after_pred)):
+        taps = m.taps({}) if data.taps_test is not None else None
+        out[key] = residual_by_channel(data, pred, taps_measured=data.taps_test, taps_predicted=taps,
+                                       model_variance=noise).to_json()
+    return out
+
+
 def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_relative_gain: float = 0.02,
              candidates: list[str] | None = None, block_px: int = 8, max_frames: int | None = None,
              render_kwargs: dict[str, Any] | None = None, progress: Callable[[str], None] | None = None,
@@ -435,6 +452,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                                                      unobservable=facts.unobservable)
     if progress:
         progress(f"channels: {data.channels}; noise: {data.noise}")
+        if data.defects is not None and data.defects.count:
+            progress(data.defects.text())
     if data.test_pixels.sum() < 20:
         raise TofhilError("too few usable pixels (signal above noise, not saturated) to diagnose",
                           file=session_path, field="raw/taps")
@@ -458,6 +477,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     n = judge.n
 
     evidence = _evidence(selection, data)
+    if data.defects is not None and data.defects.count:
+        evidence.insert(0, "defects: " + data.defects.text())
     for line in selection.too_small.values():
         evidence.append(f"not named, its held-out gain is too small or makes a channel worse: {line}")
     verdict, ch_after, objects_after, worse, after_model, after_pred = _settle(
@@ -501,6 +522,9 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     maps |= _signature_maps(model, data, selection)
     maps["above_noise_after"] = np.where(data.usable, above_after, np.nan)
     structure = residual_structure(data, after_pred, maps_after, object_id, object_names)
+    if data.defects is not None:
+        maps["defects"] = data.defects.mask.astype(float)
+    table = _channel_tables(data, model, after_model, base_pred, after_pred)
     return DiagnosisResult(cause=selection.causes[0] if selection.causes else None, causes=list(selection.causes),
                            ranked=ranked, rounds=rounds, gain=gain, regions=regions,
                            extended_scene=str(ext_path) if ext_path else "", params=params,
@@ -522,7 +546,9 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                            identifiability={e: [t.to_json() for t in selection.unidentified.get(e, ())]
                                             for e in selection.causes if selection.unidentified.get(e)},
                            alternatives={e: [a.to_json() for a in selection.alternatives[e]]
-                                         for e in selection.causes if e in selection.alternatives})
+                                         for e in selection.causes if e in selection.alternatives},
+                           defects=data.defects.to_json() if data.defects is not None else {},
+                           channel_table=table)
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,

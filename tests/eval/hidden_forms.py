@@ -78,6 +78,42 @@ def unmodulated_offset(rng: np.random.Generator, times_signal: float = 2.0) -> C
 
 
 FrameChange = Callable[[OpticalSignal, int, int], OpticalSignal]
+#: A change of the recorded taps ``[F, K, H, W]`` of frame ``i``.
+TapChange = Callable[[np.ndarray, int], np.ndarray]
+
+
+def stuck_pixels(rng: np.random.Generator, fraction: float = 0.003) -> TapChange:
+    """A fraction of the pixels stuck: their taps random constants, the same in every frame
+    (dead and stuck pixels of real sensors)."""
+    seed = int(rng.integers(1 << 30))
+
+    def change(taps: np.ndarray, i: int) -> np.ndarray:
+        r = np.random.default_rng(seed)
+        f, k, h, w = taps.shape
+        idx = r.choice(h * w, max(int(round(fraction * h * w)), 1), replace=False)
+        v, u = np.unravel_index(idx, (h, w))
+        hi = float(np.percentile(taps, 99))
+        taps[:, :, v, u] = r.uniform(0.0, hi, (f, k, idx.size))
+        return taps
+
+    return change
+
+
+def hot_pixels(rng: np.random.Generator, fraction: float = 0.003, times_noise: float = 20.0) -> TapChange:
+    """Hot pixels: a dark charge far above the signal's, with its shot noise, new every frame."""
+    seed = int(rng.integers(1 << 30))
+
+    def change(taps: np.ndarray, i: int) -> np.ndarray:
+        r = np.random.default_rng(seed)
+        f, k, h, w = taps.shape
+        idx = r.choice(h * w, max(int(round(fraction * h * w)), 1), replace=False)
+        v, u = np.unravel_index(idx, (h, w))
+        spread = float(np.median(np.abs(np.diff(taps, axis=-1)))) + 1.0
+        noise = np.random.default_rng((seed, i)).standard_normal((f, k, idx.size))
+        taps[:, :, v, u] += times_noise * spread * (1.0 + noise)
+        return taps
+
+    return change
 
 
 def linear_drift(rng: np.random.Generator, span_m: float | None = None) -> FrameChange:
@@ -108,9 +144,10 @@ def emitter_power_drift(span: float) -> FrameChange:
 
 
 def write_session(scene: Any, path: Path, change: Change | None, *, frames: int = 4, seed: int = 0,
-                  frame_change: FrameChange | None = None) -> Path:
+                  frame_change: FrameChange | None = None, tap_change: TapChange | None = None) -> Path:
     """A session of ``frames`` noisy frames of the scene's twin with ``change`` applied to its
-    light, and ``frame_change`` to each frame's (given its index and the number of frames)."""
+    light, ``frame_change`` to each frame's (given its index and the number of frames), and
+    ``tap_change`` to each frame's recorded taps (what the pixels themselves do wrong)."""
     from tofhil.depth import depth_from_raw
     from tofhil.session import SessionWriter
     from tofhil.sim.scene import scene_to_yaml
@@ -127,5 +164,7 @@ def write_session(scene: Any, path: Path, change: Change | None, *, frames: int 
         for i in range(frames):
             light = signal if frame_change is None else frame_change(signal, i, frames)
             raw = sensor.expose(light, seed=seed, frame_index=i, noise=True)
+            if tap_change is not None:
+                raw = dataclasses.replace(raw, taps=tap_change(np.array(raw.taps), i).astype(raw.taps.dtype))
             w.append(raw, depth_from_raw(raw))
     return path
