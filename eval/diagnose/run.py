@@ -153,19 +153,23 @@ def heldout_metrics(data: HeldOutData, prediction: np.ndarray, defined: np.ndarr
     ev = M.evaluate(measured, twin, [held] + [r for r in objs if r.mask.sum() >= 5],
                     wrap_m=M.wrap_period(data.freq_hz), cloud_regions=[HELD_OUT], cell_size=ndt_cell_m,
                     threshold=icp_max_distance_m, icp_max_distance=icp_max_distance_m, include_all=False,
-                    source="held-out data")
+                    source="held-out data", freq_hz=data.freq_hz)
     h = ev.regions[HELD_OUT]
     metrics = {"depth_rmse_m": h.depth_rmse_m, "depth_median_m": h.depth_residual_m.median,
                "depth_mad_m": h.depth_residual_m.mad, "amplitude_rmse": h.amplitude_difference.rmse,
-               "chi2_per_value": data.chi2(prediction, "test") / max(data.n_values("test"), 1)}
+               "chi2_per_value": data.chi2(prediction, "test") / max(data.n_values("test"), 1),
+               "unwrap_error_pixels": h.unwrap_error_pixels or 0, "depth_compared_pixels": h.depth_residual_m.n}
     if h.cloud is not None and h.ndt is not None:
         metrics["icp_inlier_rmse_m"] = h.cloud.icp_inlier_rmse
         metrics["icp_fitness"] = h.cloud.icp_fitness
         metrics["ndt_score_per_point"] = h.ndt.score_per_point
         metrics["ndt_nvtl"] = h.ndt.nvtl
         metrics["ndt_mean_likelihood_trilinear"] = h.ndt.mean_likelihood_trilinear
+    # unwrapping errors are counted and mapped apart: no surface of the twin is that wrong
+    unwrapped = ev.maps.unwrap_error if ev.maps.unwrap_error is not None else np.zeros(data.camera.shape, bool)
     maps = {"depth_measured": np.asarray(measured.radial_m), "depth_twin": np.asarray(twin.radial_m),
-            "depth_residual": ev.maps.depth_residual_m, "amplitude_residual": ev.maps.amplitude_difference,
+            "depth_residual": np.where(unwrapped, np.nan, ev.maps.depth_residual_m),
+            "unwrap_error": unwrapped.astype(float), "amplitude_residual": ev.maps.amplitude_difference,
             "ndt_likelihood": ev.ndt_map if ev.ndt_map is not None else np.full(data.camera.shape, np.nan)}
     return metrics, maps, ev
 
@@ -516,6 +520,14 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     gain = {k: {"before": before[k], "after": after.get(k, float("nan"))} for k in before}
     if selection.causes and verdict is not None:
         _rmse_worse_notes(verdict, gain)
+    for key, label in (("before", "with the base twin"), ("after", "with the extended twin")):
+        n_wrong = int(gain["unwrap_error_pixels"][key])
+        if n_wrong:
+            verdict.notes.append(f"{n_wrong} held-out pixels unwrapped to the wrong interval {label} (a phase "
+                                 "inconsistency between the frequencies, or noise in them): mapped, not in the depth "
+                                 f"figures ({int(gain['depth_compared_pixels'][key])} pixels compared)")
+    if data.defects is not None and data.defects.count:
+        verdict.notes.insert(0, data.defects.text())
     regions = {"before": ev_before.to_json()["regions"], "after": ev_after.to_json()["regions"]}
     ranked, rounds = _ranking(selection)
     maps = {f"{k}_before": v for k, v in maps_before.items()} | {f"{k}_after": v for k, v in maps_after.items()}

@@ -104,3 +104,27 @@ def test_a_clean_twin_session_has_no_defects(tmp_path, scene):
     res = diagnose(path, scene, max_effects=1)
     assert res.defects["pixels"] == 0, res.defects
     assert res.verdict.kind == "within noise"
+
+
+def test_two_frequency_unwrapping_errors_are_counted_not_in_the_rmse(tmp_path, scene):
+    """A 44 + 60 MHz sensor, nothing hidden: noise in the dark square's phases unwraps some
+    pixels to the wrong interval (metres off). They are counted and mapped; the depth RMSE is
+    that of the pixels that carry a measurement (it read 1.5 m before)."""
+    import dataclasses
+
+    from tofhil.eval.diagnose.run import diagnose
+
+    two = dataclasses.replace(scene, sensor=dataclasses.replace(scene.sensor, freq_hz=(44e6, 60e6)))
+    path = hf.write_session(two, tmp_path / "two.h5", None, frames=6, seed=13)
+    res = diagnose(path, two, max_effects=1)
+    assert res.verdict.kind == "within noise", res.verdict.text
+    g = res.gain
+    assert g["depth_rmse_m"]["before"] < 0.05, g["depth_rmse_m"]
+    n_wrong = g["unwrap_error_pixels"]["before"]
+    assert int(res.maps["unwrap_error_before"].sum()) == n_wrong
+    if n_wrong:
+        assert any("unwrapped to the wrong interval" in n for n in res.verdict.notes)
+    table = res.channel_table["before"]
+    names = [r["name"] for r in table["readings"]]
+    assert "44 MHz phase" in names and "60 MHz phase" in names and "phase inconsistency" in names
+    assert "frequency" not in table["significant"], table
