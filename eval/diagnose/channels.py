@@ -10,8 +10,8 @@ is a part of the residual the noise cannot make).
 - **per frequency**: the complex ratio measured / predicted of each frequency, as a phase
   (rad, and the path length it means) and a gain; with two or more frequencies, whether
   their phases agree (a phase on one frequency alone is a calibration error, not a surface);
-- **per tap** (raw taps): the measured taps against the predicted ones, per tap a gain and an
-  offset relative to the taps' common ones (what alternates with the tap index);
+- **per tap** (raw taps, 4 or more): the taps' part that alternates with the tap index, which
+  no change of the light can make (a pose, a range, a phase): tap gains and offsets can;
 - **offset**: the unmodulated part (the taps' mean), where the session has it;
 - **per frame**: each frame's phase and gain against the mean of all frames, and its trend;
 - **noise**: the measured frame-to-frame scatter against what the read + shot noise model
@@ -190,60 +190,50 @@ def noise_readings(data: HeldOutData, model_variance: np.ndarray | None) -> list
                            f"the frame-to-frame scatter is {ratio:.2f} x the sensor noise model's at these signal levels")]
 
 
+def _off_sinusoid(taps: np.ndarray, theta_rad: np.ndarray) -> np.ndarray:
+    """The alternating part ``(1/K) sum_k (-1)^k c_k`` of taps ``[F, K, H, W]`` (K even, 4 or
+    more): orthogonal to ``B`` and to the fundamental, so no change of the light (a range, a
+    gain, a phase, a pose) can make it; tap gains (with an offset), tap offsets and even
+    harmonics do."""
+    k = taps.shape[1]
+    sign = (-1.0) ** np.arange(k)
+    return np.tensordot(sign, taps, axes=([0], [1])) / k          # [F, H, W]
+
+
 def tap_readings(theta_rad: np.ndarray, measured: np.ndarray, predicted: np.ndarray, pixels: np.ndarray,
-                 noise_var: np.ndarray) -> list[ChannelReading]:
-    """Per tap, the gain and offset that take the predicted taps ``[F, K, H, W]`` to the
-    measured ones, relative to the taps' common gain and offset: the part of the residual
-    that follows the tap index (``noise_var``: a tap's variance of the mean, ``[H, W]``)."""
+                 noise_var: np.ndarray, *, with_offset: bool = True) -> list[ChannelReading]:
+    """The part of the residual that follows the tap index: the taps' alternating part
+    (:func:`_off_sinusoid`), measured minus predicted, as a constant (a tap offset pattern) and
+    in proportion to the pixel's offset level (a tap gain pattern, where the readout has an
+    offset of its own). ``noise_var``: a tap's variance of the mean ``[H, W]``."""
     k = measured.shape[1]
-    if k < 3:
+    if k < 4 or k % 2:
         return []
+    d = (_off_sinusoid(measured, theta_rad) - _off_sinusoid(predicted, theta_rad))[:, pixels].ravel()
+    level = np.broadcast_to(measured.mean(axis=1)[:, pixels], (measured.shape[0], int(pixels.sum()))).ravel()
+    var = np.broadcast_to(noise_var[pixels] / k, (measured.shape[0], int(pixels.sum()))).ravel()
+    w = 1.0 / np.maximum(var, 1e-300)
+    mean_level = float(np.mean(np.abs(level))) or 1.0
     out = []
-    gains, offsets, se_g, se_o = [], [], [], []
-    for j in range(k):
-        x = predicted[:, j][:, pixels].ravel()
-        y = measured[:, j][:, pixels].ravel()
-        w = 1.0 / np.maximum(np.broadcast_to(noise_var[pixels], (predicted.shape[0], int(pixels.sum()))).ravel(), 1e-300)
-        sw, sx, sy = w.sum(), (w * x).sum(), (w * y).sum()
-        sxx, sxy = (w * x * x).sum(), (w * x * y).sum()
+    if with_offset and float(np.std(level)) > 1e-6 * mean_level:
+        # d = o + g * level: a tap offset pattern o and a tap gain pattern g (weighted least squares)
+        sw, sx, sy = w.sum(), (w * level).sum(), (w * d).sum()
+        sxx, sxy = (w * level * level).sum(), (w * level * d).sum()
         det = sw * sxx - sx * sx
-        if det <= 0:
-            return []
-        g = (sw * sxy - sx * sy) / det
-        o = (sxx * sy - sx * sxy) / det
-        gains.append(g)
-        offsets.append(o)
-        se_g.append(math.sqrt(sw / det))
-        se_o.append(math.sqrt(sxx / det))
-    g0, o0 = float(np.mean(gains)), float(np.mean(offsets))
-    level = float(np.mean(predicted[:, :, pixels]))
-    for j in range(k):
-        dg = gains[j] / g0 - 1.0
-        out.append(ChannelReading("tap", f"tap {j} gain", dg, se_g[j] / g0, "",
-                                  f"tap {j} ({np.degrees(theta_rad[j]):.0f} deg): gain {100 * dg:+.2f} % of the taps' mean"))
-        do = offsets[j] - o0
-        out.append(ChannelReading("tap", f"tap {j} offset", do / max(level, 1e-30), se_o[j] / max(level, 1e-30), "",
-                                  f"tap {j}: offset {do:+.3g} DN from the taps' mean ({100 * do / max(level, 1e-30):+.2f} "
-                                  "% of the mean tap)"))
+        if det > 0:
+            g = (sw * sxy - sx * sy) / det
+            o = (sxx * sy - sx * sxy) / det
+            out.append(ChannelReading("tap", "tap gain pattern", float(g), float(math.sqrt(sw / det)), "",
+                                      f"per tap: the odd taps' gain {-200 * g:+.3f} % against the even taps' (the "
+                                      "alternating part grows with the offset level)"))
+            out.append(ChannelReading("tap", "tap offset pattern", float(o) / mean_level,
+                                      float(math.sqrt(sxx / det)) / mean_level, "",
+                                      f"per tap: the odd taps' offset {-2 * o:+.3g} DN against the even taps'"))
+            return out
+    o = float(np.sum(w * d) / np.sum(w))
+    out.append(ChannelReading("tap", "tap pattern", o / mean_level, float(math.sqrt(1.0 / np.sum(w))) / mean_level, "",
+                              f"per tap: the odd taps read {-2 * o:+.3g} DN against the even taps"))
     return out
-
-
-def sensor_noise_variance(data: HeldOutData) -> np.ndarray | None:
-    """The noise variance of one frame's S per real component ``[F, H, W]`` that the session's
-    recorded sensor predicts (read noise and shot noise at the measured tap levels, plus the
-    ADC's quantisation); None without a recorded sensor or raw taps."""
-    cfg = data.sensor_config
-    if not cfg or data.taps_test is None:
-        return None
-    try:
-        g = float(cfg["conversion_gain_dn_per_e"])
-        read_dn = float(cfg["read_noise_e"]) * g
-        black = float(cfg.get("black_level_dn", 0.0))
-    except (KeyError, TypeError, ValueError):
-        return None
-    k = data.taps_test.shape[1]
-    var_tap = g * np.maximum(data.taps_test - black, 0.0) + read_dn ** 2 + 1.0 / 12.0   # [F, K, H, W]
-    return (2.0 / k ** 2) * var_tap.sum(axis=1)
 
 
 def residual_by_channel(data: HeldOutData, prediction: np.ndarray, *, taps_measured: np.ndarray | None = None,
@@ -256,7 +246,11 @@ def residual_by_channel(data: HeldOutData, prediction: np.ndarray, *, taps_measu
         k = taps_measured.shape[1]
         # a tap's noise variance of the mean from S's: var(S) per real part = 2 sigma^2 / K
         tap_var = data.var_test[:data.n_freq].real.mean(axis=0) * k / 2.0
-        table.readings += tap_readings(data.theta_rad, taps_measured, taps_predicted, data.test_pixels, tap_var)
+        table.readings += tap_readings(data.theta_rad, taps_measured, taps_predicted, data.test_pixels, tap_var,
+                                       with_offset=data.offset_channel)
+        if not data.offset_channel:
+            table.notes.append("per tap: the readout reports no offset of its own (or it does not vary): tap gains "
+                               "only, read on the taps' modulated part")
     else:
         table.notes.append("per tap: the session has no raw taps (depth + amplitude): the tap channel cannot be read")
     table.readings += offset_readings(data, prediction)
