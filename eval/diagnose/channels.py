@@ -236,6 +236,24 @@ def tap_readings(theta_rad: np.ndarray, measured: np.ndarray, predicted: np.ndar
     return out
 
 
+def sensor_noise_variance(data: HeldOutData) -> np.ndarray | None:
+    """The noise variance of one frame's S per real component ``[F, H, W]`` that the session's
+    recorded sensor predicts (read noise and shot noise at the measured tap levels, plus the
+    ADC's quantisation); None without a recorded sensor or raw taps."""
+    cfg = data.sensor_config
+    if not cfg or data.taps_test is None:
+        return None
+    try:
+        g = float(cfg["conversion_gain_dn_per_e"])
+        read_dn = float(cfg["read_noise_e"]) * g
+        black = float(cfg.get("black_level_dn", 0.0))
+    except (KeyError, TypeError, ValueError):
+        return None
+    k = data.taps_test.shape[1]
+    var_tap = g * np.maximum(data.taps_test - black, 0.0) + read_dn ** 2 + 1.0 / 12.0   # [F, K, H, W]
+    return (2.0 / k ** 2) * var_tap.sum(axis=1)
+
+
 def residual_by_channel(data: HeldOutData, prediction: np.ndarray, *, taps_measured: np.ndarray | None = None,
                         taps_predicted: np.ndarray | None = None,
                         model_variance: np.ndarray | None = None) -> ChannelTable:
