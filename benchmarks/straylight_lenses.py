@@ -3,7 +3,7 @@
     python benchmarks/straylight_lenses.py [--markdown out.md] [--lenses ghost_7px,field_lobe]
 
 Every lens of ``tests/straylight_lenses.py`` (kernels written there, independent of
-``sim/straylight.py``) scatters the 80 x 60 dark-square scene, noise-free; printed is the
+``sim/straylight/``) scatters the 80 x 60 dark-square scene, noise-free; printed is the
 fraction of the dark-square error removed at 50 / 5 / 2 / 1 % reflectivity by:
 
 - the Gaussian-dictionary PSF, ONE calibration on a card over black (the issue's baseline);

@@ -43,6 +43,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import yaml
 
+from tofhil.outputs import refuse_existing
 from tofhil.camera import CameraModel
 from tofhil.depth import saturated_amplitude
 from tofhil.errors import TofhilError
@@ -449,21 +450,19 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
     ``target``: a board the capture shows (:class:`tofhil.boards.BoardSpec` or its text): its
     pose comes from the amplitude image (photogrammetry, :func:`tofhil.targets.board_pose_from_amplitude`),
     not from the depth, and it is written as a ``board`` object; the range offset and the
-    pose are then observable (the board is truth the depth did not decide)."""
+    pose are then observable (the board is truth the depth did not decide).
+
+    The steps: the capture's frame; a known target's pose (:func:`_target_of`); planes
+    segmented from the cloud and the rest (:func:`_planes_and_rest`), written as outlines and
+    a mesh (:func:`_write_geometry`); the emitter profile, power and reflectances fitted to
+    the amplitude image (:func:`_fit_radiometry`); the pixels beyond the unambiguous range
+    (:func:`_beyond_unambiguous_range`); the scene and its metadata written."""
     from tofhil.sim.scene import load_scene, scene_from_yaml
 
     t0 = time.perf_counter()
     say = progress or (lambda _m: None)
     out_path = Path(out_path)
-    if out_path.is_dir():
-        raise TofhilError("is a directory", file=out_path, field="--out", expected="a scene file name (.yaml)")
-    if not out_path.parent.is_dir():
-        raise TofhilError("directory does not exist", file=out_path.parent, field="--out")
-    sidecars = [out_path, metadata_path_for(out_path), out_path.with_name(out_path.stem + VALID_SUFFIX),
-                out_path.with_name(out_path.stem + MESH_SUFFIX)]
-    existing = [p for p in sidecars if p.exists()] + sorted(out_path.parent.glob(out_path.stem + PLANE_GLOB))
-    if existing and not force:
-        raise TofhilError("already exists; refusing to overwrite (use --force)", file=existing[0], field="--out")
+    sidecars = _outputs(out_path, force)
 
     with open_session(session_path) as s:
         df = s.requested_depth_frame(frame)
@@ -477,75 +476,18 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
     if valid.sum() < 500:
         raise TofhilError(f"has {int(valid.sum())} valid depth pixels in frame {frame}", file=session_path,
                           field="depth/valid", expected="at least 500 to fit a scene")
-
-    # ---- a known target: its pose from the amplitude image; its pixels are not segmented
-    board: BoardFit | None = None
-    if target is not None:
-        if not has_amp:
-            raise TofhilError("has no amplitude image", file=session_path, field="--target",
-                              expected="a capture with amplitude (the board is found in it)")
-        board = fit_board(amp, cam, target)
-        say(f"target: {board.spec.kind} {board.spec.cols}x{board.spec.rows} found ({board.pose.detection.n} corners, "
-            f"reprojection {board.pose.rms_px:.3f} px rms); pose from the amplitude image, not from depth")
-        if board.pose.rms_px > 1.0:
-            warnings.append(f"the board's corners reproject with {board.pose.rms_px:.2f} px rms: its pose is "
-                            "uncertain (blur, a bent board, or a camera model that does not fit)")
-
-    # ---- geometry
-    pts_hw = cam.rays * radial[..., None]
-    seg = valid if board is None else valid & ~board.pixels
-    pix = np.flatnonzero(seg)
-    points = pts_hw.reshape(-1, 3)[pix]
-    med = float(np.median(radial[valid]))
-    thr = threshold_m if threshold_m is not None else float(np.clip(0.01 * med, 0.004, 0.03))
-    say(f"segmenting planes (RANSAC, inlier threshold {thr * 1e3:.1f} mm) in {len(points)} points")
-    planes = _segment_planes(points, pix, cam.shape, max_planes=max_planes, threshold_m=thr, min_fraction=0.02)
-    kept = []
-    for p in planes:
-        frac = occluding_fraction(cam, p, radial, valid, 3.0 * thr)
-        if frac > MAX_OCCLUDING_FRACTION:
-            say(f"{p.name}: its rectangle would hide {100 * frac:.0f}% of what the camera saw behind it; "
-                "left to the mesh")
-        else:
-            kept.append(p)
-    planes = [dataclasses.replace(p, name=f"plane{i}") for i, p in enumerate(kept)]
-    on_plane = np.zeros(cam.shape, bool)
-    for p in planes:
-        on_plane |= p.pixels
-    rest = valid & ~on_plane if board is None else valid & ~on_plane & ~board.pixels
-    mesh_file: str | None = None
+    board = _target_of(target, amp, has_amp, cam, session_path, warnings, say)
+    pts_hw, planes, rest, thr = _planes_and_rest(cam, radial, valid, board, threshold_m, max_planes, say)
     mesh_path = out_path.with_name(out_path.stem + MESH_SUFFIX)
     written: list[Path] = []
-    stride = max(1, int(round(math.sqrt(cam.width * cam.height / 65536))))
     try:
-        for p in planes:
-            # the patch's own outline (holes where something else was seen in front of it), not
-            # the rectangle around it: pixels a rectangle would cover beyond the patch are not the plane
-            plane_file = out_path.with_name(f"{out_path.stem}_{p.name}.ply")
-            written.append(plane_file)
-            if write_plane_outline(cam, p, plane_file, stride):
-                p.outline_file = plane_file.name
-            else:
-                plane_file.unlink(missing_ok=True)
-        if mesh and rest.sum() >= 200:
-            from tofhil.open3d_loader import open3d
-
-            verts, tris = grid_mesh(pts_hw, rest, stride=stride)
-            if len(tris):
-                o3d = open3d()
-                m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris))
-                written.append(mesh_path)
-                o3d.io.write_triangle_mesh(str(mesh_path), m, write_ascii=False)
-                mesh_file = mesh_path.name
-                say(f"the non-planar rest: {len(tris)} triangles from {int(rest.sum())} pixels -> {mesh_path.name}")
+        mesh_file = _write_geometry(out_path, cam, planes, pts_hw, rest, mesh=mesh, written=written, say=say)
         if not planes and mesh_file is None:
             raise TofhilError("no planar patch and no surface to mesh was found", file=session_path,
                               field="depth/radial_m", expected="a frame showing surfaces")
 
         # ---- radiometry: render with unit power, compare with the amplitude image
         names = [p.name for p in planes] + (["rest"] if mesh_file else []) + (["board"] if board else [])
-        refl = {n: ASSUMED_REFLECTANCE for n in names}
-        beam_n, power = 1.0, 1.0
         base_dir = out_path.resolve().parent
         desc = f"twin of {Path(session_path).name} frame {frame} (tofhil scene-from-capture)"
 
@@ -553,77 +495,16 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
             d = _scene_dict(out_path.stem, cam, freqs, wl, planes, mesh_file, r, power_w, prof, desc, board)
             return d, scene_from_yaml(yaml.safe_dump(d, sort_keys=False), source=str(out_path), base_dir=base_dir)
 
-        radiometry: dict[str, Any] = {"amplitude": "absent: reflectances and power are assumed"}
-        profile: dict[str, Any] = {"type": "cos_n", "n": beam_n}
         if has_amp:
-            usable = valid & np.isfinite(amp) & (amp > 0) & ~saturated_amplitude(amp, valid)
-            say("rendering the twin for the radiometry fit")
-            _, sc = build(power, profile, refl)
-            pred, _, oid = _predicted_amplitude(sc)
-            biggest = max(range(len(names)), key=lambda i: int(((oid == i) & usable).sum()))
-            sel = (oid == biggest) & usable & (pred > 0)
-            cos_e = cam.rays[..., 2]
-            if sel.sum() > 100 and np.ptp(np.log(cos_e[sel])) > 0.05:
-                x, y = np.log(cos_e[sel]), np.log(amp[sel] / pred[sel])
-                slope = float(np.polyfit(x, y, 1)[0])
-                beam_n = float(np.clip(1.0 + slope, 0.0, 30.0))
-                profile = {"type": "cos_n", "n": round(beam_n, 4)}
-                _, sc = build(power, profile, refl)
-                pred, _, oid = _predicted_amplitude(sc)
-                # What cos^n cannot follow (a diffuser flatter than cos^0, vignetting beyond
-                # cos^4): an even polynomial in the emission angle, fitted to every object's
-                # log ratio after its own level; written as a table profile.
-                m = usable & (pred > 0) & (oid >= 0)
-                table, g_rms = fit_profile_table(np.degrees(np.arccos(np.clip(cos_e, -1, 1))), amp, pred, oid, m,
-                                                 beam_n)
-                if table is not None:
-                    profile = table
-                    _, sc = build(power, profile, refl)
-                    pred, _, oid = _predicted_amplitude(sc)
-                    say(f"emitter profile: cos^{beam_n:.2f} corrected by a table over the emission angle "
-                        f"({g_rms:.2f} rms in log amplitude)")
-            ratio = {}
-            for i, n in enumerate(names):
-                m = (oid == i) & usable & (pred > 0)
-                ratio[n] = float(np.median(amp[m] / pred[m])) if m.sum() >= 20 else float("nan")
-            ref = ratio[names[biggest]]
-            top = max(v for k, v in ratio.items() if math.isfinite(v) and k != "board")
-            # The render had power 1 W and reflectance R0 everywhere; amplitude is linear in
-            # power x reflectance, so object n needs P r_n / R0 = ratio_n. Only the product is
-            # seen: the largest surface gets R0 unless another would then exceed 1. A board's
-            # ink and paper reflectances are known, so its ratio is the power itself.
-            if board is not None and math.isfinite(ratio.get("board", float("nan"))):
-                power = ratio["board"]
-            else:
-                power = max(ref, ASSUMED_REFLECTANCE * top)
-            refl = {n: float(np.clip(ASSUMED_REFLECTANCE * v / power, 1e-4, 1.0)) if math.isfinite(v)
-                    else ASSUMED_REFLECTANCE for n, v in ratio.items() if n != "board"}
-            _, sc = build(power, profile, refl)
-            pred, _, oid = _predicted_amplitude(sc)
-            m = usable & (pred > 0)
-            lr = np.log(amp[m] / pred[m])
-            radiometry = {"amplitude": "fitted", "beam_exponent_n": beam_n, "profile": profile["type"],
-                          "power_w": power,
-                          "reflectance": refl, "reflectance_of_largest_surface_assumed": ASSUMED_REFLECTANCE,
-                          "log_amplitude_residual_median": float(np.median(lr)),
-                          "log_amplitude_residual_mad": float(1.4826 * np.median(np.abs(lr - np.median(lr)))),
-                          "pixels": int(m.sum())}
-            say(f"radiometry: beam cos^{beam_n:.2f}" + (" + table" if profile["type"] == "table" else "")
-                + f", power {power:.4g} W, reflectances " + ", ".join(f"{k} {v:.3f}" for k, v in refl.items()))
+            power, profile, refl, radiometry = _fit_radiometry(build, names, cam, amp, valid, board, say)
         else:
+            refl = {n: ASSUMED_REFLECTANCE for n in names}
+            power, profile = 1.0, {"type": "cos_n", "n": 1.0}
+            radiometry = {"amplitude": "absent: reflectances and power are assumed"}
             warnings.append("the session has no amplitude image: reflectances and emitter power are assumed")
         scene_d, sc = build(power, profile, refl)
-
-        # ---- unambiguous range of the frequencies
-        plan = frequency_plan(np.asarray(freqs))
-        r_u = float(plan.unambiguous_range_m)
-        _, twin_r, oid = _predicted_amplitude(sc) if has_amp else (None, *_render_range(sc))
-        inside = ~(np.isfinite(twin_r) & (twin_r >= r_u)) & ~(valid & (radial >= r_u))
+        inside, r_u = _beyond_unambiguous_range(sc, freqs, radial, valid, has_amp, warnings)
         n_out = int((~inside).sum())
-        if n_out:
-            warnings.append(f"{n_out} pixels ({100.0 * n_out / inside.size:.1f}%) see the scene beyond the "
-                            f"unambiguous range {r_u:.3f} m of {', '.join(f'{f / 1e6:g} MHz' for f in freqs)}: "
-                            "the twin wraps there; they are outside the valid mask")
 
         meta = {"source_session": str(session_path), "frame": frame, "frequencies_hz": freqs,
                 "frequencies_from": freq_src, "wavelength_m": wl, "unambiguous_range_m": r_u,
@@ -650,6 +531,183 @@ def scene_from_capture(session_path: str | Path, out_path: str | Path, *, frame:
         raise
     return CaptureScene(scene_path=out_path, metadata_path=sidecars[1], valid_path=sidecars[2],
                         mesh_path=mesh_path if mesh_file else None, planes=planes, metadata=meta, warnings=warnings)
+
+
+def _outputs(out_path: Path, force: bool) -> list[Path]:
+    """The files scene-from-capture writes (scene, metadata, valid mask, mesh); refuses a
+    directory, a missing directory and, without ``force``, any of them existing."""
+    if out_path.is_dir():
+        raise TofhilError("is a directory", file=out_path, field="--out", expected="a scene file name (.yaml)")
+    if not out_path.parent.is_dir():
+        raise TofhilError("directory does not exist", file=out_path.parent, field="--out")
+    sidecars = [out_path, metadata_path_for(out_path), out_path.with_name(out_path.stem + VALID_SUFFIX),
+                out_path.with_name(out_path.stem + MESH_SUFFIX)]
+    existing = [p for p in sidecars if p.exists()] + sorted(out_path.parent.glob(out_path.stem + PLANE_GLOB))
+    if existing:
+        refuse_existing(existing[0], force, field="--out")
+    return sidecars
+
+
+def _target_of(target: Any, amp: np.ndarray | None, has_amp: bool, cam: CameraModel, session_path: str | Path,
+               warnings: list[str], say: Callable[[str], None]) -> BoardFit | None:
+    """A known target: its pose from the amplitude image (its pixels are then not segmented)."""
+    if target is None:
+        return None
+    if not has_amp:
+        raise TofhilError("has no amplitude image", file=session_path, field="--target",
+                          expected="a capture with amplitude (the board is found in it)")
+    board = fit_board(amp, cam, target)
+    say(f"target: {board.spec.kind} {board.spec.cols}x{board.spec.rows} found ({board.pose.detection.n} corners, "
+        f"reprojection {board.pose.rms_px:.3f} px rms); pose from the amplitude image, not from depth")
+    if board.pose.rms_px > 1.0:
+        warnings.append(f"the board's corners reproject with {board.pose.rms_px:.2f} px rms: its pose is "
+                        "uncertain (blur, a bent board, or a camera model that does not fit)")
+    return board
+
+
+def _planes_and_rest(cam: CameraModel, radial: np.ndarray, valid: np.ndarray, board: BoardFit | None,
+                     threshold_m: float | None, max_planes: int, say: Callable[[str], None]
+                     ) -> tuple[np.ndarray, list[PlanePatch], np.ndarray, float]:
+    """The cloud ``[H, W, 3]``, the planes segmented from it (less those whose rectangle would
+    hide what the camera saw behind them), the pixels left for the mesh and the inlier
+    threshold used."""
+    pts_hw = cam.rays * radial[..., None]
+    seg = valid if board is None else valid & ~board.pixels
+    pix = np.flatnonzero(seg)
+    points = pts_hw.reshape(-1, 3)[pix]
+    med = float(np.median(radial[valid]))
+    thr = threshold_m if threshold_m is not None else float(np.clip(0.01 * med, 0.004, 0.03))
+    say(f"segmenting planes (RANSAC, inlier threshold {thr * 1e3:.1f} mm) in {len(points)} points")
+    planes = _segment_planes(points, pix, cam.shape, max_planes=max_planes, threshold_m=thr, min_fraction=0.02)
+    kept = []
+    for p in planes:
+        frac = occluding_fraction(cam, p, radial, valid, 3.0 * thr)
+        if frac > MAX_OCCLUDING_FRACTION:
+            say(f"{p.name}: its rectangle would hide {100 * frac:.0f}% of what the camera saw behind it; "
+                "left to the mesh")
+        else:
+            kept.append(p)
+    planes = [dataclasses.replace(p, name=f"plane{i}") for i, p in enumerate(kept)]
+    on_plane = np.zeros(cam.shape, bool)
+    for p in planes:
+        on_plane |= p.pixels
+    rest = valid & ~on_plane if board is None else valid & ~on_plane & ~board.pixels
+    return pts_hw, planes, rest, thr
+
+
+def _write_geometry(out_path: Path, cam: CameraModel, planes: list[PlanePatch], pts_hw: np.ndarray,
+                    rest: np.ndarray, *, mesh: bool, written: list[Path], say: Callable[[str], None]) -> str | None:
+    """Each plane's outline beside the scene (its ``outline_file`` set) and, with ``mesh``,
+    the non-planar rest as a triangle mesh; every file written is added to ``written``.
+    Returns the mesh's file name (None: no mesh)."""
+    mesh_file: str | None = None
+    mesh_path = out_path.with_name(out_path.stem + MESH_SUFFIX)
+    stride = max(1, int(round(math.sqrt(cam.width * cam.height / 65536))))
+    for p in planes:
+        # the patch's own outline (holes where something else was seen in front of it), not
+        # the rectangle around it: pixels a rectangle would cover beyond the patch are not the plane
+        plane_file = out_path.with_name(f"{out_path.stem}_{p.name}.ply")
+        written.append(plane_file)
+        if write_plane_outline(cam, p, plane_file, stride):
+            p.outline_file = plane_file.name
+        else:
+            plane_file.unlink(missing_ok=True)
+    if mesh and rest.sum() >= 200:
+        from tofhil.open3d_loader import open3d
+
+        verts, tris = grid_mesh(pts_hw, rest, stride=stride)
+        if len(tris):
+            o3d = open3d()
+            m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris))
+            written.append(mesh_path)
+            o3d.io.write_triangle_mesh(str(mesh_path), m, write_ascii=False)
+            mesh_file = mesh_path.name
+            say(f"the non-planar rest: {len(tris)} triangles from {int(rest.sum())} pixels -> {mesh_path.name}")
+    return mesh_file
+
+
+def _fit_radiometry(build: Callable[[float, dict[str, Any], dict[str, float]], Any], names: list[str],
+                    cam: CameraModel, amp: np.ndarray, valid: np.ndarray, board: BoardFit | None,
+                    say: Callable[[str], None]) -> tuple[float, dict[str, Any], dict[str, float], dict[str, Any]]:
+    """The emitter's profile (cos^n, then a table over the emission angle where cos^n cannot
+    follow), power and each object's reflectance fitted to the amplitude image by rendering
+    the twin (``build(power, profile, reflectances)`` -> (scene dict, scene)); returns them and
+    the radiometry report."""
+    refl = {n: ASSUMED_REFLECTANCE for n in names}
+    beam_n, power = 1.0, 1.0
+    profile: dict[str, Any] = {"type": "cos_n", "n": beam_n}
+    usable = valid & np.isfinite(amp) & (amp > 0) & ~saturated_amplitude(amp, valid)
+    say("rendering the twin for the radiometry fit")
+    _, sc = build(power, profile, refl)
+    pred, _, oid = _predicted_amplitude(sc)
+    biggest = max(range(len(names)), key=lambda i: int(((oid == i) & usable).sum()))
+    sel = (oid == biggest) & usable & (pred > 0)
+    cos_e = cam.rays[..., 2]
+    if sel.sum() > 100 and np.ptp(np.log(cos_e[sel])) > 0.05:
+        x, y = np.log(cos_e[sel]), np.log(amp[sel] / pred[sel])
+        slope = float(np.polyfit(x, y, 1)[0])
+        beam_n = float(np.clip(1.0 + slope, 0.0, 30.0))
+        profile = {"type": "cos_n", "n": round(beam_n, 4)}
+        _, sc = build(power, profile, refl)
+        pred, _, oid = _predicted_amplitude(sc)
+        # What cos^n cannot follow (a diffuser flatter than cos^0, vignetting beyond
+        # cos^4): an even polynomial in the emission angle, fitted to every object's
+        # log ratio after its own level; written as a table profile.
+        m = usable & (pred > 0) & (oid >= 0)
+        table, g_rms = fit_profile_table(np.degrees(np.arccos(np.clip(cos_e, -1, 1))), amp, pred, oid, m,
+                                         beam_n)
+        if table is not None:
+            profile = table
+            _, sc = build(power, profile, refl)
+            pred, _, oid = _predicted_amplitude(sc)
+            say(f"emitter profile: cos^{beam_n:.2f} corrected by a table over the emission angle "
+                f"({g_rms:.2f} rms in log amplitude)")
+    ratio = {}
+    for i, n in enumerate(names):
+        m = (oid == i) & usable & (pred > 0)
+        ratio[n] = float(np.median(amp[m] / pred[m])) if m.sum() >= 20 else float("nan")
+    ref = ratio[names[biggest]]
+    top = max(v for k, v in ratio.items() if math.isfinite(v) and k != "board")
+    # The render had power 1 W and reflectance R0 everywhere; amplitude is linear in
+    # power x reflectance, so object n needs P r_n / R0 = ratio_n. Only the product is
+    # seen: the largest surface gets R0 unless another would then exceed 1. A board's
+    # ink and paper reflectances are known, so its ratio is the power itself.
+    if board is not None and math.isfinite(ratio.get("board", float("nan"))):
+        power = ratio["board"]
+    else:
+        power = max(ref, ASSUMED_REFLECTANCE * top)
+    refl = {n: float(np.clip(ASSUMED_REFLECTANCE * v / power, 1e-4, 1.0)) if math.isfinite(v)
+            else ASSUMED_REFLECTANCE for n, v in ratio.items() if n != "board"}
+    _, sc = build(power, profile, refl)
+    pred, _, oid = _predicted_amplitude(sc)
+    m = usable & (pred > 0)
+    lr = np.log(amp[m] / pred[m])
+    radiometry = {"amplitude": "fitted", "beam_exponent_n": beam_n, "profile": profile["type"],
+                  "power_w": power,
+                  "reflectance": refl, "reflectance_of_largest_surface_assumed": ASSUMED_REFLECTANCE,
+                  "log_amplitude_residual_median": float(np.median(lr)),
+                  "log_amplitude_residual_mad": float(1.4826 * np.median(np.abs(lr - np.median(lr)))),
+                  "pixels": int(m.sum())}
+    say(f"radiometry: beam cos^{beam_n:.2f}" + (" + table" if profile["type"] == "table" else "")
+        + f", power {power:.4g} W, reflectances " + ", ".join(f"{k} {v:.3f}" for k, v in refl.items()))
+    return power, profile, refl, radiometry
+
+
+def _beyond_unambiguous_range(sc: Any, freqs: list[float], radial: np.ndarray, valid: np.ndarray, has_amp: bool,
+                              warnings: list[str]) -> tuple[np.ndarray, float]:
+    """The valid mask of the twin (False where the capture or the twin sees beyond the
+    frequencies' unambiguous range: the twin wraps there) and that range; a warning when
+    there are such pixels."""
+    plan = frequency_plan(np.asarray(freqs))
+    r_u = float(plan.unambiguous_range_m)
+    _, twin_r, oid = _predicted_amplitude(sc) if has_amp else (None, *_render_range(sc))
+    inside = ~(np.isfinite(twin_r) & (twin_r >= r_u)) & ~(valid & (radial >= r_u))
+    n_out = int((~inside).sum())
+    if n_out:
+        warnings.append(f"{n_out} pixels ({100.0 * n_out / inside.size:.1f}%) see the scene beyond the "
+                        f"unambiguous range {r_u:.3f} m of {', '.join(f'{f / 1e6:g} MHz' for f in freqs)}: "
+                        "the twin wraps there; they are outside the valid mask")
+    return inside, r_u
 
 
 def _render_range(scene: Any) -> tuple[np.ndarray, np.ndarray]:

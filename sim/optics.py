@@ -44,6 +44,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from tofhil.camera import CameraModel
+from tofhil.content_cache import LRUCache
 from tofhil.errors import InputFileError
 from tofhil.sim.straylight import Ghost, StrayLightPSF
 
@@ -588,16 +589,20 @@ class LensCamera(CameraModel):
         return d
 
 
-_MODELS: dict[Prescription, LensModel] = {}
+#: Traced models by prescription (a frozen dataclass: its own content key). At most 17: the
+#: 18th prescription empties the cache first (a process rarely sees more than a few lenses).
+_MODELS = LRUCache()
+_MODELS_KEPT = 16
 
 
 def lens_model(lens: Prescription) -> LensModel:
     """The traced model of a prescription (traced once per prescription)."""
     m = _MODELS.get(lens)
     if m is None:
-        if len(_MODELS) > 16:
+        if len(_MODELS) > _MODELS_KEPT:
             _MODELS.clear()
-        m = _MODELS[lens] = LensModel(lens)
+        m = LensModel(lens)
+        _MODELS.put(lens, m)
     return m
 
 
@@ -794,7 +799,7 @@ def apply_lens(signal: Any, camera: CameraModel, *, psf: StrayLightPSF | None = 
     stray-light PSF instead of the prescription's, e.g. a subset of its ghosts)."""
     if not isinstance(camera, LensCamera) or camera.lens is None:
         return signal
-    from tofhil.sim.effects import _rotate_phase
+    from tofhil.sim.effects.base import _rotate_phase
 
     st = camera.stage if psf is None else lens_stage(camera, psf=psf)
     if signal.shape != camera.shape:

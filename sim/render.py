@@ -18,20 +18,17 @@ the GIL, and chunks write disjoint pixel ranges.
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
 import math
 import os
-import threading
 import warnings
-from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
 from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel
+from tofhil.content_cache import LRUCache, content_digest
 from tofhil.errors import TofhilError
 from tofhil.progress import Progress, no_progress
 from tofhil.sim import dielectric, embree4, kernels
@@ -89,13 +86,10 @@ def _object_texture(scene: Scene, obj: Any) -> Texture | None:
 
 
 def content_key(*parts: Any) -> str:
-    """A digest of what ``parts`` hold (numbers, strings, arrays, mappings, sequences,
-    dataclasses and meshes, recursively), not of which Python objects they are: equal content
-    gives equal keys, whatever object identity or dictionary order."""
-    h = hashlib.sha256()
-    for p in parts:
-        _feed(h, p)
-    return h.hexdigest()
+    """A digest of what ``parts`` hold (:func:`tofhil.content_cache.content_digest`), a
+    Scene's fields that do not change a render left out: equal content gives equal keys,
+    whatever object identity or dictionary order."""
+    return content_digest(*parts, skip_fields={Scene: _NOT_RENDERED})
 
 
 #: Scene fields that do not change a render (effects and expression parameters are applied
@@ -103,66 +97,13 @@ def content_key(*parts: Any) -> str:
 _NOT_RENDERED = frozenset({"effects", "params", "source", "text", "name", "description", "rgb_camera"})
 
 
-def _feed(h: Any, x: Any) -> None:
-    if x is None or isinstance(x, (bool, int, float, complex, str, np.generic)):
-        h.update(f"{type(x).__name__}:{x!r};".encode())
-    elif isinstance(x, np.ndarray):
-        h.update(f"nd:{x.dtype.str}:{x.shape};".encode())
-        h.update(np.ascontiguousarray(x).tobytes() if x.dtype != object else repr(x.tolist()).encode())
-    elif isinstance(x, Mapping):
-        h.update(f"map:{len(x)};".encode())
-        for k in sorted(x, key=repr):
-            _feed(h, k)
-            _feed(h, x[k])
-    elif isinstance(x, (list, tuple)):
-        h.update(f"seq:{len(x)};".encode())
-        for v in x:
-            _feed(h, v)
-    elif dataclasses.is_dataclass(x) and not isinstance(x, type):
-        h.update(f"dc:{type(x).__qualname__};".encode())
-        skip = _NOT_RENDERED if isinstance(x, Scene) else ()
-        for f in dataclasses.fields(x):
-            if f.name not in skip:
-                h.update(f"{f.name}=".encode())
-                _feed(h, getattr(x, f.name))
-    elif hasattr(x, "vertices") and hasattr(x, "faces"):  # a trimesh mesh: its triangles
-        h.update(b"mesh;")
-        _feed(h, np.asarray(x.vertices))
-        _feed(h, np.asarray(x.faces))
-    else:
-        h.update(f"{type(x).__qualname__}:{x!r};".encode())
-
-
-class _LRU:
-    """A small thread-safe least-recently-used map (content key -> value)."""
-
-    def __init__(self, size: int) -> None:
-        self.size = size
-        self._items: OrderedDict[str, Any] = OrderedDict()
-        self._lock = threading.Lock()
-
-    def get(self, key: str) -> Any | None:
-        with self._lock:
-            v = self._items.get(key)
-            if v is not None:
-                self._items.move_to_end(key)
-            return v
-
-    def put(self, key: str, value: Any) -> None:
-        with self._lock:
-            self._items[key] = value
-            self._items.move_to_end(key)
-            while len(self._items) > self.size:
-                self._items.popitem(last=False)
-
-
 # Embree scenes and per-pixel view arrays, keyed by content: renders of one scene with a
 # moved camera or other materials (as while fitting) share them.
-_GEOMETRY = _LRU(4)
+_GEOMETRY = LRUCache(4, thread_safe=True)
 # (two each: at camera resolution an entry is 10-20 MB, and a fit makes a new pose or camera
 # every evaluation; the base camera's rays stay cached on its CameraModel)
-_VIEWS = _LRU(2)
-_CAMERAS = _LRU(2)
+_VIEWS = LRUCache(2, thread_safe=True)
+_CAMERAS = LRUCache(2, thread_safe=True)
 
 
 def scene_geometry(scene: Scene) -> Geometry:
@@ -337,8 +278,8 @@ class _Context:
         ``sobol``: the same Sobol' points in every pixel (:func:`_sobol_points`), XORed with a
         random 32-bit vector per pixel (a random digital shift): every sample is uniform on
         [0, 1)^D (unbiased per pixel) and each pixel's points keep the Sobol' net structure
-        (a Cranley-Patterson rotation, used before, does not: on the corner it needed 1.14x the
-        samples for 1 mm).
+        (a Cranley-Patterson rotation, used before, does not, and converged more slowly:
+        docs/scene-format.md, ``render:``).
         Either way the camera columns 0-3 are the same within each group of ``share``
         consecutive samples of a pixel: they continue one camera ray (:func:`camera_ray_share`).
         """
@@ -360,6 +301,31 @@ class _Context:
                   ) -> dict[str, np.ndarray]:
         """Trace pixels ``p0:p1``; with ``dest`` (the frame's accumulators) the fused loop
         adds into them in place, otherwise the chunk's own arrays are returned."""
+        npix = p1 - p0
+        pix, U, keep_pix, origins, dirs, beta, path0 = self._camera_rays(chunk, p0, p1)
+        out, acc_re, acc_im, power, ambient_unit, trans, edges = self._accumulators(npix, p0, p1, dest)
+        geom = self.geom
+        smooth = geom.vnormal is not None
+        vnormal = geom.vnormal if smooth else np.zeros((1, 3, 3))
+
+        # Live paths: ray origins (one shared pinhole, or one per path), directions, the
+        # path length so far, throughput, pixel (chunk-local) and row in U.
+        org = np.ascontiguousarray(np.atleast_2d(origins), dtype=np.float64)
+        shared = org.shape[0] == 1 and len(dirs) != 1
+        dirs = np.ascontiguousarray(dirs, dtype=np.float64)
+        local = pix - p0
+        if self.fused:
+            return self._run_fused(npix, p0, p1, org, shared, dirs, path0, beta, local, U, out, acc_re, acc_im,
+                                   power, ambient_unit, edges, trans, vnormal, smooth,
+                                   dest if dest is not None else {}, keep_pix)
+        return self._run_wavefront(npix, p0, p1, pix, org, shared, dirs, path0, beta, local, U, out, acc_re, acc_im,
+                                   power, ambient_unit, edges, trans, vnormal, smooth, keep_pix)
+
+    def _camera_rays(self, chunk: int, p0: int, p1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
+                                                                   Any, np.ndarray, np.ndarray, np.ndarray]:
+        """The camera rays of pixels ``p0:p1``: each sample's pixel, the chunk's uniforms, the
+        pixels kept (None: all), the ray origins (the pinhole, or one per sample through a thin
+        lens), directions (world), throughput and optical path already travelled."""
         npix = p1 - p0
         spp = self.spp
         pix = np.arange(p0, p1) if spp == 1 else np.repeat(np.arange(p0, p1), spp)
@@ -417,7 +383,13 @@ class _Context:
             elif not self.subpixel:  # (sub-pixel rays: the compiled pass above made them)
                 cw = self.centre_world[p0:p1]
                 dirs = cw if spp == 1 else np.repeat(cw, spp, axis=0)
+        return pix, U, keep_pix, origins, dirs, beta, path0
 
+    def _accumulators(self, npix: int, p0: int, p1: int, dest: dict[str, np.ndarray] | None
+                      ) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                 np.ndarray]:
+        """The chunk's output map and the arrays its light is added into (the frame's own
+        with ``dest`` and the fused loop, else the chunk's), and the transient's bin edges."""
         nk = len(self.k)
         out: dict[str, np.ndarray] = {}
         edges = self.edges if self.edges is not None else np.zeros(1)
@@ -434,21 +406,19 @@ class _Context:
             power = np.zeros(npix)
             ambient_unit = np.zeros(npix)
             trans = np.zeros((npix, max(len(edges) - 1, 1)))
-        geom = self.geom
-        smooth = geom.vnormal is not None
-        vnormal = geom.vnormal if smooth else np.zeros((1, 3, 3))
+        return out, acc_re, acc_im, power, ambient_unit, trans, edges
 
-        # Live paths: ray origins (one shared pinhole, or one per path), directions, the
-        # path length so far, throughput, pixel (chunk-local) and row in U.
-        org = np.ascontiguousarray(np.atleast_2d(origins), dtype=np.float64)
-        shared = org.shape[0] == 1 and len(dirs) != 1
-        dirs = np.ascontiguousarray(dirs, dtype=np.float64)
+    def _run_wavefront(self, npix: int, p0: int, p1: int, pix: np.ndarray, org: np.ndarray, shared: bool,
+                       dirs: np.ndarray, path0: np.ndarray, beta: np.ndarray, local: np.ndarray, U: np.ndarray,
+                       out: dict[str, np.ndarray], acc_re: np.ndarray, acc_im: np.ndarray, power: np.ndarray,
+                       ambient_unit: np.ndarray, edges: np.ndarray, trans: np.ndarray, vnormal: np.ndarray,
+                       smooth: bool, keep_pix: np.ndarray | None) -> dict[str, np.ndarray]:
+        """The wavefront loop (the path tracer outside the fused kernel: multipath shares,
+        transients, glass): every live path's hit, its emitter connection and its next bounce,
+        one bounce of all paths at a time; returns the chunk's arrays."""
+        spp = self.spp
+        geom = self.geom
         path_in = path0
-        local = pix - p0
-        if self.fused:
-            return self._run_fused(npix, p0, p1, org, shared, dirs, path0, beta, local, U, out, acc_re, acc_im,
-                                   power, ambient_unit, edges, trans, vnormal, smooth,
-                                   dest if dest is not None else {}, keep_pix)
         ambient = np.zeros(npix)
         sid = np.arange(len(pix))
         src = np.zeros(len(pix), dtype=np.int64)     # the object the light came from (shares)
@@ -626,9 +596,8 @@ MIN_CAMERA_RAYS = 64
 def camera_ray_share(spp: int, bounces: int) -> int:
     """How many consecutive samples of a pixel continue one camera ray (splitting).
 
-    The depth error of a multipath render is all in its indirect light (corner, 2 bounces:
-    the direct light's part of the RMS error is 0.002 mm of 1.5 mm at 1024 spp), and a
-    pixel's direct light hardly varies over its sub-pixel positions; so a group of samples
+    The depth error of a multipath render is all in its indirect light (docs/scene-format.md,
+    ``render:``, has the corner's figures), and a pixel's direct light hardly varies over its sub-pixel positions; so a group of samples
     shares the camera ray, its first vertex and that vertex's emitter connection (traced and
     added once, for the group), and each sample draws its own bounces from there. A sample
     is still one path: ``samples_per_pixel`` paths per pixel, ``spp / share`` sub-pixel
@@ -636,7 +605,7 @@ def camera_ray_share(spp: int, bounces: int) -> int:
     correlated). None without bounces, and at least :data:`MIN_CAMERA_RAYS` sub-pixel
     positions per pixel are kept: where the direct light's sub-pixel variation is the error
     (a plane seen obliquely, no multipath), fewer positions would cost more than the rays
-    saved (tilted plane at 16 spp: 1.08 mm with 4 positions, 0.36 mm with 16).
+    saved.
     """
     if bounces <= 0:
         return 1
@@ -650,8 +619,8 @@ def _sobol_points(spp: int, bounces: int, share: int) -> np.ndarray:
     """The Sobol' points (unscrambled, uint32 [spp, 4 + 2B]; the per-pixel digital shift
     randomises them) in the renderer's column order: the bounce columns ``4 + 2b, 5 + 2b``
     take Sobol' dimensions ``2b, 2b + 1`` of the ``spp`` points, where the low dimensions'
-    points are best stratified: the depth error is in the indirect light, and on the corner
-    this order alone needs 1.3x fewer samples for 1 mm than the sub-pixel position first;
+    points are best stratified: the depth error is in the indirect light (on the corner this
+    order needs fewer samples than the sub-pixel position first: docs/scene-format.md);
     the camera columns 0-3 take the next four dimensions of ``spp / share`` points, one per
     group of ``share`` samples that continue one camera ray."""
     from scipy.stats import qmc

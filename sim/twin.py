@@ -19,12 +19,12 @@ Each effect acts through the hook of its stage (``tofhil.sim.effects.STAGE_HOOKS
 from __future__ import annotations
 
 import dataclasses
-from collections import OrderedDict
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 import numpy as np
 
+from tofhil.content_cache import LRUCache
 from tofhil.frames import RawFrame
 from tofhil.progress import Progress
 from tofhil.sim.effects import (EFFECTS, ORDER, Effect, EffectContext, WigglingEffect, apply_scene_effects,
@@ -98,7 +98,7 @@ def _nbytes(value: Any) -> int:
     return 0
 
 
-class RenderCache:
+class RenderCache(LRUCache):
     """Renders by content key, least recently used first out, except the pinned ones.
 
     Diagnosis renders its base twin first and comes back to it after every fit of a
@@ -112,42 +112,8 @@ class RenderCache:
     asked for again, except the last (the fitted values, predicted once more).
     """
 
-    max_pinned = 4
-
     def __init__(self, size: int = 8, max_bytes: int = 32 * 2 ** 20) -> None:
-        self.size = size
-        self.max_bytes = max_bytes
-        self.entries: OrderedDict[str, Any] = OrderedDict()
-        self.pinned: set[str] = set()
-        self._nbytes: dict[str, int] = {}
-
-    def get(self, key: str) -> Any | None:
-        hit = self.entries.get(key)
-        if hit is not None:
-            self.entries.move_to_end(key)
-        return hit
-
-    def put(self, key: str, value: Any, *, pin: bool = False) -> None:
-        self.entries[key] = value
-        self.entries.move_to_end(key)
-        self._nbytes[key] = _nbytes(value)
-        if pin and len(self.pinned) < self.max_pinned:
-            self.pinned.add(key)
-        unpinned = [k for k in self.entries if k not in self.pinned]
-        held = sum(self._nbytes[k] for k in unpinned)
-        while unpinned[:-1] and (len(unpinned) > self.size or held > self.max_bytes):
-            oldest = unpinned.pop(0)
-            held -= self._nbytes.pop(oldest)
-            del self.entries[oldest]
-
-    def clear(self) -> None:
-        """Drop every render (the pinned ones too)."""
-        self.entries.clear()
-        self.pinned.clear()
-        self._nbytes.clear()
-
-    def __len__(self) -> int:
-        return len(self.entries)
+        super().__init__(size, max_bytes, nbytes=_nbytes, max_pinned=4)
 
 
 class Twin:

@@ -95,12 +95,24 @@ def atomic_file(path: str | Path, mode: str = "wb", **open_kwargs: Any) -> Itera
     except OSError as exc:
         raise TofhilError(f"cannot write here ({exc.strerror})", file=path, expected="a writable directory") from None
     try:
+        # mkstemp makes the file private (0600); the output is as readable as any file the
+        # user writes (the umask's mode), as before it went through a temporary name
+        os.chmod(tmp, 0o666 & ~_umask())
         with os.fdopen(fd, mode, **open_kwargs) as f:
             yield f
         os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        raise TofhilError(f"cannot write ({exc.strerror or exc})", file=path, expected="a writable file") from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:

@@ -1,4 +1,4 @@
-"""Calibration of the stray-light PSF (the one type of ``sim/straylight.py``) from captures.
+"""Calibration of the stray-light PSF (the one type of ``sim/straylight/``) from captures.
 
 ``h`` is fitted from a calibration capture whose stray-light-free signal is known (the twin's
 render without stray light, or a bright target on a dark background) as a non-negative
@@ -88,54 +88,82 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
         raise ValueError(f"ghost_center_px must be (x, y), None or 'fit', got {ghost_center_px!r}")
     center = ((float(cx), float(cy)) if ghost_center_px is None or fit_centre
               else (float(ghost_center_px[0]), float(ghost_center_px[1])))
-
-    def column(b: np.ndarray) -> np.ndarray:
-        bw = np.broadcast_to(b, s_true.shape).ravel() * wt
-        return np.concatenate([bw.real, bw.imag])
-
-    # Terms: (kind, label, (sigma_x, sigma_y) or None, column). kinds: gauss, field, veil,
-    # ghost, loss. Each column is exactly what the simulator's operator does with a unit weight.
-    blur = GaussianBlur(s_true)
-    rho2 = field_rho2((h, w), (float(cx), float(cy)))
-    fblur = GaussianBlur(rho2 * s_true) if field else None
-    # Second order: a lobe whose width triples from axis to corner is not linear in rho^2.
-    fblur4 = GaussianBlur(rho2 ** 2 * s_true) if field and int(field) >= 2 else None
-    mirror = GaussianBlur(flip_image(s_true)) if ghost else None
-
     fit_mag = isinstance(ghost_magnification, str)
     if fit_mag and ghost_magnification != "fit":
         raise ValueError(f"ghost_magnification must be a number or 'fit', got {ghost_magnification!r}")
     mag = -1.0 if fit_mag else float(ghost_magnification)
 
-    def ghost_image(sg: float, c: tuple[float, float], m: float) -> np.ndarray:
-        if m == -1.0:  # the mirror: a convolution of the flipped image (one FFT for all widths)
-            return mirror(sg, sg, ghost_shift((h, w), c))
-        op = StrayLightOperator(StrayLightPSF(ghosts=(Ghost(1.0, sg, c, m),), conserve=False), (h, w), c)
-        return op.scatter(s_true)
+    problem = _Problem(s_meas, s_true, (float(cx), float(cy)), wt, len(sig), field=field, ghost=ghost)
+    terms = _dictionary(problem, sig, field=field, veil=veil, fit_direct=fit_direct)
+    visibility = _ghost_visibility(problem.ghost_image(0.0, center, mag), wt.reshape(s_true.shape)) if ghost else None
+    mag_scores: dict[float, float] = {}
+    if ghost:
+        center, mag, mag_scores = _place_ghost(problem, terms, center, mag, sig, fit_centre=fit_centre, fit_mag=fit_mag)
+        terms += problem.ghost_terms(center, mag, sig)
+    lam, scores = _smoothness(problem, terms, lambdas)
+    coef, rnorm = problem.fit(terms, lam)
+    if refine and np.any(coef[:problem.n_gauss] > 0):
+        terms, coef, rnorm, center, mag = _refine_widths(problem, terms, coef, rnorm, center, mag, sig,
+                                                         fit_centre=fit_centre, fit_mag=fit_mag)
+    psf, loss = _psf_of_terms(terms, coef, None if ghost_center_px is None else center)
+    info = _quality(terms, coef, problem.rhs, rnorm, float(np.linalg.norm(s_meas)), lam, scores,
+                    captures=int(s_true.shape[0]) if s_true.ndim == 4 else 1)
+    info["direct"] = 1.0 - loss
+    if psf.ghosts and fit_centre:
+        info["ghost_center_px"] = [float(center[0]), float(center[1])]
+    if ghost:
+        _report_ghost(info, psf, center, mag, mag_scores, visibility, fit_mag=fit_mag,
+                      captures=int(s_true.shape[0]) if s_true.ndim == 4 else 1)
+    psf = replace(psf, info=info)
+    info["scattered_fraction"] = StrayLightOperator(psf, (h, w), (cx, cy)).scattered_fraction
+    return psf
 
-    def ghost_terms(c: tuple[float, float], m: float) -> list[tuple[str, str, Any, np.ndarray]]:
+
+#: One dictionary term: (kind, label, widths, column). Kinds: gauss, field, field4 (widths
+#: ``(sigma_x, sigma_y)``), ghost (``(sigma, sigma, magnification)``), veil, loss (None).
+Term = tuple[str, str, Any, np.ndarray]
+
+
+class _Problem:
+    """The linear problem of one calibration: the right-hand side ``S_meas - S_true`` and the
+    columns of the dictionary, each exactly what the simulator's operator does with a unit
+    weight (real and imaginary parts of every pixel, weighted: :meth:`column`), and their
+    bounded least-squares fit (:meth:`fit`)."""
+
+    def __init__(self, s_meas: np.ndarray, s_true: np.ndarray, principal_px: tuple[float, float], wt: np.ndarray,
+                 n_gauss: int, *, field: bool | int, ghost: bool) -> None:
+        self.s_true = s_true
+        self.shape = s_true.shape[-2:]
+        self.principal_px = principal_px
+        self.wt = wt
+        #: The first ``n_gauss`` terms are the dictionary's Gaussian lobes.
+        self.n_gauss = n_gauss
+        self.blur = GaussianBlur(s_true)
+        rho2 = field_rho2(self.shape, principal_px)
+        self.fblur = GaussianBlur(rho2 * s_true) if field else None
+        # Second order: a lobe whose width triples from axis to corner is not linear in rho^2.
+        self.fblur4 = GaussianBlur(rho2 ** 2 * s_true) if field and int(field) >= 2 else None
+        self.mirror = GaussianBlur(flip_image(s_true)) if ghost else None
+        self.rhs = self.column(s_meas - s_true)
+        self.bb = float(self.rhs @ self.rhs)
+
+    def column(self, b: np.ndarray) -> np.ndarray:
+        bw = np.broadcast_to(b, self.s_true.shape).ravel() * self.wt
+        return np.concatenate([bw.real, bw.imag])
+
+    def ghost_image(self, sg: float, c: tuple[float, float], m: float) -> np.ndarray:
+        if m == -1.0:  # the mirror: a convolution of the flipped image (one FFT for all widths)
+            return self.mirror(sg, sg, ghost_shift(self.shape, c))
+        op = StrayLightOperator(StrayLightPSF(ghosts=(Ghost(1.0, sg, c, m),), conserve=False), self.shape, c)
+        return op.scatter(self.s_true)
+
+    def ghost_terms(self, c: tuple[float, float], m: float, sig: np.ndarray) -> list[Term]:
         # Terms carry (sigma, sigma, m): the magnification travels with the column.
         return [("ghost", f"ghost_{sg:.3g}" + ("" if m == -1.0 else f"_m{m:.3g}"), (sg, sg, m),
-                 column(ghost_image(sg, c, m))) for sg in np.concatenate([[0.0], sig])]
+                 self.column(self.ghost_image(sg, c, m))) for sg in np.concatenate([[0.0], sig])]
 
-    terms: list[tuple[str, str, Any, np.ndarray]] = []
-    for sg in sig:
-        terms.append(("gauss", f"gauss_{sg:.3g}", (sg, sg), column(blur(sg, sg))))
-    if field:
-        for sg in sig:
-            terms.append(("field", f"field_{sg:.3g}", (sg, sg), column(fblur(sg, sg))))
-        for sg in sig if fblur4 is not None else ():
-            terms.append(("field4", f"field4_{sg:.3g}", (sg, sg), column(fblur4(sg, sg))))
-    if veil:
-        # Unit fraction spread evenly: every pixel gets sum(S) / (H W).
-        terms.append(("veil", "veil", None, column(s_true.sum(axis=(-2, -1), keepdims=True) / (h * w))))
-    if fit_direct:
-        terms.append(("loss", "loss", None, column(-s_true)))
-    rhs = column(s_meas - s_true)
-    bb = float(rhs @ rhs)
-    n_gauss = len(sig)
-
-    def bounds(ts: list[tuple[str, str, Any, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    @staticmethod
+    def bounds(ts: list[Term]) -> tuple[np.ndarray, np.ndarray]:
         # Every weight is a fraction of light in [0, 1] (a field term in [-1, 1]); the loss at
         # most 0.9 (a lens that keeps less than a tenth of the light on its pixel is not a
         # camera). The bounds keep an ill-posed fit from trading huge terms against each other.
@@ -143,7 +171,8 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
         up = np.array([0.9 if k[0] == "loss" else 1.0 for k in ts])
         return lo, up
 
-    def penalty(ts: list[tuple[str, str, Any, np.ndarray]]) -> np.ndarray:
+    @staticmethod
+    def penalty(ts: list[Term]) -> np.ndarray:
         p = np.zeros((len(ts), len(ts)))
         for kind in ("gauss", "field", "field4"):
             idx = [i for i, k in enumerate(ts) if k[0] == kind]
@@ -152,119 +181,161 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
                 p[np.ix_(idx, idx)] += d2.T @ d2
         return p
 
-    def fit(ts: list[tuple[str, str, Any, np.ndarray]], lam: float,
-            rows: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    def fit(self, ts: list[Term], lam: float, rows: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+        """The bounded least-squares weights of the terms ``ts`` (on ``rows`` only, if given),
+        with the smoothness penalty of strength ``lam``, and the residual norm on all rows."""
         a = np.stack([k[3] for k in ts], axis=1)
-        am, bm = (a, rhs) if rows is None else (a[rows], rhs[rows])
+        am, bm = (a, self.rhs) if rows is None else (a[rows], self.rhs[rows])
         gram = am.T @ am
-        lo, up = bounds(ts)
-        scale = float(np.mean(np.diag(gram)[:n_gauss])) or 1.0
-        coef = _bounded_gram(gram + lam * scale * penalty(ts), am.T @ bm, lo, up)
-        r = a @ coef - rhs
+        lo, up = self.bounds(ts)
+        scale = float(np.mean(np.diag(gram)[:self.n_gauss])) or 1.0
+        coef = _bounded_gram(gram + lam * scale * self.penalty(ts), am.T @ bm, lo, up)
+        r = a @ coef - self.rhs
         return coef, float(np.sqrt(r @ r))
 
-    visibility = _ghost_visibility(ghost_image(0.0, center, mag), wt.reshape(s_true.shape)) if ghost else None
-    if ghost and fit_centre:
-        coef0, _ = fit(terms, 0.0)
+
+def _dictionary(problem: _Problem, sig: np.ndarray, *, field: bool | int, veil: bool, fit_direct: bool) -> list[Term]:
+    """The dictionary without its ghost: a lobe per width (and their field copies), the veil
+    and the loss."""
+    terms: list[Term] = []
+    for sg in sig:
+        terms.append(("gauss", f"gauss_{sg:.3g}", (sg, sg), problem.column(problem.blur(sg, sg))))
+    if field:
+        for sg in sig:
+            terms.append(("field", f"field_{sg:.3g}", (sg, sg), problem.column(problem.fblur(sg, sg))))
+        for sg in sig if problem.fblur4 is not None else ():
+            terms.append(("field4", f"field4_{sg:.3g}", (sg, sg), problem.column(problem.fblur4(sg, sg))))
+    if veil:
+        # Unit fraction spread evenly: every pixel gets sum(S) / (H W).
+        h, w = problem.shape
+        terms.append(("veil", "veil", None, problem.column(problem.s_true.sum(axis=(-2, -1), keepdims=True) / (h * w))))
+    if fit_direct:
+        terms.append(("loss", "loss", None, problem.column(-problem.s_true)))
+    return terms
+
+
+def _place_ghost(problem: _Problem, terms: list[Term], center: tuple[float, float], mag: float, sig: np.ndarray, *,
+                 fit_centre: bool, fit_mag: bool) -> tuple[tuple[float, float], float, dict[float, float]]:
+    """The ghost's centre (``fit_centre``: the mirror shift that best explains the residual of a
+    fit without ghost) and magnification (``fit_mag``: the dictionary fitted with the ghost at
+    each of :data:`MAGNIFICATIONS`, the least residual wins), and the residual of each."""
+    h, w = problem.shape
+    if fit_centre:
+        coef0, _ = problem.fit(terms, 0.0)
         a0 = np.stack([k[3] for k in terms], axis=1)
-        d = _find_ghost(a0 @ coef0 - rhs, s_true, np.broadcast_to(wt.reshape(s_true.shape) ** 2, s_true.shape),
-                        (h, w), (float(cx), float(cy)))
+        s_true = problem.s_true
+        d = _find_ghost(a0 @ coef0 - problem.rhs, s_true,
+                        np.broadcast_to(problem.wt.reshape(s_true.shape) ** 2, s_true.shape), (h, w),
+                        problem.principal_px)
         if d is not None:
             center = (0.5 * (d[0] + (w - 1)), 0.5 * (d[1] + (h - 1)))
     mag_scores: dict[float, float] = {}
-    if ghost and fit_mag:
+    if fit_mag:
         # Coarse: the whole dictionary with the ghost at each magnification (the mirror's centre
         # found above; a magnified ghost about the same centre), the least residual wins.
         for m in MAGNIFICATIONS:
-            mag_scores[m] = fit(terms + ghost_terms(center, m), 0.0)[1]
+            mag_scores[m] = problem.fit(terms + problem.ghost_terms(center, m, sig), 0.0)[1]
         mag = min(mag_scores, key=mag_scores.get)
-    if ghost:
-        terms += ghost_terms(center, mag)
+    return center, mag, mag_scores
 
-    # Smoothness strength on held-out pixels (real and imaginary rows of a pixel together).
+
+def _smoothness(problem: _Problem, terms: list[Term], lambdas: Sequence[float] | None) -> tuple[float, dict[float, float]]:
+    """The strength of the smoothness penalty with the least error on held-out pixels
+    (interleaved 8 x 8 blocks, real and imaginary rows of a pixel together), and each
+    strength's error; 0 without ``lambdas``."""
     lam, scores = 0.0, {}
     if lambdas:
+        h, w = problem.shape
         yy, xx = np.mgrid[0:h, 0:w]
-        fold = np.tile(np.broadcast_to(((yy // 8 + xx // 8) % 2).astype(bool), s_true.shape).ravel(), 2)
+        fold = np.tile(np.broadcast_to(((yy // 8 + xx // 8) % 2).astype(bool), problem.s_true.shape).ravel(), 2)
         a = np.stack([k[3] for k in terms], axis=1)
         for lm in lambdas:
             err = 0.0
             for f in (fold, ~fold):
-                c, _ = fit(terms, lm, f)
-                r = a[~f] @ c - rhs[~f]
+                c, _ = problem.fit(terms, lm, f)
+                r = a[~f] @ c - problem.rhs[~f]
                 err += float(r @ r)
             scores[float(lm)] = err
         lam = min(scores, key=scores.get)
-    coef, rnorm = fit(terms, lam)
+    return lam, scores
 
-    if refine and np.any(coef[:n_gauss] > 0):
-        # Variable projection: each run of neighbouring active widths becomes one Gaussian
-        # with free (sigma_x, sigma_y); with a fitted ghost its centre is refined too; the
-        # weights are re-solved linearly for every trial.
-        groups = _active_groups(coef[:n_gauss])
-        fixed = [k for k, c in zip(terms[n_gauss:], coef[n_gauss:]) if c != 0 and k[0] != "ghost"]
-        fixed_a = np.stack([k[3] for k in fixed], axis=1) if fixed else np.zeros((rhs.size, 0))
-        g_ff, c_f = fixed_a.T @ fixed_a, fixed_a.T @ rhs
-        gi = [i for i, k in enumerate(terms) if k[0] == "ghost"]
-        g_sig = np.array([terms[i][2][0] for i in gi])
-        # Each run of neighbouring active blurs becomes one ghost of continuous width.
-        # A ghost the dictionary gives almost no light (< 1e-3: a lens without one) is not
-        # refined: its extra parameters only slow the lobes' refinement (r^-3 lens: 98.4 %
-        # at 1 % with it, 99.8 % without).
-        ghost_groups = _active_groups(coef[gi]) if gi and float(np.sum(coef[gi])) > GHOST_MIN_WEIGHT else []
-        ghost_init = [max(float(np.average(g_sig[g], weights=coef[gi][g])), 0.3) for g in ghost_groups]
-        init = np.array([np.exp(np.average(np.log(sig[g]), weights=coef[g])) for g in groups])
-        n_lobe = 2 * len(groups)
-        n_gc = 2 if ghost_groups and fit_centre else 0
-        n_gs = len(ghost_groups)
 
-        dictionary_lobes = [k for k, c in zip(terms[:n_gauss], coef[:n_gauss]) if c > 0]
+def _refine_widths(problem: _Problem, terms: list[Term], coef: np.ndarray, rnorm: float, center: tuple[float, float],
+                   mag: float, sig: np.ndarray, *, fit_centre: bool, fit_mag: bool
+                   ) -> tuple[list[Term], np.ndarray, float, tuple[float, float], float]:
+    """Variable projection: each run of neighbouring active widths becomes one Gaussian with
+    free (sigma_x, sigma_y); with a fitted ghost its centre is refined too; the weights are
+    re-solved linearly for every trial. Returns the terms, weights and residual norm (the
+    refined ones where they fit better) and the ghost's centre and magnification."""
+    n_gauss, rhs, bb = problem.n_gauss, problem.rhs, problem.bb
+    groups = _active_groups(coef[:n_gauss])
+    fixed = [k for k, c in zip(terms[n_gauss:], coef[n_gauss:]) if c != 0 and k[0] != "ghost"]
+    fixed_a = np.stack([k[3] for k in fixed], axis=1) if fixed else np.zeros((rhs.size, 0))
+    g_ff, c_f = fixed_a.T @ fixed_a, fixed_a.T @ rhs
+    gi = [i for i, k in enumerate(terms) if k[0] == "ghost"]
+    g_sig = np.array([terms[i][2][0] for i in gi])
+    # Each run of neighbouring active blurs becomes one ghost of continuous width.
+    # A ghost the dictionary gives almost no light (< GHOST_MIN_WEIGHT: a lens without one) is
+    # not refined: its extra parameters only slow the lobes' refinement (docs/evaluation.md).
+    ghost_groups = _active_groups(coef[gi]) if gi and float(np.sum(coef[gi])) > GHOST_MIN_WEIGHT else []
+    ghost_init = [max(float(np.average(g_sig[g], weights=coef[gi][g])), 0.3) for g in ghost_groups]
+    init = np.array([np.exp(np.average(np.log(sig[g]), weights=coef[g])) for g in groups])
+    n_lobe = 2 * len(groups)
+    n_gc = 2 if ghost_groups and fit_centre else 0
+    n_gs = len(ghost_groups)
 
-        def solve(x: np.ndarray, nl: int) -> tuple[np.ndarray, float, list[tuple[str, str, Any, np.ndarray]]]:
-            # nl = 0: the dictionary's active lobes as they are, only the ghost refined.
-            gs = dictionary_lobes if nl == 0 else [
-                ("gauss", f"gauss_{sx:.3g}x{sy:.3g}", (sx, sy), column(blur(sx, sy)))
-                for sx, sy in np.exp(np.clip(x[:nl], LOG_SIGMA_RANGE[0], LOG_SIGMA_RANGE[1])).reshape(-1, 2)]
-            extra: list[tuple[str, str, Any, np.ndarray]] = []
-            if ghost_groups:
-                c = (center[0] + x[nl], center[1] + x[nl + 1]) if n_gc else center
-                m = float(x[nl + n_gc + n_gs]) if fit_mag else mag
-                for sg in np.exp(np.clip(x[nl + n_gc:nl + n_gc + n_gs], np.log(0.05), LOG_SIGMA_RANGE[1])):
-                    extra.append(("ghost", f"ghost_{sg:.3g}" + ("" if m == -1.0 else f"_m{m:.3g}"), (sg, sg, m),
-                                  column(ghost_image(float(sg), c, m))))
-            new = gs + extra
-            a_g = np.stack([k[3] for k in new], axis=1)
-            gram = np.block([[a_g.T @ a_g, a_g.T @ fixed_a], [fixed_a.T @ a_g, g_ff]])
-            lo, up = bounds(new + fixed)
-            cc = _bounded_gram(gram, np.concatenate([a_g.T @ rhs, c_f]), lo, up)
-            res2 = bb - 2 * cc @ np.concatenate([a_g.T @ rhs, c_f]) + cc @ gram @ cc
-            return cc, float(np.sqrt(max(res2, 0.0))), new + fixed
+    dictionary_lobes = [k for k, c in zip(terms[:n_gauss], coef[:n_gauss]) if c > 0]
 
-        # First lobes and ghost together; then, if there is a ghost, the ghost alone beside the
-        # dictionary's lobes: merging a run of active widths into one lobe can lose more than
-        # the ghost's refinement gains (three lobes a factor 4-5 apart), and the ghost's blur
-        # and magnification must not be lost with it. The better fit is kept.
-        for nl in ([n_lobe, 0] if ghost_groups else [n_lobe]):
-            x0 = np.concatenate([np.log(np.repeat(init, 2))[:nl], np.zeros(n_gc), np.log(ghost_init),
-                                 [mag] if ghost_groups and fit_mag else []])
-            # The first simplex spans steps the fit can feel (scipy's default steps a parameter
-            # that starts at 0 by 2.5e-4: a centre offset would never leave the integer shift the
-            # correlation found): 10 % in width, half a pixel in the centre, 0.05 in magnification.
-            steps = np.concatenate([np.full(nl, 0.1), np.full(n_gc, 0.5), np.full(n_gs, 0.1),
-                                    [0.05] if ghost_groups and fit_mag else []])
-            res = minimize(lambda x: solve(x, nl)[1], x0, method="Nelder-Mead",
-                           options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": min(80 * x0.size + 40, 600),
-                                    "initial_simplex": np.vstack([x0, x0 + np.diag(steps)])})
-            c_ref, r_ref, ts = solve(res.x, nl)
-            if r_ref < rnorm:
-                terms, coef, rnorm = ts, c_ref, r_ref
-                if n_gc:
-                    center = (center[0] + res.x[nl], center[1] + res.x[nl + 1])
-                if ghost_groups and fit_mag:
-                    mag = float(res.x[nl + n_gc + n_gs])
+    def solve(x: np.ndarray, nl: int) -> tuple[np.ndarray, float, list[Term]]:
+        # nl = 0: the dictionary's active lobes as they are, only the ghost refined.
+        gs = dictionary_lobes if nl == 0 else [
+            ("gauss", f"gauss_{sx:.3g}x{sy:.3g}", (sx, sy), problem.column(problem.blur(sx, sy)))
+            for sx, sy in np.exp(np.clip(x[:nl], LOG_SIGMA_RANGE[0], LOG_SIGMA_RANGE[1])).reshape(-1, 2)]
+        extra: list[Term] = []
+        if ghost_groups:
+            c = (center[0] + x[nl], center[1] + x[nl + 1]) if n_gc else center
+            m = float(x[nl + n_gc + n_gs]) if fit_mag else mag
+            for sg in np.exp(np.clip(x[nl + n_gc:nl + n_gc + n_gs], np.log(0.05), LOG_SIGMA_RANGE[1])):
+                extra.append(("ghost", f"ghost_{sg:.3g}" + ("" if m == -1.0 else f"_m{m:.3g}"), (sg, sg, m),
+                              problem.column(problem.ghost_image(float(sg), c, m))))
+        new = gs + extra
+        a_g = np.stack([k[3] for k in new], axis=1)
+        gram = np.block([[a_g.T @ a_g, a_g.T @ fixed_a], [fixed_a.T @ a_g, g_ff]])
+        lo, up = problem.bounds(new + fixed)
+        cc = _bounded_gram(gram, np.concatenate([a_g.T @ rhs, c_f]), lo, up)
+        res2 = bb - 2 * cc @ np.concatenate([a_g.T @ rhs, c_f]) + cc @ gram @ cc
+        return cc, float(np.sqrt(max(res2, 0.0))), new + fixed
+
+    # First lobes and ghost together; then, if there is a ghost, the ghost alone beside the
+    # dictionary's lobes: merging a run of active widths into one lobe can lose more than
+    # the ghost's refinement gains (three lobes a factor 4-5 apart), and the ghost's blur
+    # and magnification must not be lost with it. The better fit is kept.
+    for nl in ([n_lobe, 0] if ghost_groups else [n_lobe]):
+        x0 = np.concatenate([np.log(np.repeat(init, 2))[:nl], np.zeros(n_gc), np.log(ghost_init),
+                             [mag] if ghost_groups and fit_mag else []])
+        # The first simplex spans steps the fit can feel (scipy's default steps a parameter
+        # that starts at 0 by 2.5e-4: a centre offset would never leave the integer shift the
+        # correlation found): 10 % in width, half a pixel in the centre, 0.05 in magnification.
+        steps = np.concatenate([np.full(nl, 0.1), np.full(n_gc, 0.5), np.full(n_gs, 0.1),
+                                [0.05] if ghost_groups and fit_mag else []])
+        res = minimize(lambda x: solve(x, nl)[1], x0, method="Nelder-Mead",
+                       options={"xatol": 1e-3, "fatol": 1e-7 * rnorm, "maxfev": min(80 * x0.size + 40, 600),
+                                "initial_simplex": np.vstack([x0, x0 + np.diag(steps)])})
+        c_ref, r_ref, ts = solve(res.x, nl)
+        if r_ref < rnorm:
+            terms, coef, rnorm = ts, c_ref, r_ref
+            if n_gc:
+                center = (center[0] + res.x[nl], center[1] + res.x[nl + 1])
+            if ghost_groups and fit_mag:
+                mag = float(res.x[nl + n_gc + n_gs])
+    return terms, coef, rnorm, center, mag
+
+
+def _psf_of_terms(terms: list[Term], coef: np.ndarray, ghost_center_px: tuple[float, float] | None
+                  ) -> tuple[StrayLightPSF, float]:
+    """The PSF of the fitted weights (additive, ``direct = 1 - loss``) and the loss."""
     lobes, ghosts, veil_w, loss = [], [], 0.0, 0.0
     field_w: dict[float, list[float]] = {}
-    gc = None if ghost_center_px is None else center
     for (kind, _, sxy, _), c in zip(terms, coef):
         if kind in ("field", "field4") and c != 0:
             field_w.setdefault(float(sxy[0]), [0.0, 0.0])[kind == "field4"] = float(c)
@@ -275,41 +346,37 @@ def calibrate_psf(s_meas: np.ndarray, s_true: np.ndarray, cx: float, cy: float, 
         elif kind == "veil":
             veil_w += float(c)
         elif kind == "ghost":
-            ghosts.append(Ghost(float(c), float(sxy[0]), gc, float(sxy[2])))
+            ghosts.append(Ghost(float(c), float(sxy[0]), ghost_center_px, float(sxy[2])))
         elif kind == "loss":
             loss += float(c)
     # A field term is a lobe of its own (weight 0 on axis, signed growth) with its own width.
     lobes += [GaussianLobe(0.0, s, s, fw[0], fw[1]) for s, fw in field_w.items()]
     psf = StrayLightPSF(gaussians=tuple(lobes), veil=veil_w, ghosts=tuple(ghosts), conserve=False,
                         direct=1.0 - loss)
-    info = _quality(terms, coef, rhs, rnorm, float(np.linalg.norm(s_meas)), lam, scores,
-                    captures=int(s_true.shape[0]) if s_true.ndim == 4 else 1)
-    info["direct"] = 1.0 - loss
-    if ghosts and fit_centre:
-        info["ghost_center_px"] = [float(center[0]), float(center[1])]
-    if ghost:
-        info["ghost_visibility"] = visibility
-        if fit_mag:
-            info["ghost_magnification"] = mag
-            info["ghost_magnification_scan"] = {f"{k:g}": v for k, v in mag_scores.items()}
-        if visibility < GHOST_VISIBILITY_MIN:
-            info["warnings"].append(
-                f"the calibration cannot see a ghost through ({center[0]:.1f}, {center[1]:.1f}) px: only "
-                f"{100 * visibility:.0f} % of its image falls on the fit pixels (it lands on the target itself); its "
-                "weight, blur and centre are not constrained: add a capture with the target away from the centre")
-        n_captures = int(s_true.shape[0]) if s_true.ndim == 4 else 1
-        if ghosts and fit_mag and n_captures == 1 and abs(mag + 1.0) > GHOST_MAGNIFICATION_TOL:
-            # A ghost magnified about its centre spreads the target's light more toward the
-            # corners, as a lobe that widens across the field does: one target position shows
-            # the two alike (field-dependent lobe lens: a ghost of x0.89 fitted, 71.7 % of the
-            # dark-square error removed at 1 % against 97.8 % with the bench procedure).
-            info["warnings"].append(
-                f"the fitted ghost is magnified x{mag:.2f} (not the inverted image through its centre): from one "
-                "capture it cannot be told apart from a stray-light lobe that widens across the field; calibrate "
-                "from the target at several field positions (the bench procedure: a card and bright patches)")
-    psf = replace(psf, info=info)
-    info["scattered_fraction"] = StrayLightOperator(psf, (h, w), (cx, cy)).scattered_fraction
-    return psf
+    return psf, loss
+
+
+def _report_ghost(info: dict[str, Any], psf: StrayLightPSF, center: tuple[float, float], mag: float,
+                  mag_scores: dict[float, float], visibility: float, *, fit_mag: bool, captures: int) -> None:
+    """What the fit says about its ghost (in ``info``): how much of it the fit pixels see, the
+    magnification found, and the warnings when the data cannot constrain it."""
+    info["ghost_visibility"] = visibility
+    if fit_mag:
+        info["ghost_magnification"] = mag
+        info["ghost_magnification_scan"] = {f"{k:g}": v for k, v in mag_scores.items()}
+    if visibility < GHOST_VISIBILITY_MIN:
+        info["warnings"].append(
+            f"the calibration cannot see a ghost through ({center[0]:.1f}, {center[1]:.1f}) px: only "
+            f"{100 * visibility:.0f} % of its image falls on the fit pixels (it lands on the target itself); its "
+            "weight, blur and centre are not constrained: add a capture with the target away from the centre")
+    if psf.ghosts and fit_mag and captures == 1 and abs(mag + 1.0) > GHOST_MAGNIFICATION_TOL:
+        # A ghost magnified about its centre spreads the target's light more toward the
+        # corners, as a lobe that widens across the field does: one target position shows
+        # the two alike (docs/evaluation.md).
+        info["warnings"].append(
+            f"the fitted ghost is magnified x{mag:.2f} (not the inverted image through its centre): from one "
+            "capture it cannot be told apart from a stray-light lobe that widens across the field; calibrate "
+            "from the target at several field positions (the bench procedure: a card and bright patches)")
 
 
 def _quality(terms: list[tuple[str, str, Any, np.ndarray]], coef: np.ndarray, rhs: np.ndarray, rnorm: float,
@@ -401,6 +468,8 @@ def _find_ghost(resid: np.ndarray, s_true: np.ndarray, weight: np.ndarray, shape
     residual ``A c - b`` (weighted rows) of a fit without ghost: normalised cross-correlation
     over integer shifts within ``search_px`` (default 0.4 of the sensor's larger side) of the
     principal point's mirror."""
+    # (A search over every shift, the full [2H-1, 2W-1] correlation of two images: scipy's
+    # 'full' fftconvolve, not the PSF's same-size operator of sim/straylight/.)
     from scipy.signal import fftconvolve
 
     h, w = shape

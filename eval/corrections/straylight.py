@@ -1,4 +1,4 @@
-"""Stray-light corrections of complex ToF images, built on the optics of ``sim/straylight.py``.
+"""Stray-light corrections of complex ToF images, built on the optics of ``sim/straylight/``.
 
 Stray light spreads a fraction of every pixel's complex signal ``S = A exp(i phi)`` over the
 sensor: ``S_meas = (delta + h) * S`` (the one PSF type, :class:`StrayLightPSF`). Because it
@@ -28,7 +28,7 @@ import numpy as np
 from scipy import fft as sfft
 
 from tofhil.errors import InputFileError, TofhilError
-from tofhil.sim.straylight import StrayLightOperator, StrayLightPSF, gaussian_kernel
+from tofhil.sim.straylight import PaddedConvolution, StrayLightOperator, StrayLightPSF, gaussian_kernel
 
 
 def subtract_uniform(s: np.ndarray, w: float) -> np.ndarray:
@@ -44,7 +44,7 @@ def inverse_filter_gaussian(s: np.ndarray, sigma_h: float, sigma_v: float, w: fl
     """Thesis method 2: Wiener-like inverse filter of ``delta + w * G(sigma_h, sigma_v)``.
 
     ``H`` is the transfer function of ``delta + w G`` (the pixel-integrated Gaussian of
-    ``sim/straylight.py``) on the zero-padded grid; ``mu = 0`` is the plain inverse
+    ``sim/straylight/``) on the zero-padded grid; ``mu = 0`` is the plain inverse
     (``|H| >= 1 - w`` never vanishes for ``w < 1``). The result is cropped back.
     """
     s = np.asarray(s)
@@ -53,14 +53,8 @@ def inverse_filter_gaussian(s: np.ndarray, sigma_h: float, sigma_v: float, w: fl
     k[h - 1, wd - 1] += 1.0
     # Twice the linear-convolution size: the filter's inverse has long tails of its own.
     fshape = (sfft.next_fast_len(h + k.shape[0] - 1), sfft.next_fast_len(wd + k.shape[1] - 1))
-    # Centre the kernel at the origin of the padded grid so the filter has no shift.
-    kp = np.zeros(fshape)
-    kp[:k.shape[0], :k.shape[1]] = k
-    kp = np.roll(kp, (-(h - 1), -(wd - 1)), axis=(0, 1))
-    hf = sfft.fft2(kp)
-    sf = sfft.fft2(s, s=fshape, axes=(-2, -1))
-    out = sfft.ifft2(sf * np.conj(hf) / (np.abs(hf) ** 2 + mu), axes=(-2, -1))
-    return out[..., :h, :wd]
+    # The simulator's padded convolution of this kernel (centre (H-1, W-1): no shift), inverted.
+    return PaddedConvolution(k, (h, wd), (h - 1, wd - 1), fft_size=fshape).regularised_inverse(s, mu)
 
 
 def deconvolve(s_meas: np.ndarray, psf: StrayLightPSF, *, center_px: tuple[float, float] | None = None,

@@ -108,3 +108,17 @@ def test_pyproject_installs_every_package() -> None:
     listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
     found = {module_name(p) for p in library_files() if p.name == "__init__.py"}
     assert found - listed == set(), f"not installed: {sorted(found - listed)}"
+
+
+def test_package_faces_name_what_exists() -> None:
+    """Every name a package's ``__all__`` promises resolves (the faces are lazy: a stale entry
+    would only fail when a user imports it)."""
+    import importlib
+
+    faces = [module_name(p) for p in library_files() if p.name == "__init__.py"
+             and "lazy_face" in p.read_text(encoding="utf-8")]
+    assert len(faces) >= 8
+    for name in faces:
+        package = importlib.import_module(name)
+        for public in package.__all__:
+            assert getattr(package, public) is not None, f"{name}.{public}"

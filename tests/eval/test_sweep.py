@@ -19,6 +19,7 @@ import yaml
 
 from tofhil.errors import TofhilError
 from tofhil.app import sweep as S
+from tofhil.app.sweep import run as sweep_run  # the module that holds the twin cache and its render count
 
 #: 4 tiny cases (wall_card at 40 x 30): two card reflectances x two seeds, a weak stray light
 #: in the measurement, compared with the twin that lacks it.
@@ -134,12 +135,12 @@ def assert_table_matches_one_by_one(spec: S.SweepSpec, df: pd.DataFrame, tmp_pat
 
 def test_serial_sweep_table_report_and_shared_renders(tmp_path: Path) -> None:
     spec = spec_of(SPEC)
-    before = S.RENDER_COUNT["renders"]
-    S._TWINS.clear()
+    before = sweep_run.RENDER_COUNT["renders"]
+    sweep_run._TWINS.clear()
     res = S.run_sweep(spec, tmp_path / "out", workers=0)
     # 4 cases over 2 distinct scenes (the card's reflectance): 2 renders, the seeds, the
     # measurement with stray light and the twin reference share them
-    assert S.RENDER_COUNT["renders"] - before == 2
+    assert sweep_run.RENDER_COUNT["renders"] - before == 2
     assert res.ran == 4 and res.failed == 0
     df = pd.read_parquet(tmp_path / "out" / "results.parquet")
     csv = pd.read_csv(tmp_path / "out" / "results.csv")

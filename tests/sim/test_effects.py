@@ -61,6 +61,37 @@ def test_registry_has_the_shared_vocabulary_with_sane_declarations() -> None:
             assert p.lo < p.hi and p.doc
 
 
+def test_forward_model_order_is_fixed_whatever_the_registration_order() -> None:
+    # the effects register themselves from their family modules; the order they apply in is
+    # by rank, and it is this one (optics before the pixel; per-pixel effects after the
+    # spatial mixing): a new module must not move it
+    order = ("pose", "lens_distortion", "reflectance", "ambient", "multipath", "illumination", "stray_light",
+             "offset", "range_offset", "field_angle", "fixed_pattern", "range_offset_map", "amplitude_dependent",
+             "wiggling")
+    assert ORDER == order and tuple(EFFECTS) == order
+
+
+def test_registry_refuses_a_taken_name_or_rank_and_a_missing_hook() -> None:
+    from tofhil.sim.effects import Effect, register
+
+    class Twice(Effect):
+        name, stage, rank = "pose", "scene", 999
+
+        def apply_scene(self, scene, values):
+            return scene
+
+    class SameRank(Twice):
+        name, rank = "new_effect", EFFECTS["wiggling"].rank
+
+    class NoHook(Effect):
+        name, stage, rank = "no_hook", "signal", 998
+
+    for cls in (Twice, SameRank, NoHook):
+        with pytest.raises(TypeError):
+            register(cls)
+    assert tuple(EFFECTS) == ORDER and "no_hook" not in EFFECTS
+
+
 @pytest.mark.parametrize("name", [n for n in ORDER if EFFECTS[n].stage in ("signal", "pixel")])
 def test_signal_effects_are_identity_at_their_off_values(name: str) -> None:
     cam = _cam()

@@ -231,6 +231,29 @@ def test_correlate_is_adjoint_of_convolve() -> None:
     assert np.vdot(y, convolve(x, k, c)) == pytest.approx(np.vdot(correlate(y, k, c), x), rel=1e-12)
 
 
+def test_regularised_inverse_is_the_inverse_filter_of_the_centred_kernel() -> None:
+    # against the filter written out: the kernel moved to the origin of the padded grid, its
+    # transfer function H, F^-1[conj(H) F[S] / (|H|^2 + mu)] cropped to the image
+    from scipy import fft as sfft
+
+    from tofhil.sim.straylight import PaddedConvolution
+
+    rng = _rng(4)
+    s = rng.normal(size=(2, 11, 14)) + 1j * rng.normal(size=(2, 11, 14))
+    k = 0.1 * rng.random((21, 27))
+    k[10, 13] += 1.0
+    size = (sfft.next_fast_len(11 + 21 - 1), sfft.next_fast_len(14 + 27 - 1))
+    kp = np.zeros(size)
+    kp[:21, :27] = k
+    hf = sfft.fft2(np.roll(kp, (-10, -13), axis=(0, 1)))
+    for mu in (0.0, 1e-2):
+        ref = sfft.ifft2(sfft.fft2(s, s=size) * np.conj(hf) / (np.abs(hf) ** 2 + mu))[..., :11, :14]
+        out = PaddedConvolution(k, (11, 14), (10, 13), fft_size=size).regularised_inverse(s, mu)
+        np.testing.assert_allclose(out, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+    with pytest.raises(ValueError):
+        PaddedConvolution(k, (11, 14), (10, 13), fft_size=(16, 16))
+
+
 def test_blur_of_one_image_equals_the_padded_convolution() -> None:
     from tofhil.sim.straylight import GaussianBlur, gaussian_kernel
 

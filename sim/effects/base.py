@@ -1,0 +1,210 @@
+"""What every effect is: its parameters (:class:`Param`), the stage hooks (:class:`Effect`)
+and what signal- and pixel-stage hooks are given besides the light (:class:`EffectContext`).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from tofhil import C_M_PER_S
+from tofhil.camera import CameraModel
+from tofhil.errors import InputFileError
+from tofhil.schema import Schema
+from tofhil.sim.sensor import OpticalSignal, SensorConfig
+
+STAGES = ("scene", "render", "signal", "pixel")
+#: The hook each stage's effects implement.
+STAGE_HOOKS = {"scene": "apply_scene", "render": "apply_render", "signal": "apply_signal", "pixel": "apply_signal"}
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter: ``off`` leaves the model unchanged; ``[lo, hi]`` are its bounds.
+
+    The last five fields say how diagnosis fits it (this table is the only place that says
+    so): ``fit`` the range searched (None: diagnosis does not fit this parameter, it keeps
+    its current value), ``step`` a typical change for the optimiser, ``log`` fit
+    ``log10(value)`` (``fit`` and ``step`` are then in decades), ``start`` where a fit of a
+    newly added effect begins (None: the current value) and ``starts`` more values to try,
+    one parameter at a time with the others at their ``start`` (multi-start: at zero weight a
+    lobe's width is irrelevant, at zero amplitude a harmonic's phase is).
+    """
+
+    off: float
+    lo: float
+    hi: float
+    unit: str
+    doc: str
+    #: Value used when the effect is switched on without this parameter (None: the off value).
+    default: float | None = None
+    fit: tuple[float, float] | None = None
+    step: float = 0.0
+    log: bool = False
+    start: float | None = None
+    starts: tuple[float, ...] = ()
+    #: The diagnosis forms that fit it: "" the effect's simple form, a name one of its
+    #: flexible forms (``Effect.forms``).
+    forms: tuple[str, ...] = ("",)
+    #: An angle whose bounds are one period: a fit at a bound is not pinned there.
+    periodic: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.lo <= self.off <= self.hi:
+            raise ValueError(f"off value {self.off} outside [{self.lo}, {self.hi}]")
+        if self.fit is not None:
+            lo, hi = (10.0 ** self.fit[0], 10.0 ** self.fit[1]) if self.log else self.fit
+            if not (self.lo <= lo < hi <= self.hi) or not self.step > 0:
+                raise ValueError(f"fit range {self.fit} must lie in the bounds [{self.lo}, {self.hi}] "
+                                 "with a positive step")
+
+    @property
+    def on_default(self) -> float:
+        return self.off if self.default is None else self.default
+
+    @property
+    def fitted(self) -> bool:
+        return self.fit is not None
+
+
+@dataclass
+class EffectContext:
+    """What signal- and pixel-stage effects may need besides the signal."""
+
+    camera: CameraModel
+    sensor: SensorConfig | None = None
+    source: str = "<effects>"
+    base_dir: Path | None = None
+
+
+class Effect:
+    """Base class. Subclasses set ``name``, ``stage``, ``rank``, ``params``, ``options``,
+    ``doc`` and implement the hook of their stage; ``registry.register`` enters them."""
+
+    name: str = ""
+    stage: str = ""
+    #: Place in the forward-model order (``registry.ORDER``): effects apply in increasing
+    #: rank, whatever their stage's position; a new effect takes a free rank between two.
+    rank: int = 0
+    doc: str = ""
+    #: One line for the table of effects in docs/effects.md.
+    summary: str = ""
+    params: dict[str, Param] = {}
+    #: Structured, non-fitted options: name -> description.
+    options: dict[str, str] = {}
+    #: Flexible forms diagnosis fits besides the simple one: form name -> what it adds. A
+    #: form fits the parameters whose ``Param.forms`` name it (docs/diagnose.md, Selection).
+    forms: dict[str, str] = {}
+    #: True when the effect's light at a pixel depends only on that pixel's light (a
+    #: prediction on some pixels then needs only those pixels rendered); False when it moves
+    #: light between pixels (stray light).
+    pixel_local: bool = True
+
+    # -------------------------------------------------------------- values
+    def off_values(self) -> dict[str, float]:
+        return {k: p.off for k, p in self.params.items()}
+
+    def default_values(self) -> dict[str, float]:
+        return {k: p.on_default for k, p in self.params.items()}
+
+    def bounds(self) -> dict[str, tuple[float, float]]:
+        return {k: (p.lo, p.hi) for k, p in self.params.items()}
+
+    def validate(self, values: Mapping[str, Any] | None, *, source: str | Path = "<effects>",
+                 prefix: str | None = None) -> dict[str, Any]:
+        """Check names, types and bounds; fill defaults. Errors name ``effects.<name>.<param>``."""
+        prefix = prefix or f"effects.{self.name}"
+        values = {} if values is None else values
+        if not isinstance(values, Mapping):
+            raise InputFileError(f"got {values!r}", file=source, field=prefix,
+                                 expected="a mapping of parameter values")
+        known = list(self.params) + list(self.options)
+        out: dict[str, Any] = self.default_values()
+        for key, v in values.items():
+            if key in self.options:
+                out[key] = copy.deepcopy(v)
+                continue
+            if key not in self.params:
+                raise InputFileError(f"unknown parameter {key!r}", file=source, field=f"{prefix}.{key}",
+                                     expected="one of " + ", ".join(known))
+            p = self.params[key]
+            out[key] = Schema(source).number(v, f"{prefix}.{key}", lo=p.lo, hi=p.hi,
+                                             expected=f"a number in [{p.lo:g}, {p.hi:g}] {p.unit}".rstrip())
+        self.check_options(out, source=source, prefix=prefix)
+        return out
+
+    def check_options(self, values: dict[str, Any], *, source: str | Path, prefix: str) -> None:
+        """Validate structured options (subclasses)."""
+
+    def is_off(self, values: Mapping[str, Any]) -> bool:
+        return all(float(values.get(k, p.off)) == p.off for k, p in self.params.items())
+
+    def form_params(self, form: str = "", n_taps: int | None = None) -> dict[str, Param]:
+        """The parameters diagnosis fits in ``form`` ("" the simple form), leaving out those a
+        session with ``n_taps`` taps per frequency cannot see (:meth:`observable`)."""
+        return {k: p for k, p in self.params.items()
+                if p.fitted and form in p.forms and (n_taps is None or self.observable(k, n_taps))}
+
+    def observable(self, param: str, n_taps: int) -> bool:
+        """Whether ``param`` changes what ``n_taps`` equally spaced taps measure (default yes)."""
+        return True
+
+    def roughness(self, form: str, values: Mapping[str, Any]) -> np.ndarray | None:
+        """The prior of a flexible form: a vector that is zero for the form's smoothest
+        shape, its squared norm what diagnosis penalises, the strength chosen on held-out data
+        (:mod:`tofhil.eval.diagnose.form_prior`). None: the form has no prior (its parameter count,
+        shape and the identifiability test hold it)."""
+        return None
+
+    # -------------------------------------------------------------- stage hooks
+    # Each stage has one hook (``STAGE_HOOKS``); an effect implements the hook of its stage.
+    def apply_scene(self, scene: Any, values: Mapping[str, Any]) -> Any:
+        """Scene stage: the Scene a new render must see with this effect at ``values``."""
+        raise NotImplementedError(f"{self.name} is a {self.stage}-stage effect")
+
+    def rescale_render(self, result: Any, values: Mapping[str, Any], rendered: Mapping[str, Any],
+                       scene: Any) -> Any | None:
+        """Scene stage, fast path: a cached render of ``scene`` made with this effect at
+        ``rendered`` turned into the render at ``values`` without tracing rays, or None when
+        only a new render is exact (the default, except when nothing changes)."""
+        return result if _same_values(values, rendered) else None
+
+    def render_requirements(self, values: Mapping[str, Any], scene: Any) -> dict[str, Any]:
+        """Extra renderer arguments this effect needs (e.g. separate direct/indirect)."""
+        return {}
+
+    def apply_render(self, result: Any, values: Mapping[str, Any],
+                     waveform: Mapping[int, complex] | None = None) -> OpticalSignal:
+        """Render stage: the light on the sensor recombined from a render's parts."""
+        raise NotImplementedError(f"{self.name} is a {self.stage}-stage effect")
+
+    def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
+        """Signal and pixel stages: the light on the sensor changed by this effect."""
+        raise NotImplementedError(f"{self.name} is a {self.stage}-stage effect")
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "stage": self.stage, "doc": self.doc,
+                "params": {k: dataclasses.asdict(p) for k, p in self.params.items()},
+                "options": dict(self.options)}
+
+
+def _same_values(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
+    return dict(a) == dict(b)
+
+
+def _rotate_phase(signal: OpticalSignal, path_m: np.ndarray | float) -> OpticalSignal:
+    """Add an optical path ``path_m`` (scalar, ``[H, W]`` or ``[F, H, W]``) to every harmonic:
+    ``S_h *= exp(+i 2 pi h f path / c)``."""
+    out = signal.copy()
+    path = np.asarray(path_m, dtype=np.float64)
+    if path.ndim == 3:
+        path = path[:, None]  # [F, 1, H, W]
+    f = signal.freq_hz[:, None, None, None]
+    h = np.asarray(signal.harmonics, dtype=np.float64)[None, :, None, None]
+    out.phasor_w = signal.phasor_w * np.exp(1j * 2.0 * np.pi * h * f * path / C_M_PER_S)
+    return out
