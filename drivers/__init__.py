@@ -5,7 +5,8 @@
 - ``tofcam635``: the ESPROS TOFcam635 (protocol, USB and serial transports, the pyusb
   driver, and its emulator); ``depthai``: Luxonis ToF cameras through DepthAI v3 (device and
   host-only pipelines);
-- ``importers``: ADI ToF frames, Azure Kinect recordings, replay of sessions;
+- ``importers``: ADI ToF frames, Azure Kinect recordings, ROS 2 bags (MCAP, in and out),
+  replay of sessions;
 - ``sources``: where an emulated device's images come from (a frame source its caller
   injects: drivers never import the simulator).
 """

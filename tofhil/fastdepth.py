@@ -226,6 +226,9 @@ def _fused_one(taps, wr, wi, lo, hi, scale, inv_n, out_d, out_amp, out_int, out_
     pass over the taps for 640 x 480 x 3 taps. No conflict output: one frequency has none."""
     k = taps.shape[1]
     n = taps.shape[2]
+    # The two loops differ only in the I/Q kernel: written out twice on purpose, because a
+    # shared store function (inlined by numba) stops the loop vectorising: 0.51 -> 3.9 ms per
+    # 640 x 480 x 4-tap frame, measured when it was tried.
     if k == 4:
         t0, t1, t2, t3 = taps[0, 0], taps[0, 1], taps[0, 2], taps[0, 3]
         w0r, w1r, w0i, w1i = wr[0], wr[1], wi[0], wi[1]

@@ -8,6 +8,7 @@ format              what                                                        
 ``adi-interleaved`` ADI ToF SDK frames, 512x512x5 bytes each (depth, conf, AB)      radial
 ``adi-pair``        ADI ``*_depth*.bin`` + matching ``*_ir*.bin`` (uint16 images)   radial
 ``k4a-mkv``         Azure Kinect recording (.mkv, depth + IR + calibration.json)    z -> radial
+``ros2-mcap``       ROS 2 bag (.mcap): sensor_msgs Image depth + IR, CameraInfo     z -> radial
 ``session``         a tofhil session (copied frame by frame: replay / repair)       radial
 ==================  ==============================================================  ===========
 
@@ -27,19 +28,19 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Mapping
 
 import h5py
 import numpy as np
 
 from tofhil.camera import CameraModel, load_camera_preset
-from tofhil.drivers.importers import adi
+from tofhil.drivers.importers import adi, ros2
 from tofhil.errors import InputFileError, TofhilError
 from tofhil.frames import DepthFrame
 from tofhil.outputs import partial_path, refuse_existing, remove_partial
 from tofhil.session import SessionWriter, open_session
 
-FORMATS = ("adi-interleaved", "adi-pair", "k4a-mkv", "session")
+FORMATS = ("adi-interleaved", "adi-pair", "k4a-mkv", "ros2-mcap", "session")
 
 _EBML_MAGIC = b"\x1a\x45\xdf\xa3"
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
@@ -64,6 +65,11 @@ def detect_format(path: str | Path) -> str:
         head = fh.read(8)
     if head[:4] == _EBML_MAGIC:
         return "k4a-mkv"
+    if head == ros2.MCAP_MAGIC:
+        return "ros2-mcap"
+    if p.suffix.lower() == ".mcap":
+        raise InputFileError(f"is not an MCAP file (starts {head.hex()})", file=p, field="magic",
+                             expected="a ROS 2 bag in MCAP, starting 89 4D 43 41 50 30 0D 0A")
     if head == _HDF5_MAGIC or h5py.is_hdf5(p):
         return "session"
     size = p.stat().st_size
@@ -79,7 +85,8 @@ def detect_format(path: str | Path) -> str:
                                  expected="name it *_depth*.bin with a matching *_ir*.bin beside it")
     raise InputFileError(f"format not recognised ({size} bytes, starts {head[:4].hex()})", file=p,
                          expected="an ADI interleaved .bin (512*512*5 bytes per frame), an ADI "
-                                  "*_depth*.bin + *_ir*.bin pair, an Azure Kinect .mkv, or a tofhil session")
+                                  "*_depth*.bin + *_ir*.bin pair, an Azure Kinect .mkv, a ROS 2 .mcap bag, "
+                                  "or a tofhil session")
 
 
 # --------------------------------------------------------------------------- helpers
@@ -185,16 +192,39 @@ def _import_k4a(rec: Any, src: Path, out: Path, camera: str | Path | CameraModel
     return ImportResult(out, fmt, n, cam, notes)
 
 
+def _import_ros2(src: Path, out: Path, camera: str | Path | CameraModel | None, force: bool, salvage: bool,
+                 topics: dict[str, str | None], depth_kind: str | None, device: dict[str, Any], notes: list[str],
+                 on_frame: Callable[[int, int], None] | None) -> ImportResult:
+    unknown = set(topics) - {"depth", "amplitude", "confidence", "info"}
+    if unknown:
+        raise TofhilError(f"unknown topic roles {sorted(unknown)}", field="topics",
+                          expected="depth, amplitude, confidence, info")
+    given = camera if camera is None or isinstance(camera, CameraModel) else load_camera_preset(camera)
+    bag = ros2.read_bag(src, camera=given, depth_topic=topics.get("depth"), amplitude_topic=topics.get("amplitude"),
+                        confidence_topic=topics.get("confidence"), info_topic=topics.get("info"),
+                        depth_kind=depth_kind, salvage=salvage)
+    device.update(bag.device)
+    if camera is not None:
+        device["camera_source"] = f"--camera {camera}" if not isinstance(camera, CameraModel) else "given"
+    notes.extend(bag.notes)
+    n = _write(out, bag.camera, device, bag.frames(), force, bag.n_frames, on_frame)
+    return ImportResult(out, "ros2-mcap", n, bag.camera, notes)
+
+
 def import_file(path: str | Path, out: str | Path, *, camera: str | Path | CameraModel | None = None,
                 force: bool = False, fmt: str | None = None, salvage: bool = False,
-                adi_max_confidence: int | None = None,
+                adi_max_confidence: int | None = None, topics: Mapping[str, str | None] | None = None,
+                depth_kind: str | None = None,
                 on_frame: Callable[[int, int], None] | None = None) -> ImportResult:
     """Import one capture into a new session file ``out``.
 
     ``camera`` overrides the camera model (preset name, YAML path or CameraModel); files
-    with their own calibration (Azure Kinect) use theirs by default, ADI files the assumed
-    preset ``adi_adtf3175_qmp``. ``salvage`` imports the complete frames of a truncated
-    recording instead of refusing it.
+    with their own calibration (Azure Kinect, a ROS 2 bag's CameraInfo) use theirs by default,
+    ADI files the assumed preset ``adi_adtf3175_qmp``. ``salvage`` imports the complete frames
+    of a truncated recording instead of refusing it. ROS 2 bags: ``topics`` names the
+    ``depth``, ``amplitude``, ``confidence`` and ``info`` (CameraInfo) topics (each found
+    when unambiguous if not given), ``depth_kind`` (``z`` or ``radial``) what the depth
+    images hold (default: the bag's tofhil metadata, else z as ROS depth images are).
     """
     src = Path(path)
     out = Path(out)
@@ -238,6 +268,10 @@ def import_file(path: str | Path, out: str | Path, *, camera: str | Path | Camer
         items = ((None, d) for d in _adi_frames(frames, cam, adi_max_confidence))
         n = _write(out, cam, device, items, force, n_total, on_frame)
         return ImportResult(out, fmt, n, cam, notes)
+
+    if fmt == "ros2-mcap":
+        return _import_ros2(src, out, camera, force, salvage, dict(topics or {}), depth_kind, device, notes,
+                            on_frame)
 
     if fmt == "k4a-mkv":
         from tofhil.drivers.importers.k4a import read_k4a_recording

@@ -2,6 +2,6 @@
 
 The library packages depend on the core only (and eval on sim); what connects all three lives
 here, beside the CLI, which is its one user interface: ``sweep`` (many cases simulated or
-captured, compared and diagnosed, on Dask) and ``emulators`` (the emulated cameras given the
-twin's frame sources). Nothing in ``tofhil.drivers``, ``tofhil.sim`` or ``tofhil.eval`` imports it.
+captured, compared and diagnosed, on Dask), ``emulators`` (the emulated cameras given the
+twin's frame sources) and ``export`` (a session with the twin's render as a ROS 2 bag). Nothing in ``tofhil.drivers``, ``tofhil.sim`` or ``tofhil.eval`` imports it.
 """
