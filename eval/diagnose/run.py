@@ -368,6 +368,18 @@ def _settle(selection: Selection, data: HeldOutData, sizes: V.EffectSize, judge:
     return verdict, ch_after, objects_after, worse, after_model, after_pred
 
 
+def _drift_alone(model: TwinModel, data: HeldOutData, selection: Selection, drift: Any, penalty: float) -> Any:
+    """The drift fitted on the base twin, when it explains the frames as well as the selected
+    causes with the drift on top (their parameters charged at ``penalty`` each): then the causes
+    only took up the drift's mean. None when the causes are needed."""
+    alone = fit_frame_drift(model, data, {}, penalty)
+    if alone is None or not alone.named:
+        return None
+    k = sum(len(v) for e, v in selection.params.items() if e != MAP_EFFECT)
+    k += float(selection.details.get(MAP_EFFECT, {}).get("dof", 0.0)) if MAP_EFFECT in selection.params else 0.0
+    return alone if alone.chi2_drift <= drift.chi2_drift + penalty * max(k, 1.0) else None
+
+
 def _with_drift(verdict: V.Verdict, drift: Any, judge: _Judge, evidence: list[str]) -> V.Verdict:
     """The frames' mean hides a drift (it inflates the frame-to-frame noise instead): a named
     drift is the verdict where nothing else was, on the held-out pixels of every frame."""
@@ -488,6 +500,19 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     verdict, ch_after, objects_after, worse, after_model, after_pred = _settle(
         selection, data, sizes, judge, extend, base_pred, after_pred, after_model, max_effects)
     drift = fit_frame_drift(model, data, selection.params, float(np.log(n))) if want_drift else None
+    if drift is not None and drift.named and selection.causes:
+        alone = _drift_alone(model, data, selection, drift, float(np.log(n)))
+        if alone is not None:
+            # the static causes stood in for the drift's mean: the drift alone explains every frame
+            verdict_note = ("fitted but not named: " + " + ".join(selection.causes) + " (the per-frame drift alone "
+                            f"explains the frames as well: held-out misfit {alone.chi2_drift / alone.n_values:.3f} "
+                            f"per value against {drift.chi2_drift / drift.n_values:.3f} with them; a static effect "
+                            "fitted to frames that drift takes up the drift's mean)")
+            selection.causes, selection.params = [], {}
+            after_model, after_pred = extend({})
+            verdict, ch_after, objects_after, worse = judge(after_pred, [])
+            verdict.notes.append(verdict_note)
+            drift = alone
     verdict = _with_drift(verdict, drift, judge, evidence)
     for e in selection.causes:  # "A or B": the named cause is not the only reading of the data
         verdict.notes.extend(a.text for a in selection.alternatives.get(e, ()))
