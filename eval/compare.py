@@ -423,7 +423,7 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
         noise_res[~np.isfinite(noise_res)] = np.nan  # A's noise unknown (one frame): no floor
         v.evaluation = M.evaluate(v.frame, ref, regions, wrap_m=wrap_m, health_a=health_a, health_b=health_b,
                                   cloud_regions=True, cell_size=cell_size, threshold=threshold,
-                                  source=f"{a_path} vs {b_path}", noise_m=noise_res)
+                                  source=f"{a_path} vs {b_path}", noise_m=noise_res, freq_hz=freqs)
         res = v.evaluation.to_json()
         res["temporal_std_m_median"] = (float(np.nanmedian(v.temporal_std_m))
                                         if np.isfinite(v.temporal_std_m).any() else None)

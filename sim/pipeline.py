@@ -19,7 +19,7 @@ from tofhil.frames import RawFrame
 from tofhil.progress import Progress
 from tofhil.sim.effects import effects_to_block, parse_effects
 from tofhil.sim.sensor import OpticalSignal, SensorConfig, SensorModel
-from tofhil.sim.twin import Twin, signal_from_render
+from tofhil.sim.twin import Twin, readout, signal_from_render, with_readout
 
 Effects = Mapping[str, Mapping[str, Any]]
 
@@ -56,8 +56,10 @@ def forward(scene: Any, render_result: Any, effects: Mapping[str, Any] | None = 
     eff = resolve_effects(scene, effects)
     camera = getattr(render_result, "camera", None) or scene.camera
     signal = optical_signal(scene, render_result, eff)
-    return SensorModel(sensor_config(scene), camera).expose(signal, seed=seed, frame_index=frame_index, noise=noise,
-                                                            meta={"effects": effects_to_block(eff)})
+    config = sensor_config(scene)
+    frame = SensorModel(config, camera).expose(signal, seed=seed, frame_index=frame_index, noise=noise,
+                                               meta={"effects": effects_to_block(eff)})
+    return with_readout(frame, scene, eff, config)
 
 
 def simulate(scene: Any, frames: int = 1, seed: int = 0, noise: bool = True,
@@ -212,4 +214,7 @@ def write_direct_simulation(scene: Any, out_path: str | Path, frames: int = 1, s
 def expected_taps(scene: Any, render_result: Any, effects: Mapping[str, Any] | None = None) -> np.ndarray:
     """Noise-free taps in DN ``[F, K, H, W]`` (float32, as in a frame) from a given render."""
     camera = getattr(render_result, "camera", None) or scene.camera
-    return SensorModel(sensor_config(scene), camera).taps_dn(optical_signal(scene, render_result, effects), noise=False)
+    eff = resolve_effects(scene, effects)
+    config = sensor_config(scene)
+    taps = SensorModel(config, camera).taps_dn(optical_signal(scene, render_result, eff), noise=False)
+    return readout(taps, scene, camera, eff, config)

@@ -28,6 +28,7 @@ from tofhil.content_cache import LRUCache
 from tofhil.frames import RawFrame
 from tofhil.progress import Progress
 from tofhil.sim.effects import (EFFECTS, ORDER, Effect, EffectContext, WigglingEffect, apply_scene_effects,
+                                apply_tap_effects,
                                 apply_signal_effects, effects_by_stage, parse_effects, render_requirements)
 from tofhil.sim.memory import check_memory, render_memory
 from tofhil.sim.optics import apply_lens
@@ -69,6 +70,20 @@ def effect_context(scene: Any, camera: Any, config: SensorConfig) -> EffectConte
     src = str(getattr(scene, "source", "<scene>"))
     base = Path(src).parent if Path(src).is_file() else None
     return EffectContext(camera=camera, sensor=config, source=src, base_dir=base)
+
+
+def readout(taps: np.ndarray, scene: Any, camera: Any, effects: Effects, config: SensorConfig) -> np.ndarray:
+    """The taps as the readout records them: the taps-stage effects (per-tap gains and
+    offsets) on the sensor's taps ``[F, K, ...]``; the same array when none is on."""
+    if not any(EFFECTS[n].stage == "taps" and not EFFECTS[n].is_off(v) for n, v in effects.items()):
+        return taps
+    return apply_tap_effects(taps, effects, effect_context(scene, camera, config))
+
+
+def with_readout(frame: RawFrame, scene: Any, effects: Effects, config: SensorConfig) -> RawFrame:
+    """A raw frame through the taps-stage effects (the frame itself when none is on)."""
+    taps = readout(frame.taps, scene, frame.camera, effects, config)
+    return frame if taps is frame.taps else dataclasses.replace(frame, taps=taps)
 
 
 def signal_from_render(scene: Any, result: Any, effects: Effects, config: SensorConfig) -> OpticalSignal:
@@ -254,7 +269,7 @@ class Twin:
             args = dict(args, pixels=pixels)
         # Refuse, before anything is allocated, a job whose estimated memory (the render, the
         # sensor and the frames held at once) exceeds what the machine has.
-        signal_effects = any(EFFECTS[n].stage in ("signal", "pixel") for n in effects)
+        signal_effects = any(EFFECTS[n].stage in ("signal", "pixel", "taps") for n in effects)
         check_memory(render_memory(scene2, args, frames_kept=self.frames_kept, signal_effects=signal_effects),
                      source=str(getattr(scene2, "source", "")) or None)
         result = render(scene2, progress=self.progress, **args)
@@ -293,13 +308,17 @@ class Twin:
     def expected_taps(self, effects: Effects | None = None, *, pixels: np.ndarray | None = None) -> np.ndarray:
         """Noise-free taps in DN ``[F, K, H, W]`` (float32, as in a frame); ``pixels`` see
         :meth:`signal`."""
-        return self.sensor().taps_dn(self.signal(effects, pixels=pixels), noise=False)
+        eff = self._resolve(effects)
+        taps = self.sensor().taps_dn(self.signal(eff, pixels=pixels), noise=False)
+        return readout(taps, self.scene, self.scene.camera, eff, self.config)
 
     def expected_taps_at(self, effects: Effects | None, pixels: np.ndarray) -> np.ndarray:
         """:meth:`expected_taps` on the pixels of a bool mask ``[H, W]`` only, as ``[F, K, 1,
         N]`` (row-major order of the mask; rendered only there when that is exact)."""
-        signal = self.signal(effects, pixels=pixels)
-        return self.sensor()._noise_free_taps(signal, np.flatnonzero(np.asarray(pixels, dtype=bool).ravel()))
+        eff = self._resolve(effects)
+        signal = self.signal(eff, pixels=pixels)
+        taps = self.sensor()._noise_free_taps(signal, np.flatnonzero(np.asarray(pixels, dtype=bool).ravel()))
+        return readout(taps, self.scene, self.scene.camera, eff, self.config)
 
     def frames(self, effects: Effects | None = None, frames: int = 1, *, seed: int = 0, noise: bool = True,
                meta: Mapping[str, Any] | None = None, first_index: int = 0) -> Iterable[RawFrame]:
@@ -310,7 +329,8 @@ class Twin:
         signal = signal_from_render(scene2, result, eff, self.config)
         sensor = self.sensor(getattr(result, "camera", None) or scene2.camera)
         for i in range(first_index, first_index + frames):
-            yield sensor.expose(signal, seed=seed, frame_index=i, noise=noise, meta=dict(meta or {}))
+            yield with_readout(sensor.expose(signal, seed=seed, frame_index=i, noise=noise, meta=dict(meta or {})),
+                               scene2, eff, self.config)
 
 
 __all__ = ["RenderCache", "Twin", "effect_context", "render_arguments", "render_key", "signal_from_render"]

@@ -119,16 +119,21 @@ def _isolated(values: np.ndarray, noise: np.ndarray) -> np.ndarray:
     return nearest > OUTLIER_SIGMAS * np.maximum(scale, 1e-12)
 
 
-def raw_defects(taps: np.ndarray, theta_rad: np.ndarray) -> Defects:
-    """Defects of raw-tap frames ``taps[N, F, K, H, W]`` (DN) with tap phases ``theta_rad[K]``."""
+def raw_defects(taps: np.ndarray, theta_rad: np.ndarray, clipped: np.ndarray | None = None) -> Defects:
+    """Defects of raw-tap frames ``taps[N, F, K, H, W]`` (DN) with tap phases ``theta_rad[K]``.
+    ``clipped`` (bool ``[H, W]``): pixels with a saturated tap; their taps hold still at the
+    clip level, which is saturation, not a stuck pixel: they are neither defects nor used to
+    fit the noise model."""
     taps = np.asarray(taps, dtype=np.float64)
     n, nf, k, h, w = taps.shape
     d = Defects((h, w))
+    clipped = np.zeros((h, w), bool) if clipped is None else np.asarray(clipped, bool)
     mean = taps.mean(axis=0)                                      # [F, K, H, W]
     level = mean.mean(axis=(0, 1))                                # the pixel's mean tap level
     if n >= 3:
         var = taps.var(axis=0, ddof=1).mean(axis=(0, 1))          # temporal variance per tap
-        a, b = _robust_line(level.ravel(), var.ravel())
+        fit = ~clipped if (~clipped).sum() >= 100 else np.ones((h, w), bool)
+        a, b = _robust_line(level[fit], var[fit])
         predicted = a + b * level
         d.kinds["noisy"] = var > NOISY_RATIO * np.maximum(predicted, 1e-12)
         if float(np.median(predicted)) > MIN_SPREAD_FOR_STUCK_DN ** 2:
@@ -156,25 +161,48 @@ def raw_defects(taps: np.ndarray, theta_rad: np.ndarray) -> Defects:
         for kind in ("outlier", "off_model", "noisy"):
             if kind in d.kinds:
                 d.kinds[kind] &= ~d.kinds["stuck"]
+    for kind in d.kinds:
+        d.kinds[kind] &= ~clipped
     return d
 
 
-def depth_defects(radial_m: np.ndarray, valid: np.ndarray, camera: Any, noise_m: np.ndarray | None = None,
-                  *, flying_angle_deg: float = 10.0) -> Defects:
+#: A mixed (flying) pixel lies between the surfaces on its two sides, each gap at least
+#: this fraction of its range (and ``OUTLIER_SIGMAS`` noise): a step of a few per cent.
+FLYING_GAP_FRACTION = 0.02
+
+
+def _flying(r: np.ndarray, ok: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """Pixels strictly between their two opposite neighbours (left/right, up/down or a
+    diagonal), both gaps large: a return mixed from the two surfaces of a depth step. The
+    pixels of the step itself, equal to their own side, are not flagged."""
+    h, w = r.shape
+    padded = np.pad(r, 1, mode="edge")
+    okp = np.pad(ok, 1, mode="constant")
+    gap = np.maximum(FLYING_GAP_FRACTION * r, OUTLIER_SIGMAS * noise)
+    out = np.zeros(r.shape, bool)
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        a = padded[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
+        b = padded[1 - dy:1 - dy + h, 1 - dx:1 - dx + w]
+        both = okp[1 + dy:1 + dy + h, 1 + dx:1 + dx + w] & okp[1 - dy:1 - dy + h, 1 - dx:1 - dx + w]
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        out |= both & (r - lo > gap) & (hi - r > gap)
+    return out & ok
+
+
+def depth_defects(radial_m: np.ndarray, valid: np.ndarray, camera: Any, noise_m: np.ndarray | None = None) -> Defects:
     """Defects of a depth frame ``[H, W]`` (radial metres, the camera's validity): no depth
     where valid, isolated outliers against ``noise_m`` (the depth noise per pixel), and
-    flying pixels (the SR4000 study's jump-edge angle test, :mod:`..corrections.depth_filters`)."""
-    from tofhil.eval.corrections.depth_filters import jump_edge_angle
-
+    flying pixels between the two surfaces of a depth step."""
     r = np.asarray(radial_m, dtype=np.float64)
     valid = np.asarray(valid, bool)
     d = Defects(r.shape)
     d.kinds["no_depth"] = valid & ~(np.isfinite(r) & (r > 0))
     ok = valid & ~d.kinds["no_depth"]
-    filled = np.where(ok, r, np.nan)
-    med = np.nanmedian(filled) if ok.any() else 0.0
+    med = float(np.median(r[ok])) if ok.any() else 0.0
     filled = np.where(ok, r, med)
     noise = np.zeros(r.shape) if noise_m is None else np.nan_to_num(np.asarray(noise_m, dtype=np.float64))
     d.kinds["outlier"] = _isolated(filled, noise) & ok
-    d.kinds["flying"] = ok & jump_edge_angle(filled, ok, camera, min_angle_deg=flying_angle_deg) & ~d.kinds["outlier"]
+    # an outlier is not a surface its neighbours could be mixed with
+    clean = np.where(d.kinds["outlier"], ndimage.median_filter(filled, size=3, mode="nearest"), filled)
+    d.kinds["flying"] = _flying(clean, ok & ~d.kinds["outlier"], noise)
     return d

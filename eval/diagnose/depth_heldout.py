@@ -42,6 +42,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from tofhil.eval.diagnose.defects import Defects, depth_defects
 from tofhil.eval.metrics.noise import NOISE_POOL_PX, phasor_depth_sigma, pooled_variance, robust_sigma
 from tofhil.camera import CameraModel
 from tofhil.depth import saturated_amplitude
@@ -241,6 +242,7 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
     cam = session.camera
     b = bin_factor(cam.shape, max_pixels)
     frames_s, frames_ok, conf_seen, conf0 = [], [], False, None
+    defects = _frame_defects(session, cam, valid_mask)
     for i in range(n):
         df = session.depth_frame(i)
         d = np.asarray(df.radial_m, np.float64)
@@ -253,6 +255,7 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
         ok &= ~saturated_amplitude(amp, ok)
         if valid_mask is not None and valid_mask.shape == ok.shape:
             ok &= valid_mask
+        ok &= ~defects.mask
         s = depth_phasor(np.where(ok, d, 0.0), np.where(ok, amp, 0.0), freq_hz)
         if i == 0 and df.confidence is not None and np.isfinite(df.confidence[ok]).any():
             conf0 = bin_mean(np.where(ok, np.asarray(df.confidence, np.float64), np.nan), b)
@@ -334,7 +337,28 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
                                     "noise)" if conf_seen and n >= 2 else "")),
                        noise=noise, phase_ref=ref, radial_var_scale=radial_scale,
                        amplitude_model_error=amplitude_model_error or None, frames_held_out=n >= 2,
-                       s_frames=s_all if n >= 2 else None)
+                       s_frames=s_all if n >= 2 else None,
+                       defects=defects if b == 1 else _binned_defects(defects, b))
+
+
+def _frame_defects(session: Session, cam: Any, valid_mask: np.ndarray | None) -> Defects:
+    """The defects of the session's first frame (no depth where valid, outliers, flying pixels)."""
+    df = session.depth_frame(0)
+    valid = np.asarray(df.valid, bool)
+    if valid_mask is not None and valid_mask.shape == valid.shape:
+        valid &= valid_mask
+    return depth_defects(np.asarray(df.radial_m, np.float64), valid, cam)
+
+
+def _binned_defects(defects: Defects, b: int) -> Defects:
+    """Defects on the binned grid: a bin holding any defective pixel is one."""
+    out = Defects(defects.shape, notes=list(defects.notes))
+    for kind, m in defects.kinds.items():
+        h, w = m.shape[0] // b * b, m.shape[1] // b * b
+        out.kinds[kind] = m[:h, :w].reshape(h // b, b, w // b, b).any(axis=(1, 3))
+    out.shape = next(iter(out.kinds.values())).shape if out.kinds else defects.shape
+    out.notes.append(f"found on the full image, shown on the {b} x {b} binned grid the diagnosis uses")
+    return out
 
 
 def split_for_diagnosis(session: Session, scene: Any, *, block_px: int = 8, max_frames: int | None = None,

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from tofhil.eval.diagnose.defects import raw_defects
 from tofhil.eval.metrics.noise import pooled_variance
 from tofhil.camera import CameraModel
 from tofhil.demod import TapLimits, bad_extremes, clip_limits, phasor, wrapped_phase
@@ -69,6 +70,12 @@ class HeldOutData:
     #: Every frame's signal ``[N, C, H, W]`` (even frames train, odd frames test), for forms
     #: that change from frame to frame (drift); None when not kept.
     s_frames: np.ndarray | None = field(default=None, repr=False)
+    #: The defective pixels found before any fit (:mod:`tofhil.eval.diagnose.defects`): not
+    #: in ``usable``, so neither fitted nor scored; None when not searched.
+    defects: Any = None
+    #: Raw sessions: the measured taps ``[F, K, H, W]`` (DN) averaged over the held-out frames,
+    #: for the residual per tap (:mod:`tofhil.eval.diagnose.channels`).
+    taps_test: np.ndarray | None = field(default=None, repr=False)
     _fit_pixels: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
@@ -227,10 +234,17 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
         raise TofhilError(f"has {n} frame(s)", file=session.path, field="raw/taps",
                           expected="at least 2 frames (training and held-out), 4 or more recommended")
     frames = [session.raw_frame(i) for i in range(n)]
-    s = np.stack([phasor(f.taps.astype(np.float64), f.theta_rad) for f in frames])  # [N, F, H, W]
+    taps = np.stack([f.taps.astype(np.float64) for f in frames])  # [N, F, K, H, W]
+    s = np.stack([phasor(t, f.theta_rad) for t, f in zip(taps, frames)])  # [N, F, H, W]
     b = np.stack([f.taps.astype(np.float64).mean(axis=(0, 1)) for f in frames])  # [N, H, W]
     taps_max = np.stack([f.taps.max(axis=(0, 1)) for f in frames]).max(axis=0)
     taps_min = np.stack([f.taps.min(axis=(0, 1)) for f in frames]).min(axis=0)
+    # Saturated taps: the one definition of the core (tofhil.demod). Limits given or declared
+    # by the session win; otherwise several pixels pinned at one extreme value over all
+    # frames are a clipped ADC or full well (a signed differential readout clips at both ends).
+    limits = clip_limits(taps_max, taps_min, TapLimits.from_meta(frames[0].meta), saturation_dn)
+    clipped = bad_extremes(taps_max, taps_min, limits)
+    defects = raw_defects(taps, frames[0].theta_rad, clipped=clipped)
     offset_mean = b.mean(axis=0)
     if offset_channel is None:
         noise_b = float(np.median(b.std(axis=0, ddof=1))) if n > 1 else 0.0
@@ -247,7 +261,7 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
     mean_all = s.mean(axis=0)
     dev2 = np.abs(s - mean_all[None]) ** 2
     var_frame = dev2.sum(axis=0) / max(n - 1, 1)
-    var_frame = pooled_variance(var_frame)
+    var_frame = pooled_variance(var_frame, exclude=defects.mask)
     floor = max(float(np.median(var_frame)) * 1e-3, 1e-12)
     var_frame = np.maximum(var_frame, floor)
     # Per real component: a complex channel's E|noise|^2 splits evenly into its real and
@@ -257,11 +271,8 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
 
     amp = np.abs(mean_all[:frames[0].freq_hz.size]).min(axis=0)
     usable = amp > min_amplitude_sigma * np.sqrt(var_frame[:frames[0].freq_hz.size].max(axis=0))
-    # Saturated taps: the one definition of the core (tofhil.demod). Limits given or declared
-    # by the session win; otherwise several pixels pinned at one extreme value over all
-    # frames are a clipped ADC or full well (a signed differential readout clips at both ends).
-    limits = clip_limits(taps_max, taps_min, TapLimits.from_meta(frames[0].meta), saturation_dn)
-    usable &= ~bad_extremes(taps_max, taps_min, limits)
+    usable &= ~clipped
+    usable &= ~defects.mask  # a finding of its own, never evidence against the scene
     board = block_checkerboard(amp.shape, block_px)
     f0 = frames[0]
     return HeldOutData(camera=session.camera, freq_hz=f0.freq_hz, theta_rad=f0.theta_rad,
@@ -273,4 +284,4 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
                        n_train_frames=len(train_idx), n_test_frames=len(test_idx),
                        offset_channel=bool(offset_channel),
                        sensor_config=getattr(session, "sensor_config", None), source=str(session.path),
-                       tap_limits=limits, s_frames=s)
+                       tap_limits=limits, s_frames=s, defects=defects, taps_test=taps[test_idx].mean(axis=0))

@@ -164,22 +164,91 @@ def _value(v: Any) -> str:
     return f"{v:.4g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v)
 
 
+#: A cause that removes less of the held-out excess than this is tentative: shown beside its
+#: alternatives, not as the page's headline.
+TENTATIVE_BELOW = 0.5
+
+
+def headline(res: Any) -> str:
+    """The verdict and the share explained first; a cause only as firmly as its gain allows."""
+    v = res.verdict
+    if v is None:
+        return "Cause: " + (" + ".join(res.causes) if res.causes else "none")
+    share = v.excess_removed
+    text = f"Verdict: {v.kind}"
+    if share is not None and v.kind in ("explained", "partly explained"):
+        text += f", {100 * share:.0f} % of the held-out excess over noise explained"
+    if res.causes:
+        if share is not None and share < TENTATIVE_BELOW:
+            alts = sorted({a["effect"] for e in res.causes for a in res.alternatives.get(e, [])} - set(res.causes))
+            text += (" -- tentative: " + " + ".join(res.causes)
+                     + (f" (or {', '.join(alts)})" if alts else "") + ", which removes less than half of the excess")
+        else:
+            text += " -- cause: " + " + ".join(res.causes)
+    return text
+
+
+def defects_section(res: Any) -> str:
+    """The defective pixels left out before the fit: how many of which kind, and a map."""
+    d = res.defects or {}
+    if not d.get("pixels"):
+        return "<p class='note'>Defective pixels: none found" + (
+            " (" + "; ".join(H.esc(n) for n in d.get("notes", [])) + ")" if d.get("notes") else "") + ".</p>"
+    rows = "".join(f"<tr><td>{H.esc(k)}</td><td>{v['pixels']}</td><td>{H.esc(v['what'])}</td></tr>"
+                   for k, v in d["kinds"].items() if v["pixels"])
+    fig = ""
+    if "defects" in res.maps:
+        plt = H.pyplot()
+        f, ax = plt.subplots(figsize=(4.0, 3.2))
+        ax.imshow(res.maps["defects"], cmap="Reds", vmin=0, vmax=1, interpolation="nearest")
+        ax.set_title("defective pixels (left out)")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        fig = f"<img src='{H.fig_uri(f)}' alt='defect map'>"
+    return (f"<h3>Defective pixels</h3><p class='warn'>{H.esc(d['text'])}</p>"
+            f"<table><tr><th>kind</th><th>pixels</th><th>what</th></tr>{rows}</table>{fig}")
+
+
+def residual_by_channel_table(res: Any) -> str:
+    """The held-out residual by channel, base twin and extended, each estimate against its noise."""
+    t = res.channel_table or {}
+    if not t:
+        return ""
+    after = {r["name"]: r for r in t.get("after", {}).get("readings", [])}
+    rows = []
+    for r in t.get("before", {}).get("readings", []):
+        a = after.get(r["name"], {})
+
+        def z(x: Any) -> str:
+            return "-" if x is None else f"{x:+.1f}"
+        style = " style='color:#c00'" if r["significant"] else ""
+        rows.append(f"<tr><td>{H.esc(r['channel'])}</td><td>{H.esc(r['name'])}</td><td{style}>{z(r['z'])}</td>"
+                    f"<td>{z(a.get('z'))}</td><td>{H.esc(r['text'])}</td></tr>")
+    notes = t.get("before", {}).get("notes", [])
+    return ("<h3>The residual by channel</h3><p class='note'>Each estimate over its standard error from the held-out "
+            f"noise (z; |z| &gt; {t.get('before', {}).get('z_significant', 5):g} is a part the noise cannot make), "
+            "with the base twin and with the extended one.</p><table><tr><th>channel</th><th>reading</th>"
+            "<th>z, base twin</th><th>z, extended</th><th>base twin</th></tr>" + "".join(rows) + "</table>"
+            + (H.notes_html(notes, css="note") if notes else ""))
+
+
 def write_report(res: Any, path: Path, *, session_path: str, scene_path: str, camera: Any = None) -> None:
     """The diagnosis page: cause, evidence, held-out gain, per-region table, figures, ranking;
     with the twin's ``camera`` a lens prescription's ghost PSFs (eval/reports/optics.py)."""
     esc = H.esc
     v = res.verdict
-    cause = " + ".join(res.causes) if res.causes else (v.kind if v is not None else "none")
     parts = [f"<p class='note'>session: {esc(session_path)}<br>base scene: {esc(scene_path)}<br>"
              f"extended scene: {esc(res.extended_scene)}<br>tofhil {__version__}, {res.seconds:.1f} s</p>",
-             f"<h2>Cause: {esc(cause)}</h2>"]
+             f"<h2>{esc(headline(res))}</h2>"]
     if v is not None:
         css = "warn" if v.kind in ("partly explained", "unexplained", "scene does not match") else "note"
         parts.append(f"<p class='{css}'><b>Verdict: {esc(v.kind)}.</b> {esc(v.text)}</p>")
         if v.notes:
             parts.append(H.notes_html(v.notes, css="warn"))
     parts.append(H.notes_html(res.evidence, css="note"))
+    parts.append(defects_section(res))
     parts.append(channel_table(res))
+    parts.append(residual_by_channel_table(res))
     parts.append(effect_size_table(res))
     parts.append(residual_region_table(res))
     parts.append(structure_list(res))

@@ -24,6 +24,7 @@ from tofhil.outputs import prepare_output_dir, refuse_existing
 from tofhil.demod import bad_tap_pixels
 from tofhil.errors import TofhilError
 from tofhil.eval.metrics import core as M
+from tofhil.eval.diagnose.channels import residual_by_channel, sensor_noise_variance
 from tofhil.eval.diagnose.depth_heldout import observable_candidates, split_for_diagnosis
 from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal
 from tofhil.eval.diagnose.linear_forms import MAP_EFFECT, fit_frame_drift
@@ -76,6 +77,10 @@ class DiagnosisResult:
     identifiability: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     #: Per cause, the other families the held-out data cannot tell from it ("A or B").
     alternatives: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    #: The defective pixels found before any fit (``eval/diagnose/defects.py``), excluded.
+    defects: dict[str, Any] = field(default_factory=dict)
+    #: The held-out residual by channel (``eval/diagnose/channels.py``), base twin and extended.
+    channel_table: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict.to_json() if self.verdict else None, "channels": self.channels,
@@ -91,7 +96,7 @@ class DiagnosisResult:
                 "data_path": self.data.channels, "noise": self.data.noise,
                 "observability": self.observability.to_json(), "residual_structure": self.structure,
                 "drift": self.drift, "effect_size": self.effect_size, "identifiability": self.identifiability,
-                "alternatives": self.alternatives}
+                "alternatives": self.alternatives, "defects": self.defects, "residual_by_channel": self.channel_table}
         # (the run time is in the report, not here: the same inputs give the same file, bit for bit)
 
 
@@ -148,19 +153,23 @@ def heldout_metrics(data: HeldOutData, prediction: np.ndarray, defined: np.ndarr
     ev = M.evaluate(measured, twin, [held] + [r for r in objs if r.mask.sum() >= 5],
                     wrap_m=M.wrap_period(data.freq_hz), cloud_regions=[HELD_OUT], cell_size=ndt_cell_m,
                     threshold=icp_max_distance_m, icp_max_distance=icp_max_distance_m, include_all=False,
-                    source="held-out data")
+                    source="held-out data", freq_hz=data.freq_hz)
     h = ev.regions[HELD_OUT]
     metrics = {"depth_rmse_m": h.depth_rmse_m, "depth_median_m": h.depth_residual_m.median,
                "depth_mad_m": h.depth_residual_m.mad, "amplitude_rmse": h.amplitude_difference.rmse,
-               "chi2_per_value": data.chi2(prediction, "test") / max(data.n_values("test"), 1)}
+               "chi2_per_value": data.chi2(prediction, "test") / max(data.n_values("test"), 1),
+               "unwrap_error_pixels": h.unwrap_error_pixels or 0, "depth_compared_pixels": h.depth_residual_m.n}
     if h.cloud is not None and h.ndt is not None:
         metrics["icp_inlier_rmse_m"] = h.cloud.icp_inlier_rmse
         metrics["icp_fitness"] = h.cloud.icp_fitness
         metrics["ndt_score_per_point"] = h.ndt.score_per_point
         metrics["ndt_nvtl"] = h.ndt.nvtl
         metrics["ndt_mean_likelihood_trilinear"] = h.ndt.mean_likelihood_trilinear
+    # unwrapping errors are counted and mapped apart: no surface of the twin is that wrong
+    unwrapped = ev.maps.unwrap_error if ev.maps.unwrap_error is not None else np.zeros(data.camera.shape, bool)
     maps = {"depth_measured": np.asarray(measured.radial_m), "depth_twin": np.asarray(twin.radial_m),
-            "depth_residual": ev.maps.depth_residual_m, "amplitude_residual": ev.maps.amplitude_difference,
+            "depth_residual": np.where(unwrapped, np.nan, ev.maps.depth_residual_m),
+            "unwrap_error": unwrapped.astype(float), "amplitude_residual": ev.maps.amplitude_difference,
             "ndt_likelihood": ev.ndt_map if ev.ndt_map is not None else np.full(data.camera.shape, np.nan)}
     return metrics, maps, ev
 
@@ -359,6 +368,18 @@ def _settle(selection: Selection, data: HeldOutData, sizes: V.EffectSize, judge:
     return verdict, ch_after, objects_after, worse, after_model, after_pred
 
 
+def _drift_alone(model: TwinModel, data: HeldOutData, selection: Selection, drift: Any, penalty: float) -> Any:
+    """The drift fitted on the base twin, when it explains the frames as well as the selected
+    causes with the drift on top (their parameters charged at ``penalty`` each): then the causes
+    only took up the drift's mean. None when the causes are needed."""
+    alone = fit_frame_drift(model, data, {}, penalty)
+    if alone is None or not alone.named:
+        return None
+    k = sum(len(v) for e, v in selection.params.items() if e != MAP_EFFECT)
+    k += float(selection.details.get(MAP_EFFECT, {}).get("dof", 0.0)) if MAP_EFFECT in selection.params else 0.0
+    return alone if alone.chi2_drift <= drift.chi2_drift + penalty * max(k, 1.0) else None
+
+
 def _with_drift(verdict: V.Verdict, drift: Any, judge: _Judge, evidence: list[str]) -> V.Verdict:
     """The frames' mean hides a drift (it inflates the frame-to-frame noise instead): a named
     drift is the verdict where nothing else was, on the held-out pixels of every frame."""
@@ -417,6 +438,18 @@ def _rmse_worse_notes(verdict: V.Verdict, gain: dict[str, dict[str, float]]) -> 
                                  "the RMSE does not")
 
 
+def _channel_tables(data: HeldOutData, model: TwinModel, after_model: TwinModel, base_pred: np.ndarray,
+                    after_pred: np.ndarray) -> dict[str, Any]:
+    """The held-out residual by channel with the base twin and with the extended one."""
+    noise = sensor_noise_variance(data)
+    out = {}
+    for key, m, pred in (("before", model, base_pred), ("after", after_model, after_pred)):
+        taps = m.taps({}) if data.taps_test is not None else None
+        out[key] = residual_by_channel(data, pred, taps_measured=data.taps_test, taps_predicted=taps,
+                                       model_variance=noise).to_json()
+    return out
+
+
 def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_relative_gain: float = 0.02,
              candidates: list[str] | None = None, block_px: int = 8, max_frames: int | None = None,
              render_kwargs: dict[str, Any] | None = None, progress: Callable[[str], None] | None = None,
@@ -435,6 +468,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                                                      unobservable=facts.unobservable)
     if progress:
         progress(f"channels: {data.channels}; noise: {data.noise}")
+        if data.defects is not None and data.defects.count:
+            progress(data.defects.text())
     if data.test_pixels.sum() < 20:
         raise TofhilError("too few usable pixels (signal above noise, not saturated) to diagnose",
                           file=session_path, field="raw/taps")
@@ -458,11 +493,26 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     n = judge.n
 
     evidence = _evidence(selection, data)
+    if data.defects is not None and data.defects.count:
+        evidence.insert(0, "defects: " + data.defects.text())
     for line in selection.too_small.values():
         evidence.append(f"not named, its held-out gain is too small or makes a channel worse: {line}")
     verdict, ch_after, objects_after, worse, after_model, after_pred = _settle(
         selection, data, sizes, judge, extend, base_pred, after_pred, after_model, max_effects)
     drift = fit_frame_drift(model, data, selection.params, float(np.log(n))) if want_drift else None
+    if drift is not None and drift.named and selection.causes:
+        alone = _drift_alone(model, data, selection, drift, float(np.log(n)))
+        if alone is not None:
+            # the static causes stood in for the drift's mean: the drift alone explains every frame
+            verdict_note = ("fitted but not named: " + " + ".join(selection.causes) + " (the per-frame drift alone "
+                            f"explains the frames as well: held-out misfit {alone.chi2_drift / alone.n_values:.3f} "
+                            f"per value against {drift.chi2_drift / drift.n_values:.3f} with them; a static effect "
+                            "fitted to frames that drift takes up the drift's mean)")
+            selection.causes, selection.params = [], {}
+            after_model, after_pred = extend({})
+            verdict, ch_after, objects_after, worse = judge(after_pred, [])
+            verdict.notes.append(verdict_note)
+            drift = alone
     verdict = _with_drift(verdict, drift, judge, evidence)
     for e in selection.causes:  # "A or B": the named cause is not the only reading of the data
         verdict.notes.extend(a.text for a in selection.alternatives.get(e, ()))
@@ -495,12 +545,23 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     gain = {k: {"before": before[k], "after": after.get(k, float("nan"))} for k in before}
     if selection.causes and verdict is not None:
         _rmse_worse_notes(verdict, gain)
+    for key, label in (("before", "with the base twin"), ("after", "with the extended twin")):
+        n_wrong = int(gain["unwrap_error_pixels"][key])
+        if n_wrong:
+            verdict.notes.append(f"{n_wrong} held-out pixels unwrapped to the wrong interval {label} (a phase "
+                                 "inconsistency between the frequencies, or noise in them): mapped, not in the depth "
+                                 f"figures ({int(gain['depth_compared_pixels'][key])} pixels compared)")
+    if data.defects is not None and data.defects.count:
+        verdict.notes.insert(0, data.defects.text())
     regions = {"before": ev_before.to_json()["regions"], "after": ev_after.to_json()["regions"]}
     ranked, rounds = _ranking(selection)
     maps = {f"{k}_before": v for k, v in maps_before.items()} | {f"{k}_after": v for k, v in maps_after.items()}
     maps |= _signature_maps(model, data, selection)
     maps["above_noise_after"] = np.where(data.usable, above_after, np.nan)
     structure = residual_structure(data, after_pred, maps_after, object_id, object_names)
+    if data.defects is not None:
+        maps["defects"] = data.defects.mask.astype(float)
+    table = _channel_tables(data, model, after_model, base_pred, after_pred)
     return DiagnosisResult(cause=selection.causes[0] if selection.causes else None, causes=list(selection.causes),
                            ranked=ranked, rounds=rounds, gain=gain, regions=regions,
                            extended_scene=str(ext_path) if ext_path else "", params=params,
@@ -522,7 +583,9 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                            identifiability={e: [t.to_json() for t in selection.unidentified.get(e, ())]
                                             for e in selection.causes if selection.unidentified.get(e)},
                            alternatives={e: [a.to_json() for a in selection.alternatives[e]]
-                                         for e in selection.causes if e in selection.alternatives})
+                                         for e in selection.causes if e in selection.alternatives},
+                           defects=data.defects.to_json() if data.defects is not None else {},
+                           channel_table=table)
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,

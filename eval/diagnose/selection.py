@@ -433,8 +433,8 @@ class _GreedySearch:
         round_: list[Candidate] = []
         tried_of: dict[str, list[Candidate]] = {}
         for name in names:
-            if name in self.active:
-                continue
+            if name in self.active or name not in self.lib:
+                continue  # chosen already, or nothing of it acts on these data
             tried_of[name] = self._try_effect(name, current_k, current_score, excess)
             round_.append(self._best_form(name, tried_of[name], current_k, current_score, excess))
         # ties broken by name: the ranking does not depend on the library's order

@@ -81,7 +81,7 @@ def _spec(name: str, form: str, params: Mapping[str, Param], current: Callable[[
 
 def fit_library(current: Callable[[str, str], float] | None = None,
                 extra_starts: Mapping[str, list[dict[str, float]]] | None = None,
-                n_taps: int | None = None) -> dict[str, EffectSpec]:
+                n_taps: int | None = None, n_freq: int | None = None) -> dict[str, EffectSpec]:
     """What diagnosis fits, per effect, from the ``Param`` table: each fitted parameter's
     current value (``current(effect, param)``, default its off value), range and step, and
     the multi-start points (``Param.start`` for all, then each ``Param.starts`` value in
@@ -94,7 +94,10 @@ def fit_library(current: Callable[[str, str], float] | None = None,
     for name in ORDER:
         eff = EFFECTS[name]
         extra = list((extra_starts or {}).get(name, ()))
-        specs = [_spec(name, form, eff.form_params(form, n_taps), current, extra) for form in ("", *eff.forms)]
+        specs = [_spec(name, form, eff.form_params(form, n_taps, n_freq), current, extra)
+                 for form in ("", *eff.forms)]
+        if eff.params and n_freq is not None and not eff.form_params("", n_taps, n_freq):
+            continue  # nothing of it acts on these data (a second frequency's phase, one frequency)
         specs = [s for s in specs if s.params] or specs[:1]
         lib[name] = dataclasses.replace(specs[0], forms=tuple(specs[1:]), closed_form=CLOSED_FORM.get(name))
     return lib
@@ -161,7 +164,7 @@ class TwinModel:
         def current(effect: str, param: str) -> float:
             return self.twin.current_value(effect, param)
 
-        return fit_library(current, self.extra_starts, n_taps=len(self.data.theta_rad))
+        return fit_library(current, self.extra_starts, n_taps=len(self.data.theta_rad), n_freq=self.data.n_freq)
 
     def align_pose(self, max_distance_m: float = 0.05) -> dict[str, float] | None:
         """A starting pose from point-to-plane ICP of the measured cloud onto the twin's.

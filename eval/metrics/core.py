@@ -36,7 +36,16 @@ from tofhil.frames import DepthFrame
 #: MAD -> standard deviation for a Gaussian distribution.
 
 #: The name of the headline figure, printed wherever it is printed.
-DEPTH_RMSE = "depth RMSE over pixels valid in both"
+DEPTH_RMSE = ("depth RMSE over pixels valid in both that carry a measurement (signal above noise, "
+              "unwrapped to the same interval)")
+
+#: A multi-frequency depth residual beyond this fraction of the shortest single-frequency
+#: unambiguous range is an unwrapping to the wrong interval, not a surface: no model error of
+#: the twin moves a pixel by a quarter of a period, noise in the phases does.
+UNWRAP_ERROR_FRACTION = 0.25
+#: A pixel whose depth noise exceeds this fraction of the shortest unambiguous range has no
+#: signal above its noise (a phase noise of 0.3 rad: a signal about 3 times its noise).
+NO_SIGNAL_FRACTION = 0.05
 
 #: A clipped ADC shows as several pixels pinned at one extreme tap value.
 
@@ -235,10 +244,24 @@ class ResidualMaps:
     wrap_m: float | None = None
     health_a: TapHealth | None = None
     health_b: TapHealth | None = None
+    #: Pixels valid in both whose depths were unwrapped to different intervals (several
+    #: frequencies), and pixels without a signal above their noise on either side: counted
+    #: and mapped, and left out of the depth figures (None: not tested).
+    unwrap_error: np.ndarray | None = None
+    no_signal: np.ndarray | None = None
 
     @property
     def valid_both(self) -> np.ndarray:
         return self.valid_a & self.valid_b
+
+    @property
+    def compared(self) -> np.ndarray:
+        """The pixels the depth figures use: valid in both and carrying a measurement."""
+        m = self.valid_both
+        for flags in (self.unwrap_error, self.no_signal):
+            if flags is not None:
+                m = m & ~flags
+        return m
 
 
 #: Pixels below this fraction of the image's 99th-percentile amplitude are unlit (a shadow).
@@ -274,9 +297,13 @@ def frame_validity(frame: DepthFrame, health: TapHealth | None = None) -> np.nda
 
 
 def residual_maps(a: DepthFrame, b: DepthFrame, *, wrap_m: float | None = None,
-                  health_a: TapHealth | None = None, health_b: TapHealth | None = None) -> ResidualMaps:
+                  health_a: TapHealth | None = None, health_b: TapHealth | None = None,
+                  freq_hz: Sequence[float] | np.ndarray | None = None,
+                  noise_m: np.ndarray | None = None) -> ResidualMaps:
     """Depth residual A - B (radial distance, whatever kind each frame stores), amplitude
-    difference and ratio, on the pixels valid in both."""
+    difference and ratio, on the pixels valid in both. With the modulation frequencies,
+    pixels unwrapped to different intervals (several frequencies) and, with ``noise_m`` (the
+    residual's depth noise per pixel), pixels without a signal above noise are flagged."""
     check_aligned(a, b)
     va, vb = frame_validity(a, health_a), frame_validity(b, health_b)
     both = va & vb
@@ -292,7 +319,20 @@ def residual_maps(a: DepthFrame, b: DepthFrame, *, wrap_m: float | None = None,
         adiff[ok] = aa[ok] - ab[ok]
         ok &= ab > 0
         ratio[ok] = aa[ok] / ab[ok]
-    return ResidualMaps(res, adiff, ratio, va, vb, wrap_m, health_a, health_b)
+    unwrap_error = no_signal = None
+    f = None if freq_hz is None else np.atleast_1d(np.asarray(freq_hz, np.float64))
+    if f is not None and f.size and np.all(np.isfinite(f) & (f > 0)):
+        from tofhil.demod import ambiguity_range_m
+
+        shortest = float(ambiguity_range_m(float(f.max())))
+        if noise_m is not None:
+            no_signal = both & (np.nan_to_num(np.asarray(noise_m, np.float64), nan=0.0) > NO_SIGNAL_FRACTION * shortest)
+        if f.size >= 2:
+            with np.errstate(invalid="ignore"):
+                unwrap_error = both & (np.abs(np.nan_to_num(res)) > UNWRAP_ERROR_FRACTION * shortest)
+            if no_signal is not None:
+                unwrap_error &= ~no_signal
+    return ResidualMaps(res, adiff, ratio, va, vb, wrap_m, health_a, health_b, unwrap_error, no_signal)
 
 
 def check_aligned(a: DepthFrame, b: DepthFrame) -> dict[str, Any]:
@@ -409,6 +449,10 @@ class RegionMetrics:
     #: Depth noise of the residual expected from the averaged frames' scatter: the RMS over
     #: the region's compared pixels of sqrt(sigma_A^2 + sigma_B^2). The RMSE cannot go below it.
     noise_floor_m: float | None = None
+    #: Pixels valid in both left out of the depth figures: unwrapped to different intervals,
+    #: and without a signal above noise (None: not tested).
+    unwrap_error_pixels: int | None = None
+    no_signal_pixels: int | None = None
 
     @property
     def depth_rmse_m(self) -> float:
@@ -456,7 +500,24 @@ class RegionMetrics:
         if self.cloud_skipped:
             d["cloud_skipped"] = self.cloud_skipped
         d["noise_floor_m"] = self.noise_floor_m
+        d["unwrap_error_pixels"] = self.unwrap_error_pixels
+        d["no_signal_pixels"] = self.no_signal_pixels
+        d["depth_compared_pixels"] = self.depth_residual_m.n
         return json_safe(d)
+
+    def excluded_note(self) -> str | None:
+        """One line on the pixels valid in both that the depth figures leave out, or None."""
+        parts = []
+        if self.unwrap_error_pixels:
+            parts.append(f"{self.unwrap_error_pixels} pixels unwrapped to the wrong interval (a phase inconsistency "
+                         "between the frequencies or noise in them, not a surface)")
+        if self.no_signal_pixels:
+            parts.append(f"{self.no_signal_pixels} pixels without a signal above noise on one side (shadows, "
+                         "dark surfaces)")
+        if not parts:
+            return None
+        return f"{self.name}: " + "; ".join(parts) + f": mapped and counted, not in the depth figures " \
+            f"({self.depth_residual_m.n} pixels compared)"
 
 
 def _fraction(flags: np.ndarray | None, mask: np.ndarray) -> float:
@@ -481,10 +542,13 @@ def region_metrics(maps: ResidualMaps, region: Region, noise_m: np.ndarray | Non
     the per-pixel standard deviation of the residual expected from noise (:func:`noise_floor`)."""
     r = region.mask
     m = r & maps.valid_both
+    compared = r & maps.compared
     ha, hb = maps.health_a, maps.health_b
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        return RegionMetrics(noise_floor_m=noise_floor(noise_m, m),
+        return RegionMetrics(noise_floor_m=noise_floor(noise_m, compared),
+            unwrap_error_pixels=None if maps.unwrap_error is None else int((maps.unwrap_error & r).sum()),
+            no_signal_pixels=None if maps.no_signal is None else int((maps.no_signal & r).sum()),
             name=region.name, kind=region.kind, pixels=int(r.sum()),
             valid_fraction_a=_fraction(maps.valid_a, r), valid_fraction_b=_fraction(maps.valid_b, r),
             valid_both_fraction=_fraction(maps.valid_both, r),
@@ -492,7 +556,7 @@ def region_metrics(maps: ResidualMaps, region: Region, noise_m: np.ndarray | Non
             saturated_fraction_b=_fraction(None if hb is None else hb.saturated, r),
             nonfinite_fraction_a=_fraction(None if ha is None else ha.nonfinite, r),
             nonfinite_fraction_b=_fraction(None if hb is None else hb.nonfinite, r),
-            depth_residual_m=stats(maps.depth_residual_m[m]),
+            depth_residual_m=stats(maps.depth_residual_m[compared]),
             amplitude_difference=stats(maps.amplitude_difference[m]),
             amplitude_ratio=stats(maps.amplitude_ratio[m]))
 
@@ -511,27 +575,31 @@ class Evaluation:
                           "regions": {k: v.to_json() for k, v in self.regions.items()}})
 
     def validity_notes(self) -> list[str]:
-        return [n for n in (r.validity_note() for r in self.regions.values()) if n]
+        """Clipped or non-finite taps, and pixels valid in both that carry no comparable depth."""
+        notes = [n for n in (r.validity_note() for r in self.regions.values()) if n]
+        return notes + [n for n in (r.excluded_note() for r in self.regions.values()) if n]
 
 
 def evaluate(a: DepthFrame, b: DepthFrame, regions: Sequence[Region] = (), *, wrap_m: float | None = None,
              health_a: TapHealth | None = None, health_b: TapHealth | None = None,
              cloud_regions: bool | Sequence[str] = False, cell_size: float = 0.1, threshold: float = 0.01,
              icp_max_distance: float | None = None, include_all: bool = True,
-             source: str | None = None, noise_m: np.ndarray | None = None) -> Evaluation:
+             source: str | None = None, noise_m: np.ndarray | None = None,
+             freq_hz: Sequence[float] | np.ndarray | None = None) -> Evaluation:
     """Evaluate A against B over the whole image (unless ``include_all=False``) and ``regions``.
 
     ``cloud_regions``: True for cloud and NDT metrics in every region, or the names of the
     regions that get them. Refuses a pair with no pixel valid in both (``source`` names it).
     ``noise_m``: per-pixel standard deviation of the residual expected from noise; each
-    region then reports its noise floor.
+    region then reports its noise floor. ``freq_hz``: the modulation frequencies, for the
+    pixels that carry no comparable depth (:func:`residual_maps`).
     """
     if not threshold > 0 or not math.isfinite(threshold):
         raise TofhilError(f"is {threshold}", field="threshold", expected="a positive distance in metres")
     if not cell_size > 0 or not math.isfinite(cell_size):
         raise TofhilError(f"is {cell_size}", field="cell_size", expected="a positive length in metres")
     alignment = check_aligned(a, b)
-    maps = residual_maps(a, b, wrap_m=wrap_m, health_a=health_a, health_b=health_b)
+    maps = residual_maps(a, b, wrap_m=wrap_m, health_a=health_a, health_b=health_b, freq_hz=freq_hz, noise_m=noise_m)
     if not maps.valid_both.any():
         why = []
         for side, v in (("A", maps.valid_a), ("B", maps.valid_b)):

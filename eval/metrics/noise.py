@@ -27,10 +27,15 @@ def robust_sigma(x: np.ndarray) -> float:
     return float(MAD_TO_SIGMA * np.median(np.abs(x - np.median(x))))
 
 
-def pooled_variance(var: np.ndarray) -> np.ndarray:
+def pooled_variance(var: np.ndarray, exclude: np.ndarray | None = None) -> np.ndarray:
     """Per-pixel variance maps ``[C, H, W]`` averaged over the ``NOISE_POOL_PX`` square around
-    each pixel (edges repeat the nearest pixel), channel by channel."""
-    return np.stack([uniform_filter(v, size=NOISE_POOL_PX, mode="nearest") for v in var])
+    each pixel (edges repeat the nearest pixel), channel by channel. ``exclude`` (bool
+    ``[H, W]``): pixels whose scatter is not noise (defects) are left out of every average."""
+    if exclude is None or not exclude.any():
+        return np.stack([uniform_filter(v, size=NOISE_POOL_PX, mode="nearest") for v in var])
+    keep = (~exclude).astype(np.float64)
+    count = np.maximum(uniform_filter(keep, size=NOISE_POOL_PX, mode="nearest"), 1e-12)
+    return np.stack([uniform_filter(v * keep, size=NOISE_POOL_PX, mode="nearest") / count for v in var])
 
 
 def phasor_depth_sigma(variance: np.ndarray, amplitude: np.ndarray, freq_hz: np.ndarray | float) -> np.ndarray:

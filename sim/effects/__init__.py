@@ -15,7 +15,9 @@ Stages, in the order the forward model applies them (``ORDER``):
 - ``signal``: acts on the light on the sensor (an :class:`OpticalSignal`) before the pixel --
   ``illumination`` (the emitter's profile), ``stray_light`` (optics), ``offset`` (unmodulated charge), ``range_offset``, ``field_angle``,
   ``wiggling``, ``amplitude_dependent``.
-- ``pixel``: per-pixel demodulation properties -- ``fixed_pattern``, ``range_offset_map``.
+- ``pixel``: per-pixel demodulation properties -- ``fixed_pattern``, ``range_offset_map``,
+  ``frequency_calibration``.
+- ``taps``: the readout after the pixel, on the recorded taps -- ``tap_calibration``.
 
 Each stage has one hook (``STAGE_HOOKS``) that its effects implement. Render-, signal- and
 pixel-stage effects apply to a cached render in milliseconds; scene-stage effects whose change
@@ -31,34 +33,38 @@ effect family, each registering its effects: :mod:`.geometry` (pose, lens_distor
 :mod:`.reflectance`, :mod:`.ambient` (ambient, offset), :mod:`.multipath`,
 :mod:`.illumination`, :mod:`.stray_light`, :mod:`.range_errors` (range_offset, field_angle,
 range_offset_map), :mod:`.fixed_pattern`, :mod:`.amplitude` (amplitude_dependent),
-:mod:`.wiggling`. Every name is importable from ``tofhil.sim.effects`` itself.
+:mod:`.wiggling`, :mod:`.frequency_calibration`. Every name is importable from ``tofhil.sim.effects`` itself.
 """
 
 
 # The family modules register their effects on import (the order of these imports does not
 # matter: the registry orders effects by rank).
-from tofhil.sim.effects import (ambient, amplitude, fixed_pattern, geometry, illumination, multipath,  # noqa: F401
-                                range_errors, reflectance, stray_light, wiggling)
+from tofhil.sim.effects import (ambient, amplitude, fixed_pattern, frequency_calibration, geometry,  # noqa: F401
+                                illumination, multipath, range_errors, reflectance, stray_light, tap_calibration,
+                                wiggling)
 from tofhil.sim.effects.ambient import AmbientEffect, OffsetEffect
 from tofhil.sim.effects.amplitude import (AMPLITUDE_KNOTS_LOG10_E, AmplitudeDependentEffect, monotone_spline,
                                           stick_breaking)
 from tofhil.sim.effects.base import STAGE_HOOKS, STAGES, Effect, EffectContext, Param
 from tofhil.sim.effects.fixed_pattern import FixedPatternEffect
+from tofhil.sim.effects.frequency_calibration import FrequencyCalibrationEffect
 from tofhil.sim.effects.geometry import LensDistortionEffect, PoseEffect
 from tofhil.sim.effects.illumination import IlluminationEffect
 from tofhil.sim.effects.multipath import MultipathEffect
 from tofhil.sim.effects.range_errors import FieldAngleEffect, RangeOffsetEffect, RangeOffsetMapEffect
 from tofhil.sim.effects.reflectance import ReflectanceEffect
-from tofhil.sim.effects.registry import (EFFECTS, ORDER, apply_scene_effects, apply_signal_effects, describe_effects,
+from tofhil.sim.effects.registry import (EFFECTS, ORDER, apply_scene_effects, apply_signal_effects, apply_tap_effects,
+                                         describe_effects,
                                          effects_by_stage, effects_table_markdown, effects_to_block, parse_effects,
                                          register, render_requirements)
 from tofhil.sim.effects.stray_light import StrayLightEffect
+from tofhil.sim.effects.tap_calibration import TapCalibrationEffect
 from tofhil.sim.effects.wiggling import WigglingEffect, harmonic_aliases
 
 __all__ = ["AMPLITUDE_KNOTS_LOG10_E", "EFFECTS", "ORDER", "STAGES", "STAGE_HOOKS", "AmbientEffect",
            "AmplitudeDependentEffect", "Effect", "EffectContext", "FieldAngleEffect", "FixedPatternEffect",
-           "IlluminationEffect", "LensDistortionEffect", "MultipathEffect", "OffsetEffect", "Param", "PoseEffect",
-           "RangeOffsetEffect", "RangeOffsetMapEffect", "ReflectanceEffect", "StrayLightEffect", "WigglingEffect",
-           "apply_scene_effects", "apply_signal_effects", "describe_effects", "effects_by_stage",
+           "FrequencyCalibrationEffect", "IlluminationEffect", "LensDistortionEffect", "MultipathEffect", "OffsetEffect", "Param", "PoseEffect",
+           "RangeOffsetEffect", "TapCalibrationEffect", "RangeOffsetMapEffect", "ReflectanceEffect", "StrayLightEffect", "WigglingEffect",
+           "apply_scene_effects", "apply_signal_effects", "apply_tap_effects", "describe_effects", "effects_by_stage",
            "effects_table_markdown", "effects_to_block", "harmonic_aliases", "monotone_spline", "parse_effects",
            "register", "render_requirements", "stick_breaking"]

@@ -18,9 +18,10 @@ from tofhil.errors import InputFileError
 from tofhil.schema import Schema
 from tofhil.sim.sensor import OpticalSignal, SensorConfig
 
-STAGES = ("scene", "render", "signal", "pixel")
+STAGES = ("scene", "render", "signal", "pixel", "taps")
 #: The hook each stage's effects implement.
-STAGE_HOOKS = {"scene": "apply_scene", "render": "apply_render", "signal": "apply_signal", "pixel": "apply_signal"}
+STAGE_HOOKS = {"scene": "apply_scene", "render": "apply_render", "signal": "apply_signal", "pixel": "apply_signal",
+               "taps": "apply_taps"}
 
 
 @dataclass(frozen=True)
@@ -144,11 +145,17 @@ class Effect:
     def is_off(self, values: Mapping[str, Any]) -> bool:
         return all(float(values.get(k, p.off)) == p.off for k, p in self.params.items())
 
-    def form_params(self, form: str = "", n_taps: int | None = None) -> dict[str, Param]:
+    def form_params(self, form: str = "", n_taps: int | None = None, n_freq: int | None = None) -> dict[str, Param]:
         """The parameters diagnosis fits in ``form`` ("" the simple form), leaving out those a
-        session with ``n_taps`` taps per frequency cannot see (:meth:`observable`)."""
+        session with ``n_taps`` taps per frequency cannot see (:meth:`observable`) and those
+        of a frequency it does not have (:meth:`min_frequencies`)."""
         return {k: p for k, p in self.params.items()
-                if p.fitted and form in p.forms and (n_taps is None or self.observable(k, n_taps))}
+                if p.fitted and form in p.forms and (n_taps is None or self.observable(k, n_taps))
+                and (n_freq is None or self.min_frequencies(k) <= n_freq)}
+
+    def min_frequencies(self, param: str) -> int:
+        """How many modulation frequencies a session needs for ``param`` to act (default 1)."""
+        return 1
 
     def observable(self, param: str, n_taps: int) -> bool:
         """Whether ``param`` changes what ``n_taps`` equally spaced taps measure (default yes)."""
@@ -185,6 +192,11 @@ class Effect:
 
     def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
         """Signal and pixel stages: the light on the sensor changed by this effect."""
+        raise NotImplementedError(f"{self.name} is a {self.stage}-stage effect")
+
+    def apply_taps(self, taps: np.ndarray, values: Mapping[str, Any], ctx: EffectContext) -> np.ndarray:
+        """Taps stage: the recorded taps ``[F, K, ...]`` (DN) changed by the readout after the
+        pixel (noise and all: a tap gain scales the noise too)."""
         raise NotImplementedError(f"{self.name} is a {self.stage}-stage effect")
 
     def describe(self) -> dict[str, Any]:

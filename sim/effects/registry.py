@@ -25,6 +25,8 @@ from typing import Any, Mapping
 from tofhil.errors import InputFileError
 from tofhil.schema import to_plain
 from tofhil.sim.effects.base import STAGE_HOOKS, STAGES, Effect, EffectContext
+import numpy as np
+
 from tofhil.sim.sensor import OpticalSignal
 
 #: Every effect by name, in forward-model order (filled by :func:`register`).
@@ -97,6 +99,14 @@ def apply_signal_effects(signal: OpticalSignal, effects: Mapping[str, Mapping[st
         if not eff.is_off(values):
             signal = eff.apply_signal(signal, values, ctx)
     return signal
+
+
+def apply_tap_effects(taps: np.ndarray, effects: Mapping[str, Mapping[str, Any]], ctx: EffectContext) -> np.ndarray:
+    """Taps-stage effects in forward-model order (the readout after the pixel)."""
+    for eff, values in effects_by_stage(effects, "taps"):
+        if not eff.is_off(values):
+            taps = eff.apply_taps(taps, values, ctx)
+    return taps
 
 
 def render_requirements(effects: Mapping[str, Mapping[str, Any]], scene: Any) -> dict[str, Any]:

@@ -78,6 +78,42 @@ def unmodulated_offset(rng: np.random.Generator, times_signal: float = 2.0) -> C
 
 
 FrameChange = Callable[[OpticalSignal, int, int], OpticalSignal]
+#: A change of the recorded taps ``[F, K, H, W]`` of frame ``i``.
+TapChange = Callable[[np.ndarray, int], np.ndarray]
+
+
+def stuck_pixels(rng: np.random.Generator, fraction: float = 0.003) -> TapChange:
+    """A fraction of the pixels stuck: their taps random constants, the same in every frame
+    (dead and stuck pixels of real sensors)."""
+    seed = int(rng.integers(1 << 30))
+
+    def change(taps: np.ndarray, i: int) -> np.ndarray:
+        r = np.random.default_rng(seed)
+        f, k, h, w = taps.shape
+        idx = r.choice(h * w, max(int(round(fraction * h * w)), 1), replace=False)
+        v, u = np.unravel_index(idx, (h, w))
+        hi = float(np.percentile(taps, 99))
+        taps[:, :, v, u] = r.uniform(0.0, hi, (f, k, idx.size))
+        return taps
+
+    return change
+
+
+def hot_pixels(rng: np.random.Generator, fraction: float = 0.003, times_noise: float = 20.0) -> TapChange:
+    """Hot pixels: a dark charge far above the signal's, with its shot noise, new every frame."""
+    seed = int(rng.integers(1 << 30))
+
+    def change(taps: np.ndarray, i: int) -> np.ndarray:
+        r = np.random.default_rng(seed)
+        f, k, h, w = taps.shape
+        idx = r.choice(h * w, max(int(round(fraction * h * w)), 1), replace=False)
+        v, u = np.unravel_index(idx, (h, w))
+        spread = float(np.median(np.abs(np.diff(taps, axis=-1)))) + 1.0
+        noise = np.random.default_rng((seed, i)).standard_normal((f, k, idx.size))
+        taps[:, :, v, u] += times_noise * spread * (1.0 + noise)
+        return taps
+
+    return change
 
 
 def linear_drift(rng: np.random.Generator, span_m: float | None = None) -> FrameChange:
@@ -108,9 +144,10 @@ def emitter_power_drift(span: float) -> FrameChange:
 
 
 def write_session(scene: Any, path: Path, change: Change | None, *, frames: int = 4, seed: int = 0,
-                  frame_change: FrameChange | None = None) -> Path:
+                  frame_change: FrameChange | None = None, tap_change: TapChange | None = None) -> Path:
     """A session of ``frames`` noisy frames of the scene's twin with ``change`` applied to its
-    light, and ``frame_change`` to each frame's (given its index and the number of frames)."""
+    light, ``frame_change`` to each frame's (given its index and the number of frames), and
+    ``tap_change`` to each frame's recorded taps (what the pixels themselves do wrong)."""
     from tofhil.depth import depth_from_raw
     from tofhil.session import SessionWriter
     from tofhil.sim.scene import scene_to_yaml
@@ -127,5 +164,79 @@ def write_session(scene: Any, path: Path, change: Change | None, *, frames: int 
         for i in range(frames):
             light = signal if frame_change is None else frame_change(signal, i, frames)
             raw = sensor.expose(light, seed=seed, frame_index=i, noise=True)
+            if tap_change is not None:
+                raw = dataclasses.replace(raw, taps=tap_change(np.array(raw.taps), i).astype(raw.taps.dtype))
             w.append(raw, depth_from_raw(raw))
     return path
+
+
+# ----------------------------------------------------------------------------- channel classes
+# Classes of real camera behaviour that act on one calibration channel (issue: "Diagnosis that
+# reads the evidence channel by channel"); each with random parameters from its generator.
+
+def frequency_phase_offset(rng: np.random.Generator, index: int = 1, phase_rad: float | None = None) -> Change:
+    """A calibration phase offset on one modulation frequency alone (an electronic delay of
+    its demodulation reference): harmonic h of that frequency turns by h * phase."""
+    phase = float(phase_rad if phase_rad is not None else rng.choice([-1.0, 1.0]) * rng.uniform(0.06, 0.15))
+
+    def change(signal: OpticalSignal, sensor: Any) -> OpticalSignal:
+        out = signal.copy()
+        h = np.asarray(signal.harmonics, dtype=np.float64)
+        out.phasor_w = np.array(signal.phasor_w)
+        out.phasor_w[index] = signal.phasor_w[index] * np.exp(1j * h * phase)[:, None, None]
+        return out
+
+    change.phase_rad = phase  # type: ignore[attr-defined]
+    return change
+
+
+def tap_gain_imbalance(rng: np.random.Generator, gains: tuple[float, ...] | None = None,
+                       offsets_dn: tuple[float, ...] | None = None) -> TapChange:
+    """Taps 1 and 3 with 2-5 % more gain than taps 0 and 2 (and small tap offsets): the
+    readout's per-tap imbalance, applied to the recorded taps (noise and all)."""
+    g = gains if gains is not None else (1.0, 1.0 + rng.uniform(0.02, 0.05), 1.0, 1.0 + rng.uniform(0.02, 0.05))
+    o = offsets_dn if offsets_dn is not None else (0.0,) * len(g)
+
+    def change(taps: np.ndarray, i: int) -> np.ndarray:
+        k = taps.shape[1]
+        return taps * np.asarray(g[:k])[None, :, None, None] + np.asarray(o[:k])[None, :, None, None]
+
+    return change
+
+
+def radial_falloff(rng: np.random.Generator, extra: float | None = None) -> Change:
+    """The modulated light falls toward the corners ``extra`` (30 %) more than cos^4 does (an
+    emitter profile or a vignetting the twin lacks); depth untouched."""
+    k = float(extra if extra is not None else rng.uniform(0.2, 0.4))
+
+    def change(signal: OpticalSignal, sensor: Any) -> OpticalSignal:
+        h, w = signal.shape
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        r2 = ((u - (w - 1) / 2) ** 2 + (v - (h - 1) / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
+        factor = 1.0 - k * r2          # 1 on the axis, 1 - extra in the corners
+        out = signal.copy()
+        out.phasor_w = signal.phasor_w * factor[None, None]
+        out.dc_w = np.asarray(signal.dc_w) * factor
+        return out
+
+    return change
+
+
+def warm_up_drift(rng: np.random.Generator, span_m: float | None = None, amplitude_per_frame: float = -0.01
+                  ) -> FrameChange:
+    """A warm-up drift: the range moves by ``span_m`` (12-25 mm) over the frames, slowing as
+    it settles, and the modulated light falls by 1 % per frame."""
+    span = float(span_m if span_m is not None else rng.uniform(0.012, 0.025))
+
+    def change(signal: OpticalSignal, i: int, n: int) -> OpticalSignal:
+        t = i / max(n - 1, 1)
+        out = rotate_radial(signal, span * (1.0 - np.exp(-3.0 * t)) / (1.0 - np.exp(-3.0)))
+        out.phasor_w = out.phasor_w * (1.0 + amplitude_per_frame * i)
+        return out
+
+    return change
+
+
+def with_frequencies(scene: Any, freq_hz: tuple[float, ...]) -> Any:
+    """The scene with its sensor demodulating at ``freq_hz``."""
+    return dataclasses.replace(scene, sensor=dataclasses.replace(scene.sensor, freq_hz=tuple(freq_hz)))

@@ -27,11 +27,19 @@ def _progress_printer() -> callable:
 def _summary(res, report: Path) -> None:
     from tofhil.eval.metrics.core import DEPTH_RMSE
 
+    from tofhil.eval.diagnose.report import headline
+
     g = res.gain
+    out.print(f"[bold]{lit(headline(res))}[/bold]", highlight=False)
     if res.verdict is not None:
         out.print(f"[bold]verdict:[/bold] {lit(res.verdict.text)}", highlight=False)
+    if res.defects.get("pixels"):
+        out.print(f"[bold]defects:[/bold] {lit(res.defects['text'])}", highlight=False)
+    for r in res.channel_table.get("after", {}).get("readings", []):
+        if r["significant"]:  # what is left in a channel after the fit
+            z = f" (z = {r['z']:+.1f})" if r["z"] is not None else ""
+            out.print(f"  left in a channel: {lit(r['text'])}{z}", highlight=False)
     if res.causes:
-        out.print(f"[bold]cause:[/bold] {' + '.join(res.causes)}")
         for e, p in res.params.items():
             # a closed-form map reports its form and file, not numbers only
             form = f" ({res.forms[e]} form)" if res.forms.get(e) else ""

@@ -1,0 +1,90 @@
+"""Classes of real camera behaviour that act on one calibration channel, hidden in twin sessions
+with noise and ADC quantisation (random parameters per seed): the diagnosis reads the residual
+by channel and names the family whose channel it is, and nothing else.
+
+The classes: a calibration phase on one frequency of a two-frequency sensor, a tap gain
+imbalance, a warm-up drift, and nothing hidden on two- and three-frequency sensors. Stuck and
+hot pixels are in tests/eval/test_defects.py; the library's own forms in test_diagnose.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.eval import hidden_forms as hf
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return hf.small_dark_square(80)
+
+
+def _diagnose(path, scene, **kw):
+    from tofhil.eval.diagnose.run import diagnose
+
+    return diagnose(path, scene, max_effects=3, **kw)
+
+
+def _no_channel_worse(res) -> None:
+    assert not any(c["worse"] for c in res.channels.values()), res.channels
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_phase_on_one_frequency_is_that_frequency_s_calibration(tmp_path, scene, seed):
+    """44 + 60 MHz, the 60 MHz channel alone 0.06-0.15 rad off (it said "the scene does not
+    match", and a nearer surface over the whole wall)."""
+    rng = np.random.default_rng(seed)
+    two = hf.with_frequencies(scene, (44e6, 60e6))
+    change = hf.frequency_phase_offset(rng)
+    path = hf.write_session(two, tmp_path / "f.h5", change, frames=6, seed=30 + seed)
+    res = _diagnose(path, two)
+    before = {r["name"]: r for r in res.channel_table["before"]["readings"]}
+    assert before["60 MHz phase"]["significant"] and before["phase inconsistency"]["significant"]
+    assert abs(before["60 MHz phase"]["value"] - change.phase_rad) < 0.01
+    assert res.causes == ["frequency_calibration"], (res.causes, res.verdict.text)
+    assert abs(res.params["frequency_calibration"]["phase_1_rad"] - change.phase_rad) < 0.01
+    assert res.verdict.kind == "explained" and res.verdict.excess_removed > 0.9
+    _no_channel_worse(res)
+    assert not res.channel_table["after"]["significant"], res.channel_table["after"]
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_a_tap_gain_imbalance_is_the_tap_calibration_not_a_pose(tmp_path, scene, seed):
+    """Taps 1 and 3 with 2-5 % more gain (it said pose + wiggling: a pose cannot make a pattern
+    that alternates with the tap index)."""
+    rng = np.random.default_rng(seed)
+    g1, g3 = 1 + rng.uniform(0.02, 0.05), 1 + rng.uniform(0.02, 0.05)
+    path = hf.write_session(scene, tmp_path / "t.h5", None, frames=6, seed=40 + seed,
+                            tap_change=hf.tap_gain_imbalance(rng, gains=(1.0, g1, 1.0, g3)))
+    res = _diagnose(path, scene)
+    assert "tap" in res.channel_table["before"]["significant"]
+    assert res.causes == ["tap_calibration"], (res.causes, res.verdict.text)
+    p = res.params["tap_calibration"]
+    assert abs(p["gain_1"] - g1) < 0.005 and abs(p["gain_3"] - g3) < 0.005 and abs(p["gain_2"] - 1) < 0.005
+    assert res.verdict.excess_removed > 0.9
+    _no_channel_worse(res)
+
+
+def test_a_warm_up_drift_is_the_drift_and_no_static_effect(tmp_path, scene):
+    """The range moves 12-25 mm over the frames as the camera warms up and the light falls 1 %
+    a frame (it said "explained by stray_light + range_offset": the static mean fits)."""
+    rng = np.random.default_rng(5)
+    path = hf.write_session(scene, tmp_path / "w.h5", None, frames=6, seed=45,
+                            frame_change=hf.warm_up_drift(rng))
+    res = _diagnose(path, scene)
+    before = {r["name"]: r for r in res.channel_table["before"]["readings"]}
+    assert before["range trend"]["significant"] and before["signal trend"]["significant"]
+    assert res.drift is not None and res.drift["named"]
+    assert res.causes == [], (res.causes, res.verdict.notes)
+    assert "drift" in res.verdict.text
+
+
+@pytest.mark.parametrize("freqs", [(44e6, 60e6), (40e6, 60e6, 100e6)])
+def test_nothing_hidden_on_multi_frequency_sensors_names_nothing(tmp_path, scene, freqs):
+    multi = hf.with_frequencies(scene, freqs)
+    path = hf.write_session(multi, tmp_path / "n.h5", None, frames=6, seed=50 + len(freqs))
+    res = _diagnose(path, multi)
+    assert res.causes == [] and res.verdict.kind == "within noise", (res.causes, res.verdict.text)
+    assert res.defects["pixels"] == 0
+    assert res.gain["depth_rmse_m"]["before"] < 0.05
