@@ -70,6 +70,21 @@ FORMS: dict[str, tuple[Callable[[np.random.Generator], dict[str, Any]], Callable
                  lambda res: res.causes == ["illumination"], "illumination"),
     "log_amplitude": (lambda r: {"change": hf.log_amplitude_error(r), "frames": 4},
                       lambda res: res.causes == ["amplitude_dependent"], "amplitude_dependent"),
+    # classes that act on one calibration channel (tests/eval/test_channel_classes.py, test_defects.py)
+    "frequency_phase": (lambda r: {"change": hf.frequency_phase_offset(r), "frames": 6, "freq_hz": (44e6, 60e6)},
+                        lambda res: res.causes == ["frequency_calibration"], "frequency_calibration"),
+    "tap_gains": (lambda r: {"tap_change": hf.tap_gain_imbalance(r), "frames": 6},
+                  lambda res: res.causes == ["tap_calibration"], "tap_calibration"),
+    "warm_up": (lambda r: {"frame_change": hf.warm_up_drift(r), "frames": 6},
+                lambda res: bool(res.drift and res.drift["named"]) and not res.causes, None),
+    "radial_falloff": (lambda r: {"change": hf.radial_falloff(r), "frames": 6},
+                       lambda res: res.causes == ["illumination"], "illumination"),
+    "unmodulated": (lambda r: {"change": hf.unmodulated_offset(r, r.uniform(1.5, 3.0)), "frames": 6},
+                    lambda res: res.causes == ["offset"], "offset"),
+    "stuck_pixels": (lambda r: {"tap_change": hf.stuck_pixels(r), "frames": 6},
+                     lambda res: not res.causes and res.defects["pixels"] > 0, None),
+    "hot_pixels": (lambda r: {"tap_change": hf.hot_pixels(r), "frames": 6},
+                   lambda res: not res.causes and res.defects["pixels"] > 0, None),
 }
 
 
@@ -107,6 +122,8 @@ def main() -> None:
     ap.add_argument("--forms", default="", help="comma-separated hidden forms outside the library: "
                     + ", ".join(FORMS))
     ap.add_argument("--null-frames", type=int, default=4, help="frames of each null session")
+    ap.add_argument("--null-freqs", default="", help="modulation frequency sets of the null sessions, e.g. "
+                    "'44e6;44e6,60e6;40e6,60e6,100e6' (seeds cycle through them; default: the scene's)")
     args = ap.parse_args()
     names = [] if args.effects == "none" else [e for e in args.effects.split(",") if e] or list(CASES)
     forms = [f for f in args.forms.split(",") if f]
@@ -120,20 +137,27 @@ def main() -> None:
     rows: dict[str, list[tuple[bool, bool, float, bool, str, bool]]] = {}
     runs = ([(n, s) for n in names + forms for s in range(args.seeds)]
             + [("none", s) for s in range(args.null_seeds)])
+    null_freqs = [tuple(float(x) for x in part.split(",")) for part in args.null_freqs.split(";") if part]
     with tempfile.TemporaryDirectory() as tmp:
         for name, seed in runs:
             rng = np.random.default_rng(1000 * seed + ((names + forms).index(name) + 1 if name != "none" else 0))
             path = Path(tmp) / f"{name}_{seed}.h5"
+            case_scene = scene
             if name in FORMS:
                 kw = FORMS[name][0](rng)
-                hf.write_session(scene, path, kw.get("change"), frames=kw["frames"], seed=int(rng.integers(10_000)),
-                                 frame_change=kw.get("frame_change"))
+                if "freq_hz" in kw:
+                    case_scene = hf.with_frequencies(scene, kw["freq_hz"])
+                hf.write_session(case_scene, path, kw.get("change"), frames=kw["frames"],
+                                 seed=int(rng.integers(10_000)), frame_change=kw.get("frame_change"),
+                                 tap_change=kw.get("tap_change"))
             else:
                 hidden = {} if name == "none" else {name: CASES[name](rng)}
-                simulate_session(scene, path, frames=4 if name != "none" else args.null_frames,
+                if name == "none" and null_freqs:
+                    case_scene = hf.with_frequencies(scene, null_freqs[seed % len(null_freqs)])
+                simulate_session(case_scene, path, frames=4 if name != "none" else args.null_frames,
                                  seed=int(rng.integers(10_000)), noise=True, effects=hidden)
             t0 = time.perf_counter()
-            res = diagnose(path, scene, max_effects=args.max_effects)
+            res = diagnose(path, case_scene, max_effects=args.max_effects)
             dt = time.perf_counter() - t0
             if name in FORMS:
                 ok, family = FORMS[name][1](res), FORMS[name][2]
@@ -160,7 +184,8 @@ def main() -> None:
     for name, r in rows.items():
         med = np.nanmedian([x[2] for x in r]) if any(np.isfinite(x[2]) for x in r) else float("nan")
         label = ("nothing (false alarms: any effect named)" if name == "none"
-                 else f"{name} -> {FORMS[name][2] or 'drift'}" if name in forms else name)
+                 else f"{name} -> {FORMS[name][2] or ('defects' if 'pixels' in name else 'drift')}"
+                 if name in forms else name)
         named = sum(x[0] for x in r) if name != "none" else len(r) - sum(x[0] for x in r)
         kinds = sorted({x[4] for x in r if x[4] != "-"})
         fitted = ", ".join(f"{k} {sum(x[4] == k for x in r)}" for k in kinds) or "-"
