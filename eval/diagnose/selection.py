@@ -176,7 +176,8 @@ class Selection:
     #: Per cause fitted in closed form, what its fit reports (form, dof, strengths).
     details: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: Effects whose misfit gain was significant but whose RMSE gain was too small to name
-    #: (or made a channel's RMSE worse), with their figures.
+    #: (or made a channel's RMSE worse), with their figures; and those whose own signature
+    #: channel the residual does not have.
     too_small: dict[str, str] = field(default_factory=dict)
     #: Per cause, the flexible forms refused because the data do not identify their extra
     #: parameters (which ones cannot be told apart).
@@ -432,6 +433,7 @@ class _GreedySearch:
         excess = max(self.current_chi2 - self.n_test, 0.0)
         round_: list[Candidate] = []
         tried_of: dict[str, list[Candidate]] = {}
+        self._present = self._residual_channels()
         for name in names:
             if name in self.active or name not in self.lib:
                 continue  # chosen already, or nothing of it acts on these data
@@ -441,6 +443,30 @@ class _GreedySearch:
         round_.sort(key=lambda c: (c.score, c.effect))
         self.selection.rounds.append(round_)
         return round_, tried_of
+
+    def _residual_channels(self) -> set[str] | None:
+        """The channels where the current model's held-out residual has a part beyond noise
+        (:func:`tofhil.eval.diagnose.channels.residual_by_channel`); None when the model
+        cannot say (a small forward model of a test, without taps)."""
+        from tofhil.eval.diagnose.channels import residual_by_channel
+
+        taps = getattr(self.model, "taps", None)
+        measured = getattr(self.data, "taps_test", None)
+        predicted = taps(self.params) if callable(taps) and measured is not None else None
+        try:
+            table = residual_by_channel(self.data, self.current_pred, taps_measured=measured, taps_predicted=predicted)
+        except (AttributeError, ValueError):
+            return None
+        return set(table.significant_channels())
+
+    def signature_absent(self, name: str) -> list[str]:
+        """The channels ``name`` must move (its ``signature``) that the current residual lacks."""
+        from tofhil.sim.effects import EFFECTS
+
+        present = getattr(self, "_present", None)
+        if present is None or name not in EFFECTS:
+            return []
+        return [c for c in EFFECTS[name].signature if c not in present]
 
     def _try_effect(self, name: str, current_k: float, current_score: float, excess: float) -> list[Candidate]:
         """``name`` fitted in each of its forms, the flexible ones starting where the simple one ended."""
@@ -463,6 +489,15 @@ class _GreedySearch:
             # a partial form starts from the fuller form's values
             return self._try_form(c.effect, self.lib[c.effect].variant(c.form).without(drop), c, current_k,
                                   current_score, excess)[0]
+        absent = self.signature_absent(name)
+        if absent:
+            # whatever it gains in the total, it is not this cause: its own channel is clean
+            for c in tried:
+                if c.significant:
+                    c.significant = False
+                    self.selection.too_small.setdefault(
+                        name, f"{name}: lowers the held-out misfit by {100 * c.relative_gain:.1f} % but its own "
+                              f"signature, the {' and '.join(absent)} channel, is absent from the residual")
         best_form = choose_form(tried, self.min_relative_gain * excess, self.identify, partial)
         small = [c for c in tried if not c.worth_naming]
         if small and not best_form.significant and name not in self.selection.too_small:

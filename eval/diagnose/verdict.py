@@ -484,12 +484,15 @@ class EffectSize:
     offset in counts) and the minimum gain that makes a cause worth naming (module doc)."""
 
     def __init__(self, data: HeldOutData) -> None:
-        from tofhil.eval.metrics.core import wrap_period
+        from tofhil.demod import ambiguity_range_m
+        from tofhil.eval.metrics.core import UNWRAP_ERROR_FRACTION, wrap_period
 
         self.data = data
         nf = data.n_freq
         s = data.s_test
         self._wrap = wrap_period(data.freq_hz)
+        self._unwrap_limit = (UNWRAP_ERROR_FRACTION * float(ambiguity_range_m(float(np.max(data.freq_hz))))
+                              if nf >= 2 else None)
         self._meas = {"depth": depth_from_signal(s[:nf], data.freq_hz), "amplitude": np.abs(s[:nf]).mean(axis=0)}
         sd, sa = channel_sigmas(data, with_model_error=False)
         m = data.test_pixels
@@ -525,6 +528,11 @@ class EffectSize:
         for c in self._meas:
             rb, ra, sig = self._channel(c, before)[m], self._channel(c, after)[m], self._sigma[c][m]
             ok = np.isfinite(rb) & np.isfinite(ra) & np.isfinite(sig)
+            if c == "depth" and self._unwrap_limit is not None:
+                # pixels unwrapped to another interval on either side carry no comparable depth
+                # (the figures of compare and diagnose leave them out by the same rule)
+                with np.errstate(invalid="ignore"):
+                    ok &= (np.abs(rb) <= self._unwrap_limit) & (np.abs(ra) <= self._unwrap_limit)
             rb, ra, sig = rb[ok], ra[ok], sig[ok]
             n = max(rb.size, 1)
             # before^2 - after^2 = mean(2 r_b delta - delta^2): the noise in r_b moves it by

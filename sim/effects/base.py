@@ -101,6 +101,10 @@ class Effect:
     #: Flexible forms diagnosis fits besides the simple one: form name -> what it adds. A
     #: form fits the parameters whose ``Param.forms`` name it (docs/diagnose.md, Selection).
     forms: dict[str, str] = {}
+    #: Channels of the residual (``tofhil.eval.diagnose.channels``) this effect cannot act
+    #: without moving: a diagnosis names it only where the residual has a part there (a tap
+    #: imbalance makes the taps' alternating part, which no change of the light makes).
+    signature: tuple[str, ...] = ()
     #: True when the effect's light at a pixel depends only on that pixel's light (a
     #: prediction on some pixels then needs only those pixels rendered); False when it moves
     #: light between pixels (stray light).
