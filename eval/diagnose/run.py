@@ -497,6 +497,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         evidence.insert(0, "defects: " + data.defects.text())
     for line in selection.too_small.values():
         evidence.append(f"not named, its held-out gain is too small or makes a channel worse: {line}")
+    evidence.extend(selection.not_tried.values())
     verdict, ch_after, objects_after, worse, after_model, after_pred = _settle(
         selection, data, sizes, judge, extend, base_pred, after_pred, after_model, max_effects)
     drift = fit_frame_drift(model, data, selection.params, float(np.log(n))) if want_drift else None

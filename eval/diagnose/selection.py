@@ -179,6 +179,8 @@ class Selection:
     #: (or made a channel's RMSE worse), with their figures; and those whose own signature
     #: channel the residual does not have.
     too_small: dict[str, str] = field(default_factory=dict)
+    #: Effects not fitted in a round because the residual lacks their signature channel, with why.
+    not_tried: dict[str, str] = field(default_factory=dict)
     #: Per cause, the flexible forms refused because the data do not identify their extra
     #: parameters (which ones cannot be told apart).
     unidentified: dict[str, list[Identifiability]] = field(default_factory=dict)
@@ -437,6 +439,12 @@ class _GreedySearch:
         for name in names:
             if name in self.active or name not in self.lib:
                 continue  # chosen already, or nothing of it acts on these data
+            absent = self.signature_absent(name)
+            if absent:
+                # not fitted: whatever it would gain in the total, its own channel is clean
+                self.selection.not_tried[name] = (f"{name}: not fitted, its own signature (the {' and '.join(absent)} "
+                                                  "channel) is absent from the residual")
+                continue
             tried_of[name] = self._try_effect(name, current_k, current_score, excess)
             round_.append(self._best_form(name, tried_of[name], current_k, current_score, excess))
         # ties broken by name: the ranking does not depend on the library's order
@@ -489,15 +497,6 @@ class _GreedySearch:
             # a partial form starts from the fuller form's values
             return self._try_form(c.effect, self.lib[c.effect].variant(c.form).without(drop), c, current_k,
                                   current_score, excess)[0]
-        absent = self.signature_absent(name)
-        if absent:
-            # whatever it gains in the total, it is not this cause: its own channel is clean
-            for c in tried:
-                if c.significant:
-                    c.significant = False
-                    self.selection.too_small.setdefault(
-                        name, f"{name}: lowers the held-out misfit by {100 * c.relative_gain:.1f} % but its own "
-                              f"signature, the {' and '.join(absent)} channel, is absent from the residual")
         best_form = choose_form(tried, self.min_relative_gain * excess, self.identify, partial)
         small = [c for c in tried if not c.worth_naming]
         if small and not best_form.significant and name not in self.selection.too_small:
