@@ -308,17 +308,22 @@ class Twin:
     def expected_taps(self, effects: Effects | None = None, *, pixels: np.ndarray | None = None) -> np.ndarray:
         """Noise-free taps in DN ``[F, K, H, W]`` (float32, as in a frame); ``pixels`` see
         :meth:`signal`."""
-        eff = self._resolve(effects)
-        taps = self.sensor().taps_dn(self.signal(eff, pixels=pixels), noise=False)
-        return readout(taps, self.scene, self.scene.camera, eff, self.config)
+        return self._readout(self.sensor().taps_dn(self.signal(effects, pixels=pixels), noise=False), effects)
 
     def expected_taps_at(self, effects: Effects | None, pixels: np.ndarray) -> np.ndarray:
         """:meth:`expected_taps` on the pixels of a bool mask ``[H, W]`` only, as ``[F, K, 1,
         N]`` (row-major order of the mask; rendered only there when that is exact)."""
-        eff = self._resolve(effects)
-        signal = self.signal(eff, pixels=pixels)
+        signal = self.signal(effects, pixels=pixels)
         taps = self.sensor()._noise_free_taps(signal, np.flatnonzero(np.asarray(pixels, dtype=bool).ravel()))
-        return readout(taps, self.scene, self.scene.camera, eff, self.config)
+        return self._readout(taps, effects)
+
+    def _readout(self, taps: np.ndarray, effects: Effects | None) -> np.ndarray:
+        """:func:`readout` of the twin's taps; an effect set naming no taps-stage effect is not
+        validated a second time (a fit predicts thousands of times)."""
+        names = self.base_effects if effects is None else effects
+        if not any(EFFECTS[n].stage == "taps" for n in names if n in EFFECTS):
+            return taps
+        return readout(taps, self.scene, self.scene.camera, self._resolve(effects), self.config)
 
     def frames(self, effects: Effects | None = None, frames: int = 1, *, seed: int = 0, noise: bool = True,
                meta: Mapping[str, Any] | None = None, first_index: int = 0) -> Iterable[RawFrame]:

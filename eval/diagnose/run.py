@@ -273,7 +273,7 @@ class _ExtendedScene:
         self.model, self.data, self.path, self.render_kwargs = model, data, ext_path, render_kwargs
         self.map_path = ext_path.parent / OFFSET_MAP_FILE if ext_path is not None else None
 
-    def text(self, fitted: dict[str, dict[str, Any]]) -> tuple[str, dict[str, dict[str, Any]]]:
+    def text(self, fitted: dict[str, dict[str, Any]]) -> str:
         from tofhil.sim.scene import scene_to_yaml
 
         if self.map_path is not None:
@@ -293,12 +293,12 @@ class _ExtendedScene:
             doc = yaml.safe_load(body)
             doc["effects"][MAP_EFFECT]["file"] = OFFSET_MAP_FILE
             extended_text = header + "\n" + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
-        return extended_text, fitted
+        return extended_text
 
     def __call__(self, fitted: dict[str, dict[str, Any]]) -> tuple[TwinModel, np.ndarray]:
         from tofhil.sim.scene import load_scene, scene_from_yaml
 
-        extended_text, _ = self.text(fitted)
+        extended_text = self.text(fitted)
         if self.path is not None:
             self.path.write_text(extended_text)
             reloaded = load_scene(self.path)

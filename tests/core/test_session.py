@@ -3,18 +3,16 @@
 from __future__ import annotations
 
 import json
-import os
-import signal
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
 
+from tests.core.killed_writer import write_until_killed
 from tofhil.camera import CameraModel
 from tofhil.demod import distance_to_phase, equally_spaced_phases, taps_from_signal
 from tofhil.depth import depth_from_raw
@@ -112,21 +110,7 @@ WRITER = textwrap.dedent("""
 def test_sigkill_mid_session_keeps_every_completed_frame(tmp_path, attempt):
     path = tmp_path / "killed.h5"
     code = WRITER.format(tests=str(Path(__file__).parent), path=str(path))
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
-    completed = -1
-    target = 5 + 7 * attempt
-    deadline = time.monotonic() + 60
-    assert proc.stdout is not None
-    while completed < target and time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if not line:
-            break
-        completed = int(line)
-    # kill at a random instant inside the next frame's write
-    time.sleep(np.random.default_rng(attempt).uniform(0, 0.004))
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait(timeout=10)
-    assert completed >= target, "writer did not produce frames"
+    completed = write_until_killed(code, attempt)
     with open_session(path) as s:
         assert s.n_frames >= completed + 1
         for i in range(s.n_frames):

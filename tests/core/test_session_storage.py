@@ -3,18 +3,14 @@ float values back, older layouts read as before, and a SIGKILL still keeps every
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
 import textwrap
-import time
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
 
+from tests.core.killed_writer import write_until_killed
 from tofhil.camera import CameraModel
 from tofhil.frames import RawFrame
 from tofhil.session import SessionWriter, open_session
@@ -160,20 +156,7 @@ WRITER = textwrap.dedent("""
 def test_sigkill_mid_compact_session_keeps_every_completed_frame(tmp_path, attempt):
     path = tmp_path / "killed.h5"
     code = WRITER.format(tests=str(Path(__file__).parent), path=str(path))
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
-    completed = -1
-    target = 5 + 7 * attempt
-    deadline = time.monotonic() + 60
-    assert proc.stdout is not None
-    while completed < target and time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if not line:
-            break
-        completed = int(line)
-    time.sleep(np.random.default_rng(attempt).uniform(0, 0.004))   # inside the next frame's write
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait(timeout=10)
-    assert completed >= target, "writer did not produce frames"
+    completed = write_until_killed(code, attempt)
     with open_session(path) as s:
         assert s.n_frames >= completed + 1 and s.stored_tap_dtype == np.int16
         for i in range(s.n_frames):

@@ -82,18 +82,24 @@ FrameChange = Callable[[OpticalSignal, int, int], OpticalSignal]
 TapChange = Callable[[np.ndarray, int], np.ndarray]
 
 
+def _some_pixels(r: np.random.Generator, fraction: float, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """``fraction`` of the pixels (at least one), drawn from ``r``: rows and columns."""
+    h, w = shape
+    idx = r.choice(h * w, max(int(round(fraction * h * w)), 1), replace=False)
+    return np.unravel_index(idx, (h, w))
+
+
 def stuck_pixels(rng: np.random.Generator, fraction: float = 0.003) -> TapChange:
     """A fraction of the pixels stuck: their taps random constants, the same in every frame
     (dead and stuck pixels of real sensors)."""
     seed = int(rng.integers(1 << 30))
 
     def change(taps: np.ndarray, i: int) -> np.ndarray:
-        r = np.random.default_rng(seed)
-        f, k, h, w = taps.shape
-        idx = r.choice(h * w, max(int(round(fraction * h * w)), 1), replace=False)
-        v, u = np.unravel_index(idx, (h, w))
+        r = np.random.default_rng(seed)  # the same pixels and values every frame
+        f, k = taps.shape[:2]
+        v, u = _some_pixels(r, fraction, taps.shape[-2:])
         hi = float(np.percentile(taps, 99))
-        taps[:, :, v, u] = r.uniform(0.0, hi, (f, k, idx.size))
+        taps[:, :, v, u] = r.uniform(0.0, hi, (f, k, v.size))
         return taps
 
     return change
@@ -104,12 +110,10 @@ def hot_pixels(rng: np.random.Generator, fraction: float = 0.003, times_noise: f
     seed = int(rng.integers(1 << 30))
 
     def change(taps: np.ndarray, i: int) -> np.ndarray:
-        r = np.random.default_rng(seed)
-        f, k, h, w = taps.shape
-        idx = r.choice(h * w, max(int(round(fraction * h * w)), 1), replace=False)
-        v, u = np.unravel_index(idx, (h, w))
+        f, k = taps.shape[:2]
+        v, u = _some_pixels(np.random.default_rng(seed), fraction, taps.shape[-2:])  # the same pixels every frame
         spread = float(np.median(np.abs(np.diff(taps, axis=-1)))) + 1.0
-        noise = np.random.default_rng((seed, i)).standard_normal((f, k, idx.size))
+        noise = np.random.default_rng((seed, i)).standard_normal((f, k, v.size))
         taps[:, :, v, u] += times_noise * spread * (1.0 + noise)
         return taps
 
