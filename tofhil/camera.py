@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from importlib import resources
@@ -30,6 +31,13 @@ DistanceKind = Literal["radial", "z"]
 #: Points from which :meth:`CameraModel.undistort_normalized` runs compiled (fewer: numpy,
 #: no numba import for a handful of points).
 _COMPILED_UNDISTORT_MIN = 4096
+
+
+def _compiled(n_points: int) -> bool:
+    """Invert compiled: many points, or the kernels loaded already (a fit renders the same few
+    hundred pixels hundreds of times; numpy's per-iteration overhead on a pixel that needs
+    many Newton steps took 75 of 79 CPU-s of a lens-distortion fit on a wrong scene)."""
+    return n_points >= _COMPILED_UNDISTORT_MIN or "tofhil.camera_kernels" in sys.modules
 
 
 @dataclass(frozen=True)
@@ -139,7 +147,7 @@ class CameraModel:
     # ------------------------------------------------------------------ geometry
     def _fisheye_thetas(self, td: np.ndarray) -> np.ndarray:
         """Field angle of each distorted radius (compiled for many points)."""
-        if td.size >= _COMPILED_UNDISTORT_MIN:
+        if _compiled(td.size):
             from tofhil.camera_kernels import fisheye_theta_arrays
 
             return fisheye_theta_arrays(td, self.kernel_coeffs)
@@ -167,7 +175,7 @@ class CameraModel:
                 k = np.where(theta < np.pi / 2, k, np.nan)
             return xd * k, yd * k
         # Many points: the same arithmetic compiled (bit-identical; numba imported only then).
-        if xd.size >= _COMPILED_UNDISTORT_MIN:
+        if _compiled(xd.size):
             from tofhil.camera_kernels import undistort_arrays
 
             return undistort_arrays(xd, yd, self.kernel_coeffs)
