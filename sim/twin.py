@@ -66,10 +66,11 @@ def render_key(scene: Any, render_args: Mapping[str, Any]) -> str:
     return content_key(scene, {k: v for k, v in render_args.items() if k != "progress"})
 
 
-def effect_context(scene: Any, camera: Any, config: SensorConfig) -> EffectContext:
+def effect_context(scene: Any, camera: Any, config: SensorConfig, radial_m: np.ndarray | None = None) -> EffectContext:
     src = str(getattr(scene, "source", "<scene>"))
     base = Path(src).parent if Path(src).is_file() else None
-    return EffectContext(camera=camera, sensor=config, source=src, base_dir=base)
+    return EffectContext(camera=camera, sensor=config, source=src, base_dir=base, radial_m=radial_m,
+                         emitter=getattr(scene, "emitter", None))
 
 
 def readout(taps: np.ndarray, scene: Any, camera: Any, effects: Effects, config: SensorConfig) -> np.ndarray:
@@ -101,7 +102,8 @@ def signal_from_render(scene: Any, result: Any, effects: Effects, config: Sensor
     else:
         signal = OpticalSignal.from_render(result, waveform)
     signal = apply_lens(signal, camera)  # a lens prescription's vignetting, path and ghosts (else nothing)
-    return apply_signal_effects(signal, effects, effect_context(scene, camera, config))
+    return apply_signal_effects(signal, effects,
+                                effect_context(scene, camera, config, getattr(result, "radial_m", None)))
 
 
 def _nbytes(value: Any) -> int:

@@ -13,7 +13,7 @@ Stages, in the order the forward model applies them (``ORDER``):
 - ``render``: recombines the renderer's separate direct and indirect phasors --
   ``multipath`` (cheap on a cached render made with ``separate_direct=True``).
 - ``signal``: acts on the light on the sensor (an :class:`OpticalSignal`) before the pixel --
-  ``illumination`` (the emitter's profile), ``stray_light`` (optics), ``offset`` (unmodulated charge), ``range_offset``, ``field_angle``,
+  ``unseen_reflector`` (light from a surface the scene lacks), ``illumination`` (the emitter's profile), ``stray_light`` (optics), ``offset`` (unmodulated charge), ``range_offset``, ``field_angle``,
   ``wiggling``, ``amplitude_dependent``.
 - ``pixel``: per-pixel demodulation properties -- ``fixed_pattern``, ``range_offset_map``,
   ``frequency_calibration``.
@@ -31,7 +31,7 @@ Modules: :mod:`.base` (``Param``, ``Effect``, ``EffectContext``), :mod:`.registr
 ``ORDER``, ``register``, ``parse_effects`` and the application by stage), and one module per
 effect family, each registering its effects: :mod:`.geometry` (pose, lens_distortion),
 :mod:`.reflectance`, :mod:`.ambient` (ambient, offset), :mod:`.multipath`,
-:mod:`.illumination`, :mod:`.stray_light`, :mod:`.range_errors` (range_offset, field_angle,
+:mod:`.unseen_reflector`, :mod:`.illumination`, :mod:`.stray_light`, :mod:`.range_errors` (range_offset, field_angle,
 range_offset_map), :mod:`.fixed_pattern`, :mod:`.amplitude` (amplitude_dependent),
 :mod:`.wiggling`, :mod:`.frequency_calibration`. Every name is importable from ``tofhil.sim.effects`` itself.
 """
@@ -41,7 +41,7 @@ range_offset_map), :mod:`.fixed_pattern`, :mod:`.amplitude` (amplitude_dependent
 # matter: the registry orders effects by rank).
 from tofhil.sim.effects import (ambient, amplitude, fixed_pattern, frequency_calibration, geometry,  # noqa: F401
                                 illumination, multipath, range_errors, reflectance, stray_light, tap_calibration,
-                                wiggling)
+                                unseen_reflector, wiggling)
 from tofhil.sim.effects.ambient import AmbientEffect, OffsetEffect
 from tofhil.sim.effects.amplitude import (AMPLITUDE_KNOTS_LOG10_E, AmplitudeDependentEffect, monotone_spline,
                                           stick_breaking)
@@ -59,12 +59,14 @@ from tofhil.sim.effects.registry import (EFFECTS, ORDER, apply_scene_effects, ap
                                          register, render_requirements)
 from tofhil.sim.effects.stray_light import StrayLightEffect
 from tofhil.sim.effects.tap_calibration import TapCalibrationEffect
+from tofhil.sim.effects.unseen_reflector import UnseenReflectorEffect
 from tofhil.sim.effects.wiggling import WigglingEffect, harmonic_aliases
 
 __all__ = ["AMPLITUDE_KNOTS_LOG10_E", "EFFECTS", "ORDER", "STAGES", "STAGE_HOOKS", "AmbientEffect",
            "AmplitudeDependentEffect", "Effect", "EffectContext", "FieldAngleEffect", "FixedPatternEffect",
            "FrequencyCalibrationEffect", "IlluminationEffect", "LensDistortionEffect", "MultipathEffect", "OffsetEffect", "Param", "PoseEffect",
-           "RangeOffsetEffect", "TapCalibrationEffect", "RangeOffsetMapEffect", "ReflectanceEffect", "StrayLightEffect", "WigglingEffect",
+           "RangeOffsetEffect", "TapCalibrationEffect", "RangeOffsetMapEffect", "ReflectanceEffect", "StrayLightEffect", "UnseenReflectorEffect",
+           "WigglingEffect",
            "apply_scene_effects", "apply_signal_effects", "apply_tap_effects", "describe_effects", "effects_by_stage",
            "effects_table_markdown", "effects_to_block", "harmonic_aliases", "monotone_spline", "parse_effects",
            "register", "render_requirements", "stick_breaking"]

@@ -81,6 +81,10 @@ class EffectContext:
     sensor: SensorConfig | None = None
     source: str = "<effects>"
     base_dir: Path | None = None
+    #: The render's first-hit distance per pixel ``[H, W]`` (m) and the scene's emitter, for
+    #: effects that need the scene's geometry (light from a surface the scene lacks).
+    radial_m: np.ndarray | None = None
+    emitter: Any = None
 
 
 class Effect:

@@ -244,3 +244,68 @@ def warm_up_drift(rng: np.random.Generator, span_m: float | None = None, amplitu
 def with_frequencies(scene: Any, freq_hz: tuple[float, ...]) -> Any:
     """The scene with its sensor demodulating at ``freq_hz``."""
     return dataclasses.replace(scene, sensor=dataclasses.replace(scene.sensor, freq_hz=tuple(freq_hz)))
+
+
+def outside_panel_multipath(rng: np.random.Generator, camera: Any = None, *, side: float | None = None,
+                            size_m: float | None = None, albedo: float = 0.9, profile_n: float = 2.0,
+                            patches: int = 12) -> Change:
+    """A white panel beside the camera, outside its field of view, that the emitter lights and
+    that lights the scene in turn (one indirect bounce the twin lacks: its scene has no panel).
+
+    Computed in closed form, independently of the renderer: each panel patch ``j`` receives
+    ``I(theta_j) cos / r1^2`` from the emitter (at the camera, profile ``cos^n``), sends
+    ``albedo / pi`` of it as a Lambertian patch, and the scene point ``X_i`` (a Lambertian
+    surface, as the twin's) receives ``cos_out cos_in dA / r2^2`` of that. Both the direct and
+    the panel's light leave ``X_i`` toward the camera by the same BRDF, so the panel adds
+    ``ratio_ij = E_panel_ij / E_direct_i`` of the direct light with the path longer by
+    ``r1 + r2 - |X_i|``. The scene points come from the signal's own path length and the
+    camera's rays (``camera``, else the sensor's; a noise-free twin: exact)."""
+    sgn = float(side if side is not None else rng.choice([-1.0, 1.0]))
+    size = float(size_m if size_m is not None else rng.uniform(0.35, 0.55))
+    centre = np.array([sgn * rng.uniform(0.40, 0.50), rng.uniform(-0.05, 0.05), rng.uniform(0.30, 0.40)])
+
+    def change(signal: OpticalSignal, sensor: Any) -> OpticalSignal:
+        f0 = float(signal.freq_hz[0])
+        h1 = signal.harmonics.index(1)
+        path = np.angle(signal.phasor_w[0, h1]) % (2 * np.pi) * C_M_PER_S / (2 * np.pi * f0)   # L = 2 r
+        cam = camera if camera is not None else sensor.camera
+        x = cam.rays * (path / 2.0)[..., None]                                                    # [H, W, 3]
+        n = np.cross(np.gradient(x, axis=1), np.gradient(x, axis=0))
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        n *= -np.sign(np.sum(n * x, axis=-1, keepdims=True))           # facing the camera
+        # the panel faces a point between the camera and the scene's centre
+        aim = np.array([0.0, 0.0, 0.5 * float(np.median(x[..., 2]))])
+        m = (aim - centre) / np.linalg.norm(aim - centre)
+        a = np.cross(m, [0.0, 1.0, 0.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(m, a)
+        s = (np.arange(patches) + 0.5) / patches - 0.5
+        pts = centre + size * (s[:, None, None] * a + s[None, :, None] * b).reshape(-1, 3)  # [J, 3]
+        d_a = (size / patches) ** 2
+        r1 = np.linalg.norm(pts, axis=-1)
+        to_emitter = -pts / r1[:, None]
+        e_panel = (pts[:, 2] / r1) ** profile_n * np.clip(to_emitter @ m, 0, None) / r1 ** 2      # [J]
+        xi = x.reshape(-1, 3)
+        ni = n.reshape(-1, 3)
+        d = pts[None] - xi[:, None]                                      # [P, J, 3] scene -> panel
+        r2 = np.linalg.norm(d, axis=-1)
+        u = d / r2[..., None]
+        cos_panel = np.clip(-(u @ m), 0, None)
+        cos_scene = np.clip(np.einsum("pjk,pk->pj", u, ni), 0, None)
+        ri = np.linalg.norm(xi, axis=-1)
+        e_direct = (xi[:, 2] / ri) ** profile_n * np.clip(np.sum(-xi / ri[:, None] * ni, axis=-1), 0, None) / ri ** 2
+        ratio = (e_panel[None] * albedo / np.pi * cos_panel * cos_scene * d_a / r2 ** 2
+                 / np.maximum(e_direct, 1e-30)[:, None])                 # [P, J]
+        excess = r1[None] + r2 - ri[:, None]
+        out = signal.copy()
+        hw = signal.shape
+        h = np.asarray(signal.harmonics, dtype=np.float64)
+        k = 2 * np.pi * signal.freq_hz[:, None, None] * h[None, :, None] / C_M_PER_S      # [F, NH, 1]
+        factor = 1.0 + np.einsum("pj,fhpj->fhp", ratio, np.exp(1j * k[..., None] * excess[None, None]))
+        out.phasor_w = signal.phasor_w * factor.reshape(signal.phasor_w.shape[:2] + hw)
+        out.dc_w = np.asarray(signal.dc_w) * (1.0 + ratio.sum(axis=1)).reshape(hw)
+        change.ratio = ratio.sum(axis=1).reshape(hw)  # type: ignore[attr-defined]
+        return out
+
+    change.side = sgn  # type: ignore[attr-defined]
+    return change

@@ -3,6 +3,8 @@ the way its physics says (checked through the sensor and demodulation, against c
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 from types import SimpleNamespace
 
@@ -21,7 +23,7 @@ C = 299_792_458.0
 F = 44.0e6
 NAMES = {"stray_light", "multipath", "wiggling", "range_offset", "fixed_pattern", "amplitude_dependent",
          "lens_distortion", "ambient", "reflectance", "pose", "offset", "field_angle", "illumination",
-         "range_offset_map", "frequency_calibration", "tap_calibration"}
+         "range_offset_map", "frequency_calibration", "tap_calibration", "unseen_reflector"}
 #: Effects whose data are an option (a map), not parameters with defaults: switched on with these.
 ON_OPTIONS = {"range_offset_map": lambda cam: {"values": np.full(cam.shape, 0.01)}}
 
@@ -65,8 +67,8 @@ def test_forward_model_order_is_fixed_whatever_the_registration_order() -> None:
     # the effects register themselves from their family modules; the order they apply in is
     # by rank, and it is this one (optics before the pixel; per-pixel effects after the
     # spatial mixing): a new module must not move it
-    order = ("pose", "lens_distortion", "reflectance", "ambient", "multipath", "illumination", "stray_light",
-             "offset", "range_offset", "field_angle", "fixed_pattern", "range_offset_map", "frequency_calibration",
+    order = ("pose", "lens_distortion", "reflectance", "ambient", "multipath", "unseen_reflector", "illumination",
+             "stray_light", "offset", "range_offset", "field_angle", "fixed_pattern", "range_offset_map", "frequency_calibration",
              "amplitude_dependent", "wiggling", "tap_calibration")
     assert ORDER == order and tuple(EFFECTS) == order
 
@@ -99,16 +101,17 @@ def test_registry_refuses_a_taken_name_or_rank_and_a_missing_hook() -> None:
 def test_signal_effects_are_identity_at_their_off_values(name: str) -> None:
     cam = _cam()
     rng = np.random.default_rng(0)
-    sig = _signal(cam, rng.uniform(0.5, 3, cam.shape), rng.uniform(1e-12, 1e-11, cam.shape))
+    dist = rng.uniform(0.5, 3, cam.shape)
+    sig = _signal(cam, dist, rng.uniform(1e-12, 1e-11, cam.shape))
     eff = parse_effects({name: EFFECTS[name].off_values()})
-    out = apply_signal_effects(sig, eff, _ctx(cam))
+    ctx = dataclasses.replace(_ctx(cam), radial_m=dist)   # (the scene's geometry, for unseen_reflector)
+    out = apply_signal_effects(sig, eff, ctx)
     np.testing.assert_allclose(out.phasor_w, sig.phasor_w, rtol=1e-12, atol=0)
     np.testing.assert_allclose(out.dc_w, sig.dc_w, rtol=1e-12)
     assert out.waveform == sig.waveform
     # ... and not identity when switched on with its defaults (an effect that does nothing
     # would pass the test above trivially).
-    on = apply_signal_effects(sig, parse_effects({name: ON_OPTIONS[name](cam) if name in ON_OPTIONS else {}}),
-                              _ctx(cam))
+    on = apply_signal_effects(sig, parse_effects({name: ON_OPTIONS[name](cam) if name in ON_OPTIONS else {}}), ctx)
     assert (not np.allclose(on.phasor_w, sig.phasor_w, rtol=1e-6, atol=0) or on.waveform != sig.waveform
             or not np.allclose(on.ambient_w, sig.ambient_w, rtol=1e-6, atol=0))
 
