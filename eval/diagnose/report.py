@@ -243,6 +243,8 @@ def write_report(res: Any, path: Path, *, session_path: str, scene_path: str, ca
     if v is not None:
         css = "warn" if v.kind in ("partly explained", "unexplained", "scene does not match") else "note"
         parts.append(f"<p class='{css}'><b>Verdict: {esc(v.kind)}.</b> {esc(v.text)}</p>")
+        if getattr(res, "left", None):
+            parts.append(f"<p class='warn'><b>{esc(res.left)}</b></p>")
         if v.notes:
             parts.append(H.notes_html(v.notes, css="warn"))
     parts.append(H.notes_html(res.evidence, css="note"))

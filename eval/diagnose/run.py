@@ -25,6 +25,7 @@ from tofhil.demod import bad_tap_pixels
 from tofhil.errors import TofhilError
 from tofhil.eval.metrics import core as M
 from tofhil.eval.diagnose.channels import residual_by_channel, sensor_noise_variance
+from tofhil.eval.diagnose.leftover import what_is_left
 from tofhil.eval.diagnose.depth_heldout import observable_candidates, split_for_diagnosis
 from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal
 from tofhil.eval.diagnose.linear_forms import MAP_EFFECT, fit_frame_drift
@@ -81,6 +82,9 @@ class DiagnosisResult:
     defects: dict[str, Any] = field(default_factory=dict)
     #: The held-out residual by channel (``eval/diagnose/channels.py``), base twin and extended.
     channel_table: dict[str, Any] = field(default_factory=dict)
+    #: What the fit leaves, said as a signature (``eval/diagnose/leftover.py``); None when
+    #: the verdict leaves nothing to say.
+    left: str | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict.to_json() if self.verdict else None, "channels": self.channels,
@@ -96,7 +100,8 @@ class DiagnosisResult:
                 "data_path": self.data.channels, "noise": self.data.noise,
                 "observability": self.observability.to_json(), "residual_structure": self.structure,
                 "drift": self.drift, "effect_size": self.effect_size, "identifiability": self.identifiability,
-                "alternatives": self.alternatives, "defects": self.defects, "residual_by_channel": self.channel_table}
+                "alternatives": self.alternatives, "defects": self.defects, "residual_by_channel": self.channel_table,
+                "left": self.left}
         # (the run time is in the report, not here: the same inputs give the same file, bit for bit)
 
 
@@ -563,6 +568,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     if data.defects is not None:
         maps["defects"] = data.defects.mask.astype(float)
     table = _channel_tables(data, model, after_model, base_pred, after_pred)
+    left = what_is_left(table["after"], [f.to_json() for f in structure], verdict.kind) if verdict else None
     return DiagnosisResult(cause=selection.causes[0] if selection.causes else None, causes=list(selection.causes),
                            ranked=ranked, rounds=rounds, gain=gain, regions=regions,
                            extended_scene=str(ext_path) if ext_path else "", params=params,
@@ -586,7 +592,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                            alternatives={e: [a.to_json() for a in selection.alternatives[e]]
                                          for e in selection.causes if e in selection.alternatives},
                            defects=data.defects.to_json() if data.defects is not None else {},
-                           channel_table=table)
+                           channel_table=table, left=left)
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,

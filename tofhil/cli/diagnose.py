@@ -33,6 +33,8 @@ def _summary(res, report: Path) -> None:
     out.print(f"[bold]{lit(headline(res))}[/bold]", highlight=False)
     if res.verdict is not None:
         out.print(f"[bold]verdict:[/bold] {lit(res.verdict.text)}", highlight=False)
+    if res.left:
+        out.print(f"[bold]{lit(res.left)}[/bold]", highlight=False)
     if res.defects.get("pixels"):
         out.print(f"[bold]defects:[/bold] {lit(res.defects['text'])}", highlight=False)
     for r in res.channel_table.get("after", {}).get("readings", []):
