@@ -71,7 +71,9 @@ def child_cpu_s(cmd: list[str]) -> tuple[float, str]:
 def whole_process_vs_pcl(ref: np.ndarray, pts: np.ndarray, pcl_bin: str, repeat: int,
                          cells: tuple[float, ...] = (0.25, 0.5)) -> None:
     """``tofhil ndt`` and PCL's NDT score from the same binary PCD files, whole processes."""
-    import open3d as o3d
+    from tofhil.open3d_loader import open3d
+
+    o3d = open3d()          # (libusb from its wheel where the system has none)
 
     with tempfile.TemporaryDirectory() as tmp:
         files = []

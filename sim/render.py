@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import math
 import os
+import sys
+import threading
 import warnings
 from dataclasses import dataclass
 from typing import Any, Sequence
@@ -168,6 +170,79 @@ def _view_arrays(camera: CameraModel, pose: np.ndarray, pixels: np.ndarray | Non
     return view
 
 
+# Read-only constants of a frame's size (0..n-1, zeros) that chunks slice instead of making
+# their own (per-chunk arrays are fresh pages in the worker threads: page faults, ~2 us each).
+_CONSTANTS = LRUCache(4, thread_safe=True)
+
+
+def _constant(kind: str, n: int) -> np.ndarray:
+    """``np.arange(n)`` (``"index"``) or ``np.zeros(n)`` (``"zeros"``), shared: never write to it."""
+    a = _CONSTANTS.get((kind, n))
+    if a is None:
+        a = np.arange(n, dtype=np.int64) if kind == "index" else np.zeros(n)
+        _CONSTANTS.put((kind, n), a)
+    return a
+
+
+class _FramePool:
+    """The frame-sized arrays of earlier renders (phasors, power, ambient, maps), reused by
+    later renders of the same size once nothing but the pool refers to them.
+
+    Why: freed after every frame (~16 MB at 640 x 480), they go back to the kernel (glibc
+    trims its heap), and the next frame's first writes page-fault them in again: ~4600 faults,
+    ~12 ms of CPU per VGA frame on two threads, where the whole direct render costs ~45.
+    A set is reused only when no array of it is referred to from outside (the caller dropped
+    the result; a numpy view holds its base, so views count); ``max_sets`` per size, so
+    ``res = render(...)`` in a loop, whose previous result is alive during the call, reuses
+    the set before it. At most ``max_bytes`` are kept.
+    """
+
+    def __init__(self, max_sets: int = 2, max_bytes: int = 96 << 20) -> None:
+        self.max_sets, self.max_bytes = max_sets, max_bytes
+        self._lock = threading.Lock()
+        self._sets: list[tuple[Any, list[np.ndarray]]] = []     # oldest first
+
+    @staticmethod
+    def _unreferenced(arrays: list[np.ndarray]) -> bool:
+        # references: the list, the loop variable, getrefcount's argument
+        return all(sys.getrefcount(a) <= 3 for a in arrays)
+
+    def take(self, key: Any) -> list[np.ndarray] | None:
+        """A set of ``key`` nothing else refers to, out of the pool (None: make new arrays)."""
+        with self._lock:
+            for i, (k, arrays) in enumerate(self._sets):
+                if k == key and self._unreferenced(arrays):
+                    del self._sets[i]
+                    return arrays
+        return None
+
+    def give(self, key: Any, arrays: list[np.ndarray]) -> None:
+        """Keep ``arrays`` for a later render (the oldest sets beyond the bounds are dropped)."""
+        with self._lock:
+            self._sets.append((key, arrays))
+            same = [i for i, (k, _) in enumerate(self._sets) if k == key]
+            for i in reversed(same[:-self.max_sets]):
+                del self._sets[i]
+            while sum(a.nbytes for _, arrays in self._sets for a in arrays) > self.max_bytes and len(self._sets) > 1:
+                del self._sets[0]
+
+
+_FRAMES = _FramePool()
+
+
+def _pixel_weights(view: dict[str, Any], scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """``scale * area`` and ``scale * area * cos^4`` per pixel of a view, made once per scale
+    (the aperture area over the samples per pixel) and kept in the view's cache entry."""
+    weights = view.setdefault("weights", {})
+    w = weights.get(scale)
+    if w is None:
+        if len(weights) >= 4:              # (a fit of the f-number makes a new scale each time)
+            weights.clear()
+        pix = scale * view["area"]
+        w = weights[scale] = (pix, pix * view["cos4"])
+    return w
+
+
 class _Context:
     """Everything a chunk worker needs, precomputed once per render call."""
 
@@ -216,13 +291,14 @@ class _Context:
         self.aperture_area_m2 = aperture_area_m2(camera, n_f)
         self.focus_m = scene.focus_distance_m
         view = _view_arrays(camera, pose, pixels)
-        # Per-pixel weight without cos^4: A_ap * pixel area (normalised coords) / spp.
-        self.pix_weight = (self.aperture_area_m2 / spp) * view["area"]
+        # Per-pixel weight without cos^4: A_ap * pixel area (normalised coords) / spp, and with
+        # it (centre rays); kept with the view: two frame-sized products per render otherwise,
+        # on the serial path before the chunks start. Read only (the wavefront loop copies).
+        self.pix_weight, self.centre_weight = _pixel_weights(view, self.aperture_area_m2 / spp)
         self.ambient = scene.ambient_irradiance_w_m2
         self.edges = transient_edges
         self.centre_rays = view["rays"]
         self.centre_world = view["world"]
-        self.centre_weight = self.pix_weight * view["cos4"]
         self.centre_world32 = view["world32"]
         self.centre_ok = view["ok"]          # false: the pixel has no ray (it sees nothing)
         self._origin32: np.ndarray | None = None
@@ -237,6 +313,9 @@ class _Context:
         self.fused = (self.geom.direct is not None and not self.textured
                       and os.environ.get("TOFHIL_RENDER_WAVEFRONT", "") in ("", "0"))
         self.glass = dielectric.dielectric_tables(scene)
+        # The compiled loop writes every pixel's radial distance and object itself (one centre
+        # ray per pixel, every pixel traced): the frame's maps need no fill beforehand.
+        self.maps_in_place = self.fused and spp == 1 and not self.subpixel and not self.thin_lens and pixels is None
         if self.glass.any:
             _check_glass(scene, self.glass, self.fused and self.cos_n >= 0, t, self.emitter_pos)
             if shares:
@@ -310,6 +389,9 @@ class _Context:
         """Trace pixels ``p0:p1``; with ``dest`` (the frame's accumulators) the fused loop
         adds into them in place, otherwise the chunk's own arrays are returned."""
         npix = p1 - p0
+        if dest is not None and "clear" in dest:
+            for a in dest["clear"]:         # a reused frame (render's _FRAMES): this chunk's pixels
+                a[..., p0:p1] = 0
         pix, U, keep_pix, origins, dirs, beta, path0 = self._camera_rays(chunk, p0, p1)
         out, acc_re, acc_im, power, ambient_unit, trans, edges = self._accumulators(npix, p0, p1, dest)
         geom = self.geom
@@ -321,7 +403,8 @@ class _Context:
         org = np.ascontiguousarray(np.atleast_2d(origins), dtype=np.float64)
         shared = org.shape[0] == 1 and len(dirs) != 1
         dirs = np.ascontiguousarray(dirs, dtype=np.float64)
-        local = pix - p0
+        # (one sample per pixel: the chunk-local pixel of sample s is s)
+        local = _constant("index", self.H * self.W)[:npix] if self.spp == 1 and keep_pix is None else pix - p0
         if self.fused:
             return self._run_fused(npix, p0, p1, org, shared, dirs, path0, beta, local, U, out, acc_re, acc_im,
                                    power, ambient_unit, edges, trans, vnormal, smooth,
@@ -336,7 +419,7 @@ class _Context:
         lens), directions (world), throughput and optical path already travelled."""
         npix = p1 - p0
         spp = self.spp
-        pix = np.arange(p0, p1) if spp == 1 else np.repeat(np.arange(p0, p1), spp)
+        pix = _constant("index", self.H * self.W)[p0:p1] if spp == 1 else np.repeat(np.arange(p0, p1), spp)
         # [samples, D] uniforms: subpixel, lens, 2 per bounce (none needed for centre rays
         # through the pinhole without bounces).
         need_u = self.subpixel or self.thin_lens or self.bounces > 0 or self.glass.scattering
@@ -387,7 +470,7 @@ class _Context:
             origins = _rotate(a, self.R) + self.t
             dirs = _rotate(dirs_cam, self.R)
         else:
-            path0 = np.zeros(len(pix))
+            path0 = _constant("zeros", len(pix))   # no camera path before the pinhole
             origins = self.t                  # one shared origin: the pinhole
             if keep_pix is not None and not self.subpixel:
                 dirs = self.centre_world[pix]
@@ -408,7 +491,8 @@ class _Context:
             # The compiled loop adds into the frame's own arrays (disjoint pixel ranges).
             acc_re, acc_im = dest["re"][:, :, p0:p1], dest["im"][:, :, p0:p1]
             power, ambient_unit = dest["power"][p0:p1], dest["ambient_unit"][p0:p1]
-            trans = dest["trans"][p0:p1] if dest.get("trans") is not None else np.zeros((npix, 1))
+            # (no transient: the kernels never index it, one element will do)
+            trans = dest["trans"][p0:p1] if dest.get("trans") is not None else np.zeros((1, 1))
             out["in_place"] = np.array(True)
         else:
             rows = self.rows                     # no indirect row without bounces
@@ -430,6 +514,8 @@ class _Context:
         spp = self.spp
         geom = self.geom
         path_in = path0
+        # (connect_and_bounce updates the throughput in place: never the cached pixel weights)
+        beta = np.array(beta, dtype=np.float64)
         ambient = np.zeros(npix)
         sid = np.arange(len(pix))
         src = np.zeros(len(pix), dtype=np.int64)     # the object the light came from (shares)
@@ -549,8 +635,7 @@ class _Context:
         n = len(dirs)
         # One centre ray per pixel and the frame's maps at hand: the primary hits go straight
         # into them (no per-chunk arrays to copy over).
-        direct_maps = ("radial" in out_maps and self.spp == 1 and not self.subpixel and not self.thin_lens
-                       and keep_pix is None)
+        direct_maps = "radial" in out_maps and self.maps_in_place and keep_pix is None
         if direct_maps:
             first_t, first_obj = out_maps["radial"][p0:p1], out_maps["object_id"][p0:p1]
         else:
@@ -810,13 +895,22 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
     rows = ctx.rows                                # no indirect row without bounces
     # [direct/indirect, f*h, pixel]; the kernels add into its real and imaginary parts (strided
     # views), so the result's phasors are this array reshaped, not a copy of two.
-    acc = np.zeros((rows, nk, npix_total), dtype=np.complex128)
+    frame_key = (rows, nk, npix_total)
+    frame = _FRAMES.take(frame_key)
+    clear_in_chunks = False
+    if frame is None:
+        frame = [np.zeros((rows, nk, npix_total), dtype=np.complex128), np.zeros(npix_total), np.zeros(npix_total),
+                 np.zeros(npix_total), np.empty(npix_total), np.empty(npix_total, dtype=np.int32)]
+    elif pixels is None:           # every chunk runs: each clears its own pixels, in parallel
+        clear_in_chunks = True
+    else:
+        for a in frame[:4]:
+            a.fill(0)
+    acc, power, ambient, ambient_unit, radial, oid = frame
     acc_re, acc_im = acc.real, acc.imag
-    power = np.zeros(npix_total)
-    ambient = np.zeros(npix_total)
-    ambient_unit = np.zeros(npix_total)
-    radial = np.full(npix_total, np.inf)
-    oid = np.full(npix_total, -1, dtype=np.int32)
+    if not ctx.maps_in_place:      # (in place: the chunks write every pixel's maps)
+        radial.fill(np.inf)
+        oid.fill(-1)
     trans = None if edges is None else np.zeros((npix_total, len(edges) - 1))
 
     ray_count = [0]
@@ -838,6 +932,8 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
 
     dest = {"re": acc_re, "im": acc_im, "power": power, "ambient_unit": ambient_unit, "trans": trans,
             "radial": radial, "object_id": oid}
+    if clear_in_chunks:
+        dest["clear"] = [acc, power, ambient, ambient_unit]
     jobs = [(i, p0, min(p0 + per_chunk, npix_total), dest) for i, p0 in enumerate(starts)]
     if pixels is not None:  # (a chunk keeps its index: its random stream is the full render's)
         jobs = [j for j in jobs if pixels[j[1]:j[2]].any()]
@@ -850,6 +946,7 @@ def render(scene: Scene, *, freq_hz: Sequence[float] | np.ndarray | None = None,
         for job, fut in (progress or no_progress)(futures, len(futures), "render"):
             store(job[1], job[2], fut.result())
 
+    _FRAMES.give(frame_key, frame)
     if ctx.glass.any:
         _add_glints(ctx, acc, power, trans)
     if not ctx.centre_ok.all():              # pixels without a ray see nothing
