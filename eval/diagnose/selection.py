@@ -152,10 +152,6 @@ class Candidate:
     #: The whitened held-out residual with this candidate (kept to compare candidates of
     #: different families without predicting again: "A or B").
     test_residual: np.ndarray | None = field(default=None, repr=False)
-    #: Readings of the residual by channel (a frequency's phase or gain, the frequencies'
-    #: agreement, the offset) that were within noise before this effect and are beyond it
-    #: with it: the effect moves a channel where the residual had nothing (not named).
-    moves_clean: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -440,7 +436,6 @@ class _GreedySearch:
         round_: list[Candidate] = []
         tried_of: dict[str, list[Candidate]] = {}
         self._present = self._residual_channels()
-        self._clean = self._clean_readings(self.current_pred)
         for name in names:
             if name in self.active or name not in self.lib:
                 continue  # chosen already, or nothing of it acts on these data
@@ -471,32 +466,6 @@ class _GreedySearch:
         except (AttributeError, ValueError):
             return None
         return set(table.significant_channels())
-
-    def _readings(self, pred: np.ndarray) -> dict[str, Any] | None:
-        """The prediction-dependent readings of the residual by channel that need no taps
-        (each frequency's phase and gain, their agreement, the offset), by name."""
-        from tofhil.eval.diagnose.channels import frequency_readings, offset_readings
-
-        if not hasattr(self.data, "freq_hz") or not hasattr(self.data, "test_pixels"):
-            return None  # a small forward model of a test, without the channels' data
-        try:
-            return {r.name: r for r in frequency_readings(self.data, pred) + offset_readings(self.data, pred)}
-        except (AttributeError, ValueError):
-            return None
-
-    def _clean_readings(self, pred: np.ndarray) -> set[str] | None:
-        readings = self._readings(pred)
-        return None if readings is None else {n for n, r in readings.items() if not r.significant}
-
-    def _moves_clean(self, pred: np.ndarray) -> list[str]:
-        """The readings clean in the current residual that ``pred`` makes significant: an
-        effect must not put a part into a channel where the residual has none (its derived
-        signature, read off its fitted change, against the residual's)."""
-        clean = getattr(self, "_clean", None)
-        if not clean:
-            return []
-        after = self._readings(pred) or {}
-        return [r.text for n, r in after.items() if n in clean and r.significant]
 
     def signature_absent(self, name: str) -> list[str]:
         """The channels ``name`` must move (its ``signature``) that the current residual lacks."""
@@ -532,12 +501,8 @@ class _GreedySearch:
         small = [c for c in tried if not c.worth_naming]
         if small and not best_form.significant and name not in self.selection.too_small:
             c = min(small, key=lambda c: c.score)
-            label = f"{name}" + (f" ({c.form})" if c.form else "") + ": "
-            if c.moves_clean:
-                self.selection.too_small[name] = (label + "moves a channel where the residual had nothing beyond "
-                                                  "noise (" + "; ".join(c.moves_clean) + ")")
-            else:
-                self.selection.too_small[name] = label + EffectSize.why_not(c.rmse) + ": " + EffectSize.describe(c.rmse)
+            self.selection.too_small[name] = (f"{name}" + (f" ({c.form})" if c.form else "") + ": "
+                                              + EffectSize.why_not(c.rmse) + ": " + EffectSize.describe(c.rmse))
         return best_form
 
     def _try_form(self, name: str, spec: EffectSpec, start_from: Candidate | None, current_k: float,
@@ -586,8 +551,6 @@ class _GreedySearch:
         worth = True
         if self.effect_size is not None and gains and not worse:
             rmse, worth = self.effect_size.names(self.current_pred, pred, self.base_pred)
-        moves_clean = self._moves_clean(pred) if gains and not worse and worth else []
-        worth = worth and not moves_clean
         cand = Candidate(effect=name, params=fitted[name], chi2_train=chi2_train, chi2_test=chi2_test,
                          score=score, delta_score=current_score - score,
                          relative_gain=gain / self.current_chi2 if self.current_chi2 > 0 else 0.0,
@@ -597,7 +560,7 @@ class _GreedySearch:
                          rmse=rmse, worth_naming=worth,
                          strength=prior.strength if prior is not None else 0.0,
                          prior=prior.summary() if prior is not None else {},
-                         test_residual=data.whitened_residual(pred, "test"), moves_clean=moves_clean)
+                         test_residual=data.whitened_residual(pred, "test"))
         return cand, gains and bool(worse)
 
     def add(self, chosen: Candidate, round_: list[Candidate], tried_of: dict[str, list[Candidate]]) -> None:
