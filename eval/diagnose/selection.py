@@ -33,6 +33,7 @@ from tofhil.eval.diagnose.heldout import HUBER_SIGMA, HeldOutData, huber, predic
 from tofhil.eval.diagnose.form_prior import regularise_form
 from tofhil.eval.diagnose.identifiability import Alternative, Identifiability, alternatives, assess_form, param_group
 from tofhil.eval.diagnose.verdict import ChannelGain, EffectSize, channel_chi2, worse_channels
+from tofhil.sim.effects import EFFECTS
 from tofhil.sim.memory import release_free_memory
 
 EffectParams = dict[str, dict[str, float]]
@@ -252,9 +253,32 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
         values = _unpack(free, lib, x)
         return np.concatenate([np.sqrt(spec.strength) * spec.roughness(values[e]) for e, spec in priors])
 
+    # Effects that move light between pixels (stray light) need whole frames rendered for
+    # every evaluation; when they are held and the effects fitted are pixel-local, their part
+    # is nearly constant over the fit (it moves by their weight times the small change the fit
+    # makes): the fit pixels alone are predicted without them, plus their part at the start,
+    # and each optimisation ends with the whole prediction (which the result is judged on).
+    held_part: dict[str, np.ndarray] = {}
+    local = getattr(model, "predict_local", None) if all(
+        getattr(EFFECTS.get(e), "pixel_local", False) for e in free) else None
+
+    def hold_at(x: np.ndarray) -> bool:
+        if local is None:
+            return False
+        p_local = local(full(x), data.fit_pixels)
+        if p_local is None:
+            return False
+        held_part["value"] = predict_fit(model, data, full(x)) - p_local
+        return True
+
+    def predict_x(x: np.ndarray) -> np.ndarray:
+        if "value" in held_part:
+            return local(full(x), data.fit_pixels) + held_part["value"]
+        return predict_fit(model, data, full(x))
+
     def stacked(x: np.ndarray) -> np.ndarray:
         """The fit pixels' whitened residual and the priors' penalty residuals at ``x``."""
-        return np.concatenate([data.whitened_residual(predict_fit(model, data, full(x)), "fit"), penalty(x)])
+        return np.concatenate([data.whitened_residual(predict_x(x), "fit"), penalty(x)])
 
     def residual(x: np.ndarray) -> np.ndarray:
         r = stacked(x)
@@ -285,15 +309,28 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
             starts.append(np.clip(_pack(free, lib, trial), lo, hi))
     # Screen every starting point with one evaluation; optimise from the best two.
     inner = [np.clip(x, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo)) for x in starts]
+    holding = hold_at(x0)
     if len(inner) > 2:
         costs = [float(np.sum(huber(residual(x)))) for x in inner]
         inner = [inner[i] for i in np.argsort(costs)[:2]]
     best_x, best_cost = x0, np.inf
     for x_start in inner:
-        res = least_squares(residual, x_start, jac=jacobian, bounds=(lo, hi), x_scale=scale, method="trf",
-                            max_nfev=max_nfev, ftol=1e-6, xtol=1e-7, loss="huber", f_scale=HUBER_SIGMA)
-        if res.cost < best_cost:
-            best_x, best_cost = res.x, res.cost
+        for _pass in range(2 if holding else 1):
+            if holding:
+                last.clear()
+                hold_at(x_start)  # the held part where this pass starts
+            res = least_squares(residual, x_start, jac=jacobian, bounds=(lo, hi), x_scale=scale, method="trf",
+                                max_nfev=max_nfev, ftol=1e-6, xtol=1e-7, loss="huber", f_scale=HUBER_SIGMA)
+            cost = res.cost
+            if holding:
+                # judged on the whole prediction; a second pass holds the part where the first ended
+                held_part.clear()
+                cost = 0.5 * float(np.sum(huber(stacked(res.x))))
+            if cost < best_cost:
+                best_x, best_cost = res.x, cost
+            if not holding or np.allclose(res.x, x_start, rtol=0, atol=1e-3 * float(np.min(scale))):
+                break
+            x_start = res.x
     return full(best_x), 2.0 * best_cost
 
 

@@ -217,19 +217,34 @@ class TwinModel:
         then be wrong (the twin renders only the pixels asked for when that is exact)."""
         self.evaluations += 1
         if pixels is not None:
-            # the taps and the signal only where asked (the rest of the frame stays zero)
-            taps = self.twin.expected_taps_at(self.effects_for(active), pixels).astype(np.float64)
-            s = phasor(taps, self.data.theta_rad)[:, 0]
-            if self.data.offset_channel:
-                s = np.concatenate([s, taps.mean(axis=(0, 1))[None, 0].astype(np.complex128)])
-            out = np.zeros((s.shape[0],) + self.data.camera.shape, dtype=np.complex128)
-            out[:, pixels] = s
-            return out
+            return self._predict_at(self.effects_for(active), pixels)
         taps = self.taps(active)
         s = phasor(taps, self.data.theta_rad)
         if self.data.offset_channel:
             s = np.concatenate([s, taps.mean(axis=(0, 1))[None].astype(np.complex128)])
         return s
+
+    def _predict_at(self, effects: dict[str, dict[str, Any]], pixels: np.ndarray) -> np.ndarray:
+        """The taps and the signal only where asked (the rest of the frame stays zero)."""
+        taps = self.twin.expected_taps_at(effects, pixels).astype(np.float64)
+        s = phasor(taps, self.data.theta_rad)[:, 0]
+        if self.data.offset_channel:
+            s = np.concatenate([s, taps.mean(axis=(0, 1))[None, 0].astype(np.complex128)])
+        out = np.zeros((s.shape[0],) + self.data.camera.shape, dtype=np.complex128)
+        out[:, pixels] = s
+        return out
+
+    def predict_local(self, active: EffectParams, pixels: np.ndarray) -> np.ndarray | None:
+        """:meth:`predict` on ``pixels`` with the effects that move light between pixels (stray
+        light) left out, so that only ``pixels`` are rendered; None when the set has none, or
+        when a lens prescription makes every pixel's light depend on the others. A fit that
+        holds those effects adds their part at its start as a constant (``selection.fit``)."""
+        effects = self.effects_for(active)
+        moving = [n for n, v in effects.items() if not EFFECTS[n].pixel_local and not EFFECTS[n].is_off(v)]
+        if not moving or getattr(self.scene.camera, "lens", None) is not None:
+            return None
+        self.evaluations += 1
+        return self._predict_at({n: v for n, v in effects.items() if n not in moving}, pixels)
 
     def base_render(self) -> Any:
         return self.twin.render(self.effects_for({}))[1]
