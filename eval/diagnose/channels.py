@@ -236,6 +236,12 @@ def tap_readings(theta_rad: np.ndarray, measured: np.ndarray, predicted: np.ndar
     return out
 
 
+def prediction_readings(data: HeldOutData, prediction: np.ndarray) -> dict[str, ChannelReading]:
+    """The readings that depend on the prediction and need no taps (each frequency's phase and
+    gain, their agreement, the offset), by name."""
+    return {r.name: r for r in frequency_readings(data, prediction) + offset_readings(data, prediction)}
+
+
 def sensor_noise_variance(data: HeldOutData) -> np.ndarray | None:
     """The noise variance of one frame's S per real component ``[F, H, W]`` that the session's
     recorded sensor predicts (read noise and shot noise at the measured tap levels, plus the

@@ -107,3 +107,25 @@ def test_a_panel_outside_the_view_is_light_from_an_unseen_reflector(tmp_path, sc
     # found on the panel's side of the view (azimuth 0 = +x)
     az = res.params["unseen_reflector"]["azimuth_deg"]
     assert (abs(az) < 45) if change.side > 0 else (abs(az) > 135), az
+
+
+def test_a_cause_that_moves_a_clean_channel_is_not_named(tmp_path, scene):
+    """The final model's readings against the base twin's: a range offset on a session with
+    nothing hidden moves both frequencies' phases, clean before; without it they are clean
+    again, so it is the one that moved them (and one that moves nothing is left named)."""
+    from tofhil.eval.diagnose.run import _held_out_data, _moved_clean_channels
+    from tofhil.eval.diagnose.selection import Selection
+    from tofhil.eval.diagnose.twin_model import TwinModel
+    from tofhil.sim.from_capture import capture_scene_facts
+
+    two = hf.with_frequencies(scene, (44e6, 60e6))
+    path = hf.write_session(two, tmp_path / "n.h5", None, frames=6, seed=77)
+    data, _ = _held_out_data(path, two, capture_scene_facts(two), block_px=8, max_frames=None)
+    model = TwinModel(two, data)
+    base = model.predict({})
+    params = {"range_offset": {"path_m": 0.01}, "reflectance": {"scale": 1.0}}
+    sel = Selection(causes=list(params), params=params, baseline_chi2_test=0.0, final_chi2_test=0.0)
+    moved = _moved_clean_channels(model, data, sel, base)
+    assert list(moved) == ["range_offset"], moved
+    assert any("44 MHz: phase" in t for t in moved["range_offset"]) and any("60 MHz: phase" in t
+                                                                            for t in moved["range_offset"])
