@@ -224,8 +224,10 @@ def test_missing_rerun_names_the_extra_and_writes_nothing(small_session: Path, t
     assert list(tmp_path.iterdir()) == []  # refused before the device was touched
 
 
-@pytest.mark.parametrize("case", ["exists", "suffix", "scene-without-view", "same-as-session"])
-def test_bad_view_options_are_one_line(case: str, small_session: Path, tmp_path: Path, capsys) -> None:
+@pytest.mark.parametrize("case", ["exists", "suffix", "scene-without-view", "same-as-session", "no-display"])
+def test_bad_view_options_are_one_line(case: str, small_session: Path, tmp_path: Path, capsys, monkeypatch) -> None:
+    for var in ("DISPLAY", "WAYLAND_DISPLAY"):  # a headless machine: the viewer cannot be spawned
+        monkeypatch.delenv(var, raising=False)
     existing = tmp_path / "old.rrd"
     existing.write_bytes(b"keep me")
     cap = ["capture", "--device", "emulator:wall:1.0", "--frames", 1, "--out", tmp_path / "s.h5"]
@@ -235,6 +237,7 @@ def test_bad_view_options_are_one_line(case: str, small_session: Path, tmp_path:
         "scene-without-view": (cap + ["--scene", "wall"], "--scene"),
         "same-as-session": (["capture", "--device", "emulator:wall:1.0", "--out", tmp_path / "x.rrd",
                              "--save", tmp_path / "x.rrd"], "--save"),
+        "no-display": (cap + ["--view"], "--save VIEW.rrd"),
     }[case]
     assert run_cli(*argv) == 2
     err = capsys.readouterr().err.strip()

@@ -79,6 +79,18 @@ def require_rerun(field: str | None = None) -> Any:
     return rerun
 
 
+def check_display(field: str | None = "--view") -> None:
+    """Refuse to spawn the viewer where it cannot open a window (Linux without X11 or
+    Wayland: the viewer exits and every frame would go nowhere); ``--save`` works there."""
+    import os
+    import sys
+
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise TofhilError("no display for the Rerun viewer (DISPLAY and WAYLAND_DISPLAY are not set)", field=field,
+                          expected="a desktop session, or --save VIEW.rrd to write the view to a file and open "
+                                   "it elsewhere with `rerun VIEW.rrd`")
+
+
 def check_view_output(path: Path | None, force: bool, field: str = "--save") -> None:
     """Refuse a ``--save`` target before anything runs: not ``.rrd``, existing without
     ``force``, a directory, or in a missing directory (``tofhil.outputs``)."""
@@ -328,11 +340,19 @@ class ViewSummary:
         return f"view dropped {self.dropped} of {self.offered} frames{where}"
 
 
-def _warm_up(rr: Any) -> None:
+def _warm_up(rr: Any, scene: Any = None) -> None:
     """Run once, before the capture, what costs most the first time: Rerun's archetype
-    conversions (~0.4 s) and the demodulation kernels' load from numba's cache (~0.5 s).
-    Both hold the GIL; on the viewer thread they would stall the capture loop at its start."""
+    conversions (~0.4 s), the demodulation kernels' load from numba's cache (~0.5 s) and with
+    a scene the renderer's (a render of a few pixels). All of it holds the GIL; on the viewer
+    thread it would slow the capture loop at its start (the twin's real render there runs in
+    the renderer's GIL-free kernels)."""
     from tofhil.depth import depth_from_raw
+
+    if scene is not None:
+        from tofhil.app.twin_render import twin_frame
+
+        cam = scene.camera
+        twin_frame(scene, camera=cam.scaled(min(1.0, 8.0 / max(cam.width, cam.height))))
 
     cam = CameraModel(width=2, height=2, fx=2.0, fy=2.0, cx=0.5, cy=0.5)
     theta = np.arange(4) * (np.pi / 2)
@@ -367,7 +387,7 @@ class LiveView:
         self._last_s = -math.inf
         self._rate_dropped = 0
         self._twin_tried = scene is None
-        _warm_up(self.view.rr)
+        _warm_up(self.view.rr, scene)
         self._sink: DroppingSink[tuple[int, RawFrame | None, DepthFrame | None]] = DroppingSink(self._show, maxsize=maxsize)
 
     def offer(self, frame: Any) -> None:
@@ -405,7 +425,7 @@ class LiveView:
         if stats.timed_out:
             problem = problem or f"the viewer did not finish within {timeout_s:g} s"
             keep = False  # it may still be writing: no file under the real name
-        flush_problem = self.view.close(keep=keep)
+        flush_problem = self.view.close(keep=keep, timeout_s=3.0)  # a viewer that went away: do not wait long
         saved = self.view.save if keep and self.view.save is not None and self.view.save.is_file() else None
         twin = self.view.twin
         notes = list(self.notes)

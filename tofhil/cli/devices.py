@@ -158,9 +158,11 @@ def _check_view_options(view: bool, save: Path | None, scene: str | None, out_pa
         raise DeviceError("--scene is only used by the view", field="--scene", expected="--view or --save VIEW.rrd")
     if not (view or save is not None):
         return None
-    from tofhil.app.view import check_view_output, require_rerun
+    from tofhil.app.view import check_display, check_view_output, require_rerun
 
     require_rerun(field="--view" if view else "--save")
+    if view:
+        check_display()
     if save is not None and save.resolve() == out_path.resolve():
         raise DeviceError("the view file must differ from the session", field="--save")
     check_view_output(save, force)

@@ -24,12 +24,14 @@ def view(session: Path = typer.Argument(..., parser=opt.existing_file, help="A s
          force: bool = typer.Option(False, "--force", help="Overwrite the --save file if it exists.")) -> None:
     """Replay a session in the Rerun viewer (pip install 'tofhil[view]'): depth, amplitude, the point
     cloud, and with --scene the twin's render and the residual, frame by frame."""
-    from tofhil.app.view import check_view_output, require_rerun, view_session
+    from tofhil.app.view import check_display, check_view_output, require_rerun, view_session
 
     require_rerun()
     if spawn and save is None:
         raise TofhilError("--spawn only adds the viewer to --save", field="--spawn",
                           expected="--save VIEW.rrd --spawn, or neither (the viewer alone)")
+    if save is None or spawn:
+        check_display("--spawn" if spawn else None)
     check_view_output(save, force)
     summary = view_session(session, scene=scene, save=save, spawn=save is None or spawn, progress=progress)
     where = f" to {lit(summary.saved)}" if summary.saved is not None else " in the viewer"
