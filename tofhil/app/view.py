@@ -178,8 +178,9 @@ class RerunView:
         self.rec.log(CAMERA, rr.Pinhole(focal_length=[camera.fx, camera.fy], principal_point=[camera.cx, camera.cy],
                                         width=camera.width, height=camera.height, image_plane_distance=0.3),
                      static=True)
-        # the depth image's unit and colours once, not per frame (a frame logs its pixels alone)
+        # what does not change once, not per frame (a frame logs its pixels and points alone)
         self.rec.log(DEPTH, rr.DepthImage.from_fields(meter=1.0, colormap="turbo"), static=True)
+        self.rec.log(POINTS, rr.Points3D.from_fields(radii=0.002), static=True)
         self.note("camera", camera.to_json())
         return camera
 
@@ -229,7 +230,7 @@ class RerunView:
         assert self._rays is not None
         pts = self._rays[ok] * radial32[ok][:, None]  # the camera's own lens model (tofhil.camera rays)
         amp = None if depth.amplitude is None else np.asarray(depth.amplitude)[ok]
-        rec.log(POINTS, rr.Points3D(pts, colors=_grey(amp), radii=0.002))
+        rec.log(POINTS, rr.Points3D(pts, colors=_grey(amp)))
         if self.twin is not None:
             self._log_residual(depth)
         self.frames_logged += 1
@@ -379,6 +380,7 @@ class LiveView:
                  maxsize: int = 2, max_rate_hz: float | None = DEFAULT_VIEW_RATE_HZ) -> None:
         if max_rate_hz is not None and not (math.isfinite(max_rate_hz) and max_rate_hz > 0):
             raise TofhilError(f"{max_rate_hz:g}", field="--view-rate", expected="a finite number of frames/s > 0")
+        _warm_up(require_rerun(), scene)  # before the file exists: a scene that fails to render leaves nothing
         self.view = RerunView(save=save, spawn=spawn, name=name)
         self.scene = scene
         self.notes: list[str] = []
@@ -387,7 +389,6 @@ class LiveView:
         self._last_s = -math.inf
         self._rate_dropped = 0
         self._twin_tried = scene is None
-        _warm_up(self.view.rr, scene)
         self._sink: DroppingSink[tuple[int, RawFrame | None, DepthFrame | None]] = DroppingSink(self._show, maxsize=maxsize)
 
     def offer(self, frame: Any) -> None:
