@@ -24,6 +24,8 @@ only when a view is opened (:func:`require_rerun`).
 from __future__ import annotations
 
 import math
+import os
+import sys
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -32,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from tofhil.app.twin_render import TwinRender, residual_m
+from tofhil.app.twin_render import TwinRender, residual_m, twin_frame, twin_frame_for_frame, twin_frame_for_session
 from tofhil.app.view_sink import DroppingSink
 from tofhil.camera import CameraModel
 from tofhil.errors import TofhilError
@@ -82,9 +84,6 @@ def require_rerun(field: str | None = None) -> Any:
 def check_display(field: str | None = "--view") -> None:
     """Refuse to spawn the viewer where it cannot open a window (Linux without X11 or
     Wayland: the viewer exits and every frame would go nowhere); ``--save`` works there."""
-    import os
-    import sys
-
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise TofhilError("no display for the Rerun viewer (DISPLAY and WAYLAND_DISPLAY are not set)", field=field,
                           expected="a desktop session, or --save VIEW.rrd to write the view to a file and open "
@@ -258,8 +257,6 @@ class RerunView:
         if self._closed:
             return None
         self._closed = True
-        import os
-
         from tofhil.outputs import remove_partial
 
         problem = None
@@ -292,7 +289,7 @@ def view_session(session_path: str | Path, *, scene: Any = None, save: Path | No
         use_depth = s.has_depth
         if not use_depth and not s.has_raw:
             raise TofhilError("has neither depth nor raw taps to show", file=session_path, field="depth/radial_m")
-    twin = None if scene is None else _twin_for_session(scene, session_path)  # before the file exists
+    twin = None if scene is None else twin_frame_for_session(scene, session_path)  # before the file exists
     view = RerunView(save=save, spawn=spawn, name=session_path.name)
     ok = False
     try:
@@ -310,12 +307,6 @@ def view_session(session_path: str | Path, *, scene: Any = None, save: Path | No
         problem = view.close(keep=ok)
     return ViewSummary(offered=n, shown=view.frames_logged, saved=save if ok else None,
                        twin=None if twin is None else f"{twin.scene}: {twin.note}", error=problem)
-
-
-def _twin_for_session(scene: Any, session_path: Path) -> TwinRender:
-    from tofhil.app.twin_render import twin_frame_for_session
-
-    return twin_frame_for_session(scene, session_path)
 
 
 # ---------------------------------------------------------------------- the live view of a capture
@@ -350,8 +341,6 @@ def _warm_up(rr: Any, scene: Any = None) -> None:
     from tofhil.depth import depth_from_raw
 
     if scene is not None:
-        from tofhil.app.twin_render import twin_frame
-
         cam = scene.camera
         twin_frame(scene, camera=cam.scaled(min(1.0, 8.0 / max(cam.width, cam.height))))
 
@@ -410,8 +399,6 @@ class LiveView:
         index, raw, depth = item
         if not self._twin_tried:
             self._twin_tried = True
-            from tofhil.app.twin_render import twin_frame_for_frame
-
             try:
                 self.view.set_twin(twin_frame_for_frame(self.scene, raw if raw is not None else depth))
             except Exception as exc:  # the view goes on without the twin; the capture never notices
