@@ -58,26 +58,31 @@ def image(values: dict, kind: str = "Image") -> np.ndarray:
 
 # --------------------------------------------------------------------------- capture --save
 def test_capture_with_save_writes_the_viewed_frames_as_rrd(tmp_path: Path, capsys) -> None:
+    """``tofhil capture --device emulator --save V.rrd --scene wall``: every camera frame in the
+    session, the frames the view took in the .rrd under their session index, with the twin
+    (rendered on the viewer thread for the capture's camera) and the live residual."""
     session, rrd = tmp_path / "s.h5", tmp_path / "v.rrd"
     n = 6
     code = run_cli("capture", "--device", "emulator:wall:1.2", "--frames", n, "--out", session, "--save", rrd,
-                   "--view-rate", "0", "--mode", "dcs")
+                   "--view-rate", "0", "--mode", "dcs", "--scene", "wall")
     out = capsys.readouterr().out
     assert code == 0, out
     line = next(ln for ln in out.splitlines() if ln.startswith("view dropped"))
     dropped = int(line.split()[2])
     assert line.startswith(f"view dropped {dropped} of {n} frames -> ") and line.endswith("v.rrd")
     data = read_rrd(rrd)
-    assert {V.DEPTH, V.AMPLITUDE, V.POINTS, V.CAMERA, V.INFO, "world"} <= set(data)
-    assert not {V.TWIN_DEPTH, V.RESIDUAL} & set(data)  # no scene: no twin
+    assert {V.DEPTH, V.AMPLITUDE, V.POINTS, V.CAMERA, V.INFO, "world", V.TWIN_DEPTH, V.TWIN_POINTS, V.RESIDUAL} <= set(data)
     shown = sorted(data[V.DEPTH]["frames"])
     assert len(shown) == n - dropped >= 1 and set(shown) <= set(range(n))
     assert sorted(data[V.POINTS]["frames"]) == shown == sorted(data[V.AMPLITUDE]["frames"])
+    # the twin is rendered before the first view frame is logged (frames arriving meanwhile are dropped)
+    assert sorted(data[V.RESIDUAL]["frames"]) == shown
     pinhole = data[V.CAMERA]["static"]
+    twin = image(data[V.TWIN_DEPTH]["static"], "DepthImage")
     with open_session(session) as s:
         assert s.n_frames == n  # every camera frame is in the session
         cam = s.camera
-        assert pinhole["Pinhole:resolution"][0] == [cam.width, cam.height]
+        assert pinhole["Pinhole:resolution"][0] == [cam.width, cam.height] and twin.shape == cam.shape
         for i in shown:  # view frame i is session frame i, demodulated by the core
             d = depth_from_raw(s.raw_frame(i))
             logged = image(data[V.DEPTH]["frames"][i], "DepthImage")
@@ -89,6 +94,10 @@ def test_capture_with_save_writes_the_viewed_frames_as_rrd(tmp_path: Path, capsy
             pts = np.asarray(data[V.POINTS]["frames"][i]["Points3D:positions"], dtype=np.float32)
             np.testing.assert_allclose(pts, d.points(), atol=1e-5)  # unprojected with the camera's rays
             np.testing.assert_allclose(image(data[V.AMPLITUDE]["frames"][i]), d.amplitude, rtol=3e-7)
+            res = image(data[V.RESIDUAL]["frames"][i])
+            both = ok & (twin > 0)
+            assert both.sum() > 0.9 * both.size
+            np.testing.assert_allclose(res[both], logged[both].astype(np.float64) - twin[both], atol=1e-6)
     assert list(tmp_path.glob(".*partial")) == []
 
 
@@ -187,7 +196,9 @@ def test_a_slow_viewer_drops_view_frames_never_camera_frames(tmp_path: Path, mon
     # one frame in the viewer's hands, two queued: the rest dropped, none waited for
     assert view.offered == n and view.shown in (2, 3) and view.dropped == n - view.shown
     assert view.line() == f"view dropped {n - view.shown} of {n} frames -> {tmp_path / 'v.rrd'}"
-    assert len(read_rrd(tmp_path / "v.rrd")[V.DEPTH]["frames"]) == view.shown
+    data = read_rrd(tmp_path / "v.rrd")
+    assert len(data[V.DEPTH]["frames"]) == view.shown
+    assert not {V.TWIN_DEPTH, V.RESIDUAL} & set(data)  # no scene: no twin
 
 
 def test_the_sink_never_blocks_and_stops_on_a_failing_consumer() -> None:
