@@ -3,10 +3,10 @@ view off and on (``--save VIEW.rrd``, headless), in the same run, interleaved.
 
 Cases (each run ``--repeats`` times, in turn, so that a change in the machine's load hits all):
 * off: the capture alone (baseline);
-* view: the view at its default rate (30 frames/s: depth, amplitude, the cloud, written to an
-  .rrd), as ``tofhil capture --save VIEW.rrd``;
+* view: the view at its defaults (at most 30 frames/s, and its thread under 5 % of the time:
+  depth, amplitude, the cloud, written to an .rrd), as ``tofhil capture --save VIEW.rrd``;
 * view, every frame: ``--view-rate 0`` (every frame the viewer keeps up with);
-* view + twin: the default rate with a scene (the twin rendered once on the viewer thread, the
+* view + twin: the defaults with a scene (the twin rendered once on the viewer thread, the
   residual per frame).
 Printed: the capture's frames per second (median), the ratio to "off" (aim: >= 0.9), and
 how many frames the view showed and dropped.

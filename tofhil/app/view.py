@@ -48,6 +48,9 @@ MIN_RERUN = (0, 41)
 
 #: The live view's default cap on frames per second (a viewer shows no more).
 DEFAULT_VIEW_RATE_HZ = 30.0
+#: The share of the wall time the live view's own thread may spend on frames (the capture's
+#: process shares its CPU and the GIL with it): the budget that sets the view rate below the cap.
+DEFAULT_VIEW_CPU_SHARE = 0.05
 
 #: Entity paths (read back by tests and by anyone scripting against an .rrd).
 DEPTH = "depth"
@@ -360,13 +363,17 @@ class LiveView:
     there once, for the first frame's camera and acquisition settings (frames that arrive
     meanwhile are dropped from the view, not from the session).
 
-    ``max_rate_hz`` caps the frames the view takes (default 30 per second: a viewer shows no
-    more, and every view frame costs the capture's process CPU); None takes every frame the
-    viewer keeps up with. A frame that comes sooner, or finds the queue full, is dropped from
-    the view."""
+    How many frames the view takes: at most ``max_rate_hz`` per second (default 30: a viewer
+    shows no more), and no more than keep the viewer thread's own CPU time under
+    ``cpu_share`` of the wall time (default 5 %; the SDK's threads that encode and write the
+    recording take about as much again): every view frame costs the capture's process CPU,
+    and the budget follows the frame size and the machine instead of a fixed rate.
+    ``max_rate_hz=None`` takes every frame the viewer keeps up with (no cap, no budget). A
+    frame that comes sooner, or finds the queue full, is dropped from the view."""
 
     def __init__(self, *, save: Path | None = None, spawn: bool = False, scene: Any = None, name: str = "capture",
-                 maxsize: int = 2, max_rate_hz: float | None = DEFAULT_VIEW_RATE_HZ) -> None:
+                 maxsize: int = 2, max_rate_hz: float | None = DEFAULT_VIEW_RATE_HZ,
+                 cpu_share: float = DEFAULT_VIEW_CPU_SHARE) -> None:
         if max_rate_hz is not None and not (math.isfinite(max_rate_hz) and max_rate_hz > 0):
             raise TofhilError(f"{max_rate_hz:g}", field="--view-rate", expected="a finite number of frames/s > 0")
         _warm_up(require_rerun(), scene)  # before the file exists: a scene that fails to render leaves nothing
@@ -375,6 +382,9 @@ class LiveView:
         self.notes: list[str] = []
         self._index = 0
         self._period_s = 0.0 if max_rate_hz is None else 1.0 / max_rate_hz
+        self._share = None if max_rate_hz is None else float(cpu_share)
+        self._interval_s = self._period_s  # written by the viewer thread (the CPU budget), read by offer()
+        self._cost_s: float | None = None  # the viewer thread's CPU time per frame (moving average)
         self._last_s = -math.inf
         self._rate_dropped = 0
         self._twin_tried = scene is None
@@ -387,7 +397,7 @@ class LiveView:
         index = self._index
         self._index += 1
         now = time.monotonic()
-        if now - self._last_s < self._period_s:
+        if now - self._last_s < self._interval_s:
             self._rate_dropped += 1
             return
         raw = frame if isinstance(frame, RawFrame) else getattr(frame, "raw", None)
@@ -403,7 +413,12 @@ class LiveView:
                 self.view.set_twin(twin_frame_for_frame(self.scene, raw if raw is not None else depth))
             except Exception as exc:  # the view goes on without the twin; the capture never notices
                 self.notes.append(f"twin not shown: {type(exc).__name__}: {exc}")
+        t0 = time.thread_time()
         self.view.log_frame(index, raw=raw, depth=depth)
+        if self._share is not None:
+            cost = time.thread_time() - t0
+            self._cost_s = cost if self._cost_s is None else 0.8 * self._cost_s + 0.2 * cost
+            self._interval_s = max(self._period_s, self._cost_s / self._share)
 
     def close(self, keep: bool = True, timeout_s: float = 30.0) -> ViewSummary:
         """Let the viewer log what is queued, end the recording (the file renamed onto its name
@@ -418,7 +433,11 @@ class LiveView:
         twin = self.view.twin
         notes = list(self.notes)
         if self._rate_dropped or stats.dropped:
-            notes.append(f"{self._rate_dropped} frame(s) above the view rate, {stats.dropped} while the viewer was busy")
+            rate = "" if self._share is None else (
+                f" (at most {1.0 / self._period_s:g}/s, and {self._share:.0%} of the time: "
+                f"{1.0 / max(self._interval_s, 1e-9):.0f}/s at the end)")
+            notes.append(f"{self._rate_dropped} frame(s) above the view rate{rate}, "
+                         f"{stats.dropped} while the viewer was busy")
         return ViewSummary(offered=self._index, shown=stats.consumed, saved=saved,
                            twin=None if twin is None else f"{twin.scene}: {twin.note}",
                            error=problem or flush_problem, notes=notes)

@@ -85,7 +85,8 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
             scene: Optional[str] = typer.Option(None, "--scene", help="With --view/--save: the twin's scene (file "
                                                 "or bundled name): its render and the live residual (measured - twin)."),
             view_rate: float = typer.Option(30.0, "--view-rate", parser=opt.finite(0.0, 1e4, unit="frames/s"),
-                                            help="With --view/--save: at most this many view frames per second "
+                                            help="With --view/--save: at most this many view frames per second, "
+                                                 "and no more than keep the view's thread under 5 % of the time "
                                                  "(0: every frame the viewer keeps up with). The session gets every frame."),
             force: bool = typer.Option(False, "--force", help="Overwrite OUT (and the --save file) if it exists.")) -> None:
     """Capture frames from a device into a session file (progress bar, summary at the end)."""
