@@ -154,7 +154,11 @@ class RerunView:
         self.rec = rr.RecordingStream("tofhil", recording_id=str(uuid.uuid4()))
         sinks = []
         if spawn:
-            rr.spawn(connect=False, recording=self.rec)  # the viewer process; frames go to it over gRPC
+            try:
+                rr.spawn(connect=False, recording=self.rec)  # the viewer process; frames go to it over gRPC
+            except Exception as exc:  # no viewer executable, a port in use, ...
+                raise TofhilError(f"the Rerun viewer could not be started ({type(exc).__name__}: {exc})",
+                                  field="--view", expected="the viewer of rerun-sdk, or --save VIEW.rrd") from None
             sinks.append(rr.GrpcSink())
         if self._tmp is not None:
             sinks.append(rr.FileSink(str(self._tmp)))

@@ -77,7 +77,7 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
             faults: Optional[str] = typer.Option(None, "--faults",
                                                  help="Emulator only: inject faults, e.g. crc@3,disconnect@6."),
             view: bool = typer.Option(False, "--view", help="Show the frames live in the Rerun viewer (spawned; "
-                                      "pip install 'tofhil[view]'). The capture never waits on it: a slow "
+                                      "pip install 'tofhil\\[view]'). The capture never waits on it: a slow "
                                       "viewer drops view frames, never camera frames."),
             save_view: Optional[Path] = typer.Option(None, "--save", parser=opt.new_file,
                                                      help="Write the view to this .rrd file (headless without "

@@ -22,7 +22,7 @@ def view(session: Path = typer.Argument(..., parser=opt.existing_file, help="A s
                                                   "(headless; open it later with `rerun FILE.rrd`)."),
          spawn: bool = typer.Option(False, "--spawn", help="With --save: spawn the viewer as well."),
          force: bool = typer.Option(False, "--force", help="Overwrite the --save file if it exists.")) -> None:
-    """Replay a session in the Rerun viewer (pip install 'tofhil[view]'): depth, amplitude, the point
+    """Replay a session in the Rerun viewer (pip install 'tofhil\\[view]'): depth, amplitude, the point
     cloud, and with --scene the twin's render and the residual, frame by frame."""
     from tofhil.app.view import check_display, check_view_output, require_rerun, view_session
 
