@@ -47,8 +47,12 @@ def capture(driver: Driver, out_path: str | Path, n_frames: int, settings: Captu
             on_frame: Callable[[Frame], None] | None = None) -> CaptureSummary:
     """Configure an opened ``driver``, stream ``n_frames`` good frames into ``out_path``.
 
-    ``on_frame`` is called after each frame is safely written (progress bars); ``timeout_s``
-    bounds the wait for one frame's reply (a frame that misses it is dropped).
+    ``on_frame`` is the frame observer: called with each frame after it is safely written
+    (progress bars, the live view). It runs in the capture loop, so it must return at once:
+    the live view (``tofhil.app.view``) only hands the frame to a bounded queue. An exception
+    from it ends the capture as any other would, with every written frame kept (Ctrl-C seen
+    there is an interrupt). ``timeout_s`` bounds the wait for one frame's reply (a frame
+    that misses it is dropped).
     """
     if n_frames < 1:
         raise DeviceError(f"--frames {n_frames}", field="--frames", expected="a positive number of frames")

@@ -14,7 +14,8 @@ Read and written with Foxglove's ``mcap`` and ``mcap-ros2-support`` (CDR encodin
   or the nearest within half a frame period (the median step between depth stamps); a depth
   image without its partners is left out, and what was left out is counted.
 * ``sensor_msgs/msg/CameraInfo``: K, D, width, height and the distortion model, mapped by
-  :func:`opencv_distortion` (the one place that says which models tofhil takes).
+  :func:`lens_from_camera_info` (the one place that says which models tofhil takes:
+  ``plumb_bob``, ``rational_polynomial``, ``equidistant``).
 * frame timestamps: the header stamps, in seconds.
 
 Topics are found when that is unambiguous (one depth-like image topic, one CameraInfo topic,
@@ -96,39 +97,51 @@ def message_type(schema_name: str) -> str:
 
 
 # --------------------------------------------------------------------------- camera model
-def opencv_distortion(model: str, d: Sequence[float], *, source: str | Path,
-                      topic: str = "") -> tuple[float, float, float, float, float]:
-    """A CameraInfo's distortion as tofhil's camera model takes it: OpenCV ``(k1, k2, p1, p2, k3)``.
+#: tofhil's lens model -> CameraInfo.distortion_model (REP 104 names; D in the same order).
+ROS_DISTORTION_MODEL = {"plumb_bob": "plumb_bob", "rational": "rational_polynomial", "fisheye": "equidistant"}
 
-    ``plumb_bob`` maps exactly (0, 4 or 5 coefficients); ``rational_polynomial`` maps exactly
-    when k4..k6 (and any thin-prism terms) are zero; an empty model with no or zero
-    coefficients is a pinhole. Anything else (k4..k6 in use, ``equidistant``) is refused
-    naming ``CameraInfo.distortion_model``: tofhil's ``CameraModel`` has only the OpenCV
-    5-parameter model today. Extend here when the rational and fisheye models land.
-    """
+
+def lens_from_camera_info(model: str, d: Sequence[float], *, source: str | Path,
+                          topic: str = "") -> tuple[str, tuple[float, ...]]:
+    """A CameraInfo's distortion as tofhil's lens model ``(model, dist)`` (:mod:`tofhil.lens_models`).
+
+    * ``plumb_bob`` (0, 4 or 5 coefficients), and an empty model with no or zero
+      coefficients (a pinhole): ``plumb_bob`` ``(k1, k2, p1, p2, k3)``, exactly;
+    * ``rational_polynomial`` (8 or more: ``k1, k2, p1, p2, k3, k4, k5, k6``, then OpenCV's
+      thin prism ``s1..s4`` and tilt ``tau_x, tau_y``): ``plumb_bob`` when k4..k6 and the rest
+      are zero (the same lens, exactly), else ``rational`` with 8 coefficients, or 12 when a
+      thin-prism term is in use; a tilted sensor (tau nonzero) is refused;
+    * ``equidistant`` (4: ``k1..k4``, OpenCV's fisheye, as ``camera_calibration`` writes it):
+      ``fisheye``, exactly.
+
+    Anything else is refused naming ``CameraInfo.distortion_model`` or ``CameraInfo.d``."""
     where = f"{topic}: CameraInfo.distortion_model" if topic else "CameraInfo.distortion_model"
-    supported = ("plumb_bob (k1, k2, p1, p2, k3), or rational_polynomial with k4..k6 = 0: tofhil's camera model "
-                 "is OpenCV's 5-parameter one for now (rational and fisheye models are not supported yet)")
+    d_field = f"{topic}: CameraInfo.d" if topic else "CameraInfo.d"
+    supported = "plumb_bob, rational_polynomial or equidistant (OpenCV's 5-parameter, rational and fisheye models)"
     coeffs = [float(v) for v in d]
     if not all(math.isfinite(v) for v in coeffs):
-        raise InputFileError(f"D holds non-finite values {coeffs}", file=source,
-                             field=f"{topic}: CameraInfo.d" if topic else "CameraInfo.d", expected="finite numbers")
+        raise InputFileError(f"D holds non-finite values {coeffs}", file=source, field=d_field, expected="finite numbers")
     if model == "plumb_bob" or (model == "" and not any(coeffs)):
         if len(coeffs) not in (0, 4, 5):
-            raise InputFileError(f"plumb_bob with {len(coeffs)} coefficients", file=source,
-                                 field=f"{topic}: CameraInfo.d" if topic else "CameraInfo.d",
+            raise InputFileError(f"plumb_bob with {len(coeffs)} coefficients", file=source, field=d_field,
                                  expected="5 (k1, k2, p1, p2, k3), or 4 (k3 = 0)")
-        k = coeffs + [0.0] * (5 - len(coeffs))
-        return k[0], k[1], k[2], k[3], k[4]
+        return "plumb_bob", tuple(coeffs + [0.0] * (5 - len(coeffs)))
     if model == "rational_polynomial":
         if len(coeffs) < 8:
-            raise InputFileError(f"rational_polynomial with {len(coeffs)} coefficients", file=source,
-                                 field=f"{topic}: CameraInfo.d" if topic else "CameraInfo.d",
+            raise InputFileError(f"rational_polynomial with {len(coeffs)} coefficients", file=source, field=d_field,
                                  expected="8 or more (k1, k2, p1, p2, k3, k4, k5, k6, ...)")
-        if any(coeffs[5:]):
-            raise InputFileError(f"rational_polynomial with k4..k6 (or thin-prism terms) = {coeffs[5:]}",
-                                 file=source, field=where, expected=supported)
-        return coeffs[0], coeffs[1], coeffs[2], coeffs[3], coeffs[4]
+        if any(coeffs[12:]):
+            raise InputFileError(f"rational_polynomial with a tilted sensor (tau_x, tau_y = {coeffs[12:]})",
+                                 file=source, field=d_field,
+                                 expected="k1..k6, p1, p2 and the thin prism s1..s4 (no tilt model in tofhil)")
+        if not any(coeffs[5:]):
+            return "plumb_bob", tuple(coeffs[:5])
+        return "rational", tuple(coeffs[:12] if any(coeffs[8:12]) else coeffs[:8])
+    if model == "equidistant":
+        if len(coeffs) != 4:
+            raise InputFileError(f"equidistant with {len(coeffs)} coefficients", file=source, field=d_field,
+                                 expected="4 (k1, k2, k3, k4: OpenCV's fisheye model)")
+        return "fisheye", tuple(coeffs)
     raise InputFileError(f"is {model!r}", file=source, field=where, expected=supported)
 
 
@@ -155,16 +168,18 @@ def camera_from_info(info: Any, *, source: str | Path, topic: str = "", name: st
         raise bad("roi", f"is {roi.width}x{roi.height} at ({roi.x_offset}, {roi.y_offset})", "the full image")
     if info.width <= 0 or info.height <= 0:
         raise bad("width", f"is {info.width}x{info.height}", "the image size in pixels")
-    dist = opencv_distortion(str(info.distortion_model), info.d, source=source, topic=topic)
+    model, dist = lens_from_camera_info(str(info.distortion_model), info.d, source=source, topic=topic)
     return CameraModel(width=int(info.width), height=int(info.height), fx=fx, fy=fy, cx=cx, cy=cy, dist=dist,
-                       name=name)
+                       distortion_model=model, name=name)
 
 
 def camera_info_message(camera: CameraModel, stamp_ns: int, frame_id: str = FRAME_ID) -> dict[str, Any]:
-    """A CameraInfo of ``camera`` (plumb_bob; R = I, P = [K | 0]: the image is not rectified)."""
+    """A CameraInfo of ``camera``: its lens model under the ROS name (``plumb_bob``,
+    ``rational_polynomial``, ``equidistant``) with D in OpenCV's order, which
+    :func:`lens_from_camera_info` reads back exactly; R = I, P = [K | 0] (not rectified)."""
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     return {"header": _header(stamp_ns, frame_id), "height": camera.height, "width": camera.width,
-            "distortion_model": "plumb_bob", "d": list(camera.dist),
+            "distortion_model": ROS_DISTORTION_MODEL[camera.distortion_model], "d": list(camera.dist),
             "k": [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0], "r": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
             "p": [fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0], "binning_x": 0, "binning_y": 0,
             "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False}}
@@ -869,7 +884,8 @@ def write_session_mcap(session_path: str | Path, out: str | Path, *, force: bool
                       "invalid": "NaN"},
             "/tofhil/amplitude": {"role": "amplitude", "unit": "device amplitude (session depth/amplitude)",
                                   "encoding": "32FC1"},
-            "/tofhil/camera_info": {"role": "camera_info", "distortion_model": "plumb_bob"},
+            "/tofhil/camera_info": {"role": "camera_info",
+                                    "distortion_model": ROS_DISTORTION_MODEL[cam.distortion_model]},
             "/tofhil/points": {"role": "points", "fields": "x y z intensity (float32; m, amplitude)"},
         }
         with atomic_path(out) as tmp:

@@ -7,6 +7,7 @@ mcap-ros2-support, CDR with ros2msg schemas, as rosbag2 writes them).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -41,10 +42,12 @@ def image(stamp_ns: int, arr: np.ndarray, encoding: str, *, frame_id: str = "tof
             "is_bigendian": int(big), "step": step, "data": a.tobytes() if data is None else data}
 
 
-def info(stamp_ns: int, cam: CameraModel, *, model: str = "plumb_bob", d: list[float] | None = None,
+def info(stamp_ns: int, cam: CameraModel, *, model: str | None = None, d: list[float] | None = None,
          frame_id: str = "tof_optical") -> dict:
+    """The CameraInfo tofhil's export writes for ``cam``, with ``model`` / ``d`` replaced if given."""
     msg = ros2.camera_info_message(cam, stamp_ns, frame_id)
-    msg["distortion_model"] = model
+    if model is not None:
+        msg["distortion_model"] = model
     msg["d"] = list(cam.dist) if d is None else d
     return msg
 
@@ -72,7 +75,7 @@ def camera(dist=(-0.21, 0.06, 1.2e-3, -6e-4, -0.01)) -> CameraModel:
 
 
 def plane_bag(path: Path, cam: CameraModel, z_m: float = 1.25, n: int = 3, encoding: str = "32FC1",
-              model: str = "plumb_bob", d: list[float] | None = None, with_info: bool = True,
+              model: str | None = None, d: list[float] | None = None, with_info: bool = True,
               depth_topic: str = "/tof/depth/image_raw", depth_encoding_override: str | None = None) -> Path:
     """A plane facing the camera at ``z_m``: ROS z-depth, IR amplitude, CameraInfo."""
     h, w = cam.shape
@@ -185,18 +188,64 @@ def test_rational_model_with_zero_k4_k6_is_plumb_bob_exactly(tmp_path):
     res = import_file(plane_bag(tmp_path / "r.mcap", cam, model="rational_polynomial", d=d), tmp_path / "r.h5")
     assert res.camera.dist == cam.dist
     d14 = list(cam.dist) + [0.0] * 9   # OpenCV's 14-coefficient form, thin prism and tilt all zero
-    assert ros2.opencv_distortion("rational_polynomial", d14, source="x") == cam.dist
+    assert ros2.lens_from_camera_info("rational_polynomial", d14, source="x") == ("plumb_bob", cam.dist)
 
 
-@pytest.mark.parametrize("model, d", [("rational_polynomial", [-0.2, 0.05, 0, 0, 0.01, 0.3, 0.0, 0.0]),
-                                      ("equidistant", [0.1, 0.01, 0.0, 0.0]),
-                                      ("unknown_model", [0.0] * 5)])
-def test_models_tofhil_cannot_express_are_refused_naming_the_field(tmp_path, model, d):
+RATIONAL = (0.52, -2.60, 1.2e-4, -6e-5, 1.45, 0.40, -2.43, 1.38)  # an Azure Kinect NFOV-like lens
+def wide_camera(kind: str) -> CameraModel:
+    """A lens beyond the 5-parameter model: OpenCV's rational (+ thin prism) or fisheye."""
+    if kind == "rational":
+        return dataclasses.replace(camera(), dist=RATIONAL, distortion_model="rational")
+    if kind == "thin_prism":
+        return dataclasses.replace(camera(), dist=RATIONAL + (1e-3, -2e-4, 5e-4, 1e-4), distortion_model="rational")
+    return dataclasses.replace(camera(), dist=(0.1, -0.02, 0.003, -4e-4), distortion_model="fisheye")
+
+
+def _expected_radial_cv(cam: CameraModel, z_m: float) -> np.ndarray:
+    """z along the axis -> radial, with OpenCV's own undistortion for the camera's model."""
+    v, u = np.mgrid[0:cam.height, 0:cam.width].astype(np.float64)
+    pts = np.stack([u.ravel(), v.ravel()], axis=1)[:, None, :]
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+    if cam.distortion_model == "fisheye":
+        xy = cv2.fisheye.undistortPoints(pts, cam.K, np.array(cam.dist), criteria=crit)[:, 0, :]
+    else:
+        xy = cv2.undistortPoints(pts, cam.K, np.array(cam.dist), criteria=crit)[:, 0, :]
+    return (z_m * np.sqrt(1 + xy[:, 0] ** 2 + xy[:, 1] ** 2)).reshape(cam.shape)
+
+
+@pytest.mark.parametrize("kind, ros_model", [("rational", "rational_polynomial"), ("thin_prism", "rational_polynomial"),
+                                             ("fisheye", "equidistant")])
+def test_rational_and_fisheye_camera_info_round_trip_to_the_same_lens(tmp_path, kind, ros_model):
+    """A bag written with mcap-ros2 from a camera with a rational or fisheye lens (the
+    CameraInfo tofhil's export writes: REP 104's name, D in OpenCV's order) imports back to the
+    same model and parameters exactly; z-depth becomes radial through that lens (OpenCV's)."""
+    cam = wide_camera(kind)
+    msg = ros2.camera_info_message(cam, 0)
+    assert msg["distortion_model"] == ros_model and msg["d"] == list(cam.dist)
+    res = import_file(plane_bag(tmp_path / "w.mcap", cam), tmp_path / "w.h5")
+    same = dataclasses.replace(cam, name=res.camera.name)  # (named after the CameraInfo topic)
+    assert res.camera == same and res.camera.distortion_model == cam.distortion_model
+    assert res.camera.dist == cam.dist  # bit for bit
+    with open_session(res.out) as s:
+        assert s.camera == same
+        np.testing.assert_allclose(s.depth_frame(0).radial_m, _expected_radial_cv(cam, 1.25), rtol=1e-6)
+    # and tofhil's own export of that session names the same lens
+    back = ros2.write_session_mcap(res.out, tmp_path / "e.mcap").out
+    res2 = import_file(back, tmp_path / "e.h5")
+    assert res2.camera.distortion_model == cam.distortion_model and res2.camera.dist == cam.dist
+
+
+@pytest.mark.parametrize("model, d, field, word", [
+    ("unknown_model", [0.0] * 5, "CameraInfo.distortion_model", "equidistant"),
+    ("rational_polynomial", list(RATIONAL) + [0.0] * 4 + [0.01, 0.0], "CameraInfo.d", "tilt"),
+    ("equidistant", [0.1, 0.01, 0.0, 0.0, 0.0], "CameraInfo.d", "4 (k1, k2, k3, k4"),
+    ("rational_polynomial", [0.1, 0.0, 0.0], "CameraInfo.d", "8 or more")])
+def test_models_tofhil_cannot_express_are_refused_naming_the_field(tmp_path, model, d, field, word):
     bag = plane_bag(tmp_path / "m.mcap", camera(), model=model, d=d)
     with pytest.raises(InputFileError) as e:
         import_file(bag, tmp_path / "m.h5")
     msg = str(e.value)
-    assert e.value.field.endswith("CameraInfo.distortion_model") and str(bag) in msg and "plumb_bob" in msg
+    assert e.value.field.endswith(field) and str(bag) in msg and word in msg
     assert not (tmp_path / "m.h5").exists() and not list(tmp_path.glob(".*partial"))
 
 
@@ -209,7 +258,7 @@ def test_a_given_camera_replaces_a_missing_camera_info(tmp_path):
     res = import_file(bag, tmp_path / "n.h5", camera=cam)
     assert res.camera == cam and res.n_frames == 3
     # and a CameraInfo tofhil cannot express is then not needed
-    fish = plane_bag(tmp_path / "f.mcap", cam, model="equidistant", d=[0.1, 0.0, 0.0, 0.0])
+    fish = plane_bag(tmp_path / "f.mcap", cam, model="kannala_brandt8", d=[0.1, 0.0, 0.0, 0.0])
     res = import_file(fish, tmp_path / "f.h5", camera=cam)
     assert res.camera == cam and any("not used" in n for n in res.notes)
     with open_session(res.out) as s:
@@ -355,8 +404,8 @@ def test_cli_hostile_bags_are_one_line_exit_2(tmp_path):
         cut: ("truncated", "cut.mcap"),
         plane_bag(tmp_path / "rgb.mcap", cam, depth_encoding_override="rgb8"): ("rgb8", "--depth-topic"),
         plane_bag(tmp_path / "noinfo.mcap", cam, with_info=False): ("CameraInfo", "noinfo.mcap"),
-        plane_bag(tmp_path / "fish.mcap", cam, model="equidistant", d=[0.1, 0, 0, 0]): (
-            "CameraInfo.distortion_model", "equidistant"),
+        plane_bag(tmp_path / "fish.mcap", cam, model="kannala_brandt8", d=[0.1, 0, 0, 0]): (
+            "CameraInfo.distortion_model", "kannala_brandt8"),
     }
     (tmp_path / "junk.mcap").write_bytes(b"not an mcap file at all")
     cases[tmp_path / "junk.mcap"] = ("not an MCAP file", "junk.mcap")

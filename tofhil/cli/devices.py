@@ -6,13 +6,16 @@ import math
 import signal
 import sys
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
 
 from tofhil.cli import app, console, on_interrupt_signal, out, progress
 from tofhil.cli import options as opt
 from tofhil.errors import DeviceError
+
+if TYPE_CHECKING:
+    from tofhil.app.view import ViewSummary
 
 
 def _parse_roi(text: str | None) -> tuple[int, int, int, int] | None:
@@ -73,11 +76,24 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
             roi: Optional[str] = typer.Option(None, "--roi", help="X0,Y0,X1,Y1 sensor pixels, half-open (X1, Y1 exclusive; TOFcam635: multiples of 4)."),
             faults: Optional[str] = typer.Option(None, "--faults",
                                                  help="Emulator only: inject faults, e.g. crc@3,disconnect@6."),
-            force: bool = typer.Option(False, "--force", help="Overwrite OUT if it exists.")) -> None:
+            view: bool = typer.Option(False, "--view", help="Show the frames live in the Rerun viewer (spawned; "
+                                      "pip install 'tofhil\\[view]'). The capture never waits on it: a slow "
+                                      "viewer drops view frames, never camera frames."),
+            save_view: Optional[Path] = typer.Option(None, "--save", parser=opt.new_file,
+                                                     help="Write the view to this .rrd file (headless without "
+                                                          "--view; with it, as well)."),
+            scene: Optional[str] = typer.Option(None, "--scene", help="With --view/--save: the twin's scene (file "
+                                                "or bundled name): its render and the live residual (measured - twin)."),
+            view_rate: float = typer.Option(30.0, "--view-rate", parser=opt.finite(0.0, 1e4, unit="frames/s"),
+                                            help="With --view/--save: at most this many view frames per second, "
+                                                 "and no more than keep the view's thread under 5 % of the time "
+                                                 "(0: every frame the viewer keeps up with). The session gets every frame."),
+            force: bool = typer.Option(False, "--force", help="Overwrite OUT (and the --save file) if it exists.")) -> None:
     """Capture frames from a device into a session file (progress bar, summary at the end)."""
     from tofhil.drivers.base import CaptureSettings, create_driver
     from tofhil.drivers.capture import capture as run_capture
 
+    live_scene = _check_view_options(view, save_view, scene, out_path, force)  # before the device is touched
     if mode not in ("dcs", "distance"):
         raise DeviceError(f"--mode {mode!r}", field="--mode", expected="dcs or distance")
     settings = CaptureSettings(mode=mode, mod_freq_hz=mod_freq_hz, channel=channel, min_amplitude=min_amplitude,
@@ -96,17 +112,37 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
     if emulator is not None:
         scene_text = emulator.source.scene_text()
     _sigterm_as_interrupt()
-    with driver:
-        ticks = iter(range(frames))
-        bar = progress(ticks, frames, f"capturing {device}")  # the bar prints it literally
-        summary = run_capture(driver, out_path, frames, settings, force=force, scene_text=scene_text,
-                              on_frame=lambda _f: next(bar, None))
-        if summary.frames_written == frames:
-            next(bar, None)  # the bar advances on the next request: complete it
-        bar.close()
+    live = None
+    ended_cleanly = False
+    try:
+        with driver:
+            if view or save_view is not None:
+                from tofhil.app.view import LiveView
+
+                live = LiveView(save=save_view, spawn=view, scene=live_scene, name=out_path.name,
+                                max_rate_hz=view_rate or None)
+            ticks = iter(range(frames))
+            bar = progress(ticks, frames, f"capturing {device}")  # the bar prints it literally
+            offer = live.offer if live is not None else None
+
+            def on_frame(frame: object) -> None:
+                if offer is not None:
+                    offer(frame)  # never waits: a full view queue drops the view frame
+                next(bar, None)
+
+            summary = run_capture(driver, out_path, frames, settings, force=force, scene_text=scene_text,
+                                  on_frame=on_frame)
+            if summary.frames_written == frames:
+                next(bar, None)  # the bar advances on the next request: complete it
+            bar.close()
+        ended_cleanly = True  # (interrupted or device lost included: the session keeps its frames, the view too)
+    finally:
+        view_summary = live.close(keep=ended_cleanly) if live is not None else None
     out.print(f"frames written {summary.frames_written}/{summary.requested}, dropped {summary.dropped}, "
               f"reconnects {summary.reconnects}, {summary.frames_per_s:.1f} frames/s -> {summary.path}",
               highlight=False, markup=False)
+    if view_summary is not None:
+        _print_view_summary(view_summary)
     if summary.ended_early == "interrupted":
         kept = f"kept in {summary.path}" if summary.frames_written else "kept (no file written)"
         console.print(f"interrupted: {summary.frames_written} frames {kept}", highlight=False, markup=False, soft_wrap=True)
@@ -114,6 +150,38 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
     if summary.ended_early:
         console.print(f"session ended early: {summary.ended_early}", highlight=False, markup=False, soft_wrap=True)
         sys.exit(3)
+
+
+def _check_view_options(view: bool, save: Path | None, scene: str | None, out_path: Path, force: bool) -> object:
+    """The view's options, checked before the device is touched: the Rerun extra, the
+    --save file, the twin's scene (returned loaded, or None)."""
+    if scene is not None and not (view or save is not None):
+        raise DeviceError("--scene is only used by the view", field="--scene", expected="--view or --save VIEW.rrd")
+    if not (view or save is not None):
+        return None
+    from tofhil.app.view import check_display, check_view_output, require_rerun
+
+    require_rerun(field="--view" if view else "--save")
+    if view:
+        check_display()
+    if save is not None and save.resolve() == out_path.resolve():
+        raise DeviceError("the view file must differ from the session", field="--save")
+    check_view_output(save, force)
+    if scene is None:
+        return None
+    from tofhil.sim.scene import load_scene
+
+    return load_scene(scene)  # a malformed scene is one line now, not a note after the capture
+
+
+def _print_view_summary(summary: "ViewSummary") -> None:
+    """``view dropped N of M frames [-> FILE]`` on stdout; why the view stopped, on stderr."""
+    out.print(summary.line(), highlight=False, markup=False, soft_wrap=True)  # one line, for scripts
+    for note in summary.notes:
+        console.print(f"view: {note}", highlight=False, markup=False, soft_wrap=True)
+    if summary.error:
+        console.print(f"view stopped: {summary.error} (the capture was not affected)",
+                      highlight=False, markup=False, soft_wrap=True)
 
 
 @app.command()
