@@ -200,7 +200,14 @@ def depth_defects(radial_m: np.ndarray, valid: np.ndarray, camera: Any, noise_m:
     ok = valid & ~d.kinds["no_depth"]
     med = float(np.median(r[ok])) if ok.any() else 0.0
     filled = np.where(ok, r, med)
-    noise = np.zeros(r.shape) if noise_m is None else np.nan_to_num(np.asarray(noise_m, dtype=np.float64))
+    if noise_m is None:
+        # no noise model: the local robust scatter about a 3 x 3 median, over 7 x 7 pixels (a
+        # real depth image quantised to 1 mm has neighbours of equal value, whose spread alone
+        # is 0: every pixel one step off would be an outlier)
+        dev = np.abs(filled - ndimage.median_filter(filled, size=3, mode="nearest"))
+        noise = MAD_TO_SIGMA * ndimage.median_filter(np.where(ok, dev, 0.0), size=7, mode="nearest")
+    else:
+        noise = np.nan_to_num(np.asarray(noise_m, dtype=np.float64))
     d.kinds["outlier"] = _isolated(filled, noise) & ok
     # an outlier is not a surface its neighbours could be mixed with
     clean = np.where(d.kinds["outlier"], ndimage.median_filter(filled, size=3, mode="nearest"), filled)

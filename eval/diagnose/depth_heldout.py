@@ -53,6 +53,9 @@ from tofhil.session import Session
 
 #: Effects that act only on the tap offset: not observable without raw taps.
 OFFSET_ONLY_EFFECTS = ("ambient",)
+#: Share of a bin's pixels that must be usable for the bin to be (their mean is the bin's).
+BIN_USABLE_SHARE = 0.75
+
 #: Pixels a diagnosis of a depth session renders at most (larger images are binned).
 MAX_DIAGNOSIS_PIXELS = 6_000
 
@@ -266,9 +269,12 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
             with np.errstate(invalid="ignore"), warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN bins: no valid pixel
                 lo, hi = np.nanmin(blocks, axis=(1, 3)), np.nanmax(blocks, axis=(1, 3))
-            okb = bin_mean(ok.astype(float), b) == 1.0
+            # a bin is the mean of its usable pixels when they are most of it (a defective
+            # pixel or two do not cost the bin), and one surface (no depth step inside)
+            share = bin_mean(ok.astype(float), b)
+            okb = share >= BIN_USABLE_SHARE
             okb &= np.isfinite(lo) & (hi - lo <= 0.05 * np.where(np.isfinite(lo), lo, 1.0))
-            s, ok = bin_mean(s, b), okb
+            s, ok = bin_mean(s, b) / np.where(okb, share, 1.0), okb
         frames_s.append(s)
         frames_ok.append(ok)
         conf_seen |= "depth/confidence" in session.datasets
@@ -351,13 +357,18 @@ def _frame_defects(session: Session, cam: Any, valid_mask: np.ndarray | None) ->
 
 
 def _binned_defects(defects: Defects, b: int) -> Defects:
-    """Defects on the binned grid: a bin holding any defective pixel is one."""
+    """Defects on the binned grid: a bin whose defective pixels are more than it can spare
+    (:data:`BIN_USABLE_SHARE`) is one; the others are the mean of their good pixels."""
     out = Defects(defects.shape, notes=list(defects.notes))
     for kind, m in defects.kinds.items():
         h, w = m.shape[0] // b * b, m.shape[1] // b * b
-        out.kinds[kind] = m[:h, :w].reshape(h // b, b, w // b, b).any(axis=(1, 3))
+        out.kinds[kind] = m[:h, :w].reshape(h // b, b, w // b, b).mean(axis=(1, 3)) > 1.0 - BIN_USABLE_SHARE
     out.shape = next(iter(out.kinds.values())).shape if out.kinds else defects.shape
-    out.notes.append(f"found on the full image, shown on the {b} x {b} binned grid the diagnosis uses")
+    n, total = defects.count, int(np.prod(defects.shape))
+    out.notes.append(f"found on the full image ({n} of its {total} pixels, {100.0 * n / max(total, 1):.2g} %), "
+                     f"shown on the {b} x {b} binned grid the diagnosis uses: a bin is left out when more than "
+                     f"{100 * (1 - BIN_USABLE_SHARE):.0f} % of its pixels are defective, else it is the mean of "
+                     "its good pixels")
     return out
 
 

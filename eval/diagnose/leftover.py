@@ -10,6 +10,7 @@ channel is light or geometry the twin lacks, not a calibration of the camera).
 
 from __future__ import annotations
 
+import math
 from typing import Any, Mapping, Sequence
 
 #: The channels of :mod:`tofhil.eval.diagnose.channels`, as a sentence names them.
@@ -17,11 +18,15 @@ CHANNEL_WORDS = {"tap": "tap", "frequency": "frequency", "offset": "offset", "fr
 
 
 def _field_part(f: Mapping[str, Any]) -> str:
-    size = f"{1e3 * f['rms']:.1f} mm" if f["channel"] == "depth" else f"{100 * f['rms']:.1f} %"
+    if f["channel"] == "depth":
+        size = f"{1e3 * f['rms']:.1f} mm rms"
+    else:  # the amplitude's is a log ratio: a factor where it is large
+        size = f"{100 * f['rms']:.1f} % rms" if f["rms"] < 0.5 else f"a factor {math.exp(f['rms']):.2g} rms"
     where = f" on {f['object']}" if f.get("object") else ""
     ratio = f["rms"] / f["noise_rms"] if f.get("noise_rms") else None
     vs = f" ({ratio:.1f} x its noise)" if ratio is not None else ""
-    return f"a {f['kind']} {f['channel']} error of {size} rms{where}{vs}"
+    what = f"a {f['channel']} error at depth edges" if f["kind"] == "edges" else f"a {f['kind']} {f['channel']} error"
+    return f"{what} of {size}{where}{vs}"
 
 
 def _join(words: Sequence[str]) -> str:

@@ -42,3 +42,11 @@ def test_a_part_in_a_channel_is_said_and_that_channel_is_not_called_clean() -> N
 
 def test_nothing_readable_is_said_so() -> None:
     assert "no shape" in what_is_left(CLEAN, [], "unexplained")
+
+
+def test_edges_and_large_amplitude_errors_read_as_words() -> None:
+    structure = [{"channel": "depth", "kind": "edges", "object": "", "rms": 0.0048, "noise_rms": 0.001},
+                 {"channel": "amplitude", "kind": "spot", "object": "plane0", "rms": 1.514, "noise_rms": 0.17}]
+    text = what_is_left(CLEAN, structure, "partly explained")
+    assert "a depth error at depth edges of 4.8 mm rms" in text
+    assert "a spot amplitude error of a factor 4.5 rms on plane0" in text
