@@ -254,3 +254,25 @@ def test_bad_view_options_are_one_line(case: str, small_session: Path, tmp_path:
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and expect in err and "Traceback" not in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old.rrd"] and existing.read_bytes() == b"keep me"
+
+
+# --------------------------------------------------------------------------- a diagnosis's maps
+def test_diagnosis_maps_are_written_as_images_that_read_back(tmp_path: Path) -> None:
+    """Each map as its float values (NaN kept) and a depth map also in colour; a 3-d array is
+    not a map and is left out."""
+    rng = np.random.default_rng(3)
+    depth = rng.normal(0, 0.01, (12, 16))
+    depth[0, 0] = np.nan
+    maps = {"depth_residual_after": depth, "amplitude_residual_before": rng.normal(0, 1, (12, 16)),
+            "stack": np.zeros((2, 12, 16))}
+    rrd = tmp_path / "d.rrd"
+    logged = V.log_diagnosis_maps(maps, rrd, verdict="explained by x")
+    assert logged == ["diagnosis/amplitude_residual_before/values", "diagnosis/depth_residual_after/values",
+                      "diagnosis/depth_residual_after/colour"]
+    got = read_rrd(rrd)
+    values = image(got["diagnosis/depth_residual_after/values"]["static"])
+    np.testing.assert_array_equal(values, depth.astype(np.float32))   # NaN where the map has none
+    colour = image(got["diagnosis/depth_residual_after/colour"]["static"])
+    assert colour.shape == (12, 16, 3) and (colour[0, 0] == 0).all()   # black without a value
+    assert "diagnosis/stack/values" not in got
+    assert not list(tmp_path.glob(".*"))                                 # no partial file left

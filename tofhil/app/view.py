@@ -445,3 +445,38 @@ class LiveView:
         return ViewSummary(offered=self._index, shown=stats.consumed, saved=saved,
                            twin=None if twin is None else f"{twin.scene}: {twin.note}",
                            error=problem or flush_problem, notes=notes)
+
+
+# ---------------------------------------------------------------------- a diagnosis's maps
+def _map_is_depth(name: str) -> bool:
+    return name.startswith(("depth_", "signature_depth_"))
+
+
+def log_diagnosis_maps(maps: dict[str, np.ndarray], save: Path, *, verdict: str = "") -> list[str]:
+    """Each map of a diagnosis (residuals before and after, signatures, what is left above noise,
+    the defects) as an image under ``diagnosis/<name>`` in an ``.rrd``: the float values as they
+    are (``diagnosis/<name>/values``, NaN where a pixel has none) and, for the depth maps
+    (metres), blue - white - red on the 99th percentile of their size. Returns the entities."""
+    view = RerunView(save=save, spawn=False, name="diagnosis")
+    rr, logged = view.rr, []
+    try:
+        if verdict:
+            view.note("verdict", verdict)
+        for name, m in sorted(maps.items()):
+            a = np.asarray(m, dtype=np.float32)
+            if a.ndim != 2:
+                continue
+            view.rec.log(f"diagnosis/{name}/values", rr.Image(a), static=True)
+            logged.append(f"diagnosis/{name}/values")
+            if _map_is_depth(name) and np.isfinite(a).any():
+                limit = float(np.nanpercentile(np.abs(a), 99)) or 1e-3
+                view.rec.log(f"diagnosis/{name}/colour", rr.Image(_residual_colors(a.astype(np.float64), limit)),
+                             static=True)
+                logged.append(f"diagnosis/{name}/colour")
+    except BaseException:
+        view.close(keep=False)
+        raise
+    problem = view.close(keep=True)
+    if problem:
+        raise TofhilError(f"the view file could not be written ({problem})", file=save, field="--view-save")
+    return logged

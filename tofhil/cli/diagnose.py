@@ -80,10 +80,20 @@ def diagnose(session: Path = typer.Argument(..., parser=opt.existing_file,
              max_effects: int = typer.Option(3, parser=opt.count(0, 50),
                                              help="Most effects to add (0: only the base twin's misfit; nothing searched)."),
              candidates: Optional[str] = typer.Option(None, help="Comma-separated effects to try (default: all)."),
-             force: bool = typer.Option(False, "--force", help="Overwrite an earlier diagnosis in OUT.")) -> None:
+             force: bool = typer.Option(False, "--force", help="Overwrite an earlier diagnosis in OUT."),
+             view_save: Optional[Path] = typer.Option(
+                 None, "--view-save", parser=opt.new_file,
+                 help="Also write the diagnosis maps to this .rrd file for the Rerun viewer (pip install "
+                      "'tofhil\\[view]').")) -> None:
     """Find what the twin gets wrong, fit it, write the extended scene and the held-out gain."""
     from tofhil.eval.diagnose.run import DRIFT, run_diagnosis
     from tofhil.sim.effects import ORDER
+
+    if view_save is not None:
+        from tofhil.app.view import check_view_output, require_rerun
+
+        require_rerun("--view-save")
+        check_view_output(view_save, force, field="--view-save")
 
     names = None
     if candidates:
@@ -97,6 +107,11 @@ def diagnose(session: Path = typer.Argument(..., parser=opt.existing_file,
         res = run_diagnosis(session, scene, out_dir, force=force, progress=_progress_printer(),
                             max_effects=max_effects, candidates=names)
     _summary(res, out_dir / "report.html")
+    if view_save is not None:
+        from tofhil.app.view import log_diagnosis_maps
+
+        logged = log_diagnosis_maps(res.maps, view_save, verdict=res.verdict.text if res.verdict else "")
+        out.print(f"view: {len(logged)} maps -> {lit(view_save)}", highlight=False)
 
 
 @app.command()
