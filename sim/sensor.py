@@ -264,6 +264,16 @@ class OpticalSignal:
         return replace(self, phasor_w=self.phasor_w.copy(), dc_w=np.array(self.dc_w),
                        ambient_w=np.array(self.ambient_w), waveform=dict(self.waveform))
 
+    def at(self, index: np.ndarray) -> "OpticalSignal":
+        """The light of the pixels at flat indices ``index`` only, as one row ``[..., 1, N]``."""
+        n = index.size
+
+        def take(a: np.ndarray) -> np.ndarray:
+            a = np.asarray(a)
+            return a.reshape(a.shape[:-2] + (-1,))[..., index].reshape(a.shape[:-2] + (1, n))
+        return replace(self, phasor_w=take(self.phasor_w), dc_w=take(np.broadcast_to(self.dc_w, self.shape)),
+                       ambient_w=take(np.broadcast_to(self.ambient_w, self.shape)), waveform=dict(self.waveform))
+
     def harmonic(self, h: int) -> np.ndarray:
         """``S_h [F, H, W]``; an order the renderer did not compute is synthesised from the
         fundamental as ``|S_1| exp(i h arg S_1)``, exact for pixels seeing a single path."""
@@ -367,6 +377,9 @@ class SensorModel:
         """The light is on this sensor's pixels at its frequencies."""
         if signal.shape != self.camera.shape:
             raise ValueError(f"signal is {signal.shape}, camera is {self.camera.shape}")
+        self._check_frequencies(signal)
+
+    def _check_frequencies(self, signal: OpticalSignal) -> None:
         freq = self.config.freq_hz
         if signal.freq_hz.size != len(freq) or not np.allclose(signal.freq_hz, freq, rtol=1e-9):
             raise ValueError(f"signal frequencies {signal.freq_hz.tolist()} differ from the sensor's {list(freq)}")
@@ -406,14 +419,21 @@ class SensorModel:
         dn = np.rint(v * cfg.conversion_gain_dn_per_e + cfg.black_level_dn)
         return np.clip(dn, 0.0, cfg.adc_max_dn).astype(np.float32)
 
-    def _noise_free_taps(self, signal: OpticalSignal, index: np.ndarray | None = None) -> np.ndarray:
+    def _noise_free_taps(self, signal: OpticalSignal, index: np.ndarray | None = None, *,
+                         signal_at_index: bool = False) -> np.ndarray:
         """``taps_dn(signal, noise=False)`` in one compiled pass over the pixels
         (:mod:`tofhil.sim.sensor_kernels`, bit-identical to the numpy expressions); with
-        ``index`` (flat pixel indices) only those pixels, as ``[F, K, 1, N]``."""
+        ``index`` (flat pixel indices) only those pixels, as ``[F, K, 1, N]``;
+        ``signal_at_index``: the signal holds those pixels only (:meth:`OpticalSignal.at`)."""
         from tofhil.sim.sensor_kernels import noise_free_taps
 
         cfg = self.config
-        self._check_signal(signal)
+        if signal_at_index:
+            if index is None or signal.shape != (1, index.size):
+                raise ValueError(f"signal is {signal.shape}, not the {0 if index is None else index.size} pixels asked for")
+            self._check_frequencies(signal)
+        else:
+            self._check_signal(signal)
         theta = self.theta_rad
         terms = [(h, coef * signal.harmonic(h)) for h, coef in signal.waveform.items() if coef != 0]
         shape = (signal.freq_hz.size,) + signal.shape
@@ -425,8 +445,9 @@ class SensorModel:
         gain, offset = self.fixed_pattern()
         if index is not None:  # the pixels asked for, as one row
             n = index.size
-            s = s.reshape(s.shape[:2] + (-1,))[..., index].reshape(s.shape[:2] + (1, n))
-            dc = dc.reshape(-1)[index].reshape(1, n)
+            if not signal_at_index:
+                s = s.reshape(s.shape[:2] + (-1,))[..., index].reshape(s.shape[:2] + (1, n))
+                dc = dc.reshape(-1)[index].reshape(1, n)
             gain = gain.reshape(gain.shape[0], -1)[:, index].reshape(gain.shape[0], 1, n)
             offset = offset.reshape(offset.shape[0], -1)[:, index].reshape(offset.shape[0], 1, n)
         out = np.empty((signal.freq_hz.size, theta.size) + s.shape[-2:], dtype=np.float32)

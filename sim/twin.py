@@ -87,10 +87,13 @@ def with_readout(frame: RawFrame, scene: Any, effects: Effects, config: SensorCo
     return frame if taps is frame.taps else dataclasses.replace(frame, taps=taps)
 
 
-def signal_from_render(scene: Any, result: Any, effects: Effects, config: SensorConfig) -> OpticalSignal:
+def signal_from_render(scene: Any, result: Any, effects: Effects, config: SensorConfig,
+                       index: np.ndarray | None = None) -> OpticalSignal:
     """Light on the sensor from a render (scene-stage effects already in it): the render-stage
     hook recombines the render (or the render is taken as it is), then the signal- and
-    pixel-stage hooks in forward-model order."""
+    pixel-stage hooks in forward-model order. ``index`` (flat pixel indices; every signal- and
+    pixel-stage effect on must be pointwise, ``Effect.pointwise``): the light of those pixels
+    only, as one row ``[..., 1, N]``, the effects run there alone."""
     camera = getattr(result, "camera", None) or scene.camera
     waveform = waveform_from_scene(scene)
     render_stage = effects_by_stage(effects, "render")
@@ -102,8 +105,10 @@ def signal_from_render(scene: Any, result: Any, effects: Effects, config: Sensor
     else:
         signal = OpticalSignal.from_render(result, waveform)
     signal = apply_lens(signal, camera)  # a lens prescription's vignetting, path and ghosts (else nothing)
-    return apply_signal_effects(signal, effects,
-                                effect_context(scene, camera, config, getattr(result, "radial_m", None)))
+    ctx = effect_context(scene, camera, config, getattr(result, "radial_m", None))
+    if index is not None:
+        signal, ctx = signal.at(index), dataclasses.replace(ctx, pixels=index)
+    return apply_signal_effects(signal, effects, ctx)
 
 
 def _nbytes(value: Any) -> int:
@@ -217,6 +222,15 @@ class Twin:
             return False
         return all(EFFECTS[n].pixel_local or EFFECTS[n].is_off(v) for n, v in eff.items())
 
+    def pointwise(self, effects: Effects | None = None) -> bool:
+        """True when, given the whole frame's render, every effect of the set computes a
+        pixel's light from that pixel's alone (``Effect.pointwise``; no lens prescription): a
+        prediction on some pixels then runs the effects on those pixels only."""
+        eff = self._resolve(effects)
+        if getattr(self.scene.camera, "lens", None) is not None:
+            return False
+        return all(EFFECTS[n].pointwise or EFFECTS[n].is_off(v) for n, v in eff.items())
+
     def render(self, effects: Effects | None = None, *, pixels: np.ndarray | None = None) -> tuple[Any, Any]:
         """``(scene with the rendered scene-stage effects, RenderResult)`` for an effect set
         (default the base set). A scene-stage effect with a fast path (``rescale_render``)
@@ -314,9 +328,16 @@ class Twin:
 
     def expected_taps_at(self, effects: Effects | None, pixels: np.ndarray) -> np.ndarray:
         """:meth:`expected_taps` on the pixels of a bool mask ``[H, W]`` only, as ``[F, K, 1,
-        N]`` (row-major order of the mask; rendered only there when that is exact)."""
-        signal = self.signal(effects, pixels=pixels)
-        taps = self.sensor()._noise_free_taps(signal, np.flatnonzero(np.asarray(pixels, dtype=bool).ravel()))
+        N]`` (row-major order of the mask; rendered only there when that is exact, and the
+        effects run only there when they are pointwise)."""
+        index = np.flatnonzero(np.asarray(pixels, dtype=bool).ravel())
+        eff = self._resolve(effects)
+        if self.pointwise(eff):
+            scene2, result = self.render(eff, pixels=pixels if self.pixel_local(eff) else None)
+            signal = signal_from_render(scene2, result, eff, self.config, index=index)
+            taps = self.sensor()._noise_free_taps(signal, index, signal_at_index=True)
+        else:
+            taps = self.sensor()._noise_free_taps(self.signal(effects, pixels=pixels), index)
         return self._readout(taps, effects)
 
     def _readout(self, taps: np.ndarray, effects: Effects | None) -> np.ndarray:

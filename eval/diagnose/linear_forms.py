@@ -124,20 +124,45 @@ def _normal_equations(a: np.ndarray, d: np.ndarray, u: np.ndarray, v: np.ndarray
 
 
 def _ridge(m: np.ndarray, rhs: np.ndarray, w: int, lam_c: float, lam_r: float, *,
-           dof: bool = False) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+           dof: bool = False, schur: dict | None = None) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
     """Weighted ridge fit from the normal equations: (col, row, the trace of the hat matrix
-    split into the columns' and the rows' diagonal entries; zeros unless ``dof``)."""
+    split into the columns' and the rows' diagonal entries; zeros unless ``dof``).
+
+    The columns' block of the normal equations is diagonal (a pixel is in one column), so the
+    columns are eliminated first and a rows-sized system is solved (its Schur complement, kept
+    in ``schur`` per column strength: a strength search solves it for every row strength)."""
     h = m.shape[0] - w
-    reg = np.concatenate([np.full(w, lam_c), np.full(h, lam_r)])
-    on = np.isfinite(reg)  # an infinite strength: that part is off (zero), not in the system
-    x = np.zeros(w + h)
-    diag = np.zeros(w + h)
-    if on.any():
-        sub = m[np.ix_(on, on)] + np.diag(reg[on])
-        x[on] = np.linalg.solve(sub, rhs[on])
-        if dof:
+    if dof:
+        reg = np.concatenate([np.full(w, lam_c), np.full(h, lam_r)])
+        on = np.isfinite(reg)  # an infinite strength: that part is off (zero), not in the system
+        x = np.zeros(w + h)
+        diag = np.zeros(w + h)
+        if on.any():
+            sub = m[np.ix_(on, on)] + np.diag(reg[on])
+            x[on] = np.linalg.solve(sub, rhs[on])
             diag[on] = np.diag(np.linalg.solve(sub, m[np.ix_(on, on)]))
-    return x[:w], x[w:], (float(diag[:w].sum()), float(diag[w:].sum()))
+        return x[:w], x[w:], (float(diag[:w].sum()), float(diag[w:].sum()))
+    d_col, d_row = np.diag(m)[:w], np.diag(m)[w:]
+    p, q = rhs[:w], rhs[w:]
+    col, row = np.zeros(w), np.zeros(h)
+    if not np.isfinite(lam_c):
+        if np.isfinite(lam_r):
+            row = q / (d_row + lam_r)
+        return col, row, (0.0, 0.0)
+    inv = 1.0 / (d_col + lam_c)
+    if np.isfinite(lam_r):
+        cached = None if schur is None else schur.get(lam_c)
+        if cached is None:
+            cross = m[:w, w:]
+            cached = (np.diag(d_row) - cross.T @ (inv[:, None] * cross), q - cross.T @ (inv * p))
+            if schur is not None:
+                schur[lam_c] = cached
+        s_rows, t = cached
+        row = np.linalg.solve(s_rows + lam_r * np.eye(h), t)
+        col = inv * (p - m[:w, w:] @ row)
+    else:
+        col = inv * p
+    return col, row, (0.0, 0.0)
 
 
 def held_out_strength(grid: Sequence[T], score: Callable[[T], float]) -> T:
@@ -168,8 +193,10 @@ def fit_offset_map(model: Any, data: HeldOutData, current: dict[str, dict[str, A
     # Strengths from the held-out blocks of the training frames (the held-out frames stay unseen).
     m_train, rhs_train = _normal_equations(a[train], d[train], u[train], v[train], w, h)
 
+    schur: dict = {}
+
     def held_out(lam: tuple[float, float]) -> float:
-        col, row, _ = _ridge(m_train, rhs_train, w, *lam)
+        col, row, _ = _ridge(m_train, rhs_train, w, *lam, schur=schur)
         return float(np.sum(a[test] * (d[test] - col[u[test]] - row[v[test]]) ** 2))
 
     # both parts off first: a map is fitted only when it does better on the held-out blocks

@@ -85,6 +85,32 @@ class EffectContext:
     #: effects that need the scene's geometry (light from a surface the scene lacks).
     radial_m: np.ndarray | None = None
     emitter: Any = None
+    #: Flat indices into the camera's frame of the pixels the signal holds, as one row ``[1,
+    #: N]`` (a fit asks for its pixels only); None: the signal is the whole frame. Effects
+    #: that depend on where a pixel is take their fields at these pixels (:meth:`at_pixels`).
+    pixels: np.ndarray | None = None
+
+    def frame_shape(self, signal_shape: tuple[int, int]) -> tuple[int, int]:
+        """The camera frame's shape ``(H, W)`` for a signal of ``signal_shape``."""
+        return tuple(signal_shape) if self.pixels is None else self.camera.shape  # type: ignore[return-value]
+
+    def pixel_grid(self, signal_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """Row and column ``(v, u)`` of each pixel the signal holds (float, its shape): the
+        frame's ``np.mgrid``, or its values at :attr:`pixels`."""
+        if self.pixels is None:
+            v, u = np.mgrid[0:signal_shape[0], 0:signal_shape[1]].astype(np.float64)
+            return v, u
+        v, u = np.divmod(self.pixels, self.camera.shape[1])
+        return (v.astype(np.float64).reshape(1, -1), u.astype(np.float64).reshape(1, -1))
+
+    def at_pixels(self, field: np.ndarray) -> np.ndarray:
+        """A field over the frame ``[..., H, W]`` where the signal is: itself for a whole
+        frame, else ``[..., 1, N]`` at :attr:`pixels`."""
+        if self.pixels is None:
+            return field
+        f = np.asarray(field)
+        lead = f.shape[:-2]
+        return f.reshape(lead + (-1,))[..., self.pixels].reshape(lead + (1, self.pixels.size))
 
 
 class Effect:
@@ -113,6 +139,16 @@ class Effect:
     #: prediction on some pixels then needs only those pixels rendered); False when it moves
     #: light between pixels (stray light).
     pixel_local: bool = True
+    #: True when, given the whole frame's render, the effect's light at a pixel is computed
+    #: from that pixel's light alone (the render's geometry may come from its neighbours: a
+    #: prediction on some pixels then runs the effect on those pixels only,
+    #: ``EffectContext.pixels``); None: as ``pixel_local``.
+    local_given_render: bool | None = None
+
+    @property
+    def pointwise(self) -> bool:
+        """:attr:`local_given_render`, defaulting to :attr:`pixel_local`."""
+        return self.pixel_local if self.local_given_render is None else self.local_given_render
 
     # -------------------------------------------------------------- values
     def off_values(self) -> dict[str, float]:

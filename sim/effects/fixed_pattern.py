@@ -40,15 +40,18 @@ class FixedPatternEffect(Effect):
             raise InputFileError(f"got {s!r}", file=source, field=f"{prefix}.seed", expected="an integer >= 0")
 
     @staticmethod
-    def delay_s(values: Mapping[str, Any], shape: tuple[int, int]) -> np.ndarray:
+    def delay_s(values: Mapping[str, Any], shape: tuple[int, int], ctx: EffectContext | None = None) -> np.ndarray:
+        """Each pixel's delay (s) on a frame of ``shape``; with ``ctx``, at the pixels its
+        signal holds (:attr:`EffectContext.pixels`)."""
         h, w = shape
-        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64) if ctx is None else ctx.pixel_grid(shape)
         tau = float(values["row_delay_s"]) * (v - (h - 1) / 2) + float(values["col_delay_s"]) * (u - (w - 1) / 2)
         sd = float(values["random_delay_s"])
         if sd:
             rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(values.get("seed", 0)), 0xF1])))
-            tau = tau + sd * rng.standard_normal(shape)
+            draw = rng.standard_normal(shape)  # the whole frame's draw, whichever pixels are asked for
+            tau = tau + sd * (draw if ctx is None else ctx.at_pixels(draw))
         return tau
 
     def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
-        return _rotate_phase(signal, C_M_PER_S * self.delay_s(values, signal.shape))
+        return _rotate_phase(signal, C_M_PER_S * self.delay_s(values, ctx.frame_shape(signal.shape), ctx))

@@ -47,14 +47,15 @@ class IlluminationEffect(Effect):
         return np.array([float(values.get("b4", 0.0)) * 0.5 ** 4 / 0.01, float(values.get("b6", 0.0)) * 0.5 ** 6 / 0.01])
 
     @staticmethod
-    def factor(values: Mapping[str, Any], camera: CameraModel, shape: tuple[int, int]) -> np.ndarray:
-        t2 = FieldAngleEffect.tan2(camera, shape)
+    def factor(values: Mapping[str, Any], camera: CameraModel, shape: tuple[int, int],
+               ctx: EffectContext | None = None) -> np.ndarray:
+        t2 = FieldAngleEffect.tan2(camera, shape, ctx)
         poly = 1.0 + float(values.get("b4", 0.0)) * t2 ** 2 + float(values.get("b6", 0.0)) * t2 ** 3
         # cos^2(alpha) = 1 / (1 + tan^2(alpha))
         return (1.0 + t2) ** (-0.5 * float(values.get("dn", 0.0))) * np.maximum(poly, 0.0)
 
     def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
-        g = self.factor(values, ctx.camera, signal.shape)
+        g = self.factor(values, ctx.camera, ctx.frame_shape(signal.shape), ctx)
         out = signal.copy()
         out.phasor_w = signal.phasor_w * g
         out.dc_w = np.asarray(signal.dc_w) * g

@@ -49,12 +49,14 @@ class FieldAngleEffect(Effect):
     }
 
     @staticmethod
-    def tan2(camera: CameraModel, shape: tuple[int, int]) -> np.ndarray:
-        v, u = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    def tan2(camera: CameraModel, shape: tuple[int, int], ctx: EffectContext | None = None) -> np.ndarray:
+        """tan^2 of each pixel's field angle on a frame of ``shape``; with ``ctx``, at the
+        pixels its signal holds."""
+        v, u = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64) if ctx is None else ctx.pixel_grid(shape)
         return ((u - camera.cx) / camera.fx) ** 2 + ((v - camera.cy) / camera.fy) ** 2
 
     def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
-        t2 = self.tan2(ctx.camera, signal.shape)
+        t2 = self.tan2(ctx.camera, ctx.frame_shape(signal.shape), ctx)
         err = float(values["c2_m"]) * t2 + float(values["c4_m"]) * t2 * t2
         return _rotate_phase(signal, 2.0 * err)  # radial error -> optical path
 
@@ -122,5 +124,6 @@ class RangeOffsetMapEffect(Effect):
         return m.astype(np.float64, copy=False)
 
     def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
-        m = self.load(values, base_dir=ctx.base_dir, source=ctx.source, shape=signal.shape)
+        m = ctx.at_pixels(self.load(values, base_dir=ctx.base_dir, source=ctx.source,
+                                    shape=ctx.frame_shape(signal.shape)))
         return _rotate_phase(signal, 2.0 * m)  # radial offset -> optical path

@@ -86,6 +86,8 @@ class StrayLightEffect(Effect):
         psf = self.psf(values, source=ctx.source, base_dir=ctx.base_dir)
         if psf.is_identity:
             return signal
+        if ctx.pixels is not None:
+            raise ValueError("stray light moves light between pixels: it needs the whole frame's signal")
         if lobes_only(psf):
             # (the form diagnosis fits: the light's transform is kept while only the PSF changes)
             n = signal.phasor_w.shape[:-2]

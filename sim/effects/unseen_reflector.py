@@ -8,6 +8,7 @@ whose phase says how much longer its path is, on every frequency alike.
 
 from __future__ import annotations
 
+import hashlib
 from typing import Any, Mapping
 
 import numpy as np
@@ -18,10 +19,25 @@ from tofhil.sim.effects.registry import register
 from tofhil.sim.sensor import OpticalSignal
 
 
+#: The last frame's scene points (a fit evaluates the effect on one render hundreds of times):
+#: (digest of the distances, camera) -> (x, n, hit).
+_LAST_POINTS: dict[tuple[bytes, Any], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+
 def scene_points(radial_m: np.ndarray, camera: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each pixel's first hit ``X`` (camera frame), its surface normal facing the camera (from
     the neighbouring hits) and where a hit exists, ``[H, W, 3]``, ``[H, W, 3]``, ``[H, W]``."""
-    r = np.asarray(radial_m, dtype=np.float64)
+    r = np.ascontiguousarray(radial_m, dtype=np.float64)
+    key = (hashlib.blake2b(r.view(np.uint8), digest_size=16).digest() + repr(r.shape).encode(), camera)
+    hit_ = _LAST_POINTS.get(key)
+    if hit_ is not None:
+        return hit_
+    _LAST_POINTS.clear()
+    _LAST_POINTS[key] = out = _scene_points(r, camera)
+    return out
+
+
+def _scene_points(r: np.ndarray, camera: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     hit = np.isfinite(r) & (r > 0)
     x = camera.rays * np.where(hit, r, 0.0)[..., None]
     n = np.cross(np.gradient(x, axis=1), np.gradient(x, axis=0))
@@ -38,6 +54,7 @@ class UnseenReflectorEffect(Effect):
     stage = "signal"
     rank = 55
     pixel_local = False  # the surface normals come from the neighbouring pixels' hits
+    local_given_render = True  # ... of the render; each pixel's light is its own
     # it adds light with its own phase: the frequencies' gain or phase moves with it
     signature = ("frequency",)
     summary = ("light from a diffuse reflector outside the view that the scene lacks (its direction, distance and "
@@ -100,13 +117,16 @@ class UnseenReflectorEffect(Effect):
 
     @staticmethod
     def share(values: Mapping[str, Any], ctx: EffectContext, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-        """The reflector's light over each pixel's direct light, and its path excess (m), ``[H, W]``."""
+        """The reflector's light over each pixel's direct light, and its path excess (m), on a
+        signal of ``shape`` (the frame, or the pixels of ``ctx.pixels``)."""
         if ctx.radial_m is None:
             raise ValueError("unseen_reflector needs the render's first-hit distances")
         x, n, hit = scene_points(ctx.radial_m, ctx.camera)
         e = np.zeros(3) if ctx.emitter is None else np.asarray(ctx.emitter.offset_m, dtype=np.float64)
         p = UnseenReflectorEffect.position(values, ctx.camera)
         m = UnseenReflectorEffect.normal(values, p, x, hit)
+        if ctx.pixels is not None:  # the whole frame's geometry, at the pixels asked for
+            x, n, hit = x.reshape(-1, 3)[ctx.pixels], n.reshape(-1, 3)[ctx.pixels], hit.reshape(-1)[ctx.pixels]
         to_p = p - x
         r2 = np.linalg.norm(to_p, axis=-1)
         from_e = x - e

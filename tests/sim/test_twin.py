@@ -179,3 +179,33 @@ def test_a_whole_frame_drops_the_renders_of_some_pixels(scene):
     again = twin.expected_taps_at(moved, pixels)  # (the whole frame serves now)
     np.testing.assert_array_equal(again, first)
     np.testing.assert_array_equal(again[:, :, 0], whole[:, :, pixels])
+
+
+POINTWISE = [
+    {},
+    {"wiggling": {"h3_amplitude": 0.03, "h3_phase_rad": 0.4}},
+    {"fixed_pattern": {"row_delay_s": 2e-12, "col_delay_s": -1e-12, "random_delay_s": 5e-12, "seed": 3}},
+    {"field_angle": {"c2_m": 0.01, "c4_m": 0.002}},
+    {"illumination": {"dn": 0.5, "b4": 0.1, "b6": 0.01}},
+    {"amplitude_dependent": {"error_m": 0.01}},
+    {"unseen_reflector": {"log_area": -2.0, "azimuth_deg": 170.0}},
+    {"offset": {"dark_e": 1000.0}, "range_offset": {"path_m": 0.01}},
+    {"range_offset_map": {"values": (0.002 * np.arange(30 * 40).reshape(30, 40) % 0.013).tolist()}},
+    {"tap_calibration": {"gain_1": 1.03, "offset_3_dn": 4.0}, "multipath": {"scale": 1.2}},
+    # stray light moves light between pixels: the whole frame's signal, then the pixels
+    {"stray_light": {"weight": 0.03, "sigma_px": 6.0}, "wiggling": {"h3_amplitude": 0.02}},
+]
+
+
+@pytest.mark.parametrize("effects", POINTWISE, ids=lambda e: "+".join(e) or "base")
+def test_taps_at_some_pixels_equal_the_whole_frame_there(scene, effects):
+    """A prediction on some pixels runs the pointwise effects on those pixels alone (the
+    position-dependent ones take their fields there, unseen_reflector its geometry from the
+    whole render): bit for bit the whole frame's taps at those pixels."""
+    twin = Twin(scene)
+    eff = twin.effects(effects)
+    pixels = np.random.default_rng(4).random(scene.camera.shape) < 0.2
+    full = twin.expected_taps(eff)
+    at = twin.expected_taps_at(eff, pixels)
+    assert twin.pointwise(eff) == ("stray_light" not in effects)
+    np.testing.assert_array_equal(at[:, :, 0], full[:, :, pixels])
