@@ -284,7 +284,7 @@ class OpticalSignal:
 
     @classmethod
     def from_render(cls, result: Any, waveform: Mapping[int, complex] | None = None,
-                    *, multipath_scale: float | None = None) -> "OpticalSignal":
+                    *, multipath_scale: float | None = None, index: np.ndarray | None = None) -> "OpticalSignal":
         """From a renderer ``RenderResult``. With ``multipath_scale`` the phasor is rebuilt as
         ``direct + scale * indirect`` (needs the render's separate direct/indirect phasors).
 
@@ -295,7 +295,11 @@ class OpticalSignal:
         keep = np.flatnonzero(freq != 0.0)
         zero = np.flatnonzero(freq == 0.0)
         h1 = tuple(result.harmonics).index(1)
-        phasor = result.phasor[keep]
+        if index is not None and multipath_scale is None:  # (gathered before the copy)
+            p = result.phasor
+            phasor = p.reshape(p.shape[:2] + (-1,))[:, :, index][keep].reshape((keep.size, p.shape[1], 1, index.size))
+        else:
+            phasor = result.phasor[keep]
         dc = result.power_w
         if multipath_scale is not None:
             if getattr(result, "phasor_direct", None) is None or getattr(result, "phasor_indirect", None) is None:
@@ -309,8 +313,14 @@ class OpticalSignal:
                 dc_direct = np.minimum(np.abs(result.phasor_direct[keep[0], h1]), result.power_w)
             dc = dc_direct + multipath_scale * np.clip(result.power_w - dc_direct, 0.0, None)
         ambient = getattr(result, "ambient_power_w", None)
-        return cls(freq_hz=freq[keep], harmonics=tuple(result.harmonics), phasor_w=phasor, dc_w=dc,
-                   ambient_w=np.zeros_like(result.power_w) if ambient is None else ambient,
+        ambient = np.zeros_like(result.power_w) if ambient is None else ambient
+        if index is not None:  # the pixels at flat indices ``index`` only, as one row (:meth:`at`)
+            n = index.size
+            if phasor.shape[-2:] != (1, n):
+                phasor = phasor.reshape(phasor.shape[:2] + (-1,))[..., index].reshape(phasor.shape[:2] + (1, n))
+            dc = np.asarray(dc).reshape(-1)[index].reshape(1, n)
+            ambient = np.asarray(ambient).reshape(-1)[index].reshape(1, n)
+        return cls(freq_hz=freq[keep], harmonics=tuple(result.harmonics), phasor_w=phasor, dc_w=dc, ambient_w=ambient,
                    waveform=dict(waveform) if waveform else {1: 1.0 + 0.0j})
 
 

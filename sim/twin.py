@@ -87,6 +87,20 @@ def with_readout(frame: RawFrame, scene: Any, effects: Effects, config: SensorCo
     return frame if taps is frame.taps else dataclasses.replace(frame, taps=taps)
 
 
+_LAST_MASK: list = [None, 0, None]
+
+
+def flat_index(mask: np.ndarray) -> np.ndarray:
+    """``np.flatnonzero`` of a bool pixel mask, kept for the last mask asked for (a fit asks
+    for the same pixels at every evaluation; a mask changed in place since is seen by its
+    count of pixels)."""
+    if _LAST_MASK[0] is mask and _LAST_MASK[1] == np.count_nonzero(mask):
+        return _LAST_MASK[2]
+    idx = np.flatnonzero(np.asarray(mask, dtype=bool).ravel())
+    _LAST_MASK[:] = [mask, idx.size, idx]
+    return idx
+
+
 def signal_from_render(scene: Any, result: Any, effects: Effects, config: SensorConfig,
                        index: np.ndarray | None = None) -> OpticalSignal:
     """Light on the sensor from a render (scene-stage effects already in it): the render-stage
@@ -99,15 +113,19 @@ def signal_from_render(scene: Any, result: Any, effects: Effects, config: Sensor
     render_stage = effects_by_stage(effects, "render")
     if len(render_stage) > 1:  # each hook builds the signal from the render: they do not compose
         raise ValueError("at most one render-stage effect: " + ", ".join(e.name for e, _ in render_stage))
+    lens = getattr(camera, "lens", None) is not None
     if render_stage:
         eff, values = render_stage[0]
         signal = eff.apply_render(result, values, waveform)
     else:
-        signal = OpticalSignal.from_render(result, waveform)
+        # (some pixels of a render without a lens: taken there before the signal is made)
+        signal = OpticalSignal.from_render(result, waveform, index=None if lens else index)
     signal = apply_lens(signal, camera)  # a lens prescription's vignetting, path and ghosts (else nothing)
     ctx = effect_context(scene, camera, config, getattr(result, "radial_m", None))
     if index is not None:
-        signal, ctx = signal.at(index), dataclasses.replace(ctx, pixels=index)
+        if signal.shape != (1, index.size):
+            signal = signal.at(index)
+        ctx = dataclasses.replace(ctx, pixels=index)
     return apply_signal_effects(signal, effects, ctx)
 
 
@@ -330,7 +348,7 @@ class Twin:
         """:meth:`expected_taps` on the pixels of a bool mask ``[H, W]`` only, as ``[F, K, 1,
         N]`` (row-major order of the mask; rendered only there when that is exact, and the
         effects run only there when they are pointwise)."""
-        index = np.flatnonzero(np.asarray(pixels, dtype=bool).ravel())
+        index = flat_index(pixels)
         eff = self._resolve(effects)
         if self.pointwise(eff):
             scene2, result = self.render(eff, pixels=pixels if self.pixel_local(eff) else None)

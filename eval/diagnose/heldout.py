@@ -77,6 +77,9 @@ class HeldOutData:
     #: for the residual per tap (:mod:`tofhil.eval.diagnose.channels`).
     taps_test: np.ndarray | None = field(default=None, repr=False)
     _fit_pixels: np.ndarray | None = field(default=None, repr=False, compare=False)
+    #: Per part, the measured side of its whitened residual (a fit evaluates it thousands of
+    #: times): (s, var, mask) as given, the flat pixel indices, s and sigma there.
+    _gathered: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def var_frame(self) -> np.ndarray:
@@ -118,9 +121,9 @@ class HeldOutData:
         sessions the real part is the amplitude residual along the measured phasor, the
         imaginary the phase residual times the measured amplitude, each over its own noise."""
         s, var, mask = self.part(part)
-        r = s[:, mask] - prediction[:, mask]
         if self.phase_ref is None or self.radial_var_scale is None:
-            return r / np.sqrt(var[:, mask])
+            idx, s_at, sigma_at = self._measured_at(part, s, var, mask)
+            return (s_at - prediction.reshape(prediction.shape[0], -1)[:, idx]) / sigma_at
         # Polar residuals: along the measured phasor, the amplitude difference; across it, the
         # phase difference times the *measured* amplitude (the depth residual in the units of
         # S). Scaling the prediction's amplitude down must not make a depth misfit cheaper.
@@ -140,6 +143,18 @@ class HeldOutData:
             return np.log(np.maximum(a_meas, 1e-30) / a_pred) / np.sqrt(rel2) + 1j * (across / np.sqrt(v))
         radial = a_meas - (p * np.conj(u)).real
         return radial / np.sqrt(v * self.radial_var_scale[:, mask]) + 1j * (across / np.sqrt(v))
+
+    def _measured_at(self, part: str, s: np.ndarray, var: np.ndarray,
+                     mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A part's pixels as flat indices, its measured signal and noise sigma there (kept
+        while the part's arrays are the same objects)."""
+        kept = self._gathered.get(part)
+        if kept is None or kept[0] is not s or kept[1] is not var or kept[2] is not mask:
+            idx = np.flatnonzero(mask.ravel())
+            c = s.shape[0]
+            kept = (s, var, mask, idx, s.reshape(c, -1)[:, idx], np.sqrt(var.reshape(c, -1)[:, idx]))
+            self._gathered[part] = kept
+        return kept[3], kept[4], kept[5]
 
     def part(self, part: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(mean signal, variance, pixels) of a part: ``test`` / ``train`` (the held-out or

@@ -230,8 +230,10 @@ class TwinModel:
         s = phasor(taps, self.data.theta_rad)[:, 0]
         if self.data.offset_channel:
             s = np.concatenate([s, taps.mean(axis=(0, 1))[None, 0].astype(np.complex128)])
+        from tofhil.sim.twin import flat_index
+
         out = np.zeros((s.shape[0],) + self.data.camera.shape, dtype=np.complex128)
-        out[:, pixels] = s
+        out.reshape(s.shape[0], -1)[:, flat_index(pixels)] = s
         return out
 
     def predict_local(self, active: EffectParams, pixels: np.ndarray) -> np.ndarray | None:
