@@ -18,6 +18,7 @@ the GIL, and chunks write disjoint pixel ranges.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import sys
@@ -229,6 +230,9 @@ class _FramePool:
 
 _FRAMES = _FramePool()
 
+#: The uniforms of chunks rendered for some of their pixels (:meth:`_Context._chunk_uniforms`).
+_UNIFORMS = LRUCache(256, 16 << 20, nbytes=lambda a: a.nbytes, thread_safe=True)
+
 
 def _pixel_weights(view: dict[str, Any], scale: float) -> tuple[np.ndarray, np.ndarray]:
     """``scale * area`` and ``scale * area * cos^4`` per pixel of a view, made once per scale
@@ -383,6 +387,21 @@ class _Context:
         kernels.sobol_digital_shift(self.sobol, shift, u)
         return u
 
+    def _chunk_uniforms(self, chunk: int, npix: int, keep_pix: np.ndarray | None) -> np.ndarray:
+        """:meth:`uniforms` of a chunk from its own stream; those of some pixels are kept (a
+        fit renders the same pixels at every evaluation, and drawing the chunk's whole stream
+        to keep a few of its pixels is most of a small render's sampling)."""
+        if keep_pix is None:
+            return self.uniforms(np.random.default_rng([self.seed, chunk]), npix, keep_pix)
+        key = (self.sampler, self.spp, self.dims, self.share, self.seed, chunk, npix,
+               content_digest(np.asarray(keep_pix, dtype=bool)))
+        u = _UNIFORMS.get(key)
+        if u is None:
+            u = self.uniforms(np.random.default_rng([self.seed, chunk]), npix, keep_pix)
+            u.setflags(write=False)
+            _UNIFORMS.put(key, u)
+        return u
+
     # ------------------------------------------------------------------ one chunk
     def run_chunk(self, chunk: int, p0: int, p1: int, dest: dict[str, np.ndarray] | None = None
                   ) -> dict[str, np.ndarray]:
@@ -428,8 +447,7 @@ class _Context:
             keep_pix = None
         # (the chunk's uniforms are drawn for all its pixels, the full render's stream, and
         # kept for the pixels asked for)
-        U = (self.uniforms(np.random.default_rng([self.seed, chunk]), npix, keep_pix) if need_u
-             else np.zeros((0, self.dims)))
+        U = self._chunk_uniforms(chunk, npix, keep_pix) if need_u else np.zeros((0, self.dims))
         if keep_pix is not None:
             pix = pix[keep_pix[pix - p0]]
         if self.subpixel and not self.thin_lens:
@@ -711,6 +729,7 @@ def camera_ray_share(spp: int, bounces: int) -> int:
     return share
 
 
+@functools.lru_cache(maxsize=16)
 def _sobol_points(spp: int, bounces: int, share: int) -> np.ndarray:
     """The Sobol' points (unscrambled, uint32 [spp, 4 + 2B]; the per-pixel digital shift
     randomises them) in the renderer's column order: the bounce columns ``4 + 2b, 5 + 2b``
@@ -730,6 +749,7 @@ def _sobol_points(spp: int, bounces: int, share: int) -> np.ndarray:
     # (Sobol' floats with 32 bits are k / 2^32 exactly)
     out[:, 4:] = np.ldexp(pts[:, :nb], 32).astype(np.uint32)
     out[:, :4] = np.repeat(np.ldexp(cam, 32).astype(np.uint32), share, axis=0)
+    out.setflags(write=False)  # (kept: every render of these settings shares it)
     return out
 
 
