@@ -485,21 +485,6 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
              render_kwargs: dict[str, Any] | None = None, progress: Callable[[str], None] | None = None,
              extended_scene_path: str | Path | None = None) -> DiagnosisResult:
     """Run the diagnosis loop on a session against a base scene (a Scene object)."""
-    from threadpoolctl import threadpool_limits
-
-    # The diagnosis's linear algebra is small (a rows-sized ridge system, Jacobians of a few
-    # columns): OpenBLAS's threads only spin against the renderer's and any other job on the
-    # machine (a 512-row solve: 6 ms on one thread, 110 ms on two beside another process).
-    with threadpool_limits(limits=1, user_api="blas"):
-        return _diagnose(session_path, scene, max_effects=max_effects, min_relative_gain=min_relative_gain,
-                         candidates=candidates, block_px=block_px, max_frames=max_frames,
-                         render_kwargs=render_kwargs, progress=progress, extended_scene_path=extended_scene_path)
-
-
-def _diagnose(session_path: str | Path, scene: Any, *, max_effects: int, min_relative_gain: float,
-              candidates: list[str] | None, block_px: int, max_frames: int | None,
-              render_kwargs: dict[str, Any] | None, progress: Callable[[str], None] | None,
-              extended_scene_path: str | Path | None) -> DiagnosisResult:
     from tofhil.sim.from_capture import capture_scene_facts
 
     t0 = time.perf_counter()
