@@ -26,7 +26,6 @@ from rich.console import Console
 from rich.markup import escape
 from rich.text import Text
 
-from tofhil import __version__
 from tofhil.errors import Interrupted, TofhilError
 
 app = typer.Typer(name="tofhil", add_completion=False, no_args_is_help=True,
@@ -108,6 +107,8 @@ def new_output_dir(path: Path) -> Iterator[Path]:
 
 def _version_callback(value: bool) -> None:
     if value:
+        from tofhil import __version__  # here: importlib.metadata costs every other command ~0.03 CPU-s
+
         out.print(f"tofhil {__version__}")
         raise typer.Exit()
 
