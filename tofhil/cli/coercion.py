@@ -90,10 +90,23 @@ def _direct_for(param: Any) -> _DirectParam | None:
     return None  # paths without a parser, numbers without one, choices: typer's coercion
 
 
+def _typer_has_the_hook() -> bool:
+    """The typer internals this module uses are there (they are private: another typer
+    release may move them; then typer's own coercion runs, as without this module)."""
+    try:
+        from typer._click.exceptions import BadParameter  # noqa: F401
+        from typer._coercion import build_runtime_param  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
 def install(command: Any, parent: Any = None) -> int:
     """Give every parameter of ``command`` (a click command or group from
     ``typer.main.get_command``) and of its subcommands the direct coercion where it applies;
     return how many parameters got it (0 with a typer that has no such hook)."""
+    if parent is None and not _typer_has_the_hook():
+        return 0
     # A context as make_context builds it (parent, context_settings): the --help option is
     # made on first use from the context's help option names, and typer coerces it too.
     ctx = command.context_class(command, parent=parent, **command.context_settings)
