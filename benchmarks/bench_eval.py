@@ -13,8 +13,11 @@ points and 300k measured points:
   (all its scores) and of PCL 1.13's ``NormalDistributionsTransform`` (score at the
   identity), as CPU time of each child process (interpreter start-up and imports included),
   the three alternated; the scores printed (they agree to ~1e-8: same cells, same d1, d2).
+  ``--before-python PY`` adds ``tofhil ndt --score-only`` run by another interpreter (one with
+  an older tofhil installed, e.g. main's) to the alternation, for a before/after in one run.
 
-Run: /work/venv/bin/python benchmarks/bench_eval.py [--points N] [--repeat K] [--pcl BIN [--only-pcl]]
+Run: /work/venv/bin/python benchmarks/bench_eval.py [--points N] [--repeat K] [--pcl BIN [--only-pcl]
+     [--before-python PY]]
 """
 
 from __future__ import annotations
@@ -60,16 +63,16 @@ def best_of(fn, repeat: int) -> float:
     return min(times)
 
 
-def child_cpu_s(cmd: list[str]) -> tuple[float, str]:
+def child_cpu_s(cmd: list[str], cwd: str | None = None) -> tuple[float, str]:
     """CPU time (user + system) of one child process run to its end, and its output."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=cwd).stdout
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), out
 
 
 def whole_process_vs_pcl(ref: np.ndarray, pts: np.ndarray, pcl_bin: str, repeat: int,
-                         cells: tuple[float, ...] = (0.25, 0.5)) -> None:
+                         cells: tuple[float, ...] = (0.25, 0.5), before_python: str | None = None) -> None:
     """``tofhil ndt`` and PCL's NDT score from the same binary PCD files, whole processes."""
     from tofhil.open3d_loader import open3d
 
@@ -83,16 +86,22 @@ def whole_process_vs_pcl(ref: np.ndarray, pts: np.ndarray, pcl_bin: str, repeat:
             o3d.io.write_point_cloud(str(path), pc, write_ascii=False)
             files.append(str(path))
         env_py = [sys.executable, "-m", "tofhil.cli", "ndt", *files, "--json"]
+        before_py = [before_python, "-m", "tofhil.cli", "ndt", *files, "--json", "--score-only"]
         print(f"whole process, {len(ref)} vs {len(pts)} points from binary PCD, CPU time of the child "
               f"(median of {repeat}, alternated):")
         for cell in cells:
-            t_only, t_all, t_pcl = [], [], []
+            t_only, t_all, t_pcl, t_before = [], [], [], []
             for _ in range(repeat):
-                t, out_only = child_cpu_s(env_py + ["--cell-size", str(cell), "--score-only"])
+                # cwd: the temporary directory, so that `-m` does not import a tofhil from the
+                # current directory (a source tree) instead of the one each interpreter has
+                t, out_only = child_cpu_s(env_py + ["--cell-size", str(cell), "--score-only"], cwd=tmp)
                 t_only.append(t)
-                t, out_pcl = child_cpu_s([pcl_bin, *files, str(cell), "0.55", "6"])
+                t, out_pcl = child_cpu_s([pcl_bin, *files, str(cell), "0.55", "6"], cwd=tmp)
                 t_pcl.append(t)
-                t, out = child_cpu_s(env_py + ["--cell-size", str(cell)])
+                if before_python:
+                    t, _ = child_cpu_s(before_py + ["--cell-size", str(cell)], cwd=tmp)
+                    t_before.append(t)
+                t, out = child_cpu_s(env_py + ["--cell-size", str(cell)], cwd=tmp)
                 t_all.append(t)
             only, ours = json.loads(out_only)["score_per_point"], json.loads(out)["score_per_point"]
             theirs = float(out_pcl.split()[1])
@@ -100,6 +109,9 @@ def whole_process_vs_pcl(ref: np.ndarray, pts: np.ndarray, pcl_bin: str, repeat:
             print(f"  cell {cell:4.2f} m: PCL {b:5.2f} CPU-s | tofhil ndt --score-only {a:5.2f} CPU-s -> {a / b:4.2f}x "
                   f"PCL (aim <= 0.5) | tofhil ndt, all scores {c:5.2f} CPU-s -> {c / b:4.2f}x; score per point "
                   f"{only:.10g} / {ours:.10g} vs PCL {theirs:.10g} (diff {max(abs(only - theirs), abs(ours - theirs)):.1e})")
+            if t_before:
+                z = float(np.median(t_before))
+                print(f"             before ({before_python}): --score-only {z:5.2f} CPU-s -> {z / b:4.2f}x PCL")
 
 
 def main() -> None:
@@ -109,12 +121,14 @@ def main() -> None:
     ap.add_argument("--pcl", default=None, help="tools/pcl_reference/ndt_time built: also the whole-process "
                                                  "comparison with PCL")
     ap.add_argument("--only-pcl", action="store_true")
+    ap.add_argument("--before-python", default=None, help="with --pcl: also time tofhil ndt --score-only run by "
+                                                          "this interpreter (an older tofhil), alternated")
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     ref = room(rng, args.points)
     pts = room(rng, args.points)
     if args.pcl:
-        whole_process_vs_pcl(ref, pts, args.pcl, args.repeat)
+        whole_process_vs_pcl(ref, pts, args.pcl, args.repeat, before_python=args.before_python)
         if args.only_pcl:
             return
 

@@ -16,12 +16,21 @@ import os as _os
 for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     _os.environ.setdefault(_var, "1")
 
-from importlib.metadata import PackageNotFoundError, version as _dist_version  # noqa: E402
 
-try:
-    __version__ = _dist_version("tofhil")
-except PackageNotFoundError:  # running from a source tree that is not installed
-    __version__ = "0.0.0+unknown"
+def __getattr__(name: str) -> str:
+    """``tofhil.__version__``, looked up when first asked for: importlib.metadata costs
+    ~0.03 CPU-s, paid by every command otherwise (``tofhil ndt`` is timed against PCL)."""
+    if name != "__version__":
+        raise AttributeError(f"module 'tofhil' has no attribute {name!r}")
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        value = version("tofhil")
+    except PackageNotFoundError:  # running from a source tree that is not installed
+        value = "0.0.0+unknown"
+    globals()["__version__"] = value
+    return value
+
 
 #: Speed of light in vacuum, m/s (exact, SI definition).
 C_M_PER_S = 299_792_458.0

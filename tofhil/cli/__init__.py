@@ -7,33 +7,63 @@ print one message and exit with code 2, no traceback; so do usage errors (a bad 
 a missing argument) and files that cannot be written. User values (file names, device specs)
 are printed literally: the consoles interpret no emoji codes and every user value goes
 through :func:`lit` (rich markup such as ``[bold red]`` in a file name stays text).
+Option values are coerced by the options' own parsers (:mod:`tofhil.cli.coercion`), not by
+typer's pydantic adapters, which would cost every command ~0.15 CPU-s of imports.
 """
 
 from __future__ import annotations
 
 import errno
 import importlib
+import json
 import os
 import shutil
 import signal
 import sys
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterable, Iterator, Optional, TypeVar
+from typing import TYPE_CHECKING, Any, Iterable, Iterator, Optional, TypeVar
 
 import typer
-from rich.console import Console
-from rich.markup import escape
-from rich.text import Text
 
-from tofhil import __version__
+from tofhil.cli import coercion
 from tofhil.errors import Interrupted, TofhilError
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+
+class _LazyConsole:
+    """A rich ``Console`` made when first used (attributes and methods are the console's).
+    Importing rich.console costs ~0.02 CPU-s, which a command that prints only JSON into a
+    pipe (``tofhil ndt --json``, timed against PCL as a whole process) does not need."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        object.__setattr__(self, "_kwargs", kwargs)
+        object.__setattr__(self, "_console", None)
+
+    def rich_console(self) -> "Console":
+        """The console itself (for rich APIs that take one)."""
+        made = object.__getattribute__(self, "_console")
+        if made is None:
+            from rich.console import Console
+
+            made = Console(**object.__getattribute__(self, "_kwargs"))
+            object.__setattr__(self, "_console", made)
+        return made
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.rich_console(), name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        setattr(self.rich_console(), name, value)
+
 
 app = typer.Typer(name="tofhil", add_completion=False, no_args_is_help=True,
                   pretty_exceptions_enable=False,
                   help="Hardware-in-the-loop evaluation of ToF cameras with a simulator twin.")
-console = Console(stderr=True, emoji=False)
-out = Console(emoji=False)
+console = _LazyConsole(stderr=True, emoji=False)
+out = _LazyConsole(emoji=False)
 
 T = TypeVar("T")
 
@@ -46,7 +76,19 @@ COMMAND_MODULES: list[str] = ["tofhil.cli.core", "tofhil.cli.imports", "tofhil.c
 
 def lit(value: object) -> str:
     """A user value (file name, spec, scene name) as rich markup that prints it literally."""
+    from rich.markup import escape
+
     return escape(str(value))
+
+
+def print_json(data: object) -> None:
+    """``data`` as JSON on stdout, indented by 2: highlighted by rich on a terminal; into a
+    pipe or file the same text without rich (its import is most of a short command's
+    output cost), as a program reading it wants it."""
+    if sys.stdout.isatty():
+        out.print_json(json.dumps(data))
+    else:  # what rich's print_json writes there: its dumps, soft-wrapped (never folded), a newline
+        sys.stdout.write(json.dumps(data, indent=2, ensure_ascii=False) + "\n")
 
 
 #: Set by the CLI's SIGINT handler. Python raises KeyboardInterrupt wherever the main thread
@@ -82,7 +124,7 @@ def progress(items: Iterable[T], total: int, description: str) -> Iterator[T]:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     with Progress(TextColumn("{task.description}", markup=False), BarColumn(), MofNCompleteColumn(),
-                  TimeRemainingColumn(), console=console, transient=False,
+                  TimeRemainingColumn(), console=console.rich_console(), transient=False,
                   disable=not console.is_terminal) as bar:
         task = bar.add_task(description, total=total)
         for item in items:
@@ -108,6 +150,8 @@ def new_output_dir(path: Path) -> Iterator[Path]:
 
 def _version_callback(value: bool) -> None:
     if value:
+        from tofhil import __version__  # here: importlib.metadata costs every other command ~0.03 CPU-s
+
         out.print(f"tofhil {__version__}")
         raise typer.Exit()
 
@@ -143,13 +187,15 @@ def _click_exceptions():  # typer >= 0.20 vendors click as typer._click
 
 def error_line(message: str) -> None:
     """Print ``error: MESSAGE`` as one line on stderr, the message taken literally."""
+    from rich.text import Text
+
     text = " ".join(str(message).split())  # one line, whatever the message held
     console.print(Text("error: ", style="red") + Text(text), soft_wrap=True, highlight=False)
 
 
 def _usage_message(exc: Exception) -> str:
     msg = exc.format_message()
-    msg = msg.replace("Value error, ", "")  # pydantic's prefix on our parsers' ValueError
+    msg = msg.replace("Value error, ", "")  # pydantic's prefix, where typer's own coercion ran a parser
     ctx = getattr(exc, "ctx", None)
     command = getattr(ctx, "command_path", "") if ctx is not None else ""
     return f"{command}: {msg}" if command and command != "tofhil" else msg
@@ -168,6 +214,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.unraisablehook = _unraisable
     ex = _click_exceptions()
     command = typer.main.get_command(app)
+    coercion.install(command)  # the options' parsers without typer's pydantic adapters (~0.15 CPU-s)
     if not args:
         args = ["--help"]
     try:
@@ -189,6 +236,8 @@ def main(argv: list[str] | None = None) -> None:
         error_line(str(exc))
         _exit(2)
     except Interrupted as exc:
+        from rich.text import Text
+
         console.print(Text(str(exc)), soft_wrap=True, highlight=False)
         _exit(130)
     except KeyboardInterrupt:

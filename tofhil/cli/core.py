@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from tofhil.cli import app, lit, out, progress
+from tofhil.cli import app, lit, out, print_json, progress
 from tofhil.cli import options as opt
 from tofhil.errors import TofhilError
 
@@ -21,7 +21,7 @@ def info(session: Path = typer.Argument(..., parser=opt.existing_file, help="A s
     with open_session(session) as s:
         summary = s.summary()
     if as_json:
-        out.print_json(json.dumps(summary))
+        print_json(summary)
         return
     cam = summary["camera"]
     out.print(f"[bold]{lit(summary['path'])}[/bold]  (format v{summary['format_version']}, "

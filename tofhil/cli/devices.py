@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Optional
 
 import typer
 
-from tofhil.cli import app, console, on_interrupt_signal, out, progress
+from tofhil.cli import app, console, on_interrupt_signal, out, print_json, progress
 from tofhil.cli import options as opt
 from tofhil.errors import DeviceError
 
@@ -40,14 +40,11 @@ def _sigterm_as_interrupt() -> None:
 @app.command()
 def devices(as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table.")) -> None:
     """List connected cameras and emulated devices (specs for --device)."""
-    import json
-
     from tofhil.drivers.base import list_devices, registered_schemes
 
     entries = list_devices()
     if as_json:
-        out.print_json(json.dumps([{"spec": e.spec, "kind": e.kind, "description": e.description}
-                                   for e in entries]))
+        print_json([{"spec": e.spec, "kind": e.kind, "description": e.description} for e in entries])
         return
     for e in entries:
         out.print(f"{e.spec:28s} {e.kind:10s} {e.description}", highlight=False, markup=False)

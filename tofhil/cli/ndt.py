@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import json
 from typing import List, Optional
 
 import typer
 
-from tofhil.cli import app, lit, out
+from tofhil.cli import app, lit, out, print_json
 from tofhil.cli import options as opt
 from tofhil.errors import TofhilError
 
@@ -75,7 +74,7 @@ def ndt(ref: str = typer.Argument(..., help="Reference cloud: PLY, PCD, xyz text
     if len(sizes) > 1:
         payload["resolutions"] = {repr(float(r)): d for r, (_, d) in results.items()}
     if as_json:
-        out.print_json(json.dumps(payload))
+        print_json(payload)
         return
     out.print(f"reference {lit(ref)}: {ref_pts.shape[0]} points")
     out.print(f"cloud     {lit(cloud)}: {pts.shape[0]} points")

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import List, Optional
 
 import typer
 
-from tofhil.cli import app, lit, out, progress
+from tofhil.cli import app, lit, out, print_json, progress
 from tofhil.cli import options as opt
 from tofhil.errors import TofhilError
 from tofhil.yamlio import load_yaml
@@ -99,7 +98,7 @@ def list_effects(as_json: bool = typer.Option(False, "--json", help="Print JSON 
             raise TofhilError(f"unknown effect {name!r}", field="name",
                               expected="one of " + ", ".join(e["name"] for e in describe_effects()))
     if as_json:
-        out.print_json(json.dumps(items))
+        print_json(items)
         return
     for e in items:
         out.print(f"[bold]{lit(e['name'])}[/bold] ({lit(e['stage'])}): {lit(e['doc'])}")
