@@ -20,7 +20,6 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from tofhil.content_cache import LRUCache, content_digest
 from tofhil.demod import phasor
 from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal
 from tofhil.eval.diagnose.selection import EffectParams, EffectSpec, FitParam
@@ -134,10 +133,6 @@ def session_scene(scene: Any, data: HeldOutData) -> Any:
     return scene_for_setup(scene, session_setup_for(scene, data))
 
 
-#: Bytes of whole-frame predictions a model keeps (:meth:`TwinModel.predict`).
-PREDICTIONS_BYTES = 32 * 2 ** 20
-
-
 class TwinModel:
     """Predicts the measured channels for a set of extra effects on top of the base scene
     (a :class:`~tofhil.eval.diagnose.selection.ForwardModel`)."""
@@ -163,10 +158,6 @@ class TwinModel:
                          cache=renders_from.twin.cache if renders_from is not None else None)
         self.extra_starts: dict[str, list[dict[str, float]]] = {}
         self.evaluations = 0
-        # Whole-frame predictions by the content of their effect set: a fit asks again for the
-        # one it ended on (to score it, and to hold the others' part for its next pass), and
-        # every candidate of a round starts from the current model's
-        self._predictions = LRUCache(8, PREDICTIONS_BYTES, nbytes=lambda a: a.nbytes)
 
     # ---------------------------------------------------------------- library
     def library(self) -> dict[str, EffectSpec]:
@@ -225,20 +216,12 @@ class TwinModel:
         ``pixels`` (bool ``[H, W]``): only these pixels are needed (a fit's); the others may
         then be wrong (the twin renders only the pixels asked for when that is exact)."""
         self.evaluations += 1
-        effects = self.effects_for(active)
-        if pixels is not None and self.twin.pointwise(effects):
-            return self._predict_at(effects, pixels)
-        # (light moved between pixels: the whole frame is computed anyway, and kept)
-        key = content_digest(effects)
-        kept = self._predictions.get(key)
-        if kept is not None:
-            return kept
-        taps = self.twin.expected_taps(effects).astype(np.float64)
+        if pixels is not None:
+            return self._predict_at(self.effects_for(active), pixels)
+        taps = self.taps(active)
         s = phasor(taps, self.data.theta_rad)
         if self.data.offset_channel:
             s = np.concatenate([s, taps.mean(axis=(0, 1))[None].astype(np.complex128)])
-        s.setflags(write=False)  # (kept: shared by whoever asks for the same effects)
-        self._predictions.put(key, s)
         return s
 
     def _predict_at(self, effects: dict[str, dict[str, Any]], pixels: np.ndarray) -> np.ndarray:
