@@ -195,10 +195,11 @@ class _FramePool:
     A set is reused only when no array of it is referred to from outside (the caller dropped
     the result; a numpy view holds its base, so views count); ``max_sets`` per size, so
     ``res = render(...)`` in a loop, whose previous result is alive during the call, reuses
-    the set before it. At most ``max_bytes`` are kept.
+    the set before it. At most ``max_bytes`` are kept (two VGA sets; at 512 x 512 a diagnosis's
+    renders of several harmonics are ~27 MB a set, and holding more raised its peak memory).
     """
 
-    def __init__(self, max_sets: int = 2, max_bytes: int = 96 << 20) -> None:
+    def __init__(self, max_sets: int = 2, max_bytes: int = 48 << 20) -> None:
         self.max_sets, self.max_bytes = max_sets, max_bytes
         self._lock = threading.Lock()
         self._sets: list[tuple[Any, list[np.ndarray]]] = []     # oldest first
