@@ -223,6 +223,14 @@ def _parse_sensor(d: Mapping[str, Any] | None, *, source: str | Path,
     return SensorConfig(**kw)
 
 
+def take_pixels(a: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """A per-pixel array ``[..., H, W]`` at the flat pixel indices ``index``, as one row
+    ``[..., 1, N]`` (the layout of a signal, taps or field of some pixels only)."""
+    a = np.asarray(a)
+    lead = a.shape[:-2]
+    return a.reshape(lead + (-1,))[..., index].reshape(lead + (1, index.size))
+
+
 # ---------------------------------------------------------------------------------------------
 # The optical signal handed from the renderer (through the effects) to the sensor
 # ---------------------------------------------------------------------------------------------
@@ -266,13 +274,10 @@ class OpticalSignal:
 
     def at(self, index: np.ndarray) -> "OpticalSignal":
         """The light of the pixels at flat indices ``index`` only, as one row ``[..., 1, N]``."""
-        n = index.size
-
-        def take(a: np.ndarray) -> np.ndarray:
-            a = np.asarray(a)
-            return a.reshape(a.shape[:-2] + (-1,))[..., index].reshape(a.shape[:-2] + (1, n))
-        return replace(self, phasor_w=take(self.phasor_w), dc_w=take(np.broadcast_to(self.dc_w, self.shape)),
-                       ambient_w=take(np.broadcast_to(self.ambient_w, self.shape)), waveform=dict(self.waveform))
+        return replace(self, phasor_w=take_pixels(self.phasor_w, index),
+                       dc_w=take_pixels(np.broadcast_to(self.dc_w, self.shape), index),
+                       ambient_w=take_pixels(np.broadcast_to(self.ambient_w, self.shape), index),
+                       waveform=dict(self.waveform))
 
     def harmonic(self, h: int) -> np.ndarray:
         """``S_h [F, H, W]``; an order the renderer did not compute is synthesised from the
@@ -295,15 +300,14 @@ class OpticalSignal:
         keep = np.flatnonzero(freq != 0.0)
         zero = np.flatnonzero(freq == 0.0)
         h1 = tuple(result.harmonics).index(1)
-        if index is not None and multipath_scale is None:  # (gathered before the copy)
-            p = result.phasor
-            phasor = p.reshape(p.shape[:2] + (-1,))[:, :, index][keep].reshape((keep.size, p.shape[1], 1, index.size))
-        else:
-            phasor = result.phasor[keep]
+        # (some pixels: gathered before the frequencies are picked, which copies)
+        phasor = result.phasor[keep] if index is None else take_pixels(result.phasor, index)[keep]
         dc = result.power_w
         if multipath_scale is not None:
             if getattr(result, "phasor_direct", None) is None or getattr(result, "phasor_indirect", None) is None:
                 raise ValueError("the multipath effect needs a render with separate_direct=True")
+            if index is not None:
+                raise ValueError("the multipath effect rebuilds the whole frame's light: no pixel index")
             phasor = result.phasor_direct[keep] + multipath_scale * result.phasor_indirect[keep]
             if zero.size:
                 dc_direct = result.phasor_direct[zero[0], h1].real
@@ -315,11 +319,7 @@ class OpticalSignal:
         ambient = getattr(result, "ambient_power_w", None)
         ambient = np.zeros_like(result.power_w) if ambient is None else ambient
         if index is not None:  # the pixels at flat indices ``index`` only, as one row (:meth:`at`)
-            n = index.size
-            if phasor.shape[-2:] != (1, n):
-                phasor = phasor.reshape(phasor.shape[:2] + (-1,))[..., index].reshape(phasor.shape[:2] + (1, n))
-            dc = np.asarray(dc).reshape(-1)[index].reshape(1, n)
-            ambient = np.asarray(ambient).reshape(-1)[index].reshape(1, n)
+            dc, ambient = take_pixels(dc, index), take_pixels(ambient, index)
         return cls(freq_hz=freq[keep], harmonics=tuple(result.harmonics), phasor_w=phasor, dc_w=dc, ambient_w=ambient,
                    waveform=dict(waveform) if waveform else {1: 1.0 + 0.0j})
 
@@ -454,12 +454,9 @@ class SensorModel:
         dc = np.ascontiguousarray(np.broadcast_to(signal.dc_w + signal.ambient_w, signal.shape), dtype=np.float64)
         gain, offset = self.fixed_pattern()
         if index is not None:  # the pixels asked for, as one row
-            n = index.size
             if not signal_at_index:
-                s = s.reshape(s.shape[:2] + (-1,))[..., index].reshape(s.shape[:2] + (1, n))
-                dc = dc.reshape(-1)[index].reshape(1, n)
-            gain = gain.reshape(gain.shape[0], -1)[:, index].reshape(gain.shape[0], 1, n)
-            offset = offset.reshape(offset.shape[0], -1)[:, index].reshape(offset.shape[0], 1, n)
+                s, dc = take_pixels(s, index), take_pixels(dc, index)
+            gain, offset = take_pixels(gain, index), take_pixels(offset, index)
         out = np.empty((signal.freq_hz.size, theta.size) + s.shape[-2:], dtype=np.float32)
         noise_free_taps(np.ascontiguousarray(s.real), np.ascontiguousarray(s.imag), cos_h, sin_h, dc,
                         np.ascontiguousarray(gain, dtype=np.float64), np.ascontiguousarray(offset, dtype=np.float64),

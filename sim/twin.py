@@ -113,17 +113,17 @@ def signal_from_render(scene: Any, result: Any, effects: Effects, config: Sensor
     render_stage = effects_by_stage(effects, "render")
     if len(render_stage) > 1:  # each hook builds the signal from the render: they do not compose
         raise ValueError("at most one render-stage effect: " + ", ".join(e.name for e, _ in render_stage))
-    lens = getattr(camera, "lens", None) is not None
+    # (some pixels of a plain render without a lens: taken there before the signal is made)
+    gather_first = index is not None and not render_stage and getattr(camera, "lens", None) is None
     if render_stage:
         eff, values = render_stage[0]
         signal = eff.apply_render(result, values, waveform)
     else:
-        # (some pixels of a render without a lens: taken there before the signal is made)
-        signal = OpticalSignal.from_render(result, waveform, index=None if lens else index)
+        signal = OpticalSignal.from_render(result, waveform, index=index if gather_first else None)
     signal = apply_lens(signal, camera)  # a lens prescription's vignetting, path and ghosts (else nothing)
     ctx = effect_context(scene, camera, config, getattr(result, "radial_m", None))
     if index is not None:
-        if signal.shape != (1, index.size):
+        if not gather_first:
             signal = signal.at(index)
         ctx = dataclasses.replace(ctx, pixels=index)
     return apply_signal_effects(signal, effects, ctx)
@@ -235,19 +235,19 @@ class Twin:
         """True when the light of every pixel of this effect set follows from that pixel's
         render alone (no effect that moves light between pixels is on, no lens prescription
         with ghosts): a prediction on some pixels then needs only those pixels rendered."""
-        eff = self._resolve(effects)
-        if getattr(self.scene.camera, "lens", None) is not None:
-            return False
-        return all(EFFECTS[n].pixel_local or EFFECTS[n].is_off(v) for n, v in eff.items())
+        return self._every_effect(effects, "pixel_local")
 
     def pointwise(self, effects: Effects | None = None) -> bool:
         """True when, given the whole frame's render, every effect of the set computes a
         pixel's light from that pixel's alone (``Effect.pointwise``; no lens prescription): a
         prediction on some pixels then runs the effects on those pixels only."""
-        eff = self._resolve(effects)
+        return self._every_effect(effects, "pointwise")
+
+    def _every_effect(self, effects: Effects | None, prop: str) -> bool:
+        """Every effect of the set on is ``prop`` (and no lens prescription mixes the pixels)."""
         if getattr(self.scene.camera, "lens", None) is not None:
             return False
-        return all(EFFECTS[n].pointwise or EFFECTS[n].is_off(v) for n, v in eff.items())
+        return all(getattr(EFFECTS[n], prop) or EFFECTS[n].is_off(v) for n, v in self._resolve(effects).items())
 
     def render(self, effects: Effects | None = None, *, pixels: np.ndarray | None = None) -> tuple[Any, Any]:
         """``(scene with the rendered scene-stage effects, RenderResult)`` for an effect set

@@ -16,7 +16,7 @@ from tofhil import C_M_PER_S
 from tofhil.camera import CameraModel
 from tofhil.errors import InputFileError
 from tofhil.schema import Schema
-from tofhil.sim.sensor import OpticalSignal, SensorConfig
+from tofhil.sim.sensor import OpticalSignal, SensorConfig, take_pixels
 
 STAGES = ("scene", "render", "signal", "pixel", "taps")
 #: The hook each stage's effects implement.
@@ -106,11 +106,7 @@ class EffectContext:
     def at_pixels(self, field: np.ndarray) -> np.ndarray:
         """A field over the frame ``[..., H, W]`` where the signal is: itself for a whole
         frame, else ``[..., 1, N]`` at :attr:`pixels`."""
-        if self.pixels is None:
-            return field
-        f = np.asarray(field)
-        lead = f.shape[:-2]
-        return f.reshape(lead + (-1,))[..., self.pixels].reshape(lead + (1, self.pixels.size))
+        return field if self.pixels is None else take_pixels(field, self.pixels)
 
 
 class Effect:

@@ -8,33 +8,32 @@ whose phase says how much longer its path is, on every frequency alike.
 
 from __future__ import annotations
 
-import hashlib
 from typing import Any, Mapping
 
 import numpy as np
 
 from tofhil import C_M_PER_S
+from tofhil.content_cache import LRUCache, content_digest
 from tofhil.sim.effects.base import Effect, EffectContext, Param
 from tofhil.sim.effects.registry import register
 from tofhil.sim.sensor import OpticalSignal
 
 
-#: The last frame's scene points (a fit evaluates the effect on one render hundreds of times):
-#: (digest of the distances, camera) -> (x, n, hit).
-_LAST_POINTS: dict[tuple[bytes, Any], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+#: The last frame's scene points, by the content of its distances and camera (a fit evaluates
+#: the effect on one render hundreds of times).
+_LAST_POINTS = LRUCache(1)
 
 
 def scene_points(radial_m: np.ndarray, camera: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each pixel's first hit ``X`` (camera frame), its surface normal facing the camera (from
     the neighbouring hits) and where a hit exists, ``[H, W, 3]``, ``[H, W, 3]``, ``[H, W]``."""
-    r = np.ascontiguousarray(radial_m, dtype=np.float64)
-    key = (hashlib.blake2b(r.view(np.uint8), digest_size=16).digest() + repr(r.shape).encode(), camera)
-    hit_ = _LAST_POINTS.get(key)
-    if hit_ is not None:
-        return hit_
-    _LAST_POINTS.clear()
-    _LAST_POINTS[key] = out = _scene_points(r, camera)
-    return out
+    r = np.asarray(radial_m, dtype=np.float64)
+    key = content_digest(r, camera)
+    points = _LAST_POINTS.get(key)
+    if points is None:
+        points = _scene_points(r, camera)
+        _LAST_POINTS.put(key, points)
+    return points
 
 
 def _scene_points(r: np.ndarray, camera: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
