@@ -122,9 +122,9 @@ def scene_geometry(scene: Scene) -> Geometry:
 
 def _camera_arrays(camera: CameraModel, pixels: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Per-pixel arrays of a camera (its pose aside): centre rays, pixel area, cos^4. With
-    ``pixels`` (flat bool mask) a camera not seen whole yet gets them only there (zero
-    elsewhere; a fit of the lens distortion makes a new camera every evaluation), each value
-    computed as for the whole grid."""
+    ``pixels`` (flat bool mask) a camera not seen whole yet gets them only there (elsewhere
+    as a pixel that sees nothing; a fit of the lens distortion makes a new camera every
+    evaluation), each value computed as for the whole grid."""
     key = content_key(camera)
     arrays = _CAMERAS.get(key)
     if arrays is not None:
@@ -140,19 +140,33 @@ def _camera_arrays(camera: CameraModel, pixels: np.ndarray | None = None) -> dic
         idx = np.flatnonzero(pixels)
         v, u = np.divmod(idx, camera.width)
         u, v = u.astype(np.float64), v.astype(np.float64)
+        at_rays, at_area, at_ok = _seen(camera.pixel_rays(u, v), pixel_area_normalized(camera, u, v))
+        # the other pixels as a pixel that sees nothing (checked and mended on these only: a
+        # fit of the lens makes a new camera at every evaluation)
         rays = np.zeros((pixels.size, 3))
-        rays[idx] = camera.pixel_rays(u, v)
+        rays[:, 2] = 1.0
+        rays[idx] = at_rays
         area = np.zeros(pixels.size)
-        area[idx] = pixel_area_normalized(camera, u, v)
-    # A pixel the lens maps no ray to (beyond the fold of its model) or whose ray points 90
-    # degrees or more off axis (a fisheye) sees nothing: weight 0, a finite ray for Embree.
-    ok = np.isfinite(rays).all(axis=1) & (rays[:, 2] > 0)
-    if not ok.all():
-        rays = np.where(ok[:, None], rays, np.array([0.0, 0.0, 1.0]))
-    area = np.where(ok & np.isfinite(area), area, 0.0)
+        area[idx] = at_area
+        ok = np.zeros(pixels.size, dtype=bool)
+        ok[idx] = at_ok
+        arrays = {"rays": rays, "area": area, "cos4": rays[:, 2] ** 4, "key": key, "ok": ok}
+        _CAMERAS.put(key, arrays)
+        return arrays
+    rays, area, ok = _seen(rays, area)
     arrays = {"rays": rays, "area": area, "cos4": rays[:, 2] ** 4, "key": key, "ok": ok}
     _CAMERAS.put(key, arrays)
     return arrays
+
+
+def _seen(rays: np.ndarray, area: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rays, pixel areas and which pixels see: a pixel the lens maps no ray to (beyond the
+    fold of its model) or whose ray points 90 degrees or more off axis (a fisheye) sees
+    nothing: weight 0, a finite ray for Embree."""
+    ok = np.isfinite(rays).all(axis=1) & (rays[:, 2] > 0)
+    if not ok.all():
+        rays = np.where(ok[:, None], rays, np.array([0.0, 0.0, 1.0]))
+    return rays, np.where(ok & np.isfinite(area), area, 0.0), ok
 
 
 def _view_arrays(camera: CameraModel, pose: np.ndarray, pixels: np.ndarray | None = None) -> dict[str, np.ndarray]:

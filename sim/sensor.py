@@ -228,7 +228,8 @@ def take_pixels(a: np.ndarray, index: np.ndarray) -> np.ndarray:
     ``[..., 1, N]`` (the layout of a signal, taps or field of some pixels only)."""
     a = np.asarray(a)
     lead = a.shape[:-2]
-    return a.reshape(lead + (-1,))[..., index].reshape(lead + (1, index.size))
+    # (np.take: 2-4x faster than the same fancy index along the last axis)
+    return np.take(a.reshape(lead + (-1,)), index, axis=-1).reshape(lead + (1, index.size))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -363,6 +364,9 @@ class SensorModel:
     config: SensorConfig
     camera: CameraModel
     _pattern: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False)
+    # (the pattern at the last pixel index asked for: a fit asks for the same pixels at every
+    # evaluation, and gathering them from the whole-frame pattern was ~3 % of a diagnosis)
+    _pattern_at: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False)
 
     @property
     def theta_rad(self) -> np.ndarray:
@@ -382,6 +386,16 @@ class SensorModel:
             off = fp.dsnu_e * rng.standard_normal(shape) if fp.dsnu_e > 0 else np.zeros(shape)
             self._pattern = (np.clip(gain, 0.0, None), off)
         return self._pattern
+
+    def _fixed_pattern_at(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`fixed_pattern` at the flat pixel indices ``index``, as one row."""
+        last = self._pattern_at
+        if last is not None and (last[0] is index or np.array_equal(last[0], index)):
+            return last[1], last[2]
+        gain, offset = self.fixed_pattern()
+        at = (np.array(index), take_pixels(gain, index), take_pixels(offset, index))
+        self._pattern_at = at
+        return at[1], at[2]
 
     def _check_signal(self, signal: OpticalSignal) -> None:
         """The light is on this sensor's pixels at its frequencies."""
@@ -452,11 +466,12 @@ class SensorModel:
         cos_h = np.cos(hs[:, None] * theta[None, :]) if terms else np.zeros((0, theta.size))
         sin_h = np.sin(hs[:, None] * theta[None, :]) if terms else np.zeros((0, theta.size))
         dc = np.ascontiguousarray(np.broadcast_to(signal.dc_w + signal.ambient_w, signal.shape), dtype=np.float64)
-        gain, offset = self.fixed_pattern()
         if index is not None:  # the pixels asked for, as one row
             if not signal_at_index:
                 s, dc = take_pixels(s, index), take_pixels(dc, index)
-            gain, offset = take_pixels(gain, index), take_pixels(offset, index)
+            gain, offset = self._fixed_pattern_at(index)
+        else:
+            gain, offset = self.fixed_pattern()
         out = np.empty((signal.freq_hz.size, theta.size) + s.shape[-2:], dtype=np.float32)
         noise_free_taps(np.ascontiguousarray(s.real), np.ascontiguousarray(s.imag), cos_h, sin_h, dc,
                         np.ascontiguousarray(gain, dtype=np.float64), np.ascontiguousarray(offset, dtype=np.float64),
