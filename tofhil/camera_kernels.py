@@ -23,6 +23,8 @@ brown_distort = _inline(lm.brown_distort)
 brown_jacobian = _inline(lm.brown_jacobian)
 fisheye_theta_d = _inline(lm.fisheye_theta_d)
 
+brown_radial_slope = _inline(lm.brown_radial_slope)
+
 _MAX_HALVINGS = lm.MAX_HALVINGS
 _STEP_TOL = lm.STEP_TOL
 _ROUNDING = lm.ROUNDING_RESIDUAL
@@ -101,6 +103,33 @@ def fisheye_theta(td, c, max_iter):  # pragma: no cover
     if not (r <= _CONVERGED * (1.0 + td) and df > 0.0 and th <= c[12]):
         return math.nan
     return th
+
+
+@njit(cache=True, error_model="numpy", nogil=True, inline="always")
+def _radial_slope(t, c, fisheye):  # pragma: no cover
+    if fisheye:
+        return fisheye_theta_d(t, c)[1]
+    return brown_radial_slope(t, c)
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def first_fold(grid, c, fisheye):  # pragma: no cover
+    """The last point before the radial function of the lens stops rising: the first point of
+    ``grid`` whose slope is not positive, bisected (60 halvings) against the one before it;
+    NaN when the slope is positive over the whole grid (:func:`tofhil.lens_models.model_reach`)."""
+    for i in range(grid.shape[0]):
+        if not _radial_slope(grid[i], c, fisheye) > 0:
+            if i == 0:
+                return grid[0]
+            lo, hi = grid[i - 1], grid[i]
+            for _ in range(60):
+                mid = 0.5 * (lo + hi)
+                if _radial_slope(mid, c, fisheye) > 0:
+                    lo = mid
+                else:
+                    hi = mid
+            return lo
+    return math.nan
 
 
 @njit(cache=True, error_model="numpy", nogil=True, inline="always")

@@ -219,6 +219,57 @@ def test_point_clouds_leave_out_pixels_without_a_ray() -> None:
     assert len(pts) == (~no_ray).sum() and np.all(np.isfinite(pts))
 
 
+def _reach_by_numpy(model: str, c: np.ndarray) -> float:
+    """The reach found independently: the radial function's slope in numpy over a dense
+    grid (its first non-positive value), then 200 bisections."""
+    with np.errstate(all="ignore"):
+        if model == "fisheye":
+            def slope(t):
+                t2 = t * t
+                return 1 + t2 * (3 * c[0] + t2 * (5 * c[1] + t2 * (7 * c[2] + t2 * 9 * c[3])))
+            grid = np.linspace(0.0, np.pi, 400001)
+        else:
+            def slope(r):   # d/dr of r g(r^2) by the quotient rule, written out
+                r2 = r * r
+                num, den = 1 + c[0] * r2 + c[1] * r2 ** 2 + c[4] * r2 ** 3, 1 + c[5] * r2 + c[6] * r2 ** 2 + c[7] * r2 ** 3
+                dnum = 2 * r * (c[0] + 2 * c[1] * r2 + 3 * c[4] * r2 ** 2)
+                dden = 2 * r * (c[5] + 2 * c[6] * r2 + 3 * c[7] * r2 ** 2)
+                return np.where(den > 0, num / den + r * (dnum * den - num * dden) / den ** 2, -1.0)
+            grid = np.concatenate([np.linspace(0.0, 10.0, 400001), np.linspace(10.0, 100.0, 40001)[1:]])
+        bad = np.flatnonzero(~(slope(grid) > 0))
+        if bad.size == 0:
+            return np.pi if model == "fisheye" else np.inf
+        lo, hi = grid[bad[0] - 1], grid[bad[0]]
+        for _ in range(200):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if slope(np.array(mid)) > 0 else (lo, mid)
+    return lo if model == "fisheye" else lo * lo
+
+
+@pytest.mark.parametrize("model", ["plumb_bob", "rational", "fisheye"])
+def test_model_reach_agrees_with_an_independent_scan(model: str) -> None:
+    """The compiled scan and bisection of the reach against a numpy scan on a grid twice as
+    fine, on random lenses, some folding inside the range searched and some not."""
+    rng = np.random.default_rng(7)
+    folds = 0
+    for _ in range(40):
+        if model == "fisheye":
+            dist = tuple(rng.normal(0.0, [0.1, 0.05, 0.02, 0.01]))
+        elif model == "plumb_bob":
+            dist = tuple(rng.normal(0.0, [0.3, 0.1, 0.01, 0.01, 0.05]))
+        else:
+            dist = tuple(rng.normal(0.0, [0.3, 0.1, 0.01, 0.01, 0.05, 0.3, 0.1, 0.05]))
+        cam = CameraModel(100, 100, 50.0, 50.0, 49.5, 49.5, dist=dist, distortion_model=model)
+        got, want = cam.kernel_coeffs[12], _reach_by_numpy(model, cam.kernel_coeffs)
+        folds += bool(np.isfinite(want) and want < (np.pi if model == "fisheye" else 1e4))
+        if np.isinf(want):
+            assert np.isinf(got)
+        else:
+            # (the grid points differ: both bisect one sign change to rounding)
+            assert got == pytest.approx(want, rel=1e-9)
+    assert 5 <= folds < 40         # (both kinds)
+
+
 def test_model_reach_is_the_first_fold_and_rays_beyond_it_are_refused() -> None:
     """The reach is the first fold of the radial function (closed form for ``r (1 + k1 r^2)``:
     ``r*^2 = 1 / (3 |k1|)``); the Azure Kinect lens folds at 72.7 degrees (its calibration is
