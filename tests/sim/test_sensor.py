@@ -182,6 +182,19 @@ def test_fixed_pattern_is_seeded_and_has_the_stated_spread() -> None:
     np.testing.assert_allclose(dark, 1000.0 + off, rtol=1e-6)
 
 
+def test_taps_at_pixels_are_the_whole_frame_taps_there_for_any_pixel_set() -> None:
+    """The fixed pattern at a pixel set is kept for the next call with the same set: a sensor
+    asked for one set, then another, then the first again gives the whole frame's taps there."""
+    cam = _camera(40, 30)
+    sens = _sensor(cam, fixed_pattern={"dsnu_e": 30.0, "prnu": 0.02, "seed": 4}, full_well_e=1e6)
+    sig = _plane_signal(cam, np.linspace(0.5, 2.0, cam.width)[None, :].repeat(cam.height, 0), 2e-12)
+    whole = sens.taps_dn(sig, noise=False).reshape(1, 4, 1, -1)
+    rng = np.random.default_rng(3)
+    a, b = (np.sort(rng.choice(cam.width * cam.height, 200, replace=False)) for _ in range(2))
+    for index in (a, b, a, b.copy()):
+        np.testing.assert_array_equal(sens._noise_free_taps(sig, index), whole[..., index])
+
+
 def test_defaults_from_the_camera_preset() -> None:
     cam = load_camera_preset("holmlund_thesis")
     cfg = SensorConfig.from_dict({}, camera=cam)
