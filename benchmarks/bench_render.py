@@ -19,6 +19,7 @@ so this is the error against the converged reference without paying for one. ``-
 SPP`` additionally renders an explicit reference with SPP samples and compares to it.
 
 Run: /work/venv/bin/python benchmarks/bench_render.py [--budget-s 90] [--threads 2]
+    [--before DIR [--rounds 2]]   # the same with an older tofhil, alternately (before_after.py)
 """
 
 from __future__ import annotations
@@ -27,8 +28,10 @@ import argparse
 import math
 import os
 import statistics
+import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 
@@ -206,7 +209,17 @@ def main() -> None:
     ap.add_argument("--reference", type=int, default=0, metavar="SPP",
                     help="also render an explicit reference with SPP samples (slow)")
     ap.add_argument("--skip-c", action="store_true", help="only the throughput and frame-rate parts")
+    ap.add_argument("--before", type=Path, default=None, metavar="DIR",
+                    help="also run this benchmark with the older tofhil in DIR, alternately, for a "
+                         "before/after in one run (benchmarks/before_after.py)")
+    ap.add_argument("--rounds", type=int, default=2, help="with --before: before/after pairs")
     args = ap.parse_args()
+    if args.before is not None:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from before_after import run_alternating
+
+        run_alternating(__file__, sys.argv[1:], args.before, args.rounds)
+        return
     print(f"bench_render: {args.threads} threads, load average {os.getloadavg()[0]:.1f} "
           f"on {os.cpu_count()} cores")
     part_a_and_b(args.threads)

@@ -39,6 +39,7 @@ Set-up: ``bash tools/setup_mitsuba.sh`` (pip packages + libLLVM 19 for Dr.Jit's 
 without Mitsuba this script says so and exits 0 (skipped).
 
 Run: python benchmarks/bench_vs_mitsuba.py [--quick] [--figures docs/figures]
+    [--before DIR [--rounds 2]]   # the same with an older tofhil, alternately (before_after.py)
 """
 
 from __future__ import annotations
@@ -568,7 +569,17 @@ def main() -> int:
                          "tabulated beams, the isotropic emitter among them, did too)")
     ap.add_argument("--media-only", action="store_true", help="only the glass slab (2) and the scattering cube (4)")
     ap.add_argument("--glass-only", action="store_true", help="with --media-only: only the glass slab (2)")
+    ap.add_argument("--before", type=Path, default=None, metavar="DIR",
+                    help="also run this benchmark with the older tofhil in DIR, alternately, for a "
+                         "before/after in one run (benchmarks/before_after.py)")
+    ap.add_argument("--rounds", type=int, default=2, help="with --before: before/after pairs")
     args = ap.parse_args()
+    if args.before is not None:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from before_after import run_alternating
+
+        run_alternating(__file__, sys.argv[1:], args.before, args.rounds)
+        return 0
     mi = load_mitsuba()
     if mi is None:
         return 0
