@@ -13,7 +13,9 @@ DIR is a checkout of an older commit laid out as a package::
     for d in sim eval drivers configs; do ln -s SRC/$d DIR/tofhil/$d; done
 
 (the repository maps ``tofhil.sim`` to ``sim/`` and so on; the links do the same for an
-import from PYTHONPATH).
+import from PYTHONPATH). A fresh DIR compiles its numba kernels (and caches them beside its
+sources) in its first run: run the benchmark once before the run that counts, or the before
+side pays ~20 CPU-s of compilation.
 """
 
 from __future__ import annotations

@@ -12,7 +12,9 @@ diagnose``), so its peak resident memory (VmHWM) is its own. Aims: < 60 s wall, 
                              # older commit laid out as a package) on the same session, first
 
 A checkout laid out as a package: ``git archive COMMIT | tar -x -C SRC``, then DIR/tofhil a
-copy of SRC/tofhil with links DIR/tofhil/{sim,eval,drivers,configs} -> SRC/{sim,...}.
+copy of SRC/tofhil with links DIR/tofhil/{sim,eval,drivers,configs} -> SRC/{sim,...}
+(benchmarks/before_after.py). A fresh DIR compiles its numba kernels in its first run (~20
+CPU-s): run it once before the run that counts.
 
 Prints the named causes too: a faster diagnosis must name the same ones.
 """
