@@ -533,7 +533,7 @@ def sobol_digital_shift(sobol, shift, U):  # pragma: no cover
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def subpixel_rays(pixels, spp, width, U, fx, fy, cx, cy, dist, iterations, R, rotate, pix_weight,
-                  dirs, beta, fisheye=False):  # pragma: no cover
+                  dirs, beta, fisheye=False, share=1):  # pragma: no cover
     """Sample ``s`` of pixel ``pixels[s // spp]`` through the pixel position ``U[s, 0:2]`` (in
     pixels from the pixel's corner): its unit world direction ``dirs[s]`` (the camera model's
     inversion, :meth:`CameraModel.pixel_rays`, then ``R``) and its weight
@@ -544,7 +544,9 @@ def subpixel_rays(pixels, spp, width, U, fx, fy, cx, cy, dist, iterations, R, ro
     no ray to (beyond the fold of its model) or 90 degrees or more off axis gets weight 0 (and
     the optical axis as a direction, so Embree sees a finite ray). One pass, operation by
     operation the numpy expressions of the camera model and :func:`rotate_rows` (cos^4 to
-    an ulp)."""
+    an ulp). ``share > 1`` (a divisor of ``spp``): each group of ``share`` consecutive samples
+    of a pixel has one camera position (:func:`render.camera_ray_share`, ``U[s, 0:4]`` the
+    same), so the group's first ray is copied to the others instead of computed again."""
     c = np.zeros(13)
     c[12] = math.pi if fisheye else np.inf   # the model's reach, when dist does not give it
     distorted = fisheye
@@ -554,15 +556,23 @@ def subpixel_rays(pixels, spp, width, U, fx, fy, cx, cy, dist, iterations, R, ro
     r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
     r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
     r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
-    i, s_next = -1, 0
+    i, s_next, k = -1, 0, 0
     col = row = w = 0.0
     for s in range(U.shape[0]):
         if s == s_next:                  # a new pixel (no integer division per sample)
             i += 1
             s_next += spp
+            k = 0
             p = pixels[i]
             col, row = np.float64(p % width), np.float64(p // width)
             w = pix_weight[p]
+        if k == share:
+            k = 0
+        k += 1
+        if k > 1:                        # the group's camera ray, computed for its first sample
+            dirs[s, 0], dirs[s, 1], dirs[s, 2] = dirs[s - 1, 0], dirs[s - 1, 1], dirs[s - 1, 2]
+            beta[s] = beta[s - 1]
+            continue
         uu = col + U[s, 0] - 0.5
         vv = row + U[s, 1] - 0.5
         xd = (uu - cx) / fx

@@ -474,7 +474,7 @@ class _Context:
                                   self.W, U, cam.fx, cam.fy, cam.cx, cam.cy,
                                   np.asarray(cam.kernel_coeffs), LENS_MAX_ITER, self.R,
                                   not np.array_equal(self.R, np.eye(3)), self.pix_weight, dirs, beta,
-                                  cam.is_fisheye)
+                                  cam.is_fisheye, self.share)
         elif self.subpixel:
             uu = (pix % self.W) + U[:, 0] - 0.5
             vv = (pix // self.W) + U[:, 1] - 0.5

@@ -326,3 +326,15 @@ def test_compiled_subpixel_rays_are_the_camera_models() -> None:
     d_cam = cam.pixel_rays(pix % cam.width + Uc[:, 0] - 0.5, pix // cam.width + Uc[:, 1] - 0.5)
     np.testing.assert_allclose(dirs, d_cam @ R.T, rtol=0, atol=1e-15)
     np.testing.assert_allclose(beta, weight[pix] * d_cam[:, 2] ** 4, rtol=1e-15)
+    # Samples that share a camera ray (groups of 2 here, U's camera columns alike within a
+    # group): the group's first ray copied, bit for bit the ray computed for each.
+    Ug = Uc.reshape(-1, 2, dims).copy()
+    Ug[:, 1, :4] = Ug[:, 0, :4]
+    Ug = Ug.reshape(-1, dims)
+    each, shared = (np.empty((len(Ug), 3)), np.empty(len(Ug))), (np.empty((len(Ug), 3)), np.empty(len(Ug)))
+    for (d, b), share in ((each, 1), (shared, 2)):
+        kernels.subpixel_rays(pixels, spp, cam.width, Ug, cam.fx, cam.fy, cam.cx, cam.cy, np.asarray(cam.dist), 20,
+                              R, True, weight, d, b, False, share)
+    np.testing.assert_array_equal(shared[0], each[0])
+    np.testing.assert_array_equal(shared[1], each[1])
+    assert not np.array_equal(each[0][0::2], each[0][2::2])   # (groups differ: a copy across them would show)
