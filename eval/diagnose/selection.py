@@ -594,16 +594,19 @@ class _GreedySearch:
         worth = True
         if self.effect_size is not None and gains and not worse:
             rmse, worth = self.effect_size.names(self.current_pred, pred, self.base_pred)
+        significant = gains and not worse and worth
         cand = Candidate(effect=name, params=fitted[name], chi2_train=chi2_train, chi2_test=chi2_test,
                          score=score, delta_score=current_score - score,
                          relative_gain=gain / self.current_chi2 if self.current_chi2 > 0 else 0.0,
-                         significant=gains and not worse and worth, n_params=len(spec.params),
+                         significant=significant, n_params=len(spec.params),
                          all_params=fitted, worse_channels=worse, at_bounds=pinned(spec, fitted[name]),
                          channels=channels, form=spec.form, dof=float(k_new), details=details,
                          rmse=rmse, worth_naming=worth,
                          strength=prior.strength if prior is not None else 0.0,
                          prior=prior.summary() if prior is not None else {},
-                         test_residual=data.whitened_residual(pred, "test"))
+                         # kept for "A or B" and a flexible form's identifiability, which read
+                         # significant candidates only (megabytes each at camera resolution)
+                         test_residual=data.whitened_residual(pred, "test") if significant else None)
         return cand, gains and bool(worse)
 
     def add(self, chosen: Candidate, round_: list[Candidate], tried_of: dict[str, list[Candidate]]) -> None:
