@@ -130,8 +130,7 @@ def _camera_arrays(camera: CameraModel, pixels: np.ndarray | None = None) -> dic
     if arrays is not None:
         return arrays
     if pixels is None:
-        rays = camera.rays.reshape(-1, 3)
-        area = pixel_area_normalized(camera).ravel()
+        rays, area, ok = _seen(camera.rays.reshape(-1, 3), pixel_area_normalized(camera).ravel())
     else:
         key = content_key(key, "pixels", np.packbits(pixels))
         arrays = _CAMERAS.get(key)
@@ -150,10 +149,6 @@ def _camera_arrays(camera: CameraModel, pixels: np.ndarray | None = None) -> dic
         area[idx] = at_area
         ok = np.zeros(pixels.size, dtype=bool)
         ok[idx] = at_ok
-        arrays = {"rays": rays, "area": area, "cos4": rays[:, 2] ** 4, "key": key, "ok": ok}
-        _CAMERAS.put(key, arrays)
-        return arrays
-    rays, area, ok = _seen(rays, area)
     arrays = {"rays": rays, "area": area, "cos4": rays[:, 2] ** 4, "key": key, "ok": ok}
     _CAMERAS.put(key, arrays)
     return arrays

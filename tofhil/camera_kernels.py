@@ -22,7 +22,6 @@ _inline = njit(cache=True, error_model="numpy", nogil=True, inline="always")
 brown_distort = _inline(lm.brown_distort)
 brown_jacobian = _inline(lm.brown_jacobian)
 fisheye_theta_d = _inline(lm.fisheye_theta_d)
-
 brown_radial_slope = _inline(lm.brown_radial_slope)
 
 _MAX_HALVINGS = lm.MAX_HALVINGS

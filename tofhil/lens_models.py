@@ -18,8 +18,9 @@ Brown-Conrady, undistorted normalised ``(x, y)`` -> distorted ``(xd, yd)``, ``r^
 
 The arithmetic functions here take numbers or numpy arrays; :mod:`tofhil.camera_kernels`
 compiles the same functions with numba (so the compiled and the numpy inversions are the same
-operations) and adds the per-point loops. This module imports no numba: a camera that
-undistorts a handful of points never compiles anything.
+operations) and adds the per-point loops. This module's arithmetic imports no numba (a camera
+that undistorts a handful of points compiles nothing); only :func:`model_reach` of a distorted
+model runs its grid scan compiled.
 """
 
 from __future__ import annotations
