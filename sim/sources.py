@@ -112,12 +112,16 @@ HIDDEN_TRUTH_EFFECTS: dict[str, dict[str, Any]] = {
 #: What makes the scene's camera a TOFcam635 (ASSUMED where the data sheet is silent): the
 #: epc635 preset, its four 90-degree DCS, an LED illumination brighter than a lab LED ring,
 #: a DN scale that puts a white wall at 1 m near 10 % of the 12-bit DCS range at 125 us, and
-#: a 16-bit single-ended ADC so that only the device's 12-bit differential DCS clip.
+#: a 16-bit single-ended ADC so that only the device's 12-bit differential DCS clip. The
+#: device's fixed pattern is its own, not the scene's seeded realisation (a scene written for
+#: another camera carries one in electrons of that camera): it has none beyond the hidden
+#: truth's clock-skew delays, as after the factory calibration a TOFcam635 ships with.
 TOFCAM635_OVERRIDES: dict[str, Any] = {
     "camera": {"preset": TOFCAM635_PRESET},
     "emitter": {"power_w": 2.0},
     "sensor": {"taps": 4, "theta_deg": [0, 90, 180, 270], "integration_time_s": REFERENCE_INTEGRATION_TIME_S,
-               "conversion_gain_dn_per_e": 0.15, "adc_bits": 16, "full_well_e": 1_000_000},
+               "conversion_gain_dn_per_e": 0.15, "adc_bits": 16, "full_well_e": 1_000_000,
+               "fixed_pattern": {"dsnu_e": 0.0, "prnu": 0.0}},
 }
 
 

@@ -186,6 +186,10 @@ class Twin:
         self.pixel_cache = RenderCache(2)
         self._sensors: dict[Any, SensorModel] = {}
         self.renders = 0  # renders traced (cache misses)
+        #: The device reads each tap as the difference of a pixel's two storage nodes (the
+        #: TOFcam635's DCS): no common-mode offset reaches its taps, so the twin's taps lose
+        #: theirs before the readout's per-tap gains act on them.
+        self.differential_readout = False
         self._base_render_bounces = int(scene.render.bounces)
         # The scene's content is hashed once (scenes are not changed in place): a render's key
         # is this digest, the scene-stage effect values rendered in, and the render arguments.
@@ -361,6 +365,8 @@ class Twin:
     def _readout(self, taps: np.ndarray, effects: Effects | None) -> np.ndarray:
         """:func:`readout` of the twin's taps; an effect set naming no taps-stage effect is not
         validated a second time (a fit predicts thousands of times)."""
+        if self.differential_readout:
+            taps = taps - taps.mean(axis=1, keepdims=True)
         names = self.base_effects if effects is None else effects
         if not any(EFFECTS[n].stage == "taps" for n in names if n in EFFECTS):
             return taps

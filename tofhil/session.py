@@ -243,6 +243,10 @@ class SessionWriter:
         if depth.confidence is not None:
             parts.append(("confidence", "f4"))  # the device's own confidence, as the device gives it
         self._has_confidence = depth.confidence is not None
+        # the modulation frequencies the device measured the depth at, when it says (a depth-only
+        # capture keeps what a raw one records in raw/freq_hz)
+        if depth.meta.get("freq_hz") is not None:
+            g.attrs["freq_hz"] = np.atleast_1d(np.asarray(depth.meta["freq_hz"], dtype="f8"))
         for name, dt in parts:
             self._hold(g.create_dataset(name, shape=(0,) + hw, maxshape=(None,) + hw, dtype=dt, chunks=(1,) + hw))
 
@@ -520,6 +524,12 @@ class Session:
                     if f[key].ndim != 3 or f[key].shape[1:] != hw:
                         self._fail(key, f"has shape {f[key].shape}", f"[N, {hw[0]}, {hw[1]}]")
                     lengths[key] = f[key].shape[0]
+            self.depth_freq_hz = None
+            if "freq_hz" in f["depth"].attrs:
+                fr = np.atleast_1d(np.asarray(f["depth"].attrs["freq_hz"], dtype=np.float64)).ravel()
+                if fr.size == 0 or not (np.all(np.isfinite(fr)) and np.all(fr > 0)):
+                    self._fail("depth.freq_hz", f"is {fr.tolist()}", "positive finite modulation frequencies in Hz")
+                self.depth_freq_hz = fr
         n = min(lengths.values())
         if "n_frames" in a:
             try:

@@ -299,7 +299,10 @@ class TofCam635(Driver):
             return Frame(raw=raw, sequence=seq, timestamp_s=ts)
         if mode == "distance":
             dist, amp = P.decode_distance_amplitude(img)
-            depth = distance_codes_to_frame(dist, amp, camera, ts, seq, h.temperature_c, meta)
+            # the frequency and exposure the device measured at, kept with the depth (a session
+            # of depth alone has no raw/freq_hz to say it)
+            depth = distance_codes_to_frame(dist, amp, camera, ts, seq, h.temperature_c,
+                                            meta | {"freq_hz": [freq], "integration_time_s": int_time_s})
             return Frame(depth=depth, sequence=seq, timestamp_s=ts)
         gray = P.decode_grayscale(img)
         return Frame(images={"grayscale": gray.copy()}, sequence=seq, timestamp_s=ts)

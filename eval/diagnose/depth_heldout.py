@@ -43,6 +43,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from tofhil.eval.diagnose.defects import Defects, depth_defects
+from tofhil import C_M_PER_S
 from tofhil.eval.metrics.noise import NOISE_POOL_PX, phasor_depth_sigma, pooled_variance, robust_sigma
 from tofhil.camera import CameraModel
 from tofhil.depth import saturated_amplitude
@@ -65,6 +66,9 @@ def frequencies_for(session: Session, scene: Any | None) -> tuple[np.ndarray, st
     sc = session.sensor_config or {}
     if sc.get("freq_hz"):
         return np.atleast_1d(np.asarray(sc["freq_hz"], float)), "the session's recorded sensor configuration"
+    recorded = getattr(session, "depth_freq_hz", None)
+    if recorded is not None:
+        return np.asarray(recorded, float), "the session (depth.freq_hz: the device's modulation frequency)"
     sensor = getattr(scene, "sensor", None)
     if sensor is not None and getattr(sensor, "freq_hz", None):
         return np.asarray(sensor.freq_hz, float), "the twin scene's sensor block (the session records none)"
@@ -128,6 +132,49 @@ def _highpass_on_phasor(sf: np.ndarray) -> np.ndarray:
     it (phase, i.e. depth), real part along it (amplitude)."""
     nb = 0.25 * (np.roll(sf, 1, 0) + np.roll(sf, -1, 0) + np.roll(sf, 1, 1) + np.roll(sf, -1, 1))
     return (sf - nb) * np.conj(_unit(sf))
+
+
+def value_quantum(x: np.ndarray, max_values: int = 100_000) -> float:
+    """The recorded unit of ``x``: the smallest step between its distinct finite values (1 mm
+    for depth stored in millimetres, 1 for integer amplitudes), about 0 for continuous data."""
+    v = np.asarray(x, np.float64).ravel()
+    v = v[np.isfinite(v) & (v != 0)]
+    if v.size > max_values:
+        v = v[:: v.size // max_values + 1]
+    u = np.unique(v)
+    if u.size < 2:
+        return 0.0
+    steps = np.diff(u)
+    # rounding of float32 storage leaves steps of ~1e-7 of the value beside the true unit
+    steps = steps[steps > 1e-6 * float(np.max(np.abs(u)))]
+    return float(steps.min()) if steps.size else 0.0
+
+
+def recorded_quanta(session: Session, frames: int) -> tuple[float, float]:
+    """The recorded units of the session's radial distance (m) and amplitude, from its first frames."""
+    d = [np.asarray(session.depth_frame(i).radial_m) for i in range(frames)]
+    a = [np.asarray(session.depth_frame(i).amplitude) for i in range(frames)]
+    return min(value_quantum(x) for x in d), min(value_quantum(x) for x in a)
+
+
+def temporal_noise_present(s_all: np.ndarray, usable: np.ndarray, freq_hz: np.ndarray, q_depth: float) -> bool:
+    """Whether the frames scatter about their mean by more than the recorded depth unit's
+    quantisation (``q^2 / 12``) at the median usable pixel: frames of a camera that filters over
+    time, or of an emulation without noise, do not, and their scatter is no noise estimate."""
+    if not usable.any():
+        return True
+    phase = np.angle(s_all[:, 0] * np.conj(s_all.mean(axis=0)[0])[None])
+    d_var = np.var(phase[:, usable], axis=0, ddof=1) * (C_M_PER_S / (4 * np.pi * float(freq_hz[0]))) ** 2
+    return bool(np.median(d_var) > max(q_depth ** 2 / 12.0, 1e-30))
+
+
+def quantisation_variance(s: np.ndarray, usable: np.ndarray, freq_hz: np.ndarray, q_depth: float,
+                          q_amp: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frequency tangential and radial variance of the phasor that the recorded units'
+    rounding alone gives (``q^2 / 12`` of depth and of amplitude) at the median amplitude."""
+    amp = np.array([float(np.median(np.abs(sf[usable]))) if usable.any() else 0.0 for sf in s])
+    k = 4 * np.pi * np.asarray(freq_hz, float) / C_M_PER_S
+    return (amp * k) ** 2 * q_depth ** 2 / 12.0, np.full(amp.shape, q_amp ** 2 / 12.0)
 
 
 def _robust_noise_variance(hp: np.ndarray) -> float:
@@ -281,6 +328,12 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
     s_all = np.stack(frames_s)            # [N, F, H, W]
     usable = np.logical_and.reduce(frames_ok)
     bcam = binned_camera(cam, b)
+    q_depth, q_amp = recorded_quanta(session, min(n, 2))
+    frozen = n >= 2 and not temporal_noise_present(s_all, usable, freq_hz, q_depth)
+    if frozen:
+        # Frames without temporal scatter (an emulation, or a camera that filters over time)
+        # are one measurement n times: their noise is the local spatial scatter of one frame.
+        s_all, n = s_all.mean(axis=0)[None], 1
     if n >= 2:
         train_idx, test_idx = np.arange(0, n, 2), np.arange(1, n, 2)
         mean_all = s_all.mean(axis=0)
@@ -303,6 +356,9 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
         s_train = s_test = s_all[0]
         ref = _unit(s_all[0])
         var_t, var_r = spatial_noise_variance(s_all[0], usable)
+        # never below what the recorded units can resolve (a smooth plane's high-pass can be 0)
+        floor_t, floor_r = quantisation_variance(s_all[0], usable, freq_hz, q_depth, q_amp)
+        var_t, var_r = np.maximum(var_t, floor_t), np.maximum(var_r, floor_r)
         var_train = var_test = np.broadcast_to(var_t[:, None, None], s_train.shape).copy()
         radial_scale = np.broadcast_to((var_r / var_t)[:, None, None], s_train.shape).copy()
         conf_note = ("; depth noise taken as 1/amplitude (shot-noise limited: the phasor's scatter the same "
@@ -318,8 +374,11 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
         amp_med = [max(float(np.median(np.abs(s_all[0][k][usable]))), 1e-30) for k in range(freq_hz.size)]
         sigma_mm = [1e3 * float(phasor_depth_sigma(v, amp_med[k], freq_hz[k])) for k, v in enumerate(var_t)]
         sigma_a = [100 * math.sqrt(v) / amp_med[k] for k, v in enumerate(var_r)]
-        noise = ("local spatial scatter of one frame (1.4826 MAD of the phasor's high-pass, across and along "
-                 "the phasor): depth noise " + ", ".join(f"{x:.2f} mm" for x in sigma_mm)
+        noise = (("the frames carry no temporal scatter (all equal within the recorded depth unit "
+                  f"{q_depth * 1e3:.3g} mm): their mean taken as one frame; " if frozen else "")
+                 + "local spatial scatter of one frame (1.4826 MAD of the phasor's high-pass, across and along "
+                 "the phasor, at least the recorded units' quantisation: depth "
+                 f"{q_depth * 1e3:.3g} mm / sqrt(12), amplitude {q_amp:.3g} / sqrt(12)): depth noise " + ", ".join(f"{x:.2f} mm" for x in sigma_mm)
                  + " and amplitude scatter " + ", ".join(f"{x:.1f}%" for x in sigma_a)
                  + " at the median amplitude" + conf_note)
         n_train = n_test = 1

@@ -87,6 +87,12 @@ class HeldOutData:
         return self.var_train * self.n_train_frames
 
     @property
+    def differential_taps(self) -> bool:
+        """The device's taps are signed differences (its ADC clips below zero, as the TOFcam635's
+        DCS about their mid-scale): no common-mode offset is in them."""
+        return self.tap_limits.low_dn is not None and self.tap_limits.low_dn < 0
+
+    @property
     def n_freq(self) -> int:
         return int(self.freq_hz.size)
 

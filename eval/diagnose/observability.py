@@ -106,11 +106,21 @@ def assess(selection: Selection, model: Any, data: HeldOutData, *, block_px: int
     return obs
 
 
-def shape_ambiguities(causes: list[str]) -> list[dict[str, Any]]:
-    """For a scene whose planes were fitted to the same depth: each named cause a surface
-    shape the planes lack would look the same as (the data hold no second view to tell)."""
+#: The capture that separates a pixel-fixed pattern from a surface shape, as data a program can
+#: act on (the closed loop takes it): a bench change of the camera's pose.
+SHAPE_SEPARATING_CAPTURE = {"kind": "bench_change", "change": "camera_pose",
+                            "options": ["roll the camera 90 degrees", "move the camera sideways",
+                                        "a known flat target (--target)"]}
+
+
+def shape_ambiguities(causes: list[str], *, geometry_from_depth: bool = True) -> list[dict[str, Any]]:
+    """Each named cause that is a pattern fixed to the pixels: from one pose a surface shape
+    the twin lacks looks the same (the data hold no second view to tell); said for every
+    session, since one view cannot separate a sensor pattern from a scene surface."""
+    why = ("the planes were fitted to the same depth" if geometry_from_depth
+           else "one view of the scene cannot tell a pattern of the pixels from a surface the twin places differently")
     return [{"round": None, "effects": [c, "surface shape"], "score_difference": None, "standard_error": None,
-             "text": (f"{c} or a surface shape the twin's planes lack, this capture cannot tell them apart: the "
-                      f"planes were fitted to the same depth, and {MIMICKED_BY_SHAPE[c]}; a capture that would: "
-                      f"{SHAPE_SEPARATING}")}
+             "separating_capture": SHAPE_SEPARATING_CAPTURE,
+             "text": (f"{c} or a surface shape the twin lacks, this capture cannot tell them apart: {why}, and "
+                      f"{MIMICKED_BY_SHAPE[c]}; a capture that would: {SHAPE_SEPARATING}")}
             for c in causes if c in MIMICKED_BY_SHAPE]

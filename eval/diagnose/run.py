@@ -27,10 +27,13 @@ from tofhil.eval.metrics import core as M
 from tofhil.eval.diagnose.channels import prediction_readings, residual_by_channel, sensor_noise_variance
 from tofhil.eval.diagnose.leftover import what_is_left
 from tofhil.eval.diagnose.depth_heldout import observable_candidates, split_for_diagnosis
+from tofhil.eval.diagnose.geometry import GeometryEvidence, geometry_evidence
 from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal
 from tofhil.eval.diagnose.linear_forms import MAP_EFFECT, fit_frame_drift
 from tofhil.eval.diagnose.observability import Observability, assess, shape_ambiguities
 from tofhil.eval.diagnose.selection import Selection, greedy_select
+from tofhil.eval.diagnose.signal_scale import (SignalScale, fit_signal_scale, needs_scale, scaled_scene,
+                                               without_fixed_pattern)
 from tofhil.eval.diagnose.twin_model import TwinModel, to_effect_values
 from tofhil.eval.diagnose import verdict as V
 from tofhil.frames import DepthFrame
@@ -85,6 +88,14 @@ class DiagnosisResult:
     #: What the fit leaves, said as a signature (``eval/diagnose/leftover.py``); None when
     #: the verdict leaves nothing to say.
     left: str | None = None
+    #: The twin's signal scale: fitted where the session does not state the chain that made it
+    #: (``eval/diagnose/signal_scale.py``).
+    signal_scale: SignalScale = field(default_factory=SignalScale)
+    #: Where the twin's camera and sensor settings came from (``sim/session_setup.py``).
+    setup_note: str = ""
+    #: Whether the residual left is organised by the scene's objects and edges, the test behind
+    #: "the scene does not match" (``eval/diagnose/geometry.py``); None: too few pixels.
+    geometry: GeometryEvidence | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict.to_json() if self.verdict else None, "channels": self.channels,
@@ -101,7 +112,9 @@ class DiagnosisResult:
                 "observability": self.observability.to_json(), "residual_structure": self.structure,
                 "drift": self.drift, "effect_size": self.effect_size, "identifiability": self.identifiability,
                 "alternatives": self.alternatives, "defects": self.defects, "residual_by_channel": self.channel_table,
-                "left": self.left}
+                "left": self.left, "signal_scale": self.signal_scale.to_json(),
+                "geometry": self.geometry.to_json() if self.geometry is not None else None,
+                "twin_setup": self.setup_note}
         # (the run time is in the report, not here: the same inputs give the same file, bit for bit)
 
 
@@ -226,8 +239,10 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
     for i, rnd in enumerate(selection.rounds):
         for c in rnd:
             if c.worse_channels and c.delta_score > 0:
-                lines.append(f"round {i + 1}: {c.effect} lowers the held-out score but makes "
-                             f"{', '.join(c.worse_channels)} worse beyond its noise -- not accepted")
+                chosen = i < len(selection.causes) and selection.causes[i] == c.effect
+                lines.append(f"round {i + 1}: {c.effect} lowers the held-out score and makes "
+                             f"{', '.join(c.worse_channels)} worse beyond its noise"
+                             + (" -- selected: the explanation is partial there" if chosen else " (accounted)"))
     for e, names in selection.at_bounds.items():
         if names:
             lines.append(f"{e}: {', '.join(names)} fitted at the bound of the range searched")
@@ -309,7 +324,9 @@ class _ExtendedScene:
             reloaded = load_scene(self.path)
         else:
             reloaded = scene_from_yaml(extended_text)
-        after_model = TwinModel(reloaded, self.data, render_kwargs=self.render_kwargs, renders_from=self.model)
+        # the reloaded scene is predicted with the base twin's sensor (its signal scale)
+        after_model = TwinModel(reloaded, self.data, render_kwargs=self.render_kwargs, renders_from=self.model,
+                                sensor=self.model.scene.sensor)
         return after_model, after_model.predict({})
 
 
@@ -322,17 +339,34 @@ class _Judge:
         self.nu = V.noise_dof(data)
         self.n = max(data.n_values("test"), 1)
         self.objects_before = V.object_misfits(data, base_pred, self.nu, object_id, object_names)
+        self.geometry: GeometryEvidence | None = None
+
+    def organised_by_geometry(self, prediction: np.ndarray) -> GeometryEvidence | None:
+        """Whether the held-out depth residual left by ``prediction`` is organised by the scene's
+        objects and edges (:mod:`tofhil.eval.diagnose.geometry`)."""
+        from tofhil.eval.diagnose import structure as DS
+
+        data = self.data
+        nf = data.n_freq
+        d_meas = depth_from_signal(data.s_test[:nf], data.freq_hz)
+        residual = M.wrapped_difference(d_meas, depth_from_signal(prediction[:nf], data.freq_hz),
+                                        data.unambiguous_range_m)
+        sigma_depth, _ = V.channel_sigmas(data)
+        pixels = data.test_pixels & distance_defined(data, prediction)
+        edges = DS.edge_mask(d_meas, data.usable, self.object_id)
+        return geometry_evidence(residual, sigma_depth, pixels, self.object_id, self.object_names, edges, V.ALPHA)
 
     def __call__(self, after_pred: np.ndarray, causes: list[str]) -> tuple[V.Verdict, dict, dict, list[str]]:
         data, selection = self.data, self.selection
         ch_after = V.channel_chi2(data, after_pred)
         worse = V.worse_channels(selection.channels_before, ch_after)
         objects_after = V.object_misfits(data, after_pred, self.nu, self.object_id, self.object_names)
+        self.geometry = self.organised_by_geometry(after_pred)
         v = V.verdict(searched=selection.searched, causes=causes, n_values=self.n, nu=self.nu,
                       before_per_value=selection.baseline_chi2_test / self.n,
                       after_per_value=data.chi2(after_pred, "test") / self.n, worse=worse,
                       objects_before=self.objects_before, objects_after=objects_after, pinned=selection.at_bounds,
-                      rejected_for_channels=selection.rejected_for_channels)
+                      rejected_for_channels=selection.rejected_for_channels, geometry=self.geometry)
         return v, ch_after, objects_after, worse
 
 
@@ -504,8 +538,18 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         raise TofhilError("too few usable pixels (signal above noise, not saturated) to diagnose",
                           file=session_path, field="raw/taps")
     model = TwinModel(scene, data, render_kwargs=render_kwargs)
+    scale = SignalScale()
+    why_scale = needs_scale(getattr(scene, "sensor", None), data.sensor_config)
+    if why_scale:
+        device = model.scene if data.sensor_config is not None else without_fixed_pattern(model.scene)
+        if device is not model.scene:
+            model = TwinModel(scene, data, render_kwargs=render_kwargs, renders_from=model, sensor=device.sensor)
+        scale = fit_signal_scale(data, model.predict({}), why_scale)
+        model = TwinModel(scene, data, render_kwargs=render_kwargs, renders_from=model,
+                          sensor=scaled_scene(device, scale).sensor)
     if progress:
         progress(model.setup.note)
+        progress(scale.text())
     base_pred = model.predict({})
     if candidates is None or "pose" in candidates:
         if progress:
@@ -514,16 +558,9 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     sizes = V.EffectSize(data)
     selection = greedy_select(model, data, candidates=candidates, max_effects=max_effects,
                               min_relative_gain=min_relative_gain, progress=progress, effect_size=sizes)
+    # a cause that puts a part into a channel the base twin had clean is accounted, not unnamed:
+    # the explanation is partial there
     moved = _moved_clean_channels(model, data, selection, base_pred)
-    for c, texts in moved.items():
-        selection.too_small[c] = (f"{c}: moves a channel where the residual had nothing beyond noise ("
-                                  + "; ".join(texts) + ")")
-        selection.causes = [e for e in selection.causes if e != c]
-        selection.params.pop(c, None)
-    if moved:  # the figures of what is still named
-        pred = model.predict(selection.params)
-        selection.final_chi2_test = data.chi2(pred, "test")
-        selection.channels_after = V.channel_chi2(data, pred)
     ext_path = Path(extended_scene_path) if extended_scene_path else None
     extend = _ExtendedScene(model, data, ext_path, render_kwargs)
     after_model, after_pred = extend(selection.params)
@@ -540,6 +577,10 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     evidence.extend(selection.not_tried.values())
     verdict, ch_after, objects_after, worse, after_model, after_pred = _settle(
         selection, data, sizes, judge, extend, base_pred, after_pred, after_model, max_effects)
+    for c, texts in moved.items():
+        if c in selection.causes:
+            verdict.notes.append(f"{c} moves a channel where the base twin's residual had nothing beyond noise ("
+                                 + "; ".join(texts) + "): the explanation is partial there")
     drift = fit_frame_drift(model, data, selection.params, float(np.log(n))) if want_drift else None
     if drift is not None and drift.named and selection.causes:
         alone = _drift_alone(model, data, selection, drift, float(np.log(n)))
@@ -561,8 +602,11 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     if MAP_EFFECT in params:
         params[MAP_EFFECT] = {"file": OFFSET_MAP_FILE if extend.map_path is not None else None} | params[MAP_EFFECT]
     observability = assess(selection, model, data, block_px=block_px, unobservable=unobservable)
-    if facts.geometry_from_depth:
-        observability.ambiguous += shape_ambiguities(list(selection.causes))
+    observability.ambiguous += shape_ambiguities(list(selection.causes),
+                                                 geometry_from_depth=bool(facts.geometry_from_depth))
+    for a in observability.ambiguous:
+        if a["round"] is None:  # a pattern of the pixels or a surface: said in the verdict too
+            verdict.notes.append(a["text"])
 
     # A predicted pixel is compared where its signal is above the noise and no predicted tap
     # reaches the device's clip levels (compare applies the same rule to a twin session).
@@ -607,7 +651,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     return DiagnosisResult(cause=selection.causes[0] if selection.causes else None, causes=list(selection.causes),
                            ranked=ranked, rounds=rounds, gain=gain, regions=regions,
                            extended_scene=str(ext_path) if ext_path else "", params=params,
-                           evidence=[f"data: {data.channels}; noise: {data.noise}"] + evidence + observability.lines,
+                           evidence=[f"data: {data.channels}; noise: {data.noise}", model.setup.note, scale.text()]
+                           + evidence + observability.lines,
                            chi2_per_value={"before": selection.baseline_chi2_test / n,
                                            "after_fit": selection.final_chi2_test / n,
                                            "after_extended_scene": data.chi2(after_pred, "test") / n},
@@ -627,7 +672,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                            alternatives={e: [a.to_json() for a in selection.alternatives[e]]
                                          for e in selection.causes if e in selection.alternatives},
                            defects=data.defects.to_json() if data.defects is not None else {},
-                           channel_table=table, left=left)
+                           channel_table=table, left=left, signal_scale=scale, setup_note=model.setup.note,
+                           geometry=judge.geometry)
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,

@@ -8,9 +8,9 @@ training data; the fit is scored on held-out data with a BIC-like penalty:
 
 (k the number of fitted parameters, n the number of held-out real values). Effects are added
 one at a time, the best first, while the held-out score improves by more than the penalty
-and by a stated fraction of the current misfit, and only if no channel (depth, amplitude,
-offset: ``verdict.channel_chi2``) gets worse by more than its noise: a fit that trades one
-channel for another is not a gain. ``k`` is an effect's effective number of degrees of freedom
+and by a stated fraction of the current misfit. The change of every channel (depth,
+amplitude, offset: ``verdict.channel_chi2``) is accounted and reported; a channel that rises
+means the explanation is partial, never that a form which lowers the total is rejected. ``k`` is an effect's effective number of degrees of freedom
 (``EffectSpec.dof``; its parameter count unless a regularised flexible form says less).
 An effect with a ``closed_form`` fit (a map: many values, linear in the residual) is fitted
 by it instead of the optimiser, and its ``k`` is the effective degrees of freedom that fit
@@ -418,12 +418,12 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     of the current held-out misfit in excess of noise (chi2 - n), and at least
     ``min_gain_per_value`` per held-out value (chi2 is about 1 per value for pure noise):
     margins against chasing Monte Carlo noise or tiny model differences that no bench user
-    would call a cause; and no channel gets worse beyond its noise. The best-scoring
-    significant effect of a round is added.
+    would call a cause. The best-scoring significant effect of a round is added. A channel
+    that gets worse beyond its noise is recorded on the candidate (``worse_channels``) and
+    reported: it means the explanation is partial, not that the form is wrong.
 
     With ``effect_size`` an effect must also be worth naming in the channels' own units: its
-    held-out RMSE gain reaches the minimum of some channel and no channel's RMSE gets worse,
-    neither against the current model nor against the base twin
+    held-out RMSE gain reaches the minimum of some channel
     (:meth:`tofhil.eval.diagnose.verdict.EffectSize.worth_naming`).
     """
     search = _GreedySearch(model, data, max_effects=max_effects, min_relative_gain=min_relative_gain,
@@ -592,9 +592,11 @@ class _GreedySearch:
                      and gain > self.min_gain_per_value * self.n_test)
         rmse: dict[str, ChannelGain] = {}
         worth = True
-        if self.effect_size is not None and gains and not worse:
-            rmse, worth = self.effect_size.names(self.current_pred, pred, self.base_pred)
-        significant = gains and not worse and worth
+        if self.effect_size is not None and gains:
+            rmse, worth = self.effect_size.names(self.current_pred, pred)
+        # a channel that rose is accounted (the explanation is partial there), never a veto:
+        # the total held-out score decides
+        significant = gains and worth
         cand = Candidate(effect=name, params=fitted[name], chi2_train=chi2_train, chi2_test=chi2_test,
                          score=score, delta_score=current_score - score,
                          relative_gain=gain / self.current_chi2 if self.current_chi2 > 0 else 0.0,
@@ -659,9 +661,8 @@ class _GreedySearch:
         joint_ok = True
         if self.effect_size is not None:
             # the joint refit keeps what made the round's cause worth naming
-            _, joint_ok = self.effect_size.names(before_pred, joint_pred, self.base_pred)
-        if (joint_chi2 < self.current_chi2 and joint_ok and not worse_channels(before_round, joint_channels)
-                and not worse_channels(self.selection.channels_before, joint_channels)):
+            _, joint_ok = self.effect_size.names(before_pred, joint_pred)
+        if joint_chi2 < self.current_chi2 and joint_ok:
             self.params, self.current_chi2, self.current_channels, self.current_pred = (
                 joint, joint_chi2, joint_channels, joint_pred)
 
@@ -690,9 +691,7 @@ class _GreedySearch:
             chi2 = data.chi2(pred, "test")
             channels = channel_chi2(data, pred)
             k_others = sum(self.k_of(a) for a in self.active if a != e)
-            if (chi2 + (k_others + lib[e].k) * penalty <= self.current_chi2 + (k_others + self.k_of(e)) * penalty
-                    and not worse_channels(self.current_channels, channels)
-                    and not worse_channels(selection.channels_before, channels)):
+            if chi2 + (k_others + lib[e].k) * penalty <= self.current_chi2 + (k_others + self.k_of(e)) * penalty:
                 work[e], self.dofs[e] = lib[e], lib[e].k
                 selection.forms[e] = ""
                 selection.priors.pop(e, None)

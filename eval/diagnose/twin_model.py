@@ -138,15 +138,19 @@ class TwinModel:
     (a :class:`~tofhil.eval.diagnose.selection.ForwardModel`)."""
 
     def __init__(self, scene: Any, data: HeldOutData, *, render_kwargs: Mapping[str, Any] | None = None,
-                 cache_size: int = 8, renders_from: "TwinModel | None" = None) -> None:
+                 cache_size: int = 8, renders_from: "TwinModel | None" = None, sensor: Any = None) -> None:
         """``renders_from``: a model of the same scene whose renders to share (the extended
         scene of a diagnosis renders what the base twin already rendered, unless a
-        scene-stage effect was fitted)."""
+        scene-stage effect was fitted). ``sensor``: the sensor to predict with instead of the
+        session's (a diagnosis's twin with its signal scale fitted, :mod:`signal_scale`)."""
         from tofhil.sim.sensor import waveform_from_scene
         from tofhil.sim.twin import Twin
 
         self.setup = session_setup_for(scene, data)
         self.scene = session_scene(scene, data)
+        if sensor is not None:
+            self.scene = dataclasses.replace(self.scene, sensor=sensor)
+            self.setup = dataclasses.replace(self.setup, sensor=sensor)
         self.data = data
         kwargs = dict(render_kwargs or {})
         if "harmonics" not in kwargs:
@@ -156,6 +160,7 @@ class TwinModel:
             kwargs["harmonics"] = tuple(sorted(set(waveform_from_scene(scene)) | {1, 3}))
         self.twin = Twin(self.scene, render_kwargs=kwargs, cache_size=cache_size,
                          cache=renders_from.twin.cache if renders_from is not None else None)
+        self.twin.differential_readout = bool(getattr(data, "differential_taps", False))
         self.extra_starts: dict[str, list[dict[str, float]]] = {}
         self.evaluations = 0
 

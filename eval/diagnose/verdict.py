@@ -325,23 +325,19 @@ def excess_removed(before: float, after: float, noise: float) -> float | None:
     return float((before - after) / excess)
 
 
-#: "Far above noise": a misfit per value this many times the noise threshold. Below it a
-#: missing effect of the library is a plausible cause; far above it, with no effect of the
-#: library removing most of it cleanly, the scene itself is the suspect.
-FAR_FACTOR = 10.0
-
-
 def verdict(*, searched: bool, causes: Sequence[str], n_values: int, nu: float, before_per_value: float,
             after_per_value: float, worse: Sequence[str], objects_before: Mapping[str, Mapping[str, Any]],
             objects_after: Mapping[str, Mapping[str, Any]], pinned: Mapping[str, Sequence[str]],
-            rejected_for_channels: Sequence[str]) -> Verdict:
+            rejected_for_channels: Sequence[str], geometry: Any = None) -> Verdict:
     """The verdict from the held-out figures (see the module doc for each test).
 
-    The scene does not match the capture when the base twin's misfit is far above noise
-    (:data:`FAR_FACTOR` times the threshold) and what the search found cannot be a cause:
-    nothing accepted while effects that lowered the total misfit made a channel worse, an
-    accepted effect pinned at a bound of the range searched while the fit still misses (misfit
-    after it above the threshold), or less than half of the excess removed.
+    The scene does not match the capture only when the geometry is wrong: the residual left by
+    the best model is organised by the scene's objects and edges (``geometry``,
+    :func:`tofhil.eval.diagnose.geometry.geometry_evidence`) and what the search found cannot
+    be its cause: nothing named, an effect pinned at a bound of the range searched while the fit
+    still misses, or less than half of the excess removed. A global or per-channel factor, a
+    smooth field or a channel that rose is never a scene mismatch (``rejected_for_channels``
+    is accounted in the notes, not a veto).
     """
     thr = noise_threshold(n_values, nu)
     noise = noise_mean(nu)
@@ -355,27 +351,23 @@ def verdict(*, searched: bool, causes: Sequence[str], n_values: int, nu: float, 
                        f"{before_per_value:.3f} per value, {state})", thr, None)
     disagree_before = sorted(k for k, v in objects_before.items() if v["above_noise"])
     disagree = sorted(k for k, v in objects_after.items() if v["above_noise"])
-    far = before_per_value > FAR_FACTOR * thr
     # A parameter at the bound of its range is a sign of a wrong scene only while the fit still
     # misses: a flexible form (a spline knot) may sit at its bound and explain the data to noise.
     pinned_any = any(pinned.get(c) for c in causes) and after_per_value > thr
     little = removed is None or removed < 0.5
-    if far and ((not causes and rejected_for_channels) or pinned_any or little):
-        why = []
+    geometric = bool(getattr(geometry, "organised", False))
+    if geometric and (not causes or pinned_any or little):
+        why = [geometry.text()]
         if pinned_any:
             why.append("fitted " + ", ".join(f"{c} ({', '.join(pinned[c])})" for c in causes if pinned.get(c))
                        + " pinned at the bounds of the range searched")
-        if rejected_for_channels and not causes:
-            why.append("effects that lowered the total misfit made a channel worse: "
-                       + ", ".join(rejected_for_channels))
         if little:
             why.append(f"{0 if removed is None else max(removed, 0) * 100:.0f} % of the excess removed")
         return Verdict("scene does not match",
-                       f"the scene does not match the capture: the base twin is far from it (misfit "
-                       f"{before_per_value:.2f} per value, more than {FAR_FACTOR:g} x the {state}) and no effect "
-                       f"of the library removes that cleanly; objects that disagree: "
-                       f"{', '.join(disagree_before) or 'none as a whole'} (see the residual regions); "
-                       "no effect is named", thr, removed, list(worse), disagree_before, why)
+                       f"the scene does not match the capture: the residual (misfit {before_per_value:.2f} per value, "
+                       f"{state}) is organised by the scene's objects and edges, and no effect of the library "
+                       f"removes it; objects that disagree: {', '.join(disagree_before) or 'none as a whole'} (see "
+                       "the residual regions); no effect is named", thr, removed, list(worse), disagree_before, why)
     if not causes:
         return Verdict("unexplained", f"no effect of the library explains a significant part of the held-out "
                        f"residual (misfit {before_per_value:.2f} per value, {state}); see the residual regions",
@@ -544,15 +536,15 @@ class EffectSize:
 
     @staticmethod
     def worth_naming(gains: Mapping[str, ChannelGain]) -> bool:
-        """Some channel gains its minimum and none is worse."""
-        return any(g.enough for g in gains.values()) and not any(g.worse for g in gains.values())
+        """Some channel gains its minimum (a channel made worse is accounted by the caller,
+        never a veto: it means the explanation is partial)."""
+        return any(g.enough for g in gains.values())
 
-    def names(self, reference: np.ndarray, after: np.ndarray, base: np.ndarray) -> tuple[dict[str, ChannelGain], bool]:
+    def names(self, reference: np.ndarray, after: np.ndarray) -> tuple[dict[str, ChannelGain], bool]:
         """The gains of ``after`` over ``reference`` (the model it extends), and whether they
-        are worth naming with no channel worse than the ``base`` twin either."""
+        are worth naming."""
         gains = self.compare(reference, after)
-        return gains, (self.worth_naming(gains)
-                       and not any(g.worse for g in self.compare(base, after).values()))
+        return gains, self.worth_naming(gains)
 
     @staticmethod
     def describe(gains: Mapping[str, ChannelGain]) -> str:
@@ -560,6 +552,6 @@ class EffectSize:
 
     @staticmethod
     def why_not(gains: Mapping[str, ChannelGain]) -> str:
-        """Why gains that are not worth naming are not: a channel worse, or too small."""
+        """Why gains that are not worth naming are not: too small (and which channels rose)."""
         worse = [c for c, g in gains.items() if g.worse]
-        return f"makes {' and '.join(worse)} worse" if worse else "too small"
+        return "too small" + (f" (and makes {' and '.join(worse)} worse)" if worse else "")

@@ -162,14 +162,16 @@ def test_a_940nm_preset_scene_is_diagnosed_at_940nm(tmp_path) -> None:
     res = diagnose(path, scene, max_effects=1, candidates=["reflectance", "ambient"])
     assert "reflectance" not in res.causes, res.params
     assert res.chi2_per_value["before"] < 1.5     # the twin matches its own session within the noise
+    assert not res.signal_scale.fitted  # the session records the sensor that made it
     # Control: the same session re-rendered at 850 nm (what diagnosis did before) is 10 % off
-    # in brightness, and diagnosis names reflectance x 940/850 -- so the check above can fail.
+    # in brightness -- so the check above can fail. Without its recorded sensor the session is a
+    # device capture: the brightness is the device's unknown signal scale, fitted and stated.
     with h5py.File(path, "a") as f:
         del f.attrs["sensor_config"]
     wrong = dataclasses.replace(scene, sensor=dataclasses.replace(scene.sensor, wavelength_m=850e-9))
     bad = diagnose(path, wrong, max_effects=1, candidates=["reflectance", "ambient"])
-    assert bad.causes == ["reflectance"]
-    assert bad.params["reflectance"]["scale"] == pytest.approx(940 / 850, rel=0.02)
+    assert bad.signal_scale.fitted and bad.causes == []
+    assert bad.signal_scale.factor == pytest.approx(940 / 850, rel=0.02)
     assert math.isfinite(res.chi2_per_value["after_extended_scene"])
 
 
