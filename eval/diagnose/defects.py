@@ -31,6 +31,9 @@ from tofhil.eval.metrics.noise import MAD_TO_SIGMA
 #: below 1e-12 for N = 4, K F = 4.
 NOISY_RATIO = 16.0
 STUCK_RATIO = 1.0 / 25.0
+#: A stuck or hot pixel differs from its neighbours: at most this many of its 8 may do the
+#: same (a dead or hot pair is found; a saturated region or a moving target's edge is not).
+MAX_ALIKE_NEIGHBOURS = 2
 #: Below this predicted temporal spread (DN) a pixel whose taps repeat may just be quantised.
 MIN_SPREAD_FOR_STUCK_DN = 0.5
 #: An off-model tap residual or a spatial deviation this many robust standard deviations
@@ -57,6 +60,13 @@ class Defects:
     kinds: dict[str, np.ndarray] = field(default_factory=dict)
     #: How each kind was tested (what the data allowed: e.g. no stuck test on one frame).
     notes: list[str] = field(default_factory=list)
+    #: Saturated or clipped pixels: a class of their own, not a defect (the pixel works; its
+    #: light exceeds its range). Left out of the fit by the usable mask, never counted here.
+    saturated: np.ndarray = field(default=None)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.saturated is None:
+            self.saturated = np.zeros(self.shape, bool)
 
     @property
     def mask(self) -> np.ndarray:
@@ -71,21 +81,32 @@ class Defects:
 
     def text(self) -> str:
         n, total = self.count, int(np.prod(self.shape))
+        sat = int(self.saturated.sum())
+        said = (f"; {sat} saturated or clipped (not defects: their light exceeds the range)" if sat else "")
         if n == 0:
-            return "no defective pixels found"
+            return "no defective pixels found" + said
         parts = [f"{int(m.sum())} {KINDS[k].split(' (')[0]}" for k, m in self.kinds.items() if m.any()]
         return (f"{n} pixel{'s' if n != 1 else ''} ({100.0 * n / total:.2g} %) defective: " + ", ".join(parts)
-                + "; excluded from the fit and the held-out figures")
+                + "; excluded from the fit and the held-out figures" + said)
 
     def to_json(self) -> dict[str, Any]:
         total = int(np.prod(self.shape))
         return {"pixels": self.count, "fraction": self.count / total if total else 0.0,
                 "kinds": {k: {"pixels": int(m.sum()), "what": KINDS[k]} for k, m in self.kinds.items()},
+                "saturated_pixels": int(self.saturated.sum()),
                 "text": self.text(), "notes": list(self.notes)}
 
 
 def _local_median(img: np.ndarray, size: int = NEIGHBOURHOOD_PX) -> np.ndarray:
     return ndimage.median_filter(img, size=size, mode="nearest")
+
+
+def _neighbours(img: np.ndarray) -> np.ndarray:
+    """The 8 neighbours of every pixel ``[8, H, W]`` (mirrored at the border)."""
+    h, w = img.shape
+    padded = np.pad(img, 1, mode="reflect")
+    return np.stack([padded[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
+                     for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx])
 
 
 def _robust_line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
@@ -135,10 +156,25 @@ def raw_defects(taps: np.ndarray, theta_rad: np.ndarray, clipped: np.ndarray | N
         fit = ~clipped if (~clipped).sum() >= 100 else np.ones((h, w), bool)
         a, b = _robust_line(level[fit], var[fit])
         predicted = a + b * level
-        d.kinds["noisy"] = var > NOISY_RATIO * np.maximum(predicted, 1e-12)
+        # A defect is a pixel unlike its neighbours: a moving target or flicker changes whole
+        # regions from frame to frame, saturation holds whole regions still; neither is a pixel
+        # that fails. So each temporal test also compares with the neighbourhood's median.
+        # A defect is a pixel unlike its neighbours: a moving target or flicker changes whole
+        # regions from frame to frame (and lifts the level-to-variance line), saturation holds
+        # whole regions still; neither is a pixel that fails. The reference of each temporal
+        # test is therefore its neighbours' variance, ranked so that up to
+        # MAX_ALIKE_NEIGHBOURS of the 8 may share the pixel's fate (a dead pair is still found).
+        ranked = np.sort(_neighbours(var), axis=0)                                 # [8, H, W]
+        quiet_ref = ranked[-1 - MAX_ALIKE_NEIGHBOURS]   # most neighbours at or below this
+        busy_ref = ranked[MAX_ALIKE_NEIGHBOURS]         # most neighbours at or above this
+        d.kinds["noisy"] = var > NOISY_RATIO * np.maximum(np.maximum(np.minimum(quiet_ref, predicted), a), 1e-12)
         if float(np.median(predicted)) > MIN_SPREAD_FOR_STUCK_DN ** 2:
             spread = taps.std(axis=0, ddof=1).max(axis=(0, 1))    # every tap must hold still
-            d.kinds["stuck"] = spread ** 2 < STUCK_RATIO * predicted
+            still = spread ** 2 < STUCK_RATIO * predicted
+            d.kinds["stuck"] = still & (spread ** 2 < STUCK_RATIO * busy_ref)
+            # a region held still at the session's highest tap level is saturated: stated apart
+            top = float(np.max(taps))
+            d.saturated |= still & ~d.kinds["stuck"] & (mean.max(axis=(0, 1)) >= top - 0.5)
         else:
             d.notes.append(f"no stuck-pixel test: the noise predicted ({np.sqrt(np.median(predicted)):.2g} DN) "
                            "is below the quantisation that makes repeated taps likely")
@@ -163,6 +199,7 @@ def raw_defects(taps: np.ndarray, theta_rad: np.ndarray, clipped: np.ndarray | N
                 d.kinds[kind] &= ~d.kinds["stuck"]
     for kind in d.kinds:
         d.kinds[kind] &= ~clipped
+    d.saturated |= clipped
     return d
 
 

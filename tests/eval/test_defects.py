@@ -57,6 +57,34 @@ def test_clipped_pixels_are_saturation_not_stuck():
     assert d.count == 0
 
 
+@pytest.mark.parametrize("seed", [5, 6, 7])
+def test_saturation_the_clip_levels_do_not_declare_is_its_own_class_not_stuck(seed):
+    """A card saturated at the full well holds its taps still at the session's top level, over a
+    region: saturation, stated apart, never "stuck" (no clip level told: the test must see it)."""
+    rng = np.random.default_rng(seed)
+    taps = _taps(rng)
+    taps[:, :, :, 5:25, 50:75] = 3000.0  # charge pinned at the full well, below the ADC's top
+    d = raw_defects(taps, THETA)
+    assert d.count == 0, d.to_json()
+    assert d.saturated[5:25, 50:75].all() and "saturated" in d.text()
+
+
+@pytest.mark.parametrize("seed", [8, 9, 10])
+def test_a_moving_target_is_not_hot_pixels_and_isolated_defects_are_still_found(seed):
+    """A target moving between frames changes a whole region: not hot pixels; a hot and a stuck
+    pixel inside the same capture still are."""
+    rng = np.random.default_rng(seed)
+    taps = _taps(rng)
+    n = taps.shape[0]
+    for i in range(n):  # a bright target sliding 3 columns a frame through rows 40-55
+        taps[i, :, :, 42:56, 10 + 3 * i:30 + 3 * i] *= 1.8
+    taps[:, :, :, 5, 5] = rng.uniform(0, 1500, (1, 4))                        # stuck
+    taps[:, :, :, 50, 70] += 300.0 + rng.normal(0.0, 80.0, (n, 1, 4))        # hot
+    d = raw_defects(taps, THETA)
+    assert d.kinds["stuck"][5, 5] and d.mask[50, 70]
+    assert d.mask[42:56, 10:50].sum() <= 3, d.to_json()
+
+
 def test_depth_defects_zero_depths_outliers_and_flying_pixels():
     from tofhil.camera import CameraModel
 
