@@ -16,6 +16,7 @@ import pytest
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 ADI = REAL / "adi_tof"
 AZURE_KINECT_MKV = REAL / "azure_kinect" / "recording.mkv"
+IFM_O3R = REAL / "ifm_o3r" / "o3r_frame.h5"
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,9 @@ CAPTURES = {
     "office": CaptureSettings(ADI / "frame_mode2.bin", 30e6, 940e-9),
     # a mug, a table, a wall and a window up to ~2.5 m; 30 MHz: 5.0 m unambiguous
     "kinect": CaptureSettings(AZURE_KINECT_MKV, 30e6, 850e-9),
+    # one ifm O3R frame, 0.20-1.97 m (median 0.51 m); 60 MHz (the O3R's usual modes, README):
+    # 2.5 m unambiguous; the O3R's VCSELs are 940 nm
+    "o3r": CaptureSettings(IFM_O3R, 60e6, 940e-9),
 }
 
 

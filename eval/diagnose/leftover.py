@@ -13,6 +13,8 @@ from __future__ import annotations
 import math
 from typing import Any, Mapping, Sequence
 
+from tofhil.eval.diagnose.verdict import Kind
+
 #: The channels of :mod:`tofhil.eval.diagnose.channels`, as a sentence names them.
 CHANNEL_WORDS = {"tap": "tap", "frequency": "frequency", "offset": "offset", "frame": "frame", "noise": "noise"}
 
@@ -38,7 +40,7 @@ def what_is_left(channels_after: Mapping[str, Any], structure: Sequence[Mapping[
                  verdict_kind: str) -> str | None:
     """One sentence on the residual left by the fit, or None when the fit leaves nothing to
     say (within noise, explained, nothing searched)."""
-    if verdict_kind not in ("partly explained", "unexplained", "scene does not match"):
+    if not Kind(verdict_kind).leaves_a_residual:
         return None
     readings = channels_after.get("readings", [])
     significant = [r for r in readings if r.get("significant")]

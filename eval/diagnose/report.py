@@ -176,7 +176,7 @@ def headline(res: Any) -> str:
         return "Cause: " + (" + ".join(res.causes) if res.causes else "none")
     share = v.excess_removed
     text = f"Verdict: {v.kind}"
-    if share is not None and v.kind in ("explained", "partly explained"):
+    if share is not None and v.kind in (V.Kind.EXPLAINED, V.Kind.PARTLY_EXPLAINED):
         text += f", {100 * share:.0f} % of the held-out excess over noise explained"
     if res.causes:
         if share is not None and share < TENTATIVE_BELOW:
@@ -241,7 +241,7 @@ def write_report(res: Any, path: Path, *, session_path: str, scene_path: str, ca
              f"extended scene: {esc(res.extended_scene)}<br>tofhil {__version__}, {res.seconds:.1f} s</p>",
              f"<h2>{esc(headline(res))}</h2>"]
     if v is not None:
-        css = "warn" if v.kind in ("partly explained", "unexplained", "scene does not match") else "note"
+        css = "warn" if v.kind.leaves_a_residual else "note"
         parts.append(f"<p class='{css}'><b>Verdict: {esc(v.kind)}.</b> {esc(v.text)}</p>")
         if getattr(res, "left", None):
             parts.append(f"<p class='warn'><b>{esc(res.left)}</b></p>")

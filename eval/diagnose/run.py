@@ -334,8 +334,9 @@ class _Judge:
     """The verdict on a prediction of the held-out data, with its per-channel and per-object misfits."""
 
     def __init__(self, data: HeldOutData, selection: Selection, base_pred: np.ndarray, object_id: np.ndarray,
-                 object_names: dict[int, str]) -> None:
+                 object_names: dict[int, str], sizes: V.EffectSize | None = None) -> None:
         self.data, self.selection, self.object_id, self.object_names = data, selection, object_id, object_names
+        self.base_pred, self.sizes = base_pred, sizes
         self.nu = V.noise_dof(data)
         self.n = max(data.n_values("test"), 1)
         self.objects_before = V.object_misfits(data, base_pred, self.nu, object_id, object_names)
@@ -360,6 +361,10 @@ class _Judge:
         data, selection = self.data, self.selection
         ch_after = V.channel_chi2(data, after_pred)
         worse = V.worse_channels(selection.channels_before, ch_after)
+        if self.sizes is not None and causes:
+            # a channel whose RMSE gains a systematic part is worse in its own units too
+            worse = sorted(set(worse) | {c for c, g in self.sizes.compare(self.base_pred, after_pred).items()
+                                         if g.worse})
         objects_after = V.object_misfits(data, after_pred, self.nu, self.object_id, self.object_names)
         self.geometry = self.organised_by_geometry(after_pred)
         v = V.verdict(searched=selection.searched, causes=causes, n_values=self.n, nu=self.nu,
@@ -384,7 +389,7 @@ def _settle(selection: Selection, data: HeldOutData, sizes: V.EffectSize, judge:
         selection.causes, selection.params = [], {}
         after_model, after_pred = extend({})
         verdict, ch_after, objects_after, worse = judge(after_pred, [])
-    elif verdict.kind == "scene does not match" and selection.causes:
+    elif verdict.kind is V.Kind.SCENE_MISMATCH and selection.causes:
         # No effect is named on a scene that does not match: the extended scene is the base.
         # what the fitted set would have done, on the held-out pixels (a lower misfit can come
         # with a worse depth RMSE: the misfit weighs each pixel by its noise, the RMSE does not)
@@ -398,7 +403,7 @@ def _settle(selection: Selection, data: HeldOutData, sizes: V.EffectSize, judge:
         selection.causes, selection.params = [], {}
         after_model, after_pred = extend({})
         _, ch_after, objects_after, worse = judge(after_pred, [])
-    if verdict.kind == "partly explained" and len(selection.causes) >= max_effects:
+    if verdict.kind is V.Kind.PARTLY_EXPLAINED and len(selection.causes) >= max_effects:
         # The search stopped at its limit, not because nothing significant was left: the rest
         # may be a further effect (the emulated TOFcam635 hides three; with max_effects 2 its
         # clock-skew pattern was left out, or taken up by lens_distortion in older code).
@@ -450,7 +455,7 @@ def _with_drift(verdict: V.Verdict, drift: Any, judge: _Judge, evidence: list[st
     if drift is None:
         return verdict
     evidence.append(drift.text)
-    if drift.named and verdict.kind in ("within noise", "unexplained"):
+    if drift.named and verdict.kind in (V.Kind.WITHIN_NOISE, V.Kind.UNEXPLAINED):
         verdict = V.verdict(searched=True, causes=[DRIFT], n_values=drift.n_values, nu=judge.nu,
                             before_per_value=drift.chi2_static / drift.n_values,
                             after_per_value=drift.chi2_drift / drift.n_values, worse=[],
@@ -566,7 +571,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     after_model, after_pred = extend(selection.params)
     object_id = np.asarray(model.base_render().object_id)
     object_names = {i: o.name for i, o in enumerate(model.scene.objects)}
-    judge = _Judge(data, selection, base_pred, object_id, object_names)
+    judge = _Judge(data, selection, base_pred, object_id, object_names, sizes)
     n = judge.n
 
     evidence = _evidence(selection, data)
@@ -622,7 +627,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                     "noise_margin_per_value": round(V.channel_margin(ch_after[c][1]) / ch_after[c][1], 4),
                     "worse": c in worse} for c in ch_after}
     size_after = sizes.compare(base_pred, after_pred)
-    if not selection.causes and selection.too_small and verdict.kind in ("unexplained", "scene does not match"):
+    if not selection.causes and selection.too_small and verdict.kind in (V.Kind.UNEXPLAINED, V.Kind.SCENE_MISMATCH):
         verdict.notes.append("fitted but not named: " + "; ".join(selection.too_small.values()))
     regions_left, above_after = V.residual_regions(
         data, after_pred, judge.nu, object_id, object_names, maps_after["depth_residual"],

@@ -40,6 +40,7 @@ removed), ``unexplained`` and ``scene does not match``.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -298,11 +299,30 @@ def object_misfits(data: HeldOutData, prediction: np.ndarray, nu: float, object_
     return out
 
 
+class Kind(str, Enum):
+    """The kinds of verdict (their values are the words the reports and diagnosis.json use)."""
+
+    NOTHING_SEARCHED = "nothing searched"
+    WITHIN_NOISE = "within noise"
+    EXPLAINED = "explained"
+    PARTLY_EXPLAINED = "partly explained"
+    UNEXPLAINED = "unexplained"
+    SCENE_MISMATCH = "scene does not match"
+
+    def __str__(self) -> str:
+        return self.value
+
+    @property
+    def leaves_a_residual(self) -> bool:
+        """A verdict after which something above noise is left to describe."""
+        return self in (Kind.PARTLY_EXPLAINED, Kind.UNEXPLAINED, Kind.SCENE_MISMATCH)
+
+
 @dataclass
 class Verdict:
     """What the diagnosis claims, and the figures it rests on."""
 
-    kind: str  # nothing searched | within noise | explained | partly explained | unexplained | scene does not match
+    kind: Kind
     text: str
     threshold_per_value: float
     excess_removed: float | None  # share of the base twin's excess over noise removed (held-out)
@@ -311,7 +331,7 @@ class Verdict:
     notes: list[str] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
-        return {"kind": self.kind, "text": self.text, "threshold_per_value": round(self.threshold_per_value, 4),
+        return {"kind": self.kind.value, "text": self.text, "threshold_per_value": round(self.threshold_per_value, 4),
                 "excess_removed": None if self.excess_removed is None else round(self.excess_removed, 4),
                 "worse_channels": self.worse_channels, "disagreeing_objects": self.disagreeing_objects,
                 "notes": self.notes}
@@ -344,10 +364,10 @@ def verdict(*, searched: bool, causes: Sequence[str], n_values: int, nu: float, 
     removed = excess_removed(before_per_value, after_per_value, noise)
     state = f"threshold {thr:.3f} per value: the {100 * (1 - ALPHA):.1f} % quantile of chi2 with {n_values} values"
     if not searched:
-        return Verdict("nothing searched", "nothing searched (--max-effects 0): no effect was fitted, so this "
+        return Verdict(Kind.NOTHING_SEARCHED, "nothing searched (--max-effects 0): no effect was fitted, so this "
                        "says nothing about what is missing", thr, None)
     if before_per_value <= thr and not causes:
-        return Verdict("within noise", f"the base twin matches the capture within its noise (misfit "
+        return Verdict(Kind.WITHIN_NOISE, f"the base twin matches the capture within its noise (misfit "
                        f"{before_per_value:.3f} per value, {state})", thr, None)
     disagree_before = sorted(k for k, v in objects_before.items() if v["above_noise"])
     disagree = sorted(k for k, v in objects_after.items() if v["above_noise"])
@@ -363,18 +383,18 @@ def verdict(*, searched: bool, causes: Sequence[str], n_values: int, nu: float, 
                        + " pinned at the bounds of the range searched")
         if little:
             why.append(f"{0 if removed is None else max(removed, 0) * 100:.0f} % of the excess removed")
-        return Verdict("scene does not match",
+        return Verdict(Kind.SCENE_MISMATCH,
                        f"the scene does not match the capture: the residual (misfit {before_per_value:.2f} per value, "
                        f"{state}) is organised by the scene's objects and edges, and no effect of the library "
                        f"removes it; objects that disagree: {', '.join(disagree_before) or 'none as a whole'} (see "
                        "the residual regions); no effect is named", thr, removed, list(worse), disagree_before, why)
     if not causes:
-        return Verdict("unexplained", f"no effect of the library explains a significant part of the held-out "
+        return Verdict(Kind.UNEXPLAINED, f"no effect of the library explains a significant part of the held-out "
                        f"residual (misfit {before_per_value:.2f} per value, {state}); see the residual regions",
                        thr, None, list(worse), disagree_before)
     if after_per_value <= thr and not worse:
         at_bound = [f"{c}: {', '.join(pinned[c])} at the bound of the range searched" for c in causes if pinned.get(c)]
-        return Verdict("explained", f"explained by {' + '.join(causes)}: held-out misfit after the fit "
+        return Verdict(Kind.EXPLAINED, f"explained by {' + '.join(causes)}: held-out misfit after the fit "
                        f"{after_per_value:.3f} per value is within the noise ({state})", thr, removed, [], [],
                        at_bound)
     pct = 0.0 if removed is None else 100.0 * removed
@@ -382,7 +402,7 @@ def verdict(*, searched: bool, causes: Sequence[str], n_values: int, nu: float, 
             f"{before_per_value:.2f} -> {after_per_value:.2f} per value, {state}); the rest is in the residual regions")
     if worse:
         text += "; worse after the fit: " + ", ".join(worse)
-    return Verdict("partly explained", text, thr, removed, list(worse), disagree)
+    return Verdict(Kind.PARTLY_EXPLAINED, text, thr, removed, list(worse), disagree)
 
 
 # ---------------------------------------------------------------------------- effect size
