@@ -96,8 +96,11 @@ def fit_library(current: Callable[[str, str], float] | None = None,
         extra = list((extra_starts or {}).get(name, ()))
         specs = [_spec(name, form, eff.form_params(form, n_taps, n_freq), current, extra)
                  for form in ("", *eff.forms)]
-        if eff.params and n_freq is not None and not eff.form_params("", n_taps, n_freq):
+        if eff.params and n_freq is not None and not any(
+                eff.form_params(form, n_taps, n_freq) for form in ("", *eff.forms)):
             continue  # nothing of it acts on these data (a second frequency's phase, one frequency)
+        # (a form whose parameters these taps cannot see is dropped; the first form left is the
+        # simplest the data can show: 3 taps see the 5th and 7th harmonics, not the 3rd)
         specs = [s for s in specs if s.params] or specs[:1]
         lib[name] = dataclasses.replace(specs[0], forms=tuple(specs[1:]), closed_form=CLOSED_FORM.get(name))
     return lib

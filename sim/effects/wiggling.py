@@ -22,7 +22,9 @@ def harmonic_aliases(h: int, n_taps: int) -> bool:
     return h % n_taps in (1, n_taps - 1)
 
 
-_WIGGLE_ORDERS = (3, 5, 7)
+#: The harmonics the effect carries: the odd ones of a symmetric waveform, and the even ones a
+#: duty cycle off 50 % adds (seen by 3- and 5-tap sensors only: with 4 taps they cancel).
+_WIGGLE_ORDERS = (2, 3, 4, 5, 6, 7)
 _AMP: dict[str, Any] = {"fit": (0.0, 0.5), "step": 0.01}
 _PHASE: dict[str, Any] = {"fit": (-math.pi, math.pi), "step": 0.3, "periodic": True}
 _ALL = ("harmonics",)
@@ -33,20 +35,35 @@ class WigglingEffect(Effect):
     name = "wiggling"
     stage = "signal"
     rank = 140
-    summary = ('odd harmonics 3, 5, 7 of the correlation waveform; harmonic h reaches K taps only if h = +-1 mod K '
-               '(K = 4: phase error about `-a3 sin(4 phi + psi3) + a5 sin(4 phi + psi5) - a7 sin(8 phi + psi7)`)')
-    doc = ("Non-sinusoidal modulation: odd harmonics of the correlation waveform, added to the "
-           "emitter's. With K taps harmonic h aliases onto the fundamental when h = +-1 mod K and gives a "
-           "cyclic distance error (K = 4: the 3rd and 5th give 4 cycles per ambiguity range, the 7th 8); "
-           "other orders cancel. Harmonics the render did not compute are synthesised from the "
-           "fundamental (exact for single-path pixels). Diagnosis fits the 3rd harmonic (simple form) "
-           "or every visible order up to the 7th (form `harmonics`).")
-    forms = {"harmonics": "all odd harmonics up to the 7th that the session's taps see (amplitude and phase each)"}
+    summary = ('harmonics 2 to 7 of the correlation waveform (odd ones of a symmetric waveform, even ones of a duty '
+               'cycle off 50 %); harmonic h reaches K taps only if h = +-1 mod K (K = 4: the odd ones, phase error '
+               'about `-a3 sin(4 phi + psi3) + a5 sin(4 phi + psi5) - a7 sin(8 phi + psi7)`; K = 3: 2, 4, 5, 7)')
+    doc = ("Non-sinusoidal modulation: harmonics of the correlation waveform, added to the emitter's: the odd "
+           "ones of a symmetric (50 % duty) waveform, and the even ones a duty cycle off 50 % adds. With K taps "
+           "harmonic h aliases onto the fundamental when h = +-1 mod K and gives a cyclic distance error (K = 4: "
+           "the 3rd and 5th give 4 cycles per ambiguity range, the 7th 8, the even orders cancel; K = 3: the 2nd "
+           "and 5th give 3 and 6 cycles, the 4th and 7th 3 and 6, the 3rd cancels); other orders cancel. "
+           "Harmonics the render did not compute are synthesised from the fundamental (exact for single-path "
+           "pixels). Diagnosis fits the 3rd harmonic (simple form) or every visible order up to the 7th (form "
+           "`harmonics`; on a sensor that cannot see the 3rd, that form alone).")
+    forms = {"harmonics": "every harmonic up to the 7th that the session's taps see (amplitude and phase each)"}
     params = {
         "h3_amplitude": Param(0.0, 0.0, 0.5, "", "3rd-harmonic correlation amplitude / fundamental's",
                               default=0.05, start=0.03, forms=("",) + _ALL, **_AMP),
         "h3_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "3rd-harmonic phase", start=0.0, starts=(-2.0, 2.0),
                               forms=("",) + _ALL, **_PHASE),
+        "h2_amplitude": Param(0.0, 0.0, 0.5, "", "2nd-harmonic correlation amplitude / fundamental's",
+                              start=0.01, forms=_ALL, **_AMP),
+        "h2_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "2nd-harmonic phase", start=0.0, starts=(-2.0, 2.0),
+                              forms=_ALL, **_PHASE),
+        "h4_amplitude": Param(0.0, 0.0, 0.5, "", "4th-harmonic correlation amplitude / fundamental's",
+                              start=0.01, forms=_ALL, **_AMP),
+        "h4_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "4th-harmonic phase", start=0.0, starts=(-2.0, 2.0),
+                              forms=_ALL, **_PHASE),
+        "h6_amplitude": Param(0.0, 0.0, 0.5, "", "6th-harmonic correlation amplitude / fundamental's",
+                              start=0.01, forms=_ALL, **_AMP),
+        "h6_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "6th-harmonic phase", start=0.0, starts=(-2.0, 2.0),
+                              forms=_ALL, **_PHASE),
         "h5_amplitude": Param(0.0, 0.0, 0.5, "", "5th-harmonic correlation amplitude / fundamental's",
                               start=0.01, forms=_ALL, **_AMP),
         "h5_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "5th-harmonic phase", start=0.0, starts=(-2.0, 2.0),
@@ -68,13 +85,13 @@ class WigglingEffect(Effect):
         return harmonic_aliases(int(param[1:param.index("_")]), n_taps)
 
     def roughness(self, form: str, values: Mapping[str, Any]) -> np.ndarray | None:
-        # the harmonics beyond the 3rd shrink to zero: a ridge on their complex amplitudes (in
+        # the harmonics other than the 3rd shrink to zero: a ridge on their complex amplitudes (in
         # units of their typical size 0.01; amplitude and phase alike, so that the phase of a
         # small harmonic is not a free parameter); only the simple form's 3rd is smoothest
         if form != "harmonics":
             return None
         out = []
-        for h in _WIGGLE_ORDERS[1:]:
+        for h in (h for h in _WIGGLE_ORDERS if h != 3):
             a, psi = float(values.get(f"h{h}_amplitude", 0.0)), float(values.get(f"h{h}_phase_rad", 0.0))
             out += [a * math.cos(psi) / 0.01, a * math.sin(psi) / 0.01]
         return np.array(out)
