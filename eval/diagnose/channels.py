@@ -33,9 +33,27 @@ import numpy as np
 from tofhil.demod import radians_per_metre
 from tofhil.eval.diagnose.heldout import HeldOutData
 
-#: |estimate / standard error| beyond which a channel's part of the residual is not noise
-#: (about 1e-6 two-sided for a Gaussian: many channels are read, none should fire by chance).
+#: |estimate / standard error| beyond which one reading alone is not noise (about 6e-7
+#: two-sided); a table of readings uses :func:`family_z` instead, so that the table as a whole
+#: fires by chance with the diagnosis's one false-alarm rate.
 Z_SIGNIFICANT = 5.0
+
+
+def family_z(n_readings: int) -> float:
+    """The |z| beyond which a reading among ``n_readings`` is significant: the two-sided
+    Bonferroni threshold at which any of them fires by chance with probability
+    :data:`tofhil.eval.diagnose.verdict.ALPHA` (1e-3 over 12 readings: z = 3.93; over 20: 4.06),
+    computed for at least :data:`FAMILY_MIN_READINGS` readings so that a short table (a few
+    readings of one prediction) is not judged more loosely than a whole one."""
+    from scipy import stats
+
+    from tofhil.eval.diagnose.verdict import ALPHA
+
+    return float(stats.norm.isf(ALPHA / (2.0 * max(n_readings, FAMILY_MIN_READINGS))))
+
+
+#: The smallest family a threshold is computed for (see :func:`family_z`).
+FAMILY_MIN_READINGS = 12
 
 
 @dataclass
@@ -48,6 +66,8 @@ class ChannelReading:
     se: float
     unit: str
     text: str = ""
+    #: The |z| it must exceed (set by the table it belongs to: :func:`family_z`).
+    z_threshold: float = Z_SIGNIFICANT
 
     @property
     def z(self) -> float:
@@ -55,7 +75,7 @@ class ChannelReading:
 
     @property
     def significant(self) -> bool:
-        return abs(self.z) > Z_SIGNIFICANT
+        return abs(self.z) > self.z_threshold
 
     def to_json(self) -> dict[str, Any]:
         z = self.z
@@ -81,7 +101,14 @@ class ChannelTable:
 
     def to_json(self) -> dict[str, Any]:
         return {"readings": [r.to_json() for r in self.readings], "significant": self.significant_channels(),
-                "notes": list(self.notes), "z_significant": Z_SIGNIFICANT}
+                "notes": list(self.notes), "z_significant": family_z(len(self.readings))}
+
+    def set_family(self) -> "ChannelTable":
+        """Every reading judged at the table's family threshold (:func:`family_z`)."""
+        z = family_z(len(self.readings))
+        for r in self.readings:
+            r.z_threshold = z
+        return self
 
 
 def _ratio_fit(meas: np.ndarray, pred: np.ndarray, var: np.ndarray) -> tuple[complex, float]:
@@ -239,7 +266,11 @@ def tap_readings(theta_rad: np.ndarray, measured: np.ndarray, predicted: np.ndar
 def prediction_readings(data: HeldOutData, prediction: np.ndarray) -> dict[str, ChannelReading]:
     """The readings that depend on the prediction and need no taps (each frequency's phase and
     gain, their agreement, the offset), by name."""
-    return {r.name: r for r in frequency_readings(data, prediction) + offset_readings(data, prediction)}
+    readings = frequency_readings(data, prediction) + offset_readings(data, prediction)
+    z = family_z(len(readings))
+    for r in readings:
+        r.z_threshold = z
+    return {r.name: r for r in readings}
 
 
 def sensor_noise_variance(data: HeldOutData) -> np.ndarray | None:
@@ -285,4 +316,4 @@ def residual_by_channel(data: HeldOutData, prediction: np.ndarray, *, taps_measu
     if model_variance is None:
         table.notes.append("noise: no sensor noise model recorded with the session: the frame-to-frame scatter is "
                            "taken as the noise (a disturbance that changes between frames would read as noise)")
-    return table
+    return table.set_family()
