@@ -428,7 +428,7 @@ def effect_size_rule() -> str:
     """The rule, as the report and diagnosis.json state it."""
     return (f"a cause is named only when the systematic part it removes from some channel's held-out residual, "
             f"sqrt(RMSE_before^2 - RMSE_after^2) and at most the rms of the correction, is at least {MIN_GAIN_NOISE_SHARE:g} x that channel's noise (the "
-            f"median held-out pixel's) and at least {MIN_DEPTH_GAIN_M * 1e3:g} mm of depth, or "
+            f"median pixel's with every frame averaged: what the capture can reach) and at least {MIN_DEPTH_GAIN_M * 1e3:g} mm of depth, or "
             f"{100 * MIN_LEVEL_GAIN_SHARE:g} % of the median measured level of amplitude or offset; and when no "
             f"channel gains a systematic part, sqrt(RMSE_after^2 - RMSE_before^2), above {WORSE_SHARE_OF_MIN:g} x "
             f"its own minimum and {WORSE_SIGMAS:g} standard errors")
@@ -519,9 +519,14 @@ class EffectSize:
             self._sigma["offset"] = np.sqrt(data.var_test[nf].real)
             self.noise["offset"] = med(self._sigma["offset"][m])
             level["offset"] = float(np.median(np.abs(s[nf].real[m]))) if m.any() else 0.0
-        self.minimum = {"depth": max(MIN_GAIN_NOISE_SHARE * self.noise["depth"], MIN_DEPTH_GAIN_M)}
+        # Practical significance is judged against what the capture can reach: the noise of a
+        # pixel with every frame averaged (the held-out mean has only the held-out frames).
+        frames = max(data.n_train_frames + data.n_test_frames, 1) if data.frames_held_out else 1
+        reach = float(np.sqrt(max(data.n_test_frames, 1) / frames))
+        self.reach = {c: v * reach for c, v in self.noise.items()}
+        self.minimum = {"depth": max(MIN_GAIN_NOISE_SHARE * self.reach["depth"], MIN_DEPTH_GAIN_M)}
         for c, lv in level.items():
-            self.minimum[c] = max(MIN_GAIN_NOISE_SHARE * self.noise[c], MIN_LEVEL_GAIN_SHARE * lv)
+            self.minimum[c] = max(MIN_GAIN_NOISE_SHARE * self.reach[c], MIN_LEVEL_GAIN_SHARE * lv)
 
     def _channel(self, c: str, prediction: np.ndarray) -> np.ndarray:
         nf = self.data.n_freq

@@ -300,7 +300,9 @@ def judge(res: Any, disturbances: list[Disturbance]) -> Judgement:
             hows.append("named")
             continue
         ch = SAID_IN[d.channel]
-        if ch in ("amplitude", "depth"):
+        if res.left is None:
+            ok = False  # nothing is said to be left: a channel reading alone is no statement
+        elif ch in ("amplitude", "depth"):
             ok = any(c == ch and k in SHAPE_WORDS[d.shape] for c, k in fields)
         else:
             ok = ch in said_channels
