@@ -48,14 +48,18 @@ def test_current_values_and_log_scale_round_trip() -> None:
 
 def test_forms_and_harmonics_the_taps_cannot_see() -> None:
     """Each flexible form is a spec of its own; with 3 taps the 3rd harmonic cancels, so the
-    simple wiggling form (the 3rd harmonic) is left out and the flexible one keeps 5 and 7."""
+    simple wiggling form (the 3rd harmonic) is left out and the flexible one keeps what 3 taps
+    see: 2, 4, 5 and 7 (h = +-1 mod 3); with 4 taps the odd ones only."""
     lib = fit_library(n_taps=4)
     assert [s.form for s in lib["wiggling"].forms] == ["harmonics"] and lib["wiggling"].forms[0].k == 6
     assert [s.form for s in lib["amplitude_dependent"].forms] == ["spline"]
     assert lib["range_offset"].forms == ()
     k3 = fit_library(n_taps=3)["wiggling"]
-    assert k3.form == "harmonics" and {p.name for p in k3.params} == {"h5_amplitude", "h5_phase_rad",
-                                                                         "h7_amplitude", "h7_phase_rad"}
+    assert k3.form == "harmonics" and {p.name for p in k3.params} == {f"h{h}_{q}" for h in (2, 4, 5, 7)
+                                                                         for q in ("amplitude", "phase_rad")}
+    # with a frequency count given (as a diagnosis gives it) the effect is kept too: it was
+    # dropped when its simple form had nothing these taps see
+    assert fit_library(n_taps=3, n_freq=1)["wiggling"].form == "harmonics"
 
 
 def test_angles_are_fitted_across_their_wrap_and_reported_inside_it() -> None:

@@ -60,11 +60,12 @@ def test_wiggling_orders_3_5_7_give_the_closed_form_phase_error_on_4_taps():
 
 def test_wiggling_forms_and_taps():
     """The simple form fits the 3rd harmonic; the flexible form every order up to the 7th the
-    taps see: with 3 taps the 3rd harmonic cancels and is not fitted."""
+    taps see (h = +-1 mod K): with 3 taps the 3rd harmonic cancels and the 2nd and 4th (a duty
+    cycle off 50 %) are seen; with 4 taps the even ones cancel."""
     w = EFFECTS["wiggling"]
     assert set(w.form_params("")) == {"h3_amplitude", "h3_phase_rad"}
     assert set(w.form_params("harmonics", 4)) == {f"h{h}_{q}" for h in (3, 5, 7) for q in ("amplitude", "phase_rad")}
-    assert set(w.form_params("harmonics", 3)) == {f"h{h}_{q}" for h in (5, 7) for q in ("amplitude", "phase_rad")}
+    assert set(w.form_params("harmonics", 3)) == {f"h{h}_{q}" for h in (2, 4, 5, 7) for q in ("amplitude", "phase_rad")}
     assert w.form_params("", 3) == {}
 
 
