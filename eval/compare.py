@@ -51,7 +51,8 @@ class Variant:
 
 
 def variant_frame(session: Any, n: int, method: str | None = None, params: dict[str, Any] | None = None,
-                  min_amplitude: float = 0.0, flat: Any = None) -> tuple[DepthFrame, np.ndarray]:
+                  min_amplitude: float = 0.0, flat: Any = None,
+                  context: Any = None) -> tuple[DepthFrame, np.ndarray]:
     """The mean of the first ``n`` frames, optionally corrected, and the per-pixel standard
     deviation of its distance expected from the frames' scatter.
 
@@ -60,6 +61,8 @@ def variant_frame(session: Any, n: int, method: str | None = None, params: dict[
     to the mean, and the mean is demodulated once (the same pipeline before and after
     correction); depth methods filter that depth. Depth-only sessions average their stored
     depth (:func:`tofhil.eval.metrics.core.mean_depth_frame`; noise = temporal std / sqrt(n)).
+    ``context`` (a :class:`tofhil.eval.corrections.CorrectionContext` of the session's mean)
+    receives a complex correction's flags and notes.
     """
     from tofhil.depth import depth_from_raw
     from tofhil.eval.corrections.averaging import session_mean_signal
@@ -75,8 +78,10 @@ def variant_frame(session: Any, n: int, method: str | None = None, params: dict[
         return frame, std / np.sqrt(k) if k > 1 else np.full(std.shape, np.nan)
     correct = None
     if m is not None and m.domain == "complex":
-        camera = session.camera
-        correct = lambda s: m.func(s, camera, **p)  # noqa: E731
+        from tofhil.eval.corrections import context_for_session
+
+        ctx = context if context is not None else context_for_session(session, k)
+        correct = lambda s: m.func(s, ctx, **p)  # noqa: E731
     ms = session_mean_signal(session, k, flat=flat, correct=correct)
     frame = depth_from_raw(ms.raw(), min_amplitude=min_amplitude)
     if m is not None and m.domain == "depth":
