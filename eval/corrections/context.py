@@ -17,7 +17,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from tofhil.demod import TapLimits, bad_tap_pixels
+from tofhil.demod import TapLimits
 from tofhil.frames import RawFrame
 
 #: Per-pixel flag bits of a corrected signal (``correction/flags`` of a corrected session).
@@ -75,13 +75,16 @@ class CorrectionContext:
 
 
 def saturated_pixels(frames: Iterable[RawFrame]) -> np.ndarray | None:
-    """``[H, W]`` pixels with a tap at the device's declared clip levels (or non-finite) in
-    any of the frames (:func:`tofhil.demod.bad_tap_pixels`, the one rule); None without frames."""
-    bad = None
-    for f in frames:
-        b = bad_tap_pixels(f.taps, TapLimits.from_meta(f.meta))
-        bad = b if bad is None else bad | b
-    return bad
+    """``[H, W]`` pixels with a clipped or non-finite tap in any of the frames: the clip
+    levels the frames declare, else those detected in the data (``compare``'s rule,
+    :class:`tofhil.eval.metrics.core.TapHealth`); None without frames."""
+    from tofhil.eval.metrics.core import TapHealth
+
+    frames = list(frames)
+    if not frames:
+        return None
+    health = TapHealth.from_taps((f.taps for f in frames), declared=TapLimits.from_meta(frames[0].meta))
+    return health.saturated | health.nonfinite
 
 
 def context_for_frame(raw: RawFrame, *, sensor_config: dict[str, Any] | None = None,

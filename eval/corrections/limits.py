@@ -51,7 +51,8 @@ def clipped_sources(s: np.ndarray, ctx: CorrectionContext | None, scatter: Calla
         out[..., sat] = a * pred.full[..., sat]
         ctx.flag(sat, FLAG_RESTORED)
         ctx.info["restored_from_twin"] = {"scene": pred.scene, "pixels": n_sat, "signal_scale": a}
-        ctx.note(f"the light of {n_sat} clipped source pixels restored from the twin {pred.scene} before correcting")
+        ctx.note(f"the light of the clipped source pixels restored from the twin {pred.scene} before correcting "
+                 "(flag restored_from_twin)")
         return out
     amp = np.abs(s)
     floor = np.percentile(amp[..., ~sat], 99, axis=-1) if (~sat).any() else np.zeros(amp.shape[:-2])
@@ -62,7 +63,7 @@ def clipped_sources(s: np.ndarray, ctx: CorrectionContext | None, scatter: Calla
     ctx.flag(untrusted, FLAG_UNTRUSTED)
     k = int(untrusted.sum())
     ctx.info["clipped_sources"] = {"pixels": n_sat, "untrusted_pixels": k, "trust_fraction": TRUST}
-    ctx.note(f"{n_sat} source pixels clipped: their light is unknown to the correction; {k} pixels, where the "
-             f"stray light it would leave exceeds {TRUST:g} of their signal, cannot be trusted (marked untrusted; "
+    ctx.note(f"source pixels clipped: their light is unknown to the correction; where the stray light it would "
+             f"leave exceeds {100 * TRUST:g} % of the signal the correction cannot be trusted (flag untrusted; "
              "twin=SCENE restores the clipped light from the twin)")
     return s

@@ -93,11 +93,14 @@ def _effects_off(twin: Any, kinds: tuple[str, ...] | None) -> tuple[dict[str, An
 
 
 def predict(scene: str | Path | Any, ctx: CorrectionContext) -> TwinPrediction:
-    """The twin's prediction for the signal of ``ctx`` (its camera and acquisition), cached."""
+    """The twin's prediction for the signal of ``ctx`` (its camera and acquisition), cached;
+    ``scene`` a scene file or name, a loaded scene, or a :class:`TwinPrediction` itself."""
     from tofhil.sim.scene import load_scene
     from tofhil.sim.session_setup import scene_for_setup, session_setup
     from tofhil.sim.twin import Twin
 
+    if isinstance(scene, TwinPrediction):  # a prediction made elsewhere (a test's closed form)
+        return scene
     sc = load_scene(scene) if isinstance(scene, (str, Path)) else scene
     key = content_digest(sc, ctx.camera, ctx.freq_hz, ctx.theta_rad, ctx.integration_time_s, ctx.sensor_config)
     hit = _CACHE.get(key)
@@ -178,6 +181,7 @@ def correct_twin(s: np.ndarray, ctx: CorrectionContext, scene: str | Path | Any,
         rel = np.abs(removed) / np.abs(s)
     ctx.info["twin"] = {"scene": pred.scene, "remove": remove,
                         "effects_removed": list(pred.off_all if remove == "all" else pred.off),
+                        "effects_left": [] if remove == "all" else [e for e in pred.off_all if e not in pred.off],
                         "signal_scale": a, "scale": "recorded units" if pred.recorded else "fitted",
                         "removed_fraction_median": float(np.nanmedian(rel)) if np.isfinite(rel).any() else None,
                         "flag_sigma": FLAG_SIGMA}
@@ -185,7 +189,7 @@ def correct_twin(s: np.ndarray, ctx: CorrectionContext, scene: str | Path | Any,
         ctx.note(f"the twin {pred.scene} models no light beyond the direct path (no stray light, multipath or "
                  "unseen reflector): nothing removed")
     if ctx.saturated is not None and ctx.saturated.any():
-        ctx.note(f"the light of {int(ctx.saturated.sum())} clipped source pixels is the twin's prediction")
+        ctx.note("the light of the clipped source pixels is the twin's prediction")
     if not pred.recorded:
-        ctx.note(f"device signal scale against the twin fitted: {a:.4g}")
+        ctx.note("the device's signal scale against the twin's is fitted (twin.signal_scale)")
     return s - removed
