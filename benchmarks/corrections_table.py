@@ -10,7 +10,8 @@ sigma 12 px, and a veil of 0.005, as the demo's emulator; ``N`` noisy frames) an
 (noise-free), as measured and after each correction:
 
 - ``twin``: the twin correction, given the twin with the stray light (the fitted twin);
-- ``psf``: PSF deconvolution with the same PSF (the diagnosed one);
+- ``psf``: PSF deconvolution with the same PSF (the diagnosed one); ``psf+twin``: the same
+  with the clipped source pixels' light restored from the twin (``twin=SCENE``);
 - ``uniform``: the thesis's subtraction with the PSF's uniform part, ``w`` = veil / pixels
   (what a uniform model of this lens can know);
 - ``gaussian-inverse``: the thesis's inverse filter with the PSF's Gaussian lobe (its
@@ -66,7 +67,7 @@ def case(rho: float, out: Path, frames: int, saturate: bool) -> dict:
     _session(d / "capture.h5", Twin(truth), frames, True, scene_to_yaml(base))
     _session(d / "twin.h5", Twin(base), 1, False, scene_to_yaml(base))
     h, w = truth.camera.shape
-    methods = {"twin": f"twin:scene={ext}", "psf": f"psf:psf={psf_file}",
+    methods = {"twin": f"twin:scene={ext}", "psf": f"psf:psf={psf_file}", "psf+twin": f"psf:psf={psf_file},twin={ext}",
                "uniform": f"uniform:w={PSF['veil'] / (h * w):.6g}",
                "gaussian-inverse": f"gaussian-inverse:sigma_h={PSF['sigma_px']},sigma_v={PSF['sigma_px']},"
                                    f"w={PSF['weight']}"}

@@ -140,13 +140,16 @@ def predict(scene: str | Path | Any, ctx: CorrectionContext) -> TwinPrediction:
 
 
 def signal_scale(s: np.ndarray, model: np.ndarray, good: np.ndarray) -> float:
-    """Least-squares real scale ``a`` of ``s ~ a * model`` over the pixels ``good`` ``[H, W]``."""
+    """Real scale ``a`` of ``s ~ a * model``: the median over the pixels ``good`` ``[H, W]``
+    (and frequencies) of ``Re(conj(model) s) / |model|^2`` -- robust to the few pixels
+    whose taps clipped unnoticed (a clipped tap read just below the declared level)."""
     m, x = model[..., good], s[..., good]
-    den = float(np.sum(np.abs(m) ** 2))
-    if not den > 0:
+    den = np.abs(m) ** 2
+    ok = den > 0
+    if not ok.any():
         raise TofhilError("the twin predicts no light on the pixels that did not clip", field="twin:scene",
                           expected="a twin scene whose objects are in the session's view")
-    return float(np.sum((np.conj(m) * x).real) / den)
+    return float(np.median((np.conj(m[ok]) * x[ok]).real / den[ok]))
 
 
 def device_scale(s: np.ndarray, pred: TwinPrediction, ctx: CorrectionContext) -> float:
