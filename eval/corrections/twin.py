@@ -60,6 +60,9 @@ class TwinPrediction:
     off_all: tuple[str, ...]  # ... for the ideal camera
     recorded: bool          # the session records its sensor configuration (units are the twin's)
     scene: str
+    #: [B + 1, H, W] share of each pixel's emitter light by bounce count (0 = direct), from the
+    #: same render; None without multipath (or through glass, where it is not computed)
+    bounce_share: np.ndarray | None = None
 
     @property
     def stray(self) -> np.ndarray:
@@ -111,13 +114,29 @@ def predict(scene: str | Path | Any, ctx: CorrectionContext) -> TwinPrediction:
     # Clip levels lifted: a source pixel that clips in the capture keeps its light in the twin.
     cfg = setup.sensor
     unclipped = dataclasses.replace(cfg, full_well_e=math.inf, adc_bits=62)
+    from tofhil.sim.effects import EFFECTS
     from tofhil.sim.twin import render_arguments
 
     scene2 = scene_for_setup(sc, setup)
     full_eff = Twin(scene2, sensor=unclipped).effects()
     # One render for every effect set: the harmonics the full set needs, rendered for all.
     harm = render_arguments(scene2, full_eff, freq_hz=cfg.freq_hz)["harmonics"]
-    twin = Twin(scene2, sensor=unclipped, render_kwargs={"harmonics": harm})
+    kwargs: dict[str, Any] = {"harmonics": harm}
+    if "multipath" in full_eff and not EFFECTS["multipath"].is_off(full_eff["multipath"]):
+        kwargs["multipath_shares"] = True  # the light by bounce, from the same paths
+    twin = Twin(scene2, sensor=unclipped, render_kwargs=kwargs)
+    try:
+        _, result = twin.render(full_eff)
+    except TofhilError as exc:
+        if exc.field != "multipath_shares":
+            raise
+        twin = Twin(scene2, sensor=unclipped, render_kwargs={"harmonics": harm})  # glass: no shares
+        _, result = twin.render(full_eff)
+    bounce_share = None
+    if getattr(result, "share_power_w", None) is not None:
+        from tofhil.sim.multipath import shares_from_render
+
+        bounce_share = shares_from_render(result, [o.name for o in scene2.objects]).by_bounce
     theta = np.asarray(cfg.theta_rad, float)
     no_stray_eff, _ = _effects_off(twin, ("stray_light",))
     direct_eff, off = _effects_off(twin, ("stray_light", "multipath"))
@@ -134,7 +153,7 @@ def predict(scene: str | Path | Any, ctx: CorrectionContext) -> TwinPrediction:
     var_k = g * np.clip(taps - cfg.black_level_dn, 0.0, None) + (g * cfg.read_noise_e) ** 2
     noise = np.sqrt(2.0 / theta.size ** 2 * var_k.sum(axis=-3))
     pred = TwinPrediction(full, signal(no_stray_eff)[0], signal(direct_eff)[0], signal(ideal_eff)[0], noise, off,
-                          off_all, setup.recorded, str(getattr(sc, "source", scene)))
+                          off_all, setup.recorded, str(getattr(sc, "source", scene)), bounce_share)
     _CACHE.put(key, pred)
     return pred
 
@@ -188,6 +207,9 @@ def correct_twin(s: np.ndarray, ctx: CorrectionContext, scene: str | Path | Any,
                         "signal_scale": a, "scale": "recorded units" if pred.recorded else "fitted",
                         "removed_fraction_median": float(np.nanmedian(rel)) if np.isfinite(rel).any() else None,
                         "flag_sigma": FLAG_SIGMA}
+    if pred.bounce_share is not None and multi.any():
+        # where multipath was removed: the mean share of the pixel's light by bounce count
+        ctx.info["twin"]["multipath_share_by_bounce"] = [float(np.nanmean(b[multi])) for b in pred.bounce_share[1:]]
     if not pred.off:
         ctx.note(f"the twin {pred.scene} models no light beyond the direct path (no stray light, multipath or "
                  "unseen reflector): nothing removed")
