@@ -83,3 +83,14 @@ def test_compare_before_after_marks_what_got_worse(bench, tmp_path) -> None:
     assert "near clipped (15 px)" in m["variants"][psf]["before_after"]
     page = (out / "report.html").read_text()
     assert "Before and after each correction" in page
+
+
+def test_bad_twin_specs_are_one_line_and_write_nothing(bench, tmp_path, capsys) -> None:
+    out = tmp_path / "c.h5"
+    for spec, words in ((f"twin:scene={tmp_path / 'missing.yaml'}", ("missing.yaml", "scene")),
+                        (f"twin:scene={bench / 'extended.yaml'},remove=most", ("twin:remove", "light")),
+                        (f"psf:psf={bench / 'psf.json'},twin={tmp_path / 'gone.yaml'}", ("gone.yaml",))):
+        assert run_cli("correct", bench / "capture.h5", "--method", spec, "--out", out) == 2
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and all(w in err for w in words), err
+        assert not out.exists()
