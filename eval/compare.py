@@ -26,7 +26,10 @@ from tofhil.demod import TapLimits
 from tofhil.errors import TofhilError
 from tofhil.eval.reports import html as H
 from tofhil.eval.metrics import core as M
-from tofhil.eval.corrections import correct_depth, get_method, load_params, parse_method_spec, resolve_params
+from tofhil.eval.metrics import before_after as BA
+from tofhil.eval.reports.before_after import before_after_html
+from tofhil.eval.corrections import (context_for_session, correct_depth, get_method, load_params, parse_method_spec,
+                                     resolve_params)
 from tofhil.frames import DepthFrame
 
 MEASURED = "measured"
@@ -45,13 +48,15 @@ class Variant:
     params: dict[str, Any] = field(default_factory=dict)
     evaluation: M.Evaluation | None = None
     noise_m: np.ndarray | None = None  # standard deviation of the mean's distance
+    correction: Any = None  # a complex correction's CorrectionContext (flags, notes)
 
 
 # ---------------------------------------------------------------------------- loading
 
 
 def variant_frame(session: Any, n: int, method: str | None = None, params: dict[str, Any] | None = None,
-                  min_amplitude: float = 0.0, flat: Any = None) -> tuple[DepthFrame, np.ndarray]:
+                  min_amplitude: float = 0.0, flat: Any = None,
+                  context: Any = None) -> tuple[DepthFrame, np.ndarray]:
     """The mean of the first ``n`` frames, optionally corrected, and the per-pixel standard
     deviation of its distance expected from the frames' scatter.
 
@@ -60,6 +65,8 @@ def variant_frame(session: Any, n: int, method: str | None = None, params: dict[
     to the mean, and the mean is demodulated once (the same pipeline before and after
     correction); depth methods filter that depth. Depth-only sessions average their stored
     depth (:func:`tofhil.eval.metrics.core.mean_depth_frame`; noise = temporal std / sqrt(n)).
+    ``context`` (a :class:`tofhil.eval.corrections.CorrectionContext` of the session's mean)
+    receives a complex correction's flags and notes.
     """
     from tofhil.depth import depth_from_raw
     from tofhil.eval.corrections.averaging import session_mean_signal
@@ -75,8 +82,10 @@ def variant_frame(session: Any, n: int, method: str | None = None, params: dict[
         return frame, std / np.sqrt(k) if k > 1 else np.full(std.shape, np.nan)
     correct = None
     if m is not None and m.domain == "complex":
-        camera = session.camera
-        correct = lambda s: m.func(s, camera, **p)  # noqa: E731
+        from tofhil.eval.corrections import context_for_session
+
+        ctx = context if context is not None else context_for_session(session, k)
+        correct = lambda s: m.func(s, ctx, **p)  # noqa: E731
     ms = session_mean_signal(session, k, flat=flat, correct=correct)
     frame = depth_from_raw(ms.raw(), min_amplitude=min_amplitude)
     if m is not None and m.domain == "depth":
@@ -263,7 +272,7 @@ def write_report(out: Path, metrics: dict[str, Any], variants: list[Variant],
             "demodulation): the RMSE noise alone would give. MAD: median absolute deviation from the median (raw, not "
             f"scaled). Cloud metrics: A's points against B's (threshold {s['threshold_m'] * 1000:g} mm); NDT: A's "
             f"points scored on B's NDT grid (cell {s['cell_size_m']:g} m). Full numbers in metrics.json.</p>",
-            H.figures_html(figs)]
+            before_after_html(metrics), H.figures_html(figs)]
     if lens is not None:
         from tofhil.eval.reports.optics import lens_section
 
@@ -366,8 +375,9 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
         for (name, params), label in zip(specs, labels):
             p = load_params(name, params)
             say(f"correcting A with {label}")
-            f, s = variant_frame(sa, max_frames, name, p, min_amplitude, flat=plan["A"])
-            variants.append(Variant(label, f, s * np.sqrt(n_a), name, dict(params), noise_m=s))
+            ctx = context_for_session(sa, max_frames) if get_method(name).domain == "complex" else None
+            f, s = variant_frame(sa, max_frames, name, p, min_amplitude, flat=plan["A"], context=ctx)
+            variants.append(Variant(label, f, s * np.sqrt(n_a), name, dict(params), noise_m=s, correction=ctx))
         obj_source = None
         if objects:
             for sess, tag in ((sb, "B"), (sa, "A")):
@@ -376,6 +386,7 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
                     regions = M.object_regions(ids, names, min_pixels=20) + regions
                     obj_source = tag
                     break
+        regions = regions + BA.near_clipped_regions(health_a.saturated)
         # Validity relative to each object's own amplitude: a 1 % square is dark, not a shadow.
         own = [r.mask for r in regions if r.kind == "object"]
         for f in [ref] + [v.frame for v in variants]:
@@ -430,6 +441,10 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
         res["method"] = v.method
         res["params"] = v.params
         res["notes"] = v.evaluation.validity_notes()
+        if v.method is not None:  # before and after, per region, with the correction's own report
+            res.update(BA.variant_report(v.label, v.correction, regions, metrics["variants"][MEASURED]["regions"],
+                                         res["regions"]))
+            res["notes"] += res["correction"]["notes"] + BA.worse_notes(v.label, res["before_after"])
         metrics["variants"][v.label] = res
 
     say("figures")

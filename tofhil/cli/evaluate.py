@@ -14,10 +14,12 @@ from tofhil.errors import TofhilError
 
 _METHOD_HELP = ("METHOD[:key=value,...] (the same syntax as compare --correct): uniform:w=W | "
                 "gaussian-inverse:sigma_h=S,sigma_v=S,w=W[,mu=M] | psf:psf=FILE (a PSF file or diagnosis.json; "
-                "or --calibrate)[,iterations=N] | taps:flat=T.npz | amplitude:min_amplitude=A | "
+                "or --calibrate)[,iterations=N] | twin:scene=EXTENDED.yaml[,remove=light|all] (remove what the fitted "
+                "twin predicts beyond each pixel's direct return) | taps:flat=T.npz | amplitude:min_amplitude=A | "
                 "jump-angle[:angle_deg=D] | jump-distance[:max_step_m=M,relative=R] | smooth-gaussian[:sigma_px=S] | "
                 "smooth-median[:size=N] | smooth-bilateral[:sigma_px=S,sigma_m=M]; complex-domain methods "
-                "take flat=T.npz too")
+                "take flat=T.npz too; uniform, gaussian-inverse and psf take twin=SCENE.yaml (the light of clipped "
+                "source pixels from the twin; without it the pixels it would leave wrong are marked untrusted)")
 
 
 def _pixel_pair(text: str, option: str) -> tuple[float, float]:
@@ -101,8 +103,15 @@ def correct(session: Path = typer.Argument(..., parser=opt.existing_file, help="
         params["psf"] = fitted
     elif reference or save_psf is not None or ghost_center is not None:
         raise TofhilError("--reference, --ghost-center and --save-psf need --calibrate CAL.h5", field="--calibrate")
+    report: dict[str, Any] = {}
     n = correct_session(session, out_path, name, params, force=force, min_amplitude=min_amplitude,
-                        average=average, progress=progress)
+                        average=average, progress=progress, summary=report)
+    for note in report.get("notes", []):
+        out.print(f"  {note}", highlight=False, markup=False)
+    flagged = {k: v for k, v in (report.get("flagged_pixels") or {}).items() if v}
+    if flagged:
+        out.print("  flagged pixels (correction/flags): " + ", ".join(f"{k} {v}" for k, v in flagged.items()),
+                  highlight=False, markup=False)
     if fitted is not None and save_psf is not None:
         real = fitted.save(save_psf, force=force)
         out.print(f"saved PSF (scattered fraction {fitted.info['scattered_fraction']:.4f}, direct "
