@@ -1,0 +1,125 @@
+"""The figures of depth bench procedures, computed once (the bench reports and tests read them).
+
+* :func:`depth_stack_stats` -- vendors' accuracy and precision: the systematic error is the
+  mean of N frames minus the ground truth, the random error the temporal standard deviation,
+  on a region (a centre ROI) and over the whole field; each with its standard error.
+* :func:`plane_flatness` -- the residual of a plane fitted to a flat target's points
+  (orthogonal distances; outliers beyond 4 robust sigma left out and counted).
+* :func:`fill_rate` -- the share of a region's pixels with a valid depth.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+
+def centre_roi(shape: tuple[int, int], fraction: float = 0.2) -> tuple[int, int, int, int]:
+    """A centred region ``X0, Y0, X1, Y1`` (half-open) covering ``fraction`` of each side."""
+    h, w = shape
+    rw, rh = max(2, round(w * fraction)), max(2, round(h * fraction))
+    x0, y0 = (w - rw) // 2, (h - rh) // 2
+    return x0, y0, x0 + rw, y0 + rh
+
+
+@dataclass
+class StackStats:
+    """Accuracy and precision of N frames of one static target."""
+
+    frames: int
+    systematic_m: float          # ROI mean of (per-pixel mean - truth)
+    systematic_se_m: float       # its standard error from the temporal noise
+    random_m: float              # ROI RMS of the per-pixel temporal standard deviation
+    random_var_se_m2: float      # standard error of random_m ** 2
+    systematic_field_m: float    # median over the field's pixels of (mean - truth)
+    random_field_m: float        # median over the field's pixels of the temporal std
+    fill_rate_roi: float
+    fill_rate_field: float
+    pixels_roi: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def depth_stack_stats(radial_m: np.ndarray, valid: np.ndarray, truth_m: np.ndarray,
+                      roi: tuple[int, int, int, int]) -> StackStats:
+    """``radial_m``, ``valid``: ``[N, H, W]``; ``truth_m``: ``[H, W]`` (the same kind of distance).
+
+    A pixel counts when it is valid in every frame (a pixel that drops out now and then is a
+    fill-rate matter, not an accuracy one)."""
+    d = np.asarray(radial_m, dtype=np.float64)
+    ok = np.all(np.asarray(valid, dtype=bool) & np.isfinite(d), axis=0) & np.isfinite(truth_m)
+    n = d.shape[0]
+    mean = d.mean(axis=0)
+    var = d.var(axis=0, ddof=1) if n > 1 else np.full(mean.shape, np.nan)
+    err = mean - truth_m
+    x0, y0, x1, y1 = roi
+    sl = (slice(y0, y1), slice(x0, x1))
+    r_ok = ok[sl]
+    npx = int(r_ok.sum())
+    e_r, v_r = err[sl][r_ok], var[sl][r_ok]
+    if npx == 0:
+        nan = math.nan
+        return StackStats(n, nan, nan, nan, nan, nan, nan, 0.0, float(ok.mean()), 0)
+    mv = float(v_r.mean()) if n > 1 else math.nan
+    return StackStats(
+        frames=n, systematic_m=float(e_r.mean()),
+        systematic_se_m=math.sqrt(mv / (n * npx)) if n > 1 else math.nan,
+        random_m=math.sqrt(mv) if n > 1 else math.nan,
+        # the sample variance of N Gaussian draws has variance 2 s^4 / (N - 1); npx independent pixels
+        random_var_se_m2=mv * math.sqrt(2.0 / ((n - 1) * npx)) if n > 1 else math.nan,
+        systematic_field_m=float(np.median(err[ok])) if ok.any() else math.nan,
+        random_field_m=float(np.median(np.sqrt(var[ok]))) if ok.any() and n > 1 else math.nan,
+        fill_rate_roi=float(np.mean(np.all(valid, axis=0)[sl])), fill_rate_field=float(ok.mean()),
+        pixels_roi=npx)
+
+
+@dataclass
+class Flatness:
+    rms_m: float
+    pv_m: float                # 1st to 99th percentile of the orthogonal residual
+    normal: tuple[float, float, float]
+    distance_m: float          # the plane's distance from the camera centre
+    points: int
+    outliers: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def plane_flatness(points: np.ndarray, *, clip_sigma: float = 4.0, iterations: int = 5) -> Flatness:
+    """Fit a plane to ``points [M, 3]`` (total least squares: the smallest principal axis),
+    leaving out points beyond ``clip_sigma`` robust sigma (1.4826 MAD) of the residual, and
+    report the orthogonal residual's RMS and 1-99 % peak-to-valley."""
+    p = np.asarray(points, dtype=np.float64)
+    keep = np.isfinite(p).all(axis=1)
+    if keep.sum() < 3:
+        return Flatness(math.nan, math.nan, (math.nan,) * 3, math.nan, int(keep.sum()), 0)
+    for _ in range(iterations):
+        c = p[keep].mean(axis=0)
+        _, _, vt = np.linalg.svd(p[keep] - c, full_matrices=False)
+        nrm = vt[-1]
+        r = (p - c) @ nrm
+        med = np.median(r[keep])
+        mad = 1.4826 * np.median(np.abs(r[keep] - med))
+        new = np.isfinite(r) & (np.abs(r - med) <= clip_sigma * max(mad, 1e-12))
+        if np.array_equal(new, keep) or new.sum() < 3:
+            break
+        keep = new
+    rk = r[keep]
+    if nrm[2] > 0:
+        nrm = -nrm
+    return Flatness(float(np.sqrt(np.mean(rk ** 2))), float(np.percentile(rk, 99) - np.percentile(rk, 1)),
+                    tuple(float(v) for v in nrm), float(abs(c @ nrm)), int(keep.sum()),
+                    int(np.isfinite(p).all(axis=1).sum() - keep.sum()))
+
+
+def fill_rate(valid: np.ndarray, roi: tuple[int, int, int, int] | None = None) -> float:
+    v = np.asarray(valid, dtype=bool)
+    if roi is not None:
+        x0, y0, x1, y1 = roi
+        v = v[..., y0:y1, x0:x1]
+    return float(v.mean()) if v.size else math.nan

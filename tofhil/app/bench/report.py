@@ -1,0 +1,84 @@
+"""A bench procedure's report: the spec-sheet verdict first, then the figures with the twin's
+prediction, what was found, the curves as plots; ``figures.json`` and ``curves.parquet``."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+from tofhil.app.bench.base import FIGURES, BenchResult
+from tofhil.eval.reports.html import esc, figures_html, fmt, write_json, write_page
+
+_VERDICT_CSS = {"pass": "#1a7f37", "marginal": "#9a6700", "fail": "#cf222e", "not measured": "#57606a"}
+
+
+def _num(v: float, s: float = math.nan, unit: str = "") -> str:
+    if v is None or not math.isfinite(v):
+        return "–"
+    # metres read better as millimetres at a bench
+    if unit == "m":
+        v, s, unit = v * 1e3, s * 1e3, "mm"
+    if unit == "" and abs(v) < 1.0:  # shares and relative figures as percent
+        v, s, unit = v * 100, s * 100, "%"
+    text = f"{v:.4g}"
+    if math.isfinite(s) and s > 0:
+        text += f" ± {s:.2g}"
+    return f"{text} {unit}".strip()
+
+
+def verdict_table(rows: list[dict[str, Any]]) -> str:
+    if not rows:
+        return "<p class='note'>No spec sheet given (--spec SHEET.yaml): no verdict.</p>"
+    body = "".join(
+        f"<tr><td>{esc(r['figure'])}</td><td>{esc(FIGURES[r['figure']][1])}</td><td>{esc(r['limit'])} "
+        f"{esc(r['unit'])}</td><td>{_num(r['value'], r['sigma'], r['unit'])}</td>"
+        f"<td style='color:#fff;background:{_VERDICT_CSS[r['verdict']]};font-weight:bold;text-align:center'>"
+        f"{esc(r['verdict'])}</td></tr>" for r in rows)
+    return ("<table><tr><th>figure</th><th>what</th><th>spec sheet</th><th>measured</th><th>verdict</th></tr>"
+            f"{body}</table>")
+
+
+def figure_table(result: BenchResult) -> str:
+    body = []
+    for f in result.figures:
+        z = (f.value - f.predicted) / f.sigma if math.isfinite(f.sigma) and f.sigma > 0 and math.isfinite(
+            f.predicted) else math.nan
+        body.append(f"<tr><td>{esc(f.name)}</td><td>{esc(FIGURES[f.name][1])}</td>"
+                    f"<td>{_num(f.value, f.sigma, f.unit)}</td><td>{_num(f.predicted, f.predicted_sigma, f.unit)}</td>"
+                    f"<td>{fmt(z)}</td><td>{esc(f.note)}</td></tr>")
+    return ("<table><tr><th>figure</th><th>what</th><th>measured (± 1 sigma)</th><th>twin predicts</th>"
+            "<th>(measured − twin) / sigma</th><th>note</th></tr>" + "".join(body) + "</table>")
+
+
+def write_report(result: BenchResult, out_dir: Path) -> None:
+    """``report.html`` (self-contained), ``figures.json`` and ``curves.parquet`` in ``out_dir``."""
+    out_dir = Path(out_dir)
+    payload = {"procedure": result.procedure, "device": result.device,
+               "figures": [f.to_dict() for f in result.figures], "verdict": result.verdict,
+               "findings": result.findings, "curves": result.curves, "details": result.details,
+               "files": result.files, "seconds": result.seconds}
+    write_json(out_dir / "figures.json", payload)
+    try:
+        import pandas as pd
+
+        frames = [pd.DataFrame(rows).assign(curve=name) for name, rows in result.curves.items() if rows]
+        if frames:
+            pd.concat(frames, ignore_index=True).to_parquet(out_dir / "curves.parquet")
+            result.files["curves"] = "curves.parquet"
+    except ImportError:  # pyarrow is a dependency; a stripped environment still gets the JSON
+        pass
+    sheet = result.details.get("spec_sheet")
+    body = [f"<p class='note'>device {esc(result.device)}; "
+            f"{esc(result.details.get('campaign', {}).get('taken', 0))} captures taken, "
+            f"{esc(result.details.get('campaign', {}).get('skipped', 0))} kept from an earlier run</p>",
+            "<h2>Spec-sheet verdict" + (f" ({esc(sheet['name'])})" if sheet else "") + "</h2>",
+            verdict_table(result.verdict),
+            "<h2>Measured and predicted</h2>", figure_table(result),
+            "<h2>What was found</h2>",
+            "<ul>" + "".join(f"<li>{esc(x)}</li>" for x in result.findings) + "</ul>" if result.findings else "",
+            figures_html(result.plots)]
+    if result.files:
+        body.append("<h2>Files</h2><ul>" + "".join(f"<li>{esc(k)}: {esc(v)}</li>" for k, v in result.files.items())
+                    + "<li>figures: figures.json</li><li>captures: sessions/, campaign.json</li></ul>")
+    write_page(out_dir / "report.html", f"tofhil bench {result.procedure}", body)
