@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Protocol, Sequence
 
-from tofhil.errors import InputFileError, TofhilError
+from tofhil.errors import InputFileError, Interrupted, TofhilError
 from tofhil.outputs import write_text_atomic
 from tofhil.progress import Progress, no_progress
 
@@ -268,13 +268,15 @@ class CampaignResult:
         return self.out_dir / self.captures[label]["file"]
 
 
-class CampaignInterrupted(KeyboardInterrupt):
-    """Ctrl-C during a campaign: what is recorded, and how to go on."""
+class CampaignInterrupted(Interrupted):
+    """Ctrl-C during a campaign: what is recorded, and how to go on (the CLI prints it, exit 130)."""
 
     def __init__(self, out_dir: Path, done: int, total: int) -> None:
         self.out_dir = out_dir
-        super().__init__(f"interrupted: {done} of {total} captures recorded in {out_dir / MANIFEST} "
-                         "(run again with --resume to continue)")
+        self.path = str(out_dir / MANIFEST)
+        self.frames_kept = done
+        KeyboardInterrupt.__init__(self, f"interrupted: {done} of {total} captures recorded in {out_dir / MANIFEST} "
+                                         "(run again with --resume to continue)")
 
 
 def _read_manifest(out_dir: Path) -> dict[str, Any] | None:

@@ -142,7 +142,8 @@ class BenchResult:
     device: str
     figures: list[Figure]
     curves: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
-    plots: list[tuple[str, str | None, str]] = field(default_factory=list)
+    #: Draws the report's figures when the report is written: ``[(title, PNG data URI, caption)]``.
+    plots: Callable[[], list[tuple[str, str | None, str]]] | None = None
     findings: list[str] = field(default_factory=list)
     files: dict[str, str] = field(default_factory=dict)
     details: dict[str, Any] = field(default_factory=dict)

@@ -37,15 +37,16 @@ DISTANCE_PARAM = "wall_distance_m"
 
 # --------------------------------------------------------------------------- emulated benches
 def _bench_scene_file(scene: str, params: Mapping[str, Any], effects: Mapping[str, Any] | None,
-                      work: Path) -> Path:
+                      work: Path, device_overrides: Mapping[str, Any] | None = None) -> Path:
     """The bench's scene in the state ``params`` (with ``effects`` as its own, hidden from the
     twin) as a file, for the emulators that load scenes by path."""
+    import copy
     import hashlib
     import json
 
     from tofhil.sim.scene import load_scene, scene_to_yaml
 
-    over: dict[str, Any] = {"params": dict(params)}
+    over: dict[str, Any] = {"params": dict(params), **copy.deepcopy(dict(device_overrides or {}))}
     if effects:
         over["effects"] = dict(effects)
     key = hashlib.sha256(json.dumps([scene, over], sort_keys=True, default=str).encode()).hexdigest()[:12]
@@ -85,11 +86,12 @@ def _rig(device: str, opts: BenchOptions, param: str, default: float) -> Any:
     scene = opts.scene or (rest if scheme in ("emulator", "depthai-sim") and rest else DEFAULT_SCENE)
     work = _work_dir(opts)
     if scheme == "emulator":
-        from tofhil.sim.sources import SimulatedSource
+        from tofhil.sim.sources import TOFCAM635_OVERRIDES, SimulatedSource
 
         def source(p: Mapping[str, Any]) -> Any:
             d = float(p[param])
-            return SimulatedSource(_bench_scene_file(scene, p, None, work), effects=_hidden_with_own(scene, p, opts, d))
+            path = _bench_scene_file(scene, p, None, work, TOFCAM635_OVERRIDES)
+            return SimulatedSource(path, effects=_hidden_with_own(scene, p, opts, d))
 
         rig = EmulatedTofCamRig(source, {param: default}, seed=opts.seed, scene_text="", device=device)
     elif scheme == "depthai-sim":
@@ -120,6 +122,13 @@ def _hidden_with_own(scene: str, params: Mapping[str, Any], opts: BenchOptions, 
 
 
 # --------------------------------------------------------------------------- reading captures
+def _nanmean(radial: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Per-pixel mean over the frames where the pixel is valid (NaN where it never is)."""
+    n = valid.sum(axis=0)
+    total = np.where(valid, radial, 0.0).sum(axis=0)
+    return np.where(n > 0, total / np.maximum(n, 1), np.nan)
+
+
 def _depth_stack(path: Path) -> tuple[np.ndarray, np.ndarray, Any, dict[str, Any]]:
     """``radial [N, H, W]``, ``valid [N, H, W]``, the camera and the acquisition of a session
     (raw taps demodulated by the core, as ``tofhil depth``)."""
@@ -173,7 +182,7 @@ class Accuracy:
         raw = "dcs" in rig.capabilities.modes
         settings: dict[str, Any] = {"mode": "dcs" if raw else "distance"}
         if raw:
-            settings["integration_time_us"] = opts.integration_time_us or 250
+            settings["integration_time_us"] = opts.integration_time_us or 125
             settings["mod_freq_hz"] = opts.mod_freq_hz or 20e6
         steps: list[dict[str, Any]] = [{"settings": settings}]
         for d in opts.distances_m:
@@ -198,7 +207,7 @@ class Accuracy:
             roi = opts.roi or centre_roi(cam.shape)
             truth = d_true / cam.ray_z
             m = depth_stack_stats(radial, valid, truth, roi)
-            mean = np.nanmean(np.where(valid, radial, np.nan), axis=0)
+            mean = _nanmean(radial, valid)
             fl = plane_flatness(cam.points(np.nan_to_num(mean), valid=np.all(valid, axis=0)))
             seconds["analysis"] += time.monotonic() - t0
             row = {"distance_m": d_true, **{f"measured_{k}": v for k, v in m.to_dict().items()},
@@ -207,7 +216,7 @@ class Accuracy:
                 t0 = time.monotonic()
                 tr, tv = _twin_stack(rig, rec["bench"], acq, max(opts.frames, 2), opts.seed + 7919 + i)
                 p = depth_stack_stats(tr, tv, truth, roi)
-                tmean = np.nanmean(np.where(tv, tr, np.nan), axis=0)
+                tmean = _nanmean(tr, tv)
                 tfl = plane_flatness(cam.points(np.nan_to_num(tmean), valid=np.all(tv, axis=0)))
                 row.update({f"twin_{k}": v for k, v in p.to_dict().items()})
                 row["twin_flatness_rms_m"] = tfl.rms_m
@@ -220,7 +229,7 @@ class Accuracy:
             res.findings = res.details["agreement"]["findings"]
         else:
             res.findings = ["no twin scene (--scene) for this device: the measured figures stand alone"]
-        res.plots = _accuracy_plots(rows, twin_ok)
+        res.plots = lambda: _accuracy_plots(rows, twin_ok)
         return res
 
 
@@ -263,6 +272,13 @@ def agreement(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """Measured against the twin over the distances: the systematic error's difference (its
     noise: both standard errors) and the random error's (its variance's standard errors), each
     a chi-square test; where the systematic one fails, the range error that explains it."""
+    keys = ("measured_systematic_m", "twin_systematic_m", "measured_random_m", "twin_random_m")
+    usable = [r for r in rows if all(math.isfinite(r[k]) for k in keys)]
+    left_out = [r["distance_m"] for r in rows if r not in usable]
+    if not usable:
+        return {"cause": None, "findings": ["no distance has valid pixels in the ROI in every frame (saturated or "
+                                            "too dark): nothing to compare with the twin"]}
+    rows = usable
     d = np.array([r["distance_m"] for r in rows])
     delta = np.array([r["measured_systematic_m"] - r["twin_systematic_m"] for r in rows])
     se = np.hypot([r["measured_systematic_se_m"] for r in rows], [r["twin_systematic_se_m"] for r in rows])
@@ -296,6 +312,9 @@ def agreement(rows: list[dict[str, Any]]) -> dict[str, Any]:
         findings.append(f"random error differs from the twin: measured / predicted = {ratio:.3f} on average "
                         f"(chi2 {chi2_rand:.1f}, p = {p_rand:.1e}): the twin's noise model (read noise, gain, "
                         "ambient) is off; bench photon-transfer measures it")
+    if left_out:
+        findings.append("left out (no pixel of the ROI valid in every frame: saturated or too dark): "
+                        + ", ".join(f"{x:g} m" for x in left_out))
     out["findings"] = findings
     return out
 
@@ -405,7 +424,7 @@ class FlatnessProc:
         x0, y0, x1, y1 = roi
         mask = np.zeros(cam.shape, bool)
         mask[y0:y1, x0:x1] = True
-        mean = np.nanmean(np.where(valid, radial, np.nan), axis=0)
+        mean = _nanmean(radial, valid)
         all_valid = np.all(valid, axis=0)
         fl = plane_flatness(cam.points(np.nan_to_num(mean), valid=all_valid & mask))
         fr = fill_rate(all_valid, roi)
@@ -425,7 +444,7 @@ class FlatnessProc:
             findings.append("one frame: the precision (temporal std) needs two frames or more")
         res = BenchResult(FlatnessProc.NAME, rig.device, figs, curves={"flatness": [rows]}, findings=findings,
                           seconds={"analysis": time.monotonic() - t0})
-        res.plots = _flatness_plot(cam, mean, all_valid, roi, fl)
+        res.plots = lambda: _flatness_plot(cam, mean, all_valid, roi, fl)
         return res
 
 

@@ -144,7 +144,7 @@ def analyse(campaign: CampaignResult, rig: Any, opts: BenchOptions) -> BenchResu
     res = BenchResult(NAME, rig.device, figures, curves=curves, findings=findings,
                       files={"sensor": "sensor.yaml"},
                       details={tag: r.to_dict() for tag, r in results.items()})
-    res.plots = _plots(results, sensor)
+    res.plots = lambda: _plots(results, sensor)
     res.seconds["analysis"] = time.monotonic() - t0
     return res
 

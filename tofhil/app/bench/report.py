@@ -77,7 +77,7 @@ def write_report(result: BenchResult, out_dir: Path) -> None:
             "<h2>Measured and predicted</h2>", figure_table(result),
             "<h2>What was found</h2>",
             "<ul>" + "".join(f"<li>{esc(x)}</li>" for x in result.findings) + "</ul>" if result.findings else "",
-            figures_html(result.plots)]
+            figures_html(result.plots() if result.plots else [])]
     if result.files:
         body.append("<h2>Files</h2><ul>" + "".join(f"<li>{esc(k)}: {esc(v)}</li>" for k, v in result.files.items())
                     + "<li>figures: figures.json</li><li>captures: sessions/, campaign.json</li></ul>")
