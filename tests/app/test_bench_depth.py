@@ -1,0 +1,118 @@
+"""Depth bench procedures end to end on the emulated TOFcam635 (pyusb backend) and the DepthAI
+host pipeline, the emulators performing the bench changes (the wall's distance); flatness on a
+real capture; the spec sheet's unknown figure refused through the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from tests.cli_in_process import run_cli
+from tests.real_data import ADI, need
+from tofhil.app.bench import BenchOptions, run_bench
+from tofhil.app.bench.depth import name_range_error
+from tofhil.eval.metrics.bench import plane_flatness
+
+DIST = (0.7, 1.3, 1.9)
+
+
+def _acc(tmp_path, device, hidden=None, frames=5, name="o", report=False):
+    return run_bench("accuracy-vs-distance", device, tmp_path / name, report=report,
+                     options=BenchOptions(frames=frames, seed=1, distances_m=DIST, hidden=hidden or {},
+                                          extra={"work_dir": str(tmp_path / "work")}))
+
+
+def test_accuracy_agrees_with_the_twin_when_nothing_is_hidden_tofcam635(tmp_path):
+    res = _acc(tmp_path, "emulator", report=True)
+    ag = res.details["agreement"]
+    assert ag["cause"] is None and ag["systematic"]["p"] >= 0.01 and ag["random"]["p"] >= 0.01, ag
+    rows = res.curves["accuracy"]
+    assert [r["distance_m"] for r in rows] == list(DIST)
+    # the random error grows with distance (amplitude ~ 1/d^2), and the twin says by as much
+    rand = [r["measured_random_m"] for r in rows]
+    assert rand[0] < rand[1] < rand[2]
+    assert np.allclose(rand, [r["twin_random_m"] for r in rows], rtol=0.1)
+    page = (tmp_path / "o" / "report.html").read_text()
+    assert "agrees with the twin within noise" in page
+    table = json.loads((tmp_path / "o" / "figures.json").read_text())
+    assert {f["name"] for f in table["figures"]} >= {"systematic_error_m", "random_error_m", "fill_rate"}
+    import pandas as pd
+
+    assert len(pd.read_parquet(tmp_path / "o" / "curves.parquet")) == len(DIST)
+
+
+def test_accuracy_names_a_hidden_range_error_growing_with_distance(tmp_path):
+    res = _acc(tmp_path, "emulator", hidden={"range_scale": 0.01})
+    cause = res.details["agreement"]["cause"]
+    assert cause["kind"] == "range error growing with distance", cause
+    a, b = cause["fits"]["scale"]["params"]
+    sa, sb = cause["fits"]["scale"]["sigma"]
+    assert abs(b - 0.01) < 4 * sb and abs(a) < 4 * sa      # 10 mm per metre, nothing at 0 m
+    assert any("growing with distance" in f for f in res.findings)
+
+
+def test_accuracy_names_a_constant_range_offset(tmp_path):
+    res = _acc(tmp_path, "emulator", hidden={"range_offset": {"path_m": 0.03}})
+    cause = res.details["agreement"]["cause"]
+    assert cause["kind"] == "range offset", cause
+    (a,), (sa,) = cause["fits"]["offset"]["params"], cause["fits"]["offset"]["sigma"]
+    assert abs(a - 0.015) < 4 * sa                          # path 30 mm reads 15 mm farther
+
+
+def test_accuracy_on_the_depthai_emulation_agrees_with_the_twin(tmp_path):
+    res = _acc(tmp_path, "depthai-sim", frames=4)
+    ag = res.details["agreement"]
+    assert ag["cause"] is None and ag["systematic"]["p"] >= 0.01 and ag["random"]["p"] >= 0.01, ag
+
+
+def test_name_range_error_against_closed_forms():
+    d = np.array([0.5, 1.0, 1.5, 2.0, 2.5])
+    se = np.full(d.size, 1e-4)
+    rng = np.random.default_rng(0)
+    off = name_range_error(d, 0.004 + se * rng.standard_normal(d.size), se)
+    assert off["kind"] == "range offset" and off["fits"]["offset"]["params"][0] == pytest.approx(0.004, abs=3e-4)
+    sc = name_range_error(d, 0.002 * d + se * rng.standard_normal(d.size), se)
+    assert sc["kind"] == "range error growing with distance"
+    assert sc["fits"]["scale"]["params"][1] == pytest.approx(0.002, abs=4e-4)
+    wig = name_range_error(d, 0.01 * np.sin(8 * d), se)
+    assert wig["kind"] == "unexplained"
+
+
+def test_plane_flatness_against_a_known_plane():
+    rng = np.random.default_rng(1)
+    u, v = rng.uniform(-0.3, 0.3, (2, 5000))
+    n = np.array([0.1, -0.2, -1.0]) / np.linalg.norm([0.1, -0.2, -1.0])
+    base = np.column_stack([u, v, np.zeros_like(u)])
+    pts = base - n * 1.2 + n[None] * 0.0
+    # lay the samples in the plane n . x = -1.2 ... by projecting, then add 2 mm of normal noise
+    pts = pts - np.outer(pts @ n + 1.2, n) + np.outer(0.002 * rng.standard_normal(u.size), n)
+    pts[:50] += n * 0.2                                     # a cable in front: outliers
+    fl = plane_flatness(pts)
+    assert fl.rms_m == pytest.approx(0.002, rel=0.05) and fl.outliers >= 50
+    assert fl.distance_m == pytest.approx(1.2, abs=1e-3)
+
+
+def test_flatness_on_a_real_capture(tmp_path):
+    from tofhil.drivers.importers.dispatch import import_file
+
+    import_file(need(ADI / "near_plane_depth.bin"), tmp_path / "near.h5")
+    res = run_bench("flatness", f"replay:{tmp_path / 'near.h5'}", tmp_path / "o",
+                    options=BenchOptions(frames=8, roi=(128, 128, 384, 384)))
+    figs = {f.name: f.value for f in res.figures}
+    assert 0.0005 < figs["flatness_rms_m"] < 0.004          # a real plane: a few mm (tests/drivers/test_import_adi)
+    assert figs["fill_rate"] > 0.95
+    assert "precision_m" not in figs and any("two frames" in f for f in res.findings)
+
+
+def test_a_spec_sheet_with_an_unknown_figure_is_refused_naming_it(tmp_path, capsys):
+    sheet = tmp_path / "sheet.yaml"
+    sheet.write_text("name: vendor\nfigures:\n  read_noise_e: {max: 20}\n  noise_floor_m: 0.001\n")
+    code = run_cli("bench", "photon-transfer", "--device", "emulator", "--out", tmp_path / "o", "--spec", sheet)
+    err = capsys.readouterr().err
+    assert code == 2 and "figures.noise_floor_m" in err and "unknown figure" in err and "sheet.yaml" in err
+    assert not (tmp_path / "o").exists()                    # nothing captured
+    sheet.write_text("figures:\n  read_noise_e: {max: 20, typ: 10}\n")
+    assert run_cli("bench", "photon-transfer", "--device", "emulator", "--out", tmp_path / "o", "--spec", sheet) == 2
+    assert "figures.read_noise_e.typ" in capsys.readouterr().err
