@@ -102,7 +102,8 @@ def bench(procedure: Optional[str] = typer.Argument(None, help="The procedure (t
                   highlight=False, markup=False)
     for f in res.figures:
         pred = f"  twin {f.predicted:.4g}" if f.predicted == f.predicted else ""
-        out.print(f"{f.name}: {f.value:.4g} ± {f.sigma:.2g} {f.unit}{pred}", highlight=False, markup=False)
+        pm = f" ± {f.sigma:.2g}" if f.sigma == f.sigma else ""
+        out.print(f"{f.name}: {f.value:.4g}{pm} {f.unit}{pred}", highlight=False, markup=False)
     for line in res.findings:
         out.print(line, highlight=False, markup=False, soft_wrap=True)
     spent = ", ".join(f"{k} {v:.1f} s" for k, v in res.seconds.items() if v > 0.05)

@@ -86,15 +86,15 @@ class SpecSheet:
         for name, lim in self.limits.items():
             f = by_name.get(name)
             if f is None or not math.isfinite(f.value):
-                rows.append({"figure": name, "limit": lim.describe(), "value": math.nan, "sigma": math.nan,
-                             "unit": FIGURES[name][0], "verdict": "not measured"})
+                rows.append({"figure": name, "limit": lim.describe(), "lo": lim.lo, "hi": lim.hi, "value": math.nan,
+                             "sigma": math.nan, "unit": FIGURES[name][0], "verdict": "not measured"})
                 continue
             v, s = f.value, f.sigma if math.isfinite(f.sigma) else 0.0
             inside = lim.lo <= v <= lim.hi
             near = min(abs(v - lim.lo), abs(v - lim.hi)) <= 2.0 * s
             verdict = ("marginal" if near else "pass") if inside else ("marginal" if near else "fail")
-            rows.append({"figure": name, "limit": lim.describe(), "value": v, "sigma": f.sigma,
-                         "unit": f.unit, "verdict": verdict})
+            rows.append({"figure": name, "limit": lim.describe(), "lo": lim.lo, "hi": lim.hi, "value": v,
+                         "sigma": f.sigma, "unit": f.unit, "verdict": verdict})
         return rows
 
 

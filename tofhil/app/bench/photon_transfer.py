@@ -198,7 +198,7 @@ def _plots(results: dict[str, Any], sensor: Any) -> list[tuple[str, str | None, 
         tf = np.array([c.integration_time_s for c in fl]) * 1e6
         lp = np.asarray(res.fit["linear_fit"])
         dev = 100 * (x - np.polyval(lp, tf * 1e-6)) / np.polyval(lp, tf * 1e-6)
-        ax.plot(tf, dev, "o-", label="deviation from the linear fit")
+        ax.plot(tf, np.clip(dev, -1e9, 1e9), "o-", label="deviation from the linear fit")
         ax.axhline(0, color="k", lw=0.6)
         for c, tv, dv in zip(fl, tf, dev):
             if not c.used:
@@ -206,7 +206,12 @@ def _plots(results: dict[str, Any], sensor: Any) -> list[tuple[str, str | None, 
         ax.set_xlabel("integration time (µs)")
         ax.set_ylabel("linearity deviation (%)")
         ax.set_title("linearity (x: saturated / not used)")
-        ax.set_ylim(max(min(dev.min(), -1) * 1.1, -60), max(dev.max(), 1) * 1.1)
+        # the scale of the linear range (saturated points would squash it): those beyond are drawn at the edge
+        span = max(0.25, 1.5 * float(np.abs(dev[[c.used for c in fl]]).max()))
+        for tv, dv in zip(tf, dev):
+            if abs(dv) > span:
+                ax.annotate(f"{dv:.0f} %", (tv, np.sign(dv) * span * 0.92), color="C3", fontsize=8, ha="center")
+        ax.set_ylim(-span, span)
         ax.legend(fontsize=8)
         break  # one frequency per figure row is enough for the page; every frequency is in the JSON
     return [("Photon transfer, dark noise and linearity", fig_uri(fig),

@@ -13,26 +13,51 @@ from tofhil.eval.reports.html import esc, figures_html, fmt, write_json, write_p
 _VERDICT_CSS = {"pass": "#1a7f37", "marginal": "#9a6700", "fail": "#cf222e", "not measured": "#57606a"}
 
 
-def _num(v: float, s: float = math.nan, unit: str = "") -> str:
+#: Figures that are shares, shown in percent.
+_PERCENT = {"prnu", "fill_rate"}
+
+
+def _display(name: str, unit: str) -> tuple[float, str]:
+    """Scale and unit a figure is shown in: metres as millimetres (a bench reads mm), shares in %."""
+    if unit == "m":
+        return 1e3, "mm"
+    if name in _PERCENT:
+        return 100.0, "%"
+    return 1.0, unit
+
+
+def _g(v: float) -> str:
+    """4 significant digits, without an exponent between 1e-3 and 1e7."""
+    if 1e3 <= abs(v) < 1e7:
+        return f"{v:,.0f}"
+    return f"{v:.4g}"
+
+
+def _num(v: float, s: float = math.nan, unit: str = "", name: str = "") -> str:
     if v is None or not math.isfinite(v):
         return "–"
-    # metres read better as millimetres at a bench
-    if unit == "m":
-        v, s, unit = v * 1e3, s * 1e3, "mm"
-    if unit == "" and abs(v) < 1.0:  # shares and relative figures as percent
-        v, s, unit = v * 100, s * 100, "%"
-    text = f"{v:.4g}"
+    k, unit = _display(name, unit)
+    text = _g(v * k)
     if math.isfinite(s) and s > 0:
-        text += f" ± {s:.2g}"
+        e = f"{s * k:.2g}"
+        text += f" ± {f'{s * k:,.0f}' if 'e+' in e else e}"
     return f"{text} {unit}".strip()
+
+
+def _limit(name: str, lo: float, hi: float, unit: str) -> str:
+    k, unit = _display(name, unit)
+    if math.isfinite(lo) and math.isfinite(hi):
+        return f"{_g(lo * k)} .. {_g(hi * k)} {unit}".strip()
+    return (f"≤ {_g(hi * k)} {unit}" if math.isfinite(hi) else f"≥ {_g(lo * k)} {unit}").strip()
 
 
 def verdict_table(rows: list[dict[str, Any]]) -> str:
     if not rows:
         return "<p class='note'>No spec sheet given (--spec SHEET.yaml): no verdict.</p>"
     body = "".join(
-        f"<tr><td>{esc(r['figure'])}</td><td>{esc(FIGURES[r['figure']][1])}</td><td>{esc(r['limit'])} "
-        f"{esc(r['unit'])}</td><td>{_num(r['value'], r['sigma'], r['unit'])}</td>"
+        f"<tr><td>{esc(r['figure'])}</td><td>{esc(FIGURES[r['figure']][1])}</td>"
+        f"<td>{esc(_limit(r['figure'], r['lo'], r['hi'], r['unit']))}</td>"
+        f"<td>{_num(r['value'], r['sigma'], r['unit'], r['figure'])}</td>"
         f"<td style='color:#fff;background:{_VERDICT_CSS[r['verdict']]};font-weight:bold;text-align:center'>"
         f"{esc(r['verdict'])}</td></tr>" for r in rows)
     return ("<table><tr><th>figure</th><th>what</th><th>spec sheet</th><th>measured</th><th>verdict</th></tr>"
@@ -45,7 +70,8 @@ def figure_table(result: BenchResult) -> str:
         z = (f.value - f.predicted) / f.sigma if math.isfinite(f.sigma) and f.sigma > 0 and math.isfinite(
             f.predicted) else math.nan
         body.append(f"<tr><td>{esc(f.name)}</td><td>{esc(FIGURES[f.name][1])}</td>"
-                    f"<td>{_num(f.value, f.sigma, f.unit)}</td><td>{_num(f.predicted, f.predicted_sigma, f.unit)}</td>"
+                    f"<td>{_num(f.value, f.sigma, f.unit, f.name)}</td>"
+                    f"<td>{_num(f.predicted, f.predicted_sigma, f.unit, f.name)}</td>"
                     f"<td>{fmt(z)}</td><td>{esc(f.note)}</td></tr>")
     return ("<table><tr><th>figure</th><th>what</th><th>measured (± 1 sigma)</th><th>twin predicts</th>"
             "<th>(measured − twin) / sigma</th><th>note</th></tr>" + "".join(body) + "</table>")
