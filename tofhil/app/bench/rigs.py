@@ -46,10 +46,28 @@ class EmulatedTofCamRig:
         self.capabilities = DeviceCapabilities(mod_freqs_hz=tofcam635_freqs(), bench_by=("emulator",),
                                                bench_params=tuple(self.defaults), **TOFCAM635_CAPS)
         self.state = dict(self.defaults)
-        self.emulator = Epc635Emulator(make_source(self.state), seed=seed)
+        #: Seconds the emulator spent rendering its sources (inside the captures' time).
+        self.render_s = 0.0
+        self.emulator = Epc635Emulator(self._timed(make_source(self.state)), seed=seed)
         self._driver = EmulatedTofCam635(device, emulator=self.emulator)
         self._scene_text = scene_text
         self.renders = 0
+
+    def _timed(self, src: Any) -> Any:
+        """``src`` with its render (``signal``, called once per frequency) timed into ``render_s``."""
+        import time
+
+        signal = src.signal
+
+        def timed(freq_hz: float) -> Any:
+            t0 = time.monotonic()
+            try:
+                return signal(freq_hz)
+            finally:
+                self.render_s += time.monotonic() - t0
+
+        src.signal = timed
+        return src
 
     def driver(self) -> Any:
         if not self._driver.is_open:
@@ -58,7 +76,7 @@ class EmulatedTofCamRig:
 
     def apply_bench(self, params: Mapping[str, Any], by: str, message: str) -> None:
         self.state = {**self.defaults, **params}
-        src = self.make_source(self.state)
+        src = self._timed(self.make_source(self.state))
         self.renders += 1
         with self.emulator._lock:  # the backend may read a frame from another thread
             self.emulator.source = src

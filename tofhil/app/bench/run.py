@@ -51,6 +51,8 @@ def run_bench(procedure: str, device: str, out_dir: str | Path, *, spec: str | P
     finally:
         rig.close()
     result.seconds = {"setup": setup, **campaign.seconds, **result.seconds}
+    if getattr(rig, "render_s", 0.0) > 0:  # part of the captures' time: the emulator rendering its bench
+        result.seconds["capture_emulator_render"] = rig.render_s
     result.details["campaign"] = {"taken": campaign.taken, "skipped": campaign.skipped}
     if sheet is not None:
         result.verdict = sheet.verdict(result.figures)
