@@ -28,7 +28,7 @@ def test_accuracy_agrees_with_the_twin_when_nothing_is_hidden_tofcam635(tmp_path
     res = _acc(tmp_path, "emulator", report=True)
     ag = res.details["agreement"]
     assert ag["cause"] is None and ag["systematic"]["p"] >= 0.01 and ag["random"]["p"] >= 0.01, ag
-    rows = res.curves["accuracy"]
+    rows = res.curves["accuracy-vs-distance"]
     assert [r["distance_m"] for r in rows] == list(DIST)
     # the random error grows with distance (amplitude ~ 1/d^2), and the twin says by as much
     rand = [r["measured_random_m"] for r in rows]
@@ -116,3 +116,14 @@ def test_a_spec_sheet_with_an_unknown_figure_is_refused_naming_it(tmp_path, caps
     sheet.write_text("figures:\n  read_noise_e: {max: 20, typ: 10}\n")
     assert run_cli("bench", "photon-transfer", "--device", "emulator", "--out", tmp_path / "o", "--spec", sheet) == 2
     assert "figures.read_noise_e.typ" in capsys.readouterr().err
+
+
+def test_ambient_light_raises_the_random_error_as_the_twin_predicts(tmp_path):
+    res = run_bench("ambient", "emulator", tmp_path / "o", report=False,
+                    options=BenchOptions(frames=5, seed=2, extra={"ambient_w_m2": (0.0, 20.0),
+                                                                 "work_dir": str(tmp_path / "w")}))
+    ag = res.details["agreement"]
+    assert ag["systematic"]["p"] >= 0.01 and ag["random"]["p"] >= 0.01, ag
+    f = {x.name: x for x in res.figures}["ambient_noise_factor"]
+    # the shot noise of the ambient light's charge: the random error grows several-fold at 20 W/m^2
+    assert f.value > 2.0 and abs(f.value - f.predicted) < 4 * np.hypot(f.sigma, f.predicted_sigma)

@@ -39,6 +39,7 @@ FIGURES: dict[str, tuple[str, str]] = {
     "flatness_pv_m": ("m", "peak-to-valley (1-99 percentile) residual of the plane fit"),
     "fill_rate": ("", "share of the region's pixels with a valid depth"),
     "precision_m": ("m", "temporal standard deviation on the flat target (frames >= 2)"),
+    "ambient_noise_factor": ("", "random error at the brightest ambient light over that in the dark"),
 }
 
 

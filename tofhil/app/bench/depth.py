@@ -79,46 +79,65 @@ def _work_dir(opts: BenchOptions) -> Path:
     return Path(work)
 
 
+#: Bench parameters that are not the scene's own ``params:``: the ambient light on the target
+#: (W/m^2, the ``ambient`` effect: a lamp or the sun, known to the twin, not hidden).
+AMBIENT = "ambient_w_m2"
+
+
+def _split(state: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A bench state -> the scene's parameters and the bench's known effects (the ambient light)."""
+    params = {k: v for k, v in state.items() if k != AMBIENT}
+    amb = float(state.get(AMBIENT, 0.0) or 0.0)
+    return params, ({"ambient": {"irradiance_w_m2": amb}} if amb > 0 else {})
+
+
 def _rig(device: str, opts: BenchOptions, param: str, default: float) -> Any:
     from tofhil.app.bench.rigs import DeviceRig, EmulatedDepthAIRig, EmulatedTofCamRig
 
     scheme, _, rest = device.partition(":")
     scene = opts.scene or (rest if scheme in ("emulator", "depthai-sim") and rest else DEFAULT_SCENE)
     work = _work_dir(opts)
+    defaults = {param: default, AMBIENT: 0.0}
     if scheme == "emulator":
         from tofhil.sim.sources import TOFCAM635_OVERRIDES, SimulatedSource
 
         def source(p: Mapping[str, Any]) -> Any:
-            d = float(p[param])
-            path = _bench_scene_file(scene, p, None, work, TOFCAM635_OVERRIDES)
-            return SimulatedSource(path, effects=_hidden_with_own(scene, p, opts, d))
+            params, _ = _split(p)
+            path = _bench_scene_file(scene, params, None, work, TOFCAM635_OVERRIDES)
+            return SimulatedSource(path, effects=_bench_effects(scene, p, opts, float(p[param])))
 
-        rig = EmulatedTofCamRig(source, {param: default}, seed=opts.seed, scene_text="", device=device)
+        rig = EmulatedTofCamRig(source, defaults, seed=opts.seed, scene_text="", device=device)
     elif scheme == "depthai-sim":
         from tofhil.sim.sources import TwinScene
 
         def host(p: Mapping[str, Any]) -> Any:
             d = float(p[param])
-            path = _bench_scene_file(scene, p, _hidden_with_own(scene, p, opts, d) or None, work)
-            return TwinScene(scene=str(path), realisations=opts.frames, seed=opts.seed + int(1000 * d))
+            params, _ = _split(p)
+            path = _bench_scene_file(scene, params, _bench_effects(scene, p, opts, d) or None, work)
+            return TwinScene(scene=str(path), realisations=opts.frames,
+                             seed=opts.seed + int(1000 * d) + int(p.get(AMBIENT, 0) * 7))
 
-        rig = EmulatedDepthAIRig(host, {param: default}, device=device)
+        rig = EmulatedDepthAIRig(host, defaults, device=device)
     else:
         return DeviceRig(device, prompt=opts.prompt)
     rig.scene = scene
     return rig
 
 
-def _hidden_with_own(scene: str, params: Mapping[str, Any], opts: BenchOptions, d: float) -> dict[str, Any]:
-    """The bench's effects: the scene's own, then the hidden truth at this distance."""
-    hidden = hidden_effects(opts.hidden, d)
-    if not hidden:
+def _bench_effects(scene: str, state: Mapping[str, Any], opts: BenchOptions, d: float,
+                   hidden: bool = True) -> dict[str, Any]:
+    """The bench's effects: the scene's own, the known bench light (ambient), then (for the
+    emulator, not the twin) the hidden truth at this distance; empty when there is none of
+    the last two (the scene's own block applies)."""
+    params, known = _split(state)
+    extra = {**known, **(hidden_effects(opts.hidden, d) if hidden else {})}
+    if not extra:
         return {}
     from tofhil.sim.pipeline import resolve_effects
     from tofhil.sim.scene import load_scene
 
-    own = resolve_effects(load_scene(scene, {"params": dict(params)}), None)
-    return {**own, **hidden}
+    own = resolve_effects(load_scene(scene, {"params": params}), None)
+    return {**own, **extra}
 
 
 # --------------------------------------------------------------------------- reading captures
@@ -143,10 +162,11 @@ def _depth_stack(path: Path) -> tuple[np.ndarray, np.ndarray, Any, dict[str, Any
     return d, np.stack([f.valid for f in frames]), frames[0].camera, acq
 
 
-def _twin_stack(rig: Any, params: Mapping[str, Any], acq: Mapping[str, Any], frames: int,
-                seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """The twin's frames of the same bench (the scene without the hidden truth) with the
-    capture's acquisition settings, demodulated like the capture."""
+def _twin_stack(rig: Any, state: Mapping[str, Any], acq: Mapping[str, Any], frames: int,
+                seed: int, opts: BenchOptions) -> tuple[np.ndarray, np.ndarray]:
+    """The twin's frames of the same bench (the scene and the bench's known light, without
+    the hidden truth) with the capture's acquisition settings, demodulated like the capture."""
+    params, _ = _split(state)
     import copy
 
     from tofhil.depth import depth_from_raw
@@ -161,7 +181,8 @@ def _twin_stack(rig: Any, params: Mapping[str, Any], acq: Mapping[str, Any], fra
         over["sensor"] = {**over["sensor"], "freq_hz": [float(f) for f in acq["freq_hz"]],
                           "integration_time_s": float(acq["integration_time_s"])}
     scene = load_scene(rig.scene, over)
-    raws = simulate(scene, frames=frames, seed=seed, noise=True)
+    effects = _bench_effects(rig.scene, state, opts, 0.0, hidden=False) or None
+    raws = simulate(scene, frames=frames, seed=seed, noise=True, effects=effects)
     deps = [depth_from_raw(r) for r in raws]
     return (np.stack([np.where(f.valid, f.distance_m, np.nan) for f in deps]), np.stack([f.valid for f in deps]))
 
@@ -195,45 +216,76 @@ class Accuracy:
 
     @staticmethod
     def analyse(campaign: CampaignResult, rig: Any, opts: BenchOptions) -> BenchResult:
-        from tofhil.eval.metrics.bench import centre_roi, depth_stack_stats, plane_flatness
+        return analyse_series(Accuracy.NAME, campaign, rig, opts, "distance_m")
 
-        seconds = {"twin": 0.0, "analysis": 0.0}
-        rows: list[dict[str, Any]] = []
-        twin_ok = getattr(rig, "scene", None) is not None
-        for i, (label, rec) in enumerate(campaign.captures.items()):
-            t0 = time.monotonic()
-            d_true = float(rec["bench"][DISTANCE_PARAM])
-            radial, valid, cam, acq = _depth_stack(campaign.session(label))
-            roi = opts.roi or centre_roi(cam.shape)
-            truth = d_true / cam.ray_z
-            m = depth_stack_stats(radial, valid, truth, roi)
-            mean = _nanmean(radial, valid)
-            fl = plane_flatness(cam.points(np.nan_to_num(mean), valid=np.all(valid, axis=0)))
-            seconds["analysis"] += time.monotonic() - t0
-            row = {"distance_m": d_true, **{f"measured_{k}": v for k, v in m.to_dict().items()},
-                   "measured_flatness_rms_m": fl.rms_m}
-            if twin_ok:
-                t0 = time.monotonic()
-                tr, tv = _twin_stack(rig, rec["bench"], acq, max(opts.frames, 2), opts.seed + 7919 + i)
-                p = depth_stack_stats(tr, tv, truth, roi)
-                tmean = _nanmean(tr, tv)
-                tfl = plane_flatness(cam.points(np.nan_to_num(tmean), valid=np.all(tv, axis=0)))
-                row.update({f"twin_{k}": v for k, v in p.to_dict().items()})
-                row["twin_flatness_rms_m"] = tfl.rms_m
-                seconds["twin"] += time.monotonic() - t0
-            rows.append(row)
-        res = BenchResult(Accuracy.NAME, rig.device, [], curves={"accuracy": rows}, seconds=seconds)
-        res.figures = _accuracy_figures(rows)
+
+def analyse_series(name: str, campaign: CampaignResult, rig: Any, opts: BenchOptions, axis: str) -> BenchResult:
+    """Accuracy and precision of each capture of a flat target, beside the twin's, along ``axis``
+    (``distance_m`` or the ambient light ``ambient_w_m2``)."""
+    from tofhil.eval.metrics.bench import centre_roi, depth_stack_stats, plane_flatness
+
+    seconds = {"twin": 0.0, "analysis": 0.0}
+    rows: list[dict[str, Any]] = []
+    twin_ok = getattr(rig, "scene", None) is not None
+    for i, (label, rec) in enumerate(campaign.captures.items()):
+        t0 = time.monotonic()
+        d_true = float(rec["bench"][DISTANCE_PARAM])
+        radial, valid, cam, acq = _depth_stack(campaign.session(label))
+        roi = opts.roi or centre_roi(cam.shape)
+        truth = d_true / cam.ray_z
+        m = depth_stack_stats(radial, valid, truth, roi)
+        mean = _nanmean(radial, valid)
+        fl = plane_flatness(cam.points(np.nan_to_num(mean), valid=np.all(valid, axis=0)))
+        seconds["analysis"] += time.monotonic() - t0
+        row = {"distance_m": d_true, AMBIENT: float(rec["bench"].get(AMBIENT, 0.0)),
+               **{f"measured_{k}": v for k, v in m.to_dict().items()}, "measured_flatness_rms_m": fl.rms_m}
         if twin_ok:
-            res.details["agreement"] = agreement(rows)
-            res.findings = res.details["agreement"]["findings"]
-        else:
-            res.findings = ["no twin scene (--scene) for this device: the measured figures stand alone"]
-        res.plots = lambda: _accuracy_plots(rows, twin_ok)
-        return res
+            t0 = time.monotonic()
+            tr, tv = _twin_stack(rig, rec["bench"], acq, max(opts.frames, 2), opts.seed + 7919 + i, opts)
+            p = depth_stack_stats(tr, tv, truth, roi)
+            tmean = _nanmean(tr, tv)
+            tfl = plane_flatness(cam.points(np.nan_to_num(tmean), valid=np.all(tv, axis=0)))
+            row.update({f"twin_{k}": v for k, v in p.to_dict().items()})
+            row["twin_flatness_rms_m"] = tfl.rms_m
+            seconds["twin"] += time.monotonic() - t0
+        rows.append(row)
+    res = BenchResult(name, rig.device, [], curves={name: rows}, seconds=seconds)
+    res.figures = _accuracy_figures(rows, axis)
+    if twin_ok:
+        res.details["agreement"] = agreement(rows, name_cause=axis == "distance_m")
+        res.findings = res.details["agreement"]["findings"]
+    else:
+        res.findings = ["no twin scene (--scene) for this device: the measured figures stand alone"]
+    if axis == AMBIENT:
+        res.figures.append(_ambient_factor(rows))
+        f = res.figures[-1]
+        res.findings.append(f"background-light rejection: the random error at {rows[-1][AMBIENT]:g} W/m² is "
+                            f"{f.value:.2f} x that without ambient light (the twin predicts {f.predicted:.2f} x)")
+    res.plots = lambda: _accuracy_plots(rows, twin_ok, axis)
+    return res
 
 
-def _accuracy_figures(rows: list[dict[str, Any]]) -> list[Figure]:
+def _ambient_factor(rows: list[dict[str, Any]]) -> Figure:
+    """Random error at the brightest ambient over that at the darkest, with its uncertainty."""
+    lo, hi = min(rows, key=lambda r: r[AMBIENT]), max(rows, key=lambda r: r[AMBIENT])
+
+    def ratio(pre: str) -> tuple[float, float]:
+        a, b = lo[f"{pre}_random_m"], hi[f"{pre}_random_m"]
+        if not (a > 0 and b > 0):
+            return math.nan, math.nan
+        # relative s.e. of a std from its variance's: s.e.(s^2) / (2 s^2)
+        ra = lo[f"{pre}_random_var_se_m2"] / (2 * a * a)
+        rb = hi[f"{pre}_random_var_se_m2"] / (2 * b * b)
+        return b / a, b / a * math.hypot(ra, rb)
+
+    v, s = ratio("measured")
+    pv, ps = ratio("twin") if "twin_random_m" in hi else (math.nan, math.nan)
+    return Figure("ambient_noise_factor", v, s, pv, ps, note=f"{hi[AMBIENT]:g} W/m² against {lo[AMBIENT]:g}")
+
+
+def _accuracy_figures(rows: list[dict[str, Any]], axis: str = "distance_m") -> list[Figure]:
+    unit = "m" if axis == "distance_m" else "W/m²"
+
     def worst(key: str, se_key: str | None, absolute: bool = True) -> Figure:
         vals = np.array([r[f"measured_{key}"] for r in rows], dtype=float)
         i = int(np.nanargmax(np.abs(vals) if absolute else vals))
@@ -241,7 +293,7 @@ def _accuracy_figures(rows: list[dict[str, Any]]) -> list[Figure]:
         pred = rows[i].get(f"twin_{key}", math.nan)
         pse = rows[i].get(f"twin_{se_key}", math.nan) if se_key else math.nan
         return Figure("", float(abs(vals[i]) if absolute else vals[i]), float(se),
-                      float(abs(pred) if absolute else pred), float(pse), note=f"at {rows[i]['distance_m']:g} m")
+                      float(abs(pred) if absolute else pred), float(pse), note=f"at {rows[i][axis]:g} {unit}")
 
     out = []
     for name, key, se, ab in (("systematic_error_m", "systematic_m", "systematic_se_m", True),
@@ -268,7 +320,7 @@ def _chi2_sf(x: float, dof: int) -> float:
     return float(chi2.sf(x, dof))
 
 
-def agreement(rows: list[dict[str, Any]]) -> dict[str, Any]:
+def agreement(rows: list[dict[str, Any]], name_cause: bool = True) -> dict[str, Any]:
     """Measured against the twin over the distances: the systematic error's difference (its
     noise: both standard errors) and the random error's (its variance's standard errors), each
     a chi-square test; where the systematic one fails, the range error that explains it."""
@@ -298,12 +350,16 @@ def agreement(rows: list[dict[str, Any]]) -> dict[str, Any]:
     findings = []
     if p_sys >= FALSE_ALARM:
         findings.append(f"systematic error agrees with the twin within noise (chi2 {chi2_sys:.1f} for {len(d)} "
-                        f"distances, p = {p_sys:.2f})")
+                        f"captures, p = {p_sys:.2f})")
         out["cause"] = None
+    elif not name_cause:
+        out["cause"] = {"kind": "unexplained", "text": "run tofhil diagnose on the sessions with the twin's scene"}
+        findings.append(f"systematic error differs from the twin (chi2 {chi2_sys:.1f} for {len(d)} captures, "
+                        f"p = {p_sys:.1e}): {out['cause']['text']}")
     else:
         cause = name_range_error(d, delta, se)
         out["cause"] = cause
-        findings.append(f"systematic error differs from the twin (chi2 {chi2_sys:.1f} for {len(d)} distances, "
+        findings.append(f"systematic error differs from the twin (chi2 {chi2_sys:.1f} for {len(d)} captures, "
                         f"p = {p_sys:.1e}): {cause['text']}")
     if p_rand >= FALSE_ALARM:
         findings.append(f"random error agrees with the twin within noise (chi2 {chi2_rand:.1f}, p = {p_rand:.2f})")
@@ -353,11 +409,11 @@ def name_range_error(d: np.ndarray, delta: np.ndarray, se: np.ndarray) -> dict[s
     return {"kind": kind, "text": text, "fits": fits, "chosen": chosen, "p_linear_term": p_gain}
 
 
-def _accuracy_plots(rows: list[dict[str, Any]], twin: bool) -> list[tuple[str, str | None, str]]:
+def _accuracy_plots(rows: list[dict[str, Any]], twin: bool, axis: str = "distance_m") -> list[tuple[str, str | None, str]]:
     from tofhil.eval.reports.html import fig_uri, pyplot
 
     plt = pyplot()
-    d = np.array([r["distance_m"] for r in rows])
+    d = np.array([r[axis] for r in rows])
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.2), layout="constrained")
     for ax, key, se_of, title in ((axes[0], "systematic_m", "systematic_se_m", "systematic error (mean - truth)"),
                                   (axes[1], "random_m", None, "random error (temporal std)")):
@@ -378,13 +434,46 @@ def _accuracy_plots(rows: list[dict[str, Any]], twin: bool) -> list[tuple[str, s
             ax.fill_between(d, p - band, p + band, color="C3", alpha=0.25, label="twin: predicted band (2 sigma)")
             ax.plot(d, p, "-", color="C3", lw=1)
         ax.axhline(0, color="k", lw=0.5)
-        ax.set_xlabel("target distance (m)")
+        ax.set_xlabel("target distance (m)" if axis == "distance_m" else "ambient irradiance on the target (W/m²)")
         ax.set_ylabel("mm")
         ax.set_title(title)
         ax.legend(fontsize=8)
-    return [("Accuracy and precision against distance", fig_uri(fig),
+    what = "distance" if axis == "distance_m" else "ambient light"
+    return [(f"Accuracy and precision against {what}", fig_uri(fig),
              "Centre ROI (markers) and the whole field's median pixel (dashed) against the twin's prediction for "
              "the same settings (band: 2 sigma of the noise of both).")]
+
+
+# --------------------------------------------------------------------------- ambient light
+class Ambient:
+    NAME = "ambient"
+    SUMMARY = ("precision against ambient light (a lamp or the sun on the target, W/m²): random and systematic "
+               "error at each level beside the twin's, and the background-light rejection (noise factor)")
+    LEVELS_W_M2 = (0.0, 2.0, 5.0, 10.0, 20.0)
+
+    @staticmethod
+    def make_rig(device: str, opts: BenchOptions) -> Any:
+        return _rig(device, opts, DISTANCE_PARAM, opts.distances_m[0])
+
+    @staticmethod
+    def make_plan(opts: BenchOptions, rig: Any) -> Plan:
+        emulated = "emulator" in rig.capabilities.bench_by
+        raw = "dcs" in rig.capabilities.modes
+        settings: dict[str, Any] = {"mode": "dcs" if raw else "distance"}
+        if raw:
+            settings["integration_time_us"] = opts.integration_time_us or 125
+            settings["mod_freq_hz"] = opts.mod_freq_hz or 20e6
+        d = float(opts.extra.get("ambient_distance_m", 1.0))
+        steps: list[dict[str, Any]] = [{"settings": settings}]
+        for a in opts.extra.get("ambient_w_m2") or Ambient.LEVELS_W_M2:
+            steps.append({"bench": {DISTANCE_PARAM: d, AMBIENT: float(a)}, "by": "emulator" if emulated else "prompt",
+                          "message": f"flat target at {d:g} m; set the lamp to {a:g} W/m² on the target (radiometer)"})
+            steps.append({"capture": {"label": f"amb{float(a):g}", "frames": opts.frames}})
+        return parse_plan({"name": Ambient.NAME, "steps": steps}, f"<{Ambient.NAME} plan>")
+
+    @staticmethod
+    def analyse(campaign: CampaignResult, rig: Any, opts: BenchOptions) -> BenchResult:
+        return analyse_series(Ambient.NAME, campaign, rig, opts, AMBIENT)
 
 
 # --------------------------------------------------------------------------- flatness / fill rate
@@ -485,4 +574,4 @@ def _as_module(cls: type) -> SimpleNamespace:
                            analyse=cls.analyse)
 
 
-PROCEDURES = [_as_module(Accuracy), _as_module(FlatnessProc)]
+PROCEDURES = [_as_module(Accuracy), _as_module(Ambient), _as_module(FlatnessProc)]
