@@ -76,6 +76,8 @@ def bench(procedure: Optional[str] = typer.Argument(None, help="The procedure (t
           roi: Optional[str] = typer.Option(None, "--roi", help="X0,Y0,X1,Y1 region (default: the centre fifth)."),
           hidden: list[str] = typer.Option([], "--hidden", help="Emulated bench only: hidden truth, e.g. "
                                            "range_scale=0.005 or range_offset.path_m=0.02 (repeatable)."),
+          diagnose: bool = typer.Option(False, "--diagnose", help="Where measured and predicted disagree, run "
+                                        "tofhil diagnose on the capture that differs most (tens of seconds)."),
           resume: bool = typer.Option(False, "--resume", help="Continue an interrupted campaign in OUT."),
           force: bool = typer.Option(False, "--force", help="Start over in OUT.")) -> None:
     """Run a bench procedure: its captures (resumable), the metrics, the twin's prediction beside
@@ -92,7 +94,8 @@ def bench(procedure: Optional[str] = typer.Argument(None, help="The procedure (t
     if frames < 1:
         raise TofhilError(f"--frames {frames}", field="--frames", expected="a positive number of frames")
     opts = BenchOptions(frames=frames, seed=seed, scene=scene, integration_time_us=integration_time_us,
-                        mod_freq_hz=mod_freq_hz, roi=_roi(roi), hidden=_hidden(hidden), prompt=_prompt)
+                        mod_freq_hz=mod_freq_hz, roi=_roi(roi), hidden=_hidden(hidden), prompt=_prompt,
+                        extra={"diagnose": diagnose})
     if distances:
         opts.distances_m = _floats(distances, "--distances")
     res = run_bench(procedure, device, out_dir, spec=spec, options=opts, resume=resume, force=force,

@@ -256,6 +256,12 @@ def analyse_series(name: str, campaign: CampaignResult, rig: Any, opts: BenchOpt
         res.findings = res.details["agreement"]["findings"]
     else:
         res.findings = ["no twin scene (--scene) for this device: the measured figures stand alone"]
+    ag = res.details.get("agreement", {})
+    if opts.extra.get("diagnose") and twin_ok and ag.get("cause") is not None:
+        t0 = time.monotonic()
+        res.details["diagnosis"] = diagnose_worst(campaign, rig, opts, rows, ag)
+        res.findings.append(res.details["diagnosis"]["text"])
+        seconds["diagnose"] = time.monotonic() - t0
     if axis == AMBIENT:
         res.figures.append(_ambient_factor(rows))
         f = res.figures[-1]
@@ -263,6 +269,47 @@ def analyse_series(name: str, campaign: CampaignResult, rig: Any, opts: BenchOpt
                             f"{f.value:.2f} x that without ambient light (the twin predicts {f.predicted:.2f} x)")
     res.plots = lambda: _accuracy_plots(rows, twin_ok, axis)
     return res
+
+
+def diagnose_worst(campaign: CampaignResult, rig: Any, opts: BenchOptions, rows: list[dict[str, Any]],
+                   ag: dict[str, Any]) -> dict[str, Any]:
+    """Run the diagnosis (``tofhil.eval.diagnose``) on the capture that differs most from the
+    twin, against the twin's scene for that capture (``diagnosis/twin_scene.yaml``)."""
+    import copy
+
+    from tofhil.eval.diagnose.run import diagnose
+    from tofhil.sim.scene import load_scene
+    from tofhil.sim.session_setup import write_twin_scene
+
+    usable = [r for r in rows if math.isfinite(r.get("measured_systematic_m", math.nan))
+              and math.isfinite(r.get("twin_systematic_m", math.nan))]
+    # the largest difference in millimetres (not in sigmas: the nearest capture is the most precise)
+    row = max(usable, key=lambda r: abs(r["measured_systematic_m"] - r["twin_systematic_m"]))
+    label = next(lb for lb, rec in campaign.captures.items()
+                 if float(rec["bench"][DISTANCE_PARAM]) == row["distance_m"]
+                 and float(rec["bench"].get(AMBIENT, 0.0)) == row[AMBIENT])
+    state = campaign.captures[label]["bench"]
+    params, _ = _split(state)
+    over: dict[str, Any] = {"params": params}
+    if rig.device.startswith("emulator"):
+        from tofhil.sim.sources import TOFCAM635_OVERRIDES
+
+        over.update(copy.deepcopy(TOFCAM635_OVERRIDES))
+    known = _bench_effects(rig.scene, state, opts, 0.0, hidden=False)
+    if known:
+        over["effects"] = known
+    out = campaign.out_dir / "diagnosis"
+    out.mkdir(exist_ok=True)
+    twin, _ = write_twin_scene(load_scene(rig.scene, over), campaign.session(label), out / "twin_scene.yaml")
+    r = diagnose(campaign.session(label), twin, max_effects=int(opts.extra.get("diagnose_max_effects", 2)))
+    verdict = r.verdict.text if r.verdict is not None else str(r.cause)
+    diff_mm = 1e3 * (row["measured_systematic_m"] - row["twin_systematic_m"])
+    text = f"diagnosis of capture {label} (the largest difference from the twin, {diff_mm:+.1f} mm): {verdict}"
+    if r.params:
+        text += "; fitted " + "; ".join(f"{e} " + ", ".join(f"{k} = {v:.4g}" for k, v in p.items())
+                                        for e, p in r.params.items())
+    return {"capture": label, "causes": list(r.causes), "params": r.params, "verdict": verdict, "text": text,
+            "twin_scene": str(out / "twin_scene.yaml")}
 
 
 def _ambient_factor(rows: list[dict[str, Any]]) -> Figure:
