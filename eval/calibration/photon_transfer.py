@@ -224,7 +224,8 @@ def photon_transfer(captures: Sequence[PtcCapture], *, modulation_contrast: floa
                           float(amp.mean()) if c.flat else 0.0, v_mean, v_se,
                           float(mu[sig].var(ddof=1)))
         stats.append(st)
-        per[id(st)] = {"mu": mu[sig] * sign, "amp": amp, "var": var[sig], "s": s, "mu_all": mu}
+        per[id(st)] = {"mu": mu[sig] * sign, "amp": amp, "var": var[sig], "s": s, "mu_all": mu,
+                       "var_taps": [(float(v.mean()), float(v.std(ddof=1) / math.sqrt(v.size))) for v in v_all]}
 
     dark_st = [s for s in stats if not s.flat]
     flat_st = [s for s in stats if s.flat]
@@ -254,6 +255,16 @@ def photon_transfer(captures: Sequence[PtcCapture], *, modulation_contrast: floa
     y = np.concatenate([v_d, v_f])
     se = np.concatenate([se_d, se_f])
     (alpha, beta, gamma), cov, red = _wls(x, y, se)
+    # per tap: the same fit on each tap's own variances (a tap whose gain differs shows here)
+    per_tap = []
+    if diff or k_taps > 1:
+        for j in range(len(taps)):
+            yj = np.array([per[id(s_)]["var_taps"][j][0] for s_ in [*dark_st, *lin]])
+            sj = np.array([per[id(s_)]["var_taps"][j][1] for s_ in [*dark_st, *lin]])
+            pj, cj, _ = _wls(x, yj, sj)
+            fac = 2.0 * m if diff else 1.0
+            per_tap.append({"tap": taps[j], "conversion_gain_dn_per_e": float(fac * pj[0]),
+                            "sigma": float(fac * math.sqrt(cj[0, 0]))})
     sa, sb, sg = np.sqrt(np.diag(cov))
 
     if diff:
@@ -366,7 +377,19 @@ def photon_transfer(captures: Sequence[PtcCapture], *, modulation_contrast: floa
     else:
         notes.append("no flat capture beyond the linear range: full well not reached")
 
-    fit = {"alpha": alpha, "beta": beta, "gamma": gamma, "cov": cov.tolist(), "reduced_chi2": red,
+    if len(per_tap) > 1:
+        kk = np.array([t["conversion_gain_dn_per_e"] for t in per_tap])
+        ss = np.array([t["sigma"] for t in per_tap])
+        mean_k = float(np.sum(kk / ss ** 2) / np.sum(1 / ss ** 2))
+        chi2_taps = float(np.sum(((kk - mean_k) / ss) ** 2))
+        from scipy.stats import chi2 as _chi2
+
+        p_taps = float(_chi2.sf(chi2_taps, len(kk) - 1))
+        if p_taps < 0.01:
+            notes.append("the taps' conversion gains differ beyond noise ("
+                         + ", ".join(f"tap {t['tap']}: {t['conversion_gain_dn_per_e']:.4g} +- {t['sigma']:.2g}"
+                                     for t in per_tap) + f"; p = {p_taps:.1e}): a tap calibration is needed")
+    fit = {"alpha": alpha, "beta": beta, "gamma": gamma, "cov": cov.tolist(), "reduced_chi2": red, "per_tap": per_tap,
            "linear_fit": lpar.tolist(), "signal_tap": sig, "differential": diff}
     return PhotonTransfer(
         readout="differential" if diff else "single-ended",

@@ -32,7 +32,7 @@ def test_photon_transfer_recovers_the_emulated_sensor_within_its_stated_uncertai
     for seed in range(5):
         bench = _bench_file(tmp_path, seed)
         res = run_bench("photon-transfer", f"emulator:{bench}", tmp_path / f"o{seed}",
-                        options=BenchOptions(frames=5, seed=seed), report=seed == 0)
+                        options=BenchOptions(frames=5, seed=seed, extra={"freqs_hz": [20e6]}), report=seed == 0)
         figs = {f.name: f for f in res.figures}
         for name in RECOVERED:
             f = figs[name]
@@ -79,3 +79,17 @@ def test_photon_transfer_on_an_independent_generator(single_ended):
         assert abs(q[name].value - truth) < 4 * q[name].sigma + 0.01 * truth, (name, q[name], truth)
     assert q["dsnu_e"].value == pytest.approx(15.0, rel=0.08)
     assert q["dark_current_e_per_s"].value == pytest.approx(5000.0, rel=0.25)
+
+
+def test_a_tap_with_another_gain_is_found():
+    caps = _synthetic(False)
+    for c in caps:   # tap 1 (and its negative, tap 3) reads 8 % more charge per electron
+        c.frames = c.frames.astype(float)
+        c.frames[:, 1] = np.rint(c.frames[:, 1] * 1.08)
+        c.frames[:, 3] = -c.frames[:, 1]
+    res = photon_transfer(caps, modulation_contrast=0.8)
+    per_tap = res.fit["per_tap"]
+    assert per_tap[1]["conversion_gain_dn_per_e"] > per_tap[0]["conversion_gain_dn_per_e"] * 1.05
+    assert any("tap calibration" in n for n in res.notes)
+    clean = photon_transfer(_synthetic(False), modulation_contrast=0.8)
+    assert not any("tap calibration" in n for n in clean.notes)

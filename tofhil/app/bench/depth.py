@@ -93,11 +93,24 @@ def _split(state: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
 
 def _rig(device: str, opts: BenchOptions, param: str, default: float) -> Any:
     from tofhil.app.bench.rigs import DeviceRig, EmulatedDepthAIRig, EmulatedTofCamRig
+    from tofhil.sim.scene import load_scene
 
     scheme, _, rest = device.partition(":")
     scene = opts.scene or (rest if scheme in ("emulator", "depthai-sim") and rest else DEFAULT_SCENE)
     work = _work_dir(opts)
     defaults = {param: default, AMBIENT: 0.0}
+
+    def twin_text(state: Mapping[str, Any]) -> str:
+        """What a session records as its scene: the twin's (the bench's known light, no hidden truth)."""
+        from tofhil.sim.scene import scene_to_yaml
+
+        params, _ = _split(state)
+        over: dict[str, Any] = {"params": params}
+        known = _bench_effects(scene, state, opts, 0.0, hidden=False)
+        if known:
+            over["effects"] = known
+        return scene_to_yaml(load_scene(scene, over))
+
     if scheme == "emulator":
         from tofhil.sim.sources import TOFCAM635_OVERRIDES, SimulatedSource
 
@@ -106,7 +119,7 @@ def _rig(device: str, opts: BenchOptions, param: str, default: float) -> Any:
             path = _bench_scene_file(scene, params, None, work, TOFCAM635_OVERRIDES)
             return SimulatedSource(path, effects=_bench_effects(scene, p, opts, float(p[param])))
 
-        rig = EmulatedTofCamRig(source, defaults, seed=opts.seed, scene_text="", device=device)
+        rig = EmulatedTofCamRig(source, defaults, seed=opts.seed, scene_text=twin_text, device=device)
     elif scheme == "depthai-sim":
         from tofhil.sim.sources import TwinScene
 
@@ -117,7 +130,7 @@ def _rig(device: str, opts: BenchOptions, param: str, default: float) -> Any:
             return TwinScene(scene=str(path), realisations=opts.frames,
                              seed=opts.seed + int(1000 * d) + int(p.get(AMBIENT, 0) * 7))
 
-        rig = EmulatedDepthAIRig(host, defaults, device=device)
+        rig = EmulatedDepthAIRig(host, defaults, scene_text=twin_text, device=device)
     else:
         return DeviceRig(device, prompt=opts.prompt)
     rig.scene = scene

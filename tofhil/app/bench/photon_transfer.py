@@ -65,14 +65,16 @@ def twin_sensor(rig: Any, opts: BenchOptions) -> Any:
 
 
 def make_plan(opts: BenchOptions, rig: Any) -> Plan:
-    freqs = opts.extra.get("freqs_hz") or ([opts.mod_freq_hz] if opts.mod_freq_hz else [20e6])
+    # per frequency: every one the device offers unless one is asked for
+    freqs = (opts.extra.get("freqs_hz") or ([opts.mod_freq_hz] if opts.mod_freq_hz else None)
+             or list(rig.capabilities.mod_freqs_hz or [None]))
     emulated = "emulator" in rig.capabilities.bench_by
     by = "emulator" if emulated else "prompt"
     amp = getattr(rig, "defaults", {}).get("light_amplitude_dn", 1.0)
     steps: list[dict[str, Any]] = []
     for f in freqs:
-        tag = f"{f / 1e6:g}MHz"
-        steps.append({"settings": {"mode": "dcs", "mod_freq_hz": f}})
+        tag = f"{f / 1e6:g}MHz" if f else "default"
+        steps.append({"settings": {"mode": "dcs", **({"mod_freq_hz": f} if f else {})}})
         steps.append({"bench": {"light_amplitude_dn": 0.0} if emulated else {"light": "off"}, "by": by,
                       "message": "cover the lens (dark captures)"})
         for t in DARK_US:
@@ -127,6 +129,14 @@ def analyse(campaign: CampaignResult, rig: Any, opts: BenchOptions) -> BenchResu
                                               "variance_dn2": c.var_dn2, "variance_se_dn2": c.var_se_dn2,
                                               "predicted_variance_dn2": pred, "used_in_fit": c.used})
     findings = list(ptc.notes)
+    for tag, r in results.items():
+        if tag != tag0:
+            findings.extend(f"{tag}: {n}" for n in r.notes if not n.startswith("differential taps"))
+            k0, k1 = ptc.conversion_gain_dn_per_e, r.conversion_gain_dn_per_e
+            z = (k1.value - k0.value) / math.hypot(k0.sigma, k1.sigma)
+            findings.append(f"{tag}: conversion gain {k1.value:.4g} +- {k1.sigma:.2g} DN/e, read noise "
+                            f"{r.read_noise_e.value:.3g} +- {r.read_noise_e.sigma:.2g} e ({z:+.1f} sigma from {tag0}'s gain)")
+    curves["per_tap"] = [{"frequency": tag, **t} for tag, r in results.items() for t in r.fit["per_tap"]]
     for f in figures:
         if f.name == "linearity_error_pct" or not (math.isfinite(f.value) and math.isfinite(f.sigma) and f.sigma > 0):
             continue

@@ -37,7 +37,8 @@ class EmulatedTofCamRig:
     the bench in the state ``params``; ``defaults`` is the state before any change."""
 
     def __init__(self, make_source: Callable[[Mapping[str, Any]], Any], defaults: Mapping[str, Any], *,
-                 seed: int = 0, scene_text: str = "", device: str = "emulator") -> None:
+                 seed: int = 0, scene_text: str | Callable[[Mapping[str, Any]], str] = "",
+                 device: str = "emulator") -> None:
         from tofhil.drivers.tofcam635.emulator import EmulatedTofCam635, Epc635Emulator
 
         self.device = device
@@ -83,7 +84,8 @@ class EmulatedTofCamRig:
             self.emulator.noise = src.noise_model()
 
     def scene_text(self) -> str:
-        return self._scene_text
+        """The twin's scene for the bench as it stands (a callable of the state), never the hidden truth."""
+        return self._scene_text(self.state) if callable(self._scene_text) else self._scene_text
 
     def close(self) -> None:
         if self._driver.is_open:
@@ -94,7 +96,7 @@ class EmulatedDepthAIRig:
     """The DepthAI host pipeline sending frames made by ``make_scene(params)`` (a DepthScene)."""
 
     def __init__(self, make_scene: Callable[[Mapping[str, Any]], Any], defaults: Mapping[str, Any], *,
-                 scene_text: str = "", device: str = "depthai-sim") -> None:
+                 scene_text: str | Callable[[Mapping[str, Any]], str] = "", device: str = "depthai-sim") -> None:
         from tofhil.drivers.depthai.driver import DepthAIToF
 
         self.device = device
@@ -116,7 +118,7 @@ class EmulatedDepthAIRig:
         self._driver.host_scene = self.make_scene(self.state)  # the pipeline restarts on the next configure
 
     def scene_text(self) -> str:
-        return self._scene_text
+        return self._scene_text(self.state) if callable(self._scene_text) else self._scene_text
 
     def close(self) -> None:
         if self._driver.is_open:
