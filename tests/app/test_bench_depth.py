@@ -127,3 +127,26 @@ def test_ambient_light_raises_the_random_error_as_the_twin_predicts(tmp_path):
     f = {x.name: x for x in res.figures}["ambient_noise_factor"]
     # the shot noise of the ambient light's charge: the random error grows several-fold at 20 W/m^2
     assert f.value > 2.0 and abs(f.value - f.predicted) < 4 * np.hypot(f.sigma, f.predicted_sigma)
+
+
+def test_dark_squares_name_hidden_stray_light(tmp_path):
+    hidden = {"stray_light": {"weight": 0.03, "sigma_px": 12.0, "veil": 0.005}}   # the emulator's own lens
+    res = run_bench("dark-squares", "emulator", tmp_path / "o", report=False,
+                    options=BenchOptions(frames=5, seed=3, hidden=hidden,
+                                         extra={"square_reflectances": (0.5, 0.1, 0.05, 0.02),
+                                                "work_dir": str(tmp_path / "w")}))
+    cause = res.details["agreement"]["cause"]
+    assert cause["kind"] == "stray light", cause
+    a, b = cause["fits"]["stray_light"]["params"]
+    sa, sb = cause["fits"]["stray_light"]["sigma"]
+    assert b > 4 * sb and abs(a) < 4 * sa          # grows as 1/reflectance, nothing without it
+
+
+def test_name_reflectance_error_against_closed_forms():
+    from tofhil.app.bench.depth import name_reflectance_error
+
+    rho = np.array([0.5, 0.2, 0.1, 0.05, 0.02])
+    se = np.full(rho.size, 2e-4)
+    noise = se * np.random.default_rng(4).standard_normal(rho.size)
+    assert name_reflectance_error(rho, 2e-4 / rho + noise, se)["kind"] == "stray light"
+    assert name_reflectance_error(rho, 0.003 + noise, se)["kind"] == "range offset"

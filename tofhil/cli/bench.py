@@ -25,6 +25,9 @@ def _hidden(items: list[str]) -> dict[str, Any]:
     """``range_scale=0.005``, ``range_offset.path_m=0.02``, ``wiggling.h3_amplitude=0.03``."""
     out_: dict[str, Any] = {}
     for item in items:
+        if item == "emulator":  # the emulated camera's own hidden truth
+            out_["emulator"] = True
+            continue
         key, eq, val = item.partition("=")
         try:
             value = float(val)
@@ -75,7 +78,8 @@ def bench(procedure: Optional[str] = typer.Argument(None, help="The procedure (t
           mod_freq_hz: Optional[float] = typer.Option(None, "--mod-freq-hz"),
           roi: Optional[str] = typer.Option(None, "--roi", help="X0,Y0,X1,Y1 region (default: the centre fifth)."),
           hidden: list[str] = typer.Option([], "--hidden", help="Emulated bench only: hidden truth, e.g. "
-                                           "range_scale=0.005 or range_offset.path_m=0.02 (repeatable)."),
+                                           "range_scale=0.005, range_offset.path_m=0.02, or emulator (the emulated "
+                                           "camera's own: stray light, wiggling, fixed pattern); repeatable."),
           diagnose: bool = typer.Option(False, "--diagnose", help="Where measured and predicted disagree, run "
                                         "tofhil diagnose on the capture that differs most (tens of seconds)."),
           resume: bool = typer.Option(False, "--resume", help="Continue an interrupted campaign in OUT."),

@@ -22,7 +22,7 @@ import math
 import time
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -58,10 +58,16 @@ def _bench_scene_file(scene: str, params: Mapping[str, Any], effects: Mapping[st
 
 
 def hidden_effects(hidden: Mapping[str, Any], distance_m: float) -> dict[str, Any]:
-    """The emulator's hidden truth at one distance: ``hidden`` effects as given, and
+    """The emulator's hidden truth at one distance: ``emulator: true`` the emulated camera's
+    own (stray light, wiggling, fixed pattern: docs/drivers.md), ``hidden`` effects as given, and
     ``range_scale: EPS`` as a range error growing with distance (``d -> d (1 + EPS)``, as a
     modulation-frequency error makes it): a ``range_offset`` of optical path ``2 EPS D``."""
-    out = {k: dict(v) for k, v in hidden.items() if k != "range_scale"}
+    out: dict[str, Any] = {}
+    if hidden.get("emulator"):  # the emulated camera's own hidden truth (tofhil capture --device emulator)
+        from tofhil.sim.sources import HIDDEN_TRUTH_EFFECTS
+
+        out.update({k: dict(v) for k, v in HIDDEN_TRUTH_EFFECTS.items()})
+    out.update({k: dict(v) for k, v in hidden.items() if k not in ("range_scale", "emulator")})
     eps = float(hidden.get("range_scale", 0.0))
     if eps:
         prev = float(out.get("range_offset", {}).get("path_m", 0.0))
@@ -91,14 +97,15 @@ def _split(state: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     return params, ({"ambient": {"irradiance_w_m2": amb}} if amb > 0 else {})
 
 
-def _rig(device: str, opts: BenchOptions, param: str, default: float) -> Any:
+def _rig(device: str, opts: BenchOptions, param: str, default: float, *, scene_default: str = DEFAULT_SCENE,
+         more: Mapping[str, float] | None = None) -> Any:
     from tofhil.app.bench.rigs import DeviceRig, EmulatedDepthAIRig, EmulatedTofCamRig
     from tofhil.sim.scene import load_scene
 
     scheme, _, rest = device.partition(":")
-    scene = opts.scene or (rest if scheme in ("emulator", "depthai-sim") and rest else DEFAULT_SCENE)
+    scene = opts.scene or (rest if scheme in ("emulator", "depthai-sim") and rest else scene_default)
     work = _work_dir(opts)
-    defaults = {param: default, AMBIENT: 0.0}
+    defaults = {param: default, AMBIENT: 0.0, **(more or {})}
 
     def twin_text(state: Mapping[str, Any]) -> str:
         """What a session records as its scene: the twin's (the bench's known light, no hidden truth)."""
@@ -229,12 +236,18 @@ class Accuracy:
 
     @staticmethod
     def analyse(campaign: CampaignResult, rig: Any, opts: BenchOptions) -> BenchResult:
-        return analyse_series(Accuracy.NAME, campaign, rig, opts, "distance_m")
+        return analyse_series(Accuracy.NAME, campaign, rig, opts, "distance_m", namer=name_range_error)
 
 
-def analyse_series(name: str, campaign: CampaignResult, rig: Any, opts: BenchOptions, axis: str) -> BenchResult:
+def analyse_series(name: str, campaign: CampaignResult, rig: Any, opts: BenchOptions, axis: str, *,
+                   namer: Callable[[np.ndarray, np.ndarray, np.ndarray], dict[str, Any]] | None = None,
+                   region: Callable[[Any, Mapping[str, Any]], tuple[tuple[int, int, int, int], float]] | None = None
+                   ) -> BenchResult:
     """Accuracy and precision of each capture of a flat target, beside the twin's, along ``axis``
-    (``distance_m`` or the ambient light ``ambient_w_m2``)."""
+    (a bench parameter: ``distance_m``, ``ambient_w_m2``, ``square_reflectance``). ``namer``
+    names the cause of a systematic disagreement from its shape along the axis; ``region(camera,
+    bench state)`` gives the ROI and the target's depth offset from the wall (default: the
+    centre ROI on the wall)."""
     from tofhil.eval.metrics.bench import centre_roi, depth_stack_stats, plane_flatness
 
     seconds = {"twin": 0.0, "analysis": 0.0}
@@ -244,13 +257,17 @@ def analyse_series(name: str, campaign: CampaignResult, rig: Any, opts: BenchOpt
         t0 = time.monotonic()
         d_true = float(rec["bench"][DISTANCE_PARAM])
         radial, valid, cam, acq = _depth_stack(campaign.session(label))
-        roi = opts.roi or centre_roi(cam.shape)
-        truth = d_true / cam.ray_z
+        if region is not None:
+            roi, in_front = region(cam, rec["bench"])
+        else:
+            roi, in_front = opts.roi or centre_roi(cam.shape), 0.0
+        truth = (d_true - in_front) / cam.ray_z
         m = depth_stack_stats(radial, valid, truth, roi)
         mean = _nanmean(radial, valid)
         fl = plane_flatness(cam.points(np.nan_to_num(mean), valid=np.all(valid, axis=0)))
         seconds["analysis"] += time.monotonic() - t0
         row = {"distance_m": d_true, AMBIENT: float(rec["bench"].get(AMBIENT, 0.0)),
+               **({axis: float(rec["bench"][axis])} if axis not in ("distance_m", AMBIENT) else {}),
                **{f"measured_{k}": v for k, v in m.to_dict().items()}, "measured_flatness_rms_m": fl.rms_m}
         if twin_ok:
             t0 = time.monotonic()
@@ -265,7 +282,7 @@ def analyse_series(name: str, campaign: CampaignResult, rig: Any, opts: BenchOpt
     res = BenchResult(name, rig.device, [], curves={name: rows}, seconds=seconds)
     res.figures = _accuracy_figures(rows, axis)
     if twin_ok:
-        res.details["agreement"] = agreement(rows, name_cause=axis == "distance_m")
+        res.details["agreement"] = agreement(rows, axis, namer)
         res.findings = res.details["agreement"]["findings"]
     else:
         res.findings = ["no twin scene (--scene) for this device: the measured figures stand alone"]
@@ -344,7 +361,7 @@ def _ambient_factor(rows: list[dict[str, Any]]) -> Figure:
 
 
 def _accuracy_figures(rows: list[dict[str, Any]], axis: str = "distance_m") -> list[Figure]:
-    unit = "m" if axis == "distance_m" else "W/m²"
+    unit = {"distance_m": "m", AMBIENT: "W/m²"}.get(axis, "")
 
     def worst(key: str, se_key: str | None, absolute: bool = True) -> Figure:
         vals = np.array([r[f"measured_{key}"] for r in rows], dtype=float)
@@ -380,7 +397,8 @@ def _chi2_sf(x: float, dof: int) -> float:
     return float(chi2.sf(x, dof))
 
 
-def agreement(rows: list[dict[str, Any]], name_cause: bool = True) -> dict[str, Any]:
+def agreement(rows: list[dict[str, Any]], axis: str = "distance_m",
+              namer: Callable[[np.ndarray, np.ndarray, np.ndarray], dict[str, Any]] | None = None) -> dict[str, Any]:
     """Measured against the twin over the distances: the systematic error's difference (its
     noise: both standard errors) and the random error's (its variance's standard errors), each
     a chi-square test; where the systematic one fails, the range error that explains it."""
@@ -391,7 +409,7 @@ def agreement(rows: list[dict[str, Any]], name_cause: bool = True) -> dict[str, 
         return {"cause": None, "findings": ["no distance has valid pixels in the ROI in every frame (saturated or "
                                             "too dark): nothing to compare with the twin"]}
     rows = usable
-    d = np.array([r["distance_m"] for r in rows])
+    d = np.array([r[axis] for r in rows])
     delta = np.array([r["measured_systematic_m"] - r["twin_systematic_m"] for r in rows])
     se = np.hypot([r["measured_systematic_se_m"] for r in rows], [r["twin_systematic_se_m"] for r in rows])
     z = delta / se
@@ -412,12 +430,12 @@ def agreement(rows: list[dict[str, Any]], name_cause: bool = True) -> dict[str, 
         findings.append(f"systematic error agrees with the twin within noise (chi2 {chi2_sys:.1f} for {len(d)} "
                         f"captures, p = {p_sys:.2f})")
         out["cause"] = None
-    elif not name_cause:
+    elif namer is None:
         out["cause"] = {"kind": "unexplained", "text": "run tofhil diagnose on the sessions with the twin's scene"}
         findings.append(f"systematic error differs from the twin (chi2 {chi2_sys:.1f} for {len(d)} captures, "
                         f"p = {p_sys:.1e}): {out['cause']['text']}")
     else:
-        cause = name_range_error(d, delta, se)
+        cause = namer(d, delta, se)
         out["cause"] = cause
         findings.append(f"systematic error differs from the twin (chi2 {chi2_sys:.1f} for {len(d)} captures, "
                         f"p = {p_sys:.1e}): {cause['text']}")
@@ -427,7 +445,8 @@ def agreement(rows: list[dict[str, Any]], name_cause: bool = True) -> dict[str, 
         ratio = float(np.sqrt(np.mean(v_m / v_p)))
         findings.append(f"random error differs from the twin: measured / predicted = {ratio:.3f} on average "
                         f"(chi2 {chi2_rand:.1f}, p = {p_rand:.1e}): the twin's noise model (read noise, gain, "
-                        "ambient) is off; bench photon-transfer measures it")
+                        "ambient; bench photon-transfer measures it) or a signal the twin lacks (it changes the "
+                        "amplitude the noise is relative to)")
     if left_out:
         findings.append("left out (no pixel of the ROI valid in every frame: saturated or too dark): "
                         + ", ".join(f"{x:g} m" for x in left_out))
@@ -469,6 +488,10 @@ def name_range_error(d: np.ndarray, delta: np.ndarray, se: np.ndarray) -> dict[s
     return {"kind": kind, "text": text, "fits": fits, "chosen": chosen, "p_linear_term": p_gain}
 
 
+_AXIS_LABEL = {"distance_m": "target distance (m)", AMBIENT: "ambient irradiance on the target (W/m²)",
+               "square_reflectance": "square reflectance relative to the wall"}
+
+
 def _accuracy_plots(rows: list[dict[str, Any]], twin: bool, axis: str = "distance_m") -> list[tuple[str, str | None, str]]:
     from tofhil.eval.reports.html import fig_uri, pyplot
 
@@ -494,13 +517,16 @@ def _accuracy_plots(rows: list[dict[str, Any]], twin: bool, axis: str = "distanc
             ax.fill_between(d, p - band, p + band, color="C3", alpha=0.25, label="twin: predicted band (2 sigma)")
             ax.plot(d, p, "-", color="C3", lw=1)
         ax.axhline(0, color="k", lw=0.5)
-        ax.set_xlabel("target distance (m)" if axis == "distance_m" else "ambient irradiance on the target (W/m²)")
+        ax.set_xlabel(_AXIS_LABEL.get(axis, axis))
+        if axis == "square_reflectance":
+            ax.set_xscale("log")
         ax.set_ylabel("mm")
         ax.set_title(title)
         ax.legend(fontsize=8)
-    what = "distance" if axis == "distance_m" else "ambient light"
+    what = {"distance_m": "distance", AMBIENT: "ambient light"}.get(axis, "the square's reflectance")
+    roi = "the square (inner 60 %)" if axis == "square_reflectance" else "centre ROI"
     return [(f"Accuracy and precision against {what}", fig_uri(fig),
-             "Centre ROI (markers) and the whole field's median pixel (dashed) against the twin's prediction for "
+             f"The {roi} (markers) and the whole field's median pixel (dashed) against the twin's prediction for "
              "the same settings (band: 2 sigma of the noise of both).")]
 
 
@@ -534,6 +560,94 @@ class Ambient:
     @staticmethod
     def analyse(campaign: CampaignResult, rig: Any, opts: BenchOptions) -> BenchResult:
         return analyse_series(Ambient.NAME, campaign, rig, opts, AMBIENT)
+
+
+# --------------------------------------------------------------------------- stray light: dark squares
+class DarkSquares:
+    NAME = "dark-squares"
+    SUMMARY = ("the stray-light series: a dark square on the wall at reflectances down to 2 % of the wall's; the "
+               "depth error on the square beside the twin's; an error growing as 1/reflectance is named stray light")
+    REFLECTANCES = (0.5, 0.2, 0.1, 0.05, 0.02)
+
+    @staticmethod
+    def make_rig(device: str, opts: BenchOptions) -> Any:
+        return _rig(device, opts, DISTANCE_PARAM, 1.0, scene_default="dark_square",
+                    more={"square_reflectance": DarkSquares.REFLECTANCES[0]})
+
+    @staticmethod
+    def make_plan(opts: BenchOptions, rig: Any) -> Plan:
+        emulated = "emulator" in rig.capabilities.bench_by
+        raw = "dcs" in rig.capabilities.modes
+        settings: dict[str, Any] = {"mode": "dcs" if raw else "distance"}
+        if raw:
+            settings["integration_time_us"] = opts.integration_time_us or 375
+            settings["mod_freq_hz"] = opts.mod_freq_hz or 20e6
+        d = float(opts.extra.get("square_distance_m", 1.0))
+        steps: list[dict[str, Any]] = [{"settings": settings}]
+        for rho in opts.extra.get("square_reflectances") or DarkSquares.REFLECTANCES:
+            steps.append({"bench": {DISTANCE_PARAM: d, "square_reflectance": float(rho)},
+                          "by": "emulator" if emulated else "prompt",
+                          "message": f"wall at {d:g} m; the square of {100 * rho:g} % of the wall's reflectance"})
+            steps.append({"capture": {"label": f"sq{float(rho):g}", "frames": opts.frames}})
+        return parse_plan({"name": DarkSquares.NAME, "steps": steps}, f"<{DarkSquares.NAME} plan>")
+
+    @staticmethod
+    def analyse(campaign: CampaignResult, rig: Any, opts: BenchOptions) -> BenchResult:
+        return analyse_series(DarkSquares.NAME, campaign, rig, opts, "square_reflectance",
+                              namer=name_reflectance_error, region=_square_region)
+
+
+def _square_region(cam: Any, state: Mapping[str, Any]) -> tuple[tuple[int, int, int, int], float]:
+    """The inner 60 % of the centred square (``square_size_m``, default 0.2 m, 1 mm in front of
+    the wall, as the bundled ``dark_square`` scene has it): its ROI and depth offset."""
+    d = float(state[DISTANCE_PARAM]) - 0.001
+    half = 0.6 * 0.5 * float(state.get("square_size_m", 0.2)) / d
+    hx, hy = max(1, int(half * cam.fx)), max(1, int(half * cam.fy))
+    cx, cy = int(round(cam.cx)), int(round(cam.cy))
+    return (max(cx - hx, 0), max(cy - hy, 0), min(cx + hx + 1, cam.width), min(cy + hy + 1, cam.height)), 0.001
+
+
+def name_reflectance_error(rho: np.ndarray, delta: np.ndarray, se: np.ndarray) -> dict[str, Any]:
+    """The depth error on a dark target against its reflectance: a constant (a range offset) or
+    one growing as ``1 / reflectance`` (light scattered from the bright surroundings onto the
+    target: its phasor adds to a direct signal that falls with the reflectance -- stray light)."""
+    fits = _nested_fits(delta, se, {"offset": np.ones((len(rho), 1)),
+                                    "stray_light": np.column_stack([np.ones_like(rho), 1.0 / rho])})
+    if fits["p_extra"] < FALSE_ALARM and len(rho) >= 3:
+        a, b = fits["stray_light"]["params"]
+        sa, sb = fits["stray_light"]["sigma"]
+        kind, chosen = "stray light", "stray_light"
+        text = (f"stray light: the error on the square grows as 1/reflectance ({b * 1e3:+.2f} +- {sb * 1e3:.2f} mm x "
+                f"wall/square reflectance, {a * 1e3:+.2f} +- {sa * 1e3:.2f} mm without it): light scattered in the "
+                "lens from the bright wall onto the dark square, which the twin lacks")
+        if abs(a) > 3 * sa:
+            text += (f"; the constant {a * 1e3:+.1f} mm is a range error the twin lacks everywhere (the wall's "
+                     "systematic error shows it too: accuracy-vs-distance names it)")
+    else:
+        (a,), (sa,) = fits["offset"]["params"], fits["offset"]["sigma"]
+        kind, chosen = "range offset", "offset"
+        text = f"a constant range offset of {a * 1e3:+.2f} +- {sa * 1e3:.2f} mm on the square"
+    if fits[chosen]["p"] < FALSE_ALARM:
+        kind = "unexplained"
+        text = (f"neither a constant nor a 1/reflectance error explains it (best: {text}; chi2 "
+                f"{fits[chosen]['chi2']:.1f} for {fits[chosen]['dof']} dof): run with --diagnose")
+    return {"kind": kind, "text": text, "fits": fits, "chosen": chosen}
+
+
+def _nested_fits(delta: np.ndarray, se: np.ndarray, designs: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Weighted least squares of ``delta`` on each design (the second nests the first), and the
+    chi-square-difference test of the second's extra column (``p_extra``)."""
+    w = 1.0 / se
+    fits: dict[str, Any] = {}
+    for name, x in designs.items():
+        p, *_ = np.linalg.lstsq(x * w[:, None], delta * w, rcond=None)
+        cov = np.linalg.inv((x * w[:, None]).T @ (x * w[:, None]))
+        chi2 = float(np.sum(((x @ p - delta) * w) ** 2))
+        fits[name] = {"params": p.tolist(), "sigma": np.sqrt(np.diag(cov)).tolist(), "chi2": chi2,
+                      "dof": len(delta) - x.shape[1], "p": _chi2_sf(chi2, len(delta) - x.shape[1])}
+    a, b = list(designs)
+    fits["p_extra"] = _chi2_sf(max(fits[a]["chi2"] - fits[b]["chi2"], 0.0), 1)
+    return fits
 
 
 # --------------------------------------------------------------------------- flatness / fill rate
@@ -634,4 +748,4 @@ def _as_module(cls: type) -> SimpleNamespace:
                            analyse=cls.analyse)
 
 
-PROCEDURES = [_as_module(Accuracy), _as_module(Ambient), _as_module(FlatnessProc)]
+PROCEDURES = [_as_module(Accuracy), _as_module(Ambient), _as_module(DarkSquares), _as_module(FlatnessProc)]
