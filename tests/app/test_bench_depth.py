@@ -150,3 +150,22 @@ def test_name_reflectance_error_against_closed_forms():
     noise = se * np.random.default_rng(4).standard_normal(rho.size)
     assert name_reflectance_error(rho, 2e-4 / rho + noise, se)["kind"] == "stray light"
     assert name_reflectance_error(rho, 0.003 + noise, se)["kind"] == "range offset"
+
+
+def test_warm_up_measures_a_hidden_thermal_drift_and_none_without(tmp_path):
+    def run(name, hidden):
+        return run_bench("warm-up", "emulator", tmp_path / name, report=False,
+                         options=BenchOptions(frames=4, seed=5, hidden=hidden,
+                                              extra={"warmup_captures": 5, "warmup_interval_s": 0.4,
+                                                     "work_dir": str(tmp_path / "w")}))
+
+    drift = run("drift", {"thermal_drift_m_per_c": 0.02})   # 20 mm per degC on the emulator's warm-up curve
+    rows = drift.curves["warm-up"]
+    assert rows[-1]["temperature_c"] > rows[0]["temperature_c"]       # the emulated chip warms up
+    f = {x.name: x for x in drift.figures}["warmup_drift_m_per_c"]
+    assert abs(f.value - 0.02) < 4 * f.sigma and f.sigma < 0.005
+    assert any("drifts with temperature" in x for x in drift.findings)
+    assert any("not stable" in x for x in drift.findings)
+    calm = run("calm", {})
+    g = {x.name: x for x in calm.figures}["warmup_drift_m_per_c"]
+    assert abs(g.value) < 4 * g.sigma and any("no drift" in x for x in calm.findings)

@@ -36,6 +36,9 @@ def _hidden(items: list[str]) -> dict[str, Any]:
         if not eq or value is None or not key:
             raise TofhilError(f"--hidden {item!r}", field="--hidden",
                               expected="range_scale=EPS or EFFECT.PARAM=VALUE (an effect of tofhil effects)")
+        if key == "thermal_drift_m_per_c":
+            out_[key] = value
+            continue
         if "." in key:
             eff, _, par = key.partition(".")
             out_.setdefault(eff, {})[par] = value

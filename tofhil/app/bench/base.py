@@ -40,6 +40,8 @@ FIGURES: dict[str, tuple[str, str]] = {
     "fill_rate": ("", "share of the region's pixels with a valid depth"),
     "precision_m": ("m", "temporal standard deviation on the flat target (frames >= 2)"),
     "ambient_noise_factor": ("", "random error at the brightest ambient light over that in the dark"),
+    "warmup_drift_m_per_c": ("m/degC", "range drift per degree of chip temperature during warm-up"),
+    "warmup_time_s": ("s", "time from power-on until the range stays within tolerance of its final value"),
 }
 
 

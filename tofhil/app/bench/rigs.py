@@ -204,3 +204,40 @@ def flat_field_source(sensor: Any, params: Mapping[str, Any]) -> Any:
     return FlatField(sensor, amplitude_dn=float(params["light_amplitude_dn"]),
                      phase_rad=math.radians(float(params.get("light_phase_deg", 0.0))),
                      ambient_dn=float(params.get("ambient_dn", 0.0)))
+
+
+class ThermalDrift:
+    """A frame source whose range drifts with the emulated camera's temperature (a hidden
+    truth of the warm-up procedure): every pixel reads ``m_per_c * (T - t_ref_c)`` farther,
+    ``T`` the emulator's chip temperature when the frame is taken (its warm-up curve). The
+    phase of the rendered signal turns by ``4 pi f dd / c``; amplitude and offset stay."""
+
+    def __init__(self, inner: Any, temperature_c: Callable[[], float], m_per_c: float, t_ref_c: float) -> None:
+        self.inner = inner
+        self.temperature_c = temperature_c
+        self.m_per_c = float(m_per_c)
+        self.t_ref_c = float(t_ref_c)
+        self.camera = inner.camera
+        self.description = f"{inner.description}, range drifting {m_per_c * 1e3:g} mm/degC"
+
+    def taps(self, freq_hz: float, integration_time_s: float, theta_rad: Any) -> Any:
+        import numpy as np
+
+        from tofhil import C_M_PER_S
+        from tofhil.demod import offset, phasor
+
+        c = self.inner.taps(freq_hz, integration_time_s, theta_rad)
+        dd = self.m_per_c * (self.temperature_c() - self.t_ref_c)
+        s = phasor(c.astype(np.float64), theta_rad) * np.exp(1j * 4 * np.pi * freq_hz * dd / C_M_PER_S)
+        th = np.asarray(theta_rad, dtype=np.float64)[:, None, None]
+        out = offset(c.astype(np.float64))[None] + np.real(s[None] * np.exp(-1j * th))
+        return out.astype(np.float32)
+
+    def signal(self, freq_hz: float) -> Any:
+        return self.inner.signal(freq_hz)
+
+    def noise_model(self) -> Any:
+        return self.inner.noise_model()
+
+    def scene_text(self) -> str:
+        return self.inner.scene_text()
