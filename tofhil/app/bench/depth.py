@@ -512,15 +512,16 @@ def _accuracy_plots(rows: list[dict[str, Any]], twin: bool, axis: str = "distanc
 
     plt = pyplot()
     d = np.array([r[axis] for r in rows])
+    where = "the square" if axis == "square_reflectance" else "centre ROI"
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.2), layout="constrained")
     for ax, key, se_of, title in ((axes[0], "systematic_m", "systematic_se_m", "systematic error (mean - truth)"),
                                   (axes[1], "random_m", None, "random error (temporal std)")):
         m = np.array([r[f"measured_{key}"] for r in rows]) * 1e3
         if se_of:
             ax.errorbar(d, m, yerr=2e3 * np.array([r[f"measured_{se_of}"] for r in rows]), fmt="o-",
-                        label="measured, centre ROI (2 s.e.)")
+                        label=f"measured, {where} (2 s.e.)")
         else:
-            ax.plot(d, m, "o-", label="measured, centre ROI")
+            ax.plot(d, m, "o-", label=f"measured, {where}")
         field = "systematic_field_m" if se_of else "random_field_m"
         ax.plot(d, np.array([r[f"measured_{field}"] for r in rows]) * 1e3, "s--", ms=4, label="measured, field median")
         if twin:
@@ -533,15 +534,18 @@ def _accuracy_plots(rows: list[dict[str, Any]], twin: bool, axis: str = "distanc
             ax.plot(d, p, "-", color="C3", lw=1)
         ax.axhline(0, color="k", lw=0.5)
         ax.set_xlabel(_AXIS_LABEL.get(axis, axis))
-        if axis == "square_reflectance":
+        if axis == "square_reflectance":   # log axis, ticks at the squares themselves (no crowded minor labels)
             ax.set_xscale("log")
+            ax.set_xticks(d)
+            ax.set_xticklabels([f"{100 * v:g} %" for v in d])
+            ax.minorticks_off()
         ax.set_ylabel("mm")
         ax.set_title(title)
         ax.legend(fontsize=8)
     what = {"distance_m": "distance", AMBIENT: "ambient light"}.get(axis, "the square's reflectance")
     roi = "the square (inner 60 %)" if axis == "square_reflectance" else "centre ROI"
     return [(f"Accuracy and precision against {what}", fig_uri(fig),
-             f"The {roi} (markers) and the whole field's median pixel (dashed) against the twin's prediction for "
+             f"{roi[0].upper() + roi[1:]} (markers) and the whole field's median pixel (dashed) against the twin's prediction for "
              "the same settings (band: 2 sigma of the noise of both).")]
 
 
