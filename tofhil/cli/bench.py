@@ -77,6 +77,10 @@ def bench(procedure: Optional[str] = typer.Argument(None, help="The procedure (t
           scene: Optional[str] = typer.Option(None, "--scene", help="The twin's scene (or flat-field bench file)."),
           distances: Optional[str] = typer.Option(None, "--distances", help="Target distances in metres, e.g. "
                                                   "0.6,1.0,1.4 (accuracy-vs-distance)."),
+          levels: Optional[str] = typer.Option(None, "--levels", help="ambient: irradiances in W/m² (0,5,20); "
+                                               "dark-squares: square reflectances relative to the wall (0.5,0.1,0.02)."),
+          captures: Optional[int] = typer.Option(None, "--captures", help="warm-up: number of captures (12)."),
+          interval_s: Optional[float] = typer.Option(None, "--interval-s", help="warm-up: seconds between captures (10)."),
           integration_time_us: Optional[float] = typer.Option(None, "--integration-time-us"),
           mod_freq_hz: Optional[float] = typer.Option(None, "--mod-freq-hz"),
           roi: Optional[str] = typer.Option(None, "--roi", help="X0,Y0,X1,Y1 region (default: the centre fifth)."),
@@ -105,6 +109,23 @@ def bench(procedure: Optional[str] = typer.Argument(None, help="The procedure (t
                         extra={"diagnose": diagnose})
     if distances:
         opts.distances_m = _floats(distances, "--distances")
+    if levels:
+        try:
+            vals = tuple(float(x) for x in levels.split(",") if x.strip())
+        except ValueError:
+            vals = ()
+        if not vals or not all(v >= 0 for v in vals) or (procedure == "dark-squares" and not all(v > 0 for v in vals)):
+            raise TofhilError(f"--levels {levels!r}", field="--levels", expected="comma-separated numbers >= 0 "
+                              "(dark-squares: > 0)")
+        opts.extra["ambient_w_m2" if procedure == "ambient" else "square_reflectances"] = vals
+    if captures is not None:
+        if captures < 2:
+            raise TofhilError(f"--captures {captures}", field="--captures", expected="2 or more")
+        opts.extra["warmup_captures"] = captures
+    if interval_s is not None:
+        if not interval_s >= 0:
+            raise TofhilError(f"--interval-s {interval_s}", field="--interval-s", expected="seconds >= 0")
+        opts.extra["warmup_interval_s"] = interval_s
     res = run_bench(procedure, device, out_dir, spec=spec, options=opts, resume=resume, force=force,
                     progress=progress)
     for row in res.verdict:
