@@ -3,8 +3,8 @@
 * :func:`depth_stack_stats` -- vendors' accuracy and precision: the systematic error is the
   mean of N frames minus the ground truth, the random error the temporal standard deviation,
   on a region (a centre ROI) and over the whole field; each with its standard error.
-* :func:`plane_flatness` -- the residual of a plane fitted to a flat target's points
-  (orthogonal distances; outliers beyond 4 robust sigma left out and counted).
+* :func:`plane_flatness` -- the residual of a plane fitted to a flat target's points (least
+  squares in depth, orthogonal residuals; outliers beyond 4 robust sigma left out and counted).
 * :func:`fill_rate` -- the share of a region's pixels with a valid depth.
 """
 
@@ -91,30 +91,31 @@ class Flatness:
 
 
 def plane_flatness(points: np.ndarray, *, clip_sigma: float = 4.0, iterations: int = 5) -> Flatness:
-    """Fit a plane to ``points [M, 3]`` (total least squares: the smallest principal axis),
-    leaving out points beyond ``clip_sigma`` robust sigma (1.4826 MAD) of the residual, and
-    report the orthogonal residual's RMS and 1-99 % peak-to-valley."""
+    """Fit a plane ``z = a x + b y + c`` to ``points [M, 3]`` by least squares in depth (the
+    camera's noise is along its rays, close to z for a target facing it: a total-least-squares
+    fit tilts a small noisy patch towards the noise), leaving out points beyond ``clip_sigma``
+    robust sigma (1.4826 MAD) of the residual, and report the orthogonal residual's RMS and
+    1-99 % peak-to-valley."""
     p = np.asarray(points, dtype=np.float64)
-    keep = np.isfinite(p).all(axis=1)
+    finite = np.isfinite(p).all(axis=1)
+    keep = finite.copy()
     if keep.sum() < 3:
         return Flatness(math.nan, math.nan, (math.nan,) * 3, math.nan, int(keep.sum()), 0)
+    design = np.column_stack([p[:, 0], p[:, 1], np.ones(len(p))])
     for _ in range(iterations):
-        c = p[keep].mean(axis=0)
-        _, _, vt = np.linalg.svd(p[keep] - c, full_matrices=False)
-        nrm = vt[-1]
-        r = (p - c) @ nrm
+        coef, *_ = np.linalg.lstsq(design[keep], p[keep, 2], rcond=None)
+        r = (p[:, 2] - design @ coef) / math.sqrt(1.0 + coef[0] ** 2 + coef[1] ** 2)   # orthogonal distance
         med = np.median(r[keep])
         mad = 1.4826 * np.median(np.abs(r[keep] - med))
-        new = np.isfinite(r) & (np.abs(r - med) <= clip_sigma * max(mad, 1e-12))
+        new = finite & (np.abs(r - med) <= clip_sigma * max(mad, 1e-12))
         if np.array_equal(new, keep) or new.sum() < 3:
             break
         keep = new
     rk = r[keep]
-    if nrm[2] > 0:
-        nrm = -nrm
+    nrm = np.array([coef[0], coef[1], -1.0]) / math.sqrt(1.0 + coef[0] ** 2 + coef[1] ** 2)   # towards the camera
     return Flatness(float(np.sqrt(np.mean(rk ** 2))), float(np.percentile(rk, 99) - np.percentile(rk, 1)),
-                    tuple(float(v) for v in nrm), float(abs(c @ nrm)), int(keep.sum()),
-                    int(np.isfinite(p).all(axis=1).sum() - keep.sum()))
+                    tuple(float(v) for v in nrm), float(abs(coef[2]) / math.sqrt(1.0 + coef[0] ** 2 + coef[1] ** 2)),
+                    int(keep.sum()), int(finite.sum() - keep.sum()))
 
 
 def fill_rate(valid: np.ndarray, roi: tuple[int, int, int, int] | None = None) -> float:

@@ -310,7 +310,9 @@ def analyse_series(name: str, campaign: CampaignResult, rig: Any, opts: BenchOpt
     if axis == AMBIENT:
         res.figures.append(_ambient_factor(rows))
         f = res.figures[-1]
-        res.findings.append(f"background-light rejection: the random error at {rows[-1][AMBIENT]:g} W/m² is "
+        at = max((r for r in rows if math.isfinite(r["measured_random_m"])), key=lambda r: r[AMBIENT],
+                 default=rows[-1])[AMBIENT]
+        res.findings.append(f"background-light rejection: the random error at {at:g} W/m² is "
                             f"{f.value:.2f} x that without ambient light (the twin predicts {f.predicted:.2f} x)")
     res.plots = lambda: _accuracy_plots(rows, twin_ok, axis)
     return res
@@ -358,8 +360,11 @@ def diagnose_worst(campaign: CampaignResult, rig: Any, opts: BenchOptions, rows:
 
 
 def _ambient_factor(rows: list[dict[str, Any]]) -> Figure:
-    """Random error at the brightest ambient over that at the darkest, with its uncertainty."""
-    lo, hi = min(rows, key=lambda r: r[AMBIENT]), max(rows, key=lambda r: r[AMBIENT])
+    """Random error at the brightest ambient over that at the darkest, with its uncertainty
+    (among the levels where the ROI has pixels valid in every frame: a sensor saturated by the
+    ambient light has none)."""
+    usable = [r for r in rows if math.isfinite(r["measured_random_m"])] or rows
+    lo, hi = min(usable, key=lambda r: r[AMBIENT]), max(usable, key=lambda r: r[AMBIENT])
 
     def ratio(pre: str) -> tuple[float, float]:
         a, b = lo[f"{pre}_random_m"], hi[f"{pre}_random_m"]
@@ -419,7 +424,7 @@ def agreement(rows: list[dict[str, Any]], axis: str = "distance_m",
     a chi-square test; where the systematic one fails, the range error that explains it."""
     keys = ("measured_systematic_m", "twin_systematic_m", "measured_random_m", "twin_random_m")
     usable = [r for r in rows if all(math.isfinite(r[k]) for k in keys)]
-    left_out = [r["distance_m"] for r in rows if r not in usable]
+    left_out = [r[axis] for r in rows if r not in usable]
     if not usable:
         return {"cause": None, "findings": ["no distance has valid pixels in the ROI in every frame (saturated or "
                                             "too dark): nothing to compare with the twin"]}
@@ -464,7 +469,7 @@ def agreement(rows: list[dict[str, Any]], axis: str = "distance_m",
                         "amplitude the noise is relative to)")
     if left_out:
         findings.append("left out (no pixel of the ROI valid in every frame: saturated or too dark): "
-                        + ", ".join(f"{x:g} m" for x in left_out))
+                        + ", ".join(f"{x:g} {_AXIS_UNIT.get(axis, '')}".strip() for x in left_out))
     out["findings"] = findings
     return out
 
@@ -503,6 +508,7 @@ def name_range_error(d: np.ndarray, delta: np.ndarray, se: np.ndarray) -> dict[s
     return {"kind": kind, "text": text, "fits": fits, "chosen": chosen, "p_linear_term": p_gain}
 
 
+_AXIS_UNIT = {"distance_m": "m", AMBIENT: "W/m²", "square_reflectance": "of the wall's reflectance"}
 _AXIS_LABEL = {"distance_m": "target distance (m)", AMBIENT: "ambient irradiance on the target (W/m²)",
                "square_reflectance": "square reflectance relative to the wall"}
 
