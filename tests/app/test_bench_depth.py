@@ -50,6 +50,9 @@ def test_accuracy_names_a_hidden_range_error_growing_with_distance(tmp_path):
     a, b = cause["fits"]["scale"]["params"]
     sa, sb = cause["fits"]["scale"]["sigma"]
     assert abs(b - 0.01) < 4 * sb and abs(a) < 4 * sa      # 10 mm per metre, nothing at 0 m
+    rel = {f.name: f for f in res.figures}["relative_range_error_m"]
+    # 1.9 m against 0.7 m: 1 % of the 1.2 m between them beyond the twin's
+    assert abs((rel.value - rel.predicted) - 0.012) < 4 * np.hypot(rel.sigma, rel.predicted_sigma)
     assert any("growing with distance" in f for f in res.findings)
 
 

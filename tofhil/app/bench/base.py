@@ -35,6 +35,7 @@ FIGURES: dict[str, tuple[str, str]] = {
     "random_error_m": ("m", "largest temporal standard deviation over the captures, in the ROI"),
     "systematic_error_field_m": ("m", "largest |mean - truth| over the captures, whole field (median pixel)"),
     "random_error_field_m": ("m", "largest temporal standard deviation over the captures, whole field (median pixel)"),
+    "relative_range_error_m": ("m", "largest |range difference - true difference| against the nearest position"),
     "flatness_rms_m": ("m", "RMS residual of a plane fitted to a flat target"),
     "flatness_pv_m": ("m", "peak-to-valley (1-99 percentile) residual of the plane fit"),
     "fill_rate": ("", "share of the region's pixels with a valid depth"),

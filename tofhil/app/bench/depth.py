@@ -307,6 +307,8 @@ def analyse_series(name: str, campaign: CampaignResult, rig: Any, opts: BenchOpt
         res.details["diagnosis"] = diagnose_worst(campaign, rig, opts, rows, ag)
         res.findings.append(res.details["diagnosis"]["text"])
         seconds["diagnose"] = time.monotonic() - t0
+    if axis == "distance_m" and len(rows) >= 2:
+        res.figures.append(_relative_range(rows))
     if axis == AMBIENT:
         res.figures.append(_ambient_factor(rows))
         f = res.figures[-1]
@@ -357,6 +359,26 @@ def diagnose_worst(campaign: CampaignResult, rig: Any, opts: BenchOptions, rows:
                                         for e, p in r.params.items())
     return {"capture": label, "causes": list(r.causes), "params": r.params, "verdict": verdict, "text": text,
             "twin_scene": str(out / "twin_scene.yaml")}
+
+
+def _relative_range(rows: list[dict[str, Any]]) -> Figure:
+    """Relative-range error (ASTM E2938's idea: range differences against a reference position):
+    ``(measured_i - measured_ref) - (true_i - true_ref)`` = the systematic errors' difference,
+    the nearest distance the reference; the largest over the others, with its standard error."""
+    ok = [r for r in rows if math.isfinite(r["measured_systematic_m"])]
+    if len(ok) < 2:
+        return Figure("relative_range_error_m", math.nan)
+    ref = min(ok, key=lambda r: r["distance_m"])
+
+    def rel(pre: str, r: dict[str, Any]) -> tuple[float, float]:
+        v = r[f"{pre}_systematic_m"] - ref[f"{pre}_systematic_m"]
+        return v, math.hypot(r[f"{pre}_systematic_se_m"], ref[f"{pre}_systematic_se_m"])
+
+    worst = max((r for r in ok if r is not ref), key=lambda r: abs(rel("measured", r)[0]))
+    v, s = rel("measured", worst)
+    pv, ps = rel("twin", worst) if "twin_systematic_m" in worst else (math.nan, math.nan)
+    return Figure("relative_range_error_m", abs(v), s, abs(pv), ps,
+                  note=f"{worst['distance_m']:g} m against {ref['distance_m']:g} m")
 
 
 def _ambient_factor(rows: list[dict[str, Any]]) -> Figure:
