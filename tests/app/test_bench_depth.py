@@ -173,3 +173,16 @@ def test_warm_up_measures_a_hidden_thermal_drift_and_none_without(tmp_path):
     assert abs(g.value) < 4 * g.sigma and any("no drift" in x for x in calm.findings)
     assert any("range stable" in x for x in calm.findings)   # (the drifting run's stability depends on how
     # far the temperature got in the run's wall time, so it is not asserted)
+
+
+def test_multipath_corner_against_the_twin(tmp_path):
+    def run(name, hidden):
+        return run_bench("multipath-corner", "emulator", tmp_path / name, report=False,
+                         options=BenchOptions(frames=4, seed=6, hidden=hidden, extra={"work_dir": str(tmp_path / "w")}))
+
+    same = {f.name: f for f in run("same", {}).figures}["multipath_factor"]
+    assert abs(same.value - 1.0) < 4 * same.sigma                     # the twin's multipath, nothing hidden
+    more = run("more", {"multipath": {"scale": 1.3}})                  # the walls inter-reflect 30 % more
+    f = {x.name: x for x in more.figures}["multipath_factor"]
+    assert f.value > 1.1 and (f.value - 1.0) > 10 * f.sigma
+    assert any("x the twin's" in x for x in more.findings)

@@ -36,6 +36,8 @@ FIGURES: dict[str, tuple[str, str]] = {
     "systematic_error_field_m": ("m", "largest |mean - truth| over the captures, whole field (median pixel)"),
     "random_error_field_m": ("m", "largest temporal standard deviation over the captures, whole field (median pixel)"),
     "relative_range_error_m": ("m", "largest |range difference - true difference| against the nearest position"),
+    "multipath_error_m": ("m", "mean depth error of a corner's walls against the geometric truth"),
+    "multipath_factor": ("", "the corner's depth error over the twin's multipath error (1: as modelled)"),
     "flatness_rms_m": ("m", "RMS residual of a plane fitted to a flat target"),
     "flatness_pv_m": ("m", "peak-to-valley (1-99 percentile) residual of the plane fit"),
     "fill_rate": ("", "share of the region's pixels with a valid depth"),

@@ -198,7 +198,8 @@ def _depth_stack(path: Path) -> tuple[np.ndarray, np.ndarray, Any, dict[str, Any
 
 
 def _twin_stack(rig: Any, state: Mapping[str, Any], acq: Mapping[str, Any], frames: int,
-                seed: int, opts: BenchOptions) -> tuple[np.ndarray, np.ndarray]:
+                seed: int, opts: BenchOptions, *, noise: bool = True,
+                effects: Mapping[str, Any] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The twin's frames of the same bench (the scene and the bench's known light, without
     the hidden truth) with the capture's acquisition settings, demodulated like the capture."""
     params, _ = _split(state)
@@ -216,8 +217,12 @@ def _twin_stack(rig: Any, state: Mapping[str, Any], acq: Mapping[str, Any], fram
         over["sensor"] = {**over["sensor"], "freq_hz": [float(f) for f in acq["freq_hz"]],
                           "integration_time_s": float(acq["integration_time_s"])}
     scene = load_scene(rig.scene, over)
-    effects = _bench_effects(rig.scene, state, opts, 0.0, hidden=False) or None
-    raws = simulate(scene, frames=frames, seed=seed, noise=True, effects=effects)
+    known = _bench_effects(rig.scene, state, opts, 0.0, hidden=False)
+    if effects:
+        from tofhil.sim.pipeline import resolve_effects
+
+        known = {**(known or resolve_effects(scene, None)), **effects}
+    raws = simulate(scene, frames=frames, seed=seed, noise=noise, effects=known or None)
     deps = [depth_from_raw(r) for r in raws]
     return (np.stack([np.where(f.valid, f.distance_m, np.nan) for f in deps]), np.stack([f.valid for f in deps]))
 
@@ -753,6 +758,116 @@ def _warmup_plot(rows: list[dict[str, Any]]) -> list[tuple[str, str | None, str]
              "temperature; the twin has no thermal model (its line: no drift from the first capture).")]
 
 
+# --------------------------------------------------------------------------- multipath corner
+class MultipathCorner:
+    NAME = "multipath-corner"
+    SUMMARY = ("a room corner seen along its diagonal: the depth error of its walls (light bouncing between them "
+               "reads farther) against the twin's multipath, as a factor on the twin's error map")
+    PARAM = "camera_distance_m"
+
+    @staticmethod
+    def make_rig(device: str, opts: BenchOptions) -> Any:
+        return _rig(device, opts, MultipathCorner.PARAM, float(opts.distances_m[0]), scene_default="corner")
+
+    @staticmethod
+    def make_plan(opts: BenchOptions, rig: Any) -> Plan:
+        emulated = "emulator" in rig.capabilities.bench_by
+        raw = "dcs" in rig.capabilities.modes
+        settings: dict[str, Any] = {"mode": "dcs" if raw else "distance"}
+        if raw:
+            # 125 us: the emulated TOFcam635 renders there and scales other exposures linearly, its
+            # fixed offsets too (at 250 us the factor reads 0.993 +- 0.002 with nothing hidden)
+            settings["integration_time_us"] = opts.integration_time_us or 125
+            settings["mod_freq_hz"] = opts.mod_freq_hz or 20e6
+        steps: list[dict[str, Any]] = [{"settings": settings}]
+        for d in opts.extra.get("corner_distances_m") or (1.2,):
+            steps.append({"bench": {MultipathCorner.PARAM: float(d)}, "by": "emulator" if emulated else "prompt",
+                          "message": f"camera on the corner's diagonal, {d:g} m from its apex, looking at it"})
+            steps.append({"capture": {"label": f"corner{float(d):g}m", "frames": opts.frames}})
+        return parse_plan({"name": MultipathCorner.NAME, "steps": steps}, f"<{MultipathCorner.NAME} plan>")
+
+    @staticmethod
+    def analyse(campaign: CampaignResult, rig: Any, opts: BenchOptions) -> BenchResult:
+        from tofhil.app.bench.base import Figure as Fig
+
+        seconds = {"twin": 0.0, "analysis": 0.0}
+        rows: list[dict[str, Any]] = []
+        maps: list[tuple[str, np.ndarray, np.ndarray]] = []
+        for label, rec in campaign.captures.items():
+            radial, valid, cam, acq = _depth_stack(campaign.session(label))
+            t0 = time.monotonic()
+            # the twin, noise-free, with its multipath and without (the geometric truth it knows)
+            with_mp, _ = _twin_stack(rig, rec["bench"], acq, 1, 0, opts, noise=False)
+            direct, _ = _twin_stack(rig, rec["bench"], acq, 1, 0, opts, noise=False,
+                                    effects={"multipath": {"scale": 0.0}})
+            seconds["twin"] += time.monotonic() - t0
+            t0 = time.monotonic()
+            truth, pred = direct[0], with_mp[0] - direct[0]
+            ok = np.all(valid, axis=0) & np.isfinite(truth) & np.isfinite(pred)
+            n = radial.shape[0]
+            meas = _nanmean(radial, valid) - truth
+            se = np.sqrt(np.nanvar(np.where(valid, radial, np.nan), axis=0, ddof=1) / n) if n > 1 else None
+            if se is None or ok.sum() < 10:
+                raise TofhilError("too few frames or pixels on the corner", field="--frames",
+                                  expected="2 frames or more, the corner in view")
+            w = 1.0 / np.maximum(se[ok], 1e-6)
+            x, y = pred[ok], meas[ok]
+            # measured error = k * the twin's multipath error + c: k = 1 when the twin's multipath is right
+            design = np.column_stack([x, np.ones_like(x)])
+            coef, *_ = np.linalg.lstsq(design * w[:, None], y * w, rcond=None)
+            cov = np.linalg.inv((design * w[:, None]).T @ (design * w[:, None]))
+            chi2 = float(np.sum(((design @ coef - y) * w) ** 2))
+            red = chi2 / max(len(y) - 2, 1)
+            sk = math.sqrt(cov[0, 0] * max(red, 1.0))
+            rows.append({"label": label, MultipathCorner.PARAM: float(rec["bench"][MultipathCorner.PARAM]),
+                         "measured_error_m": float(np.mean(y)), "twin_error_m": float(np.mean(x)),
+                         "measured_error_p95_m": float(np.percentile(y, 95)), "twin_error_p95_m": float(np.percentile(x, 95)),
+                         "factor": float(coef[0]), "factor_sigma": sk, "offset_m": float(coef[1]),
+                         "reduced_chi2": red, "pixels": int(ok.sum())})
+            maps.append((label, np.where(ok, meas, np.nan), np.where(ok, pred, np.nan)))
+            seconds["analysis"] += time.monotonic() - t0
+        res = BenchResult(MultipathCorner.NAME, rig.device, [], curves={MultipathCorner.NAME: rows}, seconds=seconds)
+        worst = max(rows, key=lambda r: abs(r["measured_error_m"]))
+        res.figures = [Fig("multipath_error_m", worst["measured_error_m"], predicted=worst["twin_error_m"],
+                           note=f"mean over the corner at {worst[MultipathCorner.PARAM]:g} m"),
+                       Fig("multipath_factor", worst["factor"], worst["factor_sigma"], 1.0, 0.0,
+                           note="measured error / the twin's multipath error")]
+        for r in rows:
+            z = (r["factor"] - 1.0) / r["factor_sigma"]
+            if abs(z) < 3:
+                res.findings.append(f"{r['label']}: the walls' depth error is the twin's multipath ({1e3 * r['measured_error_m']:.1f} "
+                                    f"mm mean, twin {1e3 * r['twin_error_m']:.1f} mm; factor {r['factor']:.3f} +- "
+                                    f"{r['factor_sigma']:.3f})")
+            else:
+                res.findings.append(f"{r['label']}: multipath {r['factor']:.2f} +- {r['factor_sigma']:.2f} x the twin's "
+                                    f"({1e3 * r['measured_error_m']:.1f} mm mean against {1e3 * r['twin_error_m']:.1f} mm): "
+                                    "the walls reflect more (or less) into each other than the twin's materials say "
+                                    "(reflectance, a glossy finish) -- fit them with tofhil diagnose (multipath)")
+        res.plots = lambda: _corner_plot(maps)
+        return res
+
+
+def _corner_plot(maps: list[tuple[str, np.ndarray, np.ndarray]]) -> list[tuple[str, str | None, str]]:
+    from tofhil.eval.reports.html import fig_uri, pyplot
+
+    plt = pyplot()
+    label, meas, pred = maps[0]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 3.6), layout="constrained")
+    hi = float(np.nanpercentile(np.abs(np.concatenate([meas.ravel(), pred.ravel()])), 98)) * 1e3
+    for ax, img, title in ((axes[0], meas, "measured - truth"), (axes[1], pred, "twin's multipath error")):
+        im = ax.imshow(img * 1e3, cmap="magma", vmin=0, vmax=hi)
+        ax.set_title(f"{title} ({label})")
+        fig.colorbar(im, ax=ax, label="mm")
+    h = meas.shape[0] // 2
+    axes[2].plot(meas[h] * 1e3, ".", ms=4, label="measured, middle row")
+    axes[2].plot(pred[h] * 1e3, "-", color="C3", label="twin")
+    axes[2].set_xlabel("column (pixel)")
+    axes[2].set_ylabel("depth error (mm)")
+    axes[2].legend(fontsize=8)
+    return [("Multipath in the corner", fig_uri(fig), "The depth error of the walls against the geometric truth "
+             "(the twin's direct-only distance), beside the twin's multipath error for the same view.")]
+
+
 # --------------------------------------------------------------------------- stray light: dark squares
 class DarkSquares:
     NAME = "dark-squares"
@@ -939,5 +1054,6 @@ def _as_module(cls: type) -> SimpleNamespace:
                            analyse=cls.analyse)
 
 
-PROCEDURES = [_as_module(Accuracy), _as_module(Ambient), _as_module(DarkSquares), _as_module(WarmUp),
+PROCEDURES = [_as_module(Accuracy), _as_module(Ambient), _as_module(DarkSquares), _as_module(MultipathCorner),
+              _as_module(WarmUp),
               _as_module(FlatnessProc)]
