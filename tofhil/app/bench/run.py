@@ -9,7 +9,7 @@ from typing import Any
 
 from tofhil.app.bench import depth, photon_transfer
 from tofhil.app.bench.base import BenchOptions, BenchResult, load_spec_sheet
-from tofhil.app.campaign import run_campaign
+from tofhil.app.campaign import CampaignInterrupted, run_campaign
 from tofhil.errors import TofhilError
 from tofhil.progress import Progress, no_progress
 
@@ -47,7 +47,11 @@ def run_bench(procedure: str, device: str, out_dir: str | Path, *, spec: str | P
         setup = time.monotonic() - t0
         campaign = run_campaign(plan, rig, out, resume=resume, force=force, progress=progress,
                                 extra={"procedure": procedure, "options": _options_record(opts)})
-        result = mod.analyse(campaign, rig, opts)
+        try:
+            result = mod.analyse(campaign, rig, opts)
+        except KeyboardInterrupt:  # the captures are all recorded: say so, and how to finish
+            n = len(campaign.captures)
+            raise CampaignInterrupted(out, n, n) from None
     finally:
         rig.close()
     result.seconds = {"setup": setup, **campaign.seconds, **result.seconds}
@@ -59,7 +63,11 @@ def run_bench(procedure: str, device: str, out_dir: str | Path, *, spec: str | P
         result.details["spec_sheet"] = {"name": sheet.name, "file": sheet.source}
     if report:  # (tests that read only the figures skip the page)
         t1 = time.monotonic()
-        write_report(result, out)
+        try:
+            write_report(result, out)
+        except KeyboardInterrupt:
+            n = len(campaign.captures)
+            raise CampaignInterrupted(out, n, n) from None
         result.seconds["report"] = time.monotonic() - t1
     return result
 
