@@ -286,7 +286,7 @@ def analyse_series(name: str, campaign: CampaignResult, rig: Any, opts: BenchOpt
         mean = _nanmean(radial, valid)
         fl = plane_flatness(cam.points(np.nan_to_num(mean), valid=np.all(valid, axis=0)))
         seconds["analysis"] += time.monotonic() - t0
-        row = {"distance_m": d_true, AMBIENT: float(rec["bench"].get(AMBIENT, 0.0)),
+        row = {"label": label, "distance_m": d_true, AMBIENT: float(rec["bench"].get(AMBIENT, 0.0)),
                **({axis: float(rec["bench"][axis])} if axis not in ("distance_m", AMBIENT) else {}),
                **{f"measured_{k}": v for k, v in m.to_dict().items()}, "measured_flatness_rms_m": fl.rms_m}
         if twin_ok:
@@ -339,9 +339,7 @@ def diagnose_worst(campaign: CampaignResult, rig: Any, opts: BenchOptions, rows:
               and math.isfinite(r.get("twin_systematic_m", math.nan))]
     # the largest difference in millimetres (not in sigmas: the nearest capture is the most precise)
     row = max(usable, key=lambda r: abs(r["measured_systematic_m"] - r["twin_systematic_m"]))
-    label = next(lb for lb, rec in campaign.captures.items()
-                 if float(rec["bench"][DISTANCE_PARAM]) == row["distance_m"]
-                 and float(rec["bench"].get(AMBIENT, 0.0)) == row[AMBIENT])
+    label = row["label"]
     state = campaign.captures[label]["bench"]
     params, _ = _split(state)
     over: dict[str, Any] = {"params": params}
