@@ -124,3 +124,42 @@ def fill_rate(valid: np.ndarray, roi: tuple[int, int, int, int] | None = None) -
         x0, y0, x1, y1 = roi
         v = v[..., y0:y1, x0:x1]
     return float(v.mean()) if v.size else math.nan
+
+
+@dataclass
+class SphereFit:
+    centre: tuple[float, float, float]
+    radius_m: float
+    form_m: float              # range of the radial residuals (VDI/VDE 2634-2 probing error, form)
+    rms_m: float
+    points: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def fit_sphere(points: np.ndarray, *, iterations: int = 20) -> SphereFit:
+    """Least-squares sphere (free radius) through ``points [M, 3]``: the algebraic fit, then
+    Gauss-Newton on the geometric distances ``|p - c| - r``."""
+    p = np.asarray(points, dtype=np.float64)
+    p = p[np.isfinite(p).all(axis=1)]
+    if len(p) < 4:
+        return SphereFit((math.nan,) * 3, math.nan, math.nan, math.nan, len(p))
+    # algebraic: |p|^2 = 2 c . p + (r^2 - |c|^2)
+    a = np.column_stack([2 * p, np.ones(len(p))])
+    sol, *_ = np.linalg.lstsq(a, (p ** 2).sum(axis=1), rcond=None)
+    c = sol[:3]
+    r = math.sqrt(max(sol[3] + c @ c, 0.0))
+    for _ in range(iterations):
+        v = p - c
+        dist = np.linalg.norm(v, axis=1)
+        res = dist - r
+        j = np.column_stack([-v / dist[:, None], -np.ones(len(p))])
+        step, *_ = np.linalg.lstsq(j, -res, rcond=None)
+        c = c + step[:3]
+        r = r + step[3]
+        if np.abs(step).max() < 1e-9:
+            break
+    res = np.linalg.norm(p - c, axis=1) - r
+    return SphereFit(tuple(float(x) for x in c), float(r), float(res.max() - res.min()),
+                     float(np.sqrt(np.mean(res ** 2))), len(p))

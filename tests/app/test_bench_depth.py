@@ -186,3 +186,32 @@ def test_multipath_corner_against_the_twin(tmp_path):
     f = {x.name: x for x in more.figures}["multipath_factor"]
     assert f.value > 1.1 and (f.value - 1.0) > 10 * f.sigma
     assert any("x the twin's" in x for x in more.findings)
+
+
+def test_spheres_spacing_against_the_twin_and_a_range_offset(tmp_path):
+    def run(name, hidden):
+        res = run_bench("spheres", "emulator", tmp_path / name, report=False,
+                        options=BenchOptions(frames=6, seed=8, hidden=hidden, extra={"work_dir": str(tmp_path / "w")}))
+        return {f.name: f for f in res.figures}["sphere_spacing_error_m"]
+
+    same = run("same", {})
+    assert abs(same.value - same.predicted) < 4 * np.hypot(same.sigma, same.predicted_sigma)
+    # a 30 mm range offset moves each centre 30 mm along its ray: the spacing grows by 2 x 30 mm x
+    # sin(atan(0.15 / 1.0)) = 8.9 mm (closed form) beyond the twin's
+    off = run("offset", {"range_offset": {"path_m": 0.06}})
+    expect = 2 * 0.03 * np.sin(np.arctan(0.15 / 1.0))
+    assert abs((off.value - off.predicted) - expect) < 4 * np.hypot(off.sigma, off.predicted_sigma) + 0.002
+
+
+def test_fit_sphere_on_a_noisy_cap():
+    from tofhil.eval.metrics.bench import fit_sphere
+
+    rng = np.random.default_rng(9)
+    c, r = np.array([0.1, -0.05, 1.0]), 0.05
+    th = rng.uniform(0, 0.9 * np.pi / 2, 3000)                # the cap facing the camera (-z)
+    ph = rng.uniform(0, 2 * np.pi, 3000)
+    dirs = np.column_stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), -np.cos(th)])
+    pts = c + (r + 0.0005 * rng.standard_normal(3000))[:, None] * dirs
+    fit = fit_sphere(pts)
+    assert np.allclose(fit.centre, c, atol=3e-4) and fit.radius_m == pytest.approx(r, abs=3e-4)
+    assert fit.rms_m == pytest.approx(0.0005, rel=0.1)
