@@ -99,6 +99,18 @@ class PhotonTransfer:
     captures: list[CaptureStats]
     fit: dict[str, Any] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    #: Every tap's per-pixel dark offset ``[K, H, W]`` (DN): the mean of the dark captures.
+    dark_offset_dn: np.ndarray | None = field(default=None, repr=False)
+
+    def tap_gains(self) -> np.ndarray:
+        """Every tap's conversion gain relative to the taps' mean ``[K]`` (differential taps: tap
+        ``k + K/2`` shares tap ``k``'s, its gates being the same two)."""
+        per = self.fit.get("per_tap") or []
+        if not per:
+            return np.ones(0)
+        g = np.array([t["conversion_gain_dn_per_e"] for t in per])
+        g = g / g.mean()
+        return np.concatenate([g, g]) if self.readout == "differential" else g
 
     def quantities(self) -> dict[str, Estimate]:
         return {"conversion_gain_dn_per_e": self.conversion_gain_dn_per_e, "read_noise_e": self.read_noise_e,
@@ -391,7 +403,9 @@ def photon_transfer(captures: Sequence[PtcCapture], *, modulation_contrast: floa
                                      for t in per_tap) + f"; p = {p_taps:.1e}): a tap calibration is needed")
     fit = {"alpha": alpha, "beta": beta, "gamma": gamma, "cov": cov.tolist(), "reduced_chi2": red, "per_tap": per_tap,
            "linear_fit": lpar.tolist(), "signal_tap": sig, "differential": diff}
+    dark_offset = np.mean([_pixel_stats(c.frames, range(k_taps))[0] for c in darks], axis=0)
     return PhotonTransfer(
+        dark_offset_dn=dark_offset,
         readout="differential" if diff else "single-ended",
         conversion_gain_dn_per_e=Estimate(float(k), float(sk), "DN/e"),
         read_noise_e=Estimate(rn, s_rn, "e"),

@@ -50,6 +50,16 @@ def test_photon_transfer_recovers_the_emulated_sensor_within_its_stated_uncertai
     assert cfg.conversion_gain_dn_per_e == pytest.approx(0.15, rel=0.02)
     assert cfg.fixed_pattern.dsnu_e == pytest.approx(30, rel=0.03)
     assert (tmp_path / "o0" / "report.html").read_text().count("<img") >= 1
+    # and the tap calibration: per-pixel dark offsets (the gates' DSNU, antisymmetric on differential
+    # taps) and per-tap gains (equal here: the emulated taps share one gain)
+    from tofhil.eval.calibration.taps import TapCalibration
+
+    cal = TapCalibration.load(tmp_path / "o0" / "tap_calibration_20MHz.npz")
+    assert cal.offset_dn.shape == (1, 4, 60, 160)
+    assert np.allclose(cal.offset_dn[0, 2], -cal.offset_dn[0, 0], atol=0.05)
+    assert np.allclose(cal.gain, 1.0, atol=0.02)
+    dsnu_from_offsets = cal.offset_dn[0, :2].std() * math.sqrt(2) / 0.15
+    assert dsnu_from_offsets == pytest.approx(30.0, rel=0.05)
 
 
 def _synthetic(single_ended: bool, k=0.2, rn=8.0, dark=5000.0, fw=15000.0, seed=3) -> list[PtcCapture]:

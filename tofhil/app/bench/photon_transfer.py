@@ -151,8 +151,21 @@ def analyse(campaign: CampaignResult, rig: Any, opts: BenchOptions) -> BenchResu
     (out / "sensor.yaml").write_text(
         "# measured by tofhil bench photon-transfer (EMVA 1288); paste as a scene's sensor: block\n"
         + yaml.safe_dump({"sensor": _plain(block)}, sort_keys=False), encoding="utf-8")
+    files = {"sensor": "sensor.yaml"}
+    from tofhil.eval.calibration.taps import TapCalibration
+
+    for tag, r in results.items():
+        # the tap calibration (tofhil.eval.calibration.taps): per-pixel dark offsets of every tap,
+        # per-tap relative gains from each tap's own photon-transfer slope
+        g = r.tap_gains()
+        if r.dark_offset_dn is not None and g.size == r.dark_offset_dn.shape[0]:
+            cal = TapCalibration(r.dark_offset_dn[None], np.broadcast_to(g[None, :, None, None],
+                                                                          (1, *r.dark_offset_dn.shape)).copy(),
+                                 info={"source": "tofhil bench photon-transfer", "frequency": tag,
+                                       "readout": r.readout})
+            files[f"tap_calibration_{tag}"] = cal.save(out / f"tap_calibration_{tag}.npz", force=True).name
     res = BenchResult(NAME, rig.device, figures, curves=curves, findings=findings,
-                      files={"sensor": "sensor.yaml"},
+                      files=files,
                       details={tag: r.to_dict() for tag, r in results.items()})
     res.plots = lambda: _plots(results, sensor)
     res.seconds["analysis"] = time.monotonic() - t0
