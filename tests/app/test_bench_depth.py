@@ -146,7 +146,7 @@ def test_dark_squares_name_hidden_stray_light(tmp_path):
 
 
 def test_name_reflectance_error_against_closed_forms():
-    from tofhil.app.bench.depth import name_reflectance_error
+    from tofhil.app.bench.scattering import name_reflectance_error
 
     rho = np.array([0.5, 0.2, 0.1, 0.05, 0.02])
     se = np.full(rho.size, 2e-4)
