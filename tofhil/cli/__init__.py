@@ -71,7 +71,7 @@ T = TypeVar("T")
 COMMAND_MODULES: list[str] = ["tofhil.cli.core", "tofhil.cli.imports", "tofhil.cli.ndt", "tofhil.cli.evaluate",
                               "tofhil.cli.simulate", "tofhil.cli.devices", "tofhil.cli.diagnose",
                               "tofhil.cli.sweep", "tofhil.cli.calibrate", "tofhil.cli.scene_from_capture",
-                              "tofhil.cli.model", "tofhil.cli.view"]
+                              "tofhil.cli.model", "tofhil.cli.view", "tofhil.cli.bench"]
 
 
 def lit(value: object) -> str:
