@@ -324,7 +324,7 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
     labels = list(corrections)
     if len(set(labels)) != len(labels):
         raise TofhilError("the same correction is given twice", field="--correct")
-    with open_session(a_path) as sa, open_session(b_path) as sb:
+    with open_session(a_path, need_frames=True) as sa, open_session(b_path, need_frames=True) as sb:
         for (name, params), label in zip(specs, labels):
             m = get_method(name)
             resolve_params(m, params)
@@ -333,6 +333,10 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
                                   "A has depth only", file=a_path, field="raw/taps",
                                   expected="a raw session, or depth methods only")
         shape = sb.camera.shape
+        if sa.camera.shape != shape:  # pixel against pixel: the same camera size, or nothing to compare
+            raise TofhilError(f"is {sa.camera.width} x {sa.camera.height} pixels and {b_path} "
+                              f"{sb.camera.width} x {sb.camera.height}", file=a_path, field="camera",
+                              expected="two sessions of the same camera size (resample or crop one first)")
         section = H.CrossSection.choose(shape, row, column)
         regions: list[M.Region] = [M.parse_roi(r, shape) for r in rois] + [M.load_mask(p, shape) for p in masks]
         n_a, n_b = min(max_frames, sa.n_frames), min(max_frames, sb.n_frames)

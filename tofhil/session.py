@@ -779,9 +779,17 @@ class Session:
         self.close()
 
 
-def open_session(path: str | Path) -> Session:
-    """Open and validate a session file; errors name the file and the field."""
-    return Session(path)
+def open_session(path: str | Path, *, need_frames: bool = False) -> Session:
+    """Open and validate a session file; errors name the file and the field.
+
+    ``need_frames``: a command that works on frames (depth, compare, export, import) refuses a
+    session holding none, with one line, instead of writing an empty result and succeeding."""
+    s = Session(path)
+    if need_frames and s.n_frames == 0:
+        s.close()
+        raise InputFileError("holds no complete frame", file=s.path, field="n_frames",
+                             expected="a session with at least one frame")
+    return s
 
 
 def copy_session_header(src: Session, dst_path: str | Path, *, force: bool = False,

@@ -90,6 +90,29 @@ POINT_CLOUD2_DEF = ("std_msgs/Header header\nuint32 height\nuint32 width\nsensor
                       "uint32 offset\nuint8 datatype\nuint32 count\n")
 
 
+#: The fields tofhil reads of each message type (dotted: nested), checked when a message is
+#: decoded: a bag whose schema lacks one (an Image without ``header``) is one line naming the
+#: topic and the field, not an AttributeError later.
+READ_FIELDS = {
+    IMAGE: ("header.stamp.sec", "header.stamp.nanosec", "header.frame_id", "height", "width", "encoding",
+            "is_bigendian", "step", "data"),
+    CAMERA_INFO: ("header.stamp.sec", "header.stamp.nanosec", "header.frame_id", "height", "width",
+                  "distortion_model", "d", "k", "p"),
+}
+
+
+def missing_field(msg: Any, kind: str) -> str | None:
+    """The first field of :data:`READ_FIELDS` ``msg`` lacks (None: it has them all)."""
+    for dotted in READ_FIELDS.get(kind, ()):
+        obj = msg
+        parts = dotted.split(".")
+        for i, part in enumerate(parts):
+            if not hasattr(obj, part):
+                return ".".join(parts[:i + 1])  # "header", not "header.stamp.sec"
+            obj = getattr(obj, part)
+    return None
+
+
 def message_type(schema_name: str) -> str:
     """``sensor_msgs/Image`` and ``sensor_msgs/msg/Image`` -> ``sensor_msgs/msg/Image``."""
     parts = schema_name.split("/")
@@ -328,11 +351,18 @@ class _Bag:
                                      expected="a CDR-encoded ROS 2 message with its ros2msg schema")
             self._decoders[channel.id] = decoder
         try:
-            return decoder(message.data)
+            msg = decoder(message.data)
         except Exception as exc:
             raise InputFileError(f"message {ordinal} cannot be decoded ({type(exc).__name__}: {exc})",
                                  file=self.path, field=f"{channel.topic}: {schema.name}",
                                  expected="a well-formed CDR message") from None
+        kind = message_type(schema.name)
+        lacking = missing_field(msg, kind)
+        if lacking is not None:
+            raise InputFileError("the message schema has no such field", file=self.path,
+                                 field=f"{channel.topic}: {schema.name}.{lacking}",
+                                 expected=f"a {kind} as ROS 2 defines it ({', '.join(READ_FIELDS[kind])})")
+        return msg
 
     def metadata(self) -> dict[str, Any] | None:
         """tofhil's metadata record, if the bag has one (its JSON values decoded)."""
@@ -864,7 +894,7 @@ def write_session_mcap(session_path: str | Path, out: str | Path, *, force: bool
     if out.exists() and out.resolve() == src.resolve():
         raise InputFileError("the output must differ from the input", file=out, field="--out")
     check_new_path(out, force)
-    with open_session(src) as s:
+    with open_session(src, need_frames=True) as s:
         cam = s.camera
         n = s.n_frames
         if n == 0:

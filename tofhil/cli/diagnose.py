@@ -103,6 +103,9 @@ def diagnose(session: Path = typer.Argument(..., parser=opt.existing_file,
         if unknown:
             raise TofhilError(f"unknown effect(s) {', '.join(unknown)}", field="--candidates",
                               expected="names from " + ", ".join(known))
+    from tofhil.session import open_session
+
+    open_session(session, need_frames=True).close()  # nothing to diagnose: one line, before the work
     with new_output_dir(out_dir):
         res = run_diagnosis(session, scene, out_dir, force=force, progress=_progress_printer(),
                             max_effects=max_effects, candidates=names)

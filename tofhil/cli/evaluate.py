@@ -78,6 +78,9 @@ def correct(session: Path = typer.Argument(..., parser=opt.existing_file, help="
     for target in (out_path, save_psf):
         if target is not None:
             refuse_existing(target, force)
+    from tofhil.session import open_session
+
+    open_session(session, need_frames=True).close()  # a session of no frames: one line, not "wrote 0"
     fitted = None
     if calibrate:
         if "psf" in params:
