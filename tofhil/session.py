@@ -28,7 +28,7 @@ from tofhil import __version__
 from tofhil.camera import CameraModel
 from tofhil.errors import InputFileError, Interrupted
 from tofhil.frames import DepthFrame, RawFrame
-from tofhil.outputs import check_new_path, remove_partial
+from tofhil.outputs import check_new_path, partial_path, remove_partial
 from tofhil.schema import to_plain
 
 FORMAT = "tofhil.session"
@@ -183,8 +183,7 @@ class SessionWriter:
         self._raw_shape: tuple[int, ...] | None = None
         self._has_raw: bool | None = None
         self._has_depth: bool | None = None
-        self._write_path = (self.path.with_name(f".{self.path.name}.{os.getpid()}.partial") if derived
-                            else self.path)
+        self._write_path = partial_path(self.path) if derived else self.path
         try:
             self._file = h5py.File(self._write_path, "w")
         except OSError as exc:

@@ -32,6 +32,7 @@ messages that Foxglove opens; the application layer adds the twin's render and t
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import math
 import re
@@ -863,6 +864,10 @@ class McapExport:
     notes: list[str] = field(default_factory=list)
 
 
+#: OS errors of writing the bag (disk full, file-size limit, read-only, permission, I/O).
+_WRITE_ERRNOS = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO}
+
+
 def _stamps_ns(timestamps: Sequence[float]) -> tuple[list[int], str]:
     t = np.asarray(timestamps, dtype=np.float64)
     if t.size and np.all(np.isfinite(t)) and np.all(t >= 0):
@@ -918,43 +923,50 @@ def write_session_mcap(session_path: str | Path, out: str | Path, *, force: bool
                                     "distortion_model": ROS_DISTORTION_MODEL[cam.distortion_model]},
             "/tofhil/points": {"role": "points", "fields": "x y z intensity (float32; m, amplitude)"},
         }
-        with atomic_path(out) as tmp:
-            with open(tmp, "wb") as fh:
-                w = Ros2BagWriter(fh)
-                for i in range(n):
-                    d = s.depth_frame(i) if s.has_depth else depth_from_raw(s.raw_frame(i))
-                    t = stamps[i]
-                    valid = cam.valid_mask(d.radial_m, d.valid)
-                    radial = np.where(valid, d.radial_m, np.nan).astype(np.float32)
-                    amp = (np.full(cam.shape, np.nan, np.float32) if d.amplitude is None
-                           else np.asarray(d.amplitude, dtype=np.float32))
-                    w.camera_info("/tofhil/camera_info", t, cam)
-                    w.image(depth_t, t, as_kind(radial), "32FC1")
-                    w.image("/tofhil/amplitude", t, amp, "32FC1")
-                    if d.confidence is not None:
-                        topics.setdefault("/tofhil/confidence", {"role": "confidence", "encoding": "32FC1",
-                                                                 "unit": "the device's own"})
-                        w.image("/tofhil/confidence", t, np.asarray(d.confidence, dtype=np.float32), "32FC1")
-                    w.point_cloud("/tofhil/points", t, cam.points(radial, "radial", valid), amp[valid])
-                    for e in (extra(i, d) if extra is not None else ()):
-                        topic = f"{e.topic}/{depth_kind}" if e.distance else e.topic
-                        topics.setdefault(topic, {"role": e.role, "encoding": "32FC1", "unit": e.unit}
-                                          | ({"kind": depth_kind, "invalid": "NaN"} if e.distance else {}))
-                        img = np.asarray(e.image, dtype=np.float32)
-                        w.image(topic, t, as_kind(img) if e.distance else img, "32FC1")
-                        if e.cloud_topic is not None:
-                            ok = np.isfinite(img) & (img > 0)
-                            topics.setdefault(e.cloud_topic, {"role": f"{e.role}_points",
-                                                              "fields": "x y z intensity (float32)"})
-                            inten = None if e.intensity is None else np.asarray(e.intensity, np.float32)[ok]
-                            w.point_cloud(e.cloud_topic, t, cam.points(np.where(ok, img, 0.0), "radial", ok), inten)
-                    if on_frame is not None:
-                        on_frame(i + 1, n)
-                w.metadata(METADATA_NAME, {
-                    "format": "tofhil.mcap", "format_version": "1", "software_version": f"tofhil {__version__}",
-                    "source_session": str(src.resolve()), "frame_id": FRAME_ID,
-                    "frame_convention": "optical: x right, y down, z forward (OpenCV)",
-                    "depth_kind": depth_kind, "timestamps": stamp_source, "camera": cam.to_dict(),
-                    "session_device": s.device, "topics": topics} | dict(metadata or {}))
-                w.finish()
+        try:
+            with atomic_path(out) as tmp:
+                with open(tmp, "wb") as fh:
+                    w = Ros2BagWriter(fh)
+                    for i in range(n):
+                        d = s.depth_frame(i) if s.has_depth else depth_from_raw(s.raw_frame(i))
+                        t = stamps[i]
+                        valid = cam.valid_mask(d.radial_m, d.valid)
+                        radial = np.where(valid, d.radial_m, np.nan).astype(np.float32)
+                        amp = (np.full(cam.shape, np.nan, np.float32) if d.amplitude is None
+                               else np.asarray(d.amplitude, dtype=np.float32))
+                        w.camera_info("/tofhil/camera_info", t, cam)
+                        w.image(depth_t, t, as_kind(radial), "32FC1")
+                        w.image("/tofhil/amplitude", t, amp, "32FC1")
+                        if d.confidence is not None:
+                            topics.setdefault("/tofhil/confidence", {"role": "confidence", "encoding": "32FC1",
+                                                                     "unit": "the device's own"})
+                            w.image("/tofhil/confidence", t, np.asarray(d.confidence, dtype=np.float32), "32FC1")
+                        w.point_cloud("/tofhil/points", t, cam.points(radial, "radial", valid), amp[valid])
+                        for e in (extra(i, d) if extra is not None else ()):
+                            topic = f"{e.topic}/{depth_kind}" if e.distance else e.topic
+                            topics.setdefault(topic, {"role": e.role, "encoding": "32FC1", "unit": e.unit}
+                                              | ({"kind": depth_kind, "invalid": "NaN"} if e.distance else {}))
+                            img = np.asarray(e.image, dtype=np.float32)
+                            w.image(topic, t, as_kind(img) if e.distance else img, "32FC1")
+                            if e.cloud_topic is not None:
+                                ok = np.isfinite(img) & (img > 0)
+                                topics.setdefault(e.cloud_topic, {"role": f"{e.role}_points",
+                                                                  "fields": "x y z intensity (float32)"})
+                                inten = None if e.intensity is None else np.asarray(e.intensity, np.float32)[ok]
+                                w.point_cloud(e.cloud_topic, t, cam.points(np.where(ok, img, 0.0), "radial", ok), inten)
+                        if on_frame is not None:
+                            on_frame(i + 1, n)
+                    w.metadata(METADATA_NAME, {
+                        "format": "tofhil.mcap", "format_version": "1", "software_version": f"tofhil {__version__}",
+                        "source_session": str(src.resolve()), "frame_id": FRAME_ID,
+                        "frame_convention": "optical: x right, y down, z forward (OpenCV)",
+                        "depth_kind": depth_kind, "timestamps": stamp_source, "camera": cam.to_dict(),
+                        "session_device": s.device, "topics": topics} | dict(metadata or {}))
+                    w.finish()
+        except OSError as exc:
+            if exc.errno not in _WRITE_ERRNOS:
+                raise
+            # the bag's own name, not "a file being written": the partial file is already removed
+            raise InputFileError(f"cannot be written ({exc.strerror or exc})", file=out, field="--out",
+                                 expected="a writable file on a disk with room for the bag") from None
     return McapExport(out, n, topics, dict(w.counts))
