@@ -143,7 +143,7 @@ def scene_from_dict(d: dict, source: str = "<dict>", base_dir: str | Path | None
     d = p.mapping(d, "", allowed=_TOP_KEYS, none_ok=False, expected="a scene mapping")
     params = p.params(d.get("params", {}))
     if isinstance(d.get("objects"), list) and len(d["objects"]) > MAX_SCENE_OBJECTS:
-        raise p.error(f"lists {len(d['objects'])} objects", "objects", f"at most {MAX_SCENE_OBJECTS:,} objects "
+        raise p.error(f"lists {len(d['objects']):,} objects", "objects", f"at most {MAX_SCENE_OBJECTS:,} objects "
                       "(many surfaces belong in a mesh file)")
     d = substitute(d, params, source)
     camera, pose, f_number, focus = p.camera(p.require(d, "camera", "", "a camera mapping"))
