@@ -347,8 +347,10 @@ class _Parser(Schema):
 
     def emitter(self, e: Any) -> Emitter:
         e = self.mapping(e, "emitter", allowed=("offset_m", "power_w", "profile", "waveform", "axis"))
-        power = self.number(self.require(e, "power_w", "emitter", "optical power in W (a number > 0)"),
-                            "emitter.power_w", lo=0.0, lo_open=True, hi=1e6)
+        # 0 W is a dark frame (the emitter off: offset, ambient and dark current only), as
+        # calibrate-taps takes them
+        power = self.number(self.require(e, "power_w", "emitter", "optical power in W (a number >= 0)"),
+                            "emitter.power_w", lo=0.0, hi=1e6)
         offset = self.position(e.get("offset_m", [0, 0, 0]), "emitter.offset_m")
         axis = self.vector(e.get("axis", [0, 0, 1]), "emitter.axis", 3, lo=-1e6, hi=1e6)
         if np.linalg.norm(axis) == 0:
