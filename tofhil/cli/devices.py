@@ -144,6 +144,10 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
         kept = f"kept in {summary.path}" if summary.frames_written else "kept (no file written)"
         console.print(f"interrupted: {summary.frames_written} frames {kept}", highlight=False, markup=False, soft_wrap=True)
         sys.exit(130)
+    if summary.end_of_recording:  # docs/importers.md: reading past the end ends a capture cleanly
+        console.print(f"note: the recording ended after {summary.frames_written} of {summary.requested} frames",
+                      highlight=False, markup=False, soft_wrap=True)
+        return
     if summary.ended_early:
         console.print(f"session ended early: {summary.ended_early}", highlight=False, markup=False, soft_wrap=True)
         sys.exit(3)

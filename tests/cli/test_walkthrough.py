@@ -1,0 +1,25 @@
+"""The README's and the docs' workflows as a new user walks them (issue 34's walkthrough table)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from tests.cli.test_hostile_inputs import CAM, _raw, run
+from tofhil.depth import depth_from_raw
+from tofhil.session import SessionWriter, open_session
+
+
+def test_replay_past_the_end_ends_cleanly(tmp_path: Path) -> None:
+    """docs/importers.md: reading past the end ends a capture cleanly: the 4 frames with the
+    embedded scene, a one-line note, exit 0 (it was exit 2 and the scene was dropped)."""
+    src = tmp_path / "four.h5"
+    with SessionWriter(src, CAM, device={"model": "test"}, scene_text="name: recorded_twin\n") as w:
+        for i in range(4):
+            raw = _raw([20e6], i)
+            w.append(raw, depth_from_raw(raw))
+    res = run("capture", "--device", f"replay:{src}", "--frames", "10", "--out", "r.h5", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert [ln for ln in res.stderr.splitlines() if ln.strip()] == [
+        "note: the recording ended after 4 of 10 frames"], res.stderr
+    with open_session(tmp_path / "r.h5") as s:
+        assert s.n_frames == 4 and s.scene_text == "name: recorded_twin\n"
