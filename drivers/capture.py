@@ -46,7 +46,8 @@ class CaptureSummary:
 
 def capture(driver: Driver, out_path: str | Path, n_frames: int, settings: CaptureSettings, *,
             force: bool = False, scene_text: str = "", timeout_s: float = 2.0,
-            on_frame: Callable[[Frame], None] | None = None) -> CaptureSummary:
+            on_frame: Callable[[Frame], None] | None = None,
+            device_extra: dict[str, object] | None = None) -> CaptureSummary:
     """Configure an opened ``driver``, stream ``n_frames`` good frames into ``out_path``.
 
     ``on_frame`` is the frame observer: called with each frame after it is safely written
@@ -54,7 +55,8 @@ def capture(driver: Driver, out_path: str | Path, n_frames: int, settings: Captu
     the live view (``tofhil.app.view``) only hands the frame to a bounded queue. An exception
     from it ends the capture as any other would, with every written frame kept (Ctrl-C seen
     there is an interrupt). ``timeout_s`` bounds the wait for one frame's reply (a frame
-    that misses it is dropped).
+    that misses it is dropped). ``device_extra`` adds keys to the session's device header
+    (an emulator's noise seed).
     """
     if n_frames < 1:
         raise DeviceError(f"--frames {n_frames}", field="--frames", expected="a positive number of frames")
@@ -64,7 +66,7 @@ def capture(driver: Driver, out_path: str | Path, n_frames: int, settings: Captu
     out_path = Path(out_path)
     refuse_existing(out_path, force, recorded=True)  # fail before touching the device, not after the first frame
     driver.configure(settings)
-    device = driver.info().to_dict() | {"settings": settings.to_dict(), "spec": driver.spec}
+    device = driver.info().to_dict() | {"settings": settings.to_dict(), "spec": driver.spec} | dict(device_extra or {})
     # a recording that embeds its scene (replay) passes it on, as the emulator's caller does
     scene_text = scene_text or getattr(driver, "scene_text", "") or ""
     start = time.monotonic()
