@@ -43,3 +43,21 @@ def test_emulated_captures_draw_fresh_noise_and_record_the_seed(tmp_path: Path) 
     assert seed_a != seed_b and seed_c == 7
     assert not np.array_equal(a, b)
     np.testing.assert_array_equal(c, d)
+
+
+def test_compare_defines_the_depth_rmse_once(tmp_path: Path) -> None:
+    """The 100-character definition is printed once, under the lines that use it (it was
+    repeated on every line of compare's and diagnose's console)."""
+    from tests.cli.test_hostile_inputs import SMALL_SCENE
+    from tofhil.eval.metrics.core import DEPTH_RMSE
+    from tofhil.sim.pipeline import simulate_session
+    from tofhil.sim.scene import scene_from_yaml
+
+    a, b = tmp_path / "a.h5", tmp_path / "b.h5"
+    for seed, path in enumerate((a, b)):
+        simulate_session(scene_from_yaml(SMALL_SCENE), path, frames=2, seed=seed, noise=True)
+    res = run("compare", a, b, "--out", "cmp", "--roi", "0,0,20,15", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    text = " ".join(res.stdout.split())  # unfolded
+    assert text.count(DEPTH_RMSE) == 1
+    assert text.count("depth RMSE*") == 3  # the whole image, the wall, the ROI

@@ -25,8 +25,7 @@ def _progress_printer() -> callable:
 
 
 def _summary(res, report: Path) -> None:
-    from tofhil.eval.metrics.core import DEPTH_RMSE
-
+    from tofhil.cli.evaluate import RMSE_LABEL, rmse_footnote
     from tofhil.eval.diagnose.report import headline
 
     g = res.gain
@@ -58,7 +57,7 @@ def _summary(res, report: Path) -> None:
         out.print(f"  left above noise: {lit(r['text'])}", highlight=False)
     for f in res.structure[:8]:
         out.print(f"  residual: {lit(f['text'])}", highlight=False)
-    out.print(f"held-out gain: {DEPTH_RMSE} {g['depth_rmse_m']['before'] * 1e3:.1f} -> "
+    out.print(f"held-out gain: {RMSE_LABEL} {g['depth_rmse_m']['before'] * 1e3:.1f} -> "
               f"{g['depth_rmse_m']['after'] * 1e3:.1f} mm (held-out pixels), amplitude RMSE {g['amplitude_rmse']['before']:.3g} -> {g['amplitude_rmse']['after']:.3g}, "
               f"misfit {res.chi2_per_value['before']:.2f} -> {res.chi2_per_value['after_extended_scene']:.2f} per value "
               f"(1.0 = noise)", highlight=False)
@@ -68,6 +67,7 @@ def _summary(res, report: Path) -> None:
                   highlight=False)
     for line in res.observability.lines:
         out.print(f"[bold]observability:[/bold] {lit(line)}", highlight=False)
+    out.print(rmse_footnote("measured", "twin"), highlight=False, markup=False)
     out.print(f"report: {lit(report)}")
 
 
