@@ -181,14 +181,18 @@ def rmse_footnote(a: str = "A", b: str = "B") -> str:
 
 
 def compare_line(name: str, region: dict[str, Any]) -> str:
-    """One line per variant and region: the depth RMSE (:data:`RMSE_LABEL`, defined once by
-    :func:`rmse_footnote`), the noise floor (the RMSE noise alone would give), median, MAD."""
+    """One line per variant and region: median, MAD, the trimmed RMSE, the depth RMSE
+    (:data:`RMSE_LABEL`, defined once by :func:`rmse_footnote`) and the noise floor (the RMSE
+    noise alone would give)."""
     def mm(x: Any) -> str:
         return "-" if x is None else f"{x * 1000:.2f}"
 
-    d = region["depth_residual_m"]
-    return (f"{name:24s} {RMSE_LABEL} {mm(d['rmse'])} mm  noise floor {mm(region.get('noise_floor_m'))} mm  "
-            f"median {mm(d['median'])} mm  MAD {mm(d['mad'])} mm  (n={d['n']})")
+    from tofhil.eval.metrics.core import TRIM_FRACTION
+
+    d = region["depth_residual_m"]  # the robust figures first (a strip of outliers moves the RMSE alone)
+    return (f"{name:24s} median {mm(d['median'])} mm  MAD {mm(d['mad'])} mm  "
+            f"RMSE {100 * TRIM_FRACTION:g}%-trimmed {mm(d.get('rmse_trimmed'))} mm  {RMSE_LABEL} {mm(d['rmse'])} mm  "
+            f"noise floor {mm(region.get('noise_floor_m'))} mm  (n={d['n']})")
 
 
 @app.command("calibrate-taps")
