@@ -30,7 +30,8 @@ RESIDUAL_PERCENTILES = (2.0, 98.0)
 CSS = """body{font-family:sans-serif;max-width:1400px;margin:1em auto;padding:0 1em;color:#222}
 table{border-collapse:collapse;font-size:12px}td,th{border:1px solid #bbb;padding:2px 6px;text-align:right}
 th{background:#eee}td:first-child,td:nth-child(2){text-align:left}img{max-width:100%}
-h2{border-bottom:1px solid #ccc;margin-top:1.6em}.note{color:#555;font-size:13px}.warn{color:#a40000}"""
+h2{border-bottom:1px solid #ccc;margin-top:1.6em}.note{color:#555;font-size:13px}.warn{color:#a40000}
+.wide{max-width:100%;overflow-x:auto}.cases th{overflow-wrap:anywhere;min-width:5em;max-width:14em}"""
 
 
 def esc(x: Any) -> str:
