@@ -61,3 +61,15 @@ def test_compare_defines_the_depth_rmse_once(tmp_path: Path) -> None:
     text = " ".join(res.stdout.split())  # unfolded
     assert text.count(DEPTH_RMSE) == 1
     assert text.count("depth RMSE*") == 3  # the whole image, the wall, the ROI
+
+
+def test_simulate_report_of_a_glass_scene(tmp_path: Path) -> None:
+    """A row of the README's tour: `simulate glass_pane --report DIR` writes the session and a
+    report that says what it cannot show (it was exit 2: no multipath shares through glass)."""
+    import json
+
+    res = run("simulate", "glass_pane", "--out", "g.h5", "--report", "rep", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    notes = json.loads((tmp_path / "rep" / "report.json").read_text())["notes"]
+    assert len(notes) == 1 and "glass" in notes[0]
+    assert "glass or scattering media" in (tmp_path / "rep" / "report.html").read_text()

@@ -72,14 +72,20 @@ def simulate(scene: str = typer.Argument(..., help="A scene file (.yaml) or a bu
         from tofhil.outputs import prepare_output_dir
 
         prepare_output_dir(report, OUTPUTS, force=force)  # refuse before the (slow) render
+    # The renderer traces no multipath shares through glass or media: such a scene's report
+    # says so and draws the rest (the tour's `simulate glass_pane --report DIR` was refused).
+    media = any(m.ior is not None or m.scattering_per_m > 0 for m in sc.materials.values())
+    shares = report is not None and not media
     sim = write_simulation(sc, out_path, frames=frames, seed=seed, noise=not no_noise, force=force,
-                           effects=effects, progress=progress, multipath_shares=report is not None)
+                           effects=effects, progress=progress, multipath_shares=shares)
     path = sim.path
     if report is not None:
         from tofhil.eval.reports.simulate import write_simulate_report
 
-        write_simulate_report(report, sc, shares=sim.multipath_shares(sc), direct=sim.direct, session_path=path,
-                              force=force)
+        notes = [] if shares else ["multipath shares are not computed through glass or scattering media: "
+                                   "the scene has a material with ior or scattering_per_m"]
+        write_simulate_report(report, sc, shares=sim.multipath_shares(sc) if shares else None, direct=sim.direct,
+                              session_path=path, force=force, notes=notes)
     out.print(f"wrote {frames} simulated frame{'s' if frames != 1 else ''} of {lit(sc.name or scene)} to {lit(path)}")
     if report is not None:
         out.print(f"report: {lit(report / 'report.html')}")
