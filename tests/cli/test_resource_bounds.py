@@ -387,3 +387,22 @@ def test_every_command_has_its_bounds_listed() -> None:
     commands = set(typer.main.get_command(app).commands)
     assert commands - set(COVERAGE) == set(), "list the new command's hostile inputs in COVERAGE"
     assert set(COVERAGE) - commands == set()
+
+
+# ---------------------------------------------------------------------------- --max-memory
+@pytest.mark.parametrize("command", ["simulate", "diagnose"])
+def test_max_memory_refuses_before_the_render(command: str, files: dict[str, Path], tmp_path: Path) -> None:
+    from tofhil.sim.pipeline import simulate_session
+    from tofhil.sim.scene import scene_from_yaml
+
+    scene = _scene(tmp_path, "small.yaml", SMALL_SCENE)
+    session = tmp_path / "small.h5"
+    if command == "diagnose":
+        simulate_session(scene_from_yaml(SMALL_SCENE), session, frames=2)
+    argv = (["simulate", scene, "--out", "s.h5"] if command == "simulate"
+            else ["diagnose", session, "--scene", scene, "--out", "dg"])
+    refused(tmp_path, *argv, "--max-memory", "64K", contains=("small.yaml", "--max-memory 0.1 MiB"))
+
+
+def test_max_memory_is_a_size(tmp_path: Path) -> None:
+    refused(tmp_path, "simulate", "wall", "--out", "s.h5", "--max-memory", "lots", contains=("--max-memory",))

@@ -81,6 +81,8 @@ def diagnose(session: Path = typer.Argument(..., parser=opt.existing_file,
                                              help="Most effects to add (0: only the base twin's misfit; nothing searched)."),
              candidates: Optional[str] = typer.Option(None, help="Comma-separated effects to try (default: all)."),
              force: bool = typer.Option(False, "--force", help="Overwrite an earlier diagnosis in OUT."),
+             max_memory: Optional[int] = typer.Option(None, "--max-memory", parser=opt.memory_size,
+                                                      help="Refuse before the work when the estimated peak memory of each of its renders exceeds this (2G, 512M, bytes); without it: 70 % of the memory available."),
              view_save: Optional[Path] = typer.Option(
                  None, "--view-save", parser=opt.new_file,
                  help="Also write the diagnosis maps to this .rrd file for the Rerun viewer (pip install "
@@ -104,8 +106,17 @@ def diagnose(session: Path = typer.Argument(..., parser=opt.existing_file,
             raise TofhilError(f"unknown effect(s) {', '.join(unknown)}", field="--candidates",
                               expected="names from " + ", ".join(known))
     from tofhil.session import open_session
+    from tofhil.sim.memory import set_memory_limit
 
-    open_session(session, need_frames=True).close()  # nothing to diagnose: one line, before the work
+    set_memory_limit(max_memory)  # the twin's renders check it before each starts
+    with open_session(session, need_frames=True) as s:  # nothing to diagnose: one line, before the work
+        camera = s.camera
+    if max_memory is not None:  # the first render's estimate, before the first progress line
+        from tofhil.sim.memory import check_memory, render_memory
+        from tofhil.sim.scene import load_scene
+
+        base = load_scene(scene)
+        check_memory(render_memory(base, {"camera": camera}), source=base.source)
     with new_output_dir(out_dir):
         res = run_diagnosis(session, scene, out_dir, force=force, progress=_progress_printer(),
                             max_effects=max_effects, candidates=names)

@@ -48,13 +48,17 @@ def simulate(scene: str = typer.Argument(..., help="A scene file (.yaml) or a bu
                                                    help="Also write DIR/report.html: each pixel's light by bounce "
                                                         "and by source object, a direct-ToF scene's histograms, a "
                                                         "lens prescription's ghost PSFs."),
+             max_memory: Optional[int] = typer.Option(None, "--max-memory", parser=opt.memory_size,
+                                                      help="Refuse before the work when the estimated peak memory of a render exceeds this (2G, 512M, bytes); without it: 70 % of the memory available."),
              force: bool = typer.Option(False, "--force", help="Overwrite OUT (and the report) if it exists.")) -> None:
     """Render a scene through the twin (effects, sensor, noise) into a session file with raw taps
     and depth, the scene text embedded; a scene with a direct_tof block gives SPAD histograms and
     the depth of their peaks instead of taps."""
+    from tofhil.sim.memory import set_memory_limit
     from tofhil.sim.pipeline import write_simulation
     from tofhil.sim.scene import load_scene
 
+    set_memory_limit(max_memory)  # checked against the render's estimate before it starts
     overrides = {"params": _parse_assignments(param, "--param")} if param else None
     sc = load_scene(scene, overrides=overrides)
     effects = None
