@@ -30,25 +30,12 @@ NOISE_SIGMAS = 4.0
 
 
 def depth_noise(z_m: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Each valid pixel's depth noise ``[H, W]`` (m), from the image itself: the robust spread
-    (1.4826 MAD) of the relative differences between a pixel and the median of its 3 x 3
-    valid neighbours, over the whole image, times the pixel's depth (ToF noise grows with
-    distance). Surfaces' own shape and their edges are in the MAD's tail, not its median."""
-    import warnings
+    """Each valid pixel's depth noise ``[H, W]`` (m): the image's relative noise
+    (:func:`tofhil.depth.relative_depth_noise`) times the pixel's depth (0 where invalid)."""
+    from tofhil.depth import relative_depth_noise
 
-    z = np.where(valid, np.asarray(z_m, np.float64), np.nan)
-    h, w = z.shape
-    p = np.pad(z, 1, constant_values=np.nan)
-    stack = np.stack([p[i:i + h, j:j + w] for i in range(3) for j in range(3) if (i, j) != (1, 1)])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        rel = (z - np.nanmedian(stack, axis=0)) / z
-    rel = rel[np.isfinite(rel)]
-    if rel.size == 0:
-        return np.zeros(z.shape)
-    # neighbour medians carry noise too: a difference of two noisy depths is sqrt(1 + 1/~8) wider
-    sigma_rel = 1.4826 * float(np.median(np.abs(rel - np.median(rel)))) / np.sqrt(1.0 + 1.0 / 8.0)
-    return np.where(valid, sigma_rel * np.nan_to_num(z, nan=0.0), 0.0)
+    sigma_rel = relative_depth_noise(z_m, valid)
+    return np.where(valid, sigma_rel * np.nan_to_num(np.asarray(z_m, np.float64), nan=0.0), 0.0)
 
 
 def project(camera: Any, points: np.ndarray) -> np.ndarray:
