@@ -206,16 +206,18 @@ def figures(variants: list[Variant], ref: DepthFrame, section: H.CrossSection,
     amp = [("reference (B)", _masked(ref, ref.amplitude, ref_valid))] + \
           [(f"{v.label} (A)", _masked(v.frame, v.frame.amplitude, e.maps.valid_a)) for v, (_, e) in zip(variants, ev)]
     res = [(label, e.maps.depth_residual_m) for label, e in ev]
+    compared = [e.maps.compared for _, e in ev]
     out = [
         ("Depth maps", H.figure_distance_maps(dist),
          "Radial distance of the reference B and of A before and after each correction (shared 1-99 % scale; "
          "invalid and saturated pixels blank)."),
         ("Amplitude maps", H.figure_amplitude_maps(amp), "Amplitude |S| (mean over frequencies); each panel on its "
                                                          "own scale."),
-        ("Residual maps", H.figure_residual_maps([(f"residual A - B: {t}", r) for t, r in res]),
+        ("Residual maps", H.figure_residual_maps([(f"residual A - B: {t}", r) for t, r in res], scale_masks=compared),
          "Depth residual A - B in millimetres (red: A farther, blue: A nearer); shared symmetric scale "
-         f"+-max(|p{H.RESIDUAL_PERCENTILES[0]:g}|, |p{H.RESIDUAL_PERCENTILES[1]:g}|) of the residuals, "
-         "values beyond it in the end colours."),
+         f"+-max(|p{H.RESIDUAL_PERCENTILES[0]:g}|, |p{H.RESIDUAL_PERCENTILES[1]:g}|) of the compared pixels' "
+         "residuals (those in the depth figures), values beyond it in the end colours: pixels without a signal "
+         "above noise on one side are drawn, and counted in the summary, but set neither the scale nor the figures."),
         ("Amplitude ratio maps", H.figure_ratio_maps([(label, e.maps.amplitude_ratio) for label, e in ev]),
          "Amplitude of A over amplitude of B per pixel, log2 (0: equal; +1: A twice as bright). "
          "A device's and the twin's amplitude units differ by a constant: look at the pattern."),
@@ -333,7 +335,7 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
     labels = list(corrections)
     if len(set(labels)) != len(labels):
         raise TofhilError("the same correction is given twice", field="--correct")
-    with open_session(a_path) as sa, open_session(b_path) as sb:
+    with open_session(a_path, need_frames=True) as sa, open_session(b_path, need_frames=True) as sb:
         for (name, params), label in zip(specs, labels):
             m = get_method(name)
             resolve_params(m, params)
@@ -342,6 +344,10 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
                                   "A has depth only", file=a_path, field="raw/taps",
                                   expected="a raw session, or depth methods only")
         shape = sb.camera.shape
+        if sa.camera.shape != shape:  # pixel against pixel: the same camera size, or nothing to compare
+            raise TofhilError(f"is {sa.camera.width} x {sa.camera.height} pixels and {b_path} "
+                              f"{sb.camera.width} x {sb.camera.height}", file=a_path, field="camera",
+                              expected="two sessions of the same camera size (resample or crop one first)")
         section = H.CrossSection.choose(shape, row, column)
         regions: list[M.Region] = [M.parse_roi(r, shape) for r in rois] + [M.load_mask(p, shape) for p in masks]
         n_a, n_b = min(max_frames, sa.n_frames), min(max_frames, sb.n_frames)
@@ -432,9 +438,12 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
         with np.errstate(invalid="ignore"):
             noise_res = np.sqrt(np.nan_to_num(v.noise_m, nan=np.inf) ** 2 + np.nan_to_num(ref_noise) ** 2)
         noise_res[~np.isfinite(noise_res)] = np.nan  # A's noise unknown (one frame): no floor
+        # "signal above noise" on each side with its own noise: a twin's pixel lit by no light of
+        # its own has no phase to compare, however clean the capture's pixel is
         v.evaluation = M.evaluate(v.frame, ref, regions, wrap_m=wrap_m, health_a=health_a, health_b=health_b,
                                   cloud_regions=True, cell_size=cell_size, threshold=threshold,
-                                  source=f"{a_path} vs {b_path}", noise_m=noise_res, freq_hz=freqs)
+                                  source=f"{a_path} vs {b_path}", noise_m=noise_res, freq_hz=freqs,
+                                  own_noise_m=(v.noise_m, ref_noise))
         res = v.evaluation.to_json()
         res["temporal_std_m_median"] = (float(np.nanmedian(v.temporal_std_m))
                                         if np.isfinite(v.temporal_std_m).any() else None)

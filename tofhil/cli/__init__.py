@@ -212,6 +212,12 @@ def main(argv: list[str] | None = None) -> None:
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not when started ignoring it (nohup)
         signal.signal(signal.SIGINT, on_interrupt_signal)
         sys.unraisablehook = _unraisable
+    if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        # SIGTERM (kill, a cluster's scheduler, systemd) ends every command as Ctrl-C does: a
+        # writer keeps its completed frames or removes its partial file, instead of dying silently
+        # and leaving .OUT.PID.partial behind
+        signal.signal(signal.SIGTERM, on_interrupt_signal)
+        sys.unraisablehook = _unraisable
     ex = _click_exceptions()
     command = typer.main.get_command(app)
     coercion.install(command)  # the options' parsers without typer's pydantic adapters (~0.15 CPU-s)

@@ -80,6 +80,9 @@ def correct(session: Path = typer.Argument(..., parser=opt.existing_file, help="
     for target in (out_path, save_psf):
         if target is not None:
             refuse_existing(target, force)
+    from tofhil.session import open_session
+
+    open_session(session, need_frames=True).close()  # a session of no frames: one line, not "wrote 0"
     fitted = None
     if calibrate:
         if "psf" in params:
@@ -157,7 +160,6 @@ def compare(a: Path = typer.Argument(..., parser=opt.existing_file, help="Measur
     demodulation); each region's noise floor (the RMSE noise alone would give) is printed
     beside its error."""
     from tofhil.eval.compare import compare_sessions
-    from tofhil.eval.metrics.core import DEPTH_RMSE
 
     with new_output_dir(out_dir):
         m = compare_sessions(a, b, out_dir, corrections=correct_specs, rois=roi, masks=mask, row=row, column=column,
@@ -171,21 +173,35 @@ def compare(a: Path = typer.Argument(..., parser=opt.existing_file, help="Measur
                 out.print(compare_line(f"  {region}", r), highlight=False, markup=False)
         for note in v["notes"]:
             out.print(f"  {note}", highlight=False, markup=False)
-    out.print(f"({DEPTH_RMSE}: sqrt(mean((A - B)^2)) over the pixels valid in A and in B)", highlight=False)
+    out.print(rmse_footnote(), highlight=False, markup=False)
     out.print(f"wrote {lit(out_dir / 'metrics.json')} and {lit(out_dir / 'report.html')}")
 
 
-def compare_line(name: str, region: dict[str, Any]) -> str:
-    """One line per variant and region: the depth RMSE (the one definition), the noise floor
-    (the RMSE noise alone would give), median, MAD."""
+#: The console's short name of the headline figure; :func:`rmse_footnote` defines it once, below
+#: the lines that use it (the 100-character definition was repeated on every line).
+RMSE_LABEL = "depth RMSE*"
+
+
+def rmse_footnote(a: str = "A", b: str = "B") -> str:
+    """The one definition of :data:`RMSE_LABEL`, printed once after the lines that use it."""
     from tofhil.eval.metrics.core import DEPTH_RMSE
 
+    return f"* {DEPTH_RMSE}: sqrt(mean(({a} - {b})^2))"
+
+
+def compare_line(name: str, region: dict[str, Any]) -> str:
+    """One line per variant and region: median, MAD, the trimmed RMSE, the depth RMSE
+    (:data:`RMSE_LABEL`, defined once by :func:`rmse_footnote`) and the noise floor (the RMSE
+    noise alone would give)."""
     def mm(x: Any) -> str:
         return "-" if x is None else f"{x * 1000:.2f}"
 
-    d = region["depth_residual_m"]
-    return (f"{name:24s} {DEPTH_RMSE} {mm(d['rmse'])} mm  noise floor {mm(region.get('noise_floor_m'))} mm  "
-            f"median {mm(d['median'])} mm  MAD {mm(d['mad'])} mm  (n={d['n']})")
+    from tofhil.eval.metrics.core import TRIM_FRACTION
+
+    d = region["depth_residual_m"]  # the robust figures first (a strip of outliers moves the RMSE alone)
+    return (f"{name:24s} median {mm(d['median'])} mm  MAD {mm(d['mad'])} mm  "
+            f"RMSE {100 * TRIM_FRACTION:g}%-trimmed {mm(d.get('rmse_trimmed'))} mm  {RMSE_LABEL} {mm(d['rmse'])} mm  "
+            f"noise floor {mm(region.get('noise_floor_m'))} mm  (n={d['n']})")
 
 
 @app.command("calibrate-taps")
