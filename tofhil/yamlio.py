@@ -101,8 +101,21 @@ def load_yaml(text: str, source: str | Path = "<yaml>") -> Any:
         loader.dispose()
 
 
-def load_yaml_file(path: str | Path) -> Any:
+def read_yaml_text(path: str | Path) -> str:
+    """A YAML file's text, its size checked before it is read (a config file that is really a
+    10 GB data file fails at once instead of filling memory)."""
     p = Path(path)
     if not p.is_file():
-        raise InputFileError("no such file", file=p)
-    return load_yaml(p.read_text(), source=p)
+        raise InputFileError("is a directory" if p.is_dir() else "no such file", file=p)
+    if p.stat().st_size > MAX_YAML_BYTES:
+        raise InputFileError(f"is {p.stat().st_size} bytes", file=p,
+                             expected=f"a YAML file of at most {MAX_YAML_BYTES >> 20} MiB")
+    try:
+        return p.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputFileError(f"is not UTF-8 text (byte {exc.start})", file=p, expected="a UTF-8 YAML file") from None
+
+
+def load_yaml_file(path: str | Path) -> Any:
+    """Read and parse a YAML file within the bounds of this module."""
+    return load_yaml(read_yaml_text(path), source=Path(path))

@@ -272,6 +272,13 @@ def test_sweep_axis_and_case_counts(case: str, axes: str, expect: tuple[str, ...
     refused(tmp_path, "sweep", spec, "--out", "sw", contains=(f"{case}.yaml", "axes", *expect))
 
 
+def test_sweep_spec_size_before_reading(tmp_path: Path) -> None:
+    spec = tmp_path / "huge.yaml"
+    with spec.open("wb") as fh:  # 20 MB (sparse): refused from its size, never read
+        fh.truncate(20 << 20)
+    refused(tmp_path, "sweep", spec, "--out", "sw", contains=("huge.yaml", "16 MiB"))
+
+
 # ---------------------------------------------------------------------------- capture: options
 @pytest.mark.parametrize("faults, expect", [("crc=1.5", "probability in [0, 1]"), ("timeout=nan", "probability"),
                                             ("crc@-2", "integer >= 0"), ("disconnect_s=inf", "duration")])

@@ -425,13 +425,13 @@ def _check_scene(spec: SweepSpec, s: Schema) -> None:
 
 def load_spec(path: str | Path) -> SweepSpec:
     """Read and validate a sweep spec YAML file."""
-    from tofhil.yamlio import load_yaml
+    from tofhil.yamlio import load_yaml, read_yaml_text
 
     p = Path(path)
     if not p.is_file():
         raise InputFileError("is a directory" if p.is_dir() else "no such file", file=p,
                              expected="a sweep spec YAML file")
-    text = p.read_text(encoding="utf-8")
+    text = read_yaml_text(p)  # size bounded before it is read
     data = load_yaml(text, p)
     return parse_spec(data, source=str(p), base_dir=p.resolve().parent, text=text)
 
