@@ -39,7 +39,7 @@ from tofhil.errors import DeviceError
 from tofhil.frames import DepthFrame, RawFrame
 
 __all__ = [
-    "CaptureSettings", "DeviceEntry", "DeviceInfo", "DeviceDisconnected", "Driver", "DriverStats",
+    "CaptureSettings", "DeviceEntry", "DeviceInfo", "DeviceDisconnected", "Driver", "DriverStats", "EndOfRecording",
     "Frame", "FrameDropped", "DRIVER_MODULES", "register_driver", "open_device", "list_devices",
     "registered_schemes", "parse_spec", "create_driver",
 ]
@@ -55,6 +55,10 @@ class FrameDropped(DeviceError):
 
 class DeviceDisconnected(DeviceError):
     """The device went away (unplugged, stalled beyond recovery, port closed)."""
+
+
+class EndOfRecording(DeviceError):
+    """A recorded source (replay) has no more frames: a capture ends cleanly with what it got."""
 
 
 # --------------------------------------------------------------------------- data

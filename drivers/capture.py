@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Callable
 
 from tofhil.outputs import refuse_existing
-from tofhil.drivers.base import CaptureSettings, DeviceDisconnected, Driver, Frame
+from tofhil.drivers.base import CaptureSettings, DeviceDisconnected, Driver, EndOfRecording, Frame
 from tofhil.errors import DeviceError
 from tofhil.session import SessionWriter
 
@@ -33,6 +33,8 @@ class CaptureSummary:
     elapsed_s: float
     #: None when all requested frames were written; otherwise why the session ended early.
     ended_early: str | None = None
+    #: A recorded source ran out (replay without loop): a clean end, the frames it had.
+    end_of_recording: bool = False
 
     @property
     def frames_per_s(self) -> float:
@@ -44,7 +46,8 @@ class CaptureSummary:
 
 def capture(driver: Driver, out_path: str | Path, n_frames: int, settings: CaptureSettings, *,
             force: bool = False, scene_text: str = "", timeout_s: float = 2.0,
-            on_frame: Callable[[Frame], None] | None = None) -> CaptureSummary:
+            on_frame: Callable[[Frame], None] | None = None,
+            device_extra: dict[str, object] | None = None) -> CaptureSummary:
     """Configure an opened ``driver``, stream ``n_frames`` good frames into ``out_path``.
 
     ``on_frame`` is the frame observer: called with each frame after it is safely written
@@ -52,7 +55,8 @@ def capture(driver: Driver, out_path: str | Path, n_frames: int, settings: Captu
     the live view (``tofhil.app.view``) only hands the frame to a bounded queue. An exception
     from it ends the capture as any other would, with every written frame kept (Ctrl-C seen
     there is an interrupt). ``timeout_s`` bounds the wait for one frame's reply (a frame
-    that misses it is dropped).
+    that misses it is dropped). ``device_extra`` adds keys to the session's device header
+    (an emulator's noise seed).
     """
     if n_frames < 1:
         raise DeviceError(f"--frames {n_frames}", field="--frames", expected="a positive number of frames")
@@ -62,9 +66,12 @@ def capture(driver: Driver, out_path: str | Path, n_frames: int, settings: Captu
     out_path = Path(out_path)
     refuse_existing(out_path, force, recorded=True)  # fail before touching the device, not after the first frame
     driver.configure(settings)
-    device = driver.info().to_dict() | {"settings": settings.to_dict(), "spec": driver.spec}
+    device = driver.info().to_dict() | {"settings": settings.to_dict(), "spec": driver.spec} | dict(device_extra or {})
+    # a recording that embeds its scene (replay) passes it on, as the emulator's caller does
+    scene_text = scene_text or getattr(driver, "scene_text", "") or ""
     start = time.monotonic()
     ended: str | None = None
+    end_of_recording = False
     writer: SessionWriter | None = None
     colors: list[tuple[int, object]] = []     # (frame index, colour image) for the rgb/ group
     try:
@@ -78,6 +85,9 @@ def capture(driver: Driver, out_path: str | Path, n_frames: int, settings: Captu
             writer.append(raw=frame.raw, depth=frame.depth)
             if on_frame is not None:
                 on_frame(frame)
+    except EndOfRecording as exc:
+        ended = str(exc)
+        end_of_recording = True
     except DeviceDisconnected as exc:
         ended = f"device lost: {exc}"
     except KeyboardInterrupt:
@@ -94,4 +104,5 @@ def capture(driver: Driver, out_path: str | Path, n_frames: int, settings: Captu
                           tof_to_camera=getattr(driver, "tof_to_rgb", None))
     return CaptureSummary(path=str(out_path), requested=n_frames, frames_written=written,
                           dropped=driver.stats.dropped, reconnects=driver.stats.reconnects,
-                          elapsed_s=time.monotonic() - start, ended_early=ended)
+                          elapsed_s=time.monotonic() - start, ended_early=ended,
+                          end_of_recording=end_of_recording)

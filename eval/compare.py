@@ -26,7 +26,10 @@ from tofhil.demod import TapLimits
 from tofhil.errors import TofhilError
 from tofhil.eval.reports import html as H
 from tofhil.eval.metrics import core as M
-from tofhil.eval.corrections import correct_depth, get_method, load_params, parse_method_spec, resolve_params
+from tofhil.eval.metrics import before_after as BA
+from tofhil.eval.reports.before_after import before_after_html
+from tofhil.eval.corrections import (context_for_session, correct_depth, get_method, load_params, parse_method_spec,
+                                     resolve_params)
 from tofhil.frames import DepthFrame
 
 MEASURED = "measured"
@@ -45,13 +48,15 @@ class Variant:
     params: dict[str, Any] = field(default_factory=dict)
     evaluation: M.Evaluation | None = None
     noise_m: np.ndarray | None = None  # standard deviation of the mean's distance
+    correction: Any = None  # a complex correction's CorrectionContext (flags, notes)
 
 
 # ---------------------------------------------------------------------------- loading
 
 
 def variant_frame(session: Any, n: int, method: str | None = None, params: dict[str, Any] | None = None,
-                  min_amplitude: float = 0.0, flat: Any = None) -> tuple[DepthFrame, np.ndarray]:
+                  min_amplitude: float = 0.0, flat: Any = None,
+                  context: Any = None) -> tuple[DepthFrame, np.ndarray]:
     """The mean of the first ``n`` frames, optionally corrected, and the per-pixel standard
     deviation of its distance expected from the frames' scatter.
 
@@ -60,6 +65,8 @@ def variant_frame(session: Any, n: int, method: str | None = None, params: dict[
     to the mean, and the mean is demodulated once (the same pipeline before and after
     correction); depth methods filter that depth. Depth-only sessions average their stored
     depth (:func:`tofhil.eval.metrics.core.mean_depth_frame`; noise = temporal std / sqrt(n)).
+    ``context`` (a :class:`tofhil.eval.corrections.CorrectionContext` of the session's mean)
+    receives a complex correction's flags and notes.
     """
     from tofhil.depth import depth_from_raw
     from tofhil.eval.corrections.averaging import session_mean_signal
@@ -75,8 +82,10 @@ def variant_frame(session: Any, n: int, method: str | None = None, params: dict[
         return frame, std / np.sqrt(k) if k > 1 else np.full(std.shape, np.nan)
     correct = None
     if m is not None and m.domain == "complex":
-        camera = session.camera
-        correct = lambda s: m.func(s, camera, **p)  # noqa: E731
+        from tofhil.eval.corrections import context_for_session
+
+        ctx = context if context is not None else context_for_session(session, k)
+        correct = lambda s: m.func(s, ctx, **p)  # noqa: E731
     ms = session_mean_signal(session, k, flat=flat, correct=correct)
     frame = depth_from_raw(ms.raw(), min_amplitude=min_amplitude)
     if m is not None and m.domain == "depth":
@@ -197,16 +206,18 @@ def figures(variants: list[Variant], ref: DepthFrame, section: H.CrossSection,
     amp = [("reference (B)", _masked(ref, ref.amplitude, ref_valid))] + \
           [(f"{v.label} (A)", _masked(v.frame, v.frame.amplitude, e.maps.valid_a)) for v, (_, e) in zip(variants, ev)]
     res = [(label, e.maps.depth_residual_m) for label, e in ev]
+    compared = [e.maps.compared for _, e in ev]
     out = [
         ("Depth maps", H.figure_distance_maps(dist),
          "Radial distance of the reference B and of A before and after each correction (shared 1-99 % scale; "
          "invalid and saturated pixels blank)."),
         ("Amplitude maps", H.figure_amplitude_maps(amp), "Amplitude |S| (mean over frequencies); each panel on its "
                                                          "own scale."),
-        ("Residual maps", H.figure_residual_maps([(f"residual A - B: {t}", r) for t, r in res]),
+        ("Residual maps", H.figure_residual_maps([(f"residual A - B: {t}", r) for t, r in res], scale_masks=compared),
          "Depth residual A - B in millimetres (red: A farther, blue: A nearer); shared symmetric scale "
-         f"+-max(|p{H.RESIDUAL_PERCENTILES[0]:g}|, |p{H.RESIDUAL_PERCENTILES[1]:g}|) of the residuals, "
-         "values beyond it in the end colours."),
+         f"+-max(|p{H.RESIDUAL_PERCENTILES[0]:g}|, |p{H.RESIDUAL_PERCENTILES[1]:g}|) of the compared pixels' "
+         "residuals (those in the depth figures), values beyond it in the end colours: pixels without a signal "
+         "above noise on one side are drawn, and counted in the summary, but set neither the scale nor the figures."),
         ("Amplitude ratio maps", H.figure_ratio_maps([(label, e.maps.amplitude_ratio) for label, e in ev]),
          "Amplitude of A over amplitude of B per pixel, log2 (0: equal; +1: A twice as bright). "
          "A device's and the twin's amplitude units differ by a constant: look at the pattern."),
@@ -263,7 +274,7 @@ def write_report(out: Path, metrics: dict[str, Any], variants: list[Variant],
             "demodulation): the RMSE noise alone would give. MAD: median absolute deviation from the median (raw, not "
             f"scaled). Cloud metrics: A's points against B's (threshold {s['threshold_m'] * 1000:g} mm); NDT: A's "
             f"points scored on B's NDT grid (cell {s['cell_size_m']:g} m). Full numbers in metrics.json.</p>",
-            H.figures_html(figs)]
+            before_after_html(metrics), H.figures_html(figs)]
     if lens is not None:
         from tofhil.eval.reports.optics import lens_section
 
@@ -324,7 +335,7 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
     labels = list(corrections)
     if len(set(labels)) != len(labels):
         raise TofhilError("the same correction is given twice", field="--correct")
-    with open_session(a_path) as sa, open_session(b_path) as sb:
+    with open_session(a_path, need_frames=True) as sa, open_session(b_path, need_frames=True) as sb:
         for (name, params), label in zip(specs, labels):
             m = get_method(name)
             resolve_params(m, params)
@@ -333,6 +344,10 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
                                   "A has depth only", file=a_path, field="raw/taps",
                                   expected="a raw session, or depth methods only")
         shape = sb.camera.shape
+        if sa.camera.shape != shape:  # pixel against pixel: the same camera size, or nothing to compare
+            raise TofhilError(f"is {sa.camera.width} x {sa.camera.height} pixels and {b_path} "
+                              f"{sb.camera.width} x {sb.camera.height}", file=a_path, field="camera",
+                              expected="two sessions of the same camera size (resample or crop one first)")
         section = H.CrossSection.choose(shape, row, column)
         regions: list[M.Region] = [M.parse_roi(r, shape) for r in rois] + [M.load_mask(p, shape) for p in masks]
         n_a, n_b = min(max_frames, sa.n_frames), min(max_frames, sb.n_frames)
@@ -366,8 +381,9 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
         for (name, params), label in zip(specs, labels):
             p = load_params(name, params)
             say(f"correcting A with {label}")
-            f, s = variant_frame(sa, max_frames, name, p, min_amplitude, flat=plan["A"])
-            variants.append(Variant(label, f, s * np.sqrt(n_a), name, dict(params), noise_m=s))
+            ctx = context_for_session(sa, max_frames) if get_method(name).domain == "complex" else None
+            f, s = variant_frame(sa, max_frames, name, p, min_amplitude, flat=plan["A"], context=ctx)
+            variants.append(Variant(label, f, s * np.sqrt(n_a), name, dict(params), noise_m=s, correction=ctx))
         obj_source = None
         if objects:
             for sess, tag in ((sb, "B"), (sa, "A")):
@@ -376,6 +392,7 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
                     regions = M.object_regions(ids, names, min_pixels=20) + regions
                     obj_source = tag
                     break
+        regions = regions + BA.near_clipped_regions(health_a.saturated)
         # Validity relative to each object's own amplitude: a 1 % square is dark, not a shadow.
         own = [r.mask for r in regions if r.kind == "object"]
         for f in [ref] + [v.frame for v in variants]:
@@ -421,15 +438,22 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
         with np.errstate(invalid="ignore"):
             noise_res = np.sqrt(np.nan_to_num(v.noise_m, nan=np.inf) ** 2 + np.nan_to_num(ref_noise) ** 2)
         noise_res[~np.isfinite(noise_res)] = np.nan  # A's noise unknown (one frame): no floor
+        # "signal above noise" on each side with its own noise: a twin's pixel lit by no light of
+        # its own has no phase to compare, however clean the capture's pixel is
         v.evaluation = M.evaluate(v.frame, ref, regions, wrap_m=wrap_m, health_a=health_a, health_b=health_b,
                                   cloud_regions=True, cell_size=cell_size, threshold=threshold,
-                                  source=f"{a_path} vs {b_path}", noise_m=noise_res, freq_hz=freqs)
+                                  source=f"{a_path} vs {b_path}", noise_m=noise_res, freq_hz=freqs,
+                                  own_noise_m=(v.noise_m, ref_noise))
         res = v.evaluation.to_json()
         res["temporal_std_m_median"] = (float(np.nanmedian(v.temporal_std_m))
                                         if np.isfinite(v.temporal_std_m).any() else None)
         res["method"] = v.method
         res["params"] = v.params
         res["notes"] = v.evaluation.validity_notes()
+        if v.method is not None:  # before and after, per region, with the correction's own report
+            res.update(BA.variant_report(v.label, v.correction, regions, metrics["variants"][MEASURED]["regions"],
+                                         res["regions"]))
+            res["notes"] += res["correction"]["notes"] + BA.worse_notes(v.label, res["before_after"])
         metrics["variants"][v.label] = res
 
     say("figures")

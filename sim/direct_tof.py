@@ -232,6 +232,8 @@ def signal_photons(cfg: DirectToFConfig, transient_w: np.ndarray, edges_m: np.nd
     centres_s = 0.5 * (edges_m[1:] + edges_m[:-1]) / C_M_PER_S
     M = pulse_matrix(cfg, centres_s)                                     # [T, bins]
     T = transient_w.shape[0]
+    if emitter_power_w == 0:  # a dark frame: no pulse, background counts only
+        return np.zeros((cfg.bins,) + transient_w.shape[1:])
     share = transient_w.reshape(T, -1) / emitter_power_w                 # energy share per sub-bin
     photons = cfg.pde * cfg.energy_j(emitter_power_w) / photon_energy_j(wavelength_m)
     return (M.T @ share).reshape((cfg.bins,) + transient_w.shape[1:]) * photons

@@ -235,8 +235,11 @@ def _segment_planes(points: np.ndarray, pix: np.ndarray, shape: tuple[int, int],
         if inl.size < min_points:
             break
         remaining[inl] = False
-        twin = next((q for q in planes if q.normal @ n > math.cos(math.radians(5.0))
-                     and abs(q.offset_m - d) < 3.0 * threshold_m), None)
+        # the same surface: a plane of nearly the same normal and offset, or one its inliers lie
+        # on (RANSAC on the noisy leftovers of a fitted wall tilts; their points do not)
+        twin = next((q for q in planes if (q.normal @ n > math.cos(math.radians(5.0))
+                                           and abs(q.offset_m - d) < 3.0 * threshold_m)
+                     or float(np.median(np.abs(points[inl] @ q.normal - q.offset_m))) < threshold_m), None)
         if twin is not None:
             # the same surface, a little curved: its pixels stay with the first fit, so the
             # curvature shows as a residual instead of as overlapping copies of one plane
@@ -283,6 +286,8 @@ def occluding_fraction(cam: CameraModel, p: PlanePatch, radial: np.ndarray, vali
 #: A plane whose rectangle would hide more than this fraction of its pixels' measurements
 #: is left to the mesh instead (exact geometry of what was seen).
 MAX_OCCLUDING_FRACTION = 0.10
+#: RANSAC's inlier threshold in sigmas of the frame's depth noise (when above 1 % of the distance).
+PLANE_NOISE_SIGMAS = 3.0
 
 
 def grid_mesh(points_hw: np.ndarray, mask: np.ndarray, *, stride: int = 2, max_step: float = 0.05
@@ -576,7 +581,15 @@ def _planes_and_rest(cam: CameraModel, radial: np.ndarray, valid: np.ndarray, bo
     pix = np.flatnonzero(seg)
     points = pts_hw.reshape(-1, 3)[pix]
     med = float(np.median(radial[valid]))
-    thr = threshold_m if threshold_m is not None else float(np.clip(0.01 * med, 0.004, 0.03))
+    if threshold_m is None:
+        # 1 % of the distance, or 3 sigma of the frame's own depth noise where it is larger: a
+        # threshold below the noise splits one noisy wall into a plane and a mesh of the rest
+        from tofhil.depth import relative_depth_noise
+
+        noise = relative_depth_noise(radial, valid) * med
+        thr = float(np.clip(max(0.01 * med, PLANE_NOISE_SIGMAS * noise), 0.004, 0.1))
+    else:
+        thr = threshold_m
     say(f"segmenting planes (RANSAC, inlier threshold {thr * 1e3:.1f} mm) in {len(points)} points")
     planes = _segment_planes(points, pix, cam.shape, max_planes=max_planes, threshold_m=thr, min_fraction=0.02)
     kept = []

@@ -54,6 +54,15 @@ GEOMETRY_BYTES_PER_TRIANGLE = 140
 #: Refuse a job needing more than this fraction of the memory available now.
 AVAILABLE_FRACTION = 0.7
 
+#: A ceiling the user set (``--max-memory``; None: none): a job estimated above it is refused
+#: before it starts, whatever the machine has (a cluster slot's share, a laptop kept usable).
+_USER_LIMIT: dict[str, int | None] = {"bytes": None}
+
+
+def set_memory_limit(limit_bytes: int | None) -> None:
+    """Set (or clear, with None) the user's ceiling :func:`check_memory` applies."""
+    _USER_LIMIT["bytes"] = None if limit_bytes is None else int(limit_bytes)
+
 
 @dataclass(frozen=True)
 class MemoryEstimate:
@@ -117,14 +126,22 @@ def available_bytes() -> int | None:
 
 
 def _gib(b: float) -> str:
-    return f"{b / 2 ** 30:.2f} GiB"
+    """A size as people read it: GiB from 1 GiB up, MiB below (a 10 MB render is not 0.01 GiB)."""
+    return f"{b / 2 ** 30:.2f} GiB" if b >= 2 ** 30 else f"{b / 2 ** 20:.1f} MiB"
 
 
 def check_memory(estimate: MemoryEstimate, *, what: str = "the render", field: str = "camera",
                  source: str | None = None, available: int | None = None) -> None:
     """Refuse (a :class:`TofhilError` naming the scene and the camera) when the estimate
-    exceeds :data:`AVAILABLE_FRACTION` of the memory available. ``TOFHIL_MEMORY_LIMIT_BYTES``
-    in the environment replaces the available memory (for tests and batch systems)."""
+    exceeds the user's ceiling (:func:`set_memory_limit`) or :data:`AVAILABLE_FRACTION` of the
+    memory available. ``TOFHIL_MEMORY_LIMIT_BYTES`` in the environment replaces the available
+    memory (for tests and batch systems)."""
+    ceiling = _USER_LIMIT["bytes"]
+    if ceiling is not None and estimate.total_bytes > ceiling:
+        raise TofhilError(f"{what} needs about {_gib(estimate.total_bytes)} of memory, above --max-memory "
+                          f"{_gib(ceiling)}", file=source, field=field,
+                          expected="a higher --max-memory, or a smaller camera, fewer frequencies, harmonics, "
+                                   "transient bins or frames")
     env = os.environ.get("TOFHIL_MEMORY_LIMIT_BYTES")
     if available is None and env:
         try:

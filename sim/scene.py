@@ -14,6 +14,7 @@ Every user error raises :class:`tofhil.errors.InputFileError` naming the file, t
 from __future__ import annotations
 
 import copy
+import math
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -38,6 +39,19 @@ __all__ = ["DEFAULT_F_NUMBER", "MESH_SUFFIXES", "OBJECT_TYPES", "BeamProfile", "
 MAX_CAMERA_SIDE_PX = 100_000
 #: Largest scene file read (bytes): a scene is a page of YAML, not a data file.
 MAX_SCENE_BYTES = 16 << 20
+#: Most objects a scene may list. A bench holds tens; each object costs about a millisecond to
+#: read, validate and render (10^4 small planes: 8.6 s and 0.3 GB for one frame), so beyond this a mesh file
+#: is the way to bring many surfaces (checked before parameters are substituted).
+MAX_SCENE_OBJECTS = 10_000
+#: Most pixels of an image texture, read from the file's header before it is decoded. A
+#: 4096 x 4096 reflectance map is finer than any bench target needs and takes 134 MB as
+#: float64; a 1 MB PNG of 30000 x 30000 would otherwise decode to 0.9 GB and two 7 GB copies.
+MAX_TEXTURE_PIXELS = 4096 * 4096
+#: Most triangles of a mesh file, estimated from its header (PLY, binary STL) or its face
+#: lines (OBJ, OFF) before it is loaded and checked again after. Loading and building the
+#: renderer's structures take about 510 bytes a triangle (10^7 triangles: 38 s, 5.1 GB), so
+#: two million keep a mesh near 1 GB.
+MAX_MESH_TRIANGLES = 2_000_000
 
 _TOP_KEYS = ("name", "description", "params", "camera", "emitter", "ambient_irradiance_w_m2",
              "materials", "objects", "sensor", "effects", "render", "rgb_camera", "direct_tof")
@@ -128,6 +142,9 @@ def scene_from_dict(d: dict, source: str = "<dict>", base_dir: str | Path | None
     p = _Parser(source, Path(base_dir) if base_dir is not None else Path.cwd())
     d = p.mapping(d, "", allowed=_TOP_KEYS, none_ok=False, expected="a scene mapping")
     params = p.params(d.get("params", {}))
+    if isinstance(d.get("objects"), list) and len(d["objects"]) > MAX_SCENE_OBJECTS:
+        raise p.error(f"lists {len(d['objects']):,} objects", "objects", f"at most {MAX_SCENE_OBJECTS:,} objects "
+                      "(many surfaces belong in a mesh file)")
     d = substitute(d, params, source)
     camera, pose, f_number, focus = p.camera(p.require(d, "camera", "", "a camera mapping"))
     emitter = p.emitter(p.require(d, "emitter", "", "an emitter mapping"))
@@ -330,8 +347,10 @@ class _Parser(Schema):
 
     def emitter(self, e: Any) -> Emitter:
         e = self.mapping(e, "emitter", allowed=("offset_m", "power_w", "profile", "waveform", "axis"))
-        power = self.number(self.require(e, "power_w", "emitter", "optical power in W (a number > 0)"),
-                            "emitter.power_w", lo=0.0, lo_open=True, hi=1e6)
+        # 0 W is a dark frame (the emitter off: offset, ambient and dark current only), as
+        # calibrate-taps takes them
+        power = self.number(self.require(e, "power_w", "emitter", "optical power in W (a number >= 0)"),
+                            "emitter.power_w", lo=0.0, hi=1e6)
         offset = self.position(e.get("offset_m", [0, 0, 0]), "emitter.offset_m")
         axis = self.vector(e.get("axis", [0, 0, 1]), "emitter.axis", 3, lo=-1e6, hi=1e6)
         if np.linalg.norm(axis) == 0:
@@ -447,6 +466,10 @@ class _Parser(Schema):
         return path
 
     def _read_image(self, path: Path, f: str) -> np.ndarray:
+        shape = _image_shape(path)
+        if shape is not None and math.prod(shape[:2]) > MAX_TEXTURE_PIXELS:
+            raise self.error(f"image of {shape[1]} x {shape[0]} pixels", f,
+                             f"a texture of at most {MAX_TEXTURE_PIXELS:,} pixels (4096 x 4096)")
         if path.suffix.lower() == ".npy":
             try:
                 img = np.load(path).astype(np.float64)
@@ -552,6 +575,10 @@ class _Parser(Schema):
             scale = self.numbers(scale, f + ".scale", n=3, lo=0, lo_open=True, hi=1e6)
         else:
             scale = self.number(scale, f + ".scale", lo=0, lo_open=True, hi=1e6)
+        estimate = _mesh_triangles(path)
+        if estimate is not None and estimate > MAX_MESH_TRIANGLES:
+            raise self.error(f"mesh of {estimate:,} triangles", f + ".file",
+                             f"a mesh of at most {MAX_MESH_TRIANGLES:,} triangles (about 1 GB to load and trace)")
         import trimesh
 
         try:
@@ -560,6 +587,78 @@ class _Parser(Schema):
             raise self.error(f"cannot read mesh ({exc})", f + ".file", "a mesh file trimesh reads") from None
         if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
             raise self.error("no triangles in the file", f + ".file", "a mesh with faces")
+        if len(mesh.faces) > MAX_MESH_TRIANGLES:
+            raise self.error(f"mesh of {len(mesh.faces):,} triangles", f + ".file",
+                             f"a mesh of at most {MAX_MESH_TRIANGLES:,} triangles (about 1 GB to load and trace)")
         if not np.all(np.isfinite(mesh.vertices)):
             raise self.error("vertices that are not finite", f + ".file", "a mesh with finite vertices")
         return {"file": str(path), "scale": scale}, mesh
+
+
+def _image_shape(path: Path) -> tuple[int, ...] | None:
+    """An image's (rows, columns, ...) from its header alone (None when the header cannot be
+    read: the decoder then reports the file)."""
+    if path.suffix.lower() == ".npy":
+        fmt = np.lib.format
+        try:
+            with path.open("rb") as fh:
+                major, _ = fmt.read_magic(fh)
+                header = fmt.read_array_header_1_0 if major == 1 else fmt.read_array_header_2_0
+                return tuple(header(fh)[0])
+        except Exception:  # a corrupt file or another version: _read_image says so
+            return None
+    from PIL import Image
+
+    Image.MAX_IMAGE_PIXELS = None  # the bound is ours (MAX_TEXTURE_PIXELS), with the file named
+    try:
+        with Image.open(path) as im:  # reads the header, decodes nothing
+            return (im.height, im.width)
+    except Exception:  # not an image Pillow knows: OpenCV may still read it
+        return None
+
+
+def _mesh_triangles(path: Path) -> int | None:
+    """The number of triangles a mesh file declares, read without loading it: PLY's ``element
+    face`` and binary STL's count from their headers, OBJ's and OFF's face lines counted (a
+    polygon of n corners is n - 2 triangles, so the line count is a lower bound; scanning bytes
+    runs at disk speed), ASCII STL's facets counted. None for formats whose count is only known
+    after loading (GLB, glTF)."""
+    suffix = path.suffix.lower()
+    try:
+        with path.open("rb") as fh:
+            if suffix == ".ply":
+                head = fh.read(65536)
+                for line in head.split(b"\n"):
+                    words = line.split()
+                    if words[:2] == [b"element", b"face"] and len(words) == 3 and words[2].isdigit():
+                        return int(words[2])
+                    if line.strip() == b"end_header":
+                        break
+                return None
+            if suffix == ".stl":
+                head = fh.read(84)
+                n = int(np.frombuffer(head[80:84], "<u4")[0]) if len(head) == 84 else -1
+                if path.stat().st_size == 84 + 50 * n:  # binary: 50 bytes a triangle after the header
+                    return n
+                fh.seek(0)
+                return _count_occurrences(fh, b"endfacet")  # ASCII
+            if suffix == ".obj":
+                return _count_occurrences(fh, b"\nf ", start=b"\n")
+            if suffix == ".off":
+                fh.readline()
+                counts = fh.readline().split()
+                return int(counts[1]) if len(counts) >= 2 and counts[1].isdigit() else None
+    except OSError:
+        return None
+    return None
+
+
+def _count_occurrences(fh: Any, needle: bytes, start: bytes = b"") -> int:
+    """Occurrences of ``needle`` in a binary file (read in 16 MB blocks; ``start`` is put
+    before the first block, so that ``b"\\nf "`` finds a face on the first line too)."""
+    count, tail = 0, start
+    while block := fh.read(16 << 20):
+        data = tail + block
+        count += data.count(needle)
+        tail = data[-(len(needle) - 1):] if len(needle) > 1 else b""
+    return count

@@ -330,3 +330,81 @@ class NoiseModel:
             e_per_dn = np.float32(self.electrons_per_dn)
             out = shot_noise(out * e_per_dn, rng) / e_per_dn
         return read_noise(out, np.float32(self.read_noise_dn), rng).astype(np.float32, copy=False)
+
+
+# --------------------------------------------------------------------------- flat field (photon transfer)
+@dataclass
+class PixelNoise:
+    """Per-frame noise of a correlation pixel's gates, in DN, with the EMVA 1288 sensor's parts:
+    shot noise of the collected electrons, the full well (a gate's charge clips there), a
+    per-gate dark offset that does not change from frame to frame (DSNU, ``dsnu_e`` electrons
+    per gate ``[K, H, W]``) and Gaussian read noise; ``conversion_gain_dn_per_e`` turns
+    electrons into DN. The dark current and the photo-response non-uniformity act on the
+    expected charge, so they belong to the source (:class:`FlatField`)."""
+
+    conversion_gain_dn_per_e: float
+    read_noise_e: float
+    full_well_e: float
+    dsnu_e: np.ndarray
+
+    def apply(self, taps: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        k = np.float32(self.conversion_gain_dn_per_e)
+        e = np.asarray(taps, dtype=np.float32) / k
+        if e.shape[-2:] != self.dsnu_e.shape[-2:]:
+            # the pattern is the sensor's: a cropped frame would need its origin, which a TapNoise is not given
+            raise DeviceError(f"frame of {e.shape[-1]}x{e.shape[-2]} pixels", field="roi",
+                              expected=f"the full {self.dsnu_e.shape[-1]}x{self.dsnu_e.shape[-2]} sensor "
+                                       "for the flat-field emulation")
+        e = np.minimum(shot_noise(e, rng), np.float32(self.full_well_e))
+        e = read_noise(e + self.dsnu_e[: e.shape[0]].astype(np.float32), np.float32(self.read_noise_e), rng)
+        return (e * k).astype(np.float32, copy=False)
+
+
+class FlatField(ImageSource):
+    """A uniform, diffuse, modulated light filling the view (an integrating sphere in front of
+    the lens), seen through a sensor with the EMVA 1288 parts of a scene's ``sensor:`` block.
+
+    Per pixel and gate at the reference exposure, in DN: ``c_k = g (A / m + ambient) + g A
+    cos(phi - theta_k) + K D T_ref``, with ``A = amplitude_dn``, ``m`` the sensor's modulation
+    contrast (so the unmodulated part of the modulated light is ``A / m``), ``g`` the pixel's
+    photo-response (``1 + prnu N(0, 1)``: one photodiode feeds all of a pixel's gates), ``D``
+    the dark current (e/s) and ``K`` the conversion gain. Everything scales with the exposure
+    (:meth:`ImageSource.taps`); shot noise, the full well, the per-gate DSNU and read noise are
+    :class:`PixelNoise`. ``amplitude_dn = 0`` and ``ambient_dn = 0`` is a dark capture.
+    """
+
+    def __init__(self, sensor: Any, camera: CameraModel | None = None, *, amplitude_dn: float = 100.0,
+                 phase_rad: float = 0.0, ambient_dn: float = 0.0) -> None:
+        super().__init__()
+        self.sensor = sensor
+        self.camera = camera or load_camera_preset(TOFCAM635_PRESET)
+        self.amplitude_dn = float(amplitude_dn)
+        self.phase_rad = float(phase_rad)
+        self.ambient_dn = float(ambient_dn)
+        fp = sensor.fixed_pattern
+        rng = np.random.default_rng(fp.seed)
+        shape = self.camera.shape
+        self.prnu_gain = 1.0 + fp.prnu * rng.standard_normal(shape)
+        self.dsnu_e = fp.dsnu_e * rng.standard_normal((sensor.taps, *shape))
+        self.description = f"flat field, amplitude {self.amplitude_dn:g} DN at 125 us"
+
+    def signal(self, freq_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        s = self.sensor
+        g = self.prnu_gain
+        a = g * self.amplitude_dn
+        dark_dn = s.conversion_gain_dn_per_e * s.dark_current_e_per_s * REFERENCE_INTEGRATION_TIME_S
+        contrast = s.modulation_contrast if s.modulation_contrast > 0 else 1.0
+        b = g * (self.amplitude_dn / contrast + self.ambient_dn) + dark_dn
+        return a, np.full(a.shape, self.phase_rad), b
+
+    def noise_model(self) -> PixelNoise:
+        s = self.sensor
+        return PixelNoise(conversion_gain_dn_per_e=s.conversion_gain_dn_per_e, read_noise_e=s.read_noise_e,
+                          full_well_e=s.full_well_e, dsnu_e=self.dsnu_e)
+
+    def scene_text(self) -> str:
+        import yaml
+
+        return yaml.safe_dump({"flat_field": {"amplitude_dn_at_125us": self.amplitude_dn,
+                                              "phase_rad": self.phase_rad, "ambient_dn": self.ambient_dn},
+                               "sensor": self.sensor.to_dict()}, sort_keys=False)

@@ -331,7 +331,8 @@ class CameraModel:
                                  expected=lens_models.expected_dist(model))
         if "hfov_deg" in d and "fx" not in d:
             try:
-                cam = cls.from_fov(int(d["width"]), int(d["height"]), float(d["hfov_deg"]),
+                cam = cls.from_fov(_pixel_count(d["width"], source, f"{prefix}width"),
+                                   _pixel_count(d["height"], source, f"{prefix}height"), float(d["hfov_deg"]),
                                    None if d.get("vfov_deg") is None else float(d["vfov_deg"]),
                                    distortion_model=model, dist=dist_t)
             except KeyError as exc:
@@ -344,6 +345,9 @@ class CameraModel:
             if key not in d:
                 raise InputFileError("missing", file=source, field=f"{prefix}{key}",
                                      expected=f"a {'positive integer' if typ is int else 'number'}")
+            if typ is int:
+                values[key] = _pixel_count(d[key], source, f"{prefix}{key}")
+                continue
             try:
                 values[key] = typ(d[key])
                 if typ is float and not math.isfinite(values[key]):
@@ -368,6 +372,20 @@ class CameraModel:
             raise InputFileError(f"not valid JSON ({exc.msg})", file=source, field="camera",
                                  expected="JSON text with width, height, fx, fy, cx, cy, dist") from None
         return cls.from_dict(d, source=source)
+
+
+def _pixel_count(value: Any, source: str | Path, field: str) -> int:
+    """A width or height: an integer >= 1 (an integral float such as MATLAB's 160.0 too, never
+    160.5, which ``int()`` would quietly read as 160)."""
+    ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
+    if ok:
+        try:
+            ok = math.isfinite(value) and float(value).is_integer() and value >= 1
+        except OverflowError:
+            ok = False
+    if not ok:
+        raise InputFileError(f"got {value!r}", file=source, field=field, expected="an integer >= 1")
+    return int(value)
 
 
 def check_model(schema: Schema, value: Any, field: str) -> str:

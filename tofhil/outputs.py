@@ -65,8 +65,38 @@ def prepare_output_dir(path: str | Path, names: Sequence[str], *, force: bool) -
 
 
 def partial_path(path: Path) -> Path:
-    """The temporary name a file is written under beside ``path`` (hidden, this process's)."""
+    """The temporary name a file is written under beside ``path`` (hidden, this process's).
+
+    Partial files of the same output left by a process that no longer runs (SIGKILL, a power
+    cut: nothing could remove them) are removed first, so the next run of the same output
+    cleans up after the killed one."""
+    remove_stale_partials(path)
     return path.with_name(f".{path.name}.{os.getpid()}.partial")
+
+
+def remove_stale_partials(path: Path) -> list[Path]:
+    """Remove ``.NAME.PID.partial`` beside ``path`` whose PID is not a running process (this
+    machine's: a live PID, even another user's, keeps its file). Returns what was removed."""
+    import glob
+
+    removed = []
+    prefix = f".{path.name}."
+    for p in path.parent.glob(glob.escape(prefix) + "*.partial"):
+        pid = p.name[len(prefix):-len(".partial")]
+        if pid.isdigit() and int(pid) != os.getpid() and not _running(int(pid)):
+            remove_partial(p)
+            removed.append(p)
+    return removed
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)  # signal 0: only whether the process exists
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):  # another user's process (or no such pid number)
+        return True
+    return True
 
 
 @contextmanager

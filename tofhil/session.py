@@ -28,11 +28,20 @@ from tofhil import __version__
 from tofhil.camera import CameraModel
 from tofhil.errors import InputFileError, Interrupted
 from tofhil.frames import DepthFrame, RawFrame
-from tofhil.outputs import check_new_path, remove_partial
+from tofhil.outputs import check_new_path, partial_path, remove_partial
 from tofhil.schema import to_plain
 
 FORMAT = "tofhil.session"
 FORMAT_VERSION = 1
+
+#: Most pixels of a session's camera (width x height), checked when a session is opened,
+#: before any frame is read. The largest ToF sensors are about 1 Mpx (Azure Kinect 1024 x
+#: 1024); 4096 x 4096 leaves room and keeps a float64 frame at 134 MB (a 10 kB file declaring
+#: 100000 x 100000 with empty chunked datasets made ``tofhil depth`` allocate 149 GB).
+MAX_SESSION_PIXELS = 4096 * 4096
+#: Most values of one frame of a per-frame dataset (raw taps F x K x H x W, histograms
+#: T x H x W): 2^27 values are 1 GiB as float64, the type frames are processed in.
+MAX_FRAME_VALUES = 1 << 27
 
 #: How :class:`SessionWriter` stores raw taps: ``compact`` (the default: integer taps in their
 #: own type, else float32; shuffle + gzip per frame chunk) or ``float32`` (float32 without
@@ -163,6 +172,9 @@ class SessionWriter:
         self._histogram_attrs = dict(histogram_attrs or {})
         self._has_histograms: bool | None = None
         check_new_path(self.path, force)
+        if camera.width * camera.height > MAX_SESSION_PIXELS:  # no reader would open it
+            raise InputFileError(f"camera of {camera.width} x {camera.height} pixels", file=self.path,
+                                 field="camera", expected=f"at most {MAX_SESSION_PIXELS:,} pixels (4096 x 4096)")
         self.camera = camera
         self.n_frames = 0
         self.derived = derived
@@ -171,8 +183,7 @@ class SessionWriter:
         self._raw_shape: tuple[int, ...] | None = None
         self._has_raw: bool | None = None
         self._has_depth: bool | None = None
-        self._write_path = (self.path.with_name(f".{self.path.name}.{os.getpid()}.partial") if derived
-                            else self.path)
+        self._write_path = partial_path(self.path) if derived else self.path
         try:
             self._file = h5py.File(self._write_path, "w")
         except OSError as exc:
@@ -475,6 +486,9 @@ class Session:
         if cam is None:
             self._fail("camera", "missing", "JSON text with width, height, fx, fy, cx, cy, dist")
         self.camera = CameraModel.from_json(cam, source=self.path)
+        if self.camera.width * self.camera.height > MAX_SESSION_PIXELS:
+            self._fail("camera", f"declares {self.camera.width} x {self.camera.height} pixels",
+                       f"a camera of at most {MAX_SESSION_PIXELS:,} pixels (4096 x 4096)")
         dev = _text_attr(a, "device") or "{}"
         try:
             self.device = json.loads(dev)
@@ -506,6 +520,11 @@ class Session:
         self.has_depth = "depth" in f
         if not self.has_raw and not self.has_depth:
             self._fail("raw", "neither raw/ nor depth/ is present", "raw/taps and/or depth/radial_m")
+        for name in ("raw/taps", "histograms/counts"):
+            ds = f.get(name)
+            if isinstance(ds, h5py.Dataset) and ds.ndim >= 1 and math.prod(ds.shape[1:]) > MAX_FRAME_VALUES:
+                self._fail(name, f"has frames of shape {ds.shape[1:]}",
+                           f"at most {MAX_FRAME_VALUES:,} values a frame (1 GiB as float64)")
         if self.has_raw:
             self._validate_raw(hw)
             lengths["raw/taps"] = f["raw/taps"].shape[0]
@@ -769,9 +788,17 @@ class Session:
         self.close()
 
 
-def open_session(path: str | Path) -> Session:
-    """Open and validate a session file; errors name the file and the field."""
-    return Session(path)
+def open_session(path: str | Path, *, need_frames: bool = False) -> Session:
+    """Open and validate a session file; errors name the file and the field.
+
+    ``need_frames``: a command that works on frames (depth, compare, export, import) refuses a
+    session holding none, with one line, instead of writing an empty result and succeeding."""
+    s = Session(path)
+    if need_frames and s.n_frames == 0:
+        s.close()
+        raise InputFileError("holds no complete frame", file=s.path, field="n_frames",
+                             expected="a session with at least one frame")
+    return s
 
 
 def copy_session_header(src: Session, dst_path: str | Path, *, force: bool = False,

@@ -281,7 +281,7 @@ def import_file(path: str | Path, out: str | Path, *, camera: str | Path | Camer
             return _import_k4a(rec, src, out, camera, force, device, notes, on_frame)
 
     # fmt == "session": copy (a replay that also repairs: only complete frames are copied)
-    with open_session(src) as s:
+    with open_session(src, need_frames=True) as s:
         cam, origin = resolve_camera(camera, s.camera, s.camera.shape, src)
         device = dict(s.device) | {"imported_from": device}
         if camera is not None:

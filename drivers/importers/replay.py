@@ -5,7 +5,8 @@ numbers: raw taps (mode ``dcs``) when the session has them, depth frames (mode
 ``distance``) when it has those. ``realtime=1`` paces the frames by their timestamp
 differences; ``loop=1`` starts over at the end (sequence numbers keep rising, timestamps
 shifted by the session's duration plus one frame period). Without ``loop``, reading past
-the last frame raises :class:`DeviceError` ("end of session"), which ends a capture cleanly.
+the last frame raises :class:`EndOfRecording` ("end of session"), which ends a capture cleanly
+with the frames recorded; a capture copies the session's embedded scene (:attr:`scene_text`).
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ from urllib.parse import parse_qs
 import numpy as np
 
 from tofhil.camera import CameraModel
-from tofhil.drivers.base import CaptureSettings, DeviceEntry, DeviceError, DeviceInfo, Driver, Frame, register_driver
+from tofhil.drivers.base import (CaptureSettings, DeviceEntry, DeviceError, DeviceInfo, Driver, EndOfRecording, Frame,
+                                 register_driver)
 from tofhil.session import Session, open_session
 
 
@@ -83,6 +85,11 @@ class ReplayDriver(Driver):
     def camera(self) -> CameraModel:
         return self._sess.camera
 
+    @property
+    def scene_text(self) -> str:
+        """The scene the recording embeds (its twin), copied into a capture of it."""
+        return self._sess.scene_text
+
     def info(self) -> DeviceInfo:
         s = self._sess
         dev = dict(s.device)
@@ -103,8 +110,8 @@ class ReplayDriver(Driver):
         s = self._sess
         if self._i >= s.n_frames:
             if not self.loop:
-                raise DeviceError(f"end of session after {s.n_frames} frames", field=str(self.path),
-                                  expected="at most as many frames as recorded (or replay:PATH?loop=1)")
+                raise EndOfRecording(f"end of session after {s.n_frames} frames", field=str(self.path),
+                                     expected="at most as many frames as recorded (or replay:PATH?loop=1)")
             self._i = 0
             self._pass += 1
         i = self._i

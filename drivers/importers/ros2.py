@@ -32,6 +32,7 @@ messages that Foxglove opens; the application layer adds the twin's render and t
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import math
 import re
@@ -88,6 +89,29 @@ POINT_CLOUD2_DEF = ("std_msgs/Header header\nuint32 height\nuint32 width\nsensor
                     + "MSG: sensor_msgs/PointField\nuint8 INT8=1\nuint8 UINT8=2\nuint8 INT16=3\nuint8 UINT16=4\n"
                       "uint8 INT32=5\nuint8 UINT32=6\nuint8 FLOAT32=7\nuint8 FLOAT64=8\nstring name\n"
                       "uint32 offset\nuint8 datatype\nuint32 count\n")
+
+
+#: The fields tofhil reads of each message type (dotted: nested), checked when a message is
+#: decoded: a bag whose schema lacks one (an Image without ``header``) is one line naming the
+#: topic and the field, not an AttributeError later.
+READ_FIELDS = {
+    IMAGE: ("header.stamp.sec", "header.stamp.nanosec", "header.frame_id", "height", "width", "encoding",
+            "is_bigendian", "step", "data"),
+    CAMERA_INFO: ("header.stamp.sec", "header.stamp.nanosec", "header.frame_id", "height", "width",
+                  "distortion_model", "d", "k", "p"),
+}
+
+
+def missing_field(msg: Any, kind: str) -> str | None:
+    """The first field of :data:`READ_FIELDS` ``msg`` lacks (None: it has them all)."""
+    for dotted in READ_FIELDS.get(kind, ()):
+        obj = msg
+        parts = dotted.split(".")
+        for i, part in enumerate(parts):
+            if not hasattr(obj, part):
+                return ".".join(parts[:i + 1])  # "header", not "header.stamp.sec"
+            obj = getattr(obj, part)
+    return None
 
 
 def message_type(schema_name: str) -> str:
@@ -328,11 +352,18 @@ class _Bag:
                                      expected="a CDR-encoded ROS 2 message with its ros2msg schema")
             self._decoders[channel.id] = decoder
         try:
-            return decoder(message.data)
+            msg = decoder(message.data)
         except Exception as exc:
             raise InputFileError(f"message {ordinal} cannot be decoded ({type(exc).__name__}: {exc})",
                                  file=self.path, field=f"{channel.topic}: {schema.name}",
                                  expected="a well-formed CDR message") from None
+        kind = message_type(schema.name)
+        lacking = missing_field(msg, kind)
+        if lacking is not None:
+            raise InputFileError("the message schema has no such field", file=self.path,
+                                 field=f"{channel.topic}: {schema.name}.{lacking}",
+                                 expected=f"a {kind} as ROS 2 defines it ({', '.join(READ_FIELDS[kind])})")
+        return msg
 
     def metadata(self) -> dict[str, Any] | None:
         """tofhil's metadata record, if the bag has one (its JSON values decoded)."""
@@ -833,6 +864,10 @@ class McapExport:
     notes: list[str] = field(default_factory=list)
 
 
+#: OS errors of writing the bag (disk full, file-size limit, read-only, permission, I/O).
+_WRITE_ERRNOS = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO}
+
+
 def _stamps_ns(timestamps: Sequence[float]) -> tuple[list[int], str]:
     t = np.asarray(timestamps, dtype=np.float64)
     if t.size and np.all(np.isfinite(t)) and np.all(t >= 0):
@@ -864,7 +899,7 @@ def write_session_mcap(session_path: str | Path, out: str | Path, *, force: bool
     if out.exists() and out.resolve() == src.resolve():
         raise InputFileError("the output must differ from the input", file=out, field="--out")
     check_new_path(out, force)
-    with open_session(src) as s:
+    with open_session(src, need_frames=True) as s:
         cam = s.camera
         n = s.n_frames
         if n == 0:
@@ -888,43 +923,50 @@ def write_session_mcap(session_path: str | Path, out: str | Path, *, force: bool
                                     "distortion_model": ROS_DISTORTION_MODEL[cam.distortion_model]},
             "/tofhil/points": {"role": "points", "fields": "x y z intensity (float32; m, amplitude)"},
         }
-        with atomic_path(out) as tmp:
-            with open(tmp, "wb") as fh:
-                w = Ros2BagWriter(fh)
-                for i in range(n):
-                    d = s.depth_frame(i) if s.has_depth else depth_from_raw(s.raw_frame(i))
-                    t = stamps[i]
-                    valid = cam.valid_mask(d.radial_m, d.valid)
-                    radial = np.where(valid, d.radial_m, np.nan).astype(np.float32)
-                    amp = (np.full(cam.shape, np.nan, np.float32) if d.amplitude is None
-                           else np.asarray(d.amplitude, dtype=np.float32))
-                    w.camera_info("/tofhil/camera_info", t, cam)
-                    w.image(depth_t, t, as_kind(radial), "32FC1")
-                    w.image("/tofhil/amplitude", t, amp, "32FC1")
-                    if d.confidence is not None:
-                        topics.setdefault("/tofhil/confidence", {"role": "confidence", "encoding": "32FC1",
-                                                                 "unit": "the device's own"})
-                        w.image("/tofhil/confidence", t, np.asarray(d.confidence, dtype=np.float32), "32FC1")
-                    w.point_cloud("/tofhil/points", t, cam.points(radial, "radial", valid), amp[valid])
-                    for e in (extra(i, d) if extra is not None else ()):
-                        topic = f"{e.topic}/{depth_kind}" if e.distance else e.topic
-                        topics.setdefault(topic, {"role": e.role, "encoding": "32FC1", "unit": e.unit}
-                                          | ({"kind": depth_kind, "invalid": "NaN"} if e.distance else {}))
-                        img = np.asarray(e.image, dtype=np.float32)
-                        w.image(topic, t, as_kind(img) if e.distance else img, "32FC1")
-                        if e.cloud_topic is not None:
-                            ok = np.isfinite(img) & (img > 0)
-                            topics.setdefault(e.cloud_topic, {"role": f"{e.role}_points",
-                                                              "fields": "x y z intensity (float32)"})
-                            inten = None if e.intensity is None else np.asarray(e.intensity, np.float32)[ok]
-                            w.point_cloud(e.cloud_topic, t, cam.points(np.where(ok, img, 0.0), "radial", ok), inten)
-                    if on_frame is not None:
-                        on_frame(i + 1, n)
-                w.metadata(METADATA_NAME, {
-                    "format": "tofhil.mcap", "format_version": "1", "software_version": f"tofhil {__version__}",
-                    "source_session": str(src.resolve()), "frame_id": FRAME_ID,
-                    "frame_convention": "optical: x right, y down, z forward (OpenCV)",
-                    "depth_kind": depth_kind, "timestamps": stamp_source, "camera": cam.to_dict(),
-                    "session_device": s.device, "topics": topics} | dict(metadata or {}))
-                w.finish()
+        try:
+            with atomic_path(out) as tmp:
+                with open(tmp, "wb") as fh:
+                    w = Ros2BagWriter(fh)
+                    for i in range(n):
+                        d = s.depth_frame(i) if s.has_depth else depth_from_raw(s.raw_frame(i))
+                        t = stamps[i]
+                        valid = cam.valid_mask(d.radial_m, d.valid)
+                        radial = np.where(valid, d.radial_m, np.nan).astype(np.float32)
+                        amp = (np.full(cam.shape, np.nan, np.float32) if d.amplitude is None
+                               else np.asarray(d.amplitude, dtype=np.float32))
+                        w.camera_info("/tofhil/camera_info", t, cam)
+                        w.image(depth_t, t, as_kind(radial), "32FC1")
+                        w.image("/tofhil/amplitude", t, amp, "32FC1")
+                        if d.confidence is not None:
+                            topics.setdefault("/tofhil/confidence", {"role": "confidence", "encoding": "32FC1",
+                                                                     "unit": "the device's own"})
+                            w.image("/tofhil/confidence", t, np.asarray(d.confidence, dtype=np.float32), "32FC1")
+                        w.point_cloud("/tofhil/points", t, cam.points(radial, "radial", valid), amp[valid])
+                        for e in (extra(i, d) if extra is not None else ()):
+                            topic = f"{e.topic}/{depth_kind}" if e.distance else e.topic
+                            topics.setdefault(topic, {"role": e.role, "encoding": "32FC1", "unit": e.unit}
+                                              | ({"kind": depth_kind, "invalid": "NaN"} if e.distance else {}))
+                            img = np.asarray(e.image, dtype=np.float32)
+                            w.image(topic, t, as_kind(img) if e.distance else img, "32FC1")
+                            if e.cloud_topic is not None:
+                                ok = np.isfinite(img) & (img > 0)
+                                topics.setdefault(e.cloud_topic, {"role": f"{e.role}_points",
+                                                                  "fields": "x y z intensity (float32)"})
+                                inten = None if e.intensity is None else np.asarray(e.intensity, np.float32)[ok]
+                                w.point_cloud(e.cloud_topic, t, cam.points(np.where(ok, img, 0.0), "radial", ok), inten)
+                        if on_frame is not None:
+                            on_frame(i + 1, n)
+                    w.metadata(METADATA_NAME, {
+                        "format": "tofhil.mcap", "format_version": "1", "software_version": f"tofhil {__version__}",
+                        "source_session": str(src.resolve()), "frame_id": FRAME_ID,
+                        "frame_convention": "optical: x right, y down, z forward (OpenCV)",
+                        "depth_kind": depth_kind, "timestamps": stamp_source, "camera": cam.to_dict(),
+                        "session_device": s.device, "topics": topics} | dict(metadata or {}))
+                    w.finish()
+        except OSError as exc:
+            if exc.errno not in _WRITE_ERRNOS:
+                raise
+            # the bag's own name, not "a file being written": the partial file is already removed
+            raise InputFileError(f"cannot be written ({exc.strerror or exc})", file=out, field="--out",
+                                 expected="a writable file on a disk with room for the bag") from None
     return McapExport(out, n, topics, dict(w.counts))

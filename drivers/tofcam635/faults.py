@@ -4,12 +4,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import math
+
 import numpy as np
 
 from tofhil.errors import DeviceError
 
 
 FAULT_KINDS = ("crc", "truncate", "garbage", "timeout", "stall", "disconnect")
+#: Longest disconnect accepted (s): a device away longer is a test that never ends.
+MAX_DISCONNECT_S = 3600.0
 
 
 @dataclass
@@ -26,7 +30,19 @@ class FaultPlan:
     def __post_init__(self) -> None:
         for kind in list(self.at.values()) + list(self.rates):
             if kind not in FAULT_KINDS:
-                raise DeviceError(f"unknown fault {kind!r}", field="faults", expected=" | ".join(FAULT_KINDS))
+                raise DeviceError(f"unknown fault {kind!r}", field="--faults", expected=" | ".join(FAULT_KINDS))
+        # checked here, not where a reply goes wrong: a probability of 1.5 would otherwise fail
+        # every reply and the capture would blame the device
+        for kind, p in self.rates.items():
+            if not (math.isfinite(p) and 0.0 <= p <= 1.0):
+                raise DeviceError(f"{kind}={p:g}", field="--faults", expected="a probability in [0, 1]")
+        for idx in self.at:
+            if idx < 0:
+                raise DeviceError(f"fault at request {idx}", field="--faults",
+                                  expected="KIND@FRAME with FRAME an integer >= 0")
+        if not (math.isfinite(self.disconnect_s) and 0.0 <= self.disconnect_s <= MAX_DISCONNECT_S):
+            raise DeviceError(f"disconnect_s={self.disconnect_s:g}", field="--faults",
+                              expected=f"a duration in [0, {MAX_DISCONNECT_S:g}] s")
         self._rng = np.random.default_rng(self.seed)
 
     def fault_for(self, index: int) -> str | None:

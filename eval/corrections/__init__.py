@@ -13,10 +13,14 @@ every command refuses the same bad values with the same message. Methods (see
 ``docs/evaluation.md``)::
 
     taps               flat                    tap offset/gain calibration only
-    uniform            w [flat]                thesis method 1: S - w * sum_p S_p
+    uniform            w [twin flat]           thesis method 1: S - w * sum_p S_p
     gaussian-inverse   sigma_h sigma_v w mu    thesis method 2: Wiener inverse of delta + w G
-                       [flat]
-    psf                psf iterations [flat]   a PSF (calibrated, diagnosed), fixed-point deconvolution
+                       [twin flat]
+    psf                psf iterations          a PSF (calibrated, diagnosed), fixed-point deconvolution
+                       [twin flat]
+    twin               scene [remove flat]     remove what the fitted twin predicts beyond each
+                                               pixel's direct return (stray light, multipath;
+                                               remove=all: every modelled deviation)
     amplitude          min_amplitude           invalidate low-amplitude pixels
     jump-angle         angle_deg               jump-edge filter, angle criterion (8 neighbours)
     jump-distance      max_step_m relative     jump-edge filter, distance criterion
@@ -24,9 +28,16 @@ every command refuses the same bad values with the same message. Methods (see
     smooth-median      size                    median depth smoothing
     smooth-bilateral   sigma_px sigma_m        bilateral depth smoothing
 
+Complex methods are called ``f(S, ctx, **params)`` with a :class:`CorrectionContext`
+(camera, acquisition, clipped source pixels, frames averaged) on which they leave their
+per-pixel flags and notes. The stray-light methods know their limits (:mod:`.limits`):
+with clipped source pixels they restore their light from the twin (``twin=SCENE``) or mark
+the pixels whose correction cannot be trusted.
+
 Families live in their own modules: ``straylight`` (thesis methods, PSF deconvolution,
-loading a PSF), ``psf_calibration`` (fitting a PSF), ``depth`` (depth filters); tap
-calibration is ``tofhil.eval.calibration.taps``.
+loading a PSF), ``twin`` (the twin correction), ``limits`` (clipped sources), ``context``
+(what a correction knows and says), ``psf_calibration`` (fitting a PSF), ``depth`` (depth
+filters); tap calibration is ``tofhil.eval.calibration.taps``.
 """
 
 from __future__ import annotations
@@ -43,6 +54,10 @@ from tofhil.depth import depth_from_raw
 from tofhil.errors import TofhilError
 from tofhil.eval.corrections import depth as dm
 from tofhil.eval.corrections import straylight as sl
+from tofhil.eval.corrections import twin as tw
+from tofhil.eval.corrections.context import (CorrectionContext, context_for_frame, context_for_session,
+                                             saturated_pixels)
+from tofhil.eval.corrections.limits import clipped_sources
 from tofhil.eval.calibration.taps import TapCalibration
 from tofhil.frames import DepthFrame, RawFrame
 from tofhil.schema import in_range
@@ -60,11 +75,14 @@ class Param:
     hi_open: bool = False
     odd: bool = False
     expected: str = ""
+    choices: tuple[str, ...] = ()  # a str parameter's allowed values (empty: any)
 
     def check(self, value: Any, field: str) -> Any:
         """The value converted to the type, or a TofhilError naming ``field``."""
         what = self.expected or f"a {self.type.__name__}"
         if self.type is str:
+            if self.choices and str(value) not in self.choices:
+                raise TofhilError(f"got {value!r}", field=field, expected=what)
             if isinstance(value, (str, Path)):
                 return str(value)
             return value  # an already loaded calibration (PSF, tap calibration)
@@ -105,7 +123,7 @@ class Method:
     domain: str  # "complex" (needs raw taps) or "depth"
     params: dict[str, Param]
     summary: str
-    #: complex: f(S[F,H,W], camera, **p) -> S; depth: f(DepthFrame, **p) -> DepthFrame
+    #: complex: f(S[F,H,W], CorrectionContext, **p) -> S; depth: f(DepthFrame, **p) -> DepthFrame
     func: Callable[..., Any]
 
 
@@ -125,25 +143,59 @@ def load_params(method: str, params: dict[str, Any]) -> dict[str, Any]:
     return p
 
 
-def _complex_psf(s: np.ndarray, camera: Any, psf: Any, iterations: int) -> np.ndarray:
-    center = None if camera is None else (camera.cx, camera.cy)
-    return sl.deconvolve(s, sl.load_psf(psf), center_px=center, iterations=iterations)
+def _center(ctx: CorrectionContext | None) -> tuple[float, float] | None:
+    return None if ctx is None or ctx.camera is None else (ctx.camera.cx, ctx.camera.cy)
+
+
+def _complex_psf(s: np.ndarray, ctx: CorrectionContext | None, psf: Any, iterations: int,
+                 twin: str = "") -> np.ndarray:
+    psf = sl.load_psf(psf)
+    s = clipped_sources(s, ctx, lambda x: sl.scatter_psf(x, psf, _center(ctx)), twin)
+    return sl.deconvolve(s, psf, center_px=_center(ctx), iterations=iterations)
+
+
+def _complex_uniform(s: np.ndarray, ctx: CorrectionContext | None, w: float, twin: str = "") -> np.ndarray:
+    s = clipped_sources(s, ctx, lambda x: sl.scatter_uniform(x, w), twin)
+    return sl.subtract_uniform(s, w)
+
+
+def _complex_gaussian(s: np.ndarray, ctx: CorrectionContext | None, sigma_h: float, sigma_v: float, w: float,
+                      mu: float, twin: str = "") -> np.ndarray:
+    s = clipped_sources(s, ctx, lambda x: sl.scatter_gaussian(x, sigma_h, sigma_v, w), twin)
+    return sl.inverse_filter_gaussian(s, sigma_h, sigma_v, w, mu)
+
+
+def _complex_twin(s: np.ndarray, ctx: CorrectionContext | None, scene: str, remove: str = "light") -> np.ndarray:
+    if ctx is None:
+        raise ValueError("the twin correction needs the signal's camera and acquisition (a CorrectionContext)")
+    return tw.correct_twin(s, ctx, scene, remove)
+
+
+_TWIN = Param(str, "", expected="a twin scene (.yaml) whose prediction restores clipped source pixels")
 
 
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method("taps", "complex", {"flat": Param(str, None, expected=_FLAT.expected)},
-           "per-tap offset and gain calibration (tofhil calibrate-taps)", lambda s, camera: s),
-    Method("uniform", "complex", {"w": _fraction(), "flat": _FLAT},
-           "thesis method 1: S - w * sum of all pixels' S", lambda s, camera, w: sl.subtract_uniform(s, w)),
+           "per-tap offset and gain calibration (tofhil calibrate-taps)", lambda s, ctx: s),
+    Method("uniform", "complex", {"w": _fraction(), "twin": _TWIN, "flat": _FLAT},
+           "thesis method 1: S - w * sum of all pixels' S", _complex_uniform),
     Method("gaussian-inverse", "complex",
            {"sigma_h": _positive(unit=" (pixels)"), "sigma_v": _positive(unit=" (pixels)"), "w": _fraction(),
-            "mu": _non_negative(0.0), "flat": _FLAT},
+            "mu": _non_negative(0.0), "twin": _TWIN, "flat": _FLAT},
            "thesis method 2: inverse filter of delta + w*Gaussian(sigma_h, sigma_v), regularisation mu",
-           lambda s, camera, **p: sl.inverse_filter_gaussian(s, **p)),
+           _complex_gaussian),
     Method("psf", "complex",
            {"psf": Param(str, None, expected="a PSF file (--save-psf, diagnose) or a diagnosis.json"),
-            "iterations": Param(int, 30, 1, 10000, expected="an integer in [1, 10000]"), "flat": _FLAT},
+            "iterations": Param(int, 30, 1, 10000, expected="an integer in [1, 10000]"), "twin": _TWIN,
+            "flat": _FLAT},
            "a stray-light PSF (calibrated or diagnosed) removed by fixed-point deconvolution", _complex_psf),
+    Method("twin", "complex",
+           {"scene": Param(str, None, expected="a twin scene (.yaml), e.g. diagnose's extended_scene.yaml"),
+            "remove": Param(str, "light", choices=("light", "all"),
+                            expected="light (stray light, multipath) or all (every modelled deviation)"),
+            "flat": _FLAT},
+           "remove what the fitted twin predicts beyond each pixel's direct return (stray light, multipath)",
+           _complex_twin),
     Method("amplitude", "depth", {"min_amplitude": _non_negative()},
            "invalidate pixels with amplitude below min_amplitude", dm.amplitude),
     Method("jump-angle", "depth", {"angle_deg": Param(float, 10.0, 0.0, 90.0, expected="an angle in [0, 90] degrees")},
@@ -219,10 +271,12 @@ def check_min_amplitude(value: float, field: str = "min_amplitude") -> float:
 
 
 def correct_raw(raw: RawFrame, method: str, params: dict[str, Any] | None = None, *,
-                min_amplitude: float = 0.0) -> tuple[RawFrame, DepthFrame]:
+                min_amplitude: float = 0.0, context: CorrectionContext | None = None) -> tuple[RawFrame, DepthFrame]:
     """Correct one raw frame -> (corrected raw taps, depth recomputed from them).
 
     Depth-domain methods leave the taps unchanged and filter the depth computed from them.
+    ``context`` (default: the frame's own, :func:`context_for_frame`) receives the
+    correction's flags and notes.
     """
     m = get_method(method)
     p = resolve_params(m, params)
@@ -233,7 +287,8 @@ def correct_raw(raw: RawFrame, method: str, params: dict[str, Any] | None = None
         if flat is not None:
             taps = flat.apply(taps)
         s = phasor(taps, raw.theta_rad)
-        sc = m.func(s, raw.camera, **p)
+        ctx = context if context is not None else context_for_frame(raw)
+        sc = m.func(s, ctx, **p)
         taps = taps_from_signal(np.abs(sc), np.angle(sc), offset(taps), raw.theta_rad)
         out = replace(raw, taps=taps.astype(np.float32), meta=dict(raw.meta, corrected=method))
         return out, depth_from_raw(out, min_amplitude=min_amplitude)
@@ -242,17 +297,19 @@ def correct_raw(raw: RawFrame, method: str, params: dict[str, Any] | None = None
 
 
 def correct_mean(session: Any, method: str, params: dict[str, Any] | None = None, *, n: int | None = None,
-                 min_amplitude: float = 0.0, progress: Callable[[Any, int, str], Any] | None = None
-                 ) -> tuple[RawFrame, DepthFrame]:
+                 min_amplitude: float = 0.0, progress: Callable[[Any, int, str], Any] | None = None,
+                 context: CorrectionContext | None = None) -> tuple[RawFrame, DepthFrame]:
     """The first ``n`` frames (default all) of a raw session averaged in the complex domain
     and corrected -> (mean raw taps, depth). Complex methods correct the mean signal; depth
-    methods filter the depth of the mean."""
+    methods filter the depth of the mean. ``context`` (default the session's,
+    :func:`context_for_session`) receives the correction's flags and notes."""
     from tofhil.eval.corrections.averaging import session_mean_signal
 
     m = get_method(method)
     p = resolve_params(m, params)
     flat = _flat_param(p.pop("flat", None))
-    correct = (lambda s: m.func(s, session.camera, **p)) if m.domain == "complex" else None
+    ctx = context if context is not None else context_for_session(session, n or session.n_frames)
+    correct = (lambda s: m.func(s, ctx, **p)) if m.domain == "complex" else None
     ms = session_mean_signal(session, n, flat=flat, correct=correct, scatter=False, progress=progress)
     raw = ms.raw()
     raw = replace(raw, taps=raw.taps.astype(np.float32), meta=dict(raw.meta, corrected=method))
@@ -273,7 +330,8 @@ def correct_depth(depth: DepthFrame, method: str, params: dict[str, Any] | None 
 
 def correct_session(in_path: str | Path, out_path: str | Path, method: str, params: dict[str, Any] | None = None,
                     *, force: bool = False, min_amplitude: float = 0.0, average: bool = False,
-                    progress: Callable[[Any, int, str], Any] | None = None) -> int:
+                    progress: Callable[[Any, int, str], Any] | None = None,
+                    summary: dict[str, Any] | None = None) -> int:
     """Correct every frame of a session into a new session file; returns the frame count.
 
     With ``average`` the output is ONE frame: the frames averaged in the complex domain
@@ -281,7 +339,13 @@ def correct_session(in_path: str | Path, out_path: str | Path, method: str, para
     For the complex methods (linear in ``S``) that equals averaging the corrected frames;
     it is one correction instead of one per frame. The tap calibration applied (``flat=``
     as a file) is recorded in the output's device header (``tap_calibration``), so compare
-    can give the reference the same one."""
+    can give the reference the same one.
+
+    A complex correction's report (its notes, flagged pixel counts, the figures it used:
+    :meth:`CorrectionContext.summary`) is written to the output's root attribute
+    ``correction`` (JSON) and its per-pixel flags (the union over frames, bits
+    :data:`~tofhil.eval.corrections.context.FLAGS`) to the dataset ``correction/flags``
+    ``[H, W]`` uint8; ``summary`` (a dict), when given, receives the report too."""
     from tofhil.session import copy_session_header, open_session
 
     in_path, out_path = Path(in_path), Path(out_path)
@@ -310,16 +374,39 @@ def correct_session(in_path: str | Path, out_path: str | Path, method: str, para
         # a derived writer: an error leaves nothing behind, Ctrl-C keeps the frames done
         with copy_session_header(s, out_path, force=force, note=f"corrected: {note.strip()}",
                                  device_extra=extra) as w:
+            ctx = None
+            if m.domain == "complex" and s.n_frames:
+                ctx = context_for_session(s, s.n_frames if average else 1)
+                ctx.flags = np.zeros(ctx.shape, np.uint8)  # shared by the frames' contexts
             if average:
-                w.append(*correct_mean(s, m.name, p, min_amplitude=min_amplitude, progress=progress))
+                w.append(*correct_mean(s, m.name, p, min_amplitude=min_amplitude, progress=progress, context=ctx))
+                _write_report(w, ctx, summary)
                 return w.n_frames
             for i in wrap(range(s.n_frames), s.n_frames, f"correcting ({method})"):
                 if m.domain == "complex":
-                    w.append(*correct_raw(s.raw_frame(i), m.name, p, min_amplitude=min_amplitude))
+                    raw = s.raw_frame(i)
+                    w.append(*correct_raw(raw, m.name, p, min_amplitude=min_amplitude,
+                                          context=replace(ctx, saturated=saturated_pixels([raw]))))
                     continue
                 # Depth methods filter the stored depth (a device's own) when there is one.
                 raw = s.raw_frame(i) if s.has_raw else None
                 depth = s.depth_frame(i) if s.has_depth else depth_from_raw(raw, min_amplitude=min_amplitude)
                 w.append(raw, correct_depth(depth, m.name, p))
+            _write_report(w, ctx, summary)
             n = w.n_frames
     return n
+
+
+def _write_report(writer: Any, ctx: CorrectionContext | None, summary: dict[str, Any] | None) -> None:
+    """A correction's report into the corrected session (root attribute ``correction`` and
+    dataset ``correction/flags``) and into ``summary``."""
+    import json
+
+    if ctx is None:
+        return
+    doc = ctx.summary()
+    if summary is not None:
+        summary.update(doc)
+    f = writer._file  # noqa: SLF001 -- an optional group the core writer does not know
+    f.attrs["correction"] = json.dumps(doc, default=float)
+    f.create_dataset("correction/flags", data=ctx.flags, compression="gzip")

@@ -57,6 +57,26 @@ def inverse_filter_gaussian(s: np.ndarray, sigma_h: float, sigma_v: float, w: fl
     return PaddedConvolution(k, (h, wd), (h - 1, wd - 1), fft_size=fshape).regularised_inverse(s, mu)
 
 
+def scatter_uniform(s: np.ndarray, w: float) -> np.ndarray:
+    """The stray light thesis method 1 assumes: ``w * sum_p S_p`` on every pixel."""
+    s = np.asarray(s)
+    return np.broadcast_to(w * s.sum(axis=(-2, -1), keepdims=True), s.shape)
+
+
+def scatter_gaussian(s: np.ndarray, sigma_h: float, sigma_v: float, w: float) -> np.ndarray:
+    """The stray light thesis method 2 assumes: ``w G(sigma_h, sigma_v) * S`` (zero-padded)."""
+    s = np.asarray(s)
+    h, wd = s.shape[-2:]
+    k = w * gaussian_kernel((h, wd), sigma_h, sigma_v)
+    return PaddedConvolution(k, (h, wd), (h - 1, wd - 1))(s)
+
+
+def scatter_psf(s: np.ndarray, psf: StrayLightPSF, center_px: tuple[float, float] | None = None) -> np.ndarray:
+    """The stray light of ``psf``: ``h * S`` without the direct part."""
+    s = np.asarray(s)
+    return StrayLightOperator(psf, s.shape[-2:], center_px).scatter(s)
+
+
 def deconvolve(s_meas: np.ndarray, psf: StrayLightPSF, *, center_px: tuple[float, float] | None = None,
                iterations: int = 30, tol: float = 1e-7) -> np.ndarray:
     """Remove the stray light of ``psf`` from ``S_meas[..., H, W]`` (fixed point, see

@@ -46,6 +46,16 @@ UNWRAP_ERROR_FRACTION = 0.25
 #: A pixel whose depth noise exceeds this fraction of the shortest unambiguous range has no
 #: signal above its noise (a phase noise of 0.3 rad: a signal about 3 times its noise).
 NO_SIGNAL_FRACTION = 0.05
+#: Trimmed RMSE: the RMSE after leaving out this fraction of the pixels with the largest |r|
+#: (stated wherever it is printed). 5 %: a strip of shadow or an object edge a few pixels wide
+#: does not carry the figure, a systematic error over a region of the image does.
+TRIM_FRACTION = 0.05
+#: Side of the neighbourhood whose depth spread tests a side's spatial coherence (pixels).
+COHERENCE_WINDOW_PX = 3
+#: Only a pixel dimmer than this fraction of its side's 99th-percentile amplitude may be found
+#: incoherent: a lit surface's edge (a card's corner among clipped pixels) mixes two depths in
+#: its window without lacking a signal; a shadow lit only by multipath is far below it.
+DIM_FRACTION = 0.05
 
 #: A clipped ADC shows as several pixels pinned at one extreme tap value.
 
@@ -145,6 +155,8 @@ class Stats:
     rmse: float
     p95_abs: float
     mean_abs: float
+    #: RMSE of the values left after the TRIM_FRACTION with the largest magnitude are dropped.
+    rmse_trimmed: float = float("nan")
 
     def to_json(self) -> dict[str, Any]:
         return json_safe(asdict(self))
@@ -168,7 +180,43 @@ def stats(values: np.ndarray) -> Stats:
     mad = float(np.median(np.abs(x - med)))
     return Stats(n=int(x.size), median=med, mad=mad, sigma_mad=MAD_TO_SIGMA * mad, mean=float(x.mean()),
                  std=float(x.std()), rmse=rmse(x),
-                 p95_abs=float(np.percentile(np.abs(x), 95)), mean_abs=float(np.abs(x).mean()))
+                 p95_abs=float(np.percentile(np.abs(x), 95)), mean_abs=float(np.abs(x).mean()),
+                 rmse_trimmed=trimmed_rmse(x))
+
+
+def trimmed_rmse(x: np.ndarray, fraction: float = TRIM_FRACTION) -> float:
+    """RMSE of ``x`` without the ``fraction`` of values of largest magnitude (NaN when none)."""
+    x = np.asarray(x, dtype=np.float64).ravel()
+    x = x[np.isfinite(x)]
+    keep = x.size - int(math.floor(fraction * x.size))
+    if keep <= 0:
+        return float("nan")
+    return rmse(np.partition(np.abs(x), keep - 1)[:keep])
+
+
+def incoherent_depth(radial_m: np.ndarray, valid: np.ndarray, limit_m: float,
+                     window: int = COHERENCE_WINDOW_PX) -> np.ndarray:
+    """Pixels whose depth does not agree with their neighbours': the robust spread (MAD x
+    1.4826) of the valid depths in a ``window`` x ``window`` neighbourhood, or the pixel's own
+    distance from their median, above ``limit_m``.
+
+    A side's own noise that its frames' scatter does not show: a twin's pixel lit by no light
+    of its own (a shadow lit only by multipath) gets a depth from its render's Monte Carlo
+    noise, fixed over the frames but random from pixel to pixel. Median-based, it keeps an
+    object's edge (at most a third of the window across it); a corner, or a line a pixel wide,
+    at another depth is an outlier of its window, so callers apply it to dim pixels only."""
+    d = np.where(valid & np.isfinite(radial_m), np.asarray(radial_m, np.float64), np.nan)
+    h, w = d.shape
+    r = window // 2
+    padded = np.pad(d, r, constant_values=np.nan)
+    stack = np.stack([padded[i:i + h, j:j + w] for i in range(window) for j in range(window)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN neighbourhoods
+        med = np.nanmedian(stack, axis=0)
+        spread = MAD_TO_SIGMA * np.nanmedian(np.abs(stack - med), axis=0)
+    enough = np.sum(np.isfinite(stack), axis=0) >= (window * window + 1) // 2
+    outlier = np.abs(np.nan_to_num(d - med, nan=0.0)) > limit_m
+    return valid & enough & ((np.nan_to_num(spread, nan=0.0) > limit_m) | outlier)
 
 
 # ---------------------------------------------------------------------------- validity
@@ -299,11 +347,15 @@ def frame_validity(frame: DepthFrame, health: TapHealth | None = None) -> np.nda
 def residual_maps(a: DepthFrame, b: DepthFrame, *, wrap_m: float | None = None,
                   health_a: TapHealth | None = None, health_b: TapHealth | None = None,
                   freq_hz: Sequence[float] | np.ndarray | None = None,
-                  noise_m: np.ndarray | None = None) -> ResidualMaps:
+                  noise_m: np.ndarray | None = None,
+                  own_noise_m: tuple[np.ndarray | None, np.ndarray | None] | None = None) -> ResidualMaps:
     """Depth residual A - B (radial distance, whatever kind each frame stores), amplitude
     difference and ratio, on the pixels valid in both. With the modulation frequencies,
-    pixels unwrapped to different intervals (several frequencies) and, with ``noise_m`` (the
-    residual's depth noise per pixel), pixels without a signal above noise are flagged."""
+    pixels unwrapped to different intervals (several frequencies) and pixels without a
+    signal above noise are flagged: with ``own_noise_m`` (each side's own depth noise per
+    pixel, A's and B's), a pixel whose depth on either side is lost in that side's own noise,
+    its frames' scatter or its neighbours' disagreement (:func:`incoherent_depth`); else,
+    with ``noise_m`` (the residual's depth noise per pixel), one whose residual is."""
     check_aligned(a, b)
     va, vb = frame_validity(a, health_a), frame_validity(b, health_b)
     both = va & vb
@@ -325,14 +377,34 @@ def residual_maps(a: DepthFrame, b: DepthFrame, *, wrap_m: float | None = None,
         from tofhil.demod import ambiguity_range_m
 
         shortest = float(ambiguity_range_m(float(f.max())))
-        if noise_m is not None:
-            no_signal = both & (np.nan_to_num(np.asarray(noise_m, np.float64), nan=0.0) > NO_SIGNAL_FRACTION * shortest)
+        limit = NO_SIGNAL_FRACTION * shortest
+        if own_noise_m is not None:
+            no_signal = np.zeros(both.shape, bool)
+            for frame, valid, own in ((a, va, own_noise_m[0]), (b, vb, own_noise_m[1])):
+                if own is not None:
+                    no_signal |= np.nan_to_num(np.asarray(own, np.float64), nan=0.0) > limit
+                no_signal |= _dim(frame.amplitude) & incoherent_depth(np.asarray(frame.radial_m, np.float64),
+                                                                      valid, limit)
+            no_signal &= both
+        elif noise_m is not None:
+            no_signal = both & (np.nan_to_num(np.asarray(noise_m, np.float64), nan=0.0) > limit)
         if f.size >= 2:
             with np.errstate(invalid="ignore"):
                 unwrap_error = both & (np.abs(np.nan_to_num(res)) > UNWRAP_ERROR_FRACTION * shortest)
             if no_signal is not None:
                 unwrap_error &= ~no_signal
     return ResidualMaps(res, adiff, ratio, va, vb, wrap_m, health_a, health_b, unwrap_error, no_signal)
+
+
+def _dim(amplitude: np.ndarray | None) -> np.ndarray | bool:
+    """Pixels below :data:`DIM_FRACTION` of the frame's 99th-percentile amplitude (every pixel
+    when the frame has no amplitude: its depth's coherence is all there is to go by)."""
+    if amplitude is None:
+        return True
+    a = np.asarray(amplitude, np.float64)
+    if not np.isfinite(a).any():
+        return True
+    return np.nan_to_num(a, nan=0.0) < DIM_FRACTION * np.nanpercentile(a, 99)
 
 
 def check_aligned(a: DepthFrame, b: DepthFrame) -> dict[str, Any]:
@@ -513,7 +585,7 @@ class RegionMetrics:
                          "between the frequencies or noise in them, not a surface)")
         if self.no_signal_pixels:
             parts.append(f"{self.no_signal_pixels} pixels without a signal above noise on one side (shadows, "
-                         "dark surfaces)")
+                         "dark surfaces, depths at random from pixel to pixel)")
         if not parts:
             return None
         return f"{self.name}: " + "; ".join(parts) + f": mapped and counted, not in the depth figures " \
@@ -585,21 +657,23 @@ def evaluate(a: DepthFrame, b: DepthFrame, regions: Sequence[Region] = (), *, wr
              cloud_regions: bool | Sequence[str] = False, cell_size: float = 0.1, threshold: float = 0.01,
              icp_max_distance: float | None = None, include_all: bool = True,
              source: str | None = None, noise_m: np.ndarray | None = None,
-             freq_hz: Sequence[float] | np.ndarray | None = None) -> Evaluation:
+             freq_hz: Sequence[float] | np.ndarray | None = None,
+             own_noise_m: tuple[np.ndarray | None, np.ndarray | None] | None = None) -> Evaluation:
     """Evaluate A against B over the whole image (unless ``include_all=False``) and ``regions``.
 
     ``cloud_regions``: True for cloud and NDT metrics in every region, or the names of the
     regions that get them. Refuses a pair with no pixel valid in both (``source`` names it).
     ``noise_m``: per-pixel standard deviation of the residual expected from noise; each
     region then reports its noise floor. ``freq_hz``: the modulation frequencies, for the
-    pixels that carry no comparable depth (:func:`residual_maps`).
+    pixels that carry no comparable depth (:func:`residual_maps`, also for ``own_noise_m``).
     """
     if not threshold > 0 or not math.isfinite(threshold):
         raise TofhilError(f"is {threshold}", field="threshold", expected="a positive distance in metres")
     if not cell_size > 0 or not math.isfinite(cell_size):
         raise TofhilError(f"is {cell_size}", field="cell_size", expected="a positive length in metres")
     alignment = check_aligned(a, b)
-    maps = residual_maps(a, b, wrap_m=wrap_m, health_a=health_a, health_b=health_b, freq_hz=freq_hz, noise_m=noise_m)
+    maps = residual_maps(a, b, wrap_m=wrap_m, health_a=health_a, health_b=health_b, freq_hz=freq_hz, noise_m=noise_m,
+                         own_noise_m=own_noise_m)
     if not maps.valid_both.any():
         why = []
         for side, v in (("A", maps.valid_a), ("B", maps.valid_b)):

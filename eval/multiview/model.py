@@ -42,6 +42,11 @@ from tofhil.progress import Progress
 
 #: A non-consecutive pair with at least this ICP fitness becomes a loop-closure edge.
 LOOP_MIN_FITNESS = 0.3
+#: A consecutive pair below this ICP fitness (the fraction of a view's points on the other's
+#: surface after registration) is refused: its views do not overlap, and the best of the coarse
+#: starts would be fused as if they did. Measured: the room's views 12 deg apart 0.58-0.74; an
+#: O3R and a Kinect capture of unrelated scenes 0.135.
+ODOMETRY_MIN_FITNESS = 0.3
 #: Loop closures join views up to this many steps apart; one that moves more than these away
 #: from the chained poses is not used.
 LOOP_SPAN = 3
@@ -196,6 +201,11 @@ def register_views(views: Sequence[View], voxel_m: float = 0.04, *, seed: int = 
             if best is None or (fit, -rmse) > (best[1], -best[2]):
                 best = (t, fit, rmse, starts[k][0])
         t, fit, rmse, label = best
+        if fit < ODOMETRY_MIN_FITNESS:
+            raise TofhilError(f"views {views[j].name} and {views[i].name} do not overlap enough to register "
+                              f"(ICP fitness {fit:.3f} at best)", field="views",
+                              expected=f"consecutive views of one scene that overlap (fitness >= "
+                                       f"{ODOMETRY_MIN_FITNESS:g}: that share of a view's points on the other's surface)")
         pairs.append(PairResult(i, j, t, fit, rmse, label, loop=False))
         odometry.append(odometry[j] @ t)
     # loop closures: views two and three steps apart that overlap, from the chained poses (already

@@ -30,7 +30,8 @@ RESIDUAL_PERCENTILES = (2.0, 98.0)
 CSS = """body{font-family:sans-serif;max-width:1400px;margin:1em auto;padding:0 1em;color:#222}
 table{border-collapse:collapse;font-size:12px}td,th{border:1px solid #bbb;padding:2px 6px;text-align:right}
 th{background:#eee}td:first-child,td:nth-child(2){text-align:left}img{max-width:100%}
-h2{border-bottom:1px solid #ccc;margin-top:1.6em}.note{color:#555;font-size:13px}.warn{color:#a40000}"""
+h2{border-bottom:1px solid #ccc;margin-top:1.6em}.note{color:#555;font-size:13px}.warn{color:#a40000}
+.wide{max-width:100%;overflow-x:auto}.cases th{overflow-wrap:anywhere;min-width:5em;max-width:14em}"""
 
 
 def esc(x: Any) -> str:
@@ -148,10 +149,15 @@ def figure_amplitude_maps(panels: Sequence[tuple[str, np.ndarray]], unit: str = 
 
 
 def figure_residual_maps(panels: Sequence[tuple[str, np.ndarray]], *, unit: str = "mm", scale: float = 1e3,
-                         cmap: str = "RdBu_r", floor: float = 1e-3, columns: int | None = None) -> str:
-    """Residual maps (values times ``scale`` in ``unit``) on one shared symmetric robust scale."""
+                         cmap: str = "RdBu_r", floor: float = 1e-3, columns: int | None = None,
+                         scale_masks: Sequence[np.ndarray] | None = None) -> str:
+    """Residual maps (values times ``scale`` in ``unit``) on one shared symmetric robust scale,
+    set by the pixels of ``scale_masks`` (one per panel: the pixels a report's figures use)
+    when given, so that a strip of pixels left out of the figures does not stretch it."""
     imgs = [(t, np.asarray(img, float) * scale) for t, img in panels]
-    vmin, vmax = symmetric_range([i for _, i in imgs], floor=floor)
+    basis = [i if m is None else np.where(np.asarray(m, bool), i, np.nan)
+             for (_, i), m in zip(imgs, scale_masks or [None] * len(imgs))]
+    vmin, vmax = symmetric_range(basis, floor=floor)
     fig, axes = grid(len(imgs))
     for ax, (t, img) in zip(axes, imgs):
         image_panel(fig, ax, img, t, cmap, vmin, vmax, unit)
@@ -273,10 +279,11 @@ def figure_cross_section(section: CrossSection, reference: tuple[str, np.ndarray
 
 def region_table(rows: Sequence[tuple[str, Any]], *, label: str = "variant") -> str:
     """The per-region table every report shows: one row per (label, RegionMetrics)."""
-    from tofhil.eval.metrics.core import DEPTH_RMSE
+    from tofhil.eval.metrics.core import DEPTH_RMSE, TRIM_FRACTION
 
     head = (f"<tr><th>{esc(label)}</th><th>region</th><th>pixels</th><th>compared</th><th>saturated A</th>"
-            f"<th>median (mm)</th><th>MAD (mm)</th><th>{esc(DEPTH_RMSE)} (mm)</th><th>noise floor (mm)</th>"
+            f"<th>median (mm)</th><th>MAD (mm)</th><th>RMSE, {100 * TRIM_FRACTION:g} % largest |r| trimmed (mm)</th>"
+            f"<th>{esc(DEPTH_RMSE)} (mm)</th><th>noise floor (mm)</th>"
             "<th>p95 |r| (mm)</th>"
             "<th>amp. ratio</th><th>chamfer (mm)</th><th>F-score</th><th>NDT mean lik.</th><th>NVTL</th></tr>")
     body = []
@@ -284,7 +291,7 @@ def region_table(rows: Sequence[tuple[str, Any]], *, label: str = "variant") -> 
         d = r.depth_residual_m
         c, n = r.cloud, r.ndt
         cells = [esc(name), esc(r.name), fmt(r.pixels), fmt(r.valid_both_fraction), fmt(r.saturated_fraction_a),
-                 fmt(d.median, 1e3), fmt(d.mad, 1e3), fmt(d.rmse, 1e3),
+                 fmt(d.median, 1e3), fmt(d.mad, 1e3), fmt(d.rmse_trimmed, 1e3), fmt(d.rmse, 1e3),
                  fmt(getattr(r, "noise_floor_m", None), 1e3), fmt(d.p95_abs, 1e3),
                  fmt(r.amplitude_ratio.median), fmt(None if c is None else c.chamfer, 1e3),
                  fmt(None if c is None else c.fscore), fmt(None if n is None else n.mean_likelihood_trilinear),

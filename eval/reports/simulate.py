@@ -5,7 +5,7 @@ and peaks, and a lens prescription's ghost PSFs."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -82,8 +82,9 @@ def figure_direct_maps(sim: Any, frame: int = 0) -> str:
 
 
 def write_simulate_report(out_dir: str | Path, scene: Any, *, shares: Any = None, direct: Any = None,
-                          session_path: str | Path = "", force: bool = False) -> Path:
-    """Write ``report.html`` and ``report.json`` into ``out_dir``; returns the page's path."""
+                          session_path: str | Path = "", force: bool = False, notes: Sequence[str] = ()) -> Path:
+    """Write ``report.html`` and ``report.json`` into ``out_dir``; returns the page's path.
+    ``notes``: what the page does not show, and why (one line each, above the figures)."""
     out = prepare_output_dir(out_dir, OUTPUTS, force=force)
     figs: list[tuple[str, str | None, str]] = []
     payload: dict[str, Any] = {"software": f"tofhil {__version__}", "scene": str(getattr(scene, "source", "")),
@@ -107,8 +108,9 @@ def write_simulate_report(out_dir: str | Path, scene: Any, *, shares: Any = None
         payload["direct_tof"] = {"config": cfg.to_dict(), "pixels_with_peak": int(np.sum(p.count >= 1)),
                                  "pixels_with_second_peak": int(np.sum(p.count >= 2)),
                                  "max_photons_per_cycle": float(direct.expected_photons.sum(axis=0).max())}
+    payload["notes"] = list(notes)
     body = [f"<p class='note'>scene: {H.esc(payload['scene'])}<br>session: {H.esc(session_path)}<br>"
-            f"tofhil {__version__}</p>", H.figures_html(figs)]
+            f"tofhil {__version__}</p>", H.notes_html(list(notes), css="note"), H.figures_html(figs)]
     from tofhil.eval.reports.optics import lens_section
 
     body.extend(lens_section(scene.camera, whose="the scene's camera"))

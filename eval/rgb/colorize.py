@@ -6,7 +6,9 @@ pixel when something in front hides something behind from the colour camera (it 
 scene from a few centimetres away): a z-buffer over the colour image keeps, per colour pixel,
 the nearest point's depth (splatted over ``splat_px`` pixels, since ToF points are sparser
 than colour pixels), and a point takes a colour only if it is within ``tolerance`` of that
-depth; the others are occluded (no colour). Colours are sampled bilinearly.
+depth plus :data:`NOISE_SIGMAS` of its depth noise (a z-buffer's minimum over noisy points
+lies below each of them: without the noise, a noisy flat wall's points hide one another);
+the others are occluded (no colour). Colours are sampled bilinearly.
 """
 
 from __future__ import annotations
@@ -22,6 +24,18 @@ from tofhil.frames import DepthWithColor
 #: Depth tolerance of the z-buffer: absolute (m) plus relative to the depth.
 Z_TOLERANCE_M = 0.01
 Z_TOLERANCE_REL = 0.01
+#: Depth noise allowed on top (sigmas): the z-buffer keeps the least of about (2 splat + 1)^2
+#: noisy depths, about 2 sigma below their mean, and the point itself may lie 2 sigma above it.
+NOISE_SIGMAS = 4.0
+
+
+def depth_noise(z_m: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Each valid pixel's depth noise ``[H, W]`` (m): the image's relative noise
+    (:func:`tofhil.depth.relative_depth_noise`) times the pixel's depth (0 where invalid)."""
+    from tofhil.depth import relative_depth_noise
+
+    sigma_rel = relative_depth_noise(z_m, valid)
+    return np.where(valid, sigma_rel * np.nan_to_num(np.asarray(z_m, np.float64), nan=0.0), 0.0)
 
 
 def project(camera: Any, points: np.ndarray) -> np.ndarray:
@@ -47,9 +61,10 @@ class Colorized:
 
 
 def colorize_points(points: np.ndarray, tof_to_color: np.ndarray, color_camera: Any, color_rgb: np.ndarray, *,
-                    splat_px: int = 1) -> Colorized:
+                    splat_px: int = 1, noise_m: np.ndarray | float = 0.0) -> Colorized:
     """Colour ToF-frame points ``[N, 3]`` from an RGB image ``[H, W, 3]`` (uint8) of the colour
-    camera, ``tof_to_color`` the 4x4 ToF -> colour transform (see the module doc)."""
+    camera, ``tof_to_color`` the 4x4 ToF -> colour transform (see the module doc); ``noise_m``
+    each point's depth noise (``[N]`` or one number; :func:`depth_noise` of the image)."""
     pts = np.asarray(points, dtype=np.float64)
     pc = pts @ tof_to_color[:3, :3].T + tof_to_color[:3, 3]
     z = pc[:, 2]
@@ -66,7 +81,8 @@ def colorize_points(points: np.ndarray, tof_to_color: np.ndarray, color_camera: 
     for dv in range(-splat_px, splat_px + 1):
         for du in range(-splat_px, splat_px + 1):
             np.minimum.at(zbuf, (np.clip(iv + dv, 0, h - 1), np.clip(iu + du, 0, w - 1)), zi)
-    near = zi <= zbuf[iv, iu] + Z_TOLERANCE_M + Z_TOLERANCE_REL * zi
+    noise = np.broadcast_to(np.asarray(noise_m, np.float64), (len(pts),))[inside]
+    near = zi <= zbuf[iv, iu] + Z_TOLERANCE_M + Z_TOLERANCE_REL * zi + NOISE_SIGMAS * noise
     visible = np.zeros(len(pts), dtype=bool)
     visible[np.flatnonzero(inside)[near]] = True
     occluded = inside & ~visible

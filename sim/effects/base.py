@@ -140,6 +140,11 @@ class Effect:
     #: prediction on some pixels then runs the effect on those pixels only,
     #: ``EffectContext.pixels``); None: as ``pixel_local``.
     local_given_render: bool | None = None
+    #: The light this effect adds that is not a pixel's own direct return, by kind:
+    #: "stray_light" (moved on the sensor by the lens) or "multipath" (a longer path in the
+    #: scene); None for effects that change the direct return itself. The twin's direct-only
+    #: prediction switches these effects off (``tofhil correct --method twin``).
+    beyond_direct: str | None = None
 
     @property
     def pointwise(self) -> bool:

@@ -15,6 +15,7 @@ from tofhil.sim.sensor import OpticalSignal
 class MultipathEffect(Effect):
     name = "multipath"
     stage = "render"
+    beyond_direct = "multipath"
     rank = 50
     summary = '`S = S_direct + scale * S_indirect` (0 = direct only, 1 = physical); option `bounces` (default max(2, render.bounces))'
     doc = ("Scale of the indirect (multi-bounce) light: S = S_direct + scale * S_indirect. 0 = direct "

@@ -20,6 +20,7 @@ class StrayLightEffect(Effect):
     name = "stray_light"
     stage = "signal"
     rank = 70
+    beyond_direct = "stray_light"
     pixel_local = False
     summary = 'lens scattering `S_meas = (delta + h) * S`; options below'
     doc = ("Lens scattering: S_meas = (delta + h) * S on every frequency, harmonic and on the "

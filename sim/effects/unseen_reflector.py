@@ -52,6 +52,7 @@ class UnseenReflectorEffect(Effect):
     name = "unseen_reflector"
     stage = "signal"
     rank = 55
+    beyond_direct = "multipath"
     pixel_local = False  # the surface normals come from the neighbouring pixels' hits
     local_given_render = True  # ... of the render; each pixel's light is its own
     # it adds light with its own phase: the frequencies' gain or phase moves with it

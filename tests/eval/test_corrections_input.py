@@ -48,7 +48,7 @@ def test_bad_parameters_name_method_and_key(spec: str, field: str) -> None:
 def test_good_specs_parse_to_typed_values() -> None:
     name, p = parse_method_spec("gaussian-inverse:sigma-h=32,sigma_v=30,w=0.04")
     assert name == "gaussian-inverse"
-    assert resolve_params(name, p) == {"sigma_h": 32.0, "sigma_v": 30.0, "w": 0.04, "mu": 0.0, "flat": ""}
+    assert resolve_params(name, p) == {"sigma_h": 32.0, "sigma_v": 30.0, "w": 0.04, "mu": 0.0, "twin": "", "flat": ""}
     assert resolve_params(*parse_method_spec("smooth-median:size=5")) == {"size": 5}
 
 

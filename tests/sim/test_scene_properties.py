@@ -102,7 +102,7 @@ def _check(d: dict) -> None:
     # A scene that loads is usable: finite numbers everywhere the renderer reads them.
     assert np.all(np.isfinite(scene.camera_pose)) and all(np.all(np.isfinite(o.pose)) for o in scene.objects)
     assert all(math.isfinite(f) and f > 0 for f in scene.sensor.freq_hz)
-    assert math.isfinite(scene.emitter.power_w) and scene.emitter.power_w > 0
+    assert math.isfinite(scene.emitter.power_w) and scene.emitter.power_w >= 0  # 0: dark frames (issue 34)
     for o in scene.objects:
         for v in np.ravel([x for x in o.params.values() if not isinstance(x, str)]):
             assert math.isfinite(float(v)) and float(v) > 0

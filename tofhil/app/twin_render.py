@@ -62,7 +62,7 @@ def twin_frame_for_session(scene: Any, session_path: str | Path) -> TwinRender:
     (``session_setup``), noise-free, demodulated into depth."""
     from tofhil.session import open_session
 
-    with open_session(session_path) as s:
+    with open_session(session_path, need_frames=True) as s:
         if s.has_raw:
             return twin_frame(scene, camera=s.camera, freq_hz=s.freq_hz, theta_rad=s.theta_rad,
                               integration_time_s=s.integration_time_s, recorded=s.sensor_config, source=s.path)

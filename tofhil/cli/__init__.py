@@ -71,7 +71,7 @@ T = TypeVar("T")
 COMMAND_MODULES: list[str] = ["tofhil.cli.core", "tofhil.cli.imports", "tofhil.cli.ndt", "tofhil.cli.evaluate",
                               "tofhil.cli.simulate", "tofhil.cli.devices", "tofhil.cli.diagnose",
                               "tofhil.cli.sweep", "tofhil.cli.calibrate", "tofhil.cli.scene_from_capture",
-                              "tofhil.cli.model", "tofhil.cli.view"]
+                              "tofhil.cli.model", "tofhil.cli.view", "tofhil.cli.bench"]
 
 
 def lit(value: object) -> str:
@@ -211,6 +211,12 @@ def main(argv: list[str] | None = None) -> None:
     _register_command_modules(args)
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not when started ignoring it (nohup)
         signal.signal(signal.SIGINT, on_interrupt_signal)
+        sys.unraisablehook = _unraisable
+    if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        # SIGTERM (kill, a cluster's scheduler, systemd) ends every command as Ctrl-C does: a
+        # writer keeps its completed frames or removes its partial file, instead of dying silently
+        # and leaving .OUT.PID.partial behind
+        signal.signal(signal.SIGTERM, on_interrupt_signal)
         sys.unraisablehook = _unraisable
     ex = _click_exceptions()
     command = typer.main.get_command(app)

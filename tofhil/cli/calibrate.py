@@ -85,7 +85,7 @@ def colorize_cmd(recording: Path = typer.Argument(..., parser=opt.existing_file,
 
     from tofhil.cli import new_output_dir
     from tofhil.drivers.importers.k4a_color import read_depth_with_color
-    from tofhil.eval.rgb.colorize import colorize_points, session_inputs, write_ply
+    from tofhil.eval.rgb.colorize import colorize_points, depth_noise, session_inputs, write_ply
 
     opt.check_output(out_path, force, (".ply",), "a path ending in .ply")
     if report is not None:
@@ -110,7 +110,8 @@ def colorize_cmd(recording: Path = typer.Argument(..., parser=opt.existing_file,
                               expected="no --extrinsics with a Kinect recording (its factory calibration is used)")
         inp = read_depth_with_color(recording, frame)
     pts = inp.points()
-    res = colorize_points(pts, inp.tof_to_color, inp.color_camera, inp.rgb)
+    res = colorize_points(pts, inp.tof_to_color, inp.color_camera, inp.rgb,
+                          noise_m=depth_noise(inp.z_m, inp.valid)[inp.valid])  # row-major, as points()
     keep = np.ones(len(pts), bool) if keep_occluded else res.visible
     text = (f"{int(res.visible.sum())} of {len(pts)} depth points coloured, {int(res.occluded.sum())} occluded, "
             f"{int(len(pts) - res.visible.sum() - res.occluded.sum())} outside the colour image")

@@ -53,7 +53,7 @@ def depth(session: Path = typer.Argument(..., parser=opt.existing_file, help="A 
 
     if out_path.resolve() == session.resolve():
         raise TofhilError("the output must differ from the input", file=out_path)
-    with open_session(session) as s:
+    with open_session(session, need_frames=True) as s:
         if not s.has_raw:
             raise TofhilError("has no raw taps to demodulate", file=session, field="raw/taps")
         with SessionWriter(out_path, s.camera, device=s.device, scene_text=s.scene_text, force=force,

@@ -73,6 +73,10 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
             roi: Optional[str] = typer.Option(None, "--roi", help="X0,Y0,X1,Y1 sensor pixels, half-open (X1, Y1 exclusive; TOFcam635: multiples of 4)."),
             faults: Optional[str] = typer.Option(None, "--faults",
                                                  help="Emulator only: inject faults, e.g. crc@3,disconnect@6."),
+            seed: Optional[int] = typer.Option(None, "--seed", parser=opt.count(0, 2**63 - 1, what="a seed"),
+                                               help="Emulated devices only: the noise seed (default: a fresh one "
+                                                    "per capture). Recorded in the session's device header as "
+                                                    "emulator_seed, so a capture can be repeated exactly."),
             view: bool = typer.Option(False, "--view", help="Show the frames live in the Rerun viewer (spawned; "
                                       "pip install 'tofhil\\[view]'). The capture never waits on it: a slow "
                                       "viewer drops view frames, never camera frames."),
@@ -108,6 +112,7 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
         emulator.faults = FaultPlan.parse(faults)
     if emulator is not None:
         scene_text = emulator.source.scene_text()
+    device_extra = _seed_emulated(driver, emulator, seed)
     _sigterm_as_interrupt()
     live = None
     ended_cleanly = False
@@ -128,7 +133,7 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
                 next(bar, None)
 
             summary = run_capture(driver, out_path, frames, settings, force=force, scene_text=scene_text,
-                                  on_frame=on_frame)
+                                  on_frame=on_frame, device_extra=device_extra)
             if summary.frames_written == frames:
                 next(bar, None)  # the bar advances on the next request: complete it
             bar.close()
@@ -144,9 +149,36 @@ def capture(device: str = typer.Option(..., "--device", help="emulator[:SCENE], 
         kept = f"kept in {summary.path}" if summary.frames_written else "kept (no file written)"
         console.print(f"interrupted: {summary.frames_written} frames {kept}", highlight=False, markup=False, soft_wrap=True)
         sys.exit(130)
+    if summary.end_of_recording:  # docs/importers.md: reading past the end ends a capture cleanly
+        console.print(f"note: the recording ended after {summary.frames_written} of {summary.requested} frames",
+                      highlight=False, markup=False, soft_wrap=True)
+        return
     if summary.ended_early:
         console.print(f"session ended early: {summary.ended_early}", highlight=False, markup=False, soft_wrap=True)
         sys.exit(3)
+
+
+def _seed_emulated(driver: object, emulator: object, seed: int | None) -> dict[str, int]:
+    """Seed an emulated device's noise: ``seed``, or a fresh one, so that two captures of the
+    same bench differ as two real captures do (they were bit-identical); returned as the
+    device-header entry that records it."""
+    host_scene = getattr(driver, "host_scene", None) if getattr(driver, "host", False) else None
+    seeded = emulator if emulator is not None else (host_scene if hasattr(host_scene, "seed") else None)
+    if seeded is None:
+        if seed is not None:
+            raise DeviceError("a noise seed only applies to an emulated device", field="--seed",
+                              expected="--device emulator[:SCENE] or depthai-sim:SCENE")
+        return {}
+    import secrets
+
+    import numpy as np
+
+    seed = secrets.randbelow(2**63) if seed is None else seed
+    if emulator is not None:
+        emulator.rng = np.random.default_rng(seed)  # type: ignore[attr-defined]
+    else:
+        host_scene.seed = seed  # type: ignore[union-attr]
+    return {"emulator_seed": seed}
 
 
 def _check_view_options(view: bool, save: Path | None, scene: str | None, out_path: Path, force: bool) -> object:
@@ -186,7 +218,8 @@ def emulate(scene: Optional[str] = typer.Option(None, "--scene", help="Scene fil
                                                 "(default: bundled bench_demo, else a wall at 1 m)."),
             pty: bool = typer.Option(False, "--pty", help="Serve on a pseudo-terminal (prints PORT=... first)."),
             faults: Optional[str] = typer.Option(None, "--faults", help="Inject faults, e.g. crc@3,timeout=0.05."),
-            seed: int = typer.Option(0, "--seed", parser=opt.count(0, 2**63 - 1, what="a seed"), help="Noise seed."),
+            seed: Optional[int] = typer.Option(None, "--seed", parser=opt.count(0, 2**63 - 1, what="a seed"),
+                                               help="Noise seed (default: a fresh one, printed)."),
             frame_rate: Optional[float] = typer.Option(None, "--frame-rate", parser=opt.finite(0.0, 1e4, lo_open=True, unit="frames/s"),
                                                        help="Limit frames/s (> 0; default: as fast as possible).")) -> None:
     """Run the TOFcam635 emulator until stopped (Ctrl-C or SIGTERM)."""
@@ -201,6 +234,10 @@ def emulate(scene: Optional[str] = typer.Option(None, "--scene", help="Scene fil
     if not pty:
         raise DeviceError("only the pseudo-terminal transport can be served from the command line",
                           field="--pty", expected="--pty (in-process use: --device emulator)")
+    if seed is None:  # fresh noise per run, as a real camera's; the seed is printed to repeat it
+        import secrets
+
+        seed = secrets.randbelow(2**63)
     emulator = Epc635Emulator(source_from_spec(scene), faults=FaultPlan.parse(faults) if faults else None,
                               seed=seed, frame_interval_s=1.0 / frame_rate if frame_rate else 0.0)
     # Render both modulation frequencies now (a scene render takes seconds), so that no client
@@ -213,7 +250,8 @@ def emulate(scene: Optional[str] = typer.Option(None, "--scene", help="Scene fil
     _sigterm_as_interrupt()
     server = PtyServer(emulator).start()
     print(f"PORT={server.port}", flush=True)
-    console.print(f"emulating TOFcam635 ({emulator.source.description}) on {server.port}; Ctrl-C to stop",
+    console.print(f"emulating TOFcam635 ({emulator.source.description}) on {server.port}, noise seed {seed}; "
+                  "Ctrl-C to stop",
                   highlight=False, markup=False)
     try:
         server.serve_forever()

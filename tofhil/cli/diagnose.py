@@ -25,8 +25,7 @@ def _progress_printer() -> callable:
 
 
 def _summary(res, report: Path) -> None:
-    from tofhil.eval.metrics.core import DEPTH_RMSE
-
+    from tofhil.cli.evaluate import RMSE_LABEL, rmse_footnote
     from tofhil.eval.diagnose.report import headline
 
     g = res.gain
@@ -58,7 +57,7 @@ def _summary(res, report: Path) -> None:
         out.print(f"  left above noise: {lit(r['text'])}", highlight=False)
     for f in res.structure[:8]:
         out.print(f"  residual: {lit(f['text'])}", highlight=False)
-    out.print(f"held-out gain: {DEPTH_RMSE} {g['depth_rmse_m']['before'] * 1e3:.1f} -> "
+    out.print(f"held-out gain: {RMSE_LABEL} {g['depth_rmse_m']['before'] * 1e3:.1f} -> "
               f"{g['depth_rmse_m']['after'] * 1e3:.1f} mm (held-out pixels), amplitude RMSE {g['amplitude_rmse']['before']:.3g} -> {g['amplitude_rmse']['after']:.3g}, "
               f"misfit {res.chi2_per_value['before']:.2f} -> {res.chi2_per_value['after_extended_scene']:.2f} per value "
               f"(1.0 = noise)", highlight=False)
@@ -68,6 +67,7 @@ def _summary(res, report: Path) -> None:
                   highlight=False)
     for line in res.observability.lines:
         out.print(f"[bold]observability:[/bold] {lit(line)}", highlight=False)
+    out.print(rmse_footnote("measured", "twin"), highlight=False, markup=False)
     out.print(f"report: {lit(report)}")
 
 
@@ -81,6 +81,8 @@ def diagnose(session: Path = typer.Argument(..., parser=opt.existing_file,
                                              help="Most effects to add (0: only the base twin's misfit; nothing searched)."),
              candidates: Optional[str] = typer.Option(None, help="Comma-separated effects to try (default: all)."),
              force: bool = typer.Option(False, "--force", help="Overwrite an earlier diagnosis in OUT."),
+             max_memory: Optional[int] = typer.Option(None, "--max-memory", parser=opt.memory_size,
+                                                      help="Refuse before the work when the estimated peak memory of each of its renders exceeds this (2G, 512M, bytes); without it: 70 % of the memory available."),
              view_save: Optional[Path] = typer.Option(
                  None, "--view-save", parser=opt.new_file,
                  help="Also write the diagnosis maps to this .rrd file for the Rerun viewer (pip install "
@@ -103,6 +105,18 @@ def diagnose(session: Path = typer.Argument(..., parser=opt.existing_file,
         if unknown:
             raise TofhilError(f"unknown effect(s) {', '.join(unknown)}", field="--candidates",
                               expected="names from " + ", ".join(known))
+    from tofhil.session import open_session
+    from tofhil.sim.memory import set_memory_limit
+
+    set_memory_limit(max_memory)  # the twin's renders check it before each starts
+    with open_session(session, need_frames=True) as s:  # nothing to diagnose: one line, before the work
+        camera = s.camera
+    if max_memory is not None:  # the first render's estimate, before the first progress line
+        from tofhil.sim.memory import check_memory, render_memory
+        from tofhil.sim.scene import load_scene
+
+        base = load_scene(scene)
+        check_memory(render_memory(base, {"camera": camera}), source=base.source)
     with new_output_dir(out_dir):
         res = run_diagnosis(session, scene, out_dir, force=force, progress=_progress_printer(),
                             max_effects=max_effects, candidates=names)

@@ -14,10 +14,12 @@ from tofhil.errors import TofhilError
 
 _METHOD_HELP = ("METHOD[:key=value,...] (the same syntax as compare --correct): uniform:w=W | "
                 "gaussian-inverse:sigma_h=S,sigma_v=S,w=W[,mu=M] | psf:psf=FILE (a PSF file or diagnosis.json; "
-                "or --calibrate)[,iterations=N] | taps:flat=T.npz | amplitude:min_amplitude=A | "
+                "or --calibrate)[,iterations=N] | twin:scene=EXTENDED.yaml[,remove=light|all] (remove what the fitted "
+                "twin predicts beyond each pixel's direct return) | taps:flat=T.npz | amplitude:min_amplitude=A | "
                 "jump-angle[:angle_deg=D] | jump-distance[:max_step_m=M,relative=R] | smooth-gaussian[:sigma_px=S] | "
                 "smooth-median[:size=N] | smooth-bilateral[:sigma_px=S,sigma_m=M]; complex-domain methods "
-                "take flat=T.npz too")
+                "take flat=T.npz too; uniform, gaussian-inverse and psf take twin=SCENE.yaml (the light of clipped "
+                "source pixels from the twin; without it the pixels it would leave wrong are marked untrusted)")
 
 
 def _pixel_pair(text: str, option: str) -> tuple[float, float]:
@@ -78,6 +80,9 @@ def correct(session: Path = typer.Argument(..., parser=opt.existing_file, help="
     for target in (out_path, save_psf):
         if target is not None:
             refuse_existing(target, force)
+    from tofhil.session import open_session
+
+    open_session(session, need_frames=True).close()  # a session of no frames: one line, not "wrote 0"
     fitted = None
     if calibrate:
         if "psf" in params:
@@ -101,8 +106,15 @@ def correct(session: Path = typer.Argument(..., parser=opt.existing_file, help="
         params["psf"] = fitted
     elif reference or save_psf is not None or ghost_center is not None:
         raise TofhilError("--reference, --ghost-center and --save-psf need --calibrate CAL.h5", field="--calibrate")
+    report: dict[str, Any] = {}
     n = correct_session(session, out_path, name, params, force=force, min_amplitude=min_amplitude,
-                        average=average, progress=progress)
+                        average=average, progress=progress, summary=report)
+    for note in report.get("notes", []):
+        out.print(f"  {note}", highlight=False, markup=False)
+    flagged = {k: v for k, v in (report.get("flagged_pixels") or {}).items() if v}
+    if flagged:
+        out.print("  flagged pixels (correction/flags): " + ", ".join(f"{k} {v}" for k, v in flagged.items()),
+                  highlight=False, markup=False)
     if fitted is not None and save_psf is not None:
         real = fitted.save(save_psf, force=force)
         out.print(f"saved PSF (scattered fraction {fitted.info['scattered_fraction']:.4f}, direct "
@@ -148,7 +160,6 @@ def compare(a: Path = typer.Argument(..., parser=opt.existing_file, help="Measur
     demodulation); each region's noise floor (the RMSE noise alone would give) is printed
     beside its error."""
     from tofhil.eval.compare import compare_sessions
-    from tofhil.eval.metrics.core import DEPTH_RMSE
 
     with new_output_dir(out_dir):
         m = compare_sessions(a, b, out_dir, corrections=correct_specs, rois=roi, masks=mask, row=row, column=column,
@@ -162,21 +173,35 @@ def compare(a: Path = typer.Argument(..., parser=opt.existing_file, help="Measur
                 out.print(compare_line(f"  {region}", r), highlight=False, markup=False)
         for note in v["notes"]:
             out.print(f"  {note}", highlight=False, markup=False)
-    out.print(f"({DEPTH_RMSE}: sqrt(mean((A - B)^2)) over the pixels valid in A and in B)", highlight=False)
+    out.print(rmse_footnote(), highlight=False, markup=False)
     out.print(f"wrote {lit(out_dir / 'metrics.json')} and {lit(out_dir / 'report.html')}")
 
 
-def compare_line(name: str, region: dict[str, Any]) -> str:
-    """One line per variant and region: the depth RMSE (the one definition), the noise floor
-    (the RMSE noise alone would give), median, MAD."""
+#: The console's short name of the headline figure; :func:`rmse_footnote` defines it once, below
+#: the lines that use it (the 100-character definition was repeated on every line).
+RMSE_LABEL = "depth RMSE*"
+
+
+def rmse_footnote(a: str = "A", b: str = "B") -> str:
+    """The one definition of :data:`RMSE_LABEL`, printed once after the lines that use it."""
     from tofhil.eval.metrics.core import DEPTH_RMSE
 
+    return f"* {DEPTH_RMSE}: sqrt(mean(({a} - {b})^2))"
+
+
+def compare_line(name: str, region: dict[str, Any]) -> str:
+    """One line per variant and region: median, MAD, the trimmed RMSE, the depth RMSE
+    (:data:`RMSE_LABEL`, defined once by :func:`rmse_footnote`) and the noise floor (the RMSE
+    noise alone would give)."""
     def mm(x: Any) -> str:
         return "-" if x is None else f"{x * 1000:.2f}"
 
-    d = region["depth_residual_m"]
-    return (f"{name:24s} {DEPTH_RMSE} {mm(d['rmse'])} mm  noise floor {mm(region.get('noise_floor_m'))} mm  "
-            f"median {mm(d['median'])} mm  MAD {mm(d['mad'])} mm  (n={d['n']})")
+    from tofhil.eval.metrics.core import TRIM_FRACTION
+
+    d = region["depth_residual_m"]  # the robust figures first (a strip of outliers moves the RMSE alone)
+    return (f"{name:24s} median {mm(d['median'])} mm  MAD {mm(d['mad'])} mm  "
+            f"RMSE {100 * TRIM_FRACTION:g}%-trimmed {mm(d.get('rmse_trimmed'))} mm  {RMSE_LABEL} {mm(d['rmse'])} mm  "
+            f"noise floor {mm(region.get('noise_floor_m'))} mm  (n={d['n']})")
 
 
 @app.command("calibrate-taps")

@@ -16,7 +16,8 @@ import stat
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["finite", "count", "odd_size", "existing_file", "new_file", "out_dir", "describe_path_problem", "check_output"]
+__all__ = ["finite", "count", "odd_size", "memory_size", "existing_file", "new_file", "out_dir", "describe_path_problem",
+           "check_output"]
 
 
 def _interval(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool, unit: str) -> str:
@@ -66,6 +67,27 @@ def count(lo: int = 1, hi: int | None = None, *, what: str = "an integer") -> Ca
 
     parse.__name__ = "INTEGER"
     return parse
+
+
+_MEMORY_UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
+
+
+def memory_size(text: object) -> int:
+    """A memory size in bytes: ``2G``, ``512M``, ``1.5GiB``, ``4000000`` (binary units), > 0."""
+    if isinstance(text, int) and not isinstance(text, bool):
+        return text
+    s = str(text).strip().lower().removesuffix("ib").removesuffix("b")
+    unit = s[-1:] if s[-1:] in _MEMORY_UNITS else ""
+    try:
+        value = float(s[:len(s) - len(unit)]) * _MEMORY_UNITS[unit]
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and 0 < value < 2 ** 63):
+        raise ValueError(f"{text!s} is not a memory size (expected a size > 0 such as 2G, 512M or bytes)")
+    return int(value)
+
+
+memory_size.__name__ = "SIZE"
 
 
 def odd_size(lo: int = 3, hi: int = 99) -> Callable[[object], int]:

@@ -48,13 +48,17 @@ def simulate(scene: str = typer.Argument(..., help="A scene file (.yaml) or a bu
                                                    help="Also write DIR/report.html: each pixel's light by bounce "
                                                         "and by source object, a direct-ToF scene's histograms, a "
                                                         "lens prescription's ghost PSFs."),
+             max_memory: Optional[int] = typer.Option(None, "--max-memory", parser=opt.memory_size,
+                                                      help="Refuse before the work when the estimated peak memory of a render exceeds this (2G, 512M, bytes); without it: 70 % of the memory available."),
              force: bool = typer.Option(False, "--force", help="Overwrite OUT (and the report) if it exists.")) -> None:
     """Render a scene through the twin (effects, sensor, noise) into a session file with raw taps
     and depth, the scene text embedded; a scene with a direct_tof block gives SPAD histograms and
     the depth of their peaks instead of taps."""
+    from tofhil.sim.memory import set_memory_limit
     from tofhil.sim.pipeline import write_simulation
     from tofhil.sim.scene import load_scene
 
+    set_memory_limit(max_memory)  # checked against the render's estimate before it starts
     overrides = {"params": _parse_assignments(param, "--param")} if param else None
     sc = load_scene(scene, overrides=overrides)
     effects = None
@@ -72,14 +76,20 @@ def simulate(scene: str = typer.Argument(..., help="A scene file (.yaml) or a bu
         from tofhil.outputs import prepare_output_dir
 
         prepare_output_dir(report, OUTPUTS, force=force)  # refuse before the (slow) render
+    # The renderer traces no multipath shares through glass or media: such a scene's report
+    # says so and draws the rest (the tour's `simulate glass_pane --report DIR` was refused).
+    media = any(m.ior is not None or m.scattering_per_m > 0 for m in sc.materials.values())
+    shares = report is not None and not media
     sim = write_simulation(sc, out_path, frames=frames, seed=seed, noise=not no_noise, force=force,
-                           effects=effects, progress=progress, multipath_shares=report is not None)
+                           effects=effects, progress=progress, multipath_shares=shares)
     path = sim.path
     if report is not None:
         from tofhil.eval.reports.simulate import write_simulate_report
 
-        write_simulate_report(report, sc, shares=sim.multipath_shares(sc), direct=sim.direct, session_path=path,
-                              force=force)
+        notes = [] if shares else ["multipath shares are not computed through glass or scattering media: "
+                                   "the scene has a material with ior or scattering_per_m"]
+        write_simulate_report(report, sc, shares=sim.multipath_shares(sc) if shares else None, direct=sim.direct,
+                              session_path=path, force=force, notes=notes)
     out.print(f"wrote {frames} simulated frame{'s' if frames != 1 else ''} of {lit(sc.name or scene)} to {lit(path)}")
     if report is not None:
         out.print(f"report: {lit(report / 'report.html')}")

@@ -89,19 +89,40 @@ _PREFERRED = ("correct", "rmse", "chi2", "removed", "mean_abs", "median")
 def report_metrics(df: Any, axes: Sequence[str], wanted: Sequence[str] = (), limit: int = 12) -> list[str]:
     """The metric columns to plot: those asked for, else numeric ones that vary, the
     headline figures (RMSE, misfit, correct) first."""
-    import pandas as pd
-
-    if wanted:
-        return [m for m in wanted if m in df.columns]
+    if wanted:  # asked for, but a column without a value would be an empty panel
+        return [m for m in wanted if m in df.columns and _numeric(df[m]).notna().any()]
     cols = []
     for c in df.columns:
         if c in axes or c in ("case", "status", "error") or c.endswith("seconds") and c != "seconds":
             continue
-        v = pd.to_numeric(df[c], errors="coerce") if df[c].dtype != bool else df[c].astype(float)
+        v = _numeric(df[c])
         if v.notna().sum() >= 1 and v.nunique(dropna=True) > 1:
             cols.append(c)
     cols.sort(key=lambda c: (min((i for i, p in enumerate(_PREFERRED) if p in c), default=len(_PREFERRED)), c))
     return cols[:limit]
+
+
+def _numeric(column: Any) -> Any:
+    """A column as floats (NaN where a value is not a finite number)."""
+    import numpy as np
+    import pandas as pd
+
+    v = column.astype(float) if column.dtype == bool else pd.to_numeric(column, errors="coerce")
+    return v.where(np.isfinite(v))
+
+
+def metric_panel(a: Any, x: Any, y: Any, cats: Sequence[str] | None) -> None:
+    """One metric against one axis: the cases as points, the mean over cases of each value as
+    a line for a numeric axis, and as a mark per category for a categorical one (categories
+    have no order a line between them would mean)."""
+    import pandas as pd
+
+    a.plot(x, y, "o", alpha=0.6, ms=4)
+    means = pd.DataFrame({"x": x, "y": y}).groupby("x")["y"].mean()
+    if cats is None:
+        a.plot(means.index, means.values, "-", color="C1", lw=1.2, label="mean")
+    else:
+        a.plot(means.index, means.values, "_", color="C1", ms=14, mew=2, linestyle="none", label="mean")
 
 
 def write_report(df: Any, spec: SweepSpec, out_dir: str | Path) -> Path:
@@ -126,10 +147,7 @@ def write_report(df: Any, spec: SweepSpec, out_dir: str | Path) -> Path:
         x = x_raw.astype(float) if numeric else x_raw.astype(str).map({c: i for i, c in enumerate(cats)})
         fig, axs = H.grid(len(metrics), width=4.0, height=3.0)
         for a, m in zip(axs, metrics):
-            y = ok[m].astype(float)
-            a.plot(x, y, "o", alpha=0.6, ms=4)
-            means = pd.DataFrame({"x": x, "y": y}).groupby("x")["y"].mean()
-            a.plot(means.index, means.values, "-", color="C1", lw=1.2, label="mean")
+            metric_panel(a, x, _numeric(ok[m]), cats)
             a.set_xlabel(ax_name, fontsize=8)
             a.set_title(m, fontsize=8)
             a.tick_params(labelsize=7)
@@ -139,7 +157,8 @@ def write_report(df: Any, spec: SweepSpec, out_dir: str | Path) -> Path:
             elif numeric and x.min() > 0 and x.max() / max(x.min(), 1e-300) > 50:
                 a.set_xscale("log")
         figures.append((f"metrics against {ax_name}", H.fig_uri(fig),
-                        "each point a case; the line the mean over cases with the same value (other axes vary)"))
+                        "each point a case; the line (a mark per category) the mean over cases with the same "
+                        "value (other axes vary)"))
     n_err = int((df["status"] != "ok").sum()) if len(df) else 0
     body = [f"<p>{H.esc(spec.description or spec.name)}</p>",
             f"<p>{len(df)} cases ({n_err} failed); design {H.esc(spec.design)}; axes: "
@@ -153,7 +172,9 @@ def write_report(df: Any, spec: SweepSpec, out_dir: str | Path) -> Path:
     head = "<tr>" + "".join(f"<th>{H.esc(c)}</th>" for c in cols) + "</tr>"
     rows = "".join("<tr>" + "".join(f"<td>{H.esc(H.fmt(r[c]) if isinstance(r[c], float) else r[c])}</td>"
                                     for c in cols) + "</tr>" for _, r in df.iterrows())
-    body.append(f"<h2>cases</h2><table>{head}{rows}</table><p class='note'>every figure per case: results.csv, "
+    # in a box of the page's width that scrolls: a sweep's columns are many and their names long
+    body.append(f"<h2>cases</h2><div class='wide'><table class='cases'>{head}{rows}</table></div>"
+                "<p class='note'>every figure per case: results.csv, "
                 "results.parquet; each case's files: cases/CASE_ID/</p>")
     H.write_page(out / "report.html", f"sweep: {spec.name}", body)
     return out / "report.html"

@@ -38,6 +38,13 @@ CALIBRATED_PSF = "@calibration"
 #: case's scene (its parameters, effects and seed); a real device's bench is what it is.
 EMULATED_BENCH = "emulator"
 DISTRIBUTIONS = ("uniform", "log_uniform", "integers", "choice")
+#: Most cases of a sweep (a grid's product of axis lengths, a random design's n), checked
+#: before any case is expanded: each case is at least a simulation of seconds, so a million is
+#: already weeks of CPU, and the case table (a dict a case) stays under a few GB.
+MAX_CASES = 1_000_000
+#: Most values of one axis (a list, or linspace/logspace's n), checked before the values are
+#: made: ``{linspace: [0.5, 2.0, 1e12]}`` would otherwise allocate 7.3 TB.
+MAX_AXIS_VALUES = 100_000
 GRID_FORMS = ("linspace", "logspace")
 
 
@@ -113,7 +120,7 @@ def parse_spec(data: Any, *, source: str = "<spec>", base_dir: str | Path = ".",
     n = 0
     if kind == "random":
         n = s.integer(s.require(design, "n", "design", "the number of random cases (an integer >= 1)"),
-                      "design.n", lo=1, hi=1_000_000)
+                      "design.n", lo=1, hi=MAX_CASES)
     elif "n" in design:
         raise s.error("only for a random design", "design.n", "no 'n' in a grid design")
     dseed = s.integer(design.get("seed", 0), "design.seed", lo=0, hi=2**63 - 1)
@@ -138,6 +145,9 @@ def parse_spec(data: Any, *, source: str = "<spec>", base_dir: str | Path = ".",
             raise s.error(f"unknown axis {name!r}", f, "params.NAME, effects.EFFECT.PARAM, capture.SETTING, "
                           + ", ".join(FIXED_AXES))
         axes[name] = _parse_axis(s, f, name, values, kind)
+    if kind == "grid" and (total := math.prod(len(v) for v in axes.values())) > MAX_CASES:
+        raise s.error(f"a grid of {total:,} cases (" + " x ".join(f"{len(v):,}" for v in axes.values()) + ")",
+                      "axes", f"at most {MAX_CASES:,} cases (fewer values per axis, or design type: random with n)")
     if scene is None and any(a != "session" for a in axes):
         raise s.error("needs a scene", "axes", "only the 'session' axis when batching over recorded sessions")
     frames = s.integer(d.get("frames", 4), "frames", lo=1, hi=100_000)
@@ -347,8 +357,8 @@ def _parse_axis(s: Schema, f: str, name: str, values: Any, design: str) -> Any:
         (form, args), = m.items()
         if form in GRID_FORMS:
             lo, hi, n = s.numbers(args, f"{f}.{form}", n=3, expected="[lo, hi, n]")
-            if n < 1 or n != int(n):
-                raise s.bad(args, f"{f}.{form}", "[lo, hi, n] with n an integer >= 1")
+            if n < 1 or n != int(n) or n > MAX_AXIS_VALUES:
+                raise s.bad(args, f"{f}.{form}", f"[lo, hi, n] with n an integer in [1, {MAX_AXIS_VALUES:,}]")
             if form == "logspace" and (lo <= 0 or hi <= 0):
                 raise s.bad(args, f"{f}.{form}", "[lo, hi, n] with lo, hi > 0")
             pts = np.linspace(lo, hi, int(n)) if form == "linspace" else np.geomspace(lo, hi, int(n))
@@ -369,6 +379,8 @@ def _parse_axis(s: Schema, f: str, name: str, values: Any, design: str) -> Any:
             raise s.error(f"unknown form {form!r}", f, "one of " + ", ".join(GRID_FORMS + DISTRIBUTIONS))
     if not isinstance(values, list) or not values:
         raise s.bad(values, f, "a non-empty list of values, or a form such as {linspace: [lo, hi, n]}")
+    if len(values) > MAX_AXIS_VALUES:
+        raise s.error(f"lists {len(values):,} values", f, f"at most {MAX_AXIS_VALUES:,} values an axis")
     out = []
     for i, v in enumerate(values):
         fi = f"{f}[{i}]"
@@ -413,13 +425,13 @@ def _check_scene(spec: SweepSpec, s: Schema) -> None:
 
 def load_spec(path: str | Path) -> SweepSpec:
     """Read and validate a sweep spec YAML file."""
-    from tofhil.yamlio import load_yaml
+    from tofhil.yamlio import load_yaml, read_yaml_text
 
     p = Path(path)
     if not p.is_file():
         raise InputFileError("is a directory" if p.is_dir() else "no such file", file=p,
                              expected="a sweep spec YAML file")
-    text = p.read_text(encoding="utf-8")
+    text = read_yaml_text(p)  # size bounded before it is read
     data = load_yaml(text, p)
     return parse_spec(data, source=str(p), base_dir=p.resolve().parent, text=text)
 
