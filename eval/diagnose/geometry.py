@@ -33,6 +33,10 @@ from scipy import stats
 GEOMETRY_SHARE = 0.5
 #: Fewer pixels than this say nothing about the organisation of a residual.
 MIN_PIXELS = 50
+#: Whitened residuals are winsorised at this many standard deviations: a few pixels unwrapped to
+#: another interval (hundreds of mm) must not make an object's mean, while an object the twin
+#: misplaces is tens of sigma off over all its pixels and stays far beyond noise when clipped.
+CLIP_SIGMAS = 5.0
 
 
 @dataclass(frozen=True)
@@ -48,19 +52,26 @@ class GeometryEvidence:
     #: Per object, the mean depth residual (mm) the geometry model gives it beyond the field.
     object_offsets_mm: dict[str, float]
     edge_offset_mm: float
+    #: False when the base twin's residual is not organised so and the pattern is the fitted
+    #: set's own (then never the scene's geometry).
+    base_organised: bool = True
 
     def text(self) -> str:
         objs = ", ".join(f"{k} {v:+.1f} mm" for k, v in self.object_offsets_mm.items())
         what = "organised by the scene's objects and edges" if self.organised else "not organised by objects and edges"
+        if not self.base_organised:
+            what += " (the base twin's residual is not: an object pattern the fitted effects put there is theirs)"
         return (f"the depth residual is {what}: object and edge terms beyond a smooth field F = {self.f_statistic:.3g} "
                 f"(p = {self.p_value:.2g}), {100 * self.share:.0f} % of the explained variance (needs "
-                f"{100 * GEOMETRY_SHARE:.0f} %); per object {objs or 'none'}, edges {self.edge_offset_mm:+.1f} mm")
+                f"{100 * GEOMETRY_SHARE:.0f} %); median offset per object against the first "
+                f"{objs or 'none'}, edges against the rest {self.edge_offset_mm:+.1f} mm")
 
     def to_json(self) -> dict[str, Any]:
         return {"organised": self.organised, "f_statistic": round(self.f_statistic, 4), "p_value": self.p_value,
                 "share": round(self.share, 4), "pixels": self.pixels,
                 "object_offsets_mm": {k: round(v, 3) for k, v in self.object_offsets_mm.items()},
-                "edge_offset_mm": round(self.edge_offset_mm, 3), "rule": self.text()}
+                "edge_offset_mm": round(self.edge_offset_mm, 3), "base_organised": self.base_organised,
+                "rule": self.text()}
 
 
 def _field_terms(cols: np.ndarray, rows: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -79,7 +90,7 @@ def geometry_evidence(depth_residual_m: np.ndarray, sigma_m: np.ndarray, pixels:
         return None
     rows, cols = np.nonzero(use)
     w = 1.0 / sigma_m[use]
-    y = depth_residual_m[use] * w
+    y = np.clip(depth_residual_m[use] * w, -CLIP_SIGMAS, CLIP_SIGMAS)
     smooth = _field_terms(cols, rows, use.shape)
     ids = np.asarray(object_id)[use]
     # one indicator per object that holds pixels, less one (the field's constant stands for it)
@@ -102,7 +113,11 @@ def geometry_evidence(depth_residual_m: np.ndarray, sigma_m: np.ndarray, pixels:
     p = float(stats.f.sf(f, p1 - p0, dof))
     explained = rss_none - rss1
     share = (rss0 - rss1) / explained if explained > 0 else 0.0
-    offsets = {object_names.get(int(i), f"object {int(i)}"): float(c) * 1e3
-               for i, c in zip(present[1:], coef1[p0:p0 + len(indicators)])}
-    edge_mm = float(coef1[-1]) * 1e3 if len(extra) > len(indicators) else 0.0
+    # each object's (and the edges') offset beyond the field, in mm: the median residual there
+    # minus the first object's (the coefficients are in clipped sigma units)
+    r_mm = depth_residual_m[use] * 1e3
+    ref = float(np.median(r_mm[ids == present[0]])) if present else 0.0
+    offsets = {object_names.get(int(i), f"object {int(i)}"): float(np.median(r_mm[ids == i])) - ref
+               for i in present[1:]}
+    edge_mm = float(np.median(r_mm[edge > 0]) - np.median(r_mm[edge == 0])) if len(extra) > len(indicators) else 0.0
     return GeometryEvidence(bool(p < alpha and share > GEOMETRY_SHARE), float(f), p, float(share), n, offsets, edge_mm)

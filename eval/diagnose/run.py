@@ -341,6 +341,7 @@ class _Judge:
         self.n = max(data.n_values("test"), 1)
         self.objects_before = V.object_misfits(data, base_pred, self.nu, object_id, object_names)
         self.geometry: GeometryEvidence | None = None
+        self.geometry_base = self.organised_by_geometry(base_pred)
 
     def organised_by_geometry(self, prediction: np.ndarray) -> GeometryEvidence | None:
         """Whether the held-out depth residual left by ``prediction`` is organised by the scene's
@@ -354,6 +355,13 @@ class _Judge:
                                         data.unambiguous_range_m)
         sigma_depth, _ = V.channel_sigmas(data)
         pixels = data.test_pixels & distance_defined(data, prediction)
+        if data.n_freq >= 2:
+            # pixels unwrapped to another interval carry no comparable depth (as in every figure)
+            from tofhil.demod import ambiguity_range_m
+
+            limit = M.UNWRAP_ERROR_FRACTION * float(ambiguity_range_m(float(np.max(data.freq_hz))))
+            with np.errstate(invalid="ignore"):
+                pixels &= np.abs(residual) <= limit
         edges = DS.edge_mask(d_meas, data.usable, self.object_id)
         return geometry_evidence(residual, sigma_depth, pixels, self.object_id, self.object_names, edges, V.ALPHA)
 
@@ -366,7 +374,12 @@ class _Judge:
             worse = sorted(set(worse) | {c for c, g in self.sizes.compare(self.base_pred, after_pred).items()
                                          if g.worse})
         objects_after = V.object_misfits(data, after_pred, self.nu, self.object_id, self.object_names)
-        self.geometry = self.organised_by_geometry(after_pred)
+        after = self.organised_by_geometry(after_pred) if causes else self.geometry_base
+        # the geometry is wrong where the base twin's residual is organised by objects and edges
+        # and the fitted set leaves it so; a pattern the fitted set alone puts there is its own
+        if after is not None and not (self.geometry_base and self.geometry_base.organised):
+            after = dataclasses.replace(after, organised=False, base_organised=False)
+        self.geometry = after
         v = V.verdict(searched=selection.searched, causes=causes, n_values=self.n, nu=self.nu,
                       before_per_value=selection.baseline_chi2_test / self.n,
                       after_per_value=data.chi2(after_pred, "test") / self.n, worse=worse,
