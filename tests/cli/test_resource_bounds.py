@@ -380,6 +380,9 @@ COVERAGE: dict[str, str] = {
     "colorize": "reads Azure Kinect MKV recordings (tests/drivers/test_import_mkv.py: truncated and malformed)",
     "ndt": "reads point clouds or sessions (tests/cli/test_hostile_inputs.py: ndt-*)",
     "demo": "its inputs are bundled",
+    "bench": "plans and spec sheets through the YAML bounds, scenes through the scene bounds, its captures' "
+             "sessions through the session bounds (tests/app/test_bench_campaign.py: impossible plans, unknown "
+             "spec fields)",
     "devices": "reads no file",
     "effects": "reads no file",
 }

@@ -56,7 +56,9 @@ def test_the_systematic_part_removed_is_the_hidden_pattern_however_strong_the_no
     data = heldout_from_signal(truth, sigma=20e-3 * k, seed=5)  # depth noise sigma / (A k) = 20 mm
     sizes = V.EffectSize(data)
     assert sizes.noise["depth"] == pytest.approx(20e-3, rel=0.05)
-    assert sizes.minimum["depth"] == pytest.approx(2e-3, rel=0.05)
+    # the minimum is a tenth of what the capture reaches: the pixel noise with every frame averaged
+    reach = np.sqrt(data.n_test_frames / (data.n_train_frames + data.n_test_frames))
+    assert sizes.minimum["depth"] == pytest.approx(2e-3 * reach, rel=0.05)
     g = sizes.compare(np.ones_like(truth), truth)["depth"]
     rms_pattern = float(np.sqrt(np.mean(pattern_m[data.test_pixels] ** 2)))
     assert g.systematic == pytest.approx(rms_pattern, rel=0.15)
