@@ -238,11 +238,12 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
                      + (f"; runner-up {runner.effect} {100 * runner.relative_gain:.1f}%" if runner else ""))
     for i, rnd in enumerate(selection.rounds):
         for c in rnd:
-            if c.worse_channels and c.delta_score > 0:
-                chosen = i < len(selection.causes) and selection.causes[i] == c.effect
+            # the channels a selected cause makes worse (the explanation is partial there); those
+            # of candidates not chosen are in diagnosis.json's rounds, not worth a reader's line
+            if c.worse_channels and i < len(selection.causes) and selection.causes[i] == c.effect:
                 lines.append(f"round {i + 1}: {c.effect} lowers the held-out score and makes "
-                             f"{', '.join(c.worse_channels)} worse beyond its noise"
-                             + (" -- selected: the explanation is partial there" if chosen else " (accounted)"))
+                             f"{', '.join(c.worse_channels)} worse beyond its noise -- selected: the explanation "
+                             "is partial there")
     for e, names in selection.at_bounds.items():
         if names:
             lines.append(f"{e}: {', '.join(names)} fitted at the bound of the range searched")
