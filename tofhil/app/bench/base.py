@@ -174,3 +174,16 @@ class BenchOptions:
     hidden: dict[str, Any] = field(default_factory=dict)
     prompt: Callable[[str], None] | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+
+
+def acquisition(opts: "BenchOptions", rig: Any, integration_time_us: float = 125.0) -> tuple[dict[str, Any], str]:
+    """A procedure plan's first step and who performs its bench changes: raw taps where the
+    device has them (at the procedure's exposure and 20 MHz unless the user asks otherwise),
+    else its depth mode; the bench changed by the emulator where it can, else by prompting the
+    operator."""
+    raw = "dcs" in rig.capabilities.modes
+    settings: dict[str, Any] = {"mode": "dcs" if raw else "distance"}
+    if raw:
+        settings["integration_time_us"] = opts.integration_time_us or integration_time_us
+        settings["mod_freq_hz"] = opts.mod_freq_hz or 20e6
+    return {"settings": settings}, "emulator" if "emulator" in rig.capabilities.bench_by else "prompt"

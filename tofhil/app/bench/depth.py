@@ -31,7 +31,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from tofhil.app.bench.base import BenchOptions, BenchResult, Figure
+from tofhil.app.bench.base import BenchOptions, BenchResult, Figure, acquisition
 from tofhil.app.campaign import CampaignResult, Plan, parse_plan
 from tofhil.errors import TofhilError
 
@@ -244,15 +244,10 @@ class Accuracy:
 
     @staticmethod
     def make_plan(opts: BenchOptions, rig: Any) -> Plan:
-        emulated = "emulator" in rig.capabilities.bench_by
-        raw = "dcs" in rig.capabilities.modes
-        settings: dict[str, Any] = {"mode": "dcs" if raw else "distance"}
-        if raw:
-            settings["integration_time_us"] = opts.integration_time_us or 125
-            settings["mod_freq_hz"] = opts.mod_freq_hz or 20e6
-        steps: list[dict[str, Any]] = [{"settings": settings}]
+        first, by = acquisition(opts, rig, 125)
+        steps: list[dict[str, Any]] = [first]
         for d in opts.distances_m:
-            steps.append({"bench": {DISTANCE_PARAM: float(d)}, "by": "emulator" if emulated else "prompt",
+            steps.append({"bench": {DISTANCE_PARAM: float(d)}, "by": by,
                           "message": f"put the flat target perpendicular to the optical axis at {d:g} m"})
             if opts.extra.get("settle_s"):
                 steps.append({"wait": float(opts.extra["settle_s"])})
@@ -598,16 +593,11 @@ class Ambient:
 
     @staticmethod
     def make_plan(opts: BenchOptions, rig: Any) -> Plan:
-        emulated = "emulator" in rig.capabilities.bench_by
-        raw = "dcs" in rig.capabilities.modes
-        settings: dict[str, Any] = {"mode": "dcs" if raw else "distance"}
-        if raw:
-            settings["integration_time_us"] = opts.integration_time_us or 125
-            settings["mod_freq_hz"] = opts.mod_freq_hz or 20e6
+        first, by = acquisition(opts, rig, 125)
         d = float(opts.extra.get("ambient_distance_m", 1.0))
-        steps: list[dict[str, Any]] = [{"settings": settings}]
+        steps: list[dict[str, Any]] = [first]
         for a in opts.extra.get("ambient_w_m2") or Ambient.LEVELS_W_M2:
-            steps.append({"bench": {DISTANCE_PARAM: d, AMBIENT: float(a)}, "by": "emulator" if emulated else "prompt",
+            steps.append({"bench": {DISTANCE_PARAM: d, AMBIENT: float(a)}, "by": by,
                           "message": f"flat target at {d:g} m; set the lamp to {a:g} W/m² on the target (radiometer)"})
             steps.append({"capture": {"label": f"amb{float(a):g}", "frames": opts.frames}})
         return parse_plan({"name": Ambient.NAME, "steps": steps}, f"<{Ambient.NAME} plan>")

@@ -10,7 +10,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from tofhil.app.bench.base import BenchOptions, BenchResult, Figure
+from tofhil.app.bench.base import BenchOptions, BenchResult, Figure, acquisition
 from tofhil.app.bench.depth import (
     DISTANCE_PARAM, FALSE_ALARM, _depth_stack, _nanmean, _nested_fits, _rig, _twin_stack,
     analyse_series, as_procedure,
@@ -33,17 +33,12 @@ class DarkSquares:
 
     @staticmethod
     def make_plan(opts: BenchOptions, rig: Any) -> Plan:
-        emulated = "emulator" in rig.capabilities.bench_by
-        raw = "dcs" in rig.capabilities.modes
-        settings: dict[str, Any] = {"mode": "dcs" if raw else "distance"}
-        if raw:
-            settings["integration_time_us"] = opts.integration_time_us or 375
-            settings["mod_freq_hz"] = opts.mod_freq_hz or 20e6
+        first, by = acquisition(opts, rig, 375)
         d = float(opts.extra.get("square_distance_m", 1.0))
-        steps: list[dict[str, Any]] = [{"settings": settings}]
+        steps: list[dict[str, Any]] = [first]
         for rho in opts.extra.get("square_reflectances") or DarkSquares.REFLECTANCES:
             steps.append({"bench": {DISTANCE_PARAM: d, "square_reflectance": float(rho)},
-                          "by": "emulator" if emulated else "prompt",
+                          "by": by,
                           "message": f"wall at {d:g} m; the square of {100 * rho:g} % of the wall's reflectance"})
             steps.append({"capture": {"label": f"sq{float(rho):g}", "frames": opts.frames}})
         return parse_plan({"name": DarkSquares.NAME, "steps": steps}, f"<{DarkSquares.NAME} plan>")
@@ -104,17 +99,12 @@ class MultipathCorner:
 
     @staticmethod
     def make_plan(opts: BenchOptions, rig: Any) -> Plan:
-        emulated = "emulator" in rig.capabilities.bench_by
-        raw = "dcs" in rig.capabilities.modes
-        settings: dict[str, Any] = {"mode": "dcs" if raw else "distance"}
-        if raw:
-            # 125 us: the emulated TOFcam635 renders there and scales other exposures linearly, its
-            # fixed offsets too (at 250 us the factor reads 0.993 +- 0.002 with nothing hidden)
-            settings["integration_time_us"] = opts.integration_time_us or 125
-            settings["mod_freq_hz"] = opts.mod_freq_hz or 20e6
-        steps: list[dict[str, Any]] = [{"settings": settings}]
+        # 125 us: the emulated TOFcam635 renders there and scales other exposures linearly, its
+        # fixed offsets too (at 250 us the factor reads 0.993 +- 0.002 with nothing hidden)
+        first, by = acquisition(opts, rig, 125)
+        steps: list[dict[str, Any]] = [first]
         for d in opts.extra.get("corner_distances_m") or (1.2,):
-            steps.append({"bench": {MultipathCorner.PARAM: float(d)}, "by": "emulator" if emulated else "prompt",
+            steps.append({"bench": {MultipathCorner.PARAM: float(d)}, "by": by,
                           "message": f"camera on the corner's diagonal, {d:g} m from its apex, looking at it"})
             steps.append({"capture": {"label": f"corner{float(d):g}m", "frames": opts.frames}})
         return parse_plan({"name": MultipathCorner.NAME, "steps": steps}, f"<{MultipathCorner.NAME} plan>")

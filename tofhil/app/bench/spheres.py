@@ -9,7 +9,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from tofhil.app.bench.base import BenchOptions, BenchResult, Figure
+from tofhil.app.bench.base import BenchOptions, BenchResult, Figure, acquisition
 from tofhil.app.bench.depth import (
     _depth_stack, _nanmean, _rig, _split, _twin_stack,
     as_procedure,
@@ -31,15 +31,10 @@ class Spheres:
 
     @staticmethod
     def make_plan(opts: BenchOptions, rig: Any) -> Plan:
-        emulated = "emulator" in rig.capabilities.bench_by
-        raw = "dcs" in rig.capabilities.modes
-        settings: dict[str, Any] = {"mode": "dcs" if raw else "distance"}
-        if raw:
-            settings["integration_time_us"] = opts.integration_time_us or 125
-            settings["mod_freq_hz"] = opts.mod_freq_hz or 20e6
-        steps: list[dict[str, Any]] = [{"settings": settings}]
+        first, by = acquisition(opts, rig, 125)
+        steps: list[dict[str, Any]] = [first]
         for d in opts.extra.get("spheres_distances_m") or (1.0,):
-            steps.append({"bench": {"spheres_distance_m": float(d)}, "by": "emulator" if emulated else "prompt",
+            steps.append({"bench": {"spheres_distance_m": float(d)}, "by": by,
                           "message": f"the sphere bar across the view, its spheres {d:g} m from the camera"})
             steps.append({"capture": {"label": f"spheres{float(d):g}m", "frames": opts.frames}})
         return parse_plan({"name": Spheres.NAME, "steps": steps}, f"<{Spheres.NAME} plan>")

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from tofhil.app.bench.base import BenchOptions, BenchResult, Figure
+from tofhil.app.bench.base import BenchOptions, BenchResult, Figure, acquisition
 from tofhil.app.bench.depth import (
     DISTANCE_PARAM, FALSE_ALARM, _depth_stack, _nested_fits, _rig, as_procedure,
 )
@@ -30,15 +30,10 @@ class WarmUp:
 
     @staticmethod
     def make_plan(opts: BenchOptions, rig: Any) -> Plan:
-        emulated = "emulator" in rig.capabilities.bench_by
-        raw = "dcs" in rig.capabilities.modes
-        settings: dict[str, Any] = {"mode": "dcs" if raw else "distance"}
-        if raw:
-            settings["integration_time_us"] = opts.integration_time_us or 125
-            settings["mod_freq_hz"] = opts.mod_freq_hz or 20e6
+        first, by = acquisition(opts, rig, 125)
         d = float(opts.extra.get("warmup_distance_m", 1.0))
-        steps: list[dict[str, Any]] = [{"settings": settings},
-                                       {"bench": {DISTANCE_PARAM: d}, "by": "emulator" if emulated else "prompt",
+        steps: list[dict[str, Any]] = [first,
+                                       {"bench": {DISTANCE_PARAM: d}, "by": by,
                                         "message": f"flat target at {d:g} m; power the camera on now"}]
         n = int(opts.extra.get("warmup_captures", WarmUp.CAPTURES))
         for i in range(n):
