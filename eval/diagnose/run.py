@@ -24,10 +24,10 @@ from tofhil.outputs import prepare_output_dir, refuse_existing
 from tofhil.demod import bad_tap_pixels
 from tofhil.errors import TofhilError
 from tofhil.eval.metrics import core as M
-from tofhil.eval.diagnose.channels import prediction_readings, residual_by_channel, sensor_noise_variance
+from tofhil.eval.diagnose.channels import residual_by_channel, sensor_noise_variance
 from tofhil.eval.diagnose.leftover import what_is_left
 from tofhil.eval.diagnose.depth_heldout import observable_candidates, split_for_diagnosis
-from tofhil.eval.diagnose.geometry import GeometryEvidence, geometry_evidence
+from tofhil.eval.diagnose.geometry import GeometryEvidence
 from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal
 from tofhil.eval.diagnose.linear_forms import MAP_EFFECT, fit_frame_drift
 from tofhil.eval.diagnose.observability import Observability, assess, shape_ambiguities
@@ -35,7 +35,9 @@ from tofhil.eval.diagnose.selection import Selection, greedy_select
 from tofhil.eval.diagnose.signal_scale import (SignalScale, fit_signal_scale, needs_scale, scaled_scene,
                                                without_fixed_pattern)
 from tofhil.eval.diagnose.twin_model import TwinModel, to_effect_values
+from tofhil.eval.diagnose import decide as D
 from tofhil.eval.diagnose import verdict as V
+from tofhil.eval.diagnose.decide import DRIFT
 from tofhil.frames import DepthFrame
 from tofhil.session import open_session
 
@@ -127,8 +129,6 @@ HELD_OUT = "held-out"
 #: The pixels the held-out figures use, written next to the report: ``tofhil compare
 #: --mask`` with it gives the same figures for the capture against the twin.
 HELD_OUT_MASK = "heldout_pixels.npy"
-#: The name of the per-frame drift form among the candidates (it is not a scene effect).
-DRIFT = "drift"
 #: The fitted range offset map [H, W] (m), beside the extended scene that loads it.
 OFFSET_MAP_FILE = "range_offset_map.npy"
 
@@ -331,156 +331,6 @@ class _ExtendedScene:
         return after_model, after_model.predict({})
 
 
-class _Judge:
-    """The verdict on a prediction of the held-out data, with its per-channel and per-object misfits."""
-
-    def __init__(self, data: HeldOutData, selection: Selection, base_pred: np.ndarray, object_id: np.ndarray,
-                 object_names: dict[int, str], sizes: V.EffectSize | None = None) -> None:
-        self.data, self.selection, self.object_id, self.object_names = data, selection, object_id, object_names
-        self.base_pred, self.sizes = base_pred, sizes
-        self.nu = V.noise_dof(data)
-        self.n = max(data.n_values("test"), 1)
-        self.objects_before = V.object_misfits(data, base_pred, self.nu, object_id, object_names)
-        self.geometry: GeometryEvidence | None = None
-        self.geometry_base = self.organised_by_geometry(base_pred)
-
-    def organised_by_geometry(self, prediction: np.ndarray) -> GeometryEvidence | None:
-        """Whether the held-out depth residual left by ``prediction`` is organised by the scene's
-        objects and edges (:mod:`tofhil.eval.diagnose.geometry`)."""
-        from tofhil.eval.diagnose import structure as DS
-
-        data = self.data
-        nf = data.n_freq
-        d_meas = depth_from_signal(data.s_test[:nf], data.freq_hz)
-        residual = M.wrapped_difference(d_meas, depth_from_signal(prediction[:nf], data.freq_hz),
-                                        data.unambiguous_range_m)
-        sigma_depth, _ = V.channel_sigmas(data)
-        pixels = data.test_pixels & distance_defined(data, prediction)
-        if data.n_freq >= 2:
-            # pixels unwrapped to another interval carry no comparable depth (as in every figure)
-            from tofhil.demod import ambiguity_range_m
-
-            limit = M.UNWRAP_ERROR_FRACTION * float(ambiguity_range_m(float(np.max(data.freq_hz))))
-            with np.errstate(invalid="ignore"):
-                pixels &= np.abs(residual) <= limit
-        edges = DS.edge_mask(d_meas, data.usable, self.object_id)
-        return geometry_evidence(residual, sigma_depth, pixels, self.object_id, self.object_names, edges, V.ALPHA)
-
-    def __call__(self, after_pred: np.ndarray, causes: list[str]) -> tuple[V.Verdict, dict, dict, list[str]]:
-        data, selection = self.data, self.selection
-        ch_after = V.channel_chi2(data, after_pred)
-        worse = V.worse_channels(selection.channels_before, ch_after)
-        if self.sizes is not None and causes:
-            # a channel whose RMSE gains a systematic part is worse in its own units too
-            worse = sorted(set(worse) | {c for c, g in self.sizes.compare(self.base_pred, after_pred).items()
-                                         if g.worse})
-        objects_after = V.object_misfits(data, after_pred, self.nu, self.object_id, self.object_names)
-        after = self.organised_by_geometry(after_pred) if causes else self.geometry_base
-        # the geometry is wrong where the base twin's residual is organised by objects and edges
-        # and the fitted set leaves it so; a pattern the fitted set alone puts there is its own
-        if after is not None and not (self.geometry_base and self.geometry_base.organised):
-            after = dataclasses.replace(after, organised=False, base_organised=False)
-        self.geometry = after
-        v = V.verdict(searched=selection.searched, causes=causes, n_values=self.n, nu=self.nu,
-                      before_per_value=selection.baseline_chi2_test / self.n,
-                      after_per_value=data.chi2(after_pred, "test") / self.n, worse=worse,
-                      objects_before=self.objects_before, objects_after=objects_after, pinned=selection.at_bounds,
-                      rejected_for_channels=selection.rejected_for_channels, geometry=self.geometry)
-        return v, ch_after, objects_after, worse
-
-
-def _settle(selection: Selection, data: HeldOutData, sizes: V.EffectSize, judge: _Judge, extend: _ExtendedScene,
-            base_pred: np.ndarray, after_pred: np.ndarray, after_model: TwinModel, max_effects: int) -> tuple:
-    """The verdict on the extended scene as written: a set that loses its gain there, or that
-    was fitted to a scene that does not match, is "fitted but not named" and the extended
-    scene is the base again."""
-    verdict, ch_after, objects_after, worse = judge(after_pred, list(selection.causes))
-    size_after = sizes.compare(base_pred, after_pred)
-    if selection.causes and not V.EffectSize.worth_naming(size_after):
-        # the extended scene as written and read back must keep the gain the selection saw
-        verdict.notes.append("fitted but not named: " + ", ".join(selection.causes) + " (as the extended scene: "
-                             + V.EffectSize.describe(size_after) + "; " + V.effect_size_rule() + ")")
-        selection.causes, selection.params = [], {}
-        after_model, after_pred = extend({})
-        verdict, ch_after, objects_after, worse = judge(after_pred, [])
-    elif verdict.kind is V.Kind.SCENE_MISMATCH and selection.causes:
-        # No effect is named on a scene that does not match: the extended scene is the base.
-        # what the fitted set would have done, on the held-out pixels (a lower misfit can come
-        # with a worse depth RMSE: the misfit weighs each pixel by its noise, the RMSE does not)
-        ok = distance_defined(data, base_pred, after_pred)
-        fb, _, _ = heldout_metrics(data, base_pred, ok)
-        fa, _, _ = heldout_metrics(data, after_pred, ok)
-        verdict.notes.append("fitted but not named: " + ", ".join(selection.causes)
-                             + f" (with them, held-out misfit {fb['chi2_per_value']:.2f} -> {fa['chi2_per_value']:.2f}"
-                             f" per value, depth RMSE {fb['depth_rmse_m'] * 1e3:.2f} -> {fa['depth_rmse_m'] * 1e3:.2f} mm,"
-                             f" amplitude RMSE {fb['amplitude_rmse']:.3g} -> {fa['amplitude_rmse']:.3g})")
-        selection.causes, selection.params = [], {}
-        after_model, after_pred = extend({})
-        _, ch_after, objects_after, worse = judge(after_pred, [])
-    if verdict.kind is V.Kind.PARTLY_EXPLAINED and len(selection.causes) >= max_effects:
-        # The search stopped at its limit, not because nothing significant was left: the rest
-        # may be a further effect (the emulated TOFcam635 hides three; with max_effects 2 its
-        # clock-skew pattern was left out, or taken up by lens_distortion in older code).
-        verdict.notes.append(f"the search stopped at max_effects = {max_effects}: the excess left may hold a "
-                             "further effect (diagnose again with a larger --max-effects)")
-    return verdict, ch_after, objects_after, worse, after_model, after_pred
-
-
-def _moved_clean_channels(model: TwinModel, data: HeldOutData, selection: Selection,
-                          base_pred: np.ndarray) -> dict[str, list[str]]:
-    """The causes that put a part into a channel where the base twin's residual has none: a
-    reading within noise with the base twin and beyond it with every cause, that comes back
-    within noise without that cause (each effect's signature read off its fitted change,
-    against the residual's). Judged on the final model: one cause may move a channel that a
-    later one takes back (stray light alone moves the demo's gain by -0.9 %, the final model
-    by 0.0 %)."""
-    if not selection.causes or not hasattr(data, "freq_hz"):
-        return {}
-    before = prediction_readings(data, base_pred)
-    clean = {n for n, r in before.items() if not r.significant}
-    after = prediction_readings(data, model.predict(selection.params))
-    moved = [n for n in clean if after[n].significant]
-    out: dict[str, list[str]] = {}
-    if not moved:
-        return out
-    for c in selection.causes:
-        without = prediction_readings(data, model.predict({e: v for e, v in selection.params.items() if e != c}))
-        back = [after[n].text for n in moved if not without[n].significant]
-        if back:
-            out[c] = back
-    return out
-
-
-def _drift_alone(model: TwinModel, data: HeldOutData, selection: Selection, drift: Any, penalty: float) -> Any:
-    """The drift fitted on the base twin, when it explains the frames as well as the selected
-    causes with the drift on top (their parameters charged at ``penalty`` each): then the causes
-    only took up the drift's mean. None when the causes are needed."""
-    alone = fit_frame_drift(model, data, {}, penalty)
-    if alone is None or not alone.named:
-        return None
-    k = sum(len(v) for e, v in selection.params.items() if e != MAP_EFFECT)
-    k += float(selection.details.get(MAP_EFFECT, {}).get("dof", 0.0)) if MAP_EFFECT in selection.params else 0.0
-    return alone if alone.chi2_drift <= drift.chi2_drift + penalty * max(k, 1.0) else None
-
-
-def _with_drift(verdict: V.Verdict, drift: Any, judge: _Judge, evidence: list[str]) -> V.Verdict:
-    """The frames' mean hides a drift (it inflates the frame-to-frame noise instead): a named
-    drift is the verdict where nothing else was, on the held-out pixels of every frame."""
-    if drift is None:
-        return verdict
-    evidence.append(drift.text)
-    if drift.named and verdict.kind in (V.Kind.WITHIN_NOISE, V.Kind.UNEXPLAINED):
-        verdict = V.verdict(searched=True, causes=[DRIFT], n_values=drift.n_values, nu=judge.nu,
-                            before_per_value=drift.chi2_static / drift.n_values,
-                            after_per_value=drift.chi2_drift / drift.n_values, worse=[],
-                            objects_before=judge.objects_before, objects_after=judge.objects_before, pinned={},
-                            rejected_for_channels=[])
-        verdict.notes.append(drift.text)
-    elif drift.named:
-        verdict.notes.append(drift.text)
-    return verdict
-
-
 def _ranking(selection: Selection) -> tuple[list[dict[str, Any]], list[list[dict[str, Any]]]]:
     """The first round's candidates in full and every round's in brief, as JSON."""
     ranked = [{"effect": c.effect, "params": _json_params(c.effect, c.params, c.details), "score": c.score,
@@ -508,17 +358,6 @@ def _signature_maps(model: TwinModel, data: HeldOutData, selection: Selection) -
         maps[f"signature_depth_{e}"] = np.where(distance_defined(data, p_with, p_without), change, np.nan)
         maps[f"signature_amplitude_{e}"] = (np.abs(p_with[:nf]) - np.abs(p_without[:nf])).mean(axis=0)
     return maps
-
-
-def _rmse_worse_notes(verdict: V.Verdict, gain: dict[str, dict[str, float]]) -> None:
-    """The misfit weighs each pixel by its noise and caps outliers; the RMSE does neither. A
-    named cause that leaves an unweighted figure worse is said, not hidden."""
-    for k, label, scale, unit in (("depth_rmse_m", "depth RMSE", 1e3, " mm"), ("amplitude_rmse", "amplitude RMSE", 1.0, "")):
-        b, a = gain[k]["before"], gain[k]["after"]
-        if np.isfinite(a) and np.isfinite(b) and a > 1.005 * b:  # (0.5 %: not a rounding)
-            verdict.notes.append(f"held-out {label} {b * scale:.4g} -> {a * scale:.4g}{unit} is worse after the fit: "
-                                 "the misfit that chose the cause weighs pixels by their noise and caps outliers, "
-                                 "the RMSE does not")
 
 
 def _channel_tables(data: HeldOutData, model: TwinModel, after_model: TwinModel, base_pred: np.ndarray,
@@ -579,13 +418,13 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                               min_relative_gain=min_relative_gain, progress=progress, effect_size=sizes)
     # a cause that puts a part into a channel the base twin had clean is accounted, not unnamed:
     # the explanation is partial there
-    moved = _moved_clean_channels(model, data, selection, base_pred)
+    moved = D.moved_clean_channels(model, data, selection, base_pred)
     ext_path = Path(extended_scene_path) if extended_scene_path else None
     extend = _ExtendedScene(model, data, ext_path, render_kwargs)
     after_model, after_pred = extend(selection.params)
     object_id = np.asarray(model.base_render().object_id)
     object_names = {i: o.name for i, o in enumerate(model.scene.objects)}
-    judge = _Judge(data, selection, base_pred, object_id, object_names, sizes)
+    judge = D.Judge(data, selection, base_pred, object_id, object_names, sizes)
     n = judge.n
 
     evidence = _evidence(selection, data)
@@ -594,7 +433,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     for line in selection.too_small.values():
         evidence.append(f"not named, its held-out gain is too small or makes a channel worse: {line}")
     evidence.extend(selection.not_tried.values())
-    verdict, ch_after, objects_after, worse, after_model, after_pred = _settle(
+    verdict, ch_after, objects_after, worse, after_model, after_pred = D.settle(
         selection, data, sizes, judge, extend, base_pred, after_pred, after_model, max_effects)
     for c, texts in moved.items():
         if c in selection.causes:
@@ -602,7 +441,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                                  + "; ".join(texts) + "): the explanation is partial there")
     drift = fit_frame_drift(model, data, selection.params, float(np.log(n))) if want_drift else None
     if drift is not None and drift.named and selection.causes:
-        alone = _drift_alone(model, data, selection, drift, float(np.log(n)))
+        alone = D.drift_alone(model, data, selection, drift, float(np.log(n)))
         if alone is not None:
             # the static causes stood in for the drift's mean: the drift alone explains every frame
             verdict_note = ("fitted but not named: " + " + ".join(selection.causes) + " (the per-frame drift alone "
@@ -614,7 +453,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
             verdict, ch_after, objects_after, worse = judge(after_pred, [])
             verdict.notes.append(verdict_note)
             drift = alone
-    verdict = _with_drift(verdict, drift, judge, evidence)
+    verdict = D.with_drift(verdict, drift, judge, evidence)
     for e in selection.causes:  # "A or B": the named cause is not the only reading of the data
         verdict.notes.extend(a.text for a in selection.alternatives.get(e, ()))
     params = {e: _json_params(e, v, selection.details.get(e)) for e, v in selection.params.items()}
@@ -648,7 +487,7 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         maps_after["amplitude_residual"])
     gain = {k: {"before": before[k], "after": after.get(k, float("nan"))} for k in before}
     if selection.causes and verdict is not None:
-        _rmse_worse_notes(verdict, gain)
+        D.rmse_worse_notes(verdict, gain)
     for key, label in (("before", "with the base twin"), ("after", "with the extended twin")):
         n_wrong = int(gain["unwrap_error_pixels"][key])
         if n_wrong:

@@ -113,7 +113,8 @@ def test_a_cause_that_moves_a_clean_channel_is_not_named(tmp_path, scene):
     """The final model's readings against the base twin's: a range offset on a session with
     nothing hidden moves both frequencies' phases, clean before; without it they are clean
     again, so it is the one that moved them (and one that moves nothing is left named)."""
-    from tofhil.eval.diagnose.run import _held_out_data, _moved_clean_channels
+    from tofhil.eval.diagnose.decide import moved_clean_channels as _moved_clean_channels
+    from tofhil.eval.diagnose.run import _held_out_data
     from tofhil.eval.diagnose.selection import Selection
     from tofhil.eval.diagnose.twin_model import TwinModel
     from tofhil.sim.from_capture import capture_scene_facts
