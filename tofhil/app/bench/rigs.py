@@ -30,7 +30,29 @@ def tofcam635_freqs() -> tuple[float, ...]:
     return tuple(TOFCAM635.mod_freqs_hz)
 
 
-class EmulatedTofCamRig:
+class _Rig:
+    """What every rig does alike: open its driver on first use, give the twin's scene text of the
+    bench as it stands (a string, or a callable of the state), close its driver."""
+
+    _driver: Any
+    _scene_text: Any
+    state: Mapping[str, Any]
+
+    def driver(self) -> Any:
+        if not self._driver.is_open:
+            self._driver.open()
+        return self._driver
+
+    def scene_text(self) -> str:
+        """The twin's scene for the bench as it stands (a callable of the state), never the hidden truth."""
+        return self._scene_text(self.state) if callable(self._scene_text) else self._scene_text
+
+    def close(self) -> None:
+        if self._driver.is_open:
+            self._driver.close()
+
+
+class EmulatedTofCamRig(_Rig):
     """The emulated TOFcam635 (pyusb backend) with a bench its emulator performs.
 
     ``make_source(params)`` returns the frame source (``tofhil.frame_source.ImageSource``) of
@@ -70,11 +92,6 @@ class EmulatedTofCamRig:
         src.signal = timed
         return src
 
-    def driver(self) -> Any:
-        if not self._driver.is_open:
-            self._driver.open()
-        return self._driver
-
     def apply_bench(self, params: Mapping[str, Any], by: str, message: str) -> None:
         self.state = {**self.defaults, **params}
         src = self._timed(self.make_source(self.state))
@@ -83,16 +100,8 @@ class EmulatedTofCamRig:
             self.emulator.source = src
             self.emulator.noise = src.noise_model()
 
-    def scene_text(self) -> str:
-        """The twin's scene for the bench as it stands (a callable of the state), never the hidden truth."""
-        return self._scene_text(self.state) if callable(self._scene_text) else self._scene_text
 
-    def close(self) -> None:
-        if self._driver.is_open:
-            self._driver.close()
-
-
-class EmulatedDepthAIRig:
+class EmulatedDepthAIRig(_Rig):
     """The DepthAI host pipeline sending frames made by ``make_scene(params)`` (a DepthScene)."""
 
     def __init__(self, make_scene: Callable[[Mapping[str, Any]], Any], defaults: Mapping[str, Any], *,
@@ -108,24 +117,12 @@ class EmulatedDepthAIRig:
         self._driver = DepthAIToF("depthai-sim", host_scene=make_scene(self.state))
         self._scene_text = scene_text
 
-    def driver(self) -> Any:
-        if not self._driver.is_open:
-            self._driver.open()
-        return self._driver
-
     def apply_bench(self, params: Mapping[str, Any], by: str, message: str) -> None:
         self.state = {**self.defaults, **params}
         self._driver.host_scene = self.make_scene(self.state)  # the pipeline restarts on the next configure
 
-    def scene_text(self) -> str:
-        return self._scene_text(self.state) if callable(self._scene_text) else self._scene_text
 
-    def close(self) -> None:
-        if self._driver.is_open:
-            self._driver.close()
-
-
-class DeviceRig:
+class DeviceRig(_Rig):
     """A real device (or a replay): bench changes by the operator or a stage."""
 
     def __init__(self, device: str, *, prompt: Callable[[str], None] | None = None,
@@ -149,11 +146,6 @@ class DeviceRig:
         self.stage = stage
         self._scene_text = scene_text
 
-    def driver(self) -> Any:
-        if not self._driver.is_open:
-            self._driver.open()
-        return self._driver
-
     def apply_bench(self, params: Mapping[str, Any], by: str, message: str) -> None:
         if by == "stage" and self.stage is not None:
             self.stage(params)
@@ -163,13 +155,6 @@ class DeviceRig:
                               expected="an interactive run or a stage")
         text = message or "set the bench: " + ", ".join(f"{k} = {v}" for k, v in params.items())
         self.prompt(text)
-
-    def scene_text(self) -> str:
-        return self._scene_text
-
-    def close(self) -> None:
-        if self._driver.is_open:
-            self._driver.close()
 
 
 # --------------------------------------------------------------------------- emulated benches
