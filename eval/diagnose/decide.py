@@ -33,6 +33,7 @@ from tofhil.eval.diagnose.geometry import GeometryEvidence, geometry_evidence
 from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal
 from tofhil.eval.diagnose.linear_forms import MAP_EFFECT, fit_frame_drift
 from tofhil.eval.diagnose.selection import Selection
+from tofhil.eval.diagnose.structure import edge_mask
 from tofhil.eval.metrics import core as M
 
 #: The name of the per-frame drift form among the candidates (it is not a scene effect).
@@ -51,29 +52,26 @@ class Judge:
         self.n = max(data.n_values("test"), 1)
         self.objects_before = V.object_misfits(data, base_pred, self.nu, object_id, object_names)
         self.geometry: GeometryEvidence | None = None
+        # what every geometry test of this diagnosis shares: the measured depth, its noise, the edges
+        self._d_meas = depth_from_signal(data.s_test[:data.n_freq], data.freq_hz)
+        self._sigma_depth, _ = V.channel_sigmas(data)
+        self._edges = edge_mask(self._d_meas, data.usable, object_id)
         self.geometry_base = self.organised_by_geometry(base_pred)
 
     def organised_by_geometry(self, prediction: np.ndarray) -> GeometryEvidence | None:
         """Whether the held-out depth residual left by ``prediction`` is organised by the scene's
         objects and edges (:mod:`tofhil.eval.diagnose.geometry`)."""
-        from tofhil.eval.diagnose import structure as DS
-
         data = self.data
-        nf = data.n_freq
-        d_meas = depth_from_signal(data.s_test[:nf], data.freq_hz)
-        residual = M.wrapped_difference(d_meas, depth_from_signal(prediction[:nf], data.freq_hz),
+        residual = M.wrapped_difference(self._d_meas, depth_from_signal(prediction[:data.n_freq], data.freq_hz),
                                         data.unambiguous_range_m)
-        sigma_depth, _ = V.channel_sigmas(data)
         pixels = data.test_pixels & distance_defined(data, prediction)
-        if data.n_freq >= 2:
+        limit = V.unwrap_limit_m(data)
+        if limit is not None:
             # pixels unwrapped to another interval carry no comparable depth (as in every figure)
-            from tofhil.demod import ambiguity_range_m
-
-            limit = M.UNWRAP_ERROR_FRACTION * float(ambiguity_range_m(float(np.max(data.freq_hz))))
             with np.errstate(invalid="ignore"):
                 pixels &= np.abs(residual) <= limit
-        edges = DS.edge_mask(d_meas, data.usable, self.object_id)
-        return geometry_evidence(residual, sigma_depth, pixels, self.object_id, self.object_names, edges, V.ALPHA)
+        return geometry_evidence(residual, self._sigma_depth, pixels, self.object_id, self.object_names, self._edges,
+                                 V.ALPHA)
 
     def __call__(self, after_pred: np.ndarray, causes: list[str]) -> tuple[V.Verdict, dict, dict, list[str]]:
         data, selection = self.data, self.selection

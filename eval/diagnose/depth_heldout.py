@@ -150,13 +150,6 @@ def value_quantum(x: np.ndarray, max_values: int = 100_000) -> float:
     return float(steps.min()) if steps.size else 0.0
 
 
-def recorded_quanta(session: Session, frames: int) -> tuple[float, float]:
-    """The recorded units of the session's radial distance (m) and amplitude, from its first frames."""
-    d = [np.asarray(session.depth_frame(i).radial_m) for i in range(frames)]
-    a = [np.asarray(session.depth_frame(i).amplitude) for i in range(frames)]
-    return min(value_quantum(x) for x in d), min(value_quantum(x) for x in a)
-
-
 def temporal_noise_present(s_all: np.ndarray, usable: np.ndarray, freq_hz: np.ndarray, q_depth: float) -> bool:
     """Whether the frames scatter about their mean by more than the recorded depth unit's
     quantisation (``q^2 / 12``) at the median usable pixel: frames of a camera that filters over
@@ -292,6 +285,7 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
     cam = session.camera
     b = bin_factor(cam.shape, max_pixels)
     frames_s, frames_ok, conf_seen, conf0 = [], [], False, None
+    quanta: list[tuple[float, float]] = []
     defects = _frame_defects(session, cam, valid_mask)
     for i in range(n):
         df = session.depth_frame(i)
@@ -301,6 +295,8 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
             raise TofhilError("is missing or all NaN", file=session.path, field="depth/amplitude",
                               expected="an amplitude (active brightness / IR) image: the depth-only diagnosis "
                                        "compares the phasor A exp(i 4 pi f d / c)")
+        if i < 2:  # the recorded units, from the first frames as stored
+            quanta.append((value_quantum(d), value_quantum(amp)))
         ok = np.asarray(df.valid, bool) & np.isfinite(d) & (d > 0) & np.isfinite(amp) & (amp > 0)
         ok &= ~saturated_amplitude(amp, ok)
         if valid_mask is not None and valid_mask.shape == ok.shape:
@@ -328,7 +324,7 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
     s_all = np.stack(frames_s)            # [N, F, H, W]
     usable = np.logical_and.reduce(frames_ok)
     bcam = binned_camera(cam, b)
-    q_depth, q_amp = recorded_quanta(session, min(n, 2))
+    q_depth, q_amp = min(q for q, _ in quanta), min(q for _, q in quanta)
     frozen = n >= 2 and not temporal_noise_present(s_all, usable, freq_hz, q_depth)
     if frozen:
         # Frames without temporal scatter (an emulation, or a camera that filters over time)

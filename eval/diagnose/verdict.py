@@ -70,6 +70,19 @@ def distance_defined(data: HeldOutData, *predictions: np.ndarray, sigmas: float 
     return ok
 
 
+def unwrap_limit_m(data: HeldOutData) -> float | None:
+    """The depth residual beyond which a pixel of a several-frequency session was unwrapped to
+    another interval and carries no comparable depth (every figure leaves it out by this rule,
+    ``tofhil.eval.metrics.core.UNWRAP_ERROR_FRACTION`` of the highest frequency's range); None
+    with one frequency (the residual is wrapped instead)."""
+    from tofhil.demod import ambiguity_range_m
+    from tofhil.eval.metrics.core import UNWRAP_ERROR_FRACTION
+
+    if data.n_freq < 2:
+        return None
+    return UNWRAP_ERROR_FRACTION * float(ambiguity_range_m(float(np.max(data.freq_hz))))
+
+
 def channel_sigmas(data: HeldOutData, *, with_model_error: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel noise of the held-out mean ``[H, W]``: depth (m), from the phasor's tangential
     variance at the best frequency; amplitude as a relative error, from its radial variance
@@ -496,15 +509,13 @@ class EffectSize:
     offset in counts) and the minimum gain that makes a cause worth naming (module doc)."""
 
     def __init__(self, data: HeldOutData) -> None:
-        from tofhil.demod import ambiguity_range_m
-        from tofhil.eval.metrics.core import UNWRAP_ERROR_FRACTION, wrap_period
+        from tofhil.eval.metrics.core import wrap_period
 
         self.data = data
         nf = data.n_freq
         s = data.s_test
         self._wrap = wrap_period(data.freq_hz)
-        self._unwrap_limit = (UNWRAP_ERROR_FRACTION * float(ambiguity_range_m(float(np.max(data.freq_hz))))
-                              if nf >= 2 else None)
+        self._unwrap_limit = unwrap_limit_m(data)
         self._meas = {"depth": depth_from_signal(s[:nf], data.freq_hz), "amplitude": np.abs(s[:nf]).mean(axis=0)}
         sd, sa = channel_sigmas(data, with_model_error=False)
         m = data.test_pixels

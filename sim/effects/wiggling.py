@@ -30,6 +30,16 @@ _PHASE: dict[str, Any] = {"fit": (-math.pi, math.pi), "step": 0.3, "periodic": T
 _ALL = ("harmonics",)
 
 
+def _harmonic_params(h: int, forms: tuple[str, ...], *, start: float,
+                     default: float | None = None) -> dict[str, Param]:
+    """Harmonic ``h``'s amplitude (relative to the fundamental's) and phase."""
+    nth = {2: "2nd", 3: "3rd"}.get(h, f"{h}th")
+    return {f"h{h}_amplitude": Param(0.0, 0.0, 0.5, "", f"{nth}-harmonic correlation amplitude / fundamental's",
+                                     default=default, start=start, forms=forms, **_AMP),
+            f"h{h}_phase_rad": Param(0.0, -math.pi, math.pi, "rad", f"{nth}-harmonic phase", start=0.0,
+                                     starts=(-2.0, 2.0), forms=forms, **_PHASE)}
+
+
 @register
 class WigglingEffect(Effect):
     name = "wiggling"
@@ -47,32 +57,10 @@ class WigglingEffect(Effect):
            "pixels). Diagnosis fits the 3rd harmonic (simple form) or every visible order up to the 7th (form "
            "`harmonics`; on a sensor that cannot see the 3rd, that form alone).")
     forms = {"harmonics": "every harmonic up to the 7th that the session's taps see (amplitude and phase each)"}
-    params = {
-        "h3_amplitude": Param(0.0, 0.0, 0.5, "", "3rd-harmonic correlation amplitude / fundamental's",
-                              default=0.05, start=0.03, forms=("",) + _ALL, **_AMP),
-        "h3_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "3rd-harmonic phase", start=0.0, starts=(-2.0, 2.0),
-                              forms=("",) + _ALL, **_PHASE),
-        "h2_amplitude": Param(0.0, 0.0, 0.5, "", "2nd-harmonic correlation amplitude / fundamental's",
-                              start=0.01, forms=_ALL, **_AMP),
-        "h2_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "2nd-harmonic phase", start=0.0, starts=(-2.0, 2.0),
-                              forms=_ALL, **_PHASE),
-        "h4_amplitude": Param(0.0, 0.0, 0.5, "", "4th-harmonic correlation amplitude / fundamental's",
-                              start=0.01, forms=_ALL, **_AMP),
-        "h4_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "4th-harmonic phase", start=0.0, starts=(-2.0, 2.0),
-                              forms=_ALL, **_PHASE),
-        "h6_amplitude": Param(0.0, 0.0, 0.5, "", "6th-harmonic correlation amplitude / fundamental's",
-                              start=0.01, forms=_ALL, **_AMP),
-        "h6_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "6th-harmonic phase", start=0.0, starts=(-2.0, 2.0),
-                              forms=_ALL, **_PHASE),
-        "h5_amplitude": Param(0.0, 0.0, 0.5, "", "5th-harmonic correlation amplitude / fundamental's",
-                              start=0.01, forms=_ALL, **_AMP),
-        "h5_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "5th-harmonic phase", start=0.0, starts=(-2.0, 2.0),
-                              forms=_ALL, **_PHASE),
-        "h7_amplitude": Param(0.0, 0.0, 0.5, "", "7th-harmonic correlation amplitude / fundamental's",
-                              start=0.01, forms=_ALL, **_AMP),
-        "h7_phase_rad": Param(0.0, -math.pi, math.pi, "rad", "7th-harmonic phase", start=0.0, starts=(-2.0, 2.0),
-                              forms=_ALL, **_PHASE),
-    }
+    # the 3rd harmonic is the simple form's too (its default and start: a typical LED's); the
+    # others only the flexible form's, starting small. (Their order is the fit's parameter order.)
+    params = {**_harmonic_params(3, ("",) + _ALL, default=0.05, start=0.03),
+              **{k: v for h in (2, 4, 6, 5, 7) for k, v in _harmonic_params(h, _ALL, start=0.01).items()}}
 
     def is_off(self, values: Mapping[str, Any]) -> bool:
         return not self.harmonics(values)
