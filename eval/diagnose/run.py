@@ -230,12 +230,13 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
         verdict = "selected" if chosen is not None else "not significant"
         others = [f or "simple" for f in best.forms if f != best.form]
         form = f" ({best.form or 'simple'} form; preferred over {', '.join(others)})" if others else ""
-        lines.append(f"round {i + 1}: best {best.effect}{form} removes {100 * best.relative_gain:.1f}% of the held-out "
+        alone = "" if best is rnd[0] else f"; {rnd[0].effect} alone scores best in this round"
+        lines.append(f"round {i + 1}: {'best ' if best is rnd[0] else ''}{best.effect}{form} removes {100 * best.relative_gain:.1f}% of the held-out "
                      f"misfit (score gain {best.delta_score:.0f}, "
                      + (f"{best.dof:.{0 if best.details else 1}f} effective degrees of freedom" if best.details or best.prior
                         else f"{best.dof:g} degrees of freedom")
                      + f") -- {verdict}"
-                     + (f"; runner-up {runner.effect} {100 * runner.relative_gain:.1f}%" if runner else ""))
+                     + (f"; runner-up {runner.effect} {100 * runner.relative_gain:.1f}%" if runner else "") + alone)
     for i, rnd in enumerate(selection.rounds):
         for c in rnd:
             # the channels a selected cause makes worse (the explanation is partial there); those
@@ -244,6 +245,11 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
                 lines.append(f"round {i + 1}: {c.effect} lowers the held-out score and makes "
                              f"{', '.join(c.worse_channels)} worse beyond its noise -- selected: the explanation "
                              "is partial there")
+    if len(selection.searches) > 1:
+        lines.append("searched from the first round's best and next significant effects; the sets found, the "
+                     "lowest held-out score chosen: "
+                     + "; ".join(f"{' + '.join(s['causes']) or 'nothing'} {s['score']:.0f}"
+                                 + (" (chosen)" if s["chosen"] else "") for s in selection.searches))
     for e, names in selection.at_bounds.items():
         if names:
             lines.append(f"{e}: {', '.join(names)} fitted at the bound of the range searched")
@@ -305,6 +311,10 @@ class _ExtendedScene:
             else:
                 self.map_path.unlink(missing_ok=True)
         ext_scene = dataclasses.replace(self.model.scene, effects=self.model.extended_effects_block(fitted))
+        g = self.model.gain(fitted)
+        if g != 1.0:
+            # the device gain profiled for this set is the scene's: written into its sensor
+            ext_scene = scaled_scene(ext_scene, SignalScale(factor=g, fitted=True))
         extended_text = scene_to_yaml(ext_scene)
         if self.map_path is not None and MAP_EFFECT in fitted:
             # the file named relative to the scene file: the output directory can be moved
@@ -326,8 +336,12 @@ class _ExtendedScene:
         else:
             reloaded = scene_from_yaml(extended_text)
         # the reloaded scene is predicted with the base twin's sensor (its signal scale)
+        sensor = self.model.scene.sensor
+        g = self.model.gain(fitted)
+        if g != 1.0:
+            sensor = scaled_scene(self.model.scene, SignalScale(factor=g, fitted=True)).sensor
         after_model = TwinModel(reloaded, self.data, render_kwargs=self.render_kwargs, renders_from=self.model,
-                                sensor=self.model.scene.sensor)
+                                sensor=sensor)
         return after_model, after_model.predict({})
 
 
@@ -405,6 +419,9 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         scale = fit_signal_scale(data, model.predict({}), why_scale)
         model = TwinModel(scene, data, render_kwargs=render_kwargs, renders_from=model,
                           sensor=scaled_scene(device, scale).sensor)
+        # every candidate's prediction gets its own gain: the scale fitted on the base twin
+        # would otherwise charge a cause that adds light everywhere for the share it took up
+        model.enable_gain_profile()
     if progress:
         progress(model.setup.note)
         progress(scale.text())

@@ -37,6 +37,9 @@ from tofhil.sim.effects import EFFECTS
 from tofhil.sim.memory import release_free_memory
 
 EffectParams = dict[str, dict[str, float]]
+#: How many further first choices the search also starts from (:func:`greedy_select`): two
+#: more searches at most, each over the first round's significant effects only.
+EXTRA_STARTS = 2
 #: How a partial form is named: its flexible form, this, and the parameter groups left out.
 PARTIAL = " without "
 
@@ -190,6 +193,9 @@ class Selection:
     #: Per cause, the other families' candidates of its round that the held-out data cannot
     #: tell from it ("A or B", :func:`tofhil.eval.diagnose.identifiability.alternatives`).
     alternatives: dict[str, list[Alternative]] = field(default_factory=dict)
+    #: Every search run (the greedy one and those started from other first choices): its
+    #: first cause, the set it chose and that set's held-out score; the lowest score is chosen.
+    searches: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def first_round(self) -> list[Candidate]:
@@ -426,18 +432,74 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     held-out RMSE gain reaches the minimum of some channel
     (:meth:`tofhil.eval.diagnose.verdict.EffectSize.worth_naming`).
     """
-    search = _GreedySearch(model, data, max_effects=max_effects, min_relative_gain=min_relative_gain,
-                           min_gain_per_value=min_gain_per_value, progress=progress, effect_size=effect_size)
+    def new_search() -> _GreedySearch:
+        return _GreedySearch(model, data, max_effects=max_effects, min_relative_gain=min_relative_gain,
+                             min_gain_per_value=min_gain_per_value, progress=progress, effect_size=effect_size)
+
+    search = new_search()
     names = list(candidates if candidates is not None else search.lib)
-    while len(search.active) < max_effects:
-        round_, tried_of = search.round(names)
-        chosen = next((c for c in round_ if c.significant), None)
-        if chosen is None:
-            _release_residuals(round_)
-            break
-        search.add(chosen, round_, tried_of)
-    search.simplify_forms()
-    return search.finish()
+    search.run(names, max_effects)
+    best = search.finish()
+    first = best.first_round
+    # Forward selection takes the best single cause first, and a flexible cause that mimics a
+    # pair alone (an unseen reflector standing in for a cyclic range error plus a clock skew)
+    # keeps the pair out for good. The search therefore also starts from the next significant
+    # first choices and keeps the set with the best held-out score: the same score, over more
+    # of the sets. A start's later rounds try the first round's significant effects only (an
+    # effect that gains nothing on the base twin's residual rarely gains on a smaller one).
+    significant = [c for c in first if c.significant]
+    starts = [c for c in significant if c.effect not in best.causes][:EXTRA_STARTS]
+    found = [(search.score(), best)]
+    for c in starts:
+        if progress:
+            progress(f"searching again from {c.effect}")
+        other = new_search()
+        other.start_from(c)
+        other.run([x.effect for x in significant], max_effects)
+        alt = other.finish()
+        alt.rounds = [first] + alt.rounds
+        for key in ("too_small", "not_tried"):
+            getattr(alt, key).update({k: v for k, v in getattr(best, key).items() if k not in alt.causes})
+        found.append((other.score(), alt))
+    chosen_score, chosen = min(found, key=lambda f: f[0])
+    sets: dict[tuple[str, ...], dict[str, Any]] = {}
+    for score, sel in found:  # one entry per set found (two starts can end in the same set)
+        key = tuple(sorted(sel.causes))
+        if key not in sets or sel is chosen:
+            sets[key] = {"causes": list(sel.causes), "score": round(score, 2), "chosen": sel is chosen}
+    chosen.searches = list(sets.values())
+    if len(found) > 1:
+        _sets_alike(model, data, chosen, chosen_score, found, search.penalty)
+    return chosen
+
+
+def _sets_alike(model: ForwardModel, data: HeldOutData, chosen: Selection, chosen_score: float,
+                found: Sequence[tuple[float, Selection]], penalty: float) -> None:
+    """Another search's set that the held-out data cannot tell from the chosen one (by the
+    rule of :func:`tofhil.eval.diagnose.identifiability.alternatives`): said, "A or B"."""
+    if not chosen.causes:
+        return
+    base = data.whitened_residual(model.predict({}), "test")
+    named = data.whitened_residual(model.predict(chosen.params), "test")
+    label = " + ".join(chosen.causes)
+    seen = {tuple(sorted(chosen.causes))}
+    # a set another round already said is an alternative of one cause is not said twice
+    said = {a.other for alts in chosen.alternatives.values() for a in alts}
+    seen |= {(o,) for o in said}
+    for score, sel in found:
+        key = tuple(sorted(sel.causes))
+        if sel is chosen or not sel.causes or key in seen:
+            continue
+        seen.add(key)
+        other = data.whitened_residual(model.predict(sel.params), "test")
+        diff = named - other
+        needed = max(penalty, 4.0 * float(np.sqrt(diff @ diff)))
+        if score - chosen_score < needed:
+            a, b = base - named, base - other
+            denom = float(a @ a) * float(b @ b)
+            chosen.alternatives.setdefault(chosen.causes[0], []).append(Alternative(
+                effect=label, form="", other=" + ".join(sel.causes), other_form="", score_gap=score - chosen_score,
+                needed=needed, overlap=float(a @ b) ** 2 / denom if denom > 0 else 0.0))
 
 
 class _GreedySearch:
@@ -466,6 +528,65 @@ class _GreedySearch:
 
     def k_of(self, e: str) -> float:
         return self.dofs.get(e, self.work[e].k)
+
+    def score(self) -> float:
+        """The chosen set's held-out score: misfit plus the penalty of its degrees of freedom."""
+        return float(self.current_chi2 + sum(self.k_of(e) for e in self.active) * self.penalty)
+
+    def run(self, names: Sequence[str], max_effects: int) -> None:
+        """Rounds until nothing significant is left or ``max_effects`` are chosen; then the
+        chosen forms are tested again at the final values."""
+        while len(self.active) < max_effects:
+            round_, tried_of = self.round(names)
+            chosen = next((c for c in round_ if c.significant), None)
+            if chosen is None:
+                _release_residuals(round_)
+                break
+            self.add(chosen, round_, tried_of)
+        self.prune()
+        self.simplify_forms()
+
+    def prune(self) -> None:
+        """Every chosen cause must pass the round's significance test against the chosen set
+        without it, the others refitted: a cause taken early can be made redundant by later
+        ones (an illumination change taken first for the mean of an unseen panel's light, the
+        panel itself taken after). A cause that fails is dropped, and the test runs again."""
+        model, data = self.model, self.data
+        dropped = True
+        while dropped and len(self.active) > 1:
+            dropped = False
+            for e in list(self.active):
+                rest = [a for a in self.active if a != e]
+                if self.progress:
+                    self.progress(f"testing {e} against " + " + ".join(rest))
+                refit, _ = fit(model, data, rest, {a: self.params[a] for a in rest}, lib=self.work)
+                pred = model.predict(refit)
+                chi2 = data.chi2(pred, "test")
+                gain = chi2 - self.current_chi2
+                excess = max(chi2 - self.n_test, 0.0)
+                keeps = bool(gain > self.k_of(e) * self.penalty and gain > self.min_relative_gain * excess
+                             and gain > self.min_gain_per_value * self.n_test)
+                if keeps and self.effect_size is not None:
+                    _, keeps = self.effect_size.names(pred, self.current_pred)
+                if keeps:
+                    continue
+                self.selection.too_small[e] = (f"{e}: dropped, the other causes refitted without it explain the "
+                                               f"held-out data as well (its gain over them {gain:.1f} in misfit, "
+                                               f"{self.k_of(e):g} degrees of freedom)")
+                self.active.remove(e)
+                for table in (self.selection.forms, self.selection.details, self.selection.priors,
+                              self.selection.unidentified, self.selection.alternatives, self.dofs):
+                    table.pop(e, None)
+                self.params = {a: refit[a] for a in rest}
+                self.current_chi2, self.current_pred = chi2, pred
+                self.current_channels = channel_chi2(data, pred)
+                dropped = True
+                break
+
+    def start_from(self, first: Candidate) -> None:
+        """Take ``first`` (a significant candidate of another search's first round) as this
+        search's first cause."""
+        self.add(first, [first], {first.effect: [first]})
 
     def identify(self, c: Candidate) -> Identifiability:
         return assess_form(self.model, self.data, c.all_params, c.effect, self.lib[c.effect].variant(c.form),

@@ -26,6 +26,11 @@ from tofhil.eval.diagnose.selection import EffectParams, EffectSpec, FitParam
 from tofhil.sim.effects import EFFECTS, ORDER, Param
 
 LOG_PREFIX = "log10_"
+#: Huber's constant for the profiled gain's M-estimate, in units of the log ratios' spread: 95 %
+#: efficiency where the ratios scatter normally, a bounded pull from pixels the model misses.
+HUBER_K = 1.345
+#: Newton steps of that estimate (it converges in a few; the bound only guards a degenerate set).
+MAX_GAIN_ITERATIONS = 50
 
 
 def fitted_name(name: str, p: Param) -> str:
@@ -166,6 +171,10 @@ class TwinModel:
         self.twin.differential_readout = bool(getattr(data, "differential_taps", False))
         self.extra_starts: dict[str, list[dict[str, float]]] = {}
         self.evaluations = 0
+        #: Profile the device's signal gain out of every prediction (:meth:`gain`): set where
+        #: the scale was fitted (``signal_scale``), since there a global gain is a nuisance.
+        self.profile_gain = False
+        self._log_ratio_scale: float | None = None
 
     # ---------------------------------------------------------------- library
     def library(self) -> dict[str, EffectSpec]:
@@ -230,7 +239,83 @@ class TwinModel:
         s = phasor(taps, self.data.theta_rad)
         if self.data.offset_channel:
             s = np.concatenate([s, taps.mean(axis=(0, 1))[None].astype(np.complex128)])
-        return s
+        return self._profiled(s, np.ones(self.data.camera.shape, dtype=bool))
+
+    # ---------------------------------------------------------------- gain
+    def _profiled(self, s: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        """``s`` times the gain that brings it closest to the measured signal (when profiled)."""
+        if not self.profile_gain:
+            return s
+        g = self._gain_of(s, pixels)
+        if g == 1.0:
+            return s
+        out = s.copy()
+        nf = self.data.n_freq
+        out[:nf] *= g
+        if self.data.offset_channel:
+            # the offset above the black level scales with the same conversion gain
+            black = float(getattr(self.scene.sensor, "black_level_dn", 0.0))
+            out[nf] = black + g * (out[nf] - black)
+        return out
+
+    def _gain_of(self, s: np.ndarray, pixels: np.ndarray) -> float:
+        """The device gain profiled out of a prediction: Huber's M-estimate of the location of
+        ``log(|S_measured| / |S_predicted|)`` over the fit pixels the prediction holds, the
+        scale of the log ratios fixed by the base twin's. Where the scale is fitted a global
+        gain cannot be told from it (``signal_scale``), and a cause that adds or removes light
+        everywhere (a stray-light veil, an unseen reflector) must not be charged for the gain
+        that the scale, fitted once on the base twin, took up: its prediction gets its own
+        (the profile likelihood of a nuisance parameter). An M-estimate rather than the median
+        is a smooth function of the prediction, which a least-squares fit differentiates."""
+        data = self.data
+        nf = data.n_freq
+        use = data.fit_pixels & pixels
+        meas = np.abs(data.s_train[:nf][:, use]).mean(axis=0)
+        pred = np.abs(s[:nf][:, use]).mean(axis=0)
+        ok = (meas > 0) & (pred > 0)
+        if ok.sum() < 20:
+            return 1.0
+        lr = np.log(meas[ok] / pred[ok])
+        if self._log_ratio_scale is None:
+            # the spread of the base twin's ratios: fixed, so the estimate is smooth in ``s``
+            med = float(np.median(lr))
+            self._log_ratio_scale = max(1.4826 * float(np.median(np.abs(lr - med))), 1e-6)
+        k = HUBER_K * self._log_ratio_scale
+        mu = float(np.median(lr))
+        for _ in range(MAX_GAIN_ITERATIONS):
+            r = lr - mu
+            inside = np.abs(r) <= k
+            step = float(np.sum(np.clip(r, -k, k))) / max(int(inside.sum()), 1)
+            mu += step
+            if abs(step) < 1e-12:
+                break
+        return float(np.exp(mu))
+
+    def enable_gain_profile(self) -> None:
+        """Profile the gain out of every prediction from now on (:meth:`_gain_of`), the spread
+        of the log ratios fixed at the base twin's."""
+        self.profile_gain = False
+        base = self.predict({})
+        nf = self.data.n_freq
+        use = self.data.fit_pixels
+        meas = np.abs(self.data.s_train[:nf][:, use]).mean(axis=0)
+        pred = np.abs(base[:nf][:, use]).mean(axis=0)
+        ok = (meas > 0) & (pred > 0)
+        if ok.sum() >= 20:
+            lr = np.log(meas[ok] / pred[ok])
+            self._log_ratio_scale = max(1.4826 * float(np.median(np.abs(lr - np.median(lr)))), 1e-6)
+        self.profile_gain = True
+
+    def gain(self, active: EffectParams) -> float:
+        """The gain :meth:`predict` applies to ``active``'s prediction (1 when not profiled)."""
+        if not self.profile_gain:
+            return 1.0
+        saved, self.profile_gain = self.profile_gain, False
+        try:
+            s = self.predict(active)
+        finally:
+            self.profile_gain = saved
+        return self._gain_of(s, np.ones(self.data.camera.shape, dtype=bool))
 
     def _predict_at(self, effects: dict[str, dict[str, Any]], pixels: np.ndarray) -> np.ndarray:
         """The taps and the signal only where asked (the rest of the frame stays zero)."""
@@ -242,7 +327,7 @@ class TwinModel:
 
         out = np.zeros((s.shape[0],) + self.data.camera.shape, dtype=np.complex128)
         out.reshape(s.shape[0], -1)[:, flat_index(pixels)] = s
-        return out
+        return self._profiled(out, pixels)
 
     def predict_local(self, active: EffectParams, pixels: np.ndarray) -> np.ndarray | None:
         """:meth:`predict` on ``pixels`` with the effects that move light between pixels (stray

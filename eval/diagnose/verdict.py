@@ -52,6 +52,8 @@ from tofhil.eval.metrics.noise import NOISE_POOL_PX, phasor_depth_sigma
 
 #: False-alarm probability of each "above noise" test (one in a thousand).
 ALPHA = 1e-3
+#: Its one-sided normal quantile (3.09): a gain beyond noise is this many standard errors above zero.
+Z_ALPHA = float(stats.norm.isf(ALPHA))
 #: The misfit channels: the complex signal split along the predicted phasor (amplitude) and
 #: across it (phase, i.e. depth), and the tap offset when the session has that channel.
 CHANNELS = ("depth", "amplitude", "offset")
@@ -461,6 +463,16 @@ class ChannelGain:
     square_change_se: float = 0.0
     #: rms of the change of the prediction itself on the same pixels (nan: not known)
     correction: float = float("nan")
+    #: The same figures where the change acts: on the pixels it moves by at least ``minimum``
+    #: (a stray light that moves a dark square by centimetres and the wall by a fraction of a
+    #: millimetre is judged on the square, not diluted by the wall): pixel count, RMSE
+    #: before and after, rms of the change, standard error of ``before^2 - after^2``.
+    #: (None: not computed, the change is judged over all pixels.)
+    acting_pixels: int | None = None
+    acting_before: float = float("nan")
+    acting_after: float = float("nan")
+    acting_correction: float = float("nan")
+    acting_se: float = 0.0
 
     @property
     def systematic(self) -> float:
@@ -477,8 +489,26 @@ class ChannelGain:
         return self.systematic
 
     @property
+    def systematic_where_acting(self) -> float:
+        """The systematic part removed on the pixels the change moves by at least the minimum
+        (as :attr:`systematic`, there)."""
+        if self.acting_pixels is None:
+            return self.systematic
+        if not self.acting_pixels:
+            return 0.0
+        d = self.acting_before ** 2 - self.acting_after ** 2
+        size = float(np.sign(d) * np.sqrt(abs(d)))
+        return min(size, self.acting_correction) if size > 0 else size
+
+    @property
     def enough(self) -> bool:
-        return bool(self.systematic >= self.minimum)
+        """Worth naming in this channel: where the change acts, it removes at least the
+        minimum, and that removal is beyond the held-out noise at :data:`ALPHA` (a change that
+        fits noise moves pixels too, and removes nothing on held-out values)."""
+        if self.acting_pixels is None:
+            return bool(self.systematic >= self.minimum)
+        d = self.acting_before ** 2 - self.acting_after ** 2 if self.acting_pixels else 0.0
+        return bool(self.systematic_where_acting >= self.minimum and d > Z_ALPHA * self.acting_se)
 
     @property
     def worse(self) -> bool:
@@ -492,15 +522,20 @@ class ChannelGain:
     def to_json(self) -> dict[str, Any]:
         k, unit = self._unit
         return {"unit": unit.strip(), "rmse_before": round(self.before * k, 4), "rmse_after": round(self.after * k, 4),
-                "systematic_removed": round(self.systematic * k, 4), "correction_rms": round(self.correction * k, 4), "noise_median_pixel": round(self.noise * k, 4),
-                "minimum_gain": round(self.minimum * k, 4), "pixels": self.pixels, "enough": self.enough,
-                "worse": self.worse}
+                "systematic_removed": round(self.systematic * k, 4), "correction_rms": round(self.correction * k, 4),
+                "noise_median_pixel": round(self.noise * k, 4), "minimum_gain": round(self.minimum * k, 4),
+                "pixels": self.pixels, "acting_pixels": self.acting_pixels,
+                "systematic_removed_where_acting": round(self.systematic_where_acting * k, 4),
+                "enough": self.enough, "worse": self.worse}
 
     def describe(self) -> str:
         k, unit = self._unit
+        where = ("" if self.acting_pixels in (None, 0, self.pixels) else
+                 f"; {self.systematic_where_acting * k:.3g}{unit} on the {self.acting_pixels} pixels it moves by "
+                 "at least that")
         return (f"{self.channel} RMSE {self.before * k:.4g} -> {self.after * k:.4g}{unit} (systematic part removed "
                 f"{self.systematic * k:.3g}{unit} by a correction of {self.correction * k:.3g}{unit} rms, needs "
-                f"{self.minimum * k:.3g}{unit}" + (", worse" if self.worse else "") + ")")
+                f"{self.minimum * k:.3g}{unit}{where}" + (", worse" if self.worse else "") + ")")
 
 
 class EffectSize:
@@ -566,8 +601,14 @@ class EffectSize:
             # before^2 - after^2 = mean(2 r_b delta - delta^2): the noise in r_b moves it by
             # 2 mean(n delta), of standard error 2 sqrt(sum(sigma^2 delta^2)) / n
             se = 2.0 * float(np.sqrt(np.sum((sig * (rb - ra)) ** 2))) / n
+            # where the change acts: chosen by the change alone, never by the residual
+            acting = np.abs(rb - ra) >= self.minimum[c]
+            na = int(acting.sum())
+            se_a = 2.0 * float(np.sqrt(np.sum((sig[acting] * (rb - ra)[acting]) ** 2))) / max(na, 1)
             out[c] = ChannelGain(c, rmse(rb), rmse(ra), self.noise[c], self.minimum[c], int(ok.sum()), se,
-                                 rmse(rb - ra))
+                                 rmse(rb - ra), na, rmse(rb[acting]) if na else float("nan"),
+                                 rmse(ra[acting]) if na else float("nan"),
+                                 rmse((rb - ra)[acting]) if na else float("nan"), se_a)
         return out
 
     @staticmethod
