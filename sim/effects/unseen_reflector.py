@@ -37,8 +37,10 @@ def scene_points(radial_m: np.ndarray, camera: Any) -> tuple[np.ndarray, np.ndar
 
 
 def _scene_points(r: np.ndarray, camera: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    hit = np.isfinite(r) & (r > 0)
-    x = camera.rays * np.where(hit, r, 0.0)[..., None]
+    rays = camera.rays
+    # a pixel whose ray a distortion leaves undefined sees nothing (its NaN would spread)
+    hit = np.isfinite(r) & (r > 0) & np.isfinite(rays).all(axis=-1)
+    x = np.where(hit[..., None], rays * np.where(hit, r, 0.0)[..., None], 0.0)
     n = np.cross(np.gradient(x, axis=1), np.gradient(x, axis=0))
     norm = np.linalg.norm(n, axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -93,7 +95,7 @@ class UnseenReflectorEffect(Effect):
     @staticmethod
     def position(values: Mapping[str, Any], camera: Any) -> np.ndarray:
         """The reflector's position (camera frame, m)."""
-        edge = float(np.max(np.arccos(np.clip(camera.rays[..., 2], -1.0, 1.0))))    # the view's half-diagonal
+        edge = float(np.nanmax(np.arccos(np.clip(camera.rays[..., 2], -1.0, 1.0))))  # the view's half-diagonal
         polar = min(edge + np.radians(float(values["beyond_deg"])), np.pi)
         az = np.radians(float(values["azimuth_deg"]))
         d = float(values["distance_m"])
