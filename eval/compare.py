@@ -292,7 +292,7 @@ def write_report(out: Path, metrics: dict[str, Any], variants: list[Variant],
     notes = sorted({n for v in variants for n in v.evaluation.validity_notes()})
     body = [f"<p class='note'>A (measured): {H.esc(a)}<br>B (reference): {H.esc(b)}<br>frames averaged: "
             f"A {metrics['frames']['a']}"
-            f"{' (' + H.esc(metrics['heldout']['text']) + ')' if metrics.get('heldout') else ''}"
+            f"{' (corrections ' + H.esc(metrics['heldout']['text']) + ')' if metrics.get('heldout') else ''}"
             f", B {metrics['frames']['b']} &middot; residual = A - B (radial distance"
             f"{', wrapped to the ' + format(s['wrap_m'], '.4g') + ' m unambiguous range' if s['wrap_m'] else ''}) "
             f"&middot; {H.esc(metrics['software'])}</p>",
@@ -412,7 +412,7 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
         unseen = [] if split is None or split.in_sample else list(split.fit)
         say(f"measured: averaging {len(scored)} frames of {a_path}")
         if split is not None:
-            say(f"corrections {split.text()}")
+            say(f"corrections scored {'in-sample' if split.in_sample else 'on held-out frames'}: {split.text()}")
         fa, noise = variant_frame(sa, max_frames, min_amplitude=min_amplitude, flat=plan["A"], frames=scored,
                                   noise_frames=unseen)
         variants = [Variant(MEASURED, fa, noise * np.sqrt(len(scored)), noise_m=noise)]

@@ -29,10 +29,10 @@ class FrameSplit:
 
     def text(self) -> str:
         if self.in_sample:
-            return (f"in-sample: the session has {len(self.scored)} frame, so the correction is fitted and scored on "
-                    "the same frame (its gain may be optimistic)")
-        return (f"held out: fitted on frames {_frames(self.fit)} (the diagnosis's training frames), before and after "
-                f"scored on frames {_frames(self.scored)}")
+            return (f"the session has {len(self.scored)} frame: the corrections are fitted and scored on the same "
+                    "frame (in-sample; a gain may be optimistic)")
+        return (f"fitted on frames {_frames(self.fit)} (the diagnosis's training frames), before and after scored "
+                f"on frames {_frames(self.scored)}")
 
     def to_json(self) -> dict[str, Any]:
         return {"fit_frames": list(self.fit), "scored_frames": list(self.scored), "in_sample": self.in_sample,
