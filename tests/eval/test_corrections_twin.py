@@ -181,6 +181,8 @@ def test_corner_multipath_removed_against_an_independent_render() -> None:
     assert excess_b > 0.05  # light of the bounces arrives late: the corner reads far
     assert abs(excess_a) <= 0.1 * excess_b
     assert (ctx.flags & FLAG_MULTIPATH).mean() > 0.5 and ctx.info["twin"]["effects_removed"] == ["multipath"]
+    # the capture records the sensor that made it, the twin's scene is that sensor: scale 1, not fitted
+    assert ctx.info["twin"]["signal_scale"] == 1.0 and not ctx.info["twin"]["signal_scale_fit"]["fitted"]
     by_bounce = ctx.info["twin"]["multipath_share_by_bounce"]  # the light removed, by bounce (2 rendered)
     assert len(by_bounce) == 2 and by_bounce[0] > by_bounce[1] > 0 and sum(by_bounce) < 1
     # the twin's render is independent of the capture's: its multipath differs sample by sample
