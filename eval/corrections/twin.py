@@ -20,12 +20,12 @@ signal scale (:mod:`tofhil.eval.diagnose.signal_scale`): 1, not fitted, for a se
 records the sensor that made it when the scene's radiometric chain is that sensor's (a twin
 session against its own scene); else the median measured / twin amplitude ratio over the
 pixels that did not clip, fitted on other frames than those corrected when the caller gives
-them (``CorrectionContext.fit_signal``: compare's held-out split), and reported. The twin is rendered for the session's
-camera and acquisition (``tofhil.sim.session_setup``) with the clip levels lifted, so
-the light of clipped (saturated) source pixels -- the bright card beside the lens -- is
-the twin's prediction, not the clipped taps. Pixels where the removed stray light or
-multipath is larger than 3 x the noise of ``S`` (the sensor model's shot and read noise
-of the twin's taps, over the frames averaged) are flagged (``FLAG_STRAY_LIGHT``,
+them (``CorrectionContext.fit_signal``: compare's held-out split), and reported. The twin is
+rendered for the session's camera and acquisition (``tofhil.sim.session_setup``) with the
+clip levels lifted, so the light of clipped (saturated) source pixels -- the bright card
+beside the lens -- is the twin's prediction, not the clipped taps. Pixels where the removed
+stray light or multipath is larger than 3 x the noise of ``S`` (the sensor model's shot and
+read noise of the twin's taps, over the frames averaged) are flagged (``FLAG_STRAY_LIGHT``,
 ``FLAG_MULTIPATH``). Predictions are cached by content (scene, camera, acquisition).
 """
 
@@ -35,7 +35,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -43,6 +43,9 @@ from tofhil.content_cache import LRUCache, content_digest
 from tofhil.demod import phasor
 from tofhil.errors import TofhilError
 from tofhil.eval.corrections.context import FLAG_MULTIPATH, FLAG_STRAY_LIGHT, CorrectionContext
+
+if TYPE_CHECKING:
+    from tofhil.eval.diagnose.signal_scale import SignalScale
 
 #: |removed| above this many standard deviations of the signal's noise is flagged.
 FLAG_SIGMA = 3.0
@@ -180,7 +183,7 @@ class _ScaleData:
         return int(self.s_train.shape[0])
 
 
-def device_scale(s: np.ndarray, pred: TwinPrediction, ctx: CorrectionContext) -> Any:
+def device_scale(s: np.ndarray, pred: TwinPrediction, ctx: CorrectionContext) -> SignalScale:
     """The device's signal against the twin's, the diagnosis's one signal scale
     (:mod:`tofhil.eval.diagnose.signal_scale`, a ``SignalScale``): not fitted (factor 1)
     when the session records the sensor that made it and the scene's radiometric chain is
