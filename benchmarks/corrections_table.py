@@ -7,7 +7,9 @@ For each square reflectance (50 % .. 1 % of the wall) of the bundled ``dark_squa
 scene, a capture is simulated with the stray light hidden (a Gaussian lobe, weight 0.03,
 sigma 12 px, and a veil of 0.005, as the demo's emulator; ``N`` noisy frames) and compared
 (``tofhil.eval.compare.compare_sessions``, the CLI's code) with the stray-light-free twin
-(noise-free), as measured and after each correction:
+(noise-free), as measured and after each correction, scored like the diagnosis (compare's
+held-out split: whatever is fitted, on the even frames; before and after, the mean of the odd
+ones):
 
 - ``twin``: the twin correction, given the twin with the stray light (the fitted twin);
 - ``psf``: PSF deconvolution with the same PSF (the diagnosed one); ``psf+twin``: the same
@@ -73,7 +75,7 @@ def case(rho: float, out: Path, frames: int, saturate: bool) -> dict:
                                    f"w={PSF['weight']}"}
     m = compare_sessions(d / "capture.h5", d / "twin.h5", d / "compare", corrections=list(methods.values()),
                          max_frames=frames, force=True)
-    res = {"square_reflectance": rho, "regions": {}, "methods": {}}
+    res = {"square_reflectance": rho, "regions": {}, "methods": {}, "heldout": m.get("heldout")}
     meas = m["variants"]["measured"]["regions"]
     for r in REGIONS:
         if r in meas:
@@ -133,6 +135,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n{len(worse)} region(s) made worse beyond their noise (each marked in metrics.json and the report):")
     for rho, n, reg, why in worse:
         print(f"  {100 * rho:g} %: {n} makes {reg} worse: {why or 'reason not known'}")
+    held = results[0].get("heldout")
+    if held:  # the same split for every case: the frames the figures are scored on
+        print(f"scored {'in-sample' if held['in_sample'] else 'on held-out frames'}: {held['text']}")
     print(f"({len(results)} cases, {args.frames} frames each{', card clipping' if args.saturate else ''}; "
           f"{time.perf_counter() - t0:.0f} s)")
     if args.markdown:

@@ -55,10 +55,13 @@ class Variant:
 
 
 def variant_frame(session: Any, n: int, method: str | None = None, params: dict[str, Any] | None = None,
-                  min_amplitude: float = 0.0, flat: Any = None,
-                  context: Any = None) -> tuple[DepthFrame, np.ndarray]:
-    """The mean of the first ``n`` frames, optionally corrected, and the per-pixel standard
-    deviation of its distance expected from the frames' scatter.
+                  min_amplitude: float = 0.0, flat: Any = None, context: Any = None,
+                  frames: Sequence[int] | None = None,
+                  noise_frames: Sequence[int] = ()) -> tuple[DepthFrame, np.ndarray]:
+    """The mean of the first ``n`` frames (or of the frames numbered ``frames``), optionally
+    corrected, and the per-pixel standard deviation of its distance expected from the
+    frames' scatter (joined by the scatter of ``noise_frames``, other frames of the session
+    held out from this mean, :func:`tofhil.eval.corrections.averaging.mean_signal`).
 
     Raw sessions are averaged in the complex domain after the tap calibration ``flat``
     (:func:`tofhil.eval.corrections.averaging.mean_signal`), a complex correction is applied
@@ -69,14 +72,15 @@ def variant_frame(session: Any, n: int, method: str | None = None, params: dict[
     receives a complex correction's flags and notes.
     """
     from tofhil.depth import depth_from_raw
-    from tofhil.eval.corrections.averaging import session_mean_signal
+    from tofhil.eval.corrections.averaging import mean_signal
 
     m = None if method is None else get_method(method)
     p = {} if m is None else resolve_params(m, params)
     p.pop("flat", None)  # the caller resolves the variant's tap calibration (both sides)
-    k = min(n, session.n_frames)
+    idx = list(range(min(n, session.n_frames))) if frames is None else list(frames)
+    k = len(idx)
     if not session.has_raw:
-        frame, std = M.mean_depth_frame(session.depth_frame(i) for i in range(k))
+        frame, std = M.mean_depth_frame(session.depth_frame(i) for i in idx)
         if m is not None:
             frame = correct_depth(frame, method, p)
         return frame, std / np.sqrt(k) if k > 1 else np.full(std.shape, np.nan)
@@ -84,13 +88,38 @@ def variant_frame(session: Any, n: int, method: str | None = None, params: dict[
     if m is not None and m.domain == "complex":
         from tofhil.eval.corrections import context_for_session
 
-        ctx = context if context is not None else context_for_session(session, k)
+        ctx = context if context is not None else context_for_session(session, k, idx)
         correct = lambda s: m.func(s, ctx, **p)  # noqa: E731
-    ms = session_mean_signal(session, k, flat=flat, correct=correct)
+    others = list(noise_frames)
+    ms = mean_signal(lambda i: session.raw_frame(idx[i]), k, flat=flat, correct=correct,
+                     others=(lambda i: session.raw_frame(others[i]), len(others)) if others else None)
     frame = depth_from_raw(ms.raw(), min_amplitude=min_amplitude)
     if m is not None and m.domain == "depth":
         frame = m.func(frame, **p)
     return frame, np.where(frame.valid, ms.distance_noise_m(), np.nan)
+
+
+def heldout_split(session: Any, n: int, methods: Sequence[str], flat: Any = None
+                  ) -> tuple[Any, tuple[np.ndarray, np.ndarray | None] | None]:
+    """Scored like the diagnosis (:mod:`tofhil.eval.metrics.split`): with a complex
+    correction among ``methods`` -- one that may fit from the data (the twin's signal scale)
+    or whose parameters may have been fitted on this session (a PSF or an extended twin
+    diagnosed on it, a weight tuned on it; compare cannot tell) -- the first ``n`` frames
+    are split: the even ones fit, every variant of A is the mean of the odd ones. Returns
+    the split (None: no such correction, every frame scored) and the training frames' mean
+    signal ``[F, H, W]`` after the tap calibration ``flat`` with their clipped pixels (None
+    for one frame: in-sample)."""
+    from tofhil.eval.corrections.averaging import mean_signal
+    from tofhil.eval.corrections.context import saturated_pixels
+    from tofhil.eval.metrics.split import frame_split
+
+    if not session.has_raw or not any(get_method(m).domain == "complex" for m in methods):
+        return None, None
+    split = frame_split(n)
+    if split.in_sample:
+        return split, None
+    ms = mean_signal(lambda i: session.raw_frame(split.fit[i]), len(split.fit), flat=flat, scatter=False)
+    return split, (ms.s, saturated_pixels(session.raw_frame(i) for i in split.fit))
 
 
 def recorded_tap_calibration(session: Any) -> str | None:
@@ -262,7 +291,9 @@ def write_report(out: Path, metrics: dict[str, Any], variants: list[Variant],
     s = metrics["settings"]
     notes = sorted({n for v in variants for n in v.evaluation.validity_notes()})
     body = [f"<p class='note'>A (measured): {H.esc(a)}<br>B (reference): {H.esc(b)}<br>frames averaged: "
-            f"A {metrics['frames']['a']}, B {metrics['frames']['b']} &middot; residual = A - B (radial distance"
+            f"A {metrics['frames']['a']}"
+            f"{' (corrections ' + H.esc(metrics['heldout']['text']) + ')' if metrics.get('heldout') else ''}"
+            f", B {metrics['frames']['b']} &middot; residual = A - B (radial distance"
             f"{', wrapped to the ' + format(s['wrap_m'], '.4g') + ' m unambiguous range' if s['wrap_m'] else ''}) "
             f"&middot; {H.esc(metrics['software'])}</p>",
             "<h2>Summary</h2>", H.notes_html(notes),
@@ -374,16 +405,29 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
             else f"reference: averaging {n_b} frames of {b_path}")
         ref, ref_noise = variant_frame(sb, max_frames, min_amplitude=min_amplitude, flat=plan["B"])
         health_b = tap_health(sb, max_frames)
-        say(f"measured: averaging {n_a} frames of {a_path}")
         health_a = tap_health(sa, max_frames)
-        fa, noise = variant_frame(sa, max_frames, min_amplitude=min_amplitude, flat=plan["A"])
-        variants = [Variant(MEASURED, fa, noise * np.sqrt(n_a), noise_m=noise)]
+        split, fit = heldout_split(sa, n_a, [name for name, _ in specs], plan["A"])
+        scored = list(range(n_a)) if split is None else list(split.scored)
+        # the fit frames' scatter joins the noise estimate: the sensor's noise, whichever frames
+        unseen = [] if split is None or split.in_sample else list(split.fit)
+        say(f"measured: averaging {len(scored)} frames of {a_path}")
+        if split is not None:
+            say(f"corrections scored {'in-sample' if split.in_sample else 'on held-out frames'}: {split.text()}")
+        fa, noise = variant_frame(sa, max_frames, min_amplitude=min_amplitude, flat=plan["A"], frames=scored,
+                                  noise_frames=unseen)
+        variants = [Variant(MEASURED, fa, noise * np.sqrt(len(scored)), noise_m=noise)]
         for (name, params), label in zip(specs, labels):
             p = load_params(name, params)
             say(f"correcting A with {label}")
-            ctx = context_for_session(sa, max_frames) if get_method(name).domain == "complex" else None
-            f, s = variant_frame(sa, max_frames, name, p, min_amplitude, flat=plan["A"], context=ctx)
-            variants.append(Variant(label, f, s * np.sqrt(n_a), name, dict(params), noise_m=s, correction=ctx))
+            ctx = None
+            if get_method(name).domain == "complex":
+                ctx = context_for_session(sa, n_a, scored)
+                ctx.split = split
+                if fit is not None:
+                    ctx.fit_signal, ctx.fit_saturated = fit
+            f, s = variant_frame(sa, max_frames, name, p, min_amplitude, flat=plan["A"], context=ctx, frames=scored,
+                                 noise_frames=unseen)
+            variants.append(Variant(label, f, s * np.sqrt(len(scored)), name, dict(params), noise_m=s, correction=ctx))
         obj_source = None
         if objects:
             for sess, tag in ((sb, "B"), (sa, "A")):
@@ -410,7 +454,9 @@ def compare_sessions(a_path: str | Path, b_path: str | Path, out_dir: str | Path
     metrics: dict[str, Any] = {
         "software": f"tofhil {__version__}",
         "inputs": {"a": str(a_path), "b": str(b_path), "a_device": a_label, "b_device": b_label},
-        "frames": {"a": n_a, "b": n_b},
+        "frames": {"a": len(scored), "b": n_b},
+        # which of A's frames the corrections fitted on and which the figures are scored on
+        "heldout": None if split is None else split.to_json(),
         # The camera settings of each side (a twin session records its full sensor configuration).
         "acquisition": acquisition,
         "acquisition_mismatches": mismatches,

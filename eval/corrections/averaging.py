@@ -51,6 +51,9 @@ class MeanSignal:
     #: [H, W] pixels with a saturated or non-finite tap in any frame (the frames' declared
     #: limits, :func:`tofhil.demod.bad_tap_pixels`): the mean of clipped taps is no signal.
     bad: np.ndarray | None = None
+    #: degrees of freedom of ``var_perp`` (None: ``n - 1``; more when other frames of the
+    #: session joined the scatter, :func:`mean_signal`'s ``others``)
+    dof: int | None = None
 
     def raw(self) -> RawFrame:
         """The mean as a raw frame (taps re-synthesised from ``s`` and ``B``), for
@@ -74,8 +77,8 @@ class MeanSignal:
         """``[H, W]`` standard deviation of the mean's radial distance, from the frames'
         scatter: per frequency ``phase_to_distance(sigma_phi, f)``, several frequencies
         combined with the unwrapping's weights ``w_f = (f A_f)^2``:
-        ``sigma^2 = sum w_f^2 sigma_f^2 / (sum w_f)^2``. NaN with one frame."""
-        if self.n < 2:
+        ``sigma^2 = sum w_f^2 sigma_f^2 / (sum w_f)^2``. NaN without a scatter (one frame)."""
+        if (self.n - 1 if self.dof is None else self.dof) < 1:
             return np.full(self.s.shape[-2:], np.nan)
         freq = self.template.freq_hz[:, None, None]
         sig = phase_to_distance(self.phase_noise_rad(), freq)
@@ -96,13 +99,18 @@ def frame_signal(raw: RawFrame, flat: Any = None) -> tuple[np.ndarray, np.ndarra
 
 def mean_signal(frame: Callable[[int], RawFrame], n: int, *, flat: Any = None,
                 correct: Callable[[np.ndarray], np.ndarray] | None = None, scatter: bool = True,
-                progress: Callable[[Any, int, str], Any] | None = None) -> MeanSignal:
+                progress: Callable[[Any, int, str], Any] | None = None,
+                others: tuple[Callable[[int], RawFrame], int] | None = None) -> MeanSignal:
     """Average ``n`` raw frames (``frame(i)``) in the complex domain, then apply ``correct``
     (``S[..., H, W] -> S``, a complex-domain correction) to the mean.
 
     With ``scatter`` the frames are read twice: the second pass gives the scatter of
     ``correct(S_i - mean)`` across the mean's phase (for linear corrections, the scatter of
-    the corrected frames), in batches of :data:`BATCH` frames.
+    the corrected frames), in batches of :data:`BATCH` frames. ``others`` = ``(frame, m)``:
+    ``m`` more frames of the same session (held out from this mean: a fit's frames) whose
+    scatter about their own mean joins the per-frame noise estimate (pooled, ``n + m - 2``
+    degrees of freedom): the noise is the sensor's, whichever frames are averaged, and a
+    mean of one scored frame gets a noise floor.
     """
     if n < 1:
         raise ValueError("need at least one frame")
@@ -121,17 +129,24 @@ def mean_signal(frame: Callable[[int], RawFrame], n: int, *, flat: Any = None,
     mean, mean_b = frame_signal(replace(first, taps=taps), flat)
     s_out = mean if correct is None else np.asarray(correct(mean))
     var = np.zeros(mean.shape)
-    if scatter and n > 1:
+    groups = [(frame, n, mean)]
+    if scatter and others is not None and others[1] > 1:
+        o_frame, m = others
+        o_mean = frame_signal(replace(first, taps=mean_taps_of(o_frame(i) for i in range(m))), flat)[0]
+        groups.append((o_frame, m, o_mean))
+    dof = sum(k - 1 for _, k, _ in groups)
+    if scatter and dof > 0:
         # Across the (corrected) mean phasor: the component that moves the phase.
         with np.errstate(divide="ignore", invalid="ignore"):
             u = np.where(np.abs(s_out) > 0, np.conj(s_out) / np.abs(s_out), 0)
-        for i0 in range(0, n, BATCH):
-            dev = np.stack([frame_signal(frame(i), flat)[0] - mean for i in range(i0, min(n, i0 + BATCH))])
-            if correct is not None:
-                dev = np.asarray(correct(dev))
-            var += ((dev * u).imag ** 2).sum(axis=0)
-        var /= n - 1
-    return MeanSignal(s_out, mean_b, var, n, first, bad)
+        for get, k, centre in groups:
+            for i0 in range(0, k, BATCH):
+                dev = np.stack([frame_signal(get(i), flat)[0] - centre for i in range(i0, min(k, i0 + BATCH))])
+                if correct is not None:
+                    dev = np.asarray(correct(dev))
+                var += ((dev * u).imag ** 2).sum(axis=0)
+        var /= dof
+    return MeanSignal(s_out, mean_b, var, n, first, bad, dof if scatter else None)
 
 
 def session_mean_signal(session: Any, n: int | None = None, **kwargs: Any) -> MeanSignal:

@@ -13,7 +13,7 @@ the method.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Iterable
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
@@ -44,6 +44,14 @@ class CorrectionContext:
     saturated: np.ndarray | None = None
     #: frames averaged into the corrected signal (its noise is one frame's / sqrt(frames))
     frames: int = 1
+    #: the mean signal ``[F, H, W]`` of other frames of the session, on which whatever the
+    #: correction fits from the data (the twin's signal scale) is fitted, so that the signal
+    #: corrected (and scored) is held out from the fit; None: fitted on the signal itself
+    fit_signal: np.ndarray | None = None
+    #: [H, W] pixels with a clipped or non-finite tap in the frames of ``fit_signal``
+    fit_saturated: np.ndarray | None = None
+    #: which frames fit and which are scored (:class:`tofhil.eval.metrics.split.FrameSplit`)
+    split: Any = None
     flags: np.ndarray | None = None
     notes: list[str] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
@@ -67,9 +75,18 @@ class CorrectionContext:
         f = np.zeros(self.shape, np.uint8) if self.flags is None else self.flags
         return {name: int(np.count_nonzero(f & bit)) for bit, name in FLAGS.items()}
 
+    def fitted_on(self) -> str:
+        """Where a figure the correction fits from the data comes from, in words."""
+        if self.fit_signal is None:
+            return "the signal corrected itself (in-sample)"
+        if self.split is not None:
+            return "frames " + ", ".join(str(i) for i in self.split.fit) + " (held out from the frames scored)"
+        return "other frames than those corrected (held out from them)"
+
     def summary(self) -> dict[str, Any]:
         """The report a corrected session and ``metrics.json`` carry (JSON-ready)."""
         return {"notes": list(self.notes), "flagged_pixels": self.flag_counts(), "frames": self.frames,
+                **({"split": self.split.to_json()} if self.split is not None else {}),
                 "saturated_source_pixels": 0 if self.saturated is None else int(np.count_nonzero(self.saturated)),
                 **{k: v for k, v in self.info.items()}}
 
@@ -94,10 +111,11 @@ def context_for_frame(raw: RawFrame, *, sensor_config: dict[str, Any] | None = N
                              float(raw.integration_time_s), sensor_config, source, saturated_pixels([raw]), 1)
 
 
-def context_for_session(session: Any, n: int) -> CorrectionContext:
-    """The context of the mean of the first ``n`` frames of an open raw session."""
-    k = max(1, min(n, session.n_frames))
-    first = session.raw_frame(0)
+def context_for_session(session: Any, n: int, frames: Sequence[int] | None = None) -> CorrectionContext:
+    """The context of the mean of the first ``n`` frames of an open raw session, or of the
+    frames numbered ``frames`` (then ``n`` is ignored)."""
+    idx = list(range(max(1, min(n, session.n_frames)))) if frames is None else list(frames)
+    first = session.raw_frame(idx[0])
     return CorrectionContext(session.camera, np.asarray(first.freq_hz, float), np.asarray(first.theta_rad, float),
                              float(first.integration_time_s), session.sensor_config, str(session.path),
-                             saturated_pixels(session.raw_frame(i) for i in range(k)), k)
+                             saturated_pixels(session.raw_frame(i) for i in idx), len(idx))

@@ -46,13 +46,17 @@ def clipped_sources(s: np.ndarray, ctx: CorrectionContext | None, scatter: Calla
         from tofhil.eval.corrections.twin import device_scale, predict
 
         pred = predict(twin, ctx)
-        a = device_scale(s, pred, ctx)
+        scale = device_scale(s, pred, ctx)
+        a = scale.factor
         out = s.astype(np.complex128, copy=True)
         out[..., sat] = a * pred.full[..., sat]
         ctx.flag(sat, FLAG_RESTORED)
-        ctx.info["restored_from_twin"] = {"scene": pred.scene, "pixels": n_sat, "signal_scale": a}
+        ctx.info["restored_from_twin"] = {"scene": pred.scene, "pixels": n_sat, "signal_scale": a,
+                                          "signal_scale_fit": {**scale.to_json(), "text": scale.text(),
+                                                               "fitted_on": ctx.fitted_on() if scale.fitted else None}}
         ctx.note(f"the light of the clipped source pixels restored from the twin {pred.scene} before correcting "
-                 "(flag restored_from_twin)")
+                 f"(flag restored_from_twin); twin {scale.text()}"
+                 + (f"; fitted on {ctx.fitted_on()}" if scale.fitted else ""))
         return out
     amp = np.abs(s)
     floor = np.percentile(amp[..., ~sat], 99, axis=-1) if (~sat).any() else np.zeros(amp.shape[:-2])

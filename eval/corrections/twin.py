@@ -15,14 +15,17 @@ add after the scene (waveform harmonics, per-pixel delays, tap errors, beam prof
 ``S_corr = S_meas - a (S_full - S_ideal)``, the capture brought to the fitted scene seen by
 an ideal camera (direct returns only), comparable with a base twin that lacks those effects.
 
-``a`` is the device's signal scale against the twin's (DN per twin DN): 1 for a session
-that records its sensor configuration (a twin session), else fitted by least squares on
-the pixels that did not clip, and reported. The twin is rendered for the session's
-camera and acquisition (``tofhil.sim.session_setup``) with the clip levels lifted, so
-the light of clipped (saturated) source pixels -- the bright card beside the lens -- is
-the twin's prediction, not the clipped taps. Pixels where the removed stray light or
-multipath is larger than 3 x the noise of ``S`` (the sensor model's shot and read noise
-of the twin's taps, over the frames averaged) are flagged (``FLAG_STRAY_LIGHT``,
+``a`` is the device's signal scale against the twin's (DN per twin DN), the diagnosis's one
+signal scale (:mod:`tofhil.eval.diagnose.signal_scale`): 1, not fitted, for a session that
+records the sensor that made it when the scene's radiometric chain is that sensor's (a twin
+session against its own scene); else the median measured / twin amplitude ratio over the
+pixels that did not clip, fitted on other frames than those corrected when the caller gives
+them (``CorrectionContext.fit_signal``: compare's held-out split), and reported. The twin is
+rendered for the session's camera and acquisition (``tofhil.sim.session_setup``) with the
+clip levels lifted, so the light of clipped (saturated) source pixels -- the bright card
+beside the lens -- is the twin's prediction, not the clipped taps. Pixels where the removed
+stray light or multipath is larger than 3 x the noise of ``S`` (the sensor model's shot and
+read noise of the twin's taps, over the frames averaged) are flagged (``FLAG_STRAY_LIGHT``,
 ``FLAG_MULTIPATH``). Predictions are cached by content (scene, camera, acquisition).
 """
 
@@ -32,7 +35,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -40,6 +43,9 @@ from tofhil.content_cache import LRUCache, content_digest
 from tofhil.demod import phasor
 from tofhil.errors import TofhilError
 from tofhil.eval.corrections.context import FLAG_MULTIPATH, FLAG_STRAY_LIGHT, CorrectionContext
+
+if TYPE_CHECKING:
+    from tofhil.eval.diagnose.signal_scale import SignalScale
 
 #: |removed| above this many standard deviations of the signal's noise is flagged.
 FLAG_SIGMA = 3.0
@@ -58,7 +64,10 @@ class TwinPrediction:
     noise: np.ndarray       # std of one frame's S per component (shot + read noise of the taps)
     off: tuple[str, ...]    # the effects switched off for the direct return
     off_all: tuple[str, ...]  # ... for the ideal camera
-    recorded: bool          # the session records its sensor configuration (units are the twin's)
+    #: why the device's signal scale against the twin's must be fitted
+    #: (:func:`tofhil.eval.diagnose.signal_scale.needs_scale`); None: the session records the
+    #: sensor that made it and the scene's radiometric chain is that sensor's (scale 1)
+    scale_reason: str | None
     scene: str
     #: [B + 1, H, W] share of each pixel's emitter light by bounce count (0 = direct), from the
     #: same render; None without multipath (or through glass, where it is not computed)
@@ -98,6 +107,7 @@ def _effects_off(twin: Any, kinds: tuple[str, ...] | None) -> tuple[dict[str, An
 def predict(scene: str | Path | Any, ctx: CorrectionContext) -> TwinPrediction:
     """The twin's prediction for the signal of ``ctx`` (its camera and acquisition), cached;
     ``scene`` a scene file or name, a loaded scene, or a :class:`TwinPrediction` itself."""
+    from tofhil.eval.diagnose.signal_scale import needs_scale
     from tofhil.sim.scene import load_scene
     from tofhil.sim.session_setup import scene_for_setup, session_setup
     from tofhil.sim.twin import Twin
@@ -153,33 +163,43 @@ def predict(scene: str | Path | Any, ctx: CorrectionContext) -> TwinPrediction:
     var_k = g * np.clip(taps - cfg.black_level_dn, 0.0, None) + (g * cfg.read_noise_e) ** 2
     noise = np.sqrt(2.0 / theta.size ** 2 * var_k.sum(axis=-3))
     pred = TwinPrediction(full, signal(no_stray_eff)[0], signal(direct_eff)[0], signal(ideal_eff)[0], noise, off,
-                          off_all, setup.recorded, str(getattr(sc, "source", scene)), bounce_share)
+                          off_all, needs_scale(getattr(sc, "sensor", None), ctx.sensor_config),
+                          str(getattr(sc, "source", scene)), bounce_share)
     _CACHE.put(key, pred)
     return pred
 
 
-def signal_scale(s: np.ndarray, model: np.ndarray, good: np.ndarray) -> float:
-    """Real scale ``a`` of ``s ~ a * model``: the median over the pixels ``good`` ``[H, W]``
-    (and frequencies) of ``Re(conj(model) s) / |model|^2`` -- robust to the few pixels
-    whose taps clipped unnoticed (a clipped tap read just below the declared level)."""
-    m, x = model[..., good], s[..., good]
-    den = np.abs(m) ** 2
-    ok = den > 0
-    if not ok.any():
-        raise TofhilError("the twin predicts no light on the pixels that did not clip", field="twin:scene",
-                          expected="a twin scene whose objects are in the session's view")
-    return float(np.median((np.conj(m[ok]) * x[ok]).real / den[ok]))
+@dataclass(frozen=True)
+class _ScaleData:
+    """What :func:`tofhil.eval.diagnose.signal_scale.fit_signal_scale` reads of a session's
+    data: the signal it fits on and the pixels it may use."""
+
+    s_train: np.ndarray       # [F, H, W]
+    train_pixels: np.ndarray  # [H, W] bool
+    source: str
+
+    @property
+    def n_freq(self) -> int:
+        return int(self.s_train.shape[0])
 
 
-def device_scale(s: np.ndarray, pred: TwinPrediction, ctx: CorrectionContext) -> float:
-    """The device's DN per twin DN: 1 for a session in the twin's units, else fitted on the
-    pixels that did not clip (and where the twin predicts light)."""
-    if pred.recorded:
-        return 1.0
-    good = np.all(np.isfinite(s), axis=0) & (np.abs(pred.full).min(axis=0) > 0)
-    if ctx.saturated is not None:
-        good &= ~ctx.saturated
-    return signal_scale(s, pred.full, good)
+def device_scale(s: np.ndarray, pred: TwinPrediction, ctx: CorrectionContext) -> SignalScale:
+    """The device's signal against the twin's, the diagnosis's one signal scale
+    (:mod:`tofhil.eval.diagnose.signal_scale`, a ``SignalScale``): not fitted (factor 1)
+    when the session records the sensor that made it and the scene's radiometric chain is
+    that sensor's; else fitted as the median measured / twin amplitude ratio over the pixels
+    that did not clip and where the twin predicts light -- on ``ctx.fit_signal`` (other
+    frames than those corrected, when the caller split them) or else on ``s`` itself."""
+    from tofhil.eval.diagnose.signal_scale import SignalScale, fit_signal_scale
+
+    if pred.scale_reason is None:
+        return SignalScale()
+    fit = s if ctx.fit_signal is None else np.asarray(ctx.fit_signal)
+    sat = ctx.saturated if ctx.fit_signal is None else ctx.fit_saturated
+    good = np.all(np.isfinite(fit), axis=0) & (np.abs(pred.full).min(axis=0) > 0)
+    if sat is not None:
+        good &= ~sat
+    return fit_signal_scale(_ScaleData(fit, good, ctx.source), pred.full, pred.scale_reason)
 
 
 def correct_twin(s: np.ndarray, ctx: CorrectionContext, scene: str | Path | Any, remove: str = "light") -> np.ndarray:
@@ -192,7 +212,8 @@ def correct_twin(s: np.ndarray, ctx: CorrectionContext, scene: str | Path | Any,
     if pred.full.shape != s.shape[-3:]:
         raise TofhilError(f"the twin's signal is {pred.full.shape}, the session's {s.shape[-3:]}",
                           field="twin:scene", expected="a twin of the session's camera and frequencies")
-    a = device_scale(s, pred, ctx)
+    scale = device_scale(s, pred, ctx)
+    a = scale.factor
     removed = a * (pred.full - (pred.ideal if remove == "all" else pred.direct))
     sigma = FLAG_SIGMA * abs(a) * pred.noise / math.sqrt(max(ctx.frames, 1))
     stray = np.any(np.abs(a * pred.stray) > sigma, axis=0)
@@ -204,7 +225,9 @@ def correct_twin(s: np.ndarray, ctx: CorrectionContext, scene: str | Path | Any,
     ctx.info["twin"] = {"scene": pred.scene, "remove": remove,
                         "effects_removed": list(pred.off_all if remove == "all" else pred.off),
                         "effects_left": [] if remove == "all" else [e for e in pred.off_all if e not in pred.off],
-                        "signal_scale": a, "scale": "recorded units" if pred.recorded else "fitted",
+                        "signal_scale": a, "scale": "fitted" if scale.fitted else "recorded units",
+                        "signal_scale_fit": {**scale.to_json(), "fitted_on": ctx.fitted_on() if scale.fitted else None,
+                                             "text": scale.text()},
                         "removed_fraction_median": float(np.nanmedian(rel)) if np.isfinite(rel).any() else None,
                         "flag_sigma": FLAG_SIGMA}
     if pred.bounce_share is not None and multi.any():
@@ -215,6 +238,5 @@ def correct_twin(s: np.ndarray, ctx: CorrectionContext, scene: str | Path | Any,
                  "unseen reflector): nothing removed")
     if ctx.saturated is not None and ctx.saturated.any():
         ctx.note("the light of the clipped source pixels is the twin's prediction")
-    if not pred.recorded:
-        ctx.note("the device's signal scale against the twin's is fitted (twin.signal_scale)")
+    ctx.note(f"twin {scale.text()}" + (f"; fitted on {ctx.fitted_on()}" if scale.fitted else ""))
     return s - removed

@@ -26,7 +26,10 @@ def before_after_html(metrics: Mapping[str, Any]) -> str:
     head = ("<tr><th>correction</th><th>region</th><th>median (mm) before &rarr; after</th>"
             "<th>noise of the median (mm)</th><th>RMSE (mm) before &rarr; after</th><th>flagged pixels</th>"
             "<th>verdict</th></tr>")
-    return ("<h2>Before and after each correction</h2>" + notes_html(notes, "note")
+    held = metrics.get("heldout") or {}
+    scored = (f"<p class='note'>Scored {'in-sample' if held.get('in_sample') else 'on held-out frames'}: "
+              f"{esc(held['text'])}.</p>") if held else ""
+    return ("<h2>Before and after each correction</h2>" + scored + notes_html(notes, "note")
             + f"<table>{head}{''.join(rows)}</table>"
             + "<p class='note'>Worse: |median| grown by more than 3 x the median's noise, or the RMSE by more than "
               "3 x the noise of the region's mean (per-pixel noise floor / sqrt(pixels), before and after "

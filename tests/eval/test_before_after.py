@@ -45,3 +45,25 @@ def test_near_clipped_region_is_the_ring_around_clipped_pixels() -> None:
     ring = ((yy - 20) ** 2 + (xx - 30) ** 2 <= 25) & ~sat
     np.testing.assert_array_equal(region.mask, ring)
     assert near_clipped_regions(np.zeros((4, 4), bool)) == []
+
+
+def test_frame_split_is_the_diagnosis_split(tmp_path) -> None:
+    """Corrections are fitted on the frames the diagnosis trains on and scored on those it
+    holds out: the means of frame_split's halves are diagnose's s_train and s_test."""
+    from tests import straylight_synthetic as syn
+    from tofhil.demod import phasor
+    from tofhil.eval.diagnose.heldout import split_session
+    from tofhil.eval.metrics.split import frame_split
+    from tofhil.session import open_session
+
+    s, _ = syn.scene_signal(square_rho=0.2, card=False)
+    path = syn.write_session(tmp_path / "a.h5", s, n_frames=5, noise=0.01, offset=50.0, seed=2)
+    sp = frame_split(5)
+    assert sp.fit == (0, 2, 4) and sp.scored == (1, 3) and not sp.in_sample
+    with open_session(path) as ses:
+        data = split_session(ses, offset_channel=False)
+        sig = [phasor(ses.raw_frame(i).taps.astype(np.float64), ses.theta_rad) for i in range(5)]
+    np.testing.assert_allclose(data.s_train, np.mean([sig[i] for i in sp.fit], axis=0), atol=1e-9)
+    np.testing.assert_allclose(data.s_test, np.mean([sig[i] for i in sp.scored], axis=0), atol=1e-9)
+    one = frame_split(1)
+    assert one.in_sample and one.fit == one.scored == (0,) and "in-sample" in one.text()

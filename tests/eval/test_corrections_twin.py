@@ -83,7 +83,7 @@ def test_saturated_source_restored_from_the_twin_is_corrected_exactly() -> None:
     sat[src] = True
     # the twin knows the scene: its prediction is the unclipped measurement
     twin = TwinPrediction(full=meas, no_stray=s_true, direct=s_true, ideal=s_true, noise=np.ones(meas.shape),
-                          off=("stray_light",), off_all=("stray_light",), recorded=True, scene="<closed form>")
+                          off=("stray_light",), off_all=("stray_light",), scale_reason=None, scene="<closed form>")
     ctx = _ctx(sat)
     out = METHODS["psf"].func(clipped, ctx, psf=_psf(), iterations=60, twin=twin)
     good = ~sat
@@ -136,7 +136,7 @@ def test_two_path_pixel_is_corrected_to_its_direct_path() -> None:
     direct = np.full((1, H, W), a1 * phase(2 * d1))
     full = direct + a2 * phase(l2)
     twin = TwinPrediction(full=full, no_stray=full, direct=direct, ideal=direct, noise=np.ones(full.shape),
-                          off=("multipath",), off_all=("multipath",), recorded=True, scene="<closed form>")
+                          off=("multipath",), off_all=("multipath",), scale_reason=None, scene="<closed form>")
     ctx = _ctx()
     before = depth_from_raw(raw)
     _, depth = correct_raw(raw, "twin", {"scene": twin}, context=ctx)
@@ -181,9 +181,49 @@ def test_corner_multipath_removed_against_an_independent_render() -> None:
     assert excess_b > 0.05  # light of the bounces arrives late: the corner reads far
     assert abs(excess_a) <= 0.1 * excess_b
     assert (ctx.flags & FLAG_MULTIPATH).mean() > 0.5 and ctx.info["twin"]["effects_removed"] == ["multipath"]
+    # the capture records the sensor that made it, the twin's scene is that sensor: scale 1, not fitted
+    assert ctx.info["twin"]["signal_scale"] == 1.0 and not ctx.info["twin"]["signal_scale_fit"]["fitted"]
     by_bounce = ctx.info["twin"]["multipath_share_by_bounce"]  # the light removed, by bounce (2 rendered)
     assert len(by_bounce) == 2 and by_bounce[0] > by_bounce[1] > 0 and sum(by_bounce) < 1
     # the twin's render is independent of the capture's: its multipath differs sample by sample
     p_twin = predict(twin_scene, ctx).indirect
     p_cap = predict(corner(2, 1), ctx).indirect
     assert np.abs(p_twin - p_cap).max() > 1e-3 * np.abs(p_cap).max()
+
+
+def test_twin_signal_scale_is_the_diagnosis_one_fitted_on_the_fit_frames() -> None:
+    """The device's scale against the twin's: the diagnosis's SignalScale, fitted on the fit
+    frames' signal (``ctx.fit_signal``) when the caller split the frames, not on the signal
+    corrected; 1 and not fitted when the session states the sensor that made it."""
+    from tofhil.eval.diagnose.signal_scale import SignalScale
+
+    rng = np.random.default_rng(8)
+    direct = (50 + 10 * rng.random((1, H, W))) * np.exp(1j * rng.uniform(0.2, 1.2, (1, H, W)))
+    stray = 0.2 * direct.mean() * np.ones((1, H, W))
+    full = direct + stray
+    twin = TwinPrediction(full=full, no_stray=direct, direct=direct, ideal=direct, noise=np.ones(full.shape),
+                          off=("stray_light",), off_all=("stray_light",),
+                          scale_reason="the session records no sensor configuration", scene="<closed form>")
+    g_fit, g_scored = 1.25, 0.8  # the device's gain as the fit frames and as the scored frames show it
+    ctx = _ctx()
+    ctx.fit_signal = g_fit * full
+    out = METHODS["twin"].func(g_scored * full, ctx, scene=twin)
+    info = ctx.info["twin"]
+    assert info["signal_scale"] == pytest.approx(g_fit) and info["signal_scale_fit"]["fitted"]
+    assert "held out" in info["signal_scale_fit"]["fitted_on"]
+    # the scale of the fit frames, not the scored frames', is what was removed
+    np.testing.assert_allclose(out, g_scored * full - g_fit * stray, atol=1e-9)
+    # without fit frames the scale is in-sample, and says so
+    ctx1 = _ctx()
+    out1 = METHODS["twin"].func(g_scored * full, ctx1, scene=twin)
+    np.testing.assert_allclose(out1, g_scored * direct, atol=1e-9)
+    assert "in-sample" in ctx1.info["twin"]["signal_scale_fit"]["fitted_on"]
+    assert any("fitted as the median" in n and "in-sample" in n for n in ctx1.notes)
+    # a session in the twin's own units: 1, not fitted, whatever the data say
+    recorded = TwinPrediction(**{**twin.__dict__, "scale_reason": None})
+    ctx2 = _ctx()
+    ctx2.fit_signal = g_fit * full
+    METHODS["twin"].func(g_scored * full, ctx2, scene=recorded)
+    assert ctx2.info["twin"]["signal_scale"] == 1.0
+    assert ctx2.info["twin"]["signal_scale_fit"] == {**SignalScale().to_json(), "fitted_on": None,
+                                                     "text": SignalScale().text()}

@@ -83,6 +83,31 @@ def test_compare_before_after_marks_what_got_worse(bench, tmp_path) -> None:
     assert "near clipped (15 px)" in m["variants"][psf]["before_after"]
     page = (out / "report.html").read_text()
     assert "Before and after each correction" in page
+    # scored like the diagnosis: the scale fitted on the even frames, the figures on the odd one
+    assert m["heldout"]["fit_frames"] == [0, 2] and m["heldout"]["scored_frames"] == [1]
+    assert m["frames"]["a"] == 1 and not m["heldout"]["in_sample"]
+    fit = m["variants"][twin]["correction"]["twin"]["signal_scale_fit"]
+    assert fit["fitted"] and fit["fitted_on"].startswith("frames 0, 2") and abs(fit["factor"] - 1) < 0.02
+    assert "Scored on held-out frames" in page and "fitted on frames 0, 2" in page
+    # one scored frame still has a noise floor: the fit frames' scatter joins the estimate
+    assert m["variants"][twin]["before_after"]["square"]["median_noise_m"] > 0
+
+
+def test_compare_of_one_frame_says_its_score_is_in_sample(bench, tmp_path) -> None:
+    out = tmp_path / "cmp1"
+    twin = f"twin:scene={bench / 'extended.yaml'}"
+    assert run_cli("compare", bench / "capture.h5", bench / "twin.h5", "--out", out, "--frames", 1,
+                   "--correct", twin) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["heldout"]["in_sample"] and m["heldout"]["scored_frames"] == [0]
+    assert "in-sample" in m["variants"][twin]["correction"]["twin"]["signal_scale_fit"]["fitted_on"]
+    assert "Scored in-sample" in (out / "report.html").read_text()
+    # a depth-domain method fits nothing: every frame is scored, no split
+    out2 = tmp_path / "cmp2"
+    assert run_cli("compare", bench / "capture.h5", bench / "twin.h5", "--out", out2, "--frames", 3,
+                   "--correct", "smooth-median:size=3") == 0
+    m2 = json.loads((out2 / "metrics.json").read_text())
+    assert m2["heldout"] is None and m2["frames"]["a"] == 3
 
 
 def test_bad_twin_specs_are_one_line_and_write_nothing(bench, tmp_path, capsys) -> None:

@@ -52,6 +52,26 @@ def test_mean_is_the_phasor_of_the_mean_taps_and_its_noise_is_the_closed_form(no
         assert got == pytest.approx(np.sqrt(np.mean(expected[region] ** 2)), rel=0.05)
 
 
+def test_one_held_out_frame_gets_its_noise_from_the_other_frames_scatter(noisy):
+    """A mean of one frame has no scatter of its own; the other (fit) frames of the session,
+    each about their own mean, give the sensor's per-frame noise: the closed form for N = 1."""
+    _, path, s = noisy
+    with open_session(path) as ses:
+        alone = mean_signal(lambda i: ses.raw_frame(5), 1)
+        pooled = mean_signal(lambda i: ses.raw_frame(5), 1, others=(lambda i: ses.raw_frame(2 * i), 12))
+        np.testing.assert_array_equal(pooled.s, alone.s)  # the mean is the scored frame's alone
+    assert np.isnan(alone.distance_noise_m()).all() and pooled.dof == 11
+    # per frame, each component of S has variance sigma^2 / 2 (the square's and the wall's alike)
+    for region in (syn.SQUARE, (slice(0, 20), slice(0, 40))):
+        assert np.sqrt(np.mean(pooled.var_perp[0][region])) == pytest.approx(0.01 / np.sqrt(2), rel=0.05)
+    # the distance noise of the one frame, where its amplitude is well above the noise (the
+    # wall: a single frame of the 5 % square is too dim for the first-order phase noise)
+    wall = (slice(0, 20), slice(0, 40))
+    expected = C_M_PER_S * 0.01 / (np.abs(s[wall]) * np.sqrt(2)) / (4 * np.pi * syn.FREQ[0])
+    got = pooled.distance_noise_m()[wall]
+    assert np.sqrt(np.mean(got ** 2)) == pytest.approx(np.sqrt(np.mean(expected ** 2)), rel=0.05)
+
+
 def test_complex_correction_of_the_mean_equals_the_mean_of_corrected_frames(noisy, tmp_path):
     # The corrections are linear in S: correcting the mean = averaging the corrected frames.
     _, path, _ = noisy
@@ -87,8 +107,11 @@ def test_30_noisy_frames_through_compare_reach_what_the_noise_floor_allows(tmp_p
     m = json.loads((out / "metrics.json").read_text())
     before = m["variants"]["measured"]["regions"][SQUARE_REGION]
     after = [v for k, v in m["variants"].items() if k != "measured"][0]["regions"][SQUARE_REGION]
-    # The floor of the measured mean is the closed form at the measured amplitude.
-    sigma_phi = sigma / (np.abs(lens(s)[syn.SQUARE]) * np.sqrt(2 * n))
+    # Scored on held-out frames: the odd 15 of the 30 (the even ones are the fit's).
+    k = n // 2
+    assert m["frames"]["a"] == k and m["heldout"]["scored_frames"] == list(range(1, n, 2))
+    # The floor of the measured mean (of k frames) is the closed form at the measured amplitude.
+    sigma_phi = sigma / (np.abs(lens(s)[syn.SQUARE]) * np.sqrt(2 * k))
     assert before["noise_floor_m"] == pytest.approx(
         np.sqrt(np.mean((C_M_PER_S * sigma_phi / (4 * np.pi * syn.FREQ[0])) ** 2)), rel=0.05)
     e0, e1, floor = before["depth_residual_m"]["rmse"], after["depth_residual_m"]["rmse"], after["noise_floor_m"]
