@@ -31,7 +31,8 @@ from scipy.optimize import least_squares
 
 from tofhil.eval.diagnose.heldout import HUBER_SIGMA, HeldOutData, huber, predict_fit
 from tofhil.eval.diagnose.form_prior import regularise_form
-from tofhil.eval.diagnose.identifiability import Alternative, Identifiability, alternatives, assess_form, param_group
+from tofhil.eval.diagnose.ambiguity import Ambiguity, same_residual
+from tofhil.eval.diagnose.identifiability import Identifiability, assess_form, param_group
 from tofhil.eval.diagnose.verdict import ChannelGain, EffectSize, channel_chi2, worse_channels
 from tofhil.sim.effects import EFFECTS
 from tofhil.sim.memory import release_free_memory
@@ -188,8 +189,8 @@ class Selection:
     #: Per cause fitted in a regularised form, its prior's strength and effective dof.
     priors: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: Per cause, the other families' candidates of its round that the held-out data cannot
-    #: tell from it ("A or B", :func:`tofhil.eval.diagnose.identifiability.alternatives`).
-    alternatives: dict[str, list[Alternative]] = field(default_factory=dict)
+    #: tell from it ("A or B", :func:`tofhil.eval.diagnose.ambiguity.same_residual`).
+    alternatives: dict[str, list[Ambiguity]] = field(default_factory=dict)
 
     @property
     def first_round(self) -> list[Candidate]:
@@ -625,7 +626,7 @@ class _GreedySearch:
                 if any(g.confused for g in test.groups):
                     chosen.unidentified.append(test)
         # another family that explains the same residual as well: said, "A or B"
-        alt = alternatives(model, data, chosen, round_, self.current_pred, self.penalty)
+        alt = same_residual(model, data, chosen, round_, self.current_pred, self.penalty)
         if alt:
             selection.alternatives[chosen.effect] = alt
         _release_residuals(round_)
