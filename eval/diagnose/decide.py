@@ -392,10 +392,12 @@ TOO_SMALL = "selection: too small to name"
 
 def _too_small(selection: Selection) -> list[Rejected]:
     """The selection's own rejections: significant in misfit, too small (or a channel worse) in
-    the channels' own units, with the candidate's figures of the first round it was fitted in."""
+    the channels' own units (the words say so at the first round that found it), with the figures
+    of its candidate in the rounds."""
     out = []
     for e, why in selection.too_small.items():
-        c = next((c for rnd in selection.rounds for c in rnd if c.effect == e), None)
+        tried = [c for rnd in selection.rounds for c in rnd if c.effect == e]
+        c = next((c for c in tried if c.rmse), tried[0] if tried else None)
         figures = {} if c is None else {"delta_score": c.delta_score, "relative_gain": c.relative_gain,
                                         "rmse": {ch: g.to_json() for ch, g in c.rmse.items()}}
         out.append(Rejected((e,), TOO_SMALL, why, figures))
