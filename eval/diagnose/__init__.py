@@ -8,7 +8,10 @@ Its modules, in the order a diagnosis runs them:
 - ``selection``: greedy held-out selection over the effect library, with ``form_prior``
   (priors of flexible forms), ``linear_forms`` (forms fitted in closed form) and
   ``identifiability`` (whether a form's extra parameters are told apart);
-- ``verdict``: the noise threshold, per-channel misfits, what is left, and the effect sizes;
+- ``verdict``: the tests (noise threshold, per-channel misfits, what is left, the effect sizes)
+  and the verdict kinds;
+- ``decide``: the decision after the selection, ordered rules with a ledger, the verdict made once;
+- ``ambiguity``: every "A or B", with the capture that separates them;
 - ``observability``: what the capture cannot tell (unobservable, ambiguous);
 - ``structure``: what the residual left looks like;
 - ``report``: the HTML page; ``run``: the whole loop (``diagnose``, ``run_diagnosis``)."""

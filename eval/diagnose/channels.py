@@ -32,6 +32,7 @@ import numpy as np
 
 from tofhil.demod import radians_per_metre
 from tofhil.eval.diagnose.heldout import HeldOutData
+from tofhil.sim.effects import OFFSET_CHANNEL
 
 #: |estimate / standard error| beyond which one reading alone is not noise (about 6e-7
 #: two-sided); a table of readings uses :func:`family_z` instead, so that the table as a whole
@@ -167,7 +168,7 @@ def offset_readings(data: HeldOutData, prediction: np.ndarray) -> list[ChannelRe
     level = float(np.mean(np.abs(prediction[c].real[m]))) or 1.0
     mean = float(np.mean(r))
     se = float(math.sqrt(np.sum(var)) / max(r.size, 1))
-    return [ChannelReading("offset", "offset", mean / level, se / level, "",
+    return [ChannelReading(OFFSET_CHANNEL, OFFSET_CHANNEL, mean / level, se / level, "",
                            f"unmodulated offset {mean:+.3g} DN ({100 * mean / level:+.2f} % of the twin's)")]
 
 

@@ -51,9 +51,10 @@ from tofhil.demod import distance_to_phase, equally_spaced_phases
 from tofhil.errors import TofhilError
 from tofhil.eval.diagnose.heldout import HeldOutData, block_checkerboard
 from tofhil.session import Session
+from tofhil.sim.effects import EFFECTS
 
 #: Effects that act only on the tap offset: not observable without raw taps.
-OFFSET_ONLY_EFFECTS = ("ambient",)
+OFFSET_ONLY_EFFECTS = tuple(n for n, e in EFFECTS.items() if e.offset_only)
 #: Share of a bin's pixels that must be usable for the bin to be (their mean is the bin's).
 BIN_USABLE_SHARE = 0.75
 

@@ -14,9 +14,10 @@ import math
 from typing import Any, Mapping, Sequence
 
 from tofhil.eval.diagnose.verdict import Kind
+from tofhil.sim.effects import OFFSET_CHANNEL
 
 #: The channels of :mod:`tofhil.eval.diagnose.channels`, as a sentence names them.
-CHANNEL_WORDS = {"tap": "tap", "frequency": "frequency", "offset": "offset", "frame": "frame", "noise": "noise"}
+CHANNEL_WORDS = {"tap": "tap", "frequency": "frequency", OFFSET_CHANNEL: OFFSET_CHANNEL, "frame": "frame", "noise": "noise"}
 
 
 def _field_part(f: Mapping[str, Any]) -> str:

@@ -45,11 +45,12 @@ import numpy as np
 from tofhil.demod import radians_per_metre
 from tofhil.eval.diagnose.heldout import HeldOutData
 from tofhil.eval.metrics.noise import pooled_variance
+from tofhil.sim.effects import RangeOffsetMapEffect
 
 T = TypeVar("T")
 
 #: The effect the map forms fit (``tofhil.sim.effects.RangeOffsetMapEffect``).
-MAP_EFFECT = "range_offset_map"
+MAP_EFFECT = RangeOffsetMapEffect.name
 #: Radial offset of the linearisation (m): small against the wrap, large against round-off.
 EPS_M = 1e-3
 #: Ridge strengths tried, relative to the median weight of a column (two per decade).

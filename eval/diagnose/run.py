@@ -29,17 +29,18 @@ from tofhil.eval.diagnose.leftover import what_is_left
 from tofhil.eval.diagnose.depth_heldout import observable_candidates, split_for_diagnosis
 from tofhil.eval.diagnose.geometry import GeometryEvidence
 from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal
-from tofhil.eval.diagnose.linear_forms import MAP_EFFECT, fit_frame_drift
-from tofhil.eval.diagnose.observability import Observability, assess, shape_ambiguities
+from tofhil.eval.diagnose.linear_forms import MAP_EFFECT
+from tofhil.eval.diagnose.observability import Observability
 from tofhil.eval.diagnose.selection import Selection, greedy_select
 from tofhil.eval.diagnose.signal_scale import (SignalScale, fit_signal_scale, needs_scale, scaled_scene,
                                                without_fixed_pattern)
-from tofhil.eval.diagnose.twin_model import TwinModel, to_effect_values
+from tofhil.eval.diagnose.twin_model import TwinModel
 from tofhil.eval.diagnose import decide as D
 from tofhil.eval.diagnose import verdict as V
 from tofhil.eval.diagnose.decide import DRIFT
 from tofhil.frames import DepthFrame
 from tofhil.session import open_session
+from tofhil.sim.effects import ORDER, PoseEffect, StrayLightEffect
 
 
 @dataclass
@@ -98,6 +99,9 @@ class DiagnosisResult:
     #: Whether the residual left is organised by the scene's objects and edges, the test behind
     #: "the scene does not match" (``eval/diagnose/geometry.py``); None: too few pixels.
     geometry: GeometryEvidence | None = None
+    #: The decision's ledger (``eval/diagnose/decide.py``): the rules in order, the causes
+    #: named and the effects fitted but not named, each with the rule and its figures.
+    ledger: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return {"verdict": self.verdict.to_json() if self.verdict else None, "channels": self.channels,
@@ -116,7 +120,7 @@ class DiagnosisResult:
                 "alternatives": self.alternatives, "defects": self.defects, "residual_by_channel": self.channel_table,
                 "left": self.left, "signal_scale": self.signal_scale.to_json(),
                 "geometry": self.geometry.to_json() if self.geometry is not None else None,
-                "twin_setup": self.setup_note}
+                "twin_setup": self.setup_note, "ledger": self.ledger}
         # (the run time is in the report, not here: the same inputs give the same file, bit for bit)
 
 
@@ -131,14 +135,6 @@ HELD_OUT = "held-out"
 HELD_OUT_MASK = "heldout_pixels.npy"
 #: The fitted range offset map [H, W] (m), beside the extended scene that loads it.
 OFFSET_MAP_FILE = "range_offset_map.npy"
-
-
-def _json_params(effect: str, values: dict[str, Any], details: dict[str, Any] | None = None) -> dict[str, Any]:
-    """An effect's fitted values for diagnosis.json: a closed-form map's figures (the map
-    is in its .npy file), else the parameters."""
-    if details:
-        return dict(details)
-    return to_effect_values(effect, values)
 
 
 def heldout_frames(data: HeldOutData, prediction: np.ndarray, defined: np.ndarray) -> tuple[DepthFrame, DepthFrame]:
@@ -292,8 +288,9 @@ def _held_out_data(session_path: str | Path, scene: Any, facts: Any, *, block_px
 
 
 class _ExtendedScene:
-    """The base scene with the fitted effects: written (with a range offset map beside it),
-    read back and re-rendered, so that the gain reported is that of the file."""
+    """The base scene with the fitted effects: its text (with a range offset map beside it),
+    the twin it reads back as (in memory, for the decision: nothing is written before it is
+    made) and, once the decision is made, the file."""
 
     def __init__(self, model: TwinModel, data: HeldOutData, ext_path: Path | None,
                  render_kwargs: dict[str, Any] | None) -> None:
@@ -301,53 +298,77 @@ class _ExtendedScene:
         self.map_path = ext_path.parent / OFFSET_MAP_FILE if ext_path is not None else None
 
     def text(self, fitted: dict[str, dict[str, Any]]) -> str:
+        """The file's text: a range offset map named by its file beside the scene (relative: the
+        output directory can be moved) when there is a file to write, else inline."""
+        import yaml
+
         from tofhil.sim.scene import scene_to_yaml
 
-        if self.map_path is not None:
-            if MAP_EFFECT in fitted:
-                # the map goes to a .npy file beside the extended scene, which names it
-                np.save(self.map_path, np.asarray(fitted[MAP_EFFECT]["values"], dtype=np.float64))
-                fitted = fitted | {MAP_EFFECT: {"file": str(self.map_path.resolve())}}
-            else:
-                self.map_path.unlink(missing_ok=True)
-        ext_scene = dataclasses.replace(self.model.scene, effects=self.model.extended_effects_block(fitted))
+        block = self.model.extended_effects_block(fitted)
+        scene = dataclasses.replace(self.model.scene, effects=block)
         g = self.model.gain(fitted)
         if g != 1.0:
             # the device gain profiled for this set is the scene's: written into its sensor
-            ext_scene = scaled_scene(ext_scene, SignalScale(factor=g, fitted=True))
-        extended_text = scene_to_yaml(ext_scene)
-        if self.map_path is not None and MAP_EFFECT in fitted:
-            # the file named relative to the scene file: the output directory can be moved
-            import yaml
+            scene = scaled_scene(scene, SignalScale(factor=g, fitted=True))
+        if self.map_path is None or MAP_EFFECT not in fitted:
+            return scene_to_yaml(scene)
+        # the scene is made without the map (a Scene reads the files it names, and this one is
+        # written after the decision), which goes back in at its place in the forward-model order
+        entry = {k: v for k, v in block.pop(MAP_EFFECT).items() if k != "values"} | {"file": OFFSET_MAP_FILE}
+        header, body = scene_to_yaml(dataclasses.replace(scene, effects=block)).split("\n", 1)
+        doc = yaml.safe_load(body)
+        doc["effects"] = {n: entry if n == MAP_EFFECT else doc["effects"][n] for n in ORDER
+                          if n == MAP_EFFECT or n in doc["effects"]}
+        return header + "\n" + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
 
-            header, body = extended_text.split("\n", 1)
-            doc = yaml.safe_load(body)
-            doc["effects"][MAP_EFFECT]["file"] = OFFSET_MAP_FILE
-            extended_text = header + "\n" + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
-        return extended_text
+    def _map(self, fitted: dict[str, dict[str, Any]]) -> np.ndarray:
+        return np.asarray(fitted[MAP_EFFECT]["values"], dtype=np.float64)
+
+    def scene(self, fitted: dict[str, dict[str, Any]]) -> Any:
+        """The scene the file will read back as, without writing it (the map, which the file
+        names, given by its values: the same numbers its .npy file holds)."""
+        from tofhil.sim.scene import scene_from_dict, scene_from_yaml
+        from tofhil.yamlio import load_yaml
+
+        text = self.text(fitted)
+        if self.path is None:
+            return scene_from_yaml(text)
+        source, base_dir = str(self.path), self.path.resolve().parent
+        if MAP_EFFECT not in fitted:
+            return scene_from_yaml(text, source=source, base_dir=base_dir)
+        doc = load_yaml(text, source=source)
+        doc["effects"][MAP_EFFECT] = {"values": self._map(fitted)}
+        scene = scene_from_dict(doc, source=source, base_dir=base_dir)
+        scene.text = text
+        return scene
 
     def __call__(self, fitted: dict[str, dict[str, Any]]) -> tuple[TwinModel, np.ndarray]:
-        from tofhil.sim.scene import load_scene, scene_from_yaml
-
-        extended_text = self.text(fitted)
-        if self.path is not None:
-            self.path.write_text(extended_text)
-            reloaded = load_scene(self.path)
-        else:
-            reloaded = scene_from_yaml(extended_text)
-        # the reloaded scene is predicted with the base twin's sensor (its signal scale)
+        """The extended scene's twin and its prediction, in memory."""
+        # predicted with the base twin's sensor (its signal scale), times the gain profiled for
+        # this set where the scale was fitted (the gain the file's sensor holds)
         sensor = self.model.scene.sensor
         g = self.model.gain(fitted)
         if g != 1.0:
             sensor = scaled_scene(self.model.scene, SignalScale(factor=g, fitted=True)).sensor
-        after_model = TwinModel(reloaded, self.data, render_kwargs=self.render_kwargs, renders_from=self.model,
-                                sensor=sensor)
+        after_model = TwinModel(self.scene(fitted), self.data, render_kwargs=self.render_kwargs,
+                                renders_from=self.model, sensor=sensor)
         return after_model, after_model.predict({})
+
+    def write(self, fitted: dict[str, dict[str, Any]]) -> None:
+        """Write the extended scene, once, after the decision (a map beside it; a stale one removed)."""
+        if self.path is None:
+            return
+        if self.map_path is not None:
+            if MAP_EFFECT in fitted:
+                np.save(self.map_path, self._map(fitted))
+            else:
+                self.map_path.unlink(missing_ok=True)
+        self.path.write_text(self.text(fitted))
 
 
 def _ranking(selection: Selection) -> tuple[list[dict[str, Any]], list[list[dict[str, Any]]]]:
     """The first round's candidates in full and every round's in brief, as JSON."""
-    ranked = [{"effect": c.effect, "params": _json_params(c.effect, c.params, c.details), "score": c.score,
+    ranked = [{"effect": c.effect, "params": D.fitted_values_json(c.effect, c.params, c.details), "score": c.score,
                "delta_score": c.delta_score, "relative_gain": c.relative_gain, "significant": c.significant,
                "chi2_test": c.chi2_test, "n_params": c.n_params, "worse_channels": c.worse_channels,
                "at_bounds": c.at_bounds, "form": c.form, "dof": round(c.dof, 2), "forms": c.forms,
@@ -360,13 +381,14 @@ def _ranking(selection: Selection) -> tuple[list[dict[str, Any]], list[list[dict
     return ranked, rounds
 
 
-def _signature_maps(model: TwinModel, data: HeldOutData, selection: Selection) -> dict[str, np.ndarray]:
-    """Each selected effect's signature: how it changes the twin's depth and amplitude."""
+def _signature_maps(model: TwinModel, data: HeldOutData, causes: list[str],
+                    params: dict[str, dict[str, Any]]) -> dict[str, np.ndarray]:
+    """Each named cause's signature: how it changes the twin's depth and amplitude."""
     maps = {}
     nf = data.n_freq
-    p_with = model.predict(selection.params)
-    for e in selection.causes:
-        p_without = model.predict({k: v for k, v in selection.params.items() if k != e})
+    p_with = model.predict(params)
+    for e in causes:
+        p_without = model.predict({k: v for k, v in params.items() if k != e})
         change = M.wrapped_difference(depth_from_signal(p_with[:nf], data.freq_hz),
                                       depth_from_signal(p_without[:nf], data.freq_hz), data.unambiguous_range_m)
         maps[f"signature_depth_{e}"] = np.where(distance_defined(data, p_with, p_without), change, np.nan)
@@ -426,63 +448,44 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         progress(model.setup.note)
         progress(scale.text())
     base_pred = model.predict({})
-    if candidates is None or "pose" in candidates:
+    if candidates is None or PoseEffect.name in candidates:
         if progress:
             progress("aligning the twin (ICP)")
         model.align_pose()
     sizes = V.EffectSize(data)
     selection = greedy_select(model, data, candidates=candidates, max_effects=max_effects,
                               min_relative_gain=min_relative_gain, progress=progress, effect_size=sizes)
-    # a cause that puts a part into a channel the base twin had clean is accounted, not unnamed:
-    # the explanation is partial there
-    moved = D.moved_clean_channels(model, data, selection, base_pred)
-    ext_path = Path(extended_scene_path) if extended_scene_path else None
-    extend = _ExtendedScene(model, data, ext_path, render_kwargs)
-    after_model, after_pred = extend(selection.params)
-    object_id = np.asarray(model.base_render().object_id)
-    object_names = {i: o.name for i, o in enumerate(model.scene.objects)}
-    judge = D.Judge(data, selection, base_pred, object_id, object_names, sizes)
-    n = judge.n
-
     evidence = _evidence(selection, data)
     if data.defects is not None and data.defects.count:
         evidence.insert(0, "defects: " + data.defects.text())
     for line in selection.too_small.values():
         evidence.append(f"not named, its held-out gain is too small or makes a channel worse: {line}")
     evidence.extend(selection.not_tried.values())
-    verdict, ch_after, objects_after, worse, after_model, after_pred = D.settle(
-        selection, data, sizes, judge, extend, base_pred, after_pred, after_model, max_effects)
-    for c, texts in moved.items():
-        if c in selection.causes:
-            verdict.notes.append(f"{c} moves a channel where the base twin's residual had nothing beyond noise ("
-                                 + "; ".join(texts) + "): the explanation is partial there")
-    drift = fit_frame_drift(model, data, selection.params, float(np.log(n))) if want_drift else None
-    if drift is not None and drift.named and selection.causes:
-        alone = D.drift_alone(model, data, selection, drift, float(np.log(n)))
-        if alone is not None:
-            # the static causes stood in for the drift's mean: the drift alone explains every frame
-            verdict_note = ("fitted but not named: " + " + ".join(selection.causes) + " (the per-frame drift alone "
-                            f"explains the frames as well: held-out misfit {alone.chi2_drift / alone.n_values:.3f} "
-                            f"per value against {drift.chi2_drift / drift.n_values:.3f} with them; a static effect "
-                            "fitted to frames that drift takes up the drift's mean)")
-            selection.causes, selection.params = [], {}
-            after_model, after_pred = extend({})
-            verdict, ch_after, objects_after, worse = judge(after_pred, [])
-            verdict.notes.append(verdict_note)
-            drift = alone
-    verdict = D.with_drift(verdict, drift, judge, evidence)
-    for e in selection.causes:  # "A or B": the named cause is not the only reading of the data
-        verdict.notes.extend(a.text for a in selection.alternatives.get(e, ()))
-    params = {e: _json_params(e, v, selection.details.get(e)) for e, v in selection.params.items()}
+
+    # decide: the rules over the selection's record (read, never changed), the extended scene
+    # predicted in memory; written once, after
+    ext_path = Path(extended_scene_path) if extended_scene_path else None
+    extend = _ExtendedScene(model, data, ext_path, render_kwargs)
+    object_id = np.asarray(model.base_render().object_id)
+    object_names = {i: o.name for i, o in enumerate(model.scene.objects)}
+    judge = D.Judge(data, selection, base_pred, object_id, object_names, sizes)
+    n = judge.n
+    decision = D.decide(D.Context(selection=selection, data=data, model=model, judge=judge, sizes=sizes,
+                                  base_pred=base_pred, extended=extend, max_effects=max_effects,
+                                  want_drift=want_drift, block_px=block_px,
+                                  geometry_from_depth=bool(facts.geometry_from_depth)))
+    extend.write(decision.params)
+    causes, after_model, after_pred, reading = decision.names, decision.model, decision.prediction, decision.reading
+    drift = decision.drift
+    if drift is not None:
+        evidence.append(drift.text)
+    params = {e: D.fitted_values_json(e, v, selection.details.get(e)) for e, v in decision.params.items()}
     if MAP_EFFECT in params:
         params[MAP_EFFECT] = {"file": OFFSET_MAP_FILE if extend.map_path is not None else None} | params[MAP_EFFECT]
-    observability = assess(selection, model, data, block_px=block_px, unobservable=unobservable)
-    observability.ambiguous += shape_ambiguities(list(selection.causes),
-                                                 geometry_from_depth=bool(facts.geometry_from_depth))
-    for a in observability.ambiguous:
-        if a["round"] is None:  # a pattern of the pixels or a surface: said in the verdict too
-            verdict.notes.append(a["text"])
+    amb = decision.ambiguities
+    observability = Observability.of(unobservable, amb.observed)
 
+    # measure: the held-out figures of the base twin and of the extended scene
     # A predicted pixel is compared where its signal is above the noise and no predicted tap
     # reaches the device's clip levels (compare applies the same rule to a twin session).
     defined = distance_defined(data, base_pred, after_pred)
@@ -491,39 +494,33 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     objects = M.object_regions(object_id, object_names)
     before, maps_before, ev_before = heldout_metrics(data, base_pred, defined, objects)
     after, maps_after, ev_after = heldout_metrics(data, after_pred, defined, objects)
+    ch_after = reading.channels
     channels = {c: {"before_per_value": round(selection.channels_before[c][0] / selection.channels_before[c][1], 4),
                     "after_per_value": round(ch_after[c][0] / ch_after[c][1], 4),
                     "values": ch_after[c][1],
                     "noise_margin_per_value": round(V.channel_margin(ch_after[c][1]) / ch_after[c][1], 4),
-                    "worse": c in worse} for c in ch_after}
+                    "worse": c in reading.worse} for c in ch_after}
     size_after = sizes.compare(base_pred, after_pred)
-    if not selection.causes and selection.too_small and verdict.kind in (V.Kind.UNEXPLAINED, V.Kind.SCENE_MISMATCH):
-        verdict.notes.append("fitted but not named: " + "; ".join(selection.too_small.values()))
     regions_left, above_after = V.residual_regions(
         data, after_pred, judge.nu, object_id, object_names, maps_after["depth_residual"],
         maps_after["amplitude_residual"])
     gain = {k: {"before": before[k], "after": after.get(k, float("nan"))} for k in before}
-    if selection.causes and verdict is not None:
-        D.rmse_worse_notes(verdict, gain)
-    for key, label in (("before", "with the base twin"), ("after", "with the extended twin")):
-        n_wrong = int(gain["unwrap_error_pixels"][key])
-        if n_wrong:
-            verdict.notes.append(f"{n_wrong} held-out pixels unwrapped to the wrong interval {label} (a phase "
-                                 "inconsistency between the frequencies, or noise in them): mapped, not in the depth "
-                                 f"figures ({int(gain['depth_compared_pixels'][key])} pixels compared)")
-    if data.defects is not None and data.defects.count:
-        verdict.notes.insert(0, data.defects.text())
+    decision = D.with_measurement(decision, gain, data.defects.text() if data.defects is not None
+                                  and data.defects.count else None)
+    verdict = decision.verdict
+
+    # report: what the result holds
     regions = {"before": ev_before.to_json()["regions"], "after": ev_after.to_json()["regions"]}
     ranked, rounds = _ranking(selection)
     maps = {f"{k}_before": v for k, v in maps_before.items()} | {f"{k}_after": v for k, v in maps_after.items()}
-    maps |= _signature_maps(model, data, selection)
+    maps |= _signature_maps(model, data, causes, decision.params)
     maps["above_noise_after"] = np.where(data.usable, above_after, np.nan)
     structure = residual_structure(data, after_pred, maps_after, object_id, object_names)
     if data.defects is not None:
         maps["defects"] = data.defects.mask.astype(float)
     table = _channel_tables(data, model, after_model, base_pred, after_pred)
-    left = what_is_left(table["after"], [f.to_json() for f in structure], verdict.kind) if verdict else None
-    return DiagnosisResult(cause=selection.causes[0] if selection.causes else None, causes=list(selection.causes),
+    left = what_is_left(table["after"], [f.to_json() for f in structure], verdict.kind)
+    return DiagnosisResult(cause=causes[0] if causes else None, causes=list(causes),
                            ranked=ranked, rounds=rounds, gain=gain, regions=regions,
                            extended_scene=str(ext_path) if ext_path else "", params=params,
                            evidence=[f"data: {data.channels}; noise: {data.noise}", model.setup.note, scale.text()]
@@ -535,20 +532,20 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                            seconds=time.perf_counter() - t0, verdict=verdict, channels=channels,
                            residual_regions=[r.to_json() | {"text": r.describe()} for r in regions_left],
                            objects={k: {"before": judge.objects_before.get(k), "after": v}
-                                    for k, v in objects_after.items()},
+                                    for k, v in reading.objects.items()},
                            observability=observability, structure=[f.to_json() for f in structure],
-                           forms={e: selection.forms.get(e, "") for e in selection.causes},
+                           forms={c.effect: c.form for c in decision.causes},
                            drift=None if drift is None else drift.to_json(),
                            effect_size={"rule": V.effect_size_rule(),
                                         "channels": {c: g.to_json() for c, g in size_after.items()},
                                         "fitted_too_small": dict(selection.too_small)},
                            identifiability={e: [t.to_json() for t in selection.unidentified.get(e, ())]
-                                            for e in selection.causes if selection.unidentified.get(e)},
-                           alternatives={e: [a.to_json() for a in selection.alternatives[e]]
-                                         for e in selection.causes if e in selection.alternatives},
+                                            for e in causes if selection.unidentified.get(e)},
+                           alternatives={e: [a.to_json() for a in alts]
+                                         for e, alts in amb.alternatives(causes).items()},
                            defects=data.defects.to_json() if data.defects is not None else {},
                            channel_table=table, left=left, signal_scale=scale, setup_note=model.setup.note,
-                           geometry=judge.geometry)
+                           geometry=reading.geometry, ledger=decision.ledger())
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,
@@ -581,7 +578,7 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
         written.append(out / HELD_OUT_MASK)
         ev = res.evaluations["before"]
         np.save(out / HELD_OUT_MASK, ev.maps.valid_both & res.data.test_pixels)
-        if "stray_light" in res.causes:
+        if StrayLightEffect.name in res.causes:
             # The fitted stray light as a PSF file: `tofhil correct --method psf:psf=FILE` takes it.
             from tofhil.eval.corrections.straylight import psf_from_diagnosis
 

@@ -31,7 +31,8 @@ from scipy.optimize import least_squares
 
 from tofhil.eval.diagnose.heldout import HUBER_SIGMA, HeldOutData, huber, predict_fit
 from tofhil.eval.diagnose.form_prior import regularise_form
-from tofhil.eval.diagnose.identifiability import Alternative, Identifiability, alternatives, assess_form, param_group
+from tofhil.eval.diagnose.ambiguity import Ambiguity, same_residual, sets_alike
+from tofhil.eval.diagnose.identifiability import Identifiability, assess_form, param_group
 from tofhil.eval.diagnose.verdict import ChannelGain, EffectSize, channel_chi2, worse_channels
 from tofhil.sim.effects import EFFECTS
 from tofhil.sim.memory import release_free_memory
@@ -191,10 +192,10 @@ class Selection:
     #: Per cause fitted in a regularised form, its prior's strength and effective dof.
     priors: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: Per cause, the other families' candidates of its round that the held-out data cannot
-    #: tell from it ("A or B", :func:`tofhil.eval.diagnose.identifiability.alternatives`).
-    alternatives: dict[str, list[Alternative]] = field(default_factory=dict)
-    #: Every search run (the greedy one and those started from other first choices): its
-    #: first cause, the set it chose and that set's held-out score; the lowest score is chosen.
+    #: tell from it ("A or B", :func:`tofhil.eval.diagnose.ambiguity.same_residual`).
+    alternatives: dict[str, list[Ambiguity]] = field(default_factory=dict)
+    #: Every set the search found (from the greedy first choice and the next significant ones)
+    #: and its held-out score; the lowest score is chosen.
     searches: list[dict[str, Any]] = field(default_factory=list)
 
     @property
@@ -468,38 +469,14 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         if key not in sets or sel is chosen:
             sets[key] = {"causes": list(sel.causes), "score": round(score, 2), "chosen": sel is chosen}
     chosen.searches = list(sets.values())
-    if len(found) > 1:
-        _sets_alike(model, data, chosen, chosen_score, found, search.penalty)
+    if len(found) > 1 and chosen.causes:
+        others = [(score, sel.causes, sel.params) for score, sel in found if sel is not chosen]
+        said = {a.other for alts in chosen.alternatives.values() for a in alts}
+        found_alike = sets_alike(model, data, chosen.causes, chosen.params, chosen_score, others, search.penalty,
+                                 said=said)
+        if found_alike:
+            chosen.alternatives.setdefault(chosen.causes[0], []).extend(found_alike)
     return chosen
-
-
-def _sets_alike(model: ForwardModel, data: HeldOutData, chosen: Selection, chosen_score: float,
-                found: Sequence[tuple[float, Selection]], penalty: float) -> None:
-    """Another search's set that the held-out data cannot tell from the chosen one (by the
-    rule of :func:`tofhil.eval.diagnose.identifiability.alternatives`): said, "A or B"."""
-    if not chosen.causes:
-        return
-    base = data.whitened_residual(model.predict({}), "test")
-    named = data.whitened_residual(model.predict(chosen.params), "test")
-    label = " + ".join(chosen.causes)
-    seen = {tuple(sorted(chosen.causes))}
-    # a set another round already said is an alternative of one cause is not said twice
-    said = {a.other for alts in chosen.alternatives.values() for a in alts}
-    seen |= {(o,) for o in said}
-    for score, sel in found:
-        key = tuple(sorted(sel.causes))
-        if sel is chosen or not sel.causes or key in seen:
-            continue
-        seen.add(key)
-        other = data.whitened_residual(model.predict(sel.params), "test")
-        diff = named - other
-        needed = max(penalty, 4.0 * float(np.sqrt(diff @ diff)))
-        if score - chosen_score < needed:
-            a, b = base - named, base - other
-            denom = float(a @ a) * float(b @ b)
-            chosen.alternatives.setdefault(chosen.causes[0], []).append(Alternative(
-                effect=label, form="", other=" + ".join(sel.causes), other_form="", score_gap=score - chosen_score,
-                needed=needed, overlap=float(a @ b) ** 2 / denom if denom > 0 else 0.0))
 
 
 class _GreedySearch:
@@ -746,7 +723,7 @@ class _GreedySearch:
                 if any(g.confused for g in test.groups):
                     chosen.unidentified.append(test)
         # another family that explains the same residual as well: said, "A or B"
-        alt = alternatives(model, data, chosen, round_, self.current_pred, self.penalty)
+        alt = same_residual(model, data, chosen, round_, self.current_pred, self.penalty)
         if alt:
             selection.alternatives[chosen.effect] = alt
         _release_residuals(round_)

@@ -23,7 +23,7 @@ import numpy as np
 from tofhil.demod import phasor
 from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal
 from tofhil.eval.diagnose.selection import EffectParams, EffectSpec, FitParam
-from tofhil.sim.effects import EFFECTS, ORDER, Param
+from tofhil.sim.effects import EFFECTS, ORDER, Param, PoseEffect, RangeOffsetMapEffect
 
 LOG_PREFIX = "log10_"
 #: Huber's constant for the profiled gain's M-estimate, in units of the log ratios' spread: 95 %
@@ -120,7 +120,7 @@ def _fit_offset_map(model: Any, data: HeldOutData, current: EffectParams,
 
 
 #: Effects fitted in closed form rather than by the optimiser (``EffectSpec.closed_form``).
-CLOSED_FORM = {"range_offset_map": _fit_offset_map}
+CLOSED_FORM = {RangeOffsetMapEffect.name: _fit_offset_map}
 
 
 def session_setup_for(scene: Any, data: HeldOutData) -> Any:
@@ -207,13 +207,13 @@ class TwinModel:
         t = icp(p_meas, p_twin, max_distance_m).transformation
         rv = Rotation.from_matrix(t[:3, :3]).as_rotvec()
         start = {"rx": rv[0], "ry": rv[1], "rz": rv[2], "tx": t[0, 3], "ty": t[1, 3], "tz": t[2, 3]}
-        params = EFFECTS["pose"].params
+        params = EFFECTS[PoseEffect.name].params
         # Open3D's ICP sums its normal equations over threads in no fixed order, so its last
         # digits differ from run to run; a start rounded to 1e-6 (rad, m) is repeatable.
         start = {k: round(float(np.clip(v, *(params[k].fit or (-np.inf, np.inf)))), 6) for k, v in start.items()}
         # ICP's lateral components (x, y, roll) are poorly constrained when the view is mostly
         # one plane facing the camera; offer the start without them too and let the fit choose.
-        self.extra_starts["pose"] = [start, dict(start, tx=0.0, ty=0.0, rz=0.0)]
+        self.extra_starts[PoseEffect.name] = [start, dict(start, tx=0.0, ty=0.0, rz=0.0)]
         return start
 
     # ---------------------------------------------------------------- model

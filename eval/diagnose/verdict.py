@@ -49,6 +49,7 @@ from scipy import ndimage, stats
 from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal, huber
 from tofhil.eval.metrics.core import rmse
 from tofhil.eval.metrics.noise import NOISE_POOL_PX, phasor_depth_sigma
+from tofhil.sim.effects import OFFSET_CHANNEL
 
 #: False-alarm probability of each "above noise" test (one in a thousand).
 ALPHA = 1e-3
@@ -56,7 +57,7 @@ ALPHA = 1e-3
 Z_ALPHA = float(stats.norm.isf(ALPHA))
 #: The misfit channels: the complex signal split along the predicted phasor (amplitude) and
 #: across it (phase, i.e. depth), and the tap offset when the session has that channel.
-CHANNELS = ("depth", "amplitude", "offset")
+CHANNELS = ("depth", "amplitude", OFFSET_CHANNEL)
 #: Residual regions smaller than this many pixels are not listed (single hot pixels).
 MIN_REGION_PX = 6
 
@@ -146,7 +147,7 @@ def whitened_channels(data: HeldOutData, prediction: np.ndarray, part: str = "te
     r = (meas - pred) * np.conj(u) / np.sqrt(var[:nf, mask])
     out = {"depth": r.imag, "amplitude": r.real}
     if data.offset_channel:
-        out["offset"] = ((s[nf, mask] - prediction[nf, mask]).real / np.sqrt(var[nf, mask].real))[None]
+        out[OFFSET_CHANNEL] = ((s[nf, mask] - prediction[nf, mask]).real / np.sqrt(var[nf, mask].real))[None]
     return out
 
 
@@ -561,10 +562,10 @@ class EffectSize:
         self.noise = {c: med(v[m]) for c, v in self._sigma.items()}
         level = {"amplitude": float(np.median(self._meas["amplitude"][m])) if m.any() else 0.0}
         if data.offset_channel:
-            self._meas["offset"] = s[nf].real
-            self._sigma["offset"] = np.sqrt(data.var_test[nf].real)
-            self.noise["offset"] = med(self._sigma["offset"][m])
-            level["offset"] = float(np.median(np.abs(s[nf].real[m]))) if m.any() else 0.0
+            self._meas[OFFSET_CHANNEL] = s[nf].real
+            self._sigma[OFFSET_CHANNEL] = np.sqrt(data.var_test[nf].real)
+            self.noise[OFFSET_CHANNEL] = med(self._sigma[OFFSET_CHANNEL][m])
+            level[OFFSET_CHANNEL] = float(np.median(np.abs(s[nf].real[m]))) if m.any() else 0.0
         # Practical significance is judged against what the capture can reach: the noise of a
         # pixel with every frame averaged (the held-out mean has only the held-out frames).
         frames = max(data.n_train_frames + data.n_test_frames, 1) if data.frames_held_out else 1

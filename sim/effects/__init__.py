@@ -45,7 +45,8 @@ from tofhil.sim.effects import (ambient, amplitude, fixed_pattern, frequency_cal
 from tofhil.sim.effects.ambient import AmbientEffect, OffsetEffect
 from tofhil.sim.effects.amplitude import (AMPLITUDE_KNOTS_LOG10_E, AmplitudeDependentEffect, monotone_spline,
                                           stick_breaking)
-from tofhil.sim.effects.base import STAGE_HOOKS, STAGES, Effect, EffectContext, Param
+from tofhil.sim.effects.base import (ACQUISITION, BENCH_CHANGE, DEFAULT_SEPARATION, OFFSET_CHANNEL, SHAPE_SEPARATION,
+                                     STAGE_HOOKS, STAGES, Effect, EffectContext, Param, Separation)
 from tofhil.sim.effects.fixed_pattern import FixedPatternEffect
 from tofhil.sim.effects.frequency_calibration import FrequencyCalibrationEffect
 from tofhil.sim.effects.geometry import LensDistortionEffect, PoseEffect
@@ -56,17 +57,18 @@ from tofhil.sim.effects.reflectance import ReflectanceEffect
 from tofhil.sim.effects.registry import (EFFECTS, ORDER, apply_scene_effects, apply_signal_effects, apply_tap_effects,
                                          describe_effects,
                                          effects_by_stage, effects_table_markdown, effects_to_block, parse_effects,
-                                         register, render_requirements)
+                                         register, render_requirements, separation)
 from tofhil.sim.effects.stray_light import StrayLightEffect
 from tofhil.sim.effects.tap_calibration import TapCalibrationEffect
 from tofhil.sim.effects.unseen_reflector import UnseenReflectorEffect
 from tofhil.sim.effects.wiggling import WigglingEffect, harmonic_aliases
 
-__all__ = ["AMPLITUDE_KNOTS_LOG10_E", "EFFECTS", "ORDER", "STAGES", "STAGE_HOOKS", "AmbientEffect",
+__all__ = ["ACQUISITION", "AMPLITUDE_KNOTS_LOG10_E", "BENCH_CHANGE", "DEFAULT_SEPARATION", "EFFECTS",
+           "OFFSET_CHANNEL", "ORDER", "SHAPE_SEPARATION", "STAGES", "STAGE_HOOKS", "AmbientEffect", "Separation",
            "AmplitudeDependentEffect", "Effect", "EffectContext", "FieldAngleEffect", "FixedPatternEffect",
            "FrequencyCalibrationEffect", "IlluminationEffect", "LensDistortionEffect", "MultipathEffect", "OffsetEffect", "Param", "PoseEffect",
            "RangeOffsetEffect", "TapCalibrationEffect", "RangeOffsetMapEffect", "ReflectanceEffect", "StrayLightEffect", "UnseenReflectorEffect",
            "WigglingEffect",
            "apply_scene_effects", "apply_signal_effects", "apply_tap_effects", "describe_effects", "effects_by_stage",
            "effects_table_markdown", "effects_to_block", "harmonic_aliases", "monotone_spline", "parse_effects",
-           "register", "render_requirements", "stick_breaking"]
+           "register", "render_requirements", "separation", "stick_breaking"]

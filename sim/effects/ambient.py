@@ -17,6 +17,7 @@ from tofhil.sim.sensor import OpticalSignal
 @register
 class AmbientEffect(Effect):
     name = "ambient"
+    offset_only = True
     stage = "scene"
     rank = 40
     summary = 'ambient irradiance added on every surface (offset and shot noise, no phase)'

@@ -23,6 +23,44 @@ STAGES = ("scene", "render", "signal", "pixel", "taps")
 STAGE_HOOKS = {"scene": "apply_scene", "render": "apply_render", "signal": "apply_signal", "pixel": "apply_signal",
                "taps": "apply_taps"}
 
+#: The residual channel of the taps' unmodulated offset, in the vocabulary of
+#: :attr:`Effect.signature` (the ``offset`` effect, unmodulated charge, moves it alone; the
+#: channel is named here so that diagnosis refers to it, not to an effect's name).
+OFFSET_CHANNEL = "offset"
+#: The kinds of :class:`Separation`: a device setting of the acquisition, or a change of the bench.
+ACQUISITION = "acquisition"
+BENCH_CHANGE = "bench_change"
+
+
+@dataclass(frozen=True)
+class Separation:
+    """A capture that tells two readings of the data apart, as data a program can act on (the
+    closed loop takes it): a device setting (``kind`` :data:`ACQUISITION`, ``what`` the
+    setting) or a change of the bench (``kind`` :data:`BENCH_CHANGE`, ``what`` the change),
+    with the words a reader is given and, where there are several ways, the options."""
+
+    kind: str
+    what: str
+    text: str
+    options: tuple[str, ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        out = {"kind": self.kind, "setting" if self.kind == ACQUISITION else "change": self.what, "text": self.text}
+        return out | ({"options": list(self.options)} if self.options else {})
+
+
+#: The capture that separates two effects no effect declares a separation for.
+DEFAULT_SEPARATION = Separation(BENCH_CHANGE, "distance", "a second distance, a tilt of the surface, or a known "
+                                "target as independent truth",
+                                ("a second distance", "a tilt of the surface", "a known target"))
+#: The capture that separates a pattern fixed to the pixels from a surface shape the scene lacks:
+#: a sensor pattern moves with the sensor, a surface shape with the scene.
+SHAPE_SEPARATION = Separation(BENCH_CHANGE, "camera_pose", "the same scene with the camera rolled 90 degrees or "
+                              "moved sideways (a sensor pattern moves with the sensor, a surface shape with the "
+                              "scene), or a known flat target (--target)",
+                              ("roll the camera 90 degrees", "move the camera sideways",
+                               "a known flat target (--target)"))
+
 
 @dataclass(frozen=True)
 class Param:
@@ -145,6 +183,17 @@ class Effect:
     #: scene); None for effects that change the direct return itself. The twin's direct-only
     #: prediction switches these effects off (``tofhil correct --method twin``).
     beyond_direct: str | None = None
+    #: True when the effect acts on the taps' offset alone: a session without raw taps (depth
+    #: and amplitude only) cannot see it.
+    offset_only: bool = False
+    #: Other effects (by name) that can explain a capture as this one does, each with the
+    #: capture that tells the two apart. A pair is declared on one of its two effects
+    #: (``registry.separation`` reads both).
+    mimicked_by: dict[str, Separation] = {}
+    #: What a surface shape the scene lacks looks like through this effect ("" when none can
+    #: mimic it): a pattern fixed to the pixels, which one view cannot tell from a surface
+    #: (the capture that can is :data:`SHAPE_SEPARATION`).
+    mimicked_by_shape: str = ""
 
     @property
     def pointwise(self) -> bool:

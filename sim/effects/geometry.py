@@ -8,7 +8,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from tofhil.sim.effects.base import Effect, Param
+from tofhil.sim.effects.base import BENCH_CHANGE, Effect, Param, Separation
 from tofhil.sim.effects.registry import register
 
 # Diagnosis searches small pose errors: a bench camera is placed to a few centimetres and degrees.
@@ -46,6 +46,7 @@ class PoseEffect(Effect):
 @register
 class LensDistortionEffect(Effect):
     name = "lens_distortion"
+    mimicked_by = {"pose": Separation(BENCH_CHANGE, "known_target", "a tilted plane or a known target filling the view")}
     stage = "scene"
     rank = 20
     summary = "OpenCV coefficients added to the camera's; the renderer's rays follow them"

@@ -10,7 +10,7 @@ import numpy as np
 
 from tofhil.camera import CameraModel
 from tofhil.errors import InputFileError
-from tofhil.sim.effects.base import Effect, EffectContext, Param, _rotate_phase
+from tofhil.sim.effects.base import BENCH_CHANGE, Effect, EffectContext, Param, Separation, _rotate_phase
 from tofhil.sim.effects.registry import register
 from tofhil.sim.sensor import OpticalSignal
 
@@ -18,6 +18,14 @@ from tofhil.sim.sensor import OpticalSignal
 @register
 class RangeOffsetEffect(Effect):
     name = "range_offset"
+    mimicked_by = {
+        "pose": Separation(BENCH_CHANGE, "known_target",
+                           "a known target (its pose from the amplitude image, not from depth)"),
+        "wiggling": Separation(BENCH_CHANGE, "distance",
+                               "a second distance (wiggling changes with distance, an offset does not)"),
+        "amplitude_dependent": Separation(BENCH_CHANGE, "target_reflectance",
+                                          "a darker and a brighter target at one distance"),
+    }
     stage = "signal"
     rank = 90
     summary = 'constant optical-path offset: reads `path_m / 2` farther'
@@ -34,6 +42,7 @@ class RangeOffsetEffect(Effect):
 @register
 class FieldAngleEffect(Effect):
     name = "field_angle"
+    mimicked_by_shape = "a range error growing with the field angle looks the same as a surface curved about the optical axis"
     stage = "signal"
     rank = 100
     summary = 'radial error growing with the field angle: `c2 t^2 + c4 t^4`, t = tan(field angle) of the pixel ray'
@@ -64,6 +73,7 @@ class FieldAngleEffect(Effect):
 @register
 class RangeOffsetMapEffect(Effect):
     name = "range_offset_map"
+    mimicked_by_shape = "a range pattern along rows or columns looks the same as a surface that bends along them"
     stage = "pixel"
     rank = 120
     summary = ('fixed-pattern radial offset map `[H, W]` (m): per-column, per-row and per-pixel offsets of the readout; '

@@ -24,7 +24,7 @@ from typing import Any, Mapping
 
 from tofhil.errors import InputFileError
 from tofhil.schema import to_plain
-from tofhil.sim.effects.base import STAGE_HOOKS, STAGES, Effect, EffectContext
+from tofhil.sim.effects.base import DEFAULT_SEPARATION, STAGE_HOOKS, STAGES, Effect, EffectContext, Separation
 import numpy as np
 
 from tofhil.sim.sensor import OpticalSignal
@@ -51,6 +51,17 @@ def register(cls: type[Effect]) -> type[Effect]:
     EFFECTS.update((e.name, e) for e in ranked)
     ORDER = tuple(EFFECTS)
     return cls
+
+
+def separation(a: str, b: str) -> Separation:
+    """The capture that tells effect ``a`` from effect ``b`` (declared on either one's
+    ``mimicked_by``), else :data:`~tofhil.sim.effects.base.DEFAULT_SEPARATION`. Names that are
+    not effects (a test's stand-ins) get the default too."""
+    for x, y in ((a, b), (b, a)):
+        found = getattr(EFFECTS.get(x), "mimicked_by", {}).get(y)
+        if found is not None:
+            return found
+    return DEFAULT_SEPARATION
 
 
 def parse_effects(block: Mapping[str, Any] | None, *, source: str | Path = "<effects>") -> dict[str, dict[str, Any]]:

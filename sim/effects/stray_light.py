@@ -9,7 +9,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from tofhil.sim.effects.base import Effect, EffectContext, Param
+from tofhil.sim.effects.base import BENCH_CHANGE, Effect, EffectContext, Param, Separation
 from tofhil.sim.effects.registry import register
 from tofhil.sim.sensor import OpticalSignal
 from tofhil.sim.straylight import StrayLightOperator, StrayLightPSF, apply_lobes, lobes_only
@@ -18,6 +18,11 @@ from tofhil.sim.straylight import StrayLightOperator, StrayLightPSF, apply_lobes
 @register
 class StrayLightEffect(Effect):
     name = "stray_light"
+    mimicked_by = {
+        "multipath": Separation(BENCH_CHANGE, "background",
+                                "a dark target in front of a bright background, then without the background"),
+        "reflectance": Separation(BENCH_CHANGE, "distance", "the same scene at a second distance"),
+    }
     stage = "signal"
     rank = 70
     beyond_direct = "stray_light"

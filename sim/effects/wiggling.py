@@ -8,7 +8,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from tofhil.sim.effects.base import Effect, EffectContext, Param
+from tofhil.sim.effects.base import BENCH_CHANGE, Effect, EffectContext, Param, Separation
 from tofhil.sim.effects.registry import register
 from tofhil.sim.sensor import OpticalSignal
 
@@ -43,6 +43,7 @@ def _harmonic_params(h: int, forms: tuple[str, ...], *, start: float,
 @register
 class WigglingEffect(Effect):
     name = "wiggling"
+    mimicked_by = {"amplitude_dependent": Separation(BENCH_CHANGE, "distance", "a second distance at the same brightness")}
     stage = "signal"
     rank = 140
     summary = ('harmonics 2 to 7 of the correlation waveform (odd ones of a symmetric waveform, even ones of a duty '

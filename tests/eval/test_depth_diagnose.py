@@ -142,7 +142,7 @@ class _TwoNamesOneCause:
 
 def test_two_causes_that_act_alike_are_reported_as_ambiguous():
     from tofhil.eval.diagnose.heldout import HeldOutData
-    from tofhil.eval.diagnose.observability import assess
+    from tofhil.eval.diagnose.ambiguity import ROUND_SCORE, ambiguities
     from tofhil.eval.diagnose.selection import greedy_select
 
     rng = np.random.default_rng(3)
@@ -162,11 +162,12 @@ def test_two_causes_that_act_alike_are_reported_as_ambiguous():
     model = _TwoNamesOneCause(base)
     sel = greedy_select(model, data, max_effects=1)
     assert sel.causes and sel.causes[0] in ("a", "b")
-    obs = assess(sel, model, data, block_px=8)
-    pairs = [set(a["effects"]) for a in obs.ambiguous]
+    found = [a for a in ambiguities(sel, sel.causes, model, data, block_px=8).items if a.test == ROUND_SCORE]
+    pairs = [set(a.readings) for a in found]
     assert {"a", "b"} in pairs
     assert not any("c" in p for p in pairs)  # the effect that acts otherwise is told apart
-    assert "cannot tell them apart" in obs.lines[0]
+    assert "cannot tell them apart" in found[0].text
+    assert found[0].separating.to_json()["kind"] in ("acquisition", "bench_change")
 
 
 def _every_nth_pixel_of_capture(name: str, step: int, first: int, tmp_path):
@@ -208,10 +209,10 @@ def test_real_near_plane_capture_is_diagnosed_end_to_end(tmp_path):
     assert not {"range_offset", "pose", "ambient"} & {c["effect"] for c in res.ranked}
     # a range pattern or a field-angle error named on planes fitted to the same depth is said to
     # be indistinguishable from a surface shape the planes lack
-    from tofhil.eval.diagnose.observability import MIMICKED_BY_SHAPE
+    from tofhil.sim.effects import EFFECTS
 
     pairs = [a["effects"] for a in out["observability"]["ambiguous"]]
-    assert all([c, "surface shape"] in pairs for c in res.causes if c in MIMICKED_BY_SHAPE)
+    assert all([c, "surface shape"] in pairs for c in res.causes if EFFECTS[c].mimicked_by_shape)
     assert all(p[0] in res.causes for p in pairs if p[1] == "surface shape")
 
 

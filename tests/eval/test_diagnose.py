@@ -163,6 +163,10 @@ def test_cli_diagnose_writes_json_scene_and_report(tmp_path, bench_scene):
     d = json.loads((out / "diagnosis.json").read_text())
     assert d["cause"] == "range_offset" and d["causes"] == ["range_offset"]
     assert {"effect", "params", "score", "delta_score"} <= set(d["ranked"][0])
+    # the decision's ledger: the rules in order, the cause with its form, values and figures
+    assert d["ledger"]["rules"][0] == "extended_scene_keeps_gain"
+    assert [c["effect"] for c in d["ledger"]["causes"]] == d["causes"] and "rejected" in d["ledger"]
+    assert d["ledger"]["causes"][0]["params"] == d["params"]["range_offset"]
     assert d["gain"]["depth_rmse_m"]["after"] < d["gain"]["depth_rmse_m"]["before"]
     assert "ndt_score_per_point" in d["gain"] and "icp_inlier_rmse_m" in d["gain"]
     assert not (out / "stray_light_psf.json").exists()  # written only when stray light is a cause

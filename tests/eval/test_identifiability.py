@@ -196,7 +196,8 @@ def test_two_families_the_data_cannot_tell_apart_are_said_a_or_b(seed):
     sel = greedy_select(model, heldout_from_signal(model.predict({"ramp": {"a": 0.03}}), SIGMA, seed), max_effects=1)
     assert sel.causes in (["ramp"], ["sine"])
     (alt,) = sel.alternatives[sel.causes[0]]
-    assert {alt.effect, alt.other} == {"ramp", "sine"} and alt.score_gap < alt.needed and alt.overlap > 0.99
+    assert {alt.effect, alt.other} == {"ramp", "sine"} and alt.figures["score_gap"] < alt.figures["needed"]
+    assert alt.figures["overlap"] > 0.99
     assert " or " in alt.text and "cannot tell them apart" in alt.text
     assert json.loads(json.dumps(alt.to_json()))["other"] == alt.other
 
