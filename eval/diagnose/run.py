@@ -100,7 +100,8 @@ class DiagnosisResult:
     #: "the scene does not match" (``eval/diagnose/geometry.py``); None: too few pixels.
     geometry: GeometryEvidence | None = None
     #: The decision's ledger (``eval/diagnose/decide.py``): the rules in order, the causes
-    #: named and the effects fitted but not named, each with the rule and its figures.
+    #: named and the effects fitted but not named, each with the rule and its figures; and the
+    #: sets the search found from its first choices (``searches``: causes, held-out score, chosen).
     ledger: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
@@ -545,7 +546,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                                          for e, alts in amb.alternatives(causes).items()},
                            defects=data.defects.to_json() if data.defects is not None else {},
                            channel_table=table, left=left, signal_scale=scale, setup_note=model.setup.note,
-                           geometry=reading.geometry, ledger=decision.ledger())
+                           geometry=reading.geometry,
+                           ledger=decision.ledger() | {"searches": list(selection.searches)})
 
 
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,
