@@ -57,6 +57,7 @@ def named_or_said(res, effect: str) -> bool:
 
 
 def main() -> None:
+    from tofhil.errors import InputFileError
     from tofhil.eval.diagnose.run import diagnose
     from tofhil.sim.scene import bundled_scenes, load_scene
     from tofhil.sim.sources import HIDDEN_TRUTH_EFFECTS
@@ -79,7 +80,12 @@ def main() -> None:
                 try:
                     path = capture(scene, hidden, a.frames, Path(tmp) / f"{scene}_{further}.h5", a.seed)
                     res = diagnose(path, load_scene(scene))
-                except Exception as exc:  # a scene the emulated camera cannot render: said, next
+                except InputFileError as exc:  # a scene the emulated camera cannot render: said, next
+                    row |= {"skipped": str(exc)[:200]}
+                    print(f"{scene:18s} {further:20s} skipped: {row['skipped']}", flush=True)
+                    rows.append(row)
+                    continue
+                except Exception as exc:
                     row |= {"error": f"{type(exc).__name__}: {exc}"[:200], "right": False}
                     print(f"{scene:18s} {further:20s} ERROR {row['error']}", flush=True)
                     rows.append(row)
@@ -92,8 +98,9 @@ def main() -> None:
                 print(f"{scene:18s} {further:20s} {'right' if row['right'] else 'WRONG':5s} named "
                       f"{' + '.join(res.causes) or '-':55s} {row['verdict']:18s} scale x{row['scale']:<8g} "
                       f"{row['seconds']:.0f} s", flush=True)
-    right = sum(r["right"] for r in rows)
-    print(f"\n{right}/{len(rows)} name the hidden truth (every hidden effect named or said as one reading of an A or B)")
+    done = [r for r in rows if "skipped" not in r]
+    right = sum(r["right"] for r in done)
+    print(f"\n{right}/{len(done)} name the hidden truth (every hidden effect named or said as one reading of an A or B)")
     if a.out:
         Path(a.out).write_text(json.dumps(rows, indent=1))
 

@@ -38,9 +38,10 @@ from tofhil.sim.effects import EFFECTS
 from tofhil.sim.memory import release_free_memory
 
 EffectParams = dict[str, dict[str, float]]
-#: How many further first choices the search also starts from (:func:`greedy_select`): two
-#: more searches at most, each over the first round's significant effects only.
-EXTRA_STARTS = 2
+#: How many branches the search also follows (:func:`greedy_select`): the runners-up of its
+#: rounds closest in score to the cause chosen; three more searches at most, each over its
+#: round's significant effects only.
+EXTRA_STARTS = 3
 #: How a partial form is named: its flexible form, this, and the parameter groups left out.
 PARTIAL = " without "
 
@@ -441,24 +442,27 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     names = list(candidates if candidates is not None else search.lib)
     search.run(names, max_effects)
     best = search.finish()
-    first = best.first_round
-    # Forward selection takes the best single cause first, and a flexible cause that mimics a
-    # pair alone (an unseen reflector standing in for a cyclic range error plus a clock skew)
-    # keeps the pair out for good. The search therefore also starts from the next significant
-    # first choices and keeps the set with the best held-out score: the same score, over more
-    # of the sets. A start's later rounds try the first round's significant effects only (an
-    # effect that gains nothing on the base twin's residual rarely gains on a smaller one).
-    significant = [c for c in first if c.significant]
-    starts = [c for c in significant if c.effect not in best.causes][:EXTRA_STARTS]
+    # Forward selection takes each round's best cause for good, and a flexible cause that
+    # mimics a pair alone (an unseen reflector standing in for a cyclic range error plus a clock
+    # skew) keeps the pair out. The search therefore also branches where the chosen path was
+    # closest to another choice: the significant runners-up of its rounds, the smallest score
+    # gap first, EXTRA_STARTS of them; each branch keeps the causes chosen before its round and
+    # continues over that round's significant effects (an effect that gains nothing there
+    # rarely gains later). The set with the best held-out score is chosen: the same score, over
+    # more of the sets.
     found = [(search.score(), best)]
-    for c in starts:
+    branches = sorted(((c.score - chosen.score, r, c) for r, (chosen, rnd) in enumerate(search.path)
+                       for c in rnd if c.significant and c is not chosen and c.effect not in best.causes),
+                      key=lambda t: (t[0], t[1], t[2].effect))[:EXTRA_STARTS]
+    for _, r, c in branches:
         if progress:
-            progress(f"searching again from {c.effect}")
+            progress(f"searching again from round {r + 1}'s {c.effect}")
         other = new_search()
-        other.start_from(c)
-        other.run([x.effect for x in significant], max_effects)
+        other.restore(search.before[r])
+        other.add(c, [c], {c.effect: [c]})
+        other.run([x.effect for x in search.path[r][1] if x.significant], max_effects)
         alt = other.finish()
-        alt.rounds = [first] + alt.rounds
+        alt.rounds = best.rounds[:r + 1] + alt.rounds
         for key in ("too_small", "not_tried"):
             getattr(alt, key).update({k: v for k, v in getattr(best, key).items() if k not in alt.causes})
         found.append((other.score(), alt))
@@ -502,9 +506,28 @@ class _GreedySearch:
                                    final_chi2_test=self.current_chi2, n_test=self.n_test, searched=max_effects > 0,
                                    channels_before=self.current_channels, channels_after=self.current_channels)
         self.work = dict(self.lib)  # each chosen effect's spec is that of its chosen form
+        #: Per round that chose a cause: the state before it, and (the cause, the round ranked).
+        self.before: list[dict[str, Any]] = []
+        self.path: list[tuple[Candidate, list[Candidate]]] = []
 
     def k_of(self, e: str) -> float:
         return self.dofs.get(e, self.work[e].k)
+
+    def snapshot(self) -> dict[str, Any]:
+        """The search's state before a round (what a branch from that round starts from)."""
+        sel = self.selection
+        return {"active": list(self.active), "params": dict(self.params), "dofs": dict(self.dofs),
+                "work": dict(self.work), "chi2": self.current_chi2, "pred": self.current_pred,
+                "channels": self.current_channels,
+                "selection": {k: dict(getattr(sel, k)) for k in ("forms", "details", "priors", "unidentified",
+                                                                 "alternatives")}}
+
+    def restore(self, snap: dict[str, Any]) -> None:
+        self.active, self.params, self.dofs = list(snap["active"]), dict(snap["params"]), dict(snap["dofs"])
+        self.work = dict(snap["work"])
+        self.current_chi2, self.current_pred, self.current_channels = snap["chi2"], snap["pred"], snap["channels"]
+        for k, v in snap["selection"].items():
+            setattr(self.selection, k, dict(v))
 
     def score(self) -> float:
         """The chosen set's held-out score: misfit plus the penalty of its degrees of freedom."""
@@ -514,11 +537,14 @@ class _GreedySearch:
         """Rounds until nothing significant is left or ``max_effects`` are chosen; then the
         chosen forms are tested again at the final values."""
         while len(self.active) < max_effects:
+            before = self.snapshot()
             round_, tried_of = self.round(names)
             chosen = next((c for c in round_ if c.significant), None)
             if chosen is None:
                 _release_residuals(round_)
                 break
+            self.before.append(before)
+            self.path.append((chosen, round_))
             self.add(chosen, round_, tried_of)
         self.prune()
         self.simplify_forms()
@@ -560,10 +586,6 @@ class _GreedySearch:
                 dropped = True
                 break
 
-    def start_from(self, first: Candidate) -> None:
-        """Take ``first`` (a significant candidate of another search's first round) as this
-        search's first cause."""
-        self.add(first, [first], {first.effect: [first]})
 
     def identify(self, c: Candidate) -> Identifiability:
         return assess_form(self.model, self.data, c.all_params, c.effect, self.lib[c.effect].variant(c.form),

@@ -317,7 +317,8 @@ class TwinModel:
             self.profile_gain = saved
         return self._gain_of(s, np.ones(self.data.camera.shape, dtype=bool))
 
-    def _predict_at(self, effects: dict[str, dict[str, Any]], pixels: np.ndarray) -> np.ndarray:
+    def _predict_at(self, effects: dict[str, dict[str, Any]], pixels: np.ndarray, *,
+                    profile: bool = True) -> np.ndarray:
         """The taps and the signal only where asked (the rest of the frame stays zero)."""
         taps = self.twin.expected_taps_at(effects, pixels).astype(np.float64)
         s = phasor(taps, self.data.theta_rad)[:, 0]
@@ -327,7 +328,7 @@ class TwinModel:
 
         out = np.zeros((s.shape[0],) + self.data.camera.shape, dtype=np.complex128)
         out.reshape(s.shape[0], -1)[:, flat_index(pixels)] = s
-        return self._profiled(out, pixels)
+        return self._profiled(out, pixels) if profile else out
 
     def predict_local(self, active: EffectParams, pixels: np.ndarray) -> np.ndarray | None:
         """:meth:`predict` on ``pixels`` with the effects that move light between pixels (stray
@@ -339,7 +340,10 @@ class TwinModel:
         if not moving or getattr(self.scene.camera, "lens", None) is not None:
             return None
         self.evaluations += 1
-        return self._predict_at({n: v for n, v in effects.items() if n not in moving}, pixels)
+        # not profiled: without the light moved between pixels its amplitude ratios are not the
+        # device's gain (a dark square lit mostly by stray light), and the fit adds this part's
+        # change to the whole (profiled) prediction at its start
+        return self._predict_at({n: v for n, v in effects.items() if n not in moving}, pixels, profile=False)
 
     def base_render(self) -> Any:
         return self.twin.render(self.effects_for({}))[1]
