@@ -294,7 +294,7 @@ def _smooth_fit_2(a: np.ndarray, b: np.ndarray, lam: tuple[float, float]) -> tup
 
 
 def fit_frame_drift(model: Any, data: HeldOutData, current: dict[str, dict[str, Any]], penalty_per_dof: float,
-                    *, min_relative_gain: float = 0.02, min_gain_per_value: float = 0.02) -> DriftFit | None:
+                    *, min_relative_gain: float = 0.02) -> DriftFit | None:
     """A per-frame range offset and amplitude scale (temperature, warm-up: the range and the
     emitter's power drift) on top of the current model.
 
@@ -304,8 +304,7 @@ def fit_frame_drift(model: Any, data: HeldOutData, current: dict[str, dict[str, 
     differences, each parameter's strength by generalised cross-validation) and scored on the
     *held-out* pixels of every frame against one constant offset and scale for all frames.
     Named by the selection's rule: the held-out gain beats ``penalty_per_dof`` per extra degree
-    of freedom, removes ``min_relative_gain`` of the excess over noise and
-    ``min_gain_per_value`` per value. None when the session keeps no frames (or fewer than 3)."""
+    of freedom and removes ``min_relative_gain`` of the excess over noise. None when the session keeps no frames (or fewer than 3)."""
     frames = data.s_frames
     if frames is None or frames.shape[0] < 3 or not data.frames_held_out:
         return None
@@ -367,8 +366,7 @@ def fit_frame_drift(model: Any, data: HeldOutData, current: dict[str, dict[str, 
     dof = max(tr - 2.0, 0.0)
     gain, excess = chi2_static - chi2_drift, max(chi2_static - n_values, 0.0)
     # named against the session's own noise estimate (conservative: it contains the drift)
-    named = bool(gain > dof * penalty_per_dof and gain > min_relative_gain * excess
-                 and gain > min_gain_per_value * n_values)
+    named = bool(gain > dof * penalty_per_dof and gain > min_relative_gain * excess)
     x, y = u[:, 0] - const[0], u[:, 1] - const[1]
     noise_note = ""
     if named:

@@ -243,8 +243,8 @@ def _evidence(selection: Selection, data: HeldOutData) -> list[str]:
                              f"{', '.join(c.worse_channels)} worse beyond its noise -- selected: the explanation "
                              "is partial there")
     if len(selection.searches) > 1:
-        lines.append("searched from the first round's best and next significant effects; the sets found, the "
-                     "lowest held-out score chosen: "
+        lines.append("searched along the greedy path and from its rounds' closest runners-up; the sets found "
+                     "(held-out score), the lowest chosen unless a set the data cannot tell from it is simpler: "
                      + "; ".join(f"{' + '.join(s['causes']) or 'nothing'} {s['score']:.0f}"
                                  + (" (chosen)" if s["chosen"] else "") for s in selection.searches))
     for e, names in selection.at_bounds.items():

@@ -417,16 +417,16 @@ def _release_residuals(candidates: Sequence[Candidate]) -> None:
 
 
 def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequence[str] | None = None,
-                  max_effects: int = 3, min_relative_gain: float = 0.02, min_gain_per_value: float = 0.02,
+                  max_effects: int = 3, min_relative_gain: float = 0.02,
                   progress: Callable[[str], None] | None = None, effect_size: EffectSize | None = None) -> Selection:
     """Add effects one by one while each brings a significant held-out gain.
 
     An effect is significant when its held-out score beats the current model's (the penalty
     for its effective degrees of freedom included), it removes at least ``min_relative_gain``
-    of the current held-out misfit in excess of noise (chi2 - n), and at least
-    ``min_gain_per_value`` per held-out value (chi2 is about 1 per value for pure noise):
-    margins against chasing Monte Carlo noise or tiny model differences that no bench user
-    would call a cause. The best-scoring significant effect of a round is added. A channel
+    of the current held-out misfit in excess of noise (chi2 - n): a margin against naming a
+    small model difference while a large excess is unexplained. Practical significance is the
+    effect size's (``effect_size``), in the channels' own units; a margin per held-out value
+    (it was 0.02) hid weak but real effects on large captures, a drift of z 30 among them. The best-scoring significant effect of a round is added. A channel
     that gets worse beyond its noise is recorded on the candidate (``worse_channels``) and
     reported: it means the explanation is partial, not that the form is wrong.
 
@@ -436,7 +436,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     """
     def new_search() -> _GreedySearch:
         return _GreedySearch(model, data, max_effects=max_effects, min_relative_gain=min_relative_gain,
-                             min_gain_per_value=min_gain_per_value, progress=progress, effect_size=effect_size)
+                             progress=progress, effect_size=effect_size)
 
     search = new_search()
     names = list(candidates if candidates is not None else search.lib)
@@ -450,7 +450,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     # continues over that round's significant effects (an effect that gains nothing there
     # rarely gains later). The set with the best held-out score is chosen: the same score, over
     # more of the sets.
-    found = [(search.score(), best)]
+    found = [(search.score(), search.dof(), best)]
     branches = sorted(((c.score - chosen.score, r, c) for r, (chosen, rnd) in enumerate(search.path)
                        for c in rnd if c.significant and c is not chosen and c.effect not in best.causes),
                       key=lambda t: (t[0], t[1], t[2].effect))[:EXTRA_STARTS]
@@ -465,18 +465,34 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         alt.rounds = best.rounds[:r + 1] + alt.rounds
         for key in ("too_small", "not_tried"):
             getattr(alt, key).update({k: v for k, v in getattr(best, key).items() if k not in alt.causes})
-        found.append((other.score(), alt))
-    chosen_score, chosen = min(found, key=lambda f: f[0])
+        found.append((other.score(), other.dof(), alt))
+    return _choose_set(model, data, found, search.penalty)
+
+
+def _choose_set(model: ForwardModel, data: HeldOutData, found: Sequence[tuple[float, float, Selection]],
+                penalty: float) -> Selection:
+    """The set the search names among those it found: the lowest held-out score, unless another
+    set the data cannot tell from it (:func:`~tofhil.eval.diagnose.ambiguity.sets_alike`) has
+    fewer degrees of freedom; then the simpler one (parsimony among readings the data cannot
+    separate; the other is said, "A or B")."""
+    best_score, _, best = min(found, key=lambda f: f[0])
+    chosen_score, chosen = best_score, best
+    if len(found) > 1 and best.causes:
+        others = [(score, sel.causes, sel.params) for score, _, sel in found if sel is not best]
+        alike = {a.other for a in sets_alike(model, data, best.causes, best.params, best_score, others, penalty)}
+        simpler = [(k, score, sel) for score, k, sel in found
+                   if sel is best or (sel.causes and " + ".join(sel.causes) in alike)]
+        _, chosen_score, chosen = min(simpler, key=lambda t: (t[0], t[1]))
     sets: dict[tuple[str, ...], dict[str, Any]] = {}
-    for score, sel in found:  # one entry per set found (two starts can end in the same set)
+    for score, _, sel in found:  # one entry per set found (two starts can end in the same set)
         key = tuple(sorted(sel.causes))
         if key not in sets or sel is chosen:
             sets[key] = {"causes": list(sel.causes), "score": round(score, 2), "chosen": sel is chosen}
     chosen.searches = list(sets.values())
     if len(found) > 1 and chosen.causes:
-        others = [(score, sel.causes, sel.params) for score, sel in found if sel is not chosen]
+        others = [(score, sel.causes, sel.params) for score, _, sel in found if sel is not chosen]
         said = {a.other for alts in chosen.alternatives.values() for a in alts}
-        found_alike = sets_alike(model, data, chosen.causes, chosen.params, chosen_score, others, search.penalty,
+        found_alike = sets_alike(model, data, chosen.causes, chosen.params, chosen_score, others, penalty,
                                  said=said)
         if found_alike:
             chosen.alternatives.setdefault(chosen.causes[0], []).extend(found_alike)
@@ -488,10 +504,10 @@ class _GreedySearch:
     current model's held-out misfit, per channel and in total."""
 
     def __init__(self, model: ForwardModel, data: HeldOutData, *, max_effects: int, min_relative_gain: float,
-                 min_gain_per_value: float, progress: Callable[[str], None] | None,
+                 progress: Callable[[str], None] | None,
                  effect_size: EffectSize | None) -> None:
         self.model, self.data, self.progress, self.effect_size = model, data, progress, effect_size
-        self.min_relative_gain, self.min_gain_per_value = min_relative_gain, min_gain_per_value
+        self.min_relative_gain = min_relative_gain
         self.lib = model.library()
         self.n_test = data.n_values("test")
         self.penalty = np.log(self.n_test)
@@ -528,6 +544,10 @@ class _GreedySearch:
         self.current_chi2, self.current_pred, self.current_channels = snap["chi2"], snap["pred"], snap["channels"]
         for k, v in snap["selection"].items():
             setattr(self.selection, k, dict(v))
+
+    def dof(self) -> float:
+        """The chosen set's degrees of freedom (effective, for a regularised or closed-form fit)."""
+        return float(sum(self.k_of(e) for e in self.active))
 
     def score(self) -> float:
         """The chosen set's held-out score: misfit plus the penalty of its degrees of freedom."""
@@ -567,8 +587,7 @@ class _GreedySearch:
                 chi2 = data.chi2(pred, "test")
                 gain = chi2 - self.current_chi2
                 excess = max(chi2 - self.n_test, 0.0)
-                keeps = bool(gain > self.k_of(e) * self.penalty and gain > self.min_relative_gain * excess
-                             and gain > self.min_gain_per_value * self.n_test)
+                keeps = bool(gain > self.k_of(e) * self.penalty and gain > self.min_relative_gain * excess)
                 if keeps and self.effect_size is not None:
                     _, keeps = self.effect_size.names(pred, self.current_pred)
                 if keeps:
@@ -708,8 +727,7 @@ class _GreedySearch:
                        | set(worse_channels(self.selection.channels_before, channels)))
         score = chi2_test + (current_k + k_new) * penalty
         gain = self.current_chi2 - chi2_test
-        gains = bool(current_score - score > 0 and excess > 0 and gain > self.min_relative_gain * excess
-                     and gain > self.min_gain_per_value * self.n_test)
+        gains = bool(current_score - score > 0 and excess > 0 and gain > self.min_relative_gain * excess)
         rmse: dict[str, ChannelGain] = {}
         worth = True
         if self.effect_size is not None and gains:
