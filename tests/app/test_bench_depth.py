@@ -215,3 +215,27 @@ def test_fit_sphere_on_a_noisy_cap():
     fit = fit_sphere(pts)
     assert np.allclose(fit.centre, c, atol=3e-4) and fit.radius_m == pytest.approx(r, abs=3e-4)
     assert fit.rms_m == pytest.approx(0.0005, rel=0.1)
+
+
+def test_diagnose_names_a_hidden_range_error_growing_with_distance_cli(tmp_path, capsys):
+    """``--diagnose`` end to end (CLI, emulated TOFcam635 through pyusb): the emulator hides a
+    range error growing by 1 % of the distance; the report runs the diagnosis on the capture
+    that differs most and names it: a range offset of optical path ``2 x 0.01 x D`` there."""
+    eps, dist = 0.01, (0.8, 1.3, 1.8)
+    code = run_cli("bench", "accuracy-vs-distance", "--device", "emulator", "--out", tmp_path / "o",
+                   "--distances", ",".join(map(str, dist)), "--frames", 3, "--seed", 2,
+                   "--hidden", f"range_scale={eps}", "--diagnose")
+    printed = capsys.readouterr().out
+    assert code == 0
+    res = json.loads((tmp_path / "o" / "figures.json").read_text())
+    assert res["details"]["agreement"]["cause"]["kind"] == "range error growing with distance"
+    dg = res["details"]["diagnosis"]
+    row = {r["label"]: r for r in res["curves"]["accuracy-vs-distance"]}[dg["capture"]]
+    assert row["distance_m"] == max(dist)                    # the largest difference is the farthest capture
+    assert dg["causes"] == ["range_offset"], dg
+    # closed form: d -> d (1 + eps) is an optical path 2 eps D farther; the tolerance 4 x the
+    # difference's standard error (both ROI means, as path: x 2; the diagnosis fits the whole field)
+    se = 2 * np.hypot(row["measured_systematic_se_m"], row["twin_systematic_se_m"])
+    assert abs(dg["params"]["range_offset"]["path_m"] - 2 * eps * row["distance_m"]) < 4 * se
+    assert "explained by range_offset" in (tmp_path / "o" / "report.html").read_text()
+    assert "explained by range_offset" in printed

@@ -309,7 +309,10 @@ def analyse_series(name: str, campaign: CampaignResult, rig: Any, opts: BenchOpt
     ag = res.details.get("agreement", {})
     if opts.extra.get("diagnose") and twin_ok and ag.get("cause") is not None:
         t0 = time.monotonic()
-        res.details["diagnosis"] = diagnose_worst(campaign, rig, opts, rows, ag)
+        try:
+            res.details["diagnosis"] = diagnose_worst(campaign, rig, opts, rows, ag)
+        except TofhilError as exc:  # the captures and figures stand; say why no diagnosis
+            res.details["diagnosis"] = {"error": str(exc), "text": f"the diagnosis could not run: {exc}"}
         res.findings.append(res.details["diagnosis"]["text"])
         seconds["diagnose"] = time.monotonic() - t0
     if axis == "distance_m" and len(rows) >= 2:
