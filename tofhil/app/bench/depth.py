@@ -96,13 +96,26 @@ THERMAL = "thermal_drift_m_per_c"
 #: Bench parameters that are not the scene's own ``params:``: the ambient light on the target
 #: (W/m^2, the ``ambient`` effect: a lamp or the sun, known to the twin, not hidden).
 AMBIENT = "ambient_w_m2"
+#: A second ToF camera lighting the target (``bench interference``): its mean irradiance on the
+#: target (W/m^2), its modulation frequency (Hz, 0 unmodulated) and its phase against the
+#: device's (degrees). Its mean light is ambient light to the twin; its modulation is added by
+#: ``tofhil.app.bench.interference``.
+INTERFERER_W = "interferer_w_m2"
+INTERFERER_FREQ = "interferer_freq_hz"
+INTERFERER_PHASE = "interferer_phase_deg"
+_NOT_SCENE = (AMBIENT, INTERFERER_W, INTERFERER_FREQ, INTERFERER_PHASE)
 
 
 def _split(state: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
-    """A bench state -> the scene's parameters and the bench's known effects (the ambient light)."""
-    params = {k: v for k, v in state.items() if k != AMBIENT}
-    amb = float(state.get(AMBIENT, 0.0) or 0.0)
+    """A bench state -> the scene's parameters and the bench's known effects (the ambient light,
+    a second camera's mean light among it)."""
+    params = {k: v for k, v in state.items() if k not in _NOT_SCENE}
+    amb = float(state.get(AMBIENT, 0.0) or 0.0) + float(state.get(INTERFERER_W, 0.0) or 0.0)
     return params, ({"ambient": {"irradiance_w_m2": amb}} if amb > 0 else {})
+
+
+def _interfered(state: Mapping[str, Any]) -> bool:
+    return float(state.get(INTERFERER_W, 0.0) or 0.0) > 0 and float(state.get(INTERFERER_FREQ, 0.0) or 0.0) > 0
 
 
 def _rig(device: str, opts: BenchOptions, param: str, default: float, *, scene_default: str = DEFAULT_SCENE,
@@ -135,6 +148,13 @@ def _rig(device: str, opts: BenchOptions, param: str, default: float, *, scene_d
             params, _ = _split(p)
             path = _bench_scene_file(scene, params, None, work, TOFCAM635_OVERRIDES)
             src = SimulatedSource(path, effects=_bench_effects(scene, p, opts, float(p[param])))
+            if _interfered(p):  # a second camera's modulation on top of its mean light
+                from tofhil.app.bench.interference import InterferedSource, device_contrast
+
+                dark = {k: v for k, v in p.items() if k != INTERFERER_W}
+                src = InterferedSource(src, SimulatedSource(path, effects=_bench_effects(scene, dark, opts,
+                                                                                         float(p[param]))),
+                                       p, device_contrast(src.scene))
             if opts.hidden.get(THERMAL):
                 from tofhil.app.bench.rigs import ThermalDrift
 
@@ -154,8 +174,14 @@ def _rig(device: str, opts: BenchOptions, param: str, default: float, *, scene_d
             d = float(p[param])
             params, _ = _split(p)
             path = _bench_scene_file(scene, params, _bench_effects(scene, p, opts, d) or None, work)
+            if _interfered(p):
+                from tofhil.app.bench.interference import InterferedHostScene
+
+                seed = opts.seed + int(1000 * d) + 13 * int(p[INTERFERER_PHASE]) + int(p[INTERFERER_FREQ] / 1e5)
+                return InterferedHostScene(str(path), None, p, opts.frames, seed)
             return TwinScene(scene=str(path), realisations=opts.frames,
-                             seed=opts.seed + int(1000 * d) + int(p.get(AMBIENT, 0) * 7))
+                             seed=opts.seed + int(1000 * d) + int(p.get(AMBIENT, 0) * 7)
+                             + int(1000 * p.get(INTERFERER_W, 0)))
 
         rig = EmulatedDepthAIRig(host, defaults, scene_text=twin_text, device=device)
     else:
