@@ -174,20 +174,28 @@ def _rig(device: str, opts: BenchOptions, param: str, default: float, *, scene_d
             d = float(p[param])
             params, _ = _split(p)
             path = _bench_scene_file(scene, params, _bench_effects(scene, p, opts, d) or None, work)
+            # every bench state its own noise (a stable hash of the state: distances, ambient light,
+            # a second camera, the sphere bar's position ...)
+            seed = opts.seed + _state_seed(p)
             if _interfered(p):
                 from tofhil.app.bench.interference import InterferedHostScene
 
-                seed = opts.seed + int(1000 * d) + 13 * int(p[INTERFERER_PHASE]) + int(p[INTERFERER_FREQ] / 1e5)
                 return InterferedHostScene(str(path), None, p, opts.frames, seed)
-            return TwinScene(scene=str(path), realisations=opts.frames,
-                             seed=opts.seed + int(1000 * d) + int(p.get(AMBIENT, 0) * 7)
-                             + int(1000 * p.get(INTERFERER_W, 0)))
+            return TwinScene(scene=str(path), realisations=opts.frames, seed=seed)
 
         rig = EmulatedDepthAIRig(host, defaults, scene_text=twin_text, device=device)
     else:
         return DeviceRig(device, prompt=opts.prompt)
     rig.scene = scene
     return rig
+
+
+def _state_seed(state: Mapping[str, Any]) -> int:
+    import hashlib
+    import json
+
+    key = json.dumps({k: float(v) for k, v in state.items()}, sort_keys=True)
+    return int(hashlib.sha256(key.encode()).hexdigest()[:6], 16)
 
 
 def _bench_effects(scene: str, state: Mapping[str, Any], opts: BenchOptions, d: float,
