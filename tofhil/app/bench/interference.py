@@ -83,6 +83,7 @@ class InterferedSource:
     def __init__(self, lit: Any, dark: Any, state: Mapping[str, Any], contrast: float) -> None:
         self.lit, self.dark, self.state, self.contrast = lit, dark, dict(state), float(contrast)
         self.camera = lit.camera
+        self.rendered_by = (lit, dark)
         self.description = f"{lit.description}, a second camera's light"
         self._ref: dict[float, tuple[np.ndarray, np.ndarray]] = {}
 
