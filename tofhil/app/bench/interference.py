@@ -325,6 +325,9 @@ def analyse_interference(campaign: CampaignResult, rig: Any, opts: BenchOptions)
     if twin_ok:
         res.details["agreement"] = agreement(rows, "index")
         res.findings.extend(res.details["agreement"]["findings"])
+    if opts.extra.get("diagnose"):
+        res.findings.append("--diagnose: not run here (the twin's scene has no second camera; the diagnosis would "
+                            "name its light as something else)")
     res.plots = lambda: _plots(rows, twin_ok)
     return res
 
