@@ -262,8 +262,22 @@ def _twin_stack(rig: Any, state: Mapping[str, Any], acq: Mapping[str, Any], fram
 
         known = {**(known or resolve_effects(scene, None)), **effects}
     raws = simulate(scene, frames=frames, seed=seed, noise=noise, effects=known or None)
-    deps = [depth_from_raw(r) for r in raws]
-    return (np.stack([np.where(f.valid, f.distance_m, np.nan) for f in deps]), np.stack([f.valid for f in deps]))
+    return twin_depths(rig, [depth_from_raw(r) for r in raws])
+
+
+def twin_depths(rig: Any, deps: list[Any]) -> tuple[np.ndarray, np.ndarray]:
+    """``radial [N, H, W]`` (NaN where invalid) and ``valid`` of the twin's demodulated frames, as
+    the device would report them: a depth-only device (DepthAI) sends whole millimetres and 0 for
+    "no data", so a pixel the twin puts at 0 m (a phase of exactly 0: the few-DN taps of a very
+    dark target quantise it there) is invalid there too."""
+    d = np.stack([np.where(f.valid, f.distance_m, np.nan) for f in deps])
+    v = np.stack([f.valid for f in deps])
+    if "dcs" not in getattr(getattr(rig, "capabilities", None), "modes", ("dcs",)):
+        cam = deps[0].camera
+        z_mm = np.rint(np.nan_to_num(d) * cam.ray_z * 1000.0)       # z in whole mm on the wire
+        v = v & (z_mm > 0)
+        d = np.where(v, z_mm * 1e-3 / cam.ray_z, np.nan)
+    return d, v
 
 
 # --------------------------------------------------------------------------- accuracy vs distance

@@ -38,7 +38,7 @@ from tofhil import C_M_PER_S
 from tofhil.app.bench.base import BenchOptions, BenchResult, Figure, acquisition
 from tofhil.app.bench.depth import (
     DISTANCE_PARAM, INTERFERER_FREQ, INTERFERER_PHASE, INTERFERER_W, _bench_effects, _depth_stack, _rig, _split,
-    agreement, as_procedure,
+    agreement, as_procedure, twin_depths,
 )
 from tofhil.app.campaign import CampaignResult, Plan, parse_plan
 
@@ -260,8 +260,7 @@ def _twin_frames(rig: Any, state: Mapping[str, Any], acq: Mapping[str, Any], fra
                           "integration_time_s": float(acq["integration_time_s"])}
     scene = load_scene(rig.scene, over)
     known = _bench_effects(rig.scene, state, opts, 0.0, hidden=False) or None
-    deps = [depth_from_raw(r) for r in interfered_frames(scene, known, state, frames, seed)]
-    return (np.stack([np.where(f.valid, f.distance_m, np.nan) for f in deps]), np.stack([f.valid for f in deps]))
+    return twin_depths(rig, [depth_from_raw(r) for r in interfered_frames(scene, known, state, frames, seed)])
 
 
 def analyse_interference(campaign: CampaignResult, rig: Any, opts: BenchOptions) -> BenchResult:
