@@ -162,7 +162,6 @@ def _sphere_figures(radial: np.ndarray, valid: np.ndarray, cam: Any, params: Map
     ok = np.all(valid, axis=0)
     mean = _nanmean(radial, valid)
     out: dict[str, Any] = {"true_spacing_m": sp}
-    per_frame_spacing, per_frame_size = [], []
     fits = []
     for centre in (mid - 0.5 * sp * u, mid + 0.5 * sp * u):
         pu, pv = cam.project(centre[None])[0]
@@ -172,16 +171,21 @@ def _sphere_figures(radial: np.ndarray, valid: np.ndarray, cam: Any, params: Map
         if cap.sum() < 10:
             raise TofhilError(f"a sphere covers {int(cap.sum())} valid pixels", field="spheres_distance_m",
                               expected="spheres large enough in the view (closer, or bigger spheres)")
+        n = radial.shape[0]
+        # the jackknife over frames: the fit to the mean of all frames but one, for each frame
+        # (fits to single frames understate the mean-fit's spread: on 9 px caps with 30-40 mm of
+        # noise a single frame's fit is far from linear in its data)
+        rest = [(mean[cap] * n - radial[k][cap]) / (n - 1) for k in range(n)] if n > 1 else []
         fits.append((fit_sphere(cam.rays[cap] * mean[cap][:, None]),
-                     [fit_sphere(cam.rays[cap] * radial[k][cap][:, None]) for k in range(radial.shape[0])]))
+                     [fit_sphere(cam.rays[cap] * r[:, None]) for r in rest]))
     (a, a_fr), (b, b_fr) = fits
     spacing = float(np.linalg.norm(np.subtract(a.centre, b.centre)))
-    n = radial.shape[0]
     per_frame_spacing = [float(np.linalg.norm(np.subtract(x.centre, y.centre))) for x, y in zip(a_fr, b_fr)]
     per_frame_size = [0.5 * (x.radius_m + y.radius_m) - r_true for x, y in zip(a_fr, b_fr)]
 
     def se(vals: list[float]) -> float:
-        return float(np.std(vals, ddof=1) / math.sqrt(n)) if n > 1 else math.nan
+        v = np.asarray(vals)
+        return float(math.sqrt((n - 1) / n * np.sum((v - v.mean()) ** 2))) if n > 1 else math.nan
 
     out.update({"spacing_m": spacing, "spacing_error_m": spacing - sp, "spacing_error_m_se": se(per_frame_spacing),
                 "size_error_m": 0.5 * (a.radius_m + b.radius_m) - r_true, "size_error_m_se": se(per_frame_size),
