@@ -242,6 +242,15 @@ NUMERIC = [
                           ("mod-freq-hz", ("0", "nan", "-1e6")), ("channel", ("16", "-1")),
                           ("min-amplitude", ("nan", "-1")))
       for v in values],
+    # bench (refused before the device is opened: {out} stays empty)
+    *[(f"bench-{proc}-{opt}-{v}", ["bench", proc, "--device", "emulator", "--out", "{out}/b", f"--{opt}", v], f"--{opt}")
+      for proc, opt, values in (("accuracy-vs-distance", "frames", ("0", "-2")),
+                                ("accuracy-vs-distance", "distances", ("nan", "-1", "0,1", "inf")),
+                                ("ambient", "levels", ("nan", "-1", "inf")), ("dark-squares", "levels", ("0",)),
+                                ("interference", "levels", ("0", "nan", "-0.1", "0.1,0.2", "inf")),
+                                ("warm-up", "captures", ("1",)), ("warm-up", "interval-s", ("-1", "nan")),
+                                ("flatness", "roi", ("1,1,1,1", "a,b,c,d")))
+      for v in values],
     # emulate, diagnose, demo, import (--max-effects 0 is allowed: it says that nothing was searched)
     *[(f"emulate-{opt}-{v}", ["emulate", "--pty", f"--{opt}", v], f"--{opt}")
       for opt, values in (("frame-rate", ("-1", "nan", "inf")), ("seed", ("-1",))) for v in values],

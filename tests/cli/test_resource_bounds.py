@@ -382,7 +382,8 @@ COVERAGE: dict[str, str] = {
     "demo": "its inputs are bundled",
     "bench": "plans and spec sheets through the YAML bounds, scenes through the scene bounds, its captures' "
              "sessions through the session bounds (tests/app/test_bench_campaign.py: impossible plans, unknown "
-             "spec fields)",
+             "spec fields); its numeric options of every procedure, interference's --levels included "
+             "(tests/cli/test_hostile_inputs.py: bench-*)",
     "devices": "reads no file",
     "effects": "reads no file",
 }

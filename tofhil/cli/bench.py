@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, Optional
 
@@ -16,7 +17,7 @@ def _floats(text: str, field: str) -> tuple[float, ...]:
         vals = tuple(float(x) for x in text.split(",") if x.strip())
     except ValueError:
         vals = ()
-    if not vals or not all(v > 0 for v in vals):
+    if not vals or not all(0 < v < math.inf for v in vals):
         raise TofhilError(f"{field} {text!r}", field=field, expected="comma-separated positive numbers")
     return vals
 
@@ -78,7 +79,8 @@ def bench(procedure: Optional[str] = typer.Argument(None, help="The procedure (t
           distances: Optional[str] = typer.Option(None, "--distances", help="Target distances in metres, e.g. "
                                                   "0.6,1.0,1.4 (accuracy-vs-distance)."),
           levels: Optional[str] = typer.Option(None, "--levels", help="ambient: irradiances in W/m² (0,5,20); "
-                                               "dark-squares: square reflectances relative to the wall (0.5,0.1,0.02)."),
+                                               "dark-squares: square reflectances relative to the wall (0.5,0.1,0.02); interference: the "
+                                               "second camera's irradiance on the target in W/m² (0.1)."),
           captures: Optional[int] = typer.Option(None, "--captures", help="warm-up: number of captures (12)."),
           interval_s: Optional[float] = typer.Option(None, "--interval-s", help="warm-up: seconds between captures (10)."),
           integration_time_us: Optional[float] = typer.Option(None, "--integration-time-us"),
@@ -114,10 +116,16 @@ def bench(procedure: Optional[str] = typer.Argument(None, help="The procedure (t
             vals = tuple(float(x) for x in levels.split(",") if x.strip())
         except ValueError:
             vals = ()
-        if not vals or not all(v >= 0 for v in vals) or (procedure == "dark-squares" and not all(v > 0 for v in vals)):
+        if not vals or not all(0 <= v < math.inf for v in vals) or (procedure == "dark-squares" and not all(v > 0 for v in vals)):
             raise TofhilError(f"--levels {levels!r}", field="--levels", expected="comma-separated numbers >= 0 "
                               "(dark-squares: > 0)")
-        opts.extra["ambient_w_m2" if procedure == "ambient" else "square_reflectances"] = vals
+        if procedure == "interference":  # the second camera's irradiance on the target
+            if len(vals) != 1 or not vals[0] > 0:
+                raise TofhilError(f"--levels {levels!r}", field="--levels",
+                                  expected="interference: one irradiance > 0 (W/m²)")
+            opts.extra["interferer_w_m2"] = vals[0]
+        else:
+            opts.extra["ambient_w_m2" if procedure == "ambient" else "square_reflectances"] = vals
     if captures is not None:
         if captures < 2:
             raise TofhilError(f"--captures {captures}", field="--captures", expected="2 or more")

@@ -45,6 +45,8 @@ FIGURES: dict[str, tuple[str, str]] = {
     "flatness_pv_m": ("m", "peak-to-valley (1-99 percentile) residual of the plane fit"),
     "fill_rate": ("", "share of the region's pixels with a valid depth"),
     "precision_m": ("m", "temporal standard deviation on the flat target (frames >= 2)"),
+    "interference_error_m": ("m", "largest |range change| a second ToF camera's light makes on the target (ROI mean)"),
+    "interference_noise_factor": ("", "largest random error with a second ToF camera's light over that without"),
     "ambient_noise_factor": ("", "random error at the brightest ambient light over that in the dark"),
     "warmup_drift_m_per_c": ("m/degC", "range drift per degree of chip temperature during warm-up"),
     "warmup_time_s": ("s", "time from power-on until the range stays within tolerance of its final value"),

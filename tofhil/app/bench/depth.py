@@ -96,13 +96,26 @@ THERMAL = "thermal_drift_m_per_c"
 #: Bench parameters that are not the scene's own ``params:``: the ambient light on the target
 #: (W/m^2, the ``ambient`` effect: a lamp or the sun, known to the twin, not hidden).
 AMBIENT = "ambient_w_m2"
+#: A second ToF camera lighting the target (``bench interference``): its mean irradiance on the
+#: target (W/m^2), its modulation frequency (Hz, 0 unmodulated) and its phase against the
+#: device's (degrees). Its mean light is ambient light to the twin; its modulation is added by
+#: ``tofhil.app.bench.interference``.
+INTERFERER_W = "interferer_w_m2"
+INTERFERER_FREQ = "interferer_freq_hz"
+INTERFERER_PHASE = "interferer_phase_deg"
+_NOT_SCENE = (AMBIENT, INTERFERER_W, INTERFERER_FREQ, INTERFERER_PHASE)
 
 
 def _split(state: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
-    """A bench state -> the scene's parameters and the bench's known effects (the ambient light)."""
-    params = {k: v for k, v in state.items() if k != AMBIENT}
-    amb = float(state.get(AMBIENT, 0.0) or 0.0)
+    """A bench state -> the scene's parameters and the bench's known effects (the ambient light,
+    a second camera's mean light among it)."""
+    params = {k: v for k, v in state.items() if k not in _NOT_SCENE}
+    amb = float(state.get(AMBIENT, 0.0) or 0.0) + float(state.get(INTERFERER_W, 0.0) or 0.0)
     return params, ({"ambient": {"irradiance_w_m2": amb}} if amb > 0 else {})
+
+
+def _interfered(state: Mapping[str, Any]) -> bool:
+    return float(state.get(INTERFERER_W, 0.0) or 0.0) > 0 and float(state.get(INTERFERER_FREQ, 0.0) or 0.0) > 0
 
 
 def _rig(device: str, opts: BenchOptions, param: str, default: float, *, scene_default: str = DEFAULT_SCENE,
@@ -135,6 +148,13 @@ def _rig(device: str, opts: BenchOptions, param: str, default: float, *, scene_d
             params, _ = _split(p)
             path = _bench_scene_file(scene, params, None, work, TOFCAM635_OVERRIDES)
             src = SimulatedSource(path, effects=_bench_effects(scene, p, opts, float(p[param])))
+            if _interfered(p):  # a second camera's modulation on top of its mean light
+                from tofhil.app.bench.interference import InterferedSource, device_contrast
+
+                dark = {k: v for k, v in p.items() if k != INTERFERER_W}
+                src = InterferedSource(src, SimulatedSource(path, effects=_bench_effects(scene, dark, opts,
+                                                                                         float(p[param]))),
+                                       p, device_contrast(src.scene))
             if opts.hidden.get(THERMAL):
                 from tofhil.app.bench.rigs import ThermalDrift
 
@@ -154,14 +174,28 @@ def _rig(device: str, opts: BenchOptions, param: str, default: float, *, scene_d
             d = float(p[param])
             params, _ = _split(p)
             path = _bench_scene_file(scene, params, _bench_effects(scene, p, opts, d) or None, work)
-            return TwinScene(scene=str(path), realisations=opts.frames,
-                             seed=opts.seed + int(1000 * d) + int(p.get(AMBIENT, 0) * 7))
+            # every bench state its own noise (a stable hash of the state: distances, ambient light,
+            # a second camera, the sphere bar's position ...)
+            seed = opts.seed + _state_seed(p)
+            if _interfered(p):
+                from tofhil.app.bench.interference import InterferedHostScene
+
+                return InterferedHostScene(str(path), None, p, opts.frames, seed)
+            return TwinScene(scene=str(path), realisations=opts.frames, seed=seed)
 
         rig = EmulatedDepthAIRig(host, defaults, scene_text=twin_text, device=device)
     else:
         return DeviceRig(device, prompt=opts.prompt)
     rig.scene = scene
     return rig
+
+
+def _state_seed(state: Mapping[str, Any]) -> int:
+    import hashlib
+    import json
+
+    key = json.dumps({k: float(v) for k, v in state.items()}, sort_keys=True)
+    return int(hashlib.sha256(key.encode()).hexdigest()[:6], 16)
 
 
 def _bench_effects(scene: str, state: Mapping[str, Any], opts: BenchOptions, d: float,
@@ -228,8 +262,22 @@ def _twin_stack(rig: Any, state: Mapping[str, Any], acq: Mapping[str, Any], fram
 
         known = {**(known or resolve_effects(scene, None)), **effects}
     raws = simulate(scene, frames=frames, seed=seed, noise=noise, effects=known or None)
-    deps = [depth_from_raw(r) for r in raws]
-    return (np.stack([np.where(f.valid, f.distance_m, np.nan) for f in deps]), np.stack([f.valid for f in deps]))
+    return twin_depths(rig, [depth_from_raw(r) for r in raws])
+
+
+def twin_depths(rig: Any, deps: list[Any]) -> tuple[np.ndarray, np.ndarray]:
+    """``radial [N, H, W]`` (NaN where invalid) and ``valid`` of the twin's demodulated frames, as
+    the device would report them: a depth-only device (DepthAI) sends whole millimetres and 0 for
+    "no data", so a pixel the twin puts at 0 m (a phase of exactly 0: the few-DN taps of a very
+    dark target quantise it there) is invalid there too."""
+    d = np.stack([np.where(f.valid, f.distance_m, np.nan) for f in deps])
+    v = np.stack([f.valid for f in deps])
+    if "dcs" not in getattr(getattr(rig, "capabilities", None), "modes", ("dcs",)):
+        cam = deps[0].camera
+        z_mm = np.rint(np.nan_to_num(d) * cam.ray_z * 1000.0)       # z in whole mm on the wire
+        v = v & (z_mm > 0)
+        d = np.where(v, z_mm * 1e-3 / cam.ray_z, np.nan)
+    return d, v
 
 
 # --------------------------------------------------------------------------- accuracy vs distance
@@ -309,7 +357,10 @@ def analyse_series(name: str, campaign: CampaignResult, rig: Any, opts: BenchOpt
     ag = res.details.get("agreement", {})
     if opts.extra.get("diagnose") and twin_ok and ag.get("cause") is not None:
         t0 = time.monotonic()
-        res.details["diagnosis"] = diagnose_worst(campaign, rig, opts, rows, ag)
+        try:
+            res.details["diagnosis"] = diagnose_worst(campaign, rig, opts, rows, ag)
+        except TofhilError as exc:  # the captures and figures stand; say why no diagnosis
+            res.details["diagnosis"] = {"error": str(exc), "text": f"the diagnosis could not run: {exc}"}
         res.findings.append(res.details["diagnosis"]["text"])
         seconds["diagnose"] = time.monotonic() - t0
     if axis == "distance_m" and len(rows) >= 2:

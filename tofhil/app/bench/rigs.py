@@ -77,19 +77,21 @@ class EmulatedTofCamRig(_Rig):
         self.renders = 0
 
     def _timed(self, src: Any) -> Any:
-        """``src`` with its render (``signal``, called once per frequency) timed into ``render_s``."""
+        """``src`` with its render (``signal``, called once per frequency) timed into ``render_s``
+        (of a wrapper, the sources it renders through: ``rendered_by``)."""
         import time
 
-        signal = src.signal
+        for part in getattr(src, "rendered_by", (src,)):
+            signal = part.signal
 
-        def timed(freq_hz: float) -> Any:
-            t0 = time.monotonic()
-            try:
-                return signal(freq_hz)
-            finally:
-                self.render_s += time.monotonic() - t0
+            def timed(freq_hz: float, signal: Callable[[float], Any] = signal) -> Any:
+                t0 = time.monotonic()
+                try:
+                    return signal(freq_hz)
+                finally:
+                    self.render_s += time.monotonic() - t0
 
-        src.signal = timed
+            part.signal = timed
         return src
 
     def apply_bench(self, params: Mapping[str, Any], by: str, message: str) -> None:
@@ -203,6 +205,7 @@ class ThermalDrift:
         self.m_per_c = float(m_per_c)
         self.t_ref_c = float(t_ref_c)
         self.camera = inner.camera
+        self.rendered_by = (inner,)
         self.description = f"{inner.description}, range drifting {m_per_c * 1e3:g} mm/degC"
 
     def taps(self, freq_hz: float, integration_time_s: float, theta_rad: Any) -> Any:
