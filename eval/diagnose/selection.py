@@ -634,10 +634,11 @@ class _GreedySearch:
         self.selection.rounds.append(round_)
         return round_, tried_of
 
-    def _residual_channels(self) -> set[str] | None:
+    def _residual_channels(self) -> tuple[set[str], set[str]] | None:
         """The channels where the current model's held-out residual has a part beyond noise
-        (:func:`tofhil.eval.diagnose.channels.residual_by_channel`); None when the model
-        cannot say (a small forward model of a test, without taps)."""
+        (:func:`tofhil.eval.diagnose.channels.residual_by_channel`), and those the session can
+        read at all; None when the model cannot say (a small forward model of a test, without
+        taps)."""
         from tofhil.eval.diagnose.channels import residual_by_channel
 
         taps = getattr(self.model, "taps", None)
@@ -647,16 +648,20 @@ class _GreedySearch:
             table = residual_by_channel(self.data, self.current_pred, taps_measured=measured, taps_predicted=predicted)
         except (AttributeError, ValueError):
             return None
-        return set(table.significant_channels())
+        return set(table.significant_channels()), {r.channel for r in table.readings}
 
     def signature_absent(self, name: str) -> list[str]:
-        """The channels ``name`` must move (its ``signature``) that the current residual lacks."""
+        """The channels ``name`` must move (its ``signature``) that the current residual lacks,
+        among those the session can read: a channel it cannot read (the tap pattern of three
+        taps, which leave no redundancy) tells nothing, and the effect acts through the others
+        (a tap offset on three taps is a constant in S)."""
         from tofhil.sim.effects import EFFECTS
 
-        present = getattr(self, "_present", None)
-        if present is None or name not in EFFECTS:
+        channels = getattr(self, "_present", None)
+        if channels is None or name not in EFFECTS:
             return []
-        return [c for c in EFFECTS[name].signature if c not in present]
+        present, readable = channels
+        return [c for c in EFFECTS[name].signature if c in readable and c not in present]
 
     def _try_effect(self, name: str, current_k: float, current_score: float, excess: float) -> list[Candidate]:
         """``name`` fitted in each of its forms, the flexible ones starting where the simple one ended."""

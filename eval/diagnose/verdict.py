@@ -53,8 +53,6 @@ from tofhil.sim.effects import OFFSET_CHANNEL
 
 #: False-alarm probability of each "above noise" test (one in a thousand).
 ALPHA = 1e-3
-#: Its one-sided normal quantile (3.09): a gain beyond noise is this many standard errors above zero.
-Z_ALPHA = float(stats.norm.isf(ALPHA))
 #: The misfit channels: the complex signal split along the predicted phasor (amplitude) and
 #: across it (phase, i.e. depth), and the tap offset when the session has that channel.
 CHANNELS = ("depth", "amplitude", OFFSET_CHANNEL)
@@ -467,13 +465,12 @@ class ChannelGain:
     #: The same figures where the change acts: on the pixels it moves by at least ``minimum``
     #: (a stray light that moves a dark square by centimetres and the wall by a fraction of a
     #: millimetre is judged on the square, not diluted by the wall): pixel count, RMSE
-    #: before and after, rms of the change, standard error of ``before^2 - after^2``.
+    #: before and after, rms of the change.
     #: (None: not computed, the change is judged over all pixels.)
     acting_pixels: int | None = None
     acting_before: float = float("nan")
     acting_after: float = float("nan")
     acting_correction: float = float("nan")
-    acting_se: float = 0.0
 
     @property
     def systematic(self) -> float:
@@ -503,13 +500,14 @@ class ChannelGain:
 
     @property
     def enough(self) -> bool:
-        """Worth naming in this channel: where the change acts, it removes at least the
-        minimum, and that removal is beyond the held-out noise at :data:`ALPHA` (a change that
-        fits noise moves pixels too, and removes nothing on held-out values)."""
+        """Worth naming in this channel: where the change acts, it removes at least the minimum
+        (a change that fits noise moves pixels too, and removes nothing there on held-out
+        values: its part is negative). Whether the gain is beyond noise is the likelihood's
+        test, not this one's: a second test on the unweighted RMSE, weaker where the noise is
+        largest, vetoed a tap offset that the held-out score had found."""
         if self.acting_pixels is None:
             return bool(self.systematic >= self.minimum)
-        d = self.acting_before ** 2 - self.acting_after ** 2 if self.acting_pixels else 0.0
-        return bool(self.systematic_where_acting >= self.minimum and d > Z_ALPHA * self.acting_se)
+        return bool(self.systematic_where_acting >= self.minimum)
 
     @property
     def worse(self) -> bool:
@@ -605,11 +603,10 @@ class EffectSize:
             # where the change acts: chosen by the change alone, never by the residual
             acting = np.abs(rb - ra) >= self.minimum[c]
             na = int(acting.sum())
-            se_a = 2.0 * float(np.sqrt(np.sum((sig[acting] * (rb - ra)[acting]) ** 2))) / max(na, 1)
             out[c] = ChannelGain(c, rmse(rb), rmse(ra), self.noise[c], self.minimum[c], int(ok.sum()), se,
                                  rmse(rb - ra), na, rmse(rb[acting]) if na else float("nan"),
                                  rmse(ra[acting]) if na else float("nan"),
-                                 rmse((rb - ra)[acting]) if na else float("nan"), se_a)
+                                 rmse((rb - ra)[acting]) if na else float("nan"))
         return out
 
     @staticmethod
