@@ -311,6 +311,41 @@ def drift_verdict(s: State) -> State:
     return s.with_notes(drift.text)
 
 
+def channel_beyond_noise(s: State) -> State:
+    """The verdict's misfit test is over every held-out value at once; a part confined to one
+    channel (a frequency's gain, the taps' alternating part, the offset) is tested on its own by
+    the channel table at the same false-alarm rate (family-wise). A reading beyond its noise
+    there is a residual: the base twin is not "within noise" (the verdict is "unexplained", the
+    reading said), nor is a set "explained" that leaves it ("partly explained"). The frame
+    readings are the drift's when it is named; the noise reading compares the scatter with the
+    sensor's model and is no residual."""
+    from tofhil.eval.diagnose.channels import residual_by_channel, sensor_noise_variance
+
+    if s.draft.kind not in (V.Kind.WITHIN_NOISE, V.Kind.EXPLAINED) or s.drift_is_verdict:
+        return s
+    data = s.ctx.data
+    taps = getattr(s.model, "taps", None)
+    measured = getattr(data, "taps_test", None)
+    try:
+        table = residual_by_channel(data, s.prediction, taps_measured=measured,
+                                    taps_predicted=taps({}) if callable(taps) and measured is not None else None,
+                                    model_variance=sensor_noise_variance(data))
+    except (AttributeError, ValueError):
+        return s
+    skip = {"noise"} | ({"frame"} if s.drift is not None and s.drift.named else set())
+    beyond = [r for r in table.readings if r.significant and r.channel not in skip]
+    if not beyond:
+        return s
+    kind = V.Kind.UNEXPLAINED if s.draft.kind is V.Kind.WITHIN_NOISE else V.Kind.PARTLY_EXPLAINED
+    said = "; ".join(f"{r.text} (z {r.z:+.1f})" for r in beyond)
+    text = (s.draft.text + f"; but a part confined to one channel is beyond its noise (|z| > "
+            f"{beyond[0].z_threshold:.2f}, the channel table's family-wise test at the same false-alarm rate): "
+            + said)
+    draft = dataclasses.replace(s.draft, kind=kind, text=text,
+                                worse_channels=sorted(set(s.draft.worse_channels) | {r.channel for r in beyond}))
+    return dataclasses.replace(s, draft=draft)
+
+
 def a_or_b(s: State) -> State:
     """Every "A or B" of the causes named: each is said, with the capture that separates them."""
     ctx = s.ctx
@@ -331,7 +366,7 @@ def fitted_too_small(s: State) -> State:
 
 #: The rules, in the order :func:`decide` applies them.
 RULES: tuple[Rule, ...] = (extended_scene_keeps_gain, scene_does_not_match, search_limit, accounted_channels,
-                           drift_test, drift_alone, drift_verdict, a_or_b, fitted_too_small)
+                           drift_test, drift_alone, drift_verdict, channel_beyond_noise, a_or_b, fitted_too_small)
 
 
 # =============================================================================================
