@@ -236,18 +236,14 @@ def _depth_stack(path: Path) -> tuple[np.ndarray, np.ndarray, Any, dict[str, Any
     return d, np.stack([f.valid for f in frames]), frames[0].camera, acq
 
 
-def _twin_stack(rig: Any, state: Mapping[str, Any], acq: Mapping[str, Any], frames: int,
-                seed: int, opts: BenchOptions, *, noise: bool = True,
-                effects: Mapping[str, Any] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The twin's frames of the same bench (the scene and the bench's known light, without
-    the hidden truth) with the capture's acquisition settings, demodulated like the capture."""
-    params, _ = _split(state)
+def twin_scene(rig: Any, state: Mapping[str, Any], acq: Mapping[str, Any]) -> Any:
+    """The twin's scene of a bench state: the rig's scene with the state's parameters and, for
+    the emulated TOFcam635, the device's overrides at the capture's frequencies and exposure."""
     import copy
 
-    from tofhil.depth import depth_from_raw
-    from tofhil.sim.pipeline import simulate
     from tofhil.sim.scene import load_scene
 
+    params, _ = _split(state)
     over: dict[str, Any] = {"params": dict(params)}
     if rig.device.startswith("emulator"):
         from tofhil.sim.sources import TOFCAM635_OVERRIDES
@@ -255,7 +251,18 @@ def _twin_stack(rig: Any, state: Mapping[str, Any], acq: Mapping[str, Any], fram
         over.update(copy.deepcopy(TOFCAM635_OVERRIDES))
         over["sensor"] = {**over["sensor"], "freq_hz": [float(f) for f in acq["freq_hz"]],
                           "integration_time_s": float(acq["integration_time_s"])}
-    scene = load_scene(rig.scene, over)
+    return load_scene(rig.scene, over)
+
+
+def _twin_stack(rig: Any, state: Mapping[str, Any], acq: Mapping[str, Any], frames: int,
+                seed: int, opts: BenchOptions, *, noise: bool = True,
+                effects: Mapping[str, Any] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The twin's frames of the same bench (the scene and the bench's known light, without
+    the hidden truth) with the capture's acquisition settings, demodulated like the capture."""
+    from tofhil.depth import depth_from_raw
+    from tofhil.sim.pipeline import simulate
+
+    scene = twin_scene(rig, state, acq)
     known = _bench_effects(rig.scene, state, opts, 0.0, hidden=False)
     if effects:
         from tofhil.sim.pipeline import resolve_effects

@@ -37,8 +37,7 @@ import numpy as np
 from tofhil import C_M_PER_S
 from tofhil.app.bench.base import BenchOptions, BenchResult, Figure, acquisition
 from tofhil.app.bench.depth import (
-    DISTANCE_PARAM, INTERFERER_FREQ, INTERFERER_PHASE, INTERFERER_W, _bench_effects, _depth_stack, _rig, _split,
-    agreement, as_procedure, twin_depths,
+    DISTANCE_PARAM, INTERFERER_FREQ, INTERFERER_PHASE, INTERFERER_W, _bench_effects, _depth_stack, _rig, agreement, as_procedure, twin_depths, twin_scene,
 )
 from tofhil.app.campaign import CampaignResult, Plan, parse_plan
 
@@ -245,20 +244,9 @@ class Interference:
 
 def _twin_frames(rig: Any, state: Mapping[str, Any], acq: Mapping[str, Any], frames: int, seed: int,
                  opts: BenchOptions) -> tuple[np.ndarray, np.ndarray]:
-    import copy
-
     from tofhil.depth import depth_from_raw
-    from tofhil.sim.scene import load_scene
 
-    params, _ = _split(state)
-    over: dict[str, Any] = {"params": dict(params)}
-    if rig.device.startswith("emulator"):
-        from tofhil.sim.sources import TOFCAM635_OVERRIDES
-
-        over.update(copy.deepcopy(TOFCAM635_OVERRIDES))
-        over["sensor"] = {**over["sensor"], "freq_hz": [float(f) for f in acq["freq_hz"]],
-                          "integration_time_s": float(acq["integration_time_s"])}
-    scene = load_scene(rig.scene, over)
+    scene = twin_scene(rig, state, acq)
     known = _bench_effects(rig.scene, state, opts, 0.0, hidden=False) or None
     return twin_depths(rig, [depth_from_raw(r) for r in interfered_frames(scene, known, state, frames, seed)])
 
