@@ -39,9 +39,9 @@ from tofhil.sim.memory import release_free_memory
 
 EffectParams = dict[str, dict[str, float]]
 #: How many branches the search also follows (:func:`greedy_select`): the runners-up of its
-#: rounds closest in score to the cause chosen; three more searches at most, each over its
+#: rounds closest in score to the cause chosen; two more searches at most, each over its
 #: round's significant effects only.
-EXTRA_STARTS = 3
+EXTRA_STARTS = 2
 #: How a partial form is named: its flexible form, this, and the parameter groups left out.
 PARTIAL = " without "
 

@@ -166,7 +166,7 @@ def test_the_depthai_plane_against_the_bundled_wall_names_what_differs_between_t
         capture(drv, out, 3, CaptureSettings(mode="distance"), force=True)
     finally:
         drv.close()
-    res = diagnose(out, load_scene("wall"), max_effects=3)
+    res = diagnose(out, load_scene("wall"), max_effects=2)
     assert sorted(res.causes) == ["emitter_position", "illumination"], (res.causes, res.verdict.text)
     assert res.verdict.kind == "explained"
     assert res.params["illumination"]["dn"] == pytest.approx(-1.0, abs=0.05)  # cos^2 -> cos^1
