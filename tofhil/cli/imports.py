@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from tofhil.cli import app, console, lit, out
+from tofhil.cli import app, check_interrupt, console, lit, out
 from tofhil.cli import options as opt
 from tofhil.errors import TofhilError
 
@@ -44,6 +44,9 @@ def import_(file: Path = typer.Argument(..., parser=opt.existing_file,
     from tofhil.drivers.importers.dispatch import import_file
 
     def on_frame(i: int, n: int) -> None:
+        # each frame is where an interrupt is honoured: the KeyboardInterrupt that SIGTERM raises can
+        # land in h5py's object finaliser and be lost, and the import then ran to its end (exit 0)
+        check_interrupt()
         if console.is_terminal and (i == n or i % 10 == 0):
             console.print(f"imported {i}/{n} frames", end="\r")
 
@@ -76,6 +79,7 @@ def export(session: Path = typer.Argument(..., parser=opt.existing_file, help="A
         raise TofhilError("is not a .mcap file", file=out_path, field="--out", expected="an output name ending in .mcap")
 
     def on_frame(i: int, n: int) -> None:
+        check_interrupt()  # as the import's
         if console.is_terminal and (i == n or i % 10 == 0):
             console.print(f"exported {i}/{n} frames", end="\r")
 
