@@ -3,6 +3,9 @@ family is named or the right channel and shape said, how often "the scene does n
 said (never right here: the geometry is right in every draw), and what nulls name.
 
     python benchmarks/diagnose_disturbances.py --draws 200 --nulls 60 [--width 80] [--out results.json]
+    python benchmarks/diagnose_disturbances.py --shard 1/2 --out a.json &   # one process a core
+    python benchmarks/diagnose_disturbances.py --shard 2/2 --out b.json; \
+    python benchmarks/diagnose_disturbances.py --summary a.json b.json
 
 Draws come from ``tests/eval/disturbances.py`` (written without the effect library's code): two
 bundled scenes (dark_square, two_squares) x two sensors (1 frequency 4 taps, 44 + 60 MHz 3 taps),
@@ -71,13 +74,19 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=4)
     ap.add_argument("--only", type=int, default=None, help="run draw N alone")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--shard", default="1/1", help="K/N: run every N-th job from the K-th (one process a core)")
+    ap.add_argument("--summary", type=Path, nargs="+", default=None, help="print the table of saved --out files")
     a = ap.parse_args()
+    if a.summary:
+        summarise([r for p in a.summary for r in json.loads(p.read_text())])
+        return
+    k, n = (int(v) for v in a.shard.split("/"))
     rows = []
     with tempfile.TemporaryDirectory() as td:
         tmp = Path(td)
         jobs = [(a.only, False)] if a.only is not None else \
             [(i, False) for i in range(a.draws)] + [(i, True) for i in range(a.nulls)]
-        for i, null in jobs:
+        for i, null in jobs[k - 1::n]:
             r = run_one(i, a.width, a.frames, tmp, null)
             rows.append(r)
             what = "null" if null else " + ".join(f"{d['channel']}/{d['shape']} z{d['z']:.0f}" for d in r["disturbances"])
@@ -85,6 +94,12 @@ def main() -> None:
                   f"{','.join(r['named']) or '-':40s} {'RIGHT' if r['right'] else 'wrong'} {r['how']} ({r['seconds']} s)",
                   flush=True)
             (tmp / f"d{i}.h5").unlink(missing_ok=True)
+            if a.out:  # after every job: a long run stopped early keeps what it measured
+                a.out.write_text(json.dumps(rows, indent=1))
+    summarise(rows)
+
+
+def summarise(rows: list[dict]) -> None:
     draws = [r for r in rows if not r["null"]]
     nulls = [r for r in rows if r["null"]]
     by = defaultdict(lambda: [0, 0])
@@ -104,8 +119,6 @@ def main() -> None:
     if nulls:
         named = sum(not r["right"] for r in nulls)
         print(f"nulls: {named}/{len(nulls)} name something or say the scene does not match (aim 0)")
-    if a.out:
-        a.out.write_text(json.dumps(rows, indent=1))
 
 
 if __name__ == "__main__":
