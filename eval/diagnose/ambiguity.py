@@ -106,14 +106,8 @@ def same_residual(model: Any, data: HeldOutData, chosen: Candidate, others: Sequ
 
     base = data.whitened_residual(current_pred, "test")
     named = residual(chosen)
-    change = base - named
     for c in near:
-        fit_other = residual(c)
-        other = base - fit_other
-        denom = float(change @ change) * float(other @ other)
-        overlap = float(change @ other) ** 2 / denom if denom > 0 else 0.0
-        diff = named - fit_other
-        needed = max(penalty_per_dof, 4.0 * float(np.sqrt(diff @ diff)))
+        needed, overlap = _likeness(base, named, residual(c), penalty_per_dof)
         gap = float(c.score - chosen.score)
         if overlap > SAME_RESIDUAL_OVERLAP and gap < needed:
             out.append(Ambiguity(
@@ -122,6 +116,20 @@ def same_residual(model: Any, data: HeldOutData, chosen: Candidate, others: Sequ
                 separating=separation(chosen.effect, c.effect),
                 text=_same_residual_text(chosen.effect, chosen.form, c.effect, c.form, gap, needed, overlap)))
     return out
+
+
+def _likeness(base: np.ndarray, named: np.ndarray, other: np.ndarray, penalty_per_dof: float) -> tuple[float, float]:
+    """Two explanations' whitened held-out residuals (``named``, ``other``) against the model
+    before them (``base``): the score margin within which they cannot be told apart (the larger
+    of one degree of freedom's price and twice the noise of their score difference, which is
+    2 |d| for d the difference of the residuals) and the overlap of their changes (the squared
+    cosine of the two changes of the prediction)."""
+    diff = named - other
+    needed = max(penalty_per_dof, 4.0 * float(np.sqrt(diff @ diff)))
+    a, b = base - named, base - other
+    denom = float(a @ a) * float(b @ b)
+    overlap = float(a @ b) ** 2 / denom if denom > 0 else 0.0
+    return needed, overlap
 
 
 def _same_residual_text(effect: str, form: str, other: str, other_form: str, gap: float, needed: float,
@@ -153,14 +161,10 @@ def sets_alike(model: Any, data: HeldOutData, causes: Sequence[str], params: dic
             continue
         seen.add(key)
         fit_other = data.whitened_residual(model.predict(dict(other_params)), "test")
-        diff = named - fit_other
-        needed = max(penalty_per_dof, 4.0 * float(np.sqrt(diff @ diff)))
+        needed, overlap = _likeness(base, named, fit_other, penalty_per_dof)
         gap = float(other_score - score)
         if gap >= needed:
             continue
-        a, b = base - named, base - fit_other
-        denom = float(a @ a) * float(b @ b)
-        overlap = float(a @ b) ** 2 / denom if denom > 0 else 0.0
         other = " + ".join(other_causes)
         differ = [e for e in causes if e not in other_causes] + [e for e in other_causes if e not in causes]
         sep = separation(differ[0], differ[-1]) if differ else separation(label, other)

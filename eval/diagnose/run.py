@@ -298,16 +298,17 @@ class _ExtendedScene:
         self.model, self.data, self.path, self.render_kwargs = model, data, ext_path, render_kwargs
         self.map_path = ext_path.parent / OFFSET_MAP_FILE if ext_path is not None else None
 
-    def text(self, fitted: dict[str, dict[str, Any]]) -> str:
+    def text(self, fitted: dict[str, dict[str, Any]], gain: float | None = None) -> str:
         """The file's text: a range offset map named by its file beside the scene (relative: the
-        output directory can be moved) when there is a file to write, else inline."""
+        output directory can be moved) when there is a file to write, else inline. ``gain``: the
+        set's profiled gain when the caller has it (a full prediction each time it is computed)."""
         import yaml
 
         from tofhil.sim.scene import scene_to_yaml
 
         block = self.model.extended_effects_block(fitted)
         scene = dataclasses.replace(self.model.scene, effects=block)
-        g = self.model.gain(fitted)
+        g = self.model.gain(fitted) if gain is None else gain
         if g != 1.0:
             # the device gain profiled for this set is the scene's: written into its sensor
             scene = scaled_scene(scene, SignalScale(factor=g, fitted=True))
@@ -325,13 +326,13 @@ class _ExtendedScene:
     def _map(self, fitted: dict[str, dict[str, Any]]) -> np.ndarray:
         return np.asarray(fitted[MAP_EFFECT]["values"], dtype=np.float64)
 
-    def scene(self, fitted: dict[str, dict[str, Any]]) -> Any:
+    def scene(self, fitted: dict[str, dict[str, Any]], gain: float | None = None) -> Any:
         """The scene the file will read back as, without writing it (the map, which the file
         names, given by its values: the same numbers its .npy file holds)."""
         from tofhil.sim.scene import scene_from_dict, scene_from_yaml
         from tofhil.yamlio import load_yaml
 
-        text = self.text(fitted)
+        text = self.text(fitted, gain)
         if self.path is None:
             return scene_from_yaml(text)
         source, base_dir = str(self.path), self.path.resolve().parent
@@ -351,7 +352,7 @@ class _ExtendedScene:
         g = self.model.gain(fitted)
         if g != 1.0:
             sensor = scaled_scene(self.model.scene, SignalScale(factor=g, fitted=True)).sensor
-        after_model = TwinModel(self.scene(fitted), self.data, render_kwargs=self.render_kwargs,
+        after_model = TwinModel(self.scene(fitted, g), self.data, render_kwargs=self.render_kwargs,
                                 renders_from=self.model, sensor=sensor)
         return after_model, after_model.predict({})
 

@@ -585,13 +585,10 @@ class _GreedySearch:
                 refit, _ = fit(model, data, rest, {a: self.params[a] for a in rest}, lib=self.work)
                 pred = model.predict(refit)
                 chi2 = data.chi2(pred, "test")
-                gain = chi2 - self.current_chi2
-                excess = max(chi2 - self.n_test, 0.0)
-                keeps = bool(gain > self.k_of(e) * self.penalty and gain > self.min_relative_gain * excess)
-                if keeps and self.effect_size is not None:
-                    _, keeps = self.effect_size.names(pred, self.current_pred)
-                if keeps:
+                gains, worth, _ = self._significant(chi2, self.current_chi2, self.k_of(e), pred, self.current_pred)
+                if gains and worth:
                     continue
+                gain = chi2 - self.current_chi2
                 self.selection.too_small[e] = (f"{e}: dropped, the other causes refitted without it explain the "
                                                f"held-out data as well (its gain over them {gain:.1f} in misfit, "
                                                f"{self.k_of(e):g} degrees of freedom)")
@@ -605,6 +602,21 @@ class _GreedySearch:
                 dropped = True
                 break
 
+
+    def _significant(self, chi2_without: float, chi2_with: float, k: float, pred_without: np.ndarray,
+                     pred_with: np.ndarray) -> tuple[bool, bool, dict[str, ChannelGain]]:
+        """The one test of a cause, in a round and in the prune: whether it gains (the held-out
+        misfit falls by more than its ``k`` degrees of freedom's penalty, which sets the
+        false-alarm rate, and by a share of the excess over noise that is left), whether it is
+        worth naming (its effect size where it acts), and the effect size per channel."""
+        gain = chi2_without - chi2_with
+        excess = max(chi2_without - self.n_test, 0.0)
+        gains = bool(gain > k * self.penalty and excess > 0 and gain > self.min_relative_gain * excess)
+        rmse: dict[str, ChannelGain] = {}
+        worth = True
+        if gains and self.effect_size is not None:
+            rmse, worth = self.effect_size.names(pred_without, pred_with)
+        return gains, worth, rmse
 
     def identify(self, c: Candidate) -> Identifiability:
         return assess_form(self.model, self.data, c.all_params, c.effect, self.lib[c.effect].variant(c.form),
@@ -732,11 +744,7 @@ class _GreedySearch:
                        | set(worse_channels(self.selection.channels_before, channels)))
         score = chi2_test + (current_k + k_new) * penalty
         gain = self.current_chi2 - chi2_test
-        gains = bool(current_score - score > 0 and excess > 0 and gain > self.min_relative_gain * excess)
-        rmse: dict[str, ChannelGain] = {}
-        worth = True
-        if self.effect_size is not None and gains:
-            rmse, worth = self.effect_size.names(self.current_pred, pred)
+        gains, worth, rmse = self._significant(self.current_chi2, chi2_test, k_new, self.current_pred, pred)
         # a channel that rose is accounted (the explanation is partial there), never a veto:
         # the total held-out score decides
         significant = gains and worth

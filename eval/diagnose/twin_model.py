@@ -258,6 +258,20 @@ class TwinModel:
             out[nf] = black + g * (out[nf] - black)
         return out
 
+    def _log_ratios(self, s: np.ndarray, pixels: np.ndarray) -> np.ndarray | None:
+        """``log(|S_measured| / |S_predicted|)`` over the fit pixels in ``pixels`` (the frequencies
+        averaged), or None where fewer than 20 pixels hold both."""
+        nf = self.data.n_freq
+        use = self.data.fit_pixels & pixels
+        meas = np.abs(self.data.s_train[:nf][:, use]).mean(axis=0)
+        pred = np.abs(s[:nf][:, use]).mean(axis=0)
+        ok = (meas > 0) & (pred > 0)
+        return np.log(meas[ok] / pred[ok]) if ok.sum() >= 20 else None
+
+    @staticmethod
+    def _robust_spread(lr: np.ndarray) -> float:
+        return max(1.4826 * float(np.median(np.abs(lr - np.median(lr)))), 1e-6)
+
     def _gain_of(self, s: np.ndarray, pixels: np.ndarray) -> float:
         """The device gain profiled out of a prediction: Huber's M-estimate of the location of
         ``log(|S_measured| / |S_predicted|)`` over the fit pixels the prediction holds, the
@@ -267,19 +281,12 @@ class TwinModel:
         that the scale, fitted once on the base twin, took up: its prediction gets its own
         (the profile likelihood of a nuisance parameter). An M-estimate rather than the median
         is a smooth function of the prediction, which a least-squares fit differentiates."""
-        data = self.data
-        nf = data.n_freq
-        use = data.fit_pixels & pixels
-        meas = np.abs(data.s_train[:nf][:, use]).mean(axis=0)
-        pred = np.abs(s[:nf][:, use]).mean(axis=0)
-        ok = (meas > 0) & (pred > 0)
-        if ok.sum() < 20:
+        lr = self._log_ratios(s, pixels)
+        if lr is None:
             return 1.0
-        lr = np.log(meas[ok] / pred[ok])
         if self._log_ratio_scale is None:
-            # the spread of the base twin's ratios: fixed, so the estimate is smooth in ``s``
-            med = float(np.median(lr))
-            self._log_ratio_scale = max(1.4826 * float(np.median(np.abs(lr - med))), 1e-6)
+            # the base twin had too few pixels: this prediction's spread, fixed from now on
+            self._log_ratio_scale = self._robust_spread(lr)
         k = HUBER_K * self._log_ratio_scale
         mu = float(np.median(lr))
         for _ in range(MAX_GAIN_ITERATIONS):
@@ -293,17 +300,11 @@ class TwinModel:
 
     def enable_gain_profile(self) -> None:
         """Profile the gain out of every prediction from now on (:meth:`_gain_of`), the spread
-        of the log ratios fixed at the base twin's."""
+        of the log ratios fixed at the base twin's, so the estimate is smooth in the prediction."""
         self.profile_gain = False
-        base = self.predict({})
-        nf = self.data.n_freq
-        use = self.data.fit_pixels
-        meas = np.abs(self.data.s_train[:nf][:, use]).mean(axis=0)
-        pred = np.abs(base[:nf][:, use]).mean(axis=0)
-        ok = (meas > 0) & (pred > 0)
-        if ok.sum() >= 20:
-            lr = np.log(meas[ok] / pred[ok])
-            self._log_ratio_scale = max(1.4826 * float(np.median(np.abs(lr - np.median(lr)))), 1e-6)
+        lr = self._log_ratios(self.predict({}), np.ones(self.data.camera.shape, dtype=bool))
+        if lr is not None:
+            self._log_ratio_scale = self._robust_spread(lr)
         self.profile_gain = True
 
     def gain(self, active: EffectParams) -> float:
