@@ -138,6 +138,17 @@ def _nbytes(value: Any) -> int:
     return 0
 
 
+def differential(taps: np.ndarray) -> np.ndarray:
+    """The taps of a pixel that reads the difference of its two gates (the TOFcam635's DCS):
+    ``(c_k - c_{k + K/2}) / 2`` of taps ``[F, K, ...]`` after the readout's own imbalance, so
+    ``DCS_{k + K/2} = -DCS_k`` exactly (an odd number of taps: the taps less their mean). For a
+    sinusoid both are the taps less their offset."""
+    k = taps.shape[1]
+    if k % 2:
+        return taps - taps.mean(axis=1, keepdims=True)
+    return 0.5 * (taps - np.roll(taps, k // 2, axis=1))
+
+
 class RenderCache(LRUCache):
     """Renders by content key, least recently used first out, except the pinned ones.
 
@@ -365,12 +376,10 @@ class Twin:
     def _readout(self, taps: np.ndarray, effects: Effects | None) -> np.ndarray:
         """:func:`readout` of the twin's taps; an effect set naming no taps-stage effect is not
         validated a second time (a fit predicts thousands of times)."""
-        if self.differential_readout:
-            taps = taps - taps.mean(axis=1, keepdims=True)
         names = self.base_effects if effects is None else effects
-        if not any(EFFECTS[n].stage == "taps" for n in names if n in EFFECTS):
-            return taps
-        return readout(taps, self.scene, self.scene.camera, self._resolve(effects), self.config)
+        if any(EFFECTS[n].stage == "taps" for n in names if n in EFFECTS):
+            taps = readout(taps, self.scene, self.scene.camera, self._resolve(effects), self.config)
+        return differential(taps) if self.differential_readout else taps
 
     def frames(self, effects: Effects | None = None, frames: int = 1, *, seed: int = 0, noise: bool = True,
                meta: Mapping[str, Any] | None = None, first_index: int = 0) -> Iterable[RawFrame]:
