@@ -284,3 +284,13 @@ def detect_clipping(taps_max: np.ndarray, taps_min: np.ndarray, *, min_pixels: i
         if bottom < 0 and (finite_min <= bottom).sum() >= min_pixels:
             lo = bottom
     return TapLimits(high_dn=hi, low_dn=lo)
+
+
+def tap_pattern(taps: np.ndarray) -> np.ndarray:
+    """The taps' alternating part ``(1/K) sum_k (-1)^k c_k`` of taps ``[..., K, H, W]`` (K even,
+    4 or more) -> ``[..., H, W]``: orthogonal to the offset and to the fundamental, so no change
+    of the light (a range, a gain, a phase, a pose) makes it; tap gains (with an offset), tap
+    offsets and even harmonics do. It is what an even number of taps holds beyond ``B`` and ``S``."""
+    k = taps.shape[-3]
+    sign = (-1.0) ** np.arange(k)
+    return np.tensordot(taps, sign, axes=([taps.ndim - 3], [0])) / k

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from tofhil.demod import radians_per_metre
+from tofhil.demod import radians_per_metre, tap_pattern
 from tofhil.eval.diagnose.heldout import HeldOutData
 from tofhil.sim.effects import OFFSET_CHANNEL
 
@@ -218,26 +218,16 @@ def noise_readings(data: HeldOutData, model_variance: np.ndarray | None) -> list
                            f"the frame-to-frame scatter is {ratio:.2f} x the sensor noise model's at these signal levels")]
 
 
-def _off_sinusoid(taps: np.ndarray, theta_rad: np.ndarray) -> np.ndarray:
-    """The alternating part ``(1/K) sum_k (-1)^k c_k`` of taps ``[F, K, H, W]`` (K even, 4 or
-    more): orthogonal to ``B`` and to the fundamental, so no change of the light (a range, a
-    gain, a phase, a pose) can make it; tap gains (with an offset), tap offsets and even
-    harmonics do."""
-    k = taps.shape[1]
-    sign = (-1.0) ** np.arange(k)
-    return np.tensordot(sign, taps, axes=([0], [1])) / k          # [F, H, W]
-
-
 def tap_readings(theta_rad: np.ndarray, measured: np.ndarray, predicted: np.ndarray, pixels: np.ndarray,
                  noise_var: np.ndarray, *, with_offset: bool = True) -> list[ChannelReading]:
     """The part of the residual that follows the tap index: the taps' alternating part
-    (:func:`_off_sinusoid`), measured minus predicted, as a constant (a tap offset pattern) and
+    (:func:`tap_pattern`), measured minus predicted, as a constant (a tap offset pattern) and
     in proportion to the pixel's offset level (a tap gain pattern, where the readout has an
     offset of its own). ``noise_var``: a tap's variance of the mean ``[H, W]``."""
     k = measured.shape[1]
     if k < 4 or k % 2:
         return []
-    d = (_off_sinusoid(measured, theta_rad) - _off_sinusoid(predicted, theta_rad))[:, pixels].ravel()
+    d = (tap_pattern(measured) - tap_pattern(predicted))[:, pixels].ravel()
     level = np.broadcast_to(measured.mean(axis=1)[:, pixels], (measured.shape[0], int(pixels.sum()))).ravel()
     var = np.broadcast_to(noise_var[pixels] / k, (measured.shape[0], int(pixels.sum()))).ravel()
     w = 1.0 / np.maximum(var, 1e-300)

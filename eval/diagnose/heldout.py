@@ -97,6 +97,11 @@ class HeldOutData:
         return int(self.freq_hz.size)
 
     @property
+    def values_per_pixel(self) -> int:
+        """Real values a pixel holds: 2 per frequency's S, 1 for the offset."""
+        return 2 * self.n_freq + (1 if self.offset_channel else 0)
+
+    @property
     def unambiguous_range_m(self) -> float:
         return frequency_plan(self.freq_hz).unambiguous_range_m
 
@@ -182,7 +187,7 @@ class HeldOutData:
     def n_values(self, part: str = "test") -> int:
         """Real-valued data points in one part (2 per complex signal value, 1 per offset)."""
         mask = self.part(part)[2]
-        return int(mask.sum() * (2 * self.n_freq + (1 if self.offset_channel else 0)))
+        return int(mask.sum() * self.values_per_pixel)
 
     def whitened_residual(self, prediction: np.ndarray, part: str = "train") -> np.ndarray:
         """Real vector of (measured - predicted) / sigma over a part: what least squares minimises."""

@@ -362,7 +362,7 @@ def fit_frame_drift(model: Any, data: HeldOutData, current: dict[str, dict[str, 
     const = np.linalg.solve(at.sum(axis=0), bt.sum(axis=0))
     static = np.broadcast_to(const, u.shape)
     chi2_static, chi2_drift = chi2(static, ah, bh, zz), chi2(u, ah, bh, zz)
-    n_values = int(test.sum() * (2 * data.n_freq + (1 if data.offset_channel else 0)) * n)
+    n_values = int(test.sum() * data.values_per_pixel * n)
     dof = max(tr - 2.0, 0.0)
     gain, excess = chi2_static - chi2_drift, max(chi2_static - n_values, 0.0)
     # named against the session's own noise estimate (conservative: it contains the drift)

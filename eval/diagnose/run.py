@@ -462,7 +462,11 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         evidence.insert(0, "defects: " + data.defects.text())
     for line in selection.too_small.values():
         evidence.append(f"not named, its held-out gain is too small or makes a channel worse: {line}")
-    evidence.extend(selection.not_tried.values())
+    evidence.extend(selection.exchanges)
+    if selection.not_tried:
+        from tofhil.eval.diagnose.signature import NOT_FITTED
+
+        evidence.append(f"{NOT_FITTED}: " + "; ".join(selection.not_tried.values()))
 
     # decide: the rules over the selection's record (read, never changed), the extended scene
     # predicted in memory; written once, after

@@ -182,11 +182,13 @@ class Selection:
     #: Per cause fitted in closed form, what its fit reports (form, dof, strengths).
     details: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: Effects whose misfit gain was significant but whose RMSE gain was too small to name
-    #: (or made a channel's RMSE worse), with their figures; and those whose own signature
-    #: channel the residual does not have.
+    #: (or made a channel's RMSE worse), with their figures.
     too_small: dict[str, str] = field(default_factory=dict)
-    #: Effects not fitted in a round because the residual lacks their signature channel, with why.
+    #: Forms not fitted in a round because the score test of the residual on their signature
+    #: could not reach what naming needs (:mod:`tofhil.eval.diagnose.signature`), with figures.
     not_tried: dict[str, str] = field(default_factory=dict)
+    #: The sets found by searching again without a chosen cause that replaced it (:meth:`_GreedySearch.exchange`).
+    exchanges: list[str] = field(default_factory=list)
     #: Per cause, the flexible forms refused because the data do not identify their extra
     #: parameters (which ones cannot be told apart).
     unidentified: dict[str, list[Identifiability]] = field(default_factory=dict)
@@ -554,8 +556,16 @@ class _GreedySearch:
         return float(self.current_chi2 + sum(self.k_of(e) for e in self.active) * self.penalty)
 
     def run(self, names: Sequence[str], max_effects: int) -> None:
-        """Rounds until nothing significant is left or ``max_effects`` are chosen; then the
-        chosen forms are tested again at the final values."""
+        """Rounds until nothing significant is left or ``max_effects`` are chosen, every cause
+        tested again against the others (:meth:`prune`) and the search run again without each
+        (:meth:`exchange`); then the chosen forms are tested again at the final values."""
+        self.forward(names, max_effects)
+        self.prune()
+        self.exchange(names, max_effects)
+        self.simplify_forms()
+
+    def forward(self, names: Sequence[str], max_effects: int) -> None:
+        """Rounds until nothing significant is left or ``max_effects`` are chosen."""
         while len(self.active) < max_effects:
             before = self.snapshot()
             round_, tried_of = self.round(names)
@@ -566,42 +576,90 @@ class _GreedySearch:
             self.before.append(before)
             self.path.append((chosen, round_))
             self.add(chosen, round_, tried_of)
-        self.prune()
-        self.simplify_forms()
+
+    def exchange(self, names: Sequence[str], max_effects: int) -> None:
+        """Every chosen cause must survive the search run without it (forward selection with
+        exchanges): the others refitted, the rounds run again over every other effect, the set
+        pruned. A cause taken first for parts of two others' light (a readout's offset for a
+        stray-light veil and a harmonic together) kept the others out; the set found without it
+        replaces the chosen one when its held-out score is lower, and is said."""
+        sel = self.selection
+        for cause in list(self.active):
+            if cause not in self.active or len(self.active) < 1:
+                continue
+            saved, score = self.snapshot(), self.score()
+            saved_small, n_rounds, n_path = dict(sel.too_small), len(sel.rounds), len(self.path)
+            before = " + ".join(self.active)
+            if self.progress:
+                self.progress(f"searching again without {cause}")
+            kept = set(self.active) - {cause}
+            self._drop(cause)
+            self.forward([n for n in names if n != cause], max_effects)
+            self.prune()
+            for new in [e for e in self.active if e not in kept]:
+                self._restart_jointly(new)
+            if self.score() < score:
+                sel.exchanges.append(f"{before} (held-out score {score:.1f}) searched again without {cause}: "
+                                     f"{' + '.join(self.active) or 'nothing'} ({self.score():.1f}), kept")
+                continue
+            self.restore(saved)
+            sel.too_small, sel.rounds = saved_small, sel.rounds[:n_rounds]
+            del self.path[n_path:], self.before[n_path:]
+
+    def _restart_jointly(self, e: str) -> None:
+        """Refit the chosen set jointly from each of ``e``'s starting points: ``e`` was fitted
+        with the others held at values they took without it (a stray light fitted beside a
+        harmonic and a clock skew that had taken part of its light found a lobe twice as wide).
+        Kept when the held-out misfit falls."""
+        if self.progress:
+            self.progress("refitting " + " + ".join(self.active) + f" jointly from the starts of {e}")
+        joint, _ = fit(self.model, self.data, self.active, self.params, new_effect=e, lib=self.work)
+        pred = self.model.predict(joint)
+        chi2 = self.data.chi2(pred, "test")
+        if chi2 < self.current_chi2:
+            self.params, self.current_chi2, self.current_pred = joint, chi2, pred
+            self.current_channels = channel_chi2(self.data, pred)
+
+    def _refit_without(self, e: str) -> tuple[EffectParams, float, np.ndarray]:
+        """The chosen set without ``e``, the others refitted: their values, held-out misfit, prediction."""
+        rest = [a for a in self.active if a != e]
+        refit, _ = fit(self.model, self.data, rest, {a: self.params[a] for a in rest}, lib=self.work)
+        pred = self.model.predict(refit)
+        return refit, self.data.chi2(pred, "test"), pred
+
+    def _drop(self, e: str, without: tuple[EffectParams, float, np.ndarray] | None = None) -> None:
+        """``e`` out of the chosen set, the others at their values without it (refitted if not given)."""
+        refit, chi2, pred = self._refit_without(e) if without is None else without
+        self.active.remove(e)
+        for table in (self.selection.forms, self.selection.details, self.selection.priors,
+                      self.selection.unidentified, self.selection.alternatives, self.dofs):
+            table.pop(e, None)
+        self.params = {a: refit[a] for a in self.active}
+        self.current_chi2, self.current_pred = chi2, pred
+        self.current_channels = channel_chi2(self.data, pred)
 
     def prune(self) -> None:
         """Every chosen cause must pass the round's significance test against the chosen set
         without it, the others refitted: a cause taken early can be made redundant by later
         ones (an illumination change taken first for the mean of an unseen panel's light, the
         panel itself taken after). A cause that fails is dropped, and the test runs again."""
-        model, data = self.model, self.data
         dropped = True
         while dropped and len(self.active) > 1:
             dropped = False
             for e in list(self.active):
-                rest = [a for a in self.active if a != e]
                 if self.progress:
-                    self.progress(f"testing {e} against " + " + ".join(rest))
-                refit, _ = fit(model, data, rest, {a: self.params[a] for a in rest}, lib=self.work)
-                pred = model.predict(refit)
-                chi2 = data.chi2(pred, "test")
+                    self.progress(f"testing {e} against " + " + ".join(a for a in self.active if a != e))
+                without = self._refit_without(e)
+                _, chi2, pred = without
                 gains, worth, _ = self._significant(chi2, self.current_chi2, self.k_of(e), pred, self.current_pred)
                 if gains and worth:
                     continue
-                gain = chi2 - self.current_chi2
                 self.selection.too_small[e] = (f"{e}: dropped, the other causes refitted without it explain the "
-                                               f"held-out data as well (its gain over them {gain:.1f} in misfit, "
-                                               f"{self.k_of(e):g} degrees of freedom)")
-                self.active.remove(e)
-                for table in (self.selection.forms, self.selection.details, self.selection.priors,
-                              self.selection.unidentified, self.selection.alternatives, self.dofs):
-                    table.pop(e, None)
-                self.params = {a: refit[a] for a in rest}
-                self.current_chi2, self.current_pred = chi2, pred
-                self.current_channels = channel_chi2(data, pred)
+                                               f"held-out data as well (its gain over them {chi2 - self.current_chi2:.1f} "
+                                               f"in misfit, {self.k_of(e):g} degrees of freedom)")
+                self._drop(e, without)
                 dropped = True
                 break
-
 
     def _significant(self, chi2_without: float, chi2_with: float, k: float, pred_without: np.ndarray,
                      pred_with: np.ndarray) -> tuple[bool, bool, dict[str, ChannelGain]]:
@@ -629,57 +687,44 @@ class _GreedySearch:
         excess = max(self.current_chi2 - self.n_test, 0.0)
         round_: list[Candidate] = []
         tried_of: dict[str, list[Candidate]] = {}
-        self._present = self._residual_channels()
         for name in names:
             if name in self.active or name not in self.lib:
                 continue  # chosen already, or nothing of it acts on these data
-            absent = self.signature_absent(name)
-            if absent:
-                # not fitted: whatever it would gain in the total, its own channel is clean
-                self.selection.not_tried[name] = (f"{name}: not fitted, its own signature (the {' and '.join(absent)} "
-                                                  "channel) is absent from the residual")
-                continue
-            tried_of[name] = self._try_effect(name, current_k, current_score, excess)
-            round_.append(self._best_form(name, tried_of[name], current_k, current_score, excess))
+            tried = self._try_effect(name, current_k, current_score, excess)
+            if not tried:
+                continue  # no form's signature could be named (selection.not_tried says why)
+            tried_of[name] = tried
+            round_.append(self._best_form(name, tried, current_k, current_score, excess))
         # ties broken by name: the ranking does not depend on the library's order
         round_.sort(key=lambda c: (c.score, c.effect))
         self.selection.rounds.append(round_)
         return round_, tried_of
 
-    def _residual_channels(self) -> tuple[set[str], set[str]] | None:
-        """The channels where the current model's held-out residual has a part beyond noise
-        (:func:`tofhil.eval.diagnose.channels.residual_by_channel`), and those the session can
-        read at all; None when the model cannot say (a small forward model of a test, without
-        taps)."""
-        from tofhil.eval.diagnose.channels import residual_by_channel
+    def _signature_absent(self, name: str, spec: EffectSpec, excess: float) -> bool:
+        """True when no value of ``spec``'s form near its starts could be named: the score test
+        of the residual on the form's signature (:mod:`tofhil.eval.diagnose.signature`) is below
+        what the selection's test needs. The reason goes to ``selection.not_tried``."""
+        from tofhil.eval.diagnose.signature import needed_gain, signature_test
 
-        taps = getattr(self.model, "taps", None)
-        measured = getattr(self.data, "taps_test", None)
-        predicted = taps(self.params) if callable(taps) and measured is not None else None
-        try:
-            table = residual_by_channel(self.data, self.current_pred, taps_measured=measured, taps_predicted=predicted)
-        except (AttributeError, ValueError):
-            return None
-        return set(table.significant_channels()), {r.channel for r in table.readings}
+        needed = needed_gain(spec.k, self.penalty, excess, self.min_relative_gain)
+        test = signature_test(self.model, self.data, name, spec, self.params, self.current_pred, needed)
 
-    def signature_absent(self, name: str) -> list[str]:
-        """The channels ``name`` must move (its ``signature``) that the current residual lacks,
-        among those the session can read: a channel it cannot read (the tap pattern of three
-        taps, which leave no redundancy) tells nothing, and the effect acts through the others
-        (a tap offset on three taps is a constant in S)."""
-        from tofhil.sim.effects import EFFECTS
-
-        channels = getattr(self, "_present", None)
-        if channels is None or name not in EFFECTS:
-            return []
-        present, readable = channels
-        return [c for c in EFFECTS[name].signature if c in readable and c not in present]
+        if test is None or not test.absent:
+            return False
+        key = name if not spec.form else f"{name} ({spec.form})"
+        self.selection.not_tried[key] = test.text()
+        return True
 
     def _try_effect(self, name: str, current_k: float, current_score: float, excess: float) -> list[Candidate]:
         """``name`` fitted in each of its forms, the flexible ones starting where the simple one ended."""
         tried: list[Candidate] = []
         traded = False  # a form gained only by making a channel worse
-        for spec in (self.lib[name],) + tuple(self.lib[name].forms):
+        simple = self.lib[name]
+        # an effect of one form is screened; the forms of an effect with flexible ones are all
+        # fitted, since a flexible form is chosen only against the simple one's fit (choose_form)
+        if not simple.forms and self._signature_absent(name, simple, excess):
+            return tried
+        for spec in (simple,) + tuple(simple.forms):
             cand, traded_ = self._try_form(name, spec, tried[0] if tried else None, current_k, current_score, excess)
             tried.append(cand)
             traded |= traded_
@@ -818,11 +863,13 @@ class _GreedySearch:
                 joint, joint_chi2, joint_channels, joint_pred)
 
     def simplify_forms(self) -> None:
-        """A flexible form chosen in an early round may have stood in for an effect added later
-        (in the demo the 5th and 7th harmonics took up part of a clock-skew pattern until
-        fixed_pattern was fitted): test it again at the final values and, when its extra
-        parameters are no longer identified, fall back to the simpler form if that keeps the
-        held-out score and every channel."""
+        """A flexible form must earn its extra degrees of freedom at the final values, as it had
+        to when it was chosen (:func:`choose_form`): one chosen in an early round may have stood in
+        for an effect added later (in the demo the 5th and 7th harmonics took up part of a
+        clock-skew pattern until fixed_pattern was fitted; on the TOFcam635 they took part of a
+        readout imbalance that the exchange then dropped). The simple form is refitted with the
+        set, jointly, and replaces the flexible one when its held-out score is as low; a
+        flexible form kept whose extra parameters are no longer identified is said."""
         model, data, lib, work, penalty, selection = (self.model, self.data, self.lib, self.work, self.penalty,
                                                       self.selection)
         for e in list(self.active):
@@ -831,13 +878,11 @@ class _GreedySearch:
                 continue
             params = self.params
             test = assess_form(model, data, params, e, spec, lib[e], penalty)
-            if test.identified:
-                continue
             test.after_later = True
             start = {k: dict(v) for k, v in params.items()}
             start[e] = {p.name: params[e][p.name] for p in lib[e].params if p.name in params[e]}
             simple_work = {**work, e: lib[e]}
-            refit, _ = fit(model, data, self.active, start, free=[e], lib=simple_work)
+            refit, _ = fit(model, data, self.active, start, lib=simple_work)
             pred = model.predict(refit)
             chi2 = data.chi2(pred, "test")
             channels = channel_chi2(data, pred)
@@ -847,9 +892,12 @@ class _GreedySearch:
                 selection.forms[e] = ""
                 selection.priors.pop(e, None)
                 self.params, self.current_chi2, self.current_channels, self.current_pred = refit, chi2, channels, pred
+            elif test.identified:
+                continue
             else:
                 test.kept = True  # the simpler form is worse on held-out data: said, not hidden
-            selection.unidentified.setdefault(e, []).append(test)
+            if not test.identified:
+                selection.unidentified.setdefault(e, []).append(test)
 
     def finish(self) -> Selection:
         selection = self.selection

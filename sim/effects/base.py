@@ -23,9 +23,9 @@ STAGES = ("scene", "render", "signal", "pixel", "taps")
 STAGE_HOOKS = {"scene": "apply_scene", "render": "apply_render", "signal": "apply_signal", "pixel": "apply_signal",
                "taps": "apply_taps"}
 
-#: The residual channel of the taps' unmodulated offset, in the vocabulary of
-#: :attr:`Effect.signature` (the ``offset`` effect, unmodulated charge, moves it alone; the
-#: channel is named here so that diagnosis refers to it, not to an effect's name).
+#: The residual channel of the taps' unmodulated offset (``tofhil.eval.diagnose.channels``;
+#: the ``offset`` effect, unmodulated charge, moves it alone; the channel is named here so
+#: that diagnosis refers to it, not to an effect's name).
 OFFSET_CHANNEL = "offset"
 #: The kinds of :class:`Separation`: a device setting of the acquisition, or a change of the bench.
 ACQUISITION = "acquisition"
@@ -165,10 +165,6 @@ class Effect:
     #: Flexible forms diagnosis fits besides the simple one: form name -> what it adds. A
     #: form fits the parameters whose ``Param.forms`` name it (docs/diagnose.md, Selection).
     forms: dict[str, str] = {}
-    #: Channels of the residual (``tofhil.eval.diagnose.channels``) this effect cannot act
-    #: without moving: a diagnosis names it only where the residual has a part there (a tap
-    #: imbalance makes the taps' alternating part, which no change of the light makes).
-    signature: tuple[str, ...] = ()
     #: True when the effect's light at a pixel depends only on that pixel's light (a
     #: prediction on some pixels then needs only those pixels rendered); False when it moves
     #: light between pixels (stray light).

@@ -29,7 +29,6 @@ class FrequencyCalibrationEffect(Effect):
     name = "frequency_calibration"
     stage = "pixel"
     rank = 125
-    signature = ("frequency",)
     summary = ("a calibration phase and gain on one modulation frequency alone (the 2nd and 3rd, relative to the "
                "1st): `phase_<i>_rad` turns harmonic h of frequency i by h * phase, `gain_<i>` scales its signal")
     doc = ("Per-frequency calibration errors of a multi-frequency camera: the demodulation reference of "

@@ -25,7 +25,6 @@ class TapCalibrationEffect(Effect):
     name = "tap_calibration"
     stage = "taps"
     rank = 150
-    signature = ("tap",)
     summary = ("per-tap gain and offset of the readout relative to tap 0 (`gain_<k>`, `offset_<k>_dn`, k = 1..3): "
                "a pattern that alternates with the tap index")
     doc = ("The readout's per-tap imbalance: tap k (k = 1, 2, 3; tap 0 is the reference, a common gain is "

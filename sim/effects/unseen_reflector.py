@@ -57,8 +57,6 @@ class UnseenReflectorEffect(Effect):
     beyond_direct = "multipath"
     pixel_local = False  # the surface normals come from the neighbouring pixels' hits
     local_given_render = True  # ... of the render; each pixel's light is its own
-    # it adds light with its own phase: the frequencies' gain or phase moves with it
-    signature = ("frequency",)
     summary = ("light from a diffuse reflector outside the view that the scene lacks (its direction, distance and "
                "effective area): one bounce, emitter -> reflector -> scene point, with its longer path")
     doc = ("One indirect bounce off a small diffuse reflector that the scene does not have (a panel, a wall or a "

@@ -1,0 +1,105 @@
+"""An effect's signature and its score test (eval/diagnose/signature.py): the statistic is the
+least-squares gain of a linear change (closed form), chi^2 of its rank where nothing is hidden
+(over seeds), and an upper bound of what a fit of the form gains on the held-out data, so the
+screen never skips a form the selection would name (over seeds and strengths, down to the
+edge of detection)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from tests.eval.test_selection import FakeModel, _data
+from tofhil.eval.diagnose.selection import fit
+from tofhil.eval.diagnose.signature import needed_gain, score_statistic, signature_test
+
+
+def test_the_statistic_is_the_least_squares_gain_of_a_linear_change():
+    rng = np.random.default_rng(0)
+    n, k = 500, 4
+    j = rng.standard_normal((n, k))
+    r = rng.standard_normal(n) + j @ np.array([0.3, -0.1, 0.0, 0.2])
+    stat, rank = score_statistic(r, j, c=np.inf)
+    beta, *_ = np.linalg.lstsq(j, r, rcond=None)
+    assert rank == k
+    assert stat == pytest.approx(float(r @ r - (r - j @ beta) @ (r - j @ beta)), rel=1e-9)
+
+
+def test_dependent_directions_count_once():
+    """A direction seen twice (the same at two starts) and one that moves nothing add no rank."""
+    rng = np.random.default_rng(1)
+    j = rng.standard_normal((300, 2))
+    r = rng.standard_normal(300)
+    one, _ = score_statistic(r, j)
+    stat, rank = score_statistic(r, np.column_stack([j, j[:, 0], np.zeros(300)]))
+    assert rank == 2 and stat == pytest.approx(one, rel=1e-8)
+
+
+def test_where_nothing_is_hidden_the_statistic_is_chi2_of_its_rank():
+    """Over 400 seeds of Gaussian residuals (Huber's clipping at 5 sigma almost never acts):
+    the statistic's distribution is chi^2(3) (Kolmogorov-Smirnov), so a skip at the
+    selection's price k ln n lets a form through with chi^2's tail probability there."""
+    k, n = 3, 2000
+    rng = np.random.default_rng(2)
+    j = rng.standard_normal((n, k))
+    values = [score_statistic(rng.standard_normal(n), j)[0] for _ in range(400)]
+    assert stats.kstest(values, stats.chi2(k).cdf).pvalue > 1e-3
+    assert stats.chi2(k).sf(k * np.log(n)) < 1e-3  # the price: a form fitted for nothing once in > 1000
+
+
+def _fitted_gain(model: FakeModel, data, name: str) -> float:
+    base = model.predict({})
+    fitted, _ = fit(model, data, [name], {}, new_effect=name)
+    return data.chi2(base, "test") - data.chi2(model.predict(fitted), "test")
+
+
+@pytest.mark.parametrize("hidden", [
+    {"gain": {"g": 1.002}}, {"gain": {"g": 1.004}}, {"gain": {"g": 1.02}},
+    {"shift": {"phi": 0.002}}, {"shift": {"phi": 0.004}}, {"shift": {"phi": 0.05}},
+    {"bump": {"a": 0.03, "w": 2.0}}, {"bump": {"a": 0.05, "w": 9.0}}, {"bump": {"a": 0.4, "w": 6.0}},
+    {},
+])
+def test_the_screen_never_skips_a_form_whose_fit_would_be_named(hidden):
+    """For every effect of the fake library, over 6 seeds: a form the screen skips never gains
+    enough in its fit to be named (strengths from below to above detection), and the statistic
+    bounds the fitted held-out gain (exactly for the linear gain, near the starts for the others)."""
+    model = FakeModel()
+    lib = model.library()
+    for seed in range(6):
+        data = _data(hidden, seed)
+        base = model.predict({})
+        chi2 = data.chi2(base, "test")
+        n = data.n_values("test")
+        for name, spec in lib.items():
+            needed = needed_gain(spec.k, float(np.log(n)), max(chi2 - n, 0.0), 0.02)
+            test = signature_test(model, data, name, spec, {}, base, needed)
+            gain = _fitted_gain(model, data, name)
+            assert not (test.absent and gain > needed), (name, seed, test, gain)
+            if name == "gain":
+                assert gain <= test.statistic * 1.001 + 1e-6, (seed, gain, test.statistic)
+
+
+def test_nothing_hidden_skips_every_form_almost_always():
+    """The screen's use: where nothing is hidden no fit is needed (20 seeds, every form)."""
+    model = FakeModel()
+    skipped = 0
+    for seed in range(20):
+        data = _data({}, 100 + seed)
+        base = model.predict({})
+        n = data.n_values("test")
+        for name, spec in model.library().items():
+            t = signature_test(model, data, name, spec, {}, base, needed_gain(spec.k, float(np.log(n)), 0.0, 0.02))
+            skipped += t.absent
+    assert skipped >= 58  # of 60; chi^2(2..6) beyond 2-3 x ln(n) has probability < 1e-3 each
+
+
+def test_a_strong_effect_whose_residuals_are_all_in_huber_s_tail_still_counts():
+    """Every residual 10 sigma along one direction (beyond Huber's corner at 5): the most the
+    misfit can fall is all of it, which a quadratic model on the inliers (none) would call 0."""
+    rng = np.random.default_rng(3)
+    j = 1.0 + rng.random((400, 1))
+    r = 10.0 * j[:, 0]
+    stat, rank = score_statistic(r, j)
+    before = float(np.sum(2 * 5.0 * np.abs(r) - 25.0))
+    assert rank == 1 and stat == pytest.approx(before, rel=1e-6)
