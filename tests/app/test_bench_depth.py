@@ -240,7 +240,7 @@ def test_spheres_at_several_positions_against_the_twin_and_a_range_offset(tmp_pa
     def run(name, hidden, positions=None):
         return run_bench("spheres", "emulator", tmp_path / name, report=False,
                          options=BenchOptions(frames=6, seed=8, hidden=hidden,
-                                              extra={"work_dir": str(tmp_path / "w"),
+                                              extra={"work_dir": str(tmp_path / "w"), "spheres_lengths_m": (0.3,),
                                                      **({"spheres_positions": positions} if positions else {})}))
 
     same = run("same", {})
@@ -264,6 +264,48 @@ def test_spheres_at_several_positions_against_the_twin_and_a_range_offset(tmp_pa
         got = r["measured_spacing_error_m"] - r["twin_spacing_error_m"]
         se = np.hypot(r["measured_spacing_error_m_se"], r["twin_spacing_error_m_se"])
         assert abs(got - expect) < 4 * se + 0.002, (r["label"], got, expect, se)
+
+
+def test_sphere_spacing_error_against_bar_length_beside_the_twin_and_a_hidden_range_scale(tmp_path):
+    """The bar at three lengths (plan data, ``LENGTHS_M``), centre position. Nothing hidden: the
+    spacing errors agree with the twin's and do not grow with length beyond them. The emulator's
+    modulation frequency 2 % high (``mod_freq_error``: every path reads 1.02 x, a range scale k
+    over the whole volume) reads a sphere at c at (1 + k) c (similarity about the camera centre),
+    so the spacing error grows beyond the twin's by k s / (1 + k), s the measured spacing (closed
+    form), ~ k L: the fitted growth per metre of length is k. Tolerances: 4 sigma on the slope
+    and 5 on each capture's t-like difference (5 frames' jackknife)."""
+    from tofhil.app.bench.spheres import LENGTHS_M
+
+    def run(name, hidden):
+        return run_bench("spheres", "emulator", tmp_path / name, report=bool(hidden),
+                         options=BenchOptions(frames=5, seed=8, hidden=hidden,
+                                              extra={"work_dir": str(tmp_path / "w"), "spheres_positions": ["centre"]}))
+
+    same = run("same", {})
+    rows = same.curves["spheres"]
+    assert len(LENGTHS_M) >= 3 and [r["bar_length_m"] for r in rows] == list(LENGTHS_M)
+    assert [r["measured_true_spacing_m"] for r in rows] == list(LENGTHS_M)   # the bar really is that long
+    assert same.details["agreement"]["spacing"]["p"] >= 0.01
+    g = same.details["against_length"]
+    assert abs(g["per_m"]) < 4 * g["per_m_se"] and "within noise" in g["text"]
+    k = 0.02
+    scaled = run("scaled", {"mod_freq_error": k})
+    for r in scaled.curves["spheres"]:
+        got = r["measured_spacing_error_m"] - r["twin_spacing_error_m"]
+        se = np.hypot(r["measured_spacing_error_m_se"], r["twin_spacing_error_m_se"])
+        assert abs(got - k * r["measured_spacing_m"] / (1 + k)) < 5 * se, (r["label"], got, se)
+    g = scaled.details["against_length"]
+    assert abs(g["per_m"] - k) < 4 * g["per_m_se"] and g["per_m"] > 4 * g["per_m_se"], g
+    assert [r["bar_length_m"] for r in scaled.curves["spheres-by-length"]] == list(LENGTHS_M)
+    page = (tmp_path / "scaled" / "report.html").read_text()
+    assert "Sphere-spacing error against bar length" in page and "per metre of bar length" in page
+
+
+def test_bar_lengths_from_the_cli_are_refused_when_bad_or_for_another_procedure(tmp_path, capsys):
+    for args in (("spheres", "--lengths", "0.3,-0.1"), ("accuracy-vs-distance", "--lengths", "0.3")):
+        assert run_cli("bench", args[0], "--device", "emulator", "--out", tmp_path / "o", *args[1:]) == 2
+        assert "--lengths" in capsys.readouterr().err
+        assert not (tmp_path / "o").exists()                # refused before any capture
 
 
 def test_fit_sphere_on_a_noisy_cap():

@@ -73,7 +73,7 @@ def hidden_effects(hidden: Mapping[str, Any], distance_m: float) -> dict[str, An
         from tofhil.sim.sources import HIDDEN_TRUTH_EFFECTS
 
         out.update({k: dict(v) for k, v in HIDDEN_TRUTH_EFFECTS.items()})
-    out.update({k: dict(v) for k, v in hidden.items() if k not in ("range_scale", "emulator", THERMAL)})
+    out.update({k: dict(v) for k, v in hidden.items() if k not in ("range_scale", "emulator", THERMAL, FREQ_ERROR)})
     eps = float(hidden.get("range_scale", 0.0))
     if eps:
         prev = float(out.get("range_offset", {}).get("path_m", 0.0))
@@ -93,6 +93,10 @@ def _work_dir(opts: BenchOptions) -> Path:
 
 #: A hidden truth of the warm-up procedure: the range drifting with the chip temperature (m/degC).
 THERMAL = "thermal_drift_m_per_c"
+#: A hidden truth of the emulated TOFcam635: its modulation frequency is ``1 + K`` times the one it
+#: demodulates with, so every path (every pixel, every bounce) reads ``1 + K`` times its length:
+#: a range scale over the whole volume (``range_scale`` is an offset at the bench's distance).
+FREQ_ERROR = "mod_freq_error"
 #: Bench parameters that are not the scene's own ``params:``: the ambient light on the target
 #: (W/m^2, the ``ambient`` effect: a lamp or the sun, known to the twin, not hidden).
 AMBIENT = "ambient_w_m2"
@@ -144,17 +148,23 @@ def _rig(device: str, opts: BenchOptions, param: str, default: float, *, scene_d
 
         holder: dict[str, Any] = {}
 
+        def simulated(path: Path, state: Mapping[str, Any]) -> Any:
+            src = SimulatedSource(path, effects=_bench_effects(scene, state, opts, float(state[param])))
+            if opts.hidden.get(FREQ_ERROR):
+                from tofhil.app.bench.rigs import FrequencyError
+
+                src = FrequencyError(src, float(opts.hidden[FREQ_ERROR]))
+            return src
+
         def source(p: Mapping[str, Any]) -> Any:
             params, _ = _split(p)
             path = _bench_scene_file(scene, params, None, work, TOFCAM635_OVERRIDES)
-            src = SimulatedSource(path, effects=_bench_effects(scene, p, opts, float(p[param])))
+            src = simulated(path, p)
             if _interfered(p):  # a second camera's modulation on top of its mean light
                 from tofhil.app.bench.interference import InterferedSource, device_contrast
 
                 dark = {k: v for k, v in p.items() if k != INTERFERER_W}
-                src = InterferedSource(src, SimulatedSource(path, effects=_bench_effects(scene, dark, opts,
-                                                                                         float(p[param]))),
-                                       p, device_contrast(src.scene))
+                src = InterferedSource(src, simulated(path, dark), p, device_contrast(src.scene))
             if opts.hidden.get(THERMAL):
                 from tofhil.app.bench.rigs import ThermalDrift
 
@@ -168,6 +178,10 @@ def _rig(device: str, opts: BenchOptions, param: str, default: float, *, scene_d
         if opts.hidden.get(THERMAL):
             raise TofhilError(f"--hidden {THERMAL}: the DepthAI emulation reports no temperature", field="--hidden",
                               expected="the emulated TOFcam635 (emulator) for a thermal drift")
+        if opts.hidden.get(FREQ_ERROR):
+            raise TofhilError(f"--hidden {FREQ_ERROR}: the DepthAI emulation sends depth, not the light it demodulates",
+                              field="--hidden", expected="the emulated TOFcam635 (emulator) for a modulation-frequency "
+                              "error, or range_scale=EPS")
         from tofhil.sim.sources import TwinScene
 
         def host(p: Mapping[str, Any]) -> Any:
