@@ -81,6 +81,8 @@ def bench(procedure: Optional[str] = typer.Argument(None, help="The procedure (t
           levels: Optional[str] = typer.Option(None, "--levels", help="ambient: irradiances in W/m² (0,5,20); "
                                                "dark-squares: square reflectances relative to the wall (0.5,0.1,0.02); interference: the "
                                                "second camera's irradiance on the target in W/m² (0.1)."),
+          lengths: Optional[str] = typer.Option(None, "--lengths", help="spheres: the bar's lengths (sphere "
+                                                "spacings) in metres (0.15,0.3,0.5)."),
           captures: Optional[int] = typer.Option(None, "--captures", help="warm-up: number of captures (12)."),
           interval_s: Optional[float] = typer.Option(None, "--interval-s", help="warm-up: seconds between captures (10)."),
           integration_time_us: Optional[float] = typer.Option(None, "--integration-time-us"),
@@ -126,6 +128,10 @@ def bench(procedure: Optional[str] = typer.Argument(None, help="The procedure (t
             opts.extra["interferer_w_m2"] = vals[0]
         else:
             opts.extra["ambient_w_m2" if procedure == "ambient" else "square_reflectances"] = vals
+    if lengths:
+        if procedure != "spheres":
+            raise TofhilError(f"--lengths {lengths!r}", field="--lengths", expected="the spheres procedure")
+        opts.extra["spheres_lengths_m"] = _floats(lengths, "--lengths")
     if captures is not None:
         if captures < 2:
             raise TofhilError(f"--captures {captures}", field="--captures", expected="2 or more")

@@ -248,7 +248,8 @@ def _twin_frames(rig: Any, state: Mapping[str, Any], acq: Mapping[str, Any], fra
 
     scene = twin_scene(rig, state, acq)
     known = _bench_effects(rig.scene, state, opts, 0.0, hidden=False) or None
-    return twin_depths(rig, [depth_from_raw(r) for r in interfered_frames(scene, known, state, frames, seed)])
+    return twin_depths(rig, [depth_from_raw(r) for r in interfered_frames(scene, known, state, frames, seed)],
+                       acq.get("depth_kind", "z"))
 
 
 def analyse_interference(campaign: CampaignResult, rig: Any, opts: BenchOptions) -> BenchResult:

@@ -229,3 +229,41 @@ class ThermalDrift:
 
     def scene_text(self) -> str:
         return self.inner.scene_text()
+
+
+class FrequencyError:
+    """A frame source whose modulation frequency is ``1 + k`` times the one the device demodulates
+    with (a hidden truth: a crystal off by ``k``): the light's phase is that of ``f (1 + k)``, so
+    each path reads ``1 + k`` times its length, every pixel and bounce alike -- a range scale over
+    the whole volume, about the camera centre (a sphere at ``c`` is read at ``c (1 + k)``, radius
+    ``r (1 + k)``). Amplitude and offset stay (the render's do not depend on the frequency)."""
+
+    def __init__(self, inner: Any, k: float) -> None:
+        self.inner = inner
+        self.k = float(k)
+        self.camera = inner.camera
+        self.scene = getattr(inner, "scene", None)
+        self.rendered_by = getattr(inner, "rendered_by", (inner,))
+        self.description = f"{inner.description}, modulation frequency x {1 + self.k:g}"
+        self._cache: dict[float, Any] = {}
+
+    def taps(self, freq_hz: float, integration_time_s: float, theta_rad: Any) -> Any:
+        import numpy as np
+
+        from tofhil.demod import taps_from_signal
+        from tofhil.frame_source import REFERENCE_INTEGRATION_TIME_S
+
+        ref = self._cache.get(float(freq_hz))
+        if ref is None:
+            a, phi, b = self.signal(freq_hz)
+            ref = self._cache[float(freq_hz)] = taps_from_signal(a, phi, b, theta_rad).astype(np.float32)
+        return ref * np.float32(integration_time_s / REFERENCE_INTEGRATION_TIME_S)
+
+    def signal(self, freq_hz: float) -> Any:
+        return self.inner.signal(float(freq_hz) * (1.0 + self.k))
+
+    def noise_model(self) -> Any:
+        return self.inner.noise_model()
+
+    def scene_text(self) -> str:
+        return self.inner.scene_text()
