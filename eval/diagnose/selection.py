@@ -582,10 +582,16 @@ class _GreedySearch:
         exchanges): the others refitted, the rounds run again over every other effect, the set
         pruned. A cause taken first for parts of two others' light (a readout's offset for a
         stray-light veil and a harmonic together) kept the others out; the set found without it
-        replaces the chosen one when its held-out score is lower, and is said."""
+        replaces the chosen one when its held-out score is lower, and is said. Not where the set
+        leaves nothing beyond noise (the verdict's test at ALPHA): no set explains more there,
+        and the sets it cannot tell apart are the branches' "A or B"."""
+        from tofhil.eval.diagnose.verdict import noise_dof, noise_threshold
+
+        if self.current_chi2 <= noise_threshold(self.n_test, noise_dof(self.data)) * self.n_test:
+            return  # the set leaves nothing beyond noise (the verdict's test): no other set explains more
         sel = self.selection
         for cause in list(self.active):
-            if cause not in self.active or len(self.active) < 1:
+            if cause not in self.active:
                 continue
             saved, score = self.snapshot(), self.score()
             saved_small, n_rounds, n_path = dict(sel.too_small), len(sel.rounds), len(self.path)
