@@ -673,9 +673,11 @@ class _GreedySearch:
         misfit falls by more than its ``k`` degrees of freedom's penalty, which sets the
         false-alarm rate, and by a share of the excess over noise that is left), whether it is
         worth naming (its effect size where it acts), and the effect size per channel."""
+        from tofhil.eval.diagnose.signature import needed_gain
+
         gain = chi2_without - chi2_with
         excess = max(chi2_without - self.n_test, 0.0)
-        gains = bool(gain > k * self.penalty and excess > 0 and gain > self.min_relative_gain * excess)
+        gains = bool(excess > 0 and gain > needed_gain(k, self.penalty, excess, self.min_relative_gain))
         rmse: dict[str, ChannelGain] = {}
         worth = True
         if gains and self.effect_size is not None:
@@ -717,8 +719,7 @@ class _GreedySearch:
 
         if test is None or not test.absent:
             return False
-        key = name if not spec.form else f"{name} ({spec.form})"
-        self.selection.not_tried[key] = test.text()
+        self.selection.not_tried[name] = test.text()
         return True
 
     def _try_effect(self, name: str, current_k: float, current_score: float, excess: float) -> list[Candidate]:
