@@ -34,8 +34,10 @@ STUCK_RATIO = 1.0 / 25.0
 #: A stuck or hot pixel differs from its neighbours: at most this many of its 8 may do the
 #: same (a dead or hot pair is found; a saturated region or a moving target's edge is not).
 MAX_ALIKE_NEIGHBOURS = 2
-#: Below this predicted temporal spread (DN) a pixel whose taps repeat may just be quantised.
-MIN_SPREAD_FOR_STUCK_DN = 0.5
+#: A pixel whose taps repeat exactly is stuck only where a working pixel at its level would
+#: repeat them (noise model + the ADC's 1 DN steps) with at most this probability: about one
+#: false alarm in 4 megapixels.
+STUCK_FALSE_ALARM = 2.5e-7
 #: An off-model tap residual or a spatial deviation this many robust standard deviations
 #: beyond the neighbourhood's is a defect.
 OUTLIER_SIGMAS = 10.0
@@ -109,19 +111,22 @@ def _neighbours(img: np.ndarray) -> np.ndarray:
                      for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx])
 
 
-def _robust_line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
-    """``y ~ a + b x`` (a, b >= 0) through the medians of y in 20 quantile bins of x: a noise
-    model (read + shot noise) that a few defective pixels cannot pull."""
+def _robust_line(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
+    """``y ~ a + b x`` (b >= 0) through the medians of y in 20 quantile bins of x: a noise
+    model (read + shot noise) that a few defective pixels cannot pull, and the lowest bin's
+    median (the quietest pixels' variance: a floor for the line). The intercept may be
+    negative: the shot noise grows from the black level, not from 0 DN."""
     edges = np.unique(np.quantile(x, np.linspace(0.0, 1.0, 21)))
     if edges.size < 3:
-        return float(np.median(y)), 0.0
+        m = float(np.median(y))
+        return m, 0.0, m
     idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, edges.size - 2)
     xm = np.array([np.median(x[idx == i]) for i in range(edges.size - 1) if np.any(idx == i)])
     ym = np.array([np.median(y[idx == i]) for i in range(edges.size - 1) if np.any(idx == i)])
     b, a = np.polyfit(xm, ym, 1) if xm.size >= 2 else (0.0, float(ym.mean()))
     if b < 0:
         b, a = 0.0, float(np.median(ym))
-    return max(float(a), 0.0), float(b)
+    return float(a), float(b), max(float(ym.min()), 0.0)
 
 
 def _isolated(values: np.ndarray, noise: np.ndarray) -> np.ndarray:
@@ -140,6 +145,41 @@ def _isolated(values: np.ndarray, noise: np.ndarray) -> np.ndarray:
     return nearest > OUTLIER_SIGMAS * np.maximum(scale, 1e-12)
 
 
+#: Tap noise (DN) above which repeating taps are not computed as chance: at N = 3 frames and
+#: 3 taps, (2 sqrt(pi) 6)^-6 ~ 1e-8, below STUCK_FALSE_ALARM.
+NOISY_TAP_DN = 6.0
+
+
+def _on_integers(taps: np.ndarray) -> bool:
+    """Taps on the ADC's 1 DN grid (a sample of them, to bound the cost)."""
+    flat = taps.reshape(-1)
+    sample = flat[:: max(flat.size // 100_000, 1)]
+    return bool(np.all(sample == np.round(sample)))
+
+
+def repeat_probability(level: np.ndarray, variance: np.ndarray, n_frames: int, *, quantised: bool) -> np.ndarray:
+    """Probability that a working pixel's taps repeat exactly over ``n_frames``: per tap
+    (``level``, ``variance`` ``[..., P]`` in DN, the variance as measured, its 1/12 DN^2 of
+    rounding included) the chance that every frame rounds to the same integer,
+    ``sum_j p_j^N`` with ``p_j`` the Gaussian's mass on ``[j - 1/2, j + 1/2)``; the product
+    over the leading axes (every tap of a pixel). Continuous taps never repeat: 0."""
+    from scipy.special import ndtr
+
+    level = np.asarray(level, dtype=np.float64)
+    out_shape = level.shape[-1:] if level.ndim else ()
+    if not quantised or level.size == 0:
+        return np.zeros(out_shape)
+    sigma = np.sqrt(np.maximum(np.asarray(variance, dtype=np.float64) - 1.0 / 12.0, 1e-4))
+    # beyond NOISY_TAP_DN a tap repeats with probability below (2 sqrt(pi) sigma)^-(N-1): 0 here
+    loud = sigma > NOISY_TAP_DN
+    sigma = np.minimum(sigma, NOISY_TAP_DN)
+    half = int(np.ceil(8.0 * float(sigma.max()))) + 1
+    j = np.round(level)[None] + np.arange(-half, half + 1).reshape((-1,) + (1,) * level.ndim)
+    p = ndtr((j + 0.5 - level[None]) / sigma[None]) - ndtr((j - 0.5 - level[None]) / sigma[None])
+    per_tap = np.where(loud, 0.0, (p ** n_frames).sum(axis=0))
+    return per_tap.reshape(-1, per_tap.shape[-1]).prod(axis=0)
+
+
 def raw_defects(taps: np.ndarray, theta_rad: np.ndarray, clipped: np.ndarray | None = None) -> Defects:
     """Defects of raw-tap frames ``taps[N, F, K, H, W]`` (DN) with tap phases ``theta_rad[K]``.
     ``clipped`` (bool ``[H, W]``): pixels with a saturated tap; their taps hold still at the
@@ -154,8 +194,8 @@ def raw_defects(taps: np.ndarray, theta_rad: np.ndarray, clipped: np.ndarray | N
     if n >= 3:
         var = taps.var(axis=0, ddof=1).mean(axis=(0, 1))          # temporal variance per tap
         fit = ~clipped if (~clipped).sum() >= 100 else np.ones((h, w), bool)
-        a, b = _robust_line(level[fit], var[fit])
-        predicted = a + b * level
+        a, b, floor = _robust_line(level[fit], var[fit])
+        predicted = np.maximum(a + b * level, floor)
         # A defect is a pixel unlike its neighbours: a moving target or flicker changes whole
         # regions from frame to frame, saturation holds whole regions still; neither is a pixel
         # that fails. So each temporal test also compares with the neighbourhood's median.
@@ -167,17 +207,20 @@ def raw_defects(taps: np.ndarray, theta_rad: np.ndarray, clipped: np.ndarray | N
         ranked = np.sort(_neighbours(var), axis=0)                                 # [8, H, W]
         quiet_ref = ranked[-1 - MAX_ALIKE_NEIGHBOURS]   # most neighbours at or below this
         busy_ref = ranked[MAX_ALIKE_NEIGHBOURS]         # most neighbours at or above this
-        d.kinds["noisy"] = var > NOISY_RATIO * np.maximum(np.maximum(np.minimum(quiet_ref, predicted), a), 1e-12)
-        if float(np.median(predicted)) > MIN_SPREAD_FOR_STUCK_DN ** 2:
-            spread = taps.std(axis=0, ddof=1).max(axis=(0, 1))    # every tap must hold still
-            still = spread ** 2 < STUCK_RATIO * predicted
-            d.kinds["stuck"] = still & (spread ** 2 < STUCK_RATIO * busy_ref)
-            # a region held still at the session's highest tap level is saturated: stated apart
-            top = float(np.max(taps))
-            d.saturated |= still & ~d.kinds["stuck"] & (mean.max(axis=(0, 1)) >= top - 0.5)
-        else:
-            d.notes.append(f"no stuck-pixel test: the noise predicted ({np.sqrt(np.median(predicted)):.2g} DN) "
-                           "is below the quantisation that makes repeated taps likely")
+        d.kinds["noisy"] = var > NOISY_RATIO * np.maximum(np.minimum(quiet_ref, predicted), max(floor, 1e-12))
+        spread = taps.std(axis=0, ddof=1).max(axis=(0, 1))    # every tap must hold still
+        still = spread ** 2 < STUCK_RATIO * predicted
+        # quantised taps of a quiet pixel repeat by chance: still only where that is unlikely
+        chance = repeat_probability(mean[:, :, still], np.maximum(a + b * mean[:, :, still], floor), n, quantised=_on_integers(taps))
+        by_chance = np.zeros((h, w), bool)
+        by_chance[still] = chance > STUCK_FALSE_ALARM
+        d.kinds["stuck"] = still & ~by_chance & (spread ** 2 < STUCK_RATIO * busy_ref)
+        if by_chance.any():
+            d.notes.append(f"{int(by_chance.sum())} pixels repeat their taps in every frame, as quantised "
+                           "taps of a quiet working pixel would (not called stuck)")
+        # a region held still at the session's highest tap level is saturated: stated apart
+        top = float(np.max(taps))
+        d.saturated |= still & ~d.kinds["stuck"] & ~by_chance & (mean.max(axis=(0, 1)) >= top - 0.5)
         noise_mean = np.sqrt(np.maximum(predicted, 0.0) / n)
     else:
         d.notes.append(f"{n} frame(s): no temporal tests (stuck, hot); 3 or more frames allow them")

@@ -76,6 +76,14 @@ class HeldOutData:
     #: Raw sessions: the measured taps ``[F, K, H, W]`` (DN) averaged over the held-out frames,
     #: for the residual per tap (:mod:`tofhil.eval.diagnose.channels`).
     taps_test: np.ndarray | None = field(default=None, repr=False)
+    #: The pixels each frame set is compared on, chosen on the *other* frame set's amplitude
+    #: (raw sessions): a pixel kept because its own noise lifted it over the amplitude
+    #: threshold has a residual biased outward, along its signal (0.5 sigma at 3-5 sigma of
+    #: signal), which a gain or a tap calibration then "explains". None: ``usable`` for both.
+    usable_train_frames: np.ndarray | None = field(default=None, repr=False)
+    usable_test_frames: np.ndarray | None = field(default=None, repr=False)
+    #: The training frames on the held-out blocks (chosen on the held-out frames); None: ``test_pixels``.
+    tune_pixels: np.ndarray | None = field(default=None, repr=False)
     _fit_pixels: np.ndarray | None = field(default=None, repr=False, compare=False)
     #: Per part, the measured side of its whitened residual (a fit evaluates it thousands of
     #: times): (s, var, mask) as given, the flat pixel indices, s and sigma there.
@@ -177,11 +185,15 @@ class HeldOutData:
         if part == "fit":
             return self.s_train, self.var_train, self.fit_pixels
         if part == "tune":
-            return self.s_train, self.var_train, self.test_pixels
-        if part in ("test", "test_frames"):
-            return self.s_test, self.var_test, self.test_pixels if part == "test" else self.usable
-        if part in ("train", "train_frames"):
-            return self.s_train, self.var_train, self.train_pixels if part == "train" else self.usable
+            return self.s_train, self.var_train, self.test_pixels if self.tune_pixels is None else self.tune_pixels
+        if part == "test":
+            return self.s_test, self.var_test, self.test_pixels
+        if part == "test_frames":
+            return self.s_test, self.var_test, self.usable if self.usable_test_frames is None else self.usable_test_frames
+        if part == "train":
+            return self.s_train, self.var_train, self.train_pixels
+        if part == "train_frames":
+            return self.s_train, self.var_train, self.usable if self.usable_train_frames is None else self.usable_train_frames
         raise ValueError(f"unknown part {part!r}")
 
     def n_values(self, part: str = "test") -> int:
@@ -314,18 +326,27 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
     nf = frames[0].freq_hz.size
     var_frame[:nf] /= 2.0
 
-    amp = np.abs(mean_all[:frames[0].freq_hz.size]).min(axis=0)
-    usable = amp > min_amplitude_sigma * np.sqrt(var_frame[:frames[0].freq_hz.size].max(axis=0))
-    usable &= ~clipped
-    usable &= ~defects.mask  # a finding of its own, never evidence against the scene
-    board = block_checkerboard(amp.shape, block_px)
+    # Pixels with signal: amplitude above min_amplitude_sigma of one frame's noise. Each frame
+    # set is compared on pixels chosen on the other set's amplitude (independent noise): chosen
+    # on its own, a pixel near the threshold is kept when its noise raised its amplitude, and
+    # its residual is biased along its signal.
+    threshold = min_amplitude_sigma * np.sqrt(var_frame[:nf].max(axis=0))
+    good = ~clipped & ~defects.mask  # a defect is a finding of its own, never evidence against the scene
+
+    def above(frames_idx: np.ndarray) -> np.ndarray:
+        return (np.abs(s[frames_idx, :nf].mean(axis=0)).min(axis=0) > threshold) & good
+
+    by_train, by_test = above(train_idx), above(test_idx)
+    usable = by_train | by_test
+    board = block_checkerboard(usable.shape, block_px)
     f0 = frames[0]
     return HeldOutData(camera=session.camera, freq_hz=f0.freq_hz, theta_rad=f0.theta_rad,
                        integration_time_s=f0.integration_time_s,
                        s_train=s[train_idx].mean(axis=0), s_test=s[test_idx].mean(axis=0),
                        var_train=var_frame / len(train_idx), var_test=var_frame / len(test_idx),
                        usable=usable,
-                       train_pixels=usable & board, test_pixels=usable & ~board,
+                       train_pixels=by_test & board, test_pixels=by_train & ~board,
+                       usable_train_frames=by_test, usable_test_frames=by_train, tune_pixels=by_test & ~board,
                        n_train_frames=len(train_idx), n_test_frames=len(test_idx),
                        offset_channel=bool(offset_channel),
                        sensor_config=getattr(session, "sensor_config", None), source=str(session.path),

@@ -105,7 +105,7 @@ def pixel_offsets(model: Any, data: HeldOutData, current: dict[str, dict[str, An
     g = (z - data.whitened(p1, "train_frames")) / EPS_M  # d(prediction) / d(offset), whitened
     a = (g.real ** 2 + g.imag ** 2).sum(axis=0)
     b = (g.real * z.real + g.imag * z.imag).sum(axis=0)
-    idx = np.flatnonzero(data.usable.ravel())
+    idx = np.flatnonzero(data.part("train_frames")[2].ravel())
     ok = a > 0
     d = np.where(ok, b / np.where(ok, a, 1.0), 0.0) + prev_map.ravel()[idx]
     return a, d, idx
@@ -392,5 +392,6 @@ def fit_frame_drift(model: Any, data: HeldOutData, current: dict[str, dict[str, 
 
 
 def _one_frame(data: HeldOutData, s: np.ndarray, var1: np.ndarray) -> HeldOutData:
-    """``data`` with one frame as its training part (the whitening of that frame)."""
-    return dataclasses.replace(data, s_train=s, var_train=var1, n_train_frames=1)
+    """``data`` with one frame as its training part (the whitening of that frame), on every
+    usable pixel (the drift's frames are all of them: no frame set is held out of the choice)."""
+    return dataclasses.replace(data, s_train=s, var_train=var1, n_train_frames=1, usable_train_frames=data.usable)

@@ -168,7 +168,7 @@ def pixel_misfit(data: HeldOutData, prediction: np.ndarray) -> tuple[np.ndarray,
     per_px = sum(huber(v).sum(axis=0) for v in ch.values())
     n_per_px = sum(v.shape[0] for v in ch.values())
     img = np.full(data.usable.shape, np.nan)
-    img[data.usable] = per_px
+    img[data.part("test_frames")[2]] = per_px
     return img, int(n_per_px)
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from tests.eval import hidden_forms as hf
-from tofhil.eval.diagnose.defects import depth_defects, raw_defects
+from tofhil.eval.diagnose.defects import STUCK_FALSE_ALARM, depth_defects, raw_defects, repeat_probability
 
 
 def _taps(rng: np.random.Generator, n: int = 6, h: int = 60, w: int = 80, gains=(1.0, 1.0, 1.0, 1.0)) -> np.ndarray:
@@ -28,6 +28,47 @@ def test_a_clean_capture_has_no_defects_even_with_a_tap_gain_imbalance():
     for gains in ((1.0, 1.0, 1.0, 1.0), (1.0, 1.04, 1.0, 1.05)):
         d = raw_defects(_taps(rng, gains=gains), THETA)
         assert d.count == 0, (gains, {k: int(m.sum()) for k, m in d.kinds.items()})
+
+
+def test_repeat_probability_is_the_rate_at_which_quantised_taps_repeat():
+    """The chance that a working pixel's rounded taps repeat over N frames, against counting."""
+    rng = np.random.default_rng(11)
+    for sigma, n in ((0.25, 4), (0.5, 3), (1.0, 4)):
+        level = rng.uniform(60.0, 61.0, 100_000)
+        x = np.round(level[None] + sigma * rng.standard_normal((n, level.size)))
+        counted = float((x.std(axis=0) == 0).mean())
+        var = np.full((1, 1, level.size), sigma ** 2 + 1.0 / 12.0)
+        predicted = float(repeat_probability(level[None, None], var, n, quantised=True).mean())
+        se = np.sqrt(predicted * (1 - predicted) / level.size)
+        assert abs(counted - predicted) < 5 * se + 1e-4, (sigma, n, counted, predicted)
+
+
+def test_a_quiet_quantised_sensor_above_a_black_level_has_no_stuck_pixels_and_finds_real_ones():
+    """A dim 4-frame session (black level 64 DN, read noise 0.3 DN, shot noise from the black
+    level up): many pixels repeat their rounded taps by chance. Over 10 seeds the
+    stuck test's false alarms stay at its stated rate (STUCK_FALSE_ALARM per pixel), and stuck
+    pixels planted at levels where a working pixel's taps move are all found."""
+    theta = np.arange(4) * np.pi / 2
+    h, w, n = 120, 160, 4
+    false_alarms, tested = 0, 0
+    for seed in range(10):
+        rng = np.random.default_rng(100 + seed)
+        a = np.exp(rng.uniform(np.log(0.5), np.log(150.0), (h, w)))  # dark corners to a bright card
+        phi = rng.uniform(0, 2 * np.pi, (h, w))
+        c = 64.0 + a[None] * (1 + np.cos(phi[None] - theta[:, None, None]))  # [4, H, W]
+        var = 0.09 + 0.02 * (c - 64.0)
+        taps = np.round(c[None, None] + np.sqrt(var)[None, None] * rng.standard_normal((n, 1, 4, h, w)))
+        repeats = int((taps.std(axis=0) == 0).all(axis=(0, 1)).sum())
+        assert repeats > 20  # the class under test: chance repeats are common
+        planted = rng.choice(h * w, 10, replace=False)
+        v, u = np.unravel_index(planted, (h, w))
+        taps[:, :, :, v, u] = np.round(rng.uniform(200.0, 400.0, (1, 1, 4, 10)))  # held at a level where noise moves taps
+        d = raw_defects(taps, theta)
+        assert d.kinds["stuck"][v, u].all(), seed
+        false_alarms += int(d.kinds["stuck"].sum()) - 10
+        tested += h * w
+    # the rate it states, with room for Poisson scatter (expected < 0.01 here)
+    assert false_alarms <= 2, (false_alarms, STUCK_FALSE_ALARM * tested)
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
