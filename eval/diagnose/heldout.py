@@ -85,6 +85,7 @@ class HeldOutData:
     #: The training frames on the held-out blocks (chosen on the held-out frames); None: ``test_pixels``.
     tune_pixels: np.ndarray | None = field(default=None, repr=False)
     _fit_pixels: np.ndarray | None = field(default=None, repr=False, compare=False)
+    _screen_pixels: np.ndarray | None = field(default=None, repr=False, compare=False)
     #: Per part, the measured side of its whitened residual (a fit evaluates it thousands of
     #: times): (s, var, mask) as given, the flat pixel indices, s and sigma there.
     _gathered: dict = field(default_factory=dict, repr=False, compare=False)
@@ -134,6 +135,14 @@ class HeldOutData:
             self._fit_pixels = subsample(self.train_pixels, MAX_FIT_PIXELS)
         return self._fit_pixels
 
+    @property
+    def screen_pixels(self) -> np.ndarray:
+        """The held-out pixels a signature's test reads (:mod:`tofhil.eval.diagnose.signature`):
+        all of them up to :data:`MAX_FIT_PIXELS`, else every n-th in raster order."""
+        if self._screen_pixels is None:
+            self._screen_pixels = subsample(self.test_pixels, MAX_FIT_PIXELS)
+        return self._screen_pixels
+
     def whitened(self, prediction: np.ndarray, part: str = "test") -> np.ndarray:
         """Complex (measured - predicted) / sigma ``[C, N]`` over a part's pixels ("test",
         "train", or "fit": :attr:`fit_pixels`); for depth
@@ -178,12 +187,14 @@ class HeldOutData:
     def part(self, part: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(mean signal, variance, pixels) of a part: ``test`` / ``train`` (the held-out or
         training frames on their own pixel blocks), ``fit`` (the training part's
-        :attr:`fit_pixels`), ``test_frames`` / ``train_frames`` (those frames on every usable
+        :attr:`fit_pixels`), ``screen`` (the held-out part's :attr:`screen_pixels`), ``test_frames`` / ``train_frames`` (those frames on every usable
         pixel: for forms fitted per pixel, scored on other frames) or ``tune`` (the training
         frames on the held-out blocks: where a prior's strength is chosen, the held-out frames
         unseen)."""
         if part == "fit":
             return self.s_train, self.var_train, self.fit_pixels
+        if part == "screen":
+            return self.s_test, self.var_test, self.screen_pixels
         if part == "tune":
             return self.s_train, self.var_train, self.test_pixels if self.tune_pixels is None else self.tune_pixels
         if part == "test":

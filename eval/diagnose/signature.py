@@ -34,6 +34,11 @@ from tofhil.eval.diagnose.heldout import HUBER_SIGMA, HeldOutData, huber
 #: predicts once per parameter and starting point, which for a flexible field costs what its
 #: fit does. (A cost limit; it decides nothing: every form is still judged by the one test.)
 MAX_SIGNATURE_PARAMS = 12
+#: A large image's test reads a subsample of the held-out pixels and bounds the whole part's
+#: statistic from above (:func:`whole_part_bound`) this many standard deviations above its
+#: estimate: a form whose whole-part statistic would be named is skipped with probability
+#: below 0.13 % (a normal tail).
+SUBSAMPLE_Z = 3.0
 
 
 @dataclass(frozen=True)
@@ -69,19 +74,27 @@ NOT_FITTED = ("not fitted, the residual's projection on their signature (the dir
 def signature(model: Any, data: HeldOutData, effect: str, spec: Any, current: Mapping[str, Mapping[str, float]],
               base_residual: np.ndarray) -> np.ndarray:
     """The whitened held-out directions ``[values, directions]`` in which ``spec``'s parameters
-    move the prediction (every channel of the likelihood: S and the offset), at each of the fit's starting points (off, and the form's ``starts``), by the fit's
-    own forward-difference step (a twentieth of each parameter's scale)."""
+    move the prediction (every channel of the likelihood: S and the offset), at each of the
+    fit's starting points (off, and the form's ``starts``), by the fit's own forward-difference
+    step (a twentieth of each parameter's scale), on the screen pixels
+    (:attr:`HeldOutData.screen_pixels`; ``base_residual`` is read there)."""
     base_values = {p.name: p.off for p in spec.params}
     columns: list[np.ndarray] = []
+    # (on the screen pixels: a model that can predicts only them, exact there)
+    pixels = data.screen_pixels if getattr(model, "predicts_pixels", False) else None
+
+    def residual(values: Mapping[str, Any]) -> np.ndarray:
+        pred = model.predict(values) if pixels is None else model.predict(values, pixels=pixels)
+        return data.whitened_residual(pred, "screen")
+
     for start in ({},) + tuple(spec.starts):
         x0 = {**base_values, **{k: v for k, v in start.items() if k in base_values}}
-        r0 = base_residual if not start else data.whitened_residual(model.predict(dict(current) | {effect: x0}), "test")
+        r0 = base_residual if not start else residual(dict(current) | {effect: x0})
         for p in spec.params:
             h = 0.05 * p.scale
             if x0[p.name] + h > p.hi:
                 h = -h
-            moved = dict(current) | {effect: {**x0, p.name: x0[p.name] + h}}
-            columns.append((r0 - data.whitened_residual(model.predict(moved), "test")) / h)
+            columns.append((r0 - residual(dict(current) | {effect: {**x0, p.name: x0[p.name] + h}})) / h)
     return np.stack(columns, axis=1) if columns else np.zeros((0, 0))
 
 
@@ -126,10 +139,25 @@ def signature_test(model: Any, data: HeldOutData, effect: str, spec: Any, curren
     if (getattr(spec, "closed_form", None) is not None or getattr(spec, "roughness", None) is not None
             or not spec.params or len(spec.params) > MAX_SIGNATURE_PARAMS):
         return None  # (a form with a prior: its price, its effective dof, is known after its fit)
-    base = data.whitened_residual(base_prediction, "test")
+    base = data.whitened_residual(base_prediction, "screen")
     directions = signature(model, data, effect, spec, current, base)
     stat, rank = score_statistic(base, directions)
-    return SignatureTest(effect=effect, form=spec.form, statistic=stat, rank=rank, needed=needed)
+    return SignatureTest(effect=effect, form=spec.form, statistic=whole_part_bound(stat, data, rank), rank=rank,
+                         needed=needed)
+
+
+def whole_part_bound(statistic: float, data: HeldOutData, rank: int = 0) -> float:
+    """The held-out part's statistic bounded from the screen pixels' (a fraction ``f`` of the
+    part), the statistic itself when the screen is the whole part. The screen's statistic is
+    the effect's energy on the screen plus noise (chi^2 of ``rank``): the whole part's is
+    estimated as ``(S - rank) / f + rank``, and bounded :data:`SUBSAMPLE_Z` standard deviations
+    above (the energy's, ``2 sqrt(E (1/f - 1))``, and the noise's, ``sqrt(2 rank (1/f^2 - 1))``)."""
+    f = float(data.screen_pixels.sum()) / max(float(data.test_pixels.sum()), 1.0)
+    if f >= 1.0:
+        return statistic
+    estimate = max((statistic - rank) / f + rank, 0.0)
+    sd = float(np.sqrt(4.0 * estimate * (1.0 / f - 1.0) + 2.0 * rank * (1.0 / f ** 2 - 1.0)))
+    return estimate + SUBSAMPLE_Z * sd
 
 
 def needed_gain(k: float, penalty_per_dof: float, excess: float, min_relative_gain: float) -> float:
@@ -138,4 +166,4 @@ def needed_gain(k: float, penalty_per_dof: float, excess: float, min_relative_ga
 
 
 __all__: Sequence[str] = ("SignatureTest", "signature", "score_statistic", "signature_test", "needed_gain",
-                          "MAX_SIGNATURE_PARAMS", "NOT_FITTED")
+                          "MAX_SIGNATURE_PARAMS", "NOT_FITTED", "whole_part_bound", "SUBSAMPLE_Z")

@@ -103,3 +103,46 @@ def test_a_strong_effect_whose_residuals_are_all_in_huber_s_tail_still_counts():
     stat, rank = score_statistic(r, j)
     before = float(np.sum(2 * 5.0 * np.abs(r) - 25.0))
     assert rank == 1 and stat == pytest.approx(before, rel=1e-6)
+
+
+class _Screen:
+    """What :func:`whole_part_bound` reads of the data: the screen's and the part's pixels."""
+
+    def __init__(self, n: int, m: int) -> None:
+        self.test_pixels = np.ones(n, bool)
+        self.screen_pixels = np.zeros(n, bool)
+        self.screen_pixels[:m] = True
+
+
+def test_the_bound_from_a_subsample_of_the_held_out_pixels_rarely_skips_what_the_whole_part_names():
+    """A large image's test reads a fifth of the held-out pixels and bounds the whole part's
+    statistic from above. Over 600 draws of an effect from a fifth to twice what naming needs
+    (smooth directions, white noise): a form whose whole-part statistic reaches the need is
+    skipped by the bound in under 1 % of draws (the stated rate is 0.13 %), and with nothing
+    hidden the bound still skips 4 in 5 forms (the screen keeps most of its use: 87 % here)."""
+    from tofhil.eval.diagnose.signature import whole_part_bound
+
+    rng = np.random.default_rng(5)
+    n, m, needed = 20_000, 4_000, 80.0
+    x = np.linspace(-1.0, 1.0, n)
+    directions = np.stack([np.ones(n), x, x ** 2 - 1.0 / 3.0], axis=1)
+    screen = _Screen(n, m)
+    missed = named = 0
+    for _ in range(600):
+        order = rng.permutation(n)  # the screen: a spread subset of the pixels
+        d = directions[order]
+        energy = needed * rng.uniform(0.2, 2.0)
+        b = rng.normal(size=3)
+        signal = d @ b
+        signal *= np.sqrt(energy / np.sum(signal ** 2))
+        r = signal + rng.normal(size=n)
+        full = score_statistic(r, d)[0]
+        bound = whole_part_bound(score_statistic(r[:m], d[:m])[0], screen, 3)
+        if full > needed:
+            named += 1
+            missed += bound <= needed
+    assert named > 200
+    assert missed <= 0.01 * named, (missed, named)
+    skipped = sum(whole_part_bound(score_statistic(rng.normal(size=m), directions[rng.permutation(n)][:m])[0], screen, 3)
+                  <= needed for _ in range(200))
+    assert skipped >= 160, skipped
