@@ -139,7 +139,8 @@ def _same_residual_text(effect: str, form: str, other: str, other_form: str, gap
     return (f"{name(effect, form)} or {name(other, other_form)}: the held-out data cannot tell them apart (their "
             f"held-out scores differ by {gap:.1f}, less than {needed:.1f}: the larger of one degree of freedom's "
             f"price and twice the noise of that difference; {100 * overlap:.0f} % of what one changes the other "
-            f"changes too); {effect} is named for its lower score")
+            f"changes too); {effect} is named "
+            + ("for its lower score" if gap >= 0 else "as the simpler reading (its score is the higher)"))
 
 
 def sets_alike(model: Any, data: HeldOutData, causes: Sequence[str], params: dict, score: float,
@@ -173,8 +174,9 @@ def sets_alike(model: Any, data: HeldOutData, causes: Sequence[str], params: dic
             figures={"score_gap": gap, "needed": needed, "overlap": overlap}, separating=sep,
             text=(f"{label} or {other}: the held-out data cannot tell these sets of causes apart (their held-out "
                   f"scores differ by {gap:.1f}, less than {needed:.1f}: the larger of one degree of freedom's price "
-                  f"and twice the noise of that difference); {label} is named for its lower score; a capture that "
-                  f"would: {sep.text}")))
+                  f"and twice the noise of that difference); {label} is named "
+                  + ("for its lower score" if gap >= 0 else "as the simpler reading (its score is the higher)")
+                  + f"; a capture that would: {sep.text}")))
     return out
 
 

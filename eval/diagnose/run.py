@@ -463,10 +463,13 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
     for line in selection.too_small.values():
         evidence.append(f"not named, its held-out gain is too small or makes a channel worse: {line}")
     evidence.extend(selection.exchanges)
-    if selection.not_tried:
+    # (an effect fitted in one round and screened out in a later one was fitted: its rounds say how it did)
+    fitted = {c.effect for rnd in selection.rounds for c in rnd}
+    never = [text for name, text in selection.not_tried.items() if name not in fitted]
+    if never:
         from tofhil.eval.diagnose.signature import NOT_FITTED
 
-        evidence.append(f"{NOT_FITTED}: " + "; ".join(selection.not_tried.values()))
+        evidence.append(f"{NOT_FITTED}: " + "; ".join(never))
 
     # decide: the rules over the selection's record (read, never changed), the extended scene
     # predicted in memory; written once, after
