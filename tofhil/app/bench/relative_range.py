@@ -59,7 +59,7 @@ def _positions(opts: BenchOptions) -> tuple[tuple[float, ...], tuple[float, ...]
                           expected="a reference range and one or more different test ranges (m)")
     for r in ranges:
         if not 0.3 <= r <= 7.0:   # the sphere must stay clear of the camera and within the 20 MHz ambiguity
-            raise TofhilError(f"--distances: a target at {r:g} m", field="--distances",
+            raise TofhilError(f"a target at {r:g} m", field="--distances",
                               expected="ranges from 0.3 to 7 m (the emulated stage)")
     for a in az:
         if not abs(a) <= 20.0:    # the sphere must stay in the 50 deg view at every range
