@@ -138,9 +138,11 @@ class SphereFit:
         return asdict(self)
 
 
-def fit_sphere(points: np.ndarray, *, iterations: int = 20) -> SphereFit:
-    """Least-squares sphere (free radius) through ``points [M, 3]``: the algebraic fit, then
-    Gauss-Newton on the geometric distances ``|p - c| - r``."""
+def fit_sphere(points: np.ndarray, *, iterations: int = 20, radius: float | None = None) -> SphereFit:
+    """Least-squares sphere through ``points [M, 3]``: the algebraic fit, then Gauss-Newton on
+    the geometric distances ``|p - c| - r``; with ``radius`` (a calibrated sphere) the radius is
+    held there and only the centre fitted (on a small cap a free radius trades off against the
+    centre's depth)."""
     p = np.asarray(points, dtype=np.float64)
     p = p[np.isfinite(p).all(axis=1)]
     if len(p) < 4:
@@ -149,15 +151,16 @@ def fit_sphere(points: np.ndarray, *, iterations: int = 20) -> SphereFit:
     a = np.column_stack([2 * p, np.ones(len(p))])
     sol, *_ = np.linalg.lstsq(a, (p ** 2).sum(axis=1), rcond=None)
     c = sol[:3]
-    r = math.sqrt(max(sol[3] + c @ c, 0.0))
+    r = math.sqrt(max(sol[3] + c @ c, 0.0)) if radius is None else float(radius)
     for _ in range(iterations):
         v = p - c
         dist = np.linalg.norm(v, axis=1)
         res = dist - r
-        j = np.column_stack([-v / dist[:, None], -np.ones(len(p))])
+        j = -v / dist[:, None] if radius is not None else np.column_stack([-v / dist[:, None], -np.ones(len(p))])
         step, *_ = np.linalg.lstsq(j, -res, rcond=None)
         c = c + step[:3]
-        r = r + step[3]
+        if radius is None:
+            r = r + step[3]
         if np.abs(step).max() < 1e-9:
             break
     res = np.linalg.norm(p - c, axis=1) - r

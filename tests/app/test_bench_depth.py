@@ -324,6 +324,11 @@ def test_fit_sphere_on_a_noisy_cap():
     fit = fit_sphere(pts)
     assert np.allclose(fit.centre, c, atol=3e-4) and fit.radius_m == pytest.approx(r, abs=3e-4)
     assert fit.rms_m == pytest.approx(0.0005, rel=0.1)
+    held = fit_sphere(pts, radius=r)                          # a calibrated sphere: the centre alone
+    assert np.allclose(held.centre, c, atol=3e-4) and held.radius_m == r
+    # held at a radius 5 mm too large, the centre moves back along the cap's axis (+z) by about as much
+    off = fit_sphere(pts, radius=r + 0.005)
+    assert off.centre[2] - c[2] == pytest.approx(0.005, rel=0.3) and off.rms_m > 3 * fit.rms_m
 
 
 def test_diagnose_names_a_hidden_range_error_growing_with_distance_cli(tmp_path, capsys):
@@ -364,3 +369,61 @@ def test_emulator_noise_on_a_dark_square_is_the_twins_at_a_long_exposure(tmp_pat
     se = 0.5 * np.hypot(dark["measured_random_var_se_m2"] / dark["measured_random_m"] ** 2,
                         dark["twin_random_var_se_m2"] / dark["twin_random_m"] ** 2)
     assert abs(ratio - 1.0) < 4 * se and se < 0.05, (ratio, se)
+
+
+def _relative_range(tmp_path, name, hidden, azimuths, report=False):
+    sheet = tmp_path / "sheet.yaml"   # a maximum permissible relative-range error of 10 mm
+    sheet.write_text("name: E2938 MPE\nfigures:\n  range_error_e2938_m: 0.01\n")
+    return run_bench("relative-range", "emulator", tmp_path / name, report=report, spec=sheet,
+                     options=BenchOptions(frames=8, seed=2, hidden=hidden,
+                                          extra={"work_dir": str(tmp_path / "w"), "relative_ranges_m": (1.0, 1.6, 2.2),
+                                                 "relative_range_azimuths_deg": azimuths}))
+
+
+def test_relative_range_agrees_with_the_twin_along_and_across_the_view(tmp_path):
+    """ASTM E2938 on the emulated TOFcam635, nothing hidden: a sphere at 1.0 m (reference) and
+    1.6, 2.2 m (test) on the optical axis and on a line of sight 15 deg off it. The reference
+    instrument's relative ranges are the commanded ones; the measured errors agree with the
+    twin's pair by pair and do not grow with the range difference beyond them; the largest is
+    within a 10 mm maximum permissible error (measured at seed 2: 3.6 +- 1.3 mm)."""
+    res = _relative_range(tmp_path, "same", {}, (0.0, 15.0))
+    rows = res.curves["relative-range"]
+    assert [(r["azimuth_deg"], r["test_range_m"]) for r in rows] == [(0.0, 1.6), (0.0, 2.2), (15.0, 1.6), (15.0, 2.2)]
+    assert [r["true_range_m"] for r in rows] == pytest.approx([0.6, 1.2, 0.6, 1.2])   # on one line of sight
+    ag = res.details["agreement"]
+    assert ag["p_pairs"] >= 0.01 and ag["p"] >= 0.01, ag
+    for r in rows:   # the expanded uncertainty is the standard one times Student's t (95 %, frames - 1 dof)
+        assert r["measured_error_m_U"] == pytest.approx(2.365 * r["measured_error_m_se"], rel=1e-3)
+    f = {x.name: x for x in res.figures}["range_error_e2938_m"]
+    assert f.value == max(abs(r["measured_error_m"]) for r in rows)
+    assert [v["verdict"] for v in res.verdict] == ["pass"]
+
+
+def test_relative_range_grows_with_a_hidden_frequency_error_and_fails_a_tight_spec(tmp_path):
+    """The emulator's modulation frequency 2 % high (``mod_freq_error``): every path reads 1.02 x,
+    so each fitted centre c reads (1 + k) c and the relative range (1 + k) times the true one:
+    the error beyond the twin's is k * delta_range (closed form; a constant offset would cancel).
+    The 10 mm maximum permissible error the camera meets without it (the test above) fails.
+    Tolerances: 5 sigma on each pair, 4 on the slope (a t statistic with 7 dof: over seeds 0-11
+    of this plan on both lines of sight, 8 frames, the slope's |t| was <= 2.6 nothing hidden and <= 3.4
+    hidden, each pair's |z| against twin + k delta_range <= 3.6; on the axis alone, this plan, <= 3.8 and 2.7)."""
+    k = 0.02
+    res = _relative_range(tmp_path, "scaled", {"mod_freq_error": k}, (0.0,), report=True)
+    for r in res.curves["relative-range"]:
+        got = r["measured_error_m"] - r["twin_error_m"]
+        se = np.hypot(r["measured_error_m_se"], r["twin_error_m_se"])
+        assert abs(got - k * r["true_range_m"]) < 5 * se, (r["pair"], got, se)
+    ag = res.details["agreement"]
+    assert abs(ag["per_m"] - k) < 4 * ag["per_m_se"] and ag["per_m"] > 4 * ag["per_m_se"], ag
+    assert [v["verdict"] for v in res.verdict] == ["fail"]
+    page = (tmp_path / "scaled" / "report.html").read_text()
+    assert "Relative-range error (ASTM E2938)" in page and "per metre of range difference" in page
+
+
+def test_relative_range_positions_the_plan_cannot_do_are_refused_naming_the_field(tmp_path, capsys):
+    for dists in ("1.0", "1.0,9.0"):
+        assert run_cli("bench", "relative-range", "--device", "emulator", "--out", tmp_path / "o",
+                       "--distances", dists) == 2
+        err = capsys.readouterr().err
+        assert "--distances" in err and len(err.strip().splitlines()) == 1, err
+        assert not (tmp_path / "o").exists()                # refused before any capture

@@ -77,7 +77,8 @@ def bench(procedure: Optional[str] = typer.Argument(None, help="The procedure (t
           seed: int = typer.Option(0, "--seed", help="Seed of an emulated bench's noise."),
           scene: Optional[str] = typer.Option(None, "--scene", help="The twin's scene (or flat-field bench file)."),
           distances: Optional[str] = typer.Option(None, "--distances", help="Target distances in metres, e.g. "
-                                                  "0.6,1.0,1.4 (accuracy-vs-distance)."),
+                                                  "0.6,1.0,1.4 (accuracy-vs-distance; relative-range: the reference range, "
+                                                  "then the test ranges)."),
           levels: Optional[str] = typer.Option(None, "--levels", help="ambient: irradiances in W/m² (0,5,20); "
                                                "dark-squares: square reflectances relative to the wall (0.5,0.1,0.02); interference: the "
                                                "second camera's irradiance on the target in W/m² (0.1)."),

@@ -36,6 +36,8 @@ FIGURES: dict[str, tuple[str, str]] = {
     "systematic_error_field_m": ("m", "largest |mean - truth| over the captures, whole field (median pixel)"),
     "random_error_field_m": ("m", "largest temporal standard deviation over the captures, whole field (median pixel)"),
     "relative_range_error_m": ("m", "largest |range difference - true difference| against the nearest position"),
+    "range_error_e2938_m": ("m", "largest |relative-range error| over the sphere's reference-test position pairs "
+                            "(ASTM E2938); its limit is the maximum permissible error"),
     "multipath_error_m": ("m", "mean depth error of a corner's walls against the geometric truth"),
     "multipath_factor": ("", "the corner's depth error over the twin's multipath error (1: as modelled)"),
     "sphere_spacing_error_m": ("m", "measured minus true distance between two sphere centres (VDI/VDE 2634-2 SD)"),

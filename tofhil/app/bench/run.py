@@ -7,7 +7,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from tofhil.app.bench import depth, interference, photon_transfer, scattering, spheres, warmup
+from tofhil.app.bench import depth, interference, photon_transfer, relative_range, scattering, spheres, warmup
 from tofhil.app.bench.base import BenchOptions, BenchResult, load_spec_sheet
 from tofhil.app.campaign import CampaignInterrupted, run_campaign
 from tofhil.errors import TofhilError
@@ -15,7 +15,7 @@ from tofhil.progress import Progress, no_progress
 
 #: name -> module (each has NAME, SUMMARY, make_rig, make_plan, analyse).
 PROCEDURES: dict[str, ModuleType] = {photon_transfer.NAME: photon_transfer}
-for _family in (depth, scattering, spheres, warmup, interference):
+for _family in (depth, scattering, spheres, relative_range, warmup, interference):
     PROCEDURES.update({p.NAME: p for p in _family.PROCEDURES})
 
 
