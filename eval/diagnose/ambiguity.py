@@ -132,6 +132,11 @@ def _likeness(base: np.ndarray, named: np.ndarray, other: np.ndarray, penalty_pe
     return needed, overlap
 
 
+def _why_named(gap: float) -> str:
+    """Why the named reading of an "A or B" is named: ``gap`` is the other's score less its own."""
+    return "for its lower score" if gap >= 0 else "as the simpler reading (its score is the higher)"
+
+
 def _same_residual_text(effect: str, form: str, other: str, other_form: str, gap: float, needed: float,
                         overlap: float) -> str:
     def name(e: str, f: str) -> str:
@@ -139,8 +144,7 @@ def _same_residual_text(effect: str, form: str, other: str, other_form: str, gap
     return (f"{name(effect, form)} or {name(other, other_form)}: the held-out data cannot tell them apart (their "
             f"held-out scores differ by {gap:.1f}, less than {needed:.1f}: the larger of one degree of freedom's "
             f"price and twice the noise of that difference; {100 * overlap:.0f} % of what one changes the other "
-            f"changes too); {effect} is named "
-            + ("for its lower score" if gap >= 0 else "as the simpler reading (its score is the higher)"))
+            f"changes too); {effect} is named {_why_named(gap)}")
 
 
 def sets_alike(model: Any, data: HeldOutData, causes: Sequence[str], params: dict, score: float,
@@ -174,9 +178,8 @@ def sets_alike(model: Any, data: HeldOutData, causes: Sequence[str], params: dic
             figures={"score_gap": gap, "needed": needed, "overlap": overlap}, separating=sep,
             text=(f"{label} or {other}: the held-out data cannot tell these sets of causes apart (their held-out "
                   f"scores differ by {gap:.1f}, less than {needed:.1f}: the larger of one degree of freedom's price "
-                  f"and twice the noise of that difference); {label} is named "
-                  + ("for its lower score" if gap >= 0 else "as the simpler reading (its score is the higher)")
-                  + f"; a capture that would: {sep.text}")))
+                  f"and twice the noise of that difference); {label} is named {_why_named(gap)}; a capture that "
+                  f"would: {sep.text}")))
     return out
 
 

@@ -195,7 +195,11 @@ def raw_defects(taps: np.ndarray, theta_rad: np.ndarray, clipped: np.ndarray | N
         var = taps.var(axis=0, ddof=1).mean(axis=(0, 1))          # temporal variance per tap
         fit = ~clipped if (~clipped).sum() >= 100 else np.ones((h, w), bool)
         a, b, floor = _robust_line(level[fit], var[fit])
-        predicted = np.maximum(a + b * level, floor)
+
+        def noise_var(tap_level: np.ndarray) -> np.ndarray:  # the noise line, floored at its quietest bin
+            return np.maximum(a + b * tap_level, floor)
+
+        predicted = noise_var(level)
         # A defect is a pixel unlike its neighbours: a moving target or flicker changes whole
         # regions from frame to frame, saturation holds whole regions still; neither is a pixel
         # that fails. So each temporal test also compares with the neighbourhood's median.
@@ -211,7 +215,7 @@ def raw_defects(taps: np.ndarray, theta_rad: np.ndarray, clipped: np.ndarray | N
         spread = taps.std(axis=0, ddof=1).max(axis=(0, 1))    # every tap must hold still
         still = spread ** 2 < STUCK_RATIO * predicted
         # quantised taps of a quiet pixel repeat by chance: still only where that is unlikely
-        chance = repeat_probability(mean[:, :, still], np.maximum(a + b * mean[:, :, still], floor), n, quantised=_on_integers(taps))
+        chance = repeat_probability(mean[:, :, still], noise_var(mean[:, :, still]), n, quantised=_on_integers(taps))
         by_chance = np.zeros((h, w), bool)
         by_chance[still] = chance > STUCK_FALSE_ALARM
         d.kinds["stuck"] = still & ~by_chance & (spread ** 2 < STUCK_RATIO * busy_ref)
