@@ -86,6 +86,10 @@ class EffectSpec:
     #: The prior's strength chosen on held-out data (:mod:`tofhil.eval.diagnose.form_prior`): every fit
     #: of this spec adds ``strength * |roughness|^2`` to its misfit (0: no prior).
     strength: float = 0.0
+    #: A calibration form of a channel rather than a physical cause (``Effect.generic``): being
+    #: flexible, it can take alone in one round what physical causes explain together, so where
+    #: the search takes one it also searches from the best physical cause of that round.
+    generic: bool = False
 
     @property
     def k(self) -> float:
@@ -456,6 +460,16 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     branches = sorted(((c.score - chosen.score, r, c) for r, (chosen, rnd) in enumerate(search.path)
                        for c in rnd if c.significant and c is not chosen and c.effect not in best.causes),
                       key=lambda t: (t[0], t[1], t[2].effect))[:EXTRA_STARTS]
+    # A generic form chosen for what physical causes explain together (a gain field for an
+    # emitter beside the lens and a beam of another exponent) keeps them out when each alone
+    # gains less in its round: the search also starts from the best physical cause of the
+    # round where the first generic form was taken (parsimony then chooses between the sets).
+    first = next((r for r, (chosen, _) in enumerate(search.path) if search.lib[chosen.effect].generic), None)
+    if first is not None:
+        physical = next((c for c in search.path[first][1] if c.significant and not search.lib[c.effect].generic
+                         and c.effect not in best.causes), None)
+        if physical is not None and all(c is not physical for _, _, c in branches):
+            branches.append((physical.score - search.path[first][0].score, first, physical))
     for _, r, c in branches:
         if progress:
             progress(f"searching again from round {r + 1}'s {c.effect}")

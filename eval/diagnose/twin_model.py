@@ -107,7 +107,8 @@ def fit_library(current: Callable[[str, str], float] | None = None,
         # (a form whose parameters these taps cannot see is dropped; the first form left is the
         # simplest the data can show: 3 taps see the 5th and 7th harmonics, not the 3rd)
         specs = [s for s in specs if s.params] or specs[:1]
-        lib[name] = dataclasses.replace(specs[0], forms=tuple(specs[1:]), closed_form=CLOSED_FORM.get(name))
+        lib[name] = dataclasses.replace(specs[0], forms=tuple(specs[1:]), closed_form=CLOSED_FORM.get(name),
+                                        generic=eff.generic)
     return lib
 
 

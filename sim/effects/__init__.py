@@ -13,7 +13,9 @@ Stages, in the order the forward model applies them (``ORDER``):
 - ``render``: recombines the renderer's separate direct and indirect phasors --
   ``multipath`` (cheap on a cached render made with ``separate_direct=True``).
 - ``signal``: acts on the light on the sensor (an :class:`OpticalSignal`) before the pixel --
-  ``unseen_reflector`` (light from a surface the scene lacks), ``illumination`` (the emitter's profile), ``stray_light`` (optics), ``offset`` (unmodulated charge), ``range_offset``, ``field_angle``,
+  ``unseen_reflector`` (light from a surface the scene lacks), ``illumination`` (the emitter's profile),
+  ``gain_field`` (a smooth gain of the emitter's light), ``stray_light`` (optics), ``offset`` (unmodulated
+  charge), ``offset_field`` (unmodulated charge varying smoothly over the sensor), ``range_offset``, ``field_angle``,
   ``wiggling``, ``amplitude_dependent``.
 - ``pixel``: per-pixel demodulation properties -- ``fixed_pattern``, ``range_offset_map``,
   ``frequency_calibration``.
@@ -31,7 +33,7 @@ Modules: :mod:`.base` (``Param``, ``Effect``, ``EffectContext``), :mod:`.registr
 ``ORDER``, ``register``, ``parse_effects`` and the application by stage), and one module per
 effect family, each registering its effects: :mod:`.geometry` (pose, lens_distortion),
 :mod:`.reflectance`, :mod:`.ambient` (ambient, offset), :mod:`.multipath`,
-:mod:`.unseen_reflector`, :mod:`.illumination`, :mod:`.stray_light`, :mod:`.range_errors` (range_offset, field_angle,
+:mod:`.unseen_reflector`, :mod:`.illumination`, :mod:`.fields` (gain_field, offset_field), :mod:`.stray_light`, :mod:`.range_errors` (range_offset, field_angle,
 range_offset_map), :mod:`.fixed_pattern`, :mod:`.amplitude` (amplitude_dependent),
 :mod:`.wiggling`, :mod:`.frequency_calibration`. Every name is importable from ``tofhil.sim.effects`` itself.
 """
@@ -39,7 +41,7 @@ range_offset_map), :mod:`.fixed_pattern`, :mod:`.amplitude` (amplitude_dependent
 
 # The family modules register their effects on import (the order of these imports does not
 # matter: the registry orders effects by rank).
-from tofhil.sim.effects import (ambient, amplitude, fixed_pattern, frequency_calibration, geometry,  # noqa: F401
+from tofhil.sim.effects import (ambient, amplitude, fields, fixed_pattern, frequency_calibration, geometry,  # noqa: F401
                                 illumination, multipath, range_errors, reflectance, stray_light, tap_calibration,
                                 unseen_reflector, wiggling)
 from tofhil.sim.effects.ambient import AmbientEffect, OffsetEffect
@@ -47,6 +49,7 @@ from tofhil.sim.effects.amplitude import (AMPLITUDE_KNOTS_LOG10_E, AmplitudeDepe
                                           stick_breaking)
 from tofhil.sim.effects.base import (ACQUISITION, BENCH_CHANGE, DEFAULT_SEPARATION, OFFSET_CHANNEL, SHAPE_SEPARATION,
                                      STAGE_HOOKS, STAGES, Effect, EffectContext, Param, Separation)
+from tofhil.sim.effects.fields import GainFieldEffect, OffsetFieldEffect
 from tofhil.sim.effects.fixed_pattern import FixedPatternEffect
 from tofhil.sim.effects.frequency_calibration import FrequencyCalibrationEffect
 from tofhil.sim.effects.geometry import LensDistortionEffect, PoseEffect
@@ -66,7 +69,7 @@ from tofhil.sim.effects.wiggling import WigglingEffect, harmonic_aliases
 __all__ = ["ACQUISITION", "AMPLITUDE_KNOTS_LOG10_E", "BENCH_CHANGE", "DEFAULT_SEPARATION", "EFFECTS",
            "OFFSET_CHANNEL", "ORDER", "SHAPE_SEPARATION", "STAGES", "STAGE_HOOKS", "AmbientEffect", "Separation",
            "AmplitudeDependentEffect", "Effect", "EffectContext", "FieldAngleEffect", "FixedPatternEffect",
-           "FrequencyCalibrationEffect", "IlluminationEffect", "LensDistortionEffect", "MultipathEffect", "OffsetEffect", "Param", "PoseEffect",
+           "FrequencyCalibrationEffect", "GainFieldEffect", "IlluminationEffect", "LensDistortionEffect", "MultipathEffect", "OffsetEffect", "OffsetFieldEffect", "Param", "PoseEffect",
            "RangeOffsetEffect", "TapCalibrationEffect", "RangeOffsetMapEffect", "ReflectanceEffect", "StrayLightEffect", "UnseenReflectorEffect",
            "WigglingEffect",
            "apply_scene_effects", "apply_signal_effects", "apply_tap_effects", "describe_effects", "effects_by_stage",

@@ -182,6 +182,11 @@ class Effect:
     #: True when the effect acts on the taps' offset alone: a session without raw taps (depth
     #: and amplitude only) cannot see it.
     offset_only: bool = False
+    #: True for a calibration form of a channel (a gain or offset field, a per-tap or
+    #: per-frequency constant, a range offset or map) rather than a physical cause: diagnosis
+    #: prefers a physical reading that explains as well, and where it takes a generic form it
+    #: also searches from the best physical cause of that round (``EffectSpec.generic``).
+    generic: bool = False
     #: Other effects (by name) that can explain a capture as this one does, each with the
     #: capture that tells the two apart. A pair is declared on one of its two effects
     #: (``registry.separation`` reads both).

@@ -34,8 +34,8 @@ SHAPES = ("uniform", "smooth", "radial", "linear", "rows", "columns", "local")
 #: The families of effects that name a channel's distortion (the judge's right answers).
 FAMILIES: dict[tuple[str, str], set[str]] = {}
 for _s in SHAPES:
-    FAMILIES[("gain", _s)] = {"reflectance", "illumination"}
-    FAMILIES[("offset", _s)] = {"offset", "ambient"}
+    FAMILIES[("gain", _s)] = {"reflectance", "illumination", "gain_field"}
+    FAMILIES[("offset", _s)] = {"offset", "ambient", "offset_field"}
     FAMILIES[("range", _s)] = {"range_offset_map"}
 FAMILIES[("range", "uniform")] |= {"range_offset"}
 FAMILIES[("range", "radial")] |= {"field_angle"}
@@ -225,7 +225,9 @@ def _change_for(d: Disturbance, f: np.ndarray, sig: Any, nf: int) -> Any:
             out = signal.copy()
             level = float(np.mean(np.abs(signal.phasor_w[0, signal.harmonics.index(1)])))
             # an unmodulated light of this rms relative to the mean modulated light, kept >= 0
-            extra = s * level * (f - min(float(f.min()), 0.0)) * 4.0
+            # (a uniform field drawn negative would be no light at all: light is added either way)
+            shifted = f - min(float(f.min()), 0.0)
+            extra = s * level * (shifted if shifted.any() else np.abs(f)) * 4.0
             out.ambient_w = np.asarray(signal.ambient_w) + extra
             return out
         return c

@@ -23,7 +23,8 @@ C = 299_792_458.0
 F = 44.0e6
 NAMES = {"stray_light", "multipath", "wiggling", "range_offset", "fixed_pattern", "amplitude_dependent",
          "lens_distortion", "ambient", "reflectance", "pose", "offset", "field_angle", "illumination",
-         "range_offset_map", "frequency_calibration", "tap_calibration", "unseen_reflector", "emitter_position"}
+         "range_offset_map", "frequency_calibration", "tap_calibration", "unseen_reflector", "emitter_position",
+         "gain_field", "offset_field"}
 #: Effects whose data are an option (a map), not parameters with defaults: switched on with these.
 ON_OPTIONS = {"range_offset_map": lambda cam: {"values": np.full(cam.shape, 0.01)}}
 
@@ -68,7 +69,7 @@ def test_forward_model_order_is_fixed_whatever_the_registration_order() -> None:
     # by rank, and it is this one (optics before the pixel; per-pixel effects after the
     # spatial mixing): a new module must not move it
     order = ("pose", "emitter_position", "lens_distortion", "reflectance", "ambient", "multipath", "unseen_reflector", "illumination",
-             "stray_light", "offset", "range_offset", "field_angle", "fixed_pattern", "range_offset_map", "frequency_calibration",
+             "gain_field", "stray_light", "offset", "offset_field", "range_offset", "field_angle", "fixed_pattern", "range_offset_map", "frequency_calibration",
              "amplitude_dependent", "wiggling", "tap_calibration")
     assert ORDER == order and tuple(EFFECTS) == order
 
