@@ -8,11 +8,14 @@ gradient, a warm corner of the sensor, a vignetting the lens model lacks) would 
 read as the nearest physical cause. Both fields are linear in their coefficients, so the
 signature's score test is exact for them.
 
-The basis is Legendre-like over the frame, x and y from -1 at the first column (row) to +1 at
-the last: ``1, x, y, (3x^2 - 1)/2, x y, (3y^2 - 1)/2`` (nearly orthogonal on a full frame, so
-each coefficient reads about its own part of the field). The parameter names group the terms
-by order (``mean``, ``linear``, ``quad``): diagnosis can leave an order out where the data
-cannot tell it from the rest of the model.
+The basis is the tensor product of Legendre polynomials of order 0-2 in x and in y, x and y
+from -1 at the first column (row) to +1 at the last: ``P_i(x) P_j(y)`` with ``P_0 = 1, P_1 = t,
+P_2 = (3t^2 - 1)/2``, nine terms (nearly orthogonal on a full frame, so each coefficient reads
+about its own part of the field). A product basis, not a total degree: a field that rises
+toward one corner (``(1 + x)^2 (1 + y)^2``) is in it, as a vignetting of a rectangular sensor
+is. The parameter names group the terms by total order (``mean``, ``linear``, ``quad``,
+``cubic``, ``quartic``): diagnosis can leave an order out where the data cannot tell it from the
+rest of the model.
 """
 
 from __future__ import annotations
@@ -25,23 +28,29 @@ from tofhil.sim.effects.base import Effect, EffectContext, Param
 from tofhil.sim.effects.registry import register
 from tofhil.sim.sensor import OpticalSignal
 
-#: The basis terms, in the order of the parameters' suffixes.
-TERMS = ("mean", "linear_x", "linear_y", "quad_xx", "quad_xy", "quad_yy")
+#: The basis terms ``P_i(x) P_j(y)``, in the order of the parameters' suffixes, with ``(i, j)``.
+TERMS = {"mean": (0, 0), "linear_x": (1, 0), "linear_y": (0, 1), "quad_xx": (2, 0), "quad_xy": (1, 1),
+         "quad_yy": (0, 2), "cubic_xxy": (2, 1), "cubic_xyy": (1, 2), "quartic_xxyy": (2, 2)}
+
+
+def legendre(order: int, t: np.ndarray) -> np.ndarray:
+    """The Legendre polynomial of ``order`` 0, 1 or 2 at ``t``."""
+    return np.ones_like(t) if order == 0 else t if order == 1 else 1.5 * t * t - 0.5
 
 
 def basis(ctx: EffectContext, signal_shape: tuple[int, int]) -> np.ndarray:
-    """The six basis fields ``[6, ...]`` at the pixels the signal holds (the frame's, or
+    """The nine basis fields ``[9, ...]`` at the pixels the signal holds (the frame's, or
     ``ctx.pixels``), in the order of :data:`TERMS`."""
     h, w = ctx.frame_shape(signal_shape)
     v, u = ctx.pixel_grid(signal_shape)
     x = 2.0 * u / max(w - 1, 1) - 1.0
     y = 2.0 * v / max(h - 1, 1) - 1.0
-    return np.stack([np.ones_like(x), x, y, 1.5 * x * x - 0.5, x * y, 1.5 * y * y - 0.5])
+    return np.stack([legendre(i, x) * legendre(j, y) for i, j in TERMS.values()])
 
 
 def field(values: Mapping[str, Any], ctx: EffectContext, signal_shape: tuple[int, int], suffix: str = "") -> np.ndarray:
     """The polynomial ``sum_k c_k B_k`` with ``c_k = values[term + suffix]``."""
-    c = np.array([float(values.get(t + suffix, 0.0)) for t in TERMS])
+    c = np.array([float(values.get(t + suffix, 0.0)) for t in TERMS])  # (the dict's keys, in order)
     return np.tensordot(c, basis(ctx, signal_shape), axes=1)
 
 
@@ -51,21 +60,22 @@ class GainFieldEffect(Effect):
     generic = True
     stage = "signal"
     rank = 65
-    summary = ("smooth gain of the emitter's light over the sensor the scene lacks: times `1 + mean + linear_x x + "
-               "linear_y y + quad_xx (3x^2-1)/2 + quad_xy x y + quad_yy (3y^2-1)/2`, x, y in [-1, 1] over the frame")
+    summary = ("smooth gain of the emitter's light over the sensor the scene lacks: times `1 + sum c_ij P_i(x) P_j(y)`, "
+               "Legendre polynomials of order 0-2 in x and y (in [-1, 1] over the frame; 9 terms, `mean`, `linear_x`, "
+               "..., `quartic_xxyy`)")
     doc = ("A gain of the emitter's light (modulated and unmodulated, not ambient) that varies smoothly over "
            "the sensor with no shape of a physical effect: an illumination profile that is not radial (a tilted "
            "or offset emitter, a diffuser's gradient), a vignetting or pixel responsivity the lens and sensor "
-           "models lack. The light on each pixel times 1 + a second-order polynomial in the pixel's position "
-           "(x, y from -1 at the first column/row to +1 at the last; terms 1, x, y, (3x^2 - 1)/2, x y, "
-           "(3y^2 - 1)/2), clipped at 0. Changes the amplitude, not the phase; acts before the lens's stray "
+           "models lack. The light on each pixel times 1 + sum_ij c_ij P_i(x) P_j(y), a product of Legendre "
+           "polynomials of order 0-2 in the pixel's position (x, y from -1 at the first column/row to +1 at "
+           "the last; P_0 = 1, P_1 = t, P_2 = (3t^2 - 1)/2; nine terms), clipped at 0. Changes the amplitude, not the phase; acts before the lens's stray "
            "light. The generic form of the amplitude channel: a physical cause that explains as well with "
            "fewer parameters (reflectance for a uniform gain, illumination for a radial one) is preferred.")
     params = {
         "mean": Param(0.0, -1.0, 20.0, "", "gain change over the whole frame (a relative factor - 1)",
                       fit=(-0.9, 5.0), step=0.01),
         **{t: Param(0.0, -5.0, 5.0, "", f"relative gain per unit of the {t.replace('_', ' ')} term",
-                    default=0.1 if t == "linear_x" else None, fit=(-2.0, 2.0), step=0.01) for t in TERMS[1:]},
+                    default=0.1 if t == "linear_x" else None, fit=(-2.0, 2.0), step=0.01) for t in list(TERMS)[1:]},
     }
 
     def apply_signal(self, signal: OpticalSignal, values: Mapping[str, Any], ctx: EffectContext) -> OpticalSignal:
@@ -83,13 +93,12 @@ class OffsetFieldEffect(Effect):
     stage = "signal"
     rank = 82
     offset_only = True
-    summary = ("unmodulated charge varying smoothly over the sensor: `mean_e + linear_x_e x + ... + quad_yy_e "
-               "(3y^2-1)/2` electrons per tap (x, y in [-1, 1] over the frame), the total unmodulated light kept >= 0")
+    summary = ("unmodulated charge varying smoothly over the sensor: `sum c_ij P_i(x) P_j(y)` electrons per tap, the "
+               "basis of `gain_field` (9 terms, `mean_e`, ..., `quartic_xxyy_e`), the total unmodulated light kept >= 0")
     doc = ("Unmodulated charge the scene does not explain that varies smoothly over the sensor: a dark "
            "current with a warm corner, emitter leakage or a glowing cover lit from one side, a black level "
-           "with a gradient. Every tap of a pixel gains a second-order polynomial in the pixel's position in "
-           "electrons (x, y from -1 at the first column/row to +1 at the last; terms 1, x, y, (3x^2 - 1)/2, "
-           "x y, (3y^2 - 1)/2), the pixel's total unmodulated light kept >= 0. Raises the tap offset and the "
+           "with a gradient. Every tap of a pixel gains sum_ij c_ij P_i(x) P_j(y) electrons, the product "
+           "Legendre basis of gain_field (order 0-2 in x and y), the pixel's total unmodulated light kept >= 0. Raises the tap offset and the "
            "shot noise, not the phase. The generic form of the offset channel: offset (uniform) and ambient "
            "(following the scene's reflectance) are preferred where they explain as well with fewer "
            "parameters.")

@@ -226,6 +226,49 @@ def radial_falloff(rng: np.random.Generator, extra: float | None = None) -> Chan
     return change
 
 
+def _frame_xy(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """x, y from -1 at the first column (row) to +1 at the last."""
+    h, w = shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    return 2 * u / (w - 1) - 1, 2 * v / (h - 1) - 1
+
+
+def gain_gradient(rng: np.random.Generator) -> Change:
+    """The emitter's light rising linearly across the field by ``2 a`` (a = 10-25 %) in a random
+    direction: a tilted emitter or a diffuser's gradient, which no radial beam makes. The
+    change's ``slope_xy`` is ``a (cos t, sin t)`` per unit of x and y."""
+    a, t = float(rng.uniform(0.10, 0.25)), float(rng.uniform(0, 2 * np.pi))
+
+    def change(signal: OpticalSignal, sensor: Any) -> OpticalSignal:
+        x, y = _frame_xy(signal.shape)
+        factor = 1.0 + a * (np.cos(t) * x + np.sin(t) * y)
+        out = signal.copy()
+        out.phasor_w = signal.phasor_w * factor[None, None]
+        out.dc_w = np.asarray(signal.dc_w) * factor
+        return out
+
+    change.slope_xy = (a * np.cos(t), a * np.sin(t))  # type: ignore[attr-defined]
+    return change
+
+
+def warm_corner(rng: np.random.Generator) -> Change:
+    """Unmodulated charge rising toward one corner of the sensor (a dark current warmed by the
+    driver beside it): ``L (0.3 + ((1 + sx x)(1 + sy y) / 4)^2)``, L 0.5-1.5 times the mean
+    emitter light, the corner ``(sx, sy)`` random. The change's ``corner`` is ``(sx, sy)``."""
+    level = float(rng.uniform(0.5, 1.5))
+    sx, sy = (float(rng.choice([-1.0, 1.0])) for _ in range(2))
+
+    def change(signal: OpticalSignal, sensor: Any) -> OpticalSignal:
+        x, y = _frame_xy(signal.shape)
+        shape = 0.3 + ((1 + sx * x) * (1 + sy * y) / 4) ** 2
+        out = signal.copy()
+        out.ambient_w = np.array(signal.ambient_w) + level * float(np.mean(signal.dc_w)) * shape
+        return out
+
+    change.corner = (sx, sy)  # type: ignore[attr-defined]
+    return change
+
+
 def warm_up_drift(rng: np.random.Generator, span_m: float | None = None, amplitude_per_frame: float = -0.01
                   ) -> FrameChange:
     """A warm-up drift: the range moves by ``span_m`` (12-25 mm) over the frames, slowing as

@@ -130,3 +130,43 @@ def test_a_cause_that_moves_a_clean_channel_is_not_named(tmp_path, scene):
     assert list(moved) == ["range_offset"], moved
     assert any("44 MHz: phase" in t for t in moved["range_offset"]) and any("60 MHz: phase" in t
                                                                             for t in moved["range_offset"])
+
+
+@pytest.mark.parametrize("seed", [6, 7])
+def test_a_linear_illumination_gradient_is_a_gain_field(tmp_path, scene, seed):
+    """The emitter's light rising 20-50 % across the field in a random direction (it was read as
+    the emitter moved sideways plus a fixed-pattern delay: nothing radial or physical in the
+    library has a linear gain): the gain field, at the drawn slope."""
+    rng = np.random.default_rng(seed)
+    change = hf.gain_gradient(rng)
+    path = hf.write_session(scene, tmp_path / "g.h5", change, frames=6, seed=60 + seed)
+    res = _diagnose(path, scene)
+    assert "gain_field" in res.causes, (res.causes, res.verdict.text)
+    p = res.params["gain_field"]
+    ax, ay = change.slope_xy
+    assert np.hypot(p["linear_x"] - ax, p["linear_y"] - ay) < 0.1 * np.hypot(ax, ay), (p, change.slope_xy)
+    assert res.verdict.excess_removed > 0.9
+
+
+@pytest.mark.parametrize("seed", [8, 9])
+def test_a_warm_corner_is_an_offset_field_not_a_reflector(tmp_path, scene, seed):
+    """Unmodulated charge rising toward one corner (it was read as light from an unseen
+    reflector, a stray-light veil or tap offsets): the offset field, highest at that corner."""
+    rng = np.random.default_rng(seed)
+    change = hf.warm_corner(rng)
+    path = hf.write_session(scene, tmp_path / "o.h5", change, frames=6, seed=80 + seed)
+    res = _diagnose(path, scene)
+    assert res.causes == ["offset_field"], (res.causes, res.verdict.text)
+    p = res.params["offset_field"]
+    sx, sy = change.corner
+
+    def at(x: float, y: float) -> float:  # the fitted field at a point (docs/effects.md's basis)
+        px, py = (1.0, x, 1.5 * x * x - 0.5), (1.0, y, 1.5 * y * y - 0.5)
+        names = {"mean": (0, 0), "linear_x": (1, 0), "linear_y": (0, 1), "quad_xx": (2, 0), "quad_xy": (1, 1),
+                 "quad_yy": (0, 2), "cubic_xxy": (2, 1), "cubic_xyy": (1, 2), "quartic_xxyy": (2, 2)}
+        return sum(p[k + "_e"] * px[i] * py[j] for k, (i, j) in names.items())
+
+    corners = {(cx, cy): at(cx, cy) for cx in (-1, 1) for cy in (-1, 1)}
+    assert max(corners, key=corners.get) == (sx, sy), corners
+    assert res.verdict.excess_removed > 0.9
+    _no_channel_worse(res)

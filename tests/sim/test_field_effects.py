@@ -34,6 +34,14 @@ def _sensor(cam: CameraModel) -> SensorModel:
     return SensorModel(cfg, cam)
 
 
+def _poly(c: dict[str, float], x: np.ndarray, y: np.ndarray, suffix: str = "") -> np.ndarray:
+    # the documented basis written out: Legendre P0 = 1, P1 = t, P2 = (3 t^2 - 1) / 2 in x and y
+    p2x, p2y = 1.5 * x * x - 0.5, 1.5 * y * y - 0.5
+    terms = {"mean": 1.0, "linear_x": x, "linear_y": y, "quad_xx": p2x, "quad_xy": x * y, "quad_yy": p2y,
+             "cubic_xxy": p2x * y, "cubic_xyy": x * p2y, "quartic_xxyy": p2x * p2y}
+    return sum(c.get(k + suffix, 0.0) * t for k, t in terms.items())
+
+
 def _xy(cam: CameraModel) -> tuple[np.ndarray, np.ndarray]:
     # the documented coordinates: -1 at the first column (row), +1 at the last
     x = np.linspace(-1.0, 1.0, cam.width)[None, :].repeat(cam.height, 0)
@@ -44,9 +52,9 @@ def _xy(cam: CameraModel) -> tuple[np.ndarray, np.ndarray]:
 def test_gain_field_scales_the_emitter_light_by_the_polynomial_and_keeps_the_phase() -> None:
     cam = _cam()
     x, y = _xy(cam)
-    c = {"mean": 0.05, "linear_x": 0.2, "linear_y": -0.1, "quad_xx": 0.08, "quad_xy": -0.05, "quad_yy": 0.03}
-    expected = 1 + c["mean"] + c["linear_x"] * x + c["linear_y"] * y + c["quad_xx"] * (1.5 * x * x - 0.5) \
-        + c["quad_xy"] * x * y + c["quad_yy"] * (1.5 * y * y - 0.5)
+    c = {"mean": 0.05, "linear_x": 0.2, "linear_y": -0.1, "quad_xx": 0.08, "quad_xy": -0.05, "quad_yy": 0.03,
+         "cubic_xxy": 0.04, "cubic_xyy": -0.02, "quartic_xxyy": 0.03}
+    expected = 1 + _poly(c, x, y)
     sig = _signal(cam, ambient=3e-12)
     ctx = EffectContext(camera=cam, sensor=_sensor(cam).config)
     out = apply_signal_effects(sig, parse_effects({"gain_field": c}), ctx)
@@ -71,9 +79,8 @@ def test_offset_field_adds_its_electrons_to_every_tap_and_keeps_the_phase() -> N
     cam = _cam()
     x, y = _xy(cam)
     c = {"mean_e": 4000.0, "linear_x_e": 1500.0, "linear_y_e": -800.0, "quad_xx_e": 300.0, "quad_xy_e": 200.0,
-         "quad_yy_e": -250.0}
-    field_e = c["mean_e"] + c["linear_x_e"] * x + c["linear_y_e"] * y + c["quad_xx_e"] * (1.5 * x * x - 0.5) \
-        + c["quad_xy_e"] * x * y + c["quad_yy_e"] * (1.5 * y * y - 0.5)
+         "quad_yy_e": -250.0, "cubic_xxy_e": 150.0, "cubic_xyy_e": 100.0, "quartic_xxyy_e": -120.0}
+    field_e = _poly(c, x, y, "_e")
     assert field_e.min() > 0
     sensor = _sensor(cam)
     sig = _signal(cam)
@@ -111,7 +118,7 @@ def test_the_basis_is_nearly_orthogonal_on_a_full_frame() -> None:
     from tofhil.sim.effects.fields import basis
 
     cam = _cam(64, 48)
-    b = basis(EffectContext(camera=cam), cam.shape).reshape(6, -1)
+    b = basis(EffectContext(camera=cam), cam.shape).reshape(9, -1)
     gram = b @ b.T / b.shape[1]
     corr = gram / np.sqrt(np.outer(np.diag(gram), np.diag(gram)))
-    assert np.max(np.abs(corr - np.eye(6))) < 0.05
+    assert np.max(np.abs(corr - np.eye(9))) < 0.05
