@@ -137,10 +137,19 @@ def _why_named(gap: float) -> str:
     return "for its lower score" if gap >= 0 else "as the simpler reading (its score is the higher)"
 
 
+def reading(effect: str, form: str = "") -> str:
+    """An effect as a reading of the data: its name, its form, and for a generic form the
+    channel it calibrates ("physical X or a calibration of channel Y")."""
+    eff = EFFECTS.get(effect)
+    what = [form] if form else []
+    if eff is not None and eff.generic:
+        what.append(f"a calibration of the {eff.calibrates} channel")
+    return effect + (f" ({'; '.join(what)})" if what else "")
+
+
 def _same_residual_text(effect: str, form: str, other: str, other_form: str, gap: float, needed: float,
                         overlap: float) -> str:
-    def name(e: str, f: str) -> str:
-        return e + (f" ({f})" if f else "")
+    name = reading
     return (f"{name(effect, form)} or {name(other, other_form)}: the held-out data cannot tell them apart (their "
             f"held-out scores differ by {gap:.1f}, less than {needed:.1f}: the larger of one degree of freedom's "
             f"price and twice the noise of that difference; {100 * overlap:.0f} % of what one changes the other "
@@ -171,12 +180,13 @@ def sets_alike(model: Any, data: HeldOutData, causes: Sequence[str], params: dic
         if gap >= needed:
             continue
         other = " + ".join(other_causes)
+        said_as = " + ".join(reading(e) for e in causes), " + ".join(reading(e) for e in other_causes)
         differ = [e for e in causes if e not in other_causes] + [e for e in other_causes if e not in causes]
         sep = separation(differ[0], differ[-1]) if differ else separation(label, other)
         out.append(Ambiguity(
             readings=(label, other), test=SETS_ALIKE,
             figures={"score_gap": gap, "needed": needed, "overlap": overlap}, separating=sep,
-            text=(f"{label} or {other}: the held-out data cannot tell these sets of causes apart (their held-out "
+            text=(f"{said_as[0]} or {said_as[1]}: the held-out data cannot tell these sets of causes apart (their held-out "
                   f"scores differ by {gap:.1f}, less than {needed:.1f}: the larger of one degree of freedom's price "
                   f"and twice the noise of that difference); {label} is named {_why_named(gap)}; a capture that "
                   f"would: {sep.text}")))

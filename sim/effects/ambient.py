@@ -44,7 +44,7 @@ class AmbientEffect(Effect):
 @register
 class OffsetEffect(Effect):
     name = "offset"
-    generic = True
+    calibrates = "offset"
     stage = "signal"
     rank = 80
     summary = 'unmodulated charge the scene does not explain (dark/black-level offset, LED leakage, a glowing cover): `dark_e` electrons per tap on every pixel'

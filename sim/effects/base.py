@@ -182,11 +182,18 @@ class Effect:
     #: True when the effect acts on the taps' offset alone: a session without raw taps (depth
     #: and amplitude only) cannot see it.
     offset_only: bool = False
-    #: True for a calibration form of a channel (a gain or offset field, a per-tap or
-    #: per-frequency constant, a range offset or map) rather than a physical cause: diagnosis
-    #: prefers a physical reading that explains as well, and where it takes a generic form it
-    #: also searches from the best physical cause of that round (``EffectSpec.generic``).
-    generic: bool = False
+    #: The residual channel this effect calibrates when it is a generic form of that channel
+    #: (a gain or offset field, a per-tap or per-frequency constant, a range offset or map)
+    #: rather than a physical cause; "" for a physical cause. Diagnosis prefers a physical
+    #: reading that explains as well, where it takes a generic form it also searches from the
+    #: best physical cause of that round (``EffectSpec.generic``), and an "A or B" names a
+    #: generic form as a calibration of its channel.
+    calibrates: str = ""
+
+    @property
+    def generic(self) -> bool:
+        """True for a calibration form of a channel (:attr:`calibrates`)."""
+        return bool(self.calibrates)
     #: Other effects (by name) that can explain a capture as this one does, each with the
     #: capture that tells the two apart. A pair is declared on one of its two effects
     #: (``registry.separation`` reads both).

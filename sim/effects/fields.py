@@ -57,7 +57,7 @@ def field(values: Mapping[str, Any], ctx: EffectContext, signal_shape: tuple[int
 @register
 class GainFieldEffect(Effect):
     name = "gain_field"
-    generic = True
+    calibrates = "amplitude"
     stage = "signal"
     rank = 65
     summary = ("smooth gain of the emitter's light over the sensor the scene lacks: times `1 + sum c_ij P_i(x) P_j(y)`, "
@@ -89,7 +89,7 @@ class GainFieldEffect(Effect):
 @register
 class OffsetFieldEffect(Effect):
     name = "offset_field"
-    generic = True
+    calibrates = "offset"
     stage = "signal"
     rank = 82
     offset_only = True

@@ -27,7 +27,7 @@ FREQUENCY_INDICES = (1, 2)
 @register
 class FrequencyCalibrationEffect(Effect):
     name = "frequency_calibration"
-    generic = True
+    calibrates = "frequency"
     stage = "pixel"
     rank = 125
     summary = ("a calibration phase and gain on one modulation frequency alone (the 2nd and 3rd, relative to the "

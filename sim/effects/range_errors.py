@@ -26,7 +26,7 @@ class RangeOffsetEffect(Effect):
         "amplitude_dependent": Separation(BENCH_CHANGE, "target_reflectance",
                                           "a darker and a brighter target at one distance"),
     }
-    generic = True
+    calibrates = "depth"
     stage = "signal"
     rank = 90
     summary = 'constant optical-path offset: reads `path_m / 2` farther'
@@ -75,7 +75,7 @@ class FieldAngleEffect(Effect):
 class RangeOffsetMapEffect(Effect):
     name = "range_offset_map"
     mimicked_by_shape = "a range pattern along rows or columns looks the same as a surface that bends along them"
-    generic = True
+    calibrates = "depth"
     stage = "pixel"
     rank = 120
     summary = ('fixed-pattern radial offset map `[H, W]` (m): per-column, per-row and per-pixel offsets of the readout; '

@@ -23,7 +23,7 @@ TAP_INDICES = (1, 2, 3)
 @register
 class TapCalibrationEffect(Effect):
     name = "tap_calibration"
-    generic = True
+    calibrates = "tap"
     stage = "taps"
     rank = 150
     summary = ("per-tap gain and offset of the readout relative to tap 0 (`gain_<k>`, `offset_<k>_dn`, k = 1..3): "
