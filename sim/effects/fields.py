@@ -60,17 +60,18 @@ class GainFieldEffect(Effect):
     calibrates = "amplitude"
     stage = "signal"
     rank = 65
-    summary = ("smooth gain of the emitter's light over the sensor the scene lacks: times `1 + sum c_ij P_i(x) P_j(y)`, "
-               "Legendre polynomials of order 0-2 in x and y (in [-1, 1] over the frame; 9 terms, `mean`, `linear_x`, "
-               "..., `quartic_xxyy`)")
+    summary = ("smooth gain of the emitter's light over the sensor the scene lacks: times "
+               "`1 + sum c_ij P_i(x) P_j(y)`, Legendre polynomials of order 0-2 in x and y (in [-1, 1] over the "
+               "frame; 9 terms, `mean`, `linear_x`, ..., `quartic_xxyy`)")
     doc = ("A gain of the emitter's light (modulated and unmodulated, not ambient) that varies smoothly over "
            "the sensor with no shape of a physical effect: an illumination profile that is not radial (a tilted "
            "or offset emitter, a diffuser's gradient), a vignetting or pixel responsivity the lens and sensor "
            "models lack. The light on each pixel times 1 + sum_ij c_ij P_i(x) P_j(y), a product of Legendre "
            "polynomials of order 0-2 in the pixel's position (x, y from -1 at the first column/row to +1 at "
-           "the last; P_0 = 1, P_1 = t, P_2 = (3t^2 - 1)/2; nine terms), clipped at 0. Changes the amplitude, not the phase; acts before the lens's stray "
-           "light. The generic form of the amplitude channel: a physical cause that explains as well with "
-           "fewer parameters (reflectance for a uniform gain, illumination for a radial one) is preferred.")
+           "the last; P_0 = 1, P_1 = t, P_2 = (3t^2 - 1)/2; nine terms), clipped at 0. Changes the "
+           "amplitude, not the phase; acts before the lens's stray light. The generic form of the amplitude "
+           "channel: a physical cause that explains as well with fewer parameters (reflectance for a uniform "
+           "gain, illumination for a radial one) is preferred.")
     params = {
         "mean": Param(0.0, -1.0, 20.0, "", "gain change over the whole frame (a relative factor - 1)",
                       fit=(-0.9, 5.0), step=0.01),
@@ -93,15 +94,16 @@ class OffsetFieldEffect(Effect):
     stage = "signal"
     rank = 82
     offset_only = True
-    summary = ("unmodulated charge varying smoothly over the sensor: `sum c_ij P_i(x) P_j(y)` electrons per tap, the "
-               "basis of `gain_field` (9 terms, `mean_e`, ..., `quartic_xxyy_e`), the total unmodulated light kept >= 0")
+    summary = ("unmodulated charge varying smoothly over the sensor: `sum c_ij P_i(x) P_j(y)` electrons per "
+               "tap, the basis of `gain_field` (9 terms, `mean_e`, ..., `quartic_xxyy_e`), the total unmodulated "
+               "light kept >= 0")
     doc = ("Unmodulated charge the scene does not explain that varies smoothly over the sensor: a dark "
            "current with a warm corner, emitter leakage or a glowing cover lit from one side, a black level "
            "with a gradient. Every tap of a pixel gains sum_ij c_ij P_i(x) P_j(y) electrons, the product "
-           "Legendre basis of gain_field (order 0-2 in x and y), the pixel's total unmodulated light kept >= 0. Raises the tap offset and the "
-           "shot noise, not the phase. The generic form of the offset channel: offset (uniform) and ambient "
-           "(following the scene's reflectance) are preferred where they explain as well with fewer "
-           "parameters.")
+           "Legendre basis of gain_field (order 0-2 in x and y), the pixel's total unmodulated light kept "
+           ">= 0. Raises the tap offset and the shot noise, not the phase. The generic form of the offset "
+           "channel: offset (uniform) and ambient (following the scene's reflectance) are preferred where "
+           "they explain as well with fewer parameters.")
     params = {t + "_e": Param(0.0, -1.0e6, 1.0e6, "e-", f"electrons per tap of the {t.replace('_', ' ')} term",
                               default={"mean": 200.0, "linear_x": 100.0}.get(t), fit=(-2.0e5, 2.0e5), step=50.0)
               for t in TERMS}
