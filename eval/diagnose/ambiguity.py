@@ -149,8 +149,7 @@ def reading(effect: str, form: str = "") -> str:
 
 def _same_residual_text(effect: str, form: str, other: str, other_form: str, gap: float, needed: float,
                         overlap: float) -> str:
-    name = reading
-    return (f"{name(effect, form)} or {name(other, other_form)}: the held-out data cannot tell them apart (their "
+    return (f"{reading(effect, form)} or {reading(other, other_form)}: the held-out data cannot tell them apart (their "
             f"held-out scores differ by {gap:.1f}, less than {needed:.1f}: the larger of one degree of freedom's "
             f"price and twice the noise of that difference; {100 * overlap:.0f} % of what one changes the other "
             f"changes too); {effect} is named {_why_named(gap)}")
