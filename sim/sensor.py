@@ -59,6 +59,9 @@ class FixedPatternConfig:
     prnu: float = 0.0
     #: Seed of the pattern (independent of the per-frame noise seed).
     seed: int = 0
+    #: ``(b, height, width)``: the camera's pixels are ``b x b`` bins of a sensor of that size,
+    #: whose pattern (drawn from the seed) each bin averages. None: the camera's own pixels.
+    binned: tuple[int, int, int] | None = None
 
 
 @dataclass(frozen=True)
@@ -122,7 +125,8 @@ class SensorConfig:
             "black_level_dn": self.black_level_dn,
             "temperature_c": None if math.isnan(self.temperature_c) else self.temperature_c,
             "fixed_pattern": {"dsnu_e": self.fixed_pattern.dsnu_e, "prnu": self.fixed_pattern.prnu,
-                              "seed": self.fixed_pattern.seed},
+                              "seed": self.fixed_pattern.seed}
+            | ({"binned": list(self.fixed_pattern.binned)} if self.fixed_pattern.binned else {}),
         }
 
 
@@ -142,7 +146,7 @@ _NUMBERS: dict[str, dict[str, Any]] = {
     "temperature_c": {"lo": -273.15, "expected": "a temperature in degrees Celsius"},
 }
 SENSOR_KEYS = frozenset(_NUMBERS) | {"taps", "theta_deg", "freq_hz", "adc_bits", "fixed_pattern"}
-_FP_KNOWN = ("dsnu_e", "prnu", "seed")
+_FP_KNOWN = ("dsnu_e", "prnu", "seed", "binned")
 
 
 def _with_preset_defaults(d: Mapping[str, Any], camera: CameraModel | None) -> dict[str, Any]:
@@ -219,8 +223,20 @@ def _parse_sensor(d: Mapping[str, Any] | None, *, source: str | Path,
                             expected="a number of electrons >= 0"),
             prnu=v.number(fp.get("prnu", 0.0), "sensor.fixed_pattern.prnu", lo=0.0, hi=0.5,
                           expected="a relative gain spread in [0, 0.5]"),
-            seed=v.integer(fp.get("seed", 0), "sensor.fixed_pattern.seed", lo=0, hi=2 ** 63 - 1))
+            seed=v.integer(fp.get("seed", 0), "sensor.fixed_pattern.seed", lo=0, hi=2 ** 63 - 1),
+            binned=_binned_from(fp.get("binned"), v))
     return SensorConfig(**kw)
+
+
+def _binned_from(value: Any, v: Any) -> tuple[int, int, int] | None:
+    """``sensor.fixed_pattern.binned``: ``[b, height, width]`` of the sensor the pattern is drawn on."""
+    if value is None:
+        return None
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        raise v.error(f"is {value!r}", "sensor.fixed_pattern.binned",
+                      "[bin, sensor height, sensor width]: three integers")
+    b, h, w = (v.integer(x, f"sensor.fixed_pattern.binned[{i}]", lo=1, hi=1 << 16) for i, x in enumerate(value))
+    return (b, h, w)
 
 
 def take_pixels(a: np.ndarray, index: np.ndarray) -> np.ndarray:
@@ -380,11 +396,21 @@ class SensorModel:
         """Per-pixel, per-tap ``(gain [K,H,W], offset_e [K,H,W])`` from the fixed-pattern seed."""
         if self._pattern is None:
             fp = self.config.fixed_pattern
-            shape = (self.config.taps,) + self.camera.shape
+            b, *sensor = fp.binned or (1, *self.camera.shape)
+            shape = (self.config.taps, *sensor)
             rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(fp.seed), 0x5eed])))
             gain = 1.0 + fp.prnu * rng.standard_normal(shape) if fp.prnu > 0 else np.ones(shape)
             off = fp.dsnu_e * rng.standard_normal(shape) if fp.dsnu_e > 0 else np.zeros(shape)
-            self._pattern = (np.clip(gain, 0.0, None), off)
+            gain = np.clip(gain, 0.0, None)
+            if b > 1:
+                from tofhil.binning import bin_mean
+
+                gain, off = bin_mean(gain, b), bin_mean(off, b)
+            h, w = self.camera.shape
+            if gain.shape[-2:] != (h, w):
+                raise ValueError(f"fixed pattern {gain.shape[-2:]} (binned {b} x {b} from {sensor}) does not "
+                                 f"fit the camera {self.camera.shape}")
+            self._pattern = (gain, off)
         return self._pattern
 
     def _fixed_pattern_at(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

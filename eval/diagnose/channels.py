@@ -279,7 +279,8 @@ def sensor_noise_variance(data: HeldOutData) -> np.ndarray | None:
         return None
     k = data.taps_test.shape[1]
     var_tap = g * np.maximum(data.taps_test - black, 0.0) + read_dn ** 2 + 1.0 / 12.0   # [F, K, H, W]
-    return (2.0 / k ** 2) * var_tap.sum(axis=1)
+    # a binned pixel is the mean of bin_px^2 pixels with independent noise
+    return (2.0 / k ** 2) * var_tap.sum(axis=1) / data.bin_px ** 2
 
 
 def residual_by_channel(data: HeldOutData, prediction: np.ndarray, *, taps_measured: np.ndarray | None = None,

@@ -201,9 +201,6 @@ def raw_defects(taps: np.ndarray, theta_rad: np.ndarray, clipped: np.ndarray | N
 
         predicted = noise_var(level)
         # A defect is a pixel unlike its neighbours: a moving target or flicker changes whole
-        # regions from frame to frame, saturation holds whole regions still; neither is a pixel
-        # that fails. So each temporal test also compares with the neighbourhood's median.
-        # A defect is a pixel unlike its neighbours: a moving target or flicker changes whole
         # regions from frame to frame (and lifts the level-to-variance line), saturation holds
         # whole regions still; neither is a pixel that fails. The reference of each temporal
         # test is therefore its neighbours' variance, ranked so that up to
@@ -297,3 +294,32 @@ def depth_defects(radial_m: np.ndarray, valid: np.ndarray, camera: Any, noise_m:
     clean = np.where(d.kinds["outlier"], ndimage.median_filter(filled, size=3, mode="nearest"), filled)
     d.kinds["flying"] = _flying(clean, ok & ~d.kinds["outlier"], noise)
     return d
+
+
+#: Share of a bin's pixels that must be usable for the bin to be (their mean is the bin's).
+BIN_USABLE_SHARE = 0.75
+
+
+def binned_defects(defects: Defects, b: int) -> Defects:
+    """Defects on the binned grid: a bin whose defective pixels are more than it can spare
+    (:data:`BIN_USABLE_SHARE`) is one; the others are the mean of their good pixels."""
+    from tofhil.binning import bin_mean
+
+    shape = (defects.shape[0] // b, defects.shape[1] // b)
+    # a bin holding a saturated pixel is saturated: the mean of the others is not the bin's light
+    out = Defects(shape, notes=list(defects.notes), saturated=bin_mean(defects.saturated.astype(float), b) > 0)
+    # a bin is left out when its defective pixels together are more than it can spare, and
+    # is counted under the kind most of them have
+    names = list(defects.kinds)
+    if names:
+        shares = np.stack([bin_mean(defects.kinds[k].astype(float), b) for k in names])
+        left_out = bin_mean(defects.mask.astype(float), b) > 1.0 - BIN_USABLE_SHARE
+        dominant = shares.argmax(axis=0)
+        for i, kind in enumerate(names):
+            out.kinds[kind] = left_out & (dominant == i)
+    n, total = defects.count, int(np.prod(defects.shape))
+    out.notes.append(f"found on the full image ({n} of its {total} pixels, {100.0 * n / max(total, 1):.2g} %), "
+                     f"shown on the {b} x {b} binned grid the diagnosis uses: a bin is left out when more than "
+                     f"{100 * (1 - BIN_USABLE_SHARE):.0f} % of its pixels are defective, else it is the mean of "
+                     "its good pixels")
+    return out

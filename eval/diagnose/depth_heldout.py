@@ -37,15 +37,14 @@ is not a finding; the device has already unwrapped, filtered and calibrated its 
 from __future__ import annotations
 
 import math
-import warnings
 from typing import Any, Sequence
 
 import numpy as np
 
-from tofhil.eval.diagnose.defects import Defects, depth_defects
+from tofhil.eval.diagnose.defects import BIN_USABLE_SHARE, Defects, binned_defects, depth_defects
 from tofhil import C_M_PER_S
 from tofhil.eval.metrics.noise import NOISE_POOL_PX, phasor_depth_sigma, pooled_variance, robust_sigma
-from tofhil.camera import CameraModel
+from tofhil.binning import bin_factor, bin_mean, binned_camera, one_surface
 from tofhil.depth import saturated_amplitude
 from tofhil.demod import distance_to_phase, equally_spaced_phases
 from tofhil.errors import TofhilError
@@ -55,8 +54,6 @@ from tofhil.sim.effects import EFFECTS
 
 #: Effects that act only on the tap offset: not observable without raw taps.
 OFFSET_ONLY_EFFECTS = tuple(n for n, e in EFFECTS.items() if e.offset_only)
-#: Share of a bin's pixels that must be usable for the bin to be (their mean is the bin's).
-BIN_USABLE_SHARE = 0.75
 
 #: Pixels a diagnosis of a depth session renders at most (larger images are binned).
 MAX_DIAGNOSIS_PIXELS = 6_000
@@ -82,38 +79,6 @@ def depth_phasor(radial_m: np.ndarray, amplitude: np.ndarray, freq_hz: np.ndarra
     """``S_f = A exp(i 4 pi f d / c)`` per frequency, ``[F, H, W]`` complex."""
     phi = distance_to_phase(np.asarray(radial_m, np.float64)[None], np.asarray(freq_hz, float)[:, None, None])
     return np.asarray(amplitude, np.float64)[None] * np.exp(1j * phi)
-
-
-def bin_factor(shape: tuple[int, int], max_pixels: int = MAX_DIAGNOSIS_PIXELS) -> int:
-    """The smallest integer bin that brings an image to at most ``max_pixels``."""
-    return max(1, int(math.ceil(math.sqrt(shape[0] * shape[1] / max_pixels))))
-
-
-def bin_mean(x: np.ndarray, b: int) -> np.ndarray:
-    """Mean over ``b x b`` blocks of the last two axes (the ragged edge is dropped)."""
-    if b == 1:
-        return x
-    h, w = x.shape[-2] // b * b, x.shape[-1] // b * b
-    x = x[..., :h, :w]
-    return x.reshape(x.shape[:-2] + (h // b, b, w // b, b)).mean(axis=(-3, -1))
-
-
-def binned_camera(camera: CameraModel, b: int) -> CameraModel:
-    """The camera of ``b x b`` binned pixels (the ragged edge dropped).
-
-    The binned measurement is the *mean* of its pixels, so a binned twin pixel must collect
-    the light of one pixel, not of ``b^2``: the pixel pitch is kept (the twin's flux per pixel
-    goes as its solid angle ``1/(fx fy)`` times the pupil area ``(fx pitch / 2N)^2``, i.e. as
-    ``pitch^2``, whatever ``fx``). Scaling the pitch by ``b`` made a 2 x 2 binned twin four
-    times too bright on a camera with a pitch (a camera without one used a default pitch)."""
-    if b == 1:
-        return camera
-    from dataclasses import replace
-
-    w, h = camera.width // b, camera.height // b
-    f = 1.0 / b
-    return replace(camera, width=w, height=h, fx=camera.fx * f, fy=camera.fy * f,
-                   cx=(camera.cx + 0.5) * f - 0.5, cy=(camera.cy + 0.5) * f - 0.5)
 
 
 def _with_usable_neighbours(usable: np.ndarray) -> np.ndarray:
@@ -307,17 +272,10 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
         if i == 0 and df.confidence is not None and np.isfinite(df.confidence[ok]).any():
             conf0 = bin_mean(np.where(ok, np.asarray(df.confidence, np.float64), np.nan), b)
         if b > 1:
-            dd = np.where(ok, d, np.nan)
-            hb, wb = cam.height // b * b, cam.width // b * b
-            blocks = dd[:hb, :wb].reshape(hb // b, b, wb // b, b)
-            with np.errstate(invalid="ignore"), warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN bins: no valid pixel
-                lo, hi = np.nanmin(blocks, axis=(1, 3)), np.nanmax(blocks, axis=(1, 3))
             # a bin is the mean of its usable pixels when they are most of it (a defective
             # pixel or two do not cost the bin), and one surface (no depth step inside)
             share = bin_mean(ok.astype(float), b)
-            okb = share >= BIN_USABLE_SHARE
-            okb &= np.isfinite(lo) & (hi - lo <= 0.05 * np.where(np.isfinite(lo), lo, 1.0))
+            okb = (share >= BIN_USABLE_SHARE) & one_surface(d, ok, b)
             s, ok = bin_mean(s, b) / np.where(okb, share, 1.0), okb
         frames_s.append(s)
         frames_ok.append(ok)
@@ -400,7 +358,7 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
                        noise=noise, phase_ref=ref, radial_var_scale=radial_scale,
                        amplitude_model_error=amplitude_model_error or None, frames_held_out=n >= 2,
                        s_frames=s_all if n >= 2 else None,
-                       defects=defects if b == 1 else _binned_defects(defects, b))
+                       defects=defects if b == 1 else binned_defects(defects, b))
 
 
 def _frame_defects(session: Session, cam: Any, valid_mask: np.ndarray | None) -> Defects:
@@ -412,30 +370,26 @@ def _frame_defects(session: Session, cam: Any, valid_mask: np.ndarray | None) ->
     return depth_defects(np.asarray(df.radial_m, np.float64), valid, cam)
 
 
-def _binned_defects(defects: Defects, b: int) -> Defects:
-    """Defects on the binned grid: a bin whose defective pixels are more than it can spare
-    (:data:`BIN_USABLE_SHARE`) is one; the others are the mean of their good pixels."""
-    out = Defects(defects.shape, notes=list(defects.notes))
-    for kind, m in defects.kinds.items():
-        h, w = m.shape[0] // b * b, m.shape[1] // b * b
-        out.kinds[kind] = m[:h, :w].reshape(h // b, b, w // b, b).mean(axis=(1, 3)) > 1.0 - BIN_USABLE_SHARE
-    out.shape = next(iter(out.kinds.values())).shape if out.kinds else defects.shape
-    n, total = defects.count, int(np.prod(defects.shape))
-    out.notes.append(f"found on the full image ({n} of its {total} pixels, {100.0 * n / max(total, 1):.2g} %), "
-                     f"shown on the {b} x {b} binned grid the diagnosis uses: a bin is left out when more than "
-                     f"{100 * (1 - BIN_USABLE_SHARE):.0f} % of its pixels are defective, else it is the mean of "
-                     "its good pixels")
-    return out
+def _objects_on_sensor(scene: Any, camera: Any) -> np.ndarray | None:
+    """The scene's object on each sensor pixel (one centre ray each), -1 where none."""
+    from tofhil.sim.render import render
+
+    if scene is None or not getattr(scene, "objects", None):
+        return None
+    r = render(scene, camera=camera, samples_per_pixel=1, bounces=0, subpixel=False)
+    return np.asarray(r.object_id)
 
 
 def split_for_diagnosis(session: Session, scene: Any, *, block_px: int = 8, max_frames: int | None = None,
                         valid_mask: np.ndarray | None = None, amplitude_model_error: float | None = None
                         ) -> HeldOutData:
     """Raw taps when the session has them, else its depth and amplitude (this module)."""
-    from tofhil.eval.diagnose.heldout import split_session
+    from tofhil.eval.diagnose.heldout import MAX_RAW_DIAGNOSIS_PIXELS, split_session
 
     if session.has_raw:
-        return split_session(session, block_px=block_px, max_frames=max_frames)
+        return split_session(session, block_px=block_px, max_frames=max_frames,
+                             object_id=_objects_on_sensor(scene, session.camera)
+                             if bin_factor(session.camera.shape, MAX_RAW_DIAGNOSIS_PIXELS) > 1 else None)
     return split_depth_session(session, scene, block_px=block_px, max_frames=max_frames, valid_mask=valid_mask,
                                amplitude_model_error=amplitude_model_error)
 

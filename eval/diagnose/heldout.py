@@ -18,7 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from tofhil.eval.diagnose.defects import raw_defects
+from tofhil.binning import bin_factor, bin_mean, binned_camera, one_object
+from tofhil.eval.diagnose.defects import binned_defects, raw_defects
 from tofhil.eval.metrics.noise import pooled_variance
 from tofhil.camera import CameraModel
 from tofhil.demod import TapLimits, bad_extremes, clip_limits, phasor, wrapped_phase
@@ -84,6 +85,10 @@ class HeldOutData:
     usable_test_frames: np.ndarray | None = field(default=None, repr=False)
     #: The training frames on the held-out blocks (chosen on the held-out frames); None: ``test_pixels``.
     tune_pixels: np.ndarray | None = field(default=None, repr=False)
+    #: The data are the means of ``bin_px x bin_px`` blocks of the sensor's pixels
+    #: (:mod:`tofhil.binning`); ``camera`` is the binned camera, ``sensor_shape`` the sensor's.
+    bin_px: int = 1
+    sensor_shape: tuple[int, int] | None = None
     _fit_pixels: np.ndarray | None = field(default=None, repr=False, compare=False)
     _screen_pixels: np.ndarray | None = field(default=None, repr=False, compare=False)
     #: Per part, the measured side of its whitened residual (a fit evaluates it thousands of
@@ -127,20 +132,26 @@ class HeldOutData:
 
     @property
     def fit_pixels(self) -> np.ndarray:
-        """The training pixels a fit evaluates: all of them up to :data:`MAX_FIT_PIXELS`,
+        """The training pixels a fit evaluates: all of them up to :attr:`max_fit_pixels`,
         else every n-th in raster order (evenly spread over the image, the same set every
         evaluation). A few parameters are fitted; tens of thousands of pixels pin them down
         as well as a whole camera's worth, at a fraction of the cost per evaluation."""
         if self._fit_pixels is None:
-            self._fit_pixels = subsample(self.train_pixels, MAX_FIT_PIXELS)
+            self._fit_pixels = subsample(self.train_pixels, self.max_fit_pixels)
         return self._fit_pixels
+
+    @property
+    def max_fit_pixels(self) -> int:
+        """:data:`MAX_FIT_PIXELS` sensor pixels: a bin holds ``bin_px^2`` of them, with as much
+        information (its noise is ``bin_px`` times lower) and as many render samples."""
+        return max(MAX_FIT_PIXELS // self.bin_px ** 2, 256)
 
     @property
     def screen_pixels(self) -> np.ndarray:
         """The held-out pixels a signature's test reads (:mod:`tofhil.eval.diagnose.signature`):
-        all of them up to :data:`MAX_FIT_PIXELS`, else every n-th in raster order."""
+        all of them up to :attr:`max_fit_pixels`, else every n-th in raster order."""
         if self._screen_pixels is None:
-            self._screen_pixels = subsample(self.test_pixels, MAX_FIT_PIXELS)
+            self._screen_pixels = subsample(self.test_pixels, self.max_fit_pixels)
         return self._screen_pixels
 
     def whitened(self, prediction: np.ndarray, part: str = "test") -> np.ndarray:
@@ -282,9 +293,37 @@ def frame_deviations(s: np.ndarray, mean: np.ndarray, pixels: np.ndarray) -> np.
     return s - g[:, :, None, None] * mean[None]
 
 
+#: Pixels of raw taps a diagnosis renders at most: larger images are binned to this. A
+#: 160 x 120 or 176 x 132 sensor is diagnosed pixel for pixel; 512 x 512 is binned 3 x 3 and
+#: 1024 x 1024 6 x 6 (both to 170 x 170), so the search costs the same at any resolution and
+#: finds the same causes. What binning hides: a pattern finer than a bin (a single pixel's
+#: defect is found before binning, on the full image).
+MAX_RAW_DIAGNOSIS_PIXELS = 32_768
+
+
+def bin_taps(taps: np.ndarray, clipped: np.ndarray, defects: Any, b: int,
+             object_id: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, Any, np.ndarray]:
+    """Taps ``[N, F, K, H, W]`` averaged over ``b x b`` blocks of good pixels, with the clipped,
+    defect and edge maps of the blocks: a block holding a clipped pixel is clipped (the mean
+    of the others is not the block's light); a block is the mean of its good pixels where
+    they are at least :data:`~tofhil.eval.diagnose.defects.BIN_USABLE_SHARE` of it, else a
+    defect; a block across an object's outline in ``object_id`` (the scene's object of each
+    pixel) is an edge (:func:`tofhil.binning.one_object`).
+
+    (A test of each block's pixels against a plane within their frame-to-frame noise would find
+    edges the scene lacks, but every pixel's fixed pattern fails it too.)"""
+    good = ~clipped & ~defects.mask
+    share = bin_mean(good.astype(float), b)
+    binned = bin_mean(np.where(good, taps, 0.0), b) / np.maximum(share, 1e-12)
+    edges = np.zeros(share.shape, bool) if object_id is None else ~one_object(object_id, b)
+    # (a block short of good pixels has a clipped one, or is a defect of the binned grid)
+    return np.where(share > 0, binned, 0.0), bin_mean(clipped.astype(float), b) > 0, binned_defects(defects, b), edges
+
+
 def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: float = 3.0,
                   saturation_dn: float | None = None, max_frames: int | None = None,
-                  offset_channel: bool | None = None) -> HeldOutData:
+                  offset_channel: bool | None = None, max_pixels: int = MAX_RAW_DIAGNOSIS_PIXELS,
+                  object_id: np.ndarray | None = None) -> HeldOutData:
     """Average a session's frames into training and held-out signals.
 
     Needs at least 2 frames with raw taps (4 or more recommended). Pixels whose amplitude is
@@ -293,6 +332,11 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
     there), are left out of both parts. ``offset_channel=None`` adds the tap offset as a
     channel when it carries information: it varies over the image by more than its noise
     (differential devices such as the epc635 report a constant offset).
+
+    An image of more than ``max_pixels`` is binned (:func:`bin_taps`): saturation and defects
+    are found on the full image, then the taps of each ``b x b`` block are averaged and the
+    rest of the diagnosis sees the binned camera; blocks across a depth edge, or across an
+    object's outline in ``object_id`` (the scene's object of each sensor pixel), are left out.
     """
     if not session.has_raw:
         raise TofhilError("diagnosis needs raw taps (the complex signal); this session has depth only",
@@ -313,6 +357,14 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
     limits = clip_limits(taps_max, taps_min, TapLimits.from_meta(frames[0].meta), saturation_dn)
     clipped = bad_extremes(taps_max, taps_min, limits)
     defects = raw_defects(taps, frames[0].theta_rad, clipped=clipped)
+    camera, bin_px = session.camera, bin_factor(session.camera.shape, max_pixels)
+    edges = np.zeros(camera.shape, bool)
+    if bin_px > 1:
+        oid = None if object_id is None or object_id.shape != camera.shape else object_id
+        taps, clipped, defects, edges = bin_taps(taps, clipped, defects, bin_px, oid)
+        camera = binned_camera(camera, bin_px)
+        s = np.stack([phasor(t, f.theta_rad) for t, f in zip(taps, frames)])
+        b = taps.mean(axis=(1, 2))
     offset_mean = b.mean(axis=0)
     if offset_channel is None:
         noise_b = float(np.median(b.std(axis=0, ddof=1))) if n > 1 else 0.0
@@ -342,7 +394,9 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
     # on its own, a pixel near the threshold is kept when its noise raised its amplitude, and
     # its residual is biased along its signal.
     threshold = min_amplitude_sigma * np.sqrt(var_frame[:nf].max(axis=0))
-    good = ~clipped & ~defects.mask  # a defect is a finding of its own, never evidence against the scene
+    # a defect is a finding of its own, never evidence against the scene; a bin across an edge
+    # is a mixture the binned twin cannot resolve
+    good = ~clipped & ~defects.mask & ~edges
 
     def above(frames_idx: np.ndarray) -> np.ndarray:
         return (np.abs(s[frames_idx, :nf].mean(axis=0)).min(axis=0) > threshold) & good
@@ -351,7 +405,7 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
     usable = by_train | by_test
     board = block_checkerboard(usable.shape, block_px)
     f0 = frames[0]
-    return HeldOutData(camera=session.camera, freq_hz=f0.freq_hz, theta_rad=f0.theta_rad,
+    return HeldOutData(camera=camera, freq_hz=f0.freq_hz, theta_rad=f0.theta_rad,
                        integration_time_s=f0.integration_time_s,
                        s_train=s[train_idx].mean(axis=0), s_test=s[test_idx].mean(axis=0),
                        var_train=var_frame / len(train_idx), var_test=var_frame / len(test_idx),
@@ -361,4 +415,10 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
                        n_train_frames=len(train_idx), n_test_frames=len(test_idx),
                        offset_channel=bool(offset_channel),
                        sensor_config=getattr(session, "sensor_config", None), source=str(session.path),
-                       tap_limits=limits, s_frames=s, defects=defects, taps_test=taps[test_idx].mean(axis=0))
+                       tap_limits=limits, s_frames=s, defects=defects, taps_test=taps[test_idx].mean(axis=0),
+                       bin_px=bin_px, sensor_shape=session.camera.shape,
+                       **({"channels": f"raw taps: the complex signal S per frequency; binned {bin_px} x {bin_px} "
+                                       f"pixels (the {session.camera.width} x {session.camera.height} image to "
+                                       f"{camera.width} x {camera.height}: a diagnosis renders at most "
+                                       f"{max_pixels} pixels of raw taps; {int(edges.sum())} bins across the scene's "
+                                       "object's outline left out)"} if bin_px > 1 else {}))

@@ -114,7 +114,9 @@ class DiagnosisResult:
                 "split": {"train_frames": self.data.n_train_frames, "test_frames": self.data.n_test_frames,
                           "train_pixels": int(self.data.train_pixels.sum()),
                           "test_pixels": int(self.data.test_pixels.sum()),
-                          "offset_channel": self.data.offset_channel},
+                          "offset_channel": self.data.offset_channel,
+                          # the data are means of binned x binned sensor pixels (1: the sensor's own)
+                          "binned": self.data.bin_px},
                 "data_path": self.data.channels, "noise": self.data.noise,
                 "observability": self.observability.to_json(), "residual_structure": self.structure,
                 "drift": self.drift, "effect_size": self.effect_size, "identifiability": self.identifiability,
@@ -410,6 +412,20 @@ def _channel_tables(data: HeldOutData, model: TwinModel, after_model: TwinModel,
     return out
 
 
+def _add_sampling_variance(data: HeldOutData, model: TwinModel) -> None:
+    """Binned data: the twin's own sampling error is added to the noise of the comparison. A
+    bin's noise is ``bin_px`` times below a pixel's, and the twin's estimate of a bin's light
+    (finitely many samples over an area with edges and texture) is not exact; every prediction
+    shares it (the samples sit where they sit), so it is a variance of the comparison that no
+    candidate can remove."""
+    extra = model.sampling_variance()
+    ratio = float(np.median((extra[:data.n_freq] / data.var_test[:data.n_freq])[:, data.test_pixels]))
+    data.var_train = data.var_train + extra
+    data.var_test = data.var_test + extra
+    data.noise += (f"; plus the binned twin's own sampling variance (two renders with independent sample "
+                   f"placement; {100 * ratio:.1f} % of the held-out noise variance at the median pixel)")
+
+
 def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_relative_gain: float = 0.02,
              candidates: list[str] | None = None, block_px: int = 8, max_frames: int | None = None,
              render_kwargs: dict[str, Any] | None = None, progress: Callable[[str], None] | None = None,
@@ -446,6 +462,8 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
         # every candidate's prediction gets its own gain: the scale fitted on the base twin
         # would otherwise charge a cause that adds light everywhere for the share it took up
         model.enable_gain_profile()
+    if data.bin_px > 1:
+        _add_sampling_variance(data, model)
     if progress:
         progress(model.setup.note)
         progress(scale.text())
@@ -558,6 +576,22 @@ def diagnose(session_path: str | Path, scene: Any, *, max_effects: int = 3, min_
                            ledger=decision.ledger() | {"searches": list(selection.searches)})
 
 
+def at_sensor_pixels(doc: dict[str, Any], bin_px: int) -> dict[str, Any]:
+    """A diagnosis's fitted parameters in the sensor's pixels: a diagnosis on ``bin_px x
+    bin_px`` binned data fits lengths in pixels (unit ``px``) of the binned camera, which are
+    ``bin_px`` of the sensor's (a PSF file is applied to the sensor's frames)."""
+    if bin_px == 1:
+        return doc
+    from tofhil.sim.effects import EFFECTS
+
+    params = {}
+    for name, values in (doc.get("params") or {}).items():
+        spec = EFFECTS[name].params if name in EFFECTS else {}
+        params[name] = {k: v * bin_px if k in spec and spec[k].unit == "px" and isinstance(v, (int, float)) else v
+                        for k, v in values.items()}
+    return doc | {"params": params}
+
+
 def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str | Path, *, force: bool = False,
                   progress: Callable[[str], None] | None = None, **kwargs: Any) -> DiagnosisResult:
     """``tofhil diagnose``: diagnose and write diagnosis.json, extended_scene.yaml, report.html
@@ -593,7 +627,8 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
             from tofhil.eval.corrections.straylight import psf_from_diagnosis
 
             written.append(out / "stray_light_psf.json")
-            psf_from_diagnosis(res.to_json(), out / "diagnosis.json").save(out / "stray_light_psf.json", force=True)
+            psf_from_diagnosis(at_sensor_pixels(res.to_json(), res.data.bin_px),
+                               out / "diagnosis.json").save(out / "stray_light_psf.json", force=True)
         written.append(out / "report.html")
         write_report(res, out / "report.html", session_path=str(session_path), scene_path=str(scene_path),
                      camera=scene.camera)

@@ -130,16 +130,29 @@ def session_setup_for(scene: Any, data: HeldOutData) -> Any:
     tap phases, integration time and camera with the rest from the scene."""
     from tofhil.sim.session_setup import session_setup
 
-    return session_setup(scene.sensor, camera=data.camera, freq_hz=data.freq_hz, theta_rad=data.theta_rad,
-                         integration_time_s=data.integration_time_s, recorded=data.sensor_config,
-                         source=data.source)
+    setup = session_setup(scene.sensor, camera=data.camera, freq_hz=data.freq_hz, theta_rad=data.theta_rad,
+                          integration_time_s=data.integration_time_s, recorded=data.sensor_config,
+                          source=data.source)
+    fp = setup.sensor.fixed_pattern
+    if data.bin_px > 1 and data.sensor_shape is not None and (fp.prnu > 0 or fp.dsnu_e > 0) and fp.binned is None:
+        # the binned data hold each bin's mean of the sensor's pattern: the twin's pixels too
+        fp = dataclasses.replace(fp, binned=(data.bin_px, *data.sensor_shape))
+        setup = dataclasses.replace(setup, sensor=dataclasses.replace(setup.sensor, fixed_pattern=fp))
+    return setup
 
 
 def session_scene(scene: Any, data: HeldOutData) -> Any:
     """The scene set to the session's camera and sensor (see :func:`session_setup_for`)."""
     from tofhil.sim.session_setup import scene_for_setup
 
-    return scene_for_setup(scene, session_setup_for(scene, data))
+    out = scene_for_setup(scene, session_setup_for(scene, data))
+    if data.bin_px > 1:
+        # A binned pixel is the mean of bin_px^2 pixels: the twin samples it as densely as the
+        # scene samples the sensor's pixels (what sampling error is left, a bin's noise being
+        # bin_px times lower, is measured and added to the noise: TwinModel.sampling_variance)
+        spp = out.render.samples_per_pixel * data.bin_px ** 2
+        out = dataclasses.replace(out, render=dataclasses.replace(out.render, samples_per_pixel=spp))
+    return out
 
 
 class TwinModel:
@@ -228,6 +241,17 @@ class TwinModel:
 
     #: :meth:`predict` takes ``pixels`` (a fit asks only for its pixels).
     predicts_pixels = True
+
+    def sampling_variance(self) -> np.ndarray:
+        """The variance per real component ``[C, H, W]`` of the base prediction's own Monte
+        Carlo error: the same twin rendered with an independent placement of its samples (the
+        render seed's per-pixel shift), ``|p1 - p0|^2 / 4`` pooled as the noise is."""
+        from tofhil.eval.metrics.noise import pooled_variance
+
+        render = dataclasses.replace(self.scene.render, seed=self.scene.render.seed + 1)
+        other = TwinModel(dataclasses.replace(self.scene, render=render), self.data, sensor=self.scene.sensor)
+        other.profile_gain, other._log_ratio_scale = self.profile_gain, self._log_ratio_scale
+        return pooled_variance(np.abs(other.predict({}) - self.predict({})) ** 2 / 4.0)
 
     def predict(self, active: EffectParams, pixels: np.ndarray | None = None) -> np.ndarray:
         """Predicted channels ``[C, H, W]`` (S per frequency, then the offset if used).
