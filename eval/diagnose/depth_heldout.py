@@ -358,7 +358,7 @@ def split_depth_session(session: Session, scene: Any | None = None, *, block_px:
                        noise=noise, phase_ref=ref, radial_var_scale=radial_scale,
                        amplitude_model_error=amplitude_model_error or None, frames_held_out=n >= 2,
                        s_frames=s_all if n >= 2 else None,
-                       defects=defects if b == 1 else binned_defects(defects, b))
+                       defects=defects if b == 1 else binned_defects(defects, b), sensor_shape=cam.shape)
 
 
 def _frame_defects(session: Session, cam: Any, valid_mask: np.ndarray | None) -> Defects:

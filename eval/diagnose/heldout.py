@@ -85,8 +85,9 @@ class HeldOutData:
     usable_test_frames: np.ndarray | None = field(default=None, repr=False)
     #: The training frames on the held-out blocks (chosen on the held-out frames); None: ``test_pixels``.
     tune_pixels: np.ndarray | None = field(default=None, repr=False)
-    #: The data are the means of ``bin_px x bin_px`` blocks of the sensor's pixels
-    #: (:mod:`tofhil.binning`); ``camera`` is the binned camera, ``sensor_shape`` the sensor's.
+    #: Raw taps: the data are the means of ``bin_px x bin_px`` blocks of the sensor's pixels
+    #: (:mod:`tofhil.binning`), and the twin is binned alike (samples, fixed pattern, its own
+    #: sampling variance). ``camera`` is the binned camera, ``sensor_shape`` the sensor's.
     bin_px: int = 1
     sensor_shape: tuple[int, int] | None = None
     _fit_pixels: np.ndarray | None = field(default=None, repr=False, compare=False)
@@ -94,6 +95,14 @@ class HeldOutData:
     #: Per part, the measured side of its whitened residual (a fit evaluates it thousands of
     #: times): (s, var, mask) as given, the flat pixel indices, s and sigma there.
     _gathered: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def binned_by(self) -> int:
+        """How many sensor pixels a pixel of the data spans along each axis (raw taps binned
+        by ``bin_px``, a depth session by its own binning; 1: the sensor's pixels)."""
+        if self.sensor_shape is None:
+            return self.bin_px
+        return max(self.bin_px, self.sensor_shape[1] // self.camera.width)
 
     @property
     def var_frame(self) -> np.ndarray:

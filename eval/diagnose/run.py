@@ -116,7 +116,7 @@ class DiagnosisResult:
                           "test_pixels": int(self.data.test_pixels.sum()),
                           "offset_channel": self.data.offset_channel,
                           # the data are means of binned x binned sensor pixels (1: the sensor's own)
-                          "binned": self.data.bin_px},
+                          "binned": self.data.binned_by},
                 "data_path": self.data.channels, "noise": self.data.noise,
                 "observability": self.observability.to_json(), "residual_structure": self.structure,
                 "drift": self.drift, "effect_size": self.effect_size, "identifiability": self.identifiability,
@@ -627,7 +627,7 @@ def run_diagnosis(session_path: str | Path, scene_path: str | Path, out_dir: str
             from tofhil.eval.corrections.straylight import psf_from_diagnosis
 
             written.append(out / "stray_light_psf.json")
-            psf_from_diagnosis(at_sensor_pixels(res.to_json(), res.data.bin_px),
+            psf_from_diagnosis(at_sensor_pixels(res.to_json(), res.data.binned_by),
                                out / "diagnosis.json").save(out / "stray_light_psf.json", force=True)
         written.append(out / "report.html")
         write_report(res, out / "report.html", session_path=str(session_path), scene_path=str(scene_path),

@@ -97,6 +97,7 @@ def test_one_frame_depth_session_splits_into_pixel_blocks_and_bins_large_images(
     with open_session(path) as s:
         data = split_depth_session(s, bench_scene, max_pixels=5000)
     assert data.camera.width == 320 // 4 and data.camera.height == 240 // 4   # 76800 px -> 4 x 4 bins
+    assert data.binned_by == 4 and data.bin_px == 1   # (the twin of a depth session is not binned alike)
     assert data.n_train_frames == data.n_test_frames == 1
     assert not (data.train_pixels & data.test_pixels).any()
     assert data.train_pixels.sum() > 0.4 * data.usable.sum() and data.test_pixels.sum() > 0.4 * data.usable.sum()
