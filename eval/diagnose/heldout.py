@@ -344,8 +344,8 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
 
     An image of more than ``max_pixels`` is binned (:func:`bin_taps`): saturation and defects
     are found on the full image, then the taps of each ``b x b`` block are averaged and the
-    rest of the diagnosis sees the binned camera; blocks across a depth edge, or across an
-    object's outline in ``object_id`` (the scene's object of each sensor pixel), are left out.
+    rest of the diagnosis sees the binned camera; blocks across an object's outline in
+    ``object_id`` (the scene's object of each sensor pixel) are left out.
     """
     if not session.has_raw:
         raise TofhilError("diagnosis needs raw taps (the complex signal); this session has depth only",
