@@ -176,6 +176,7 @@ class TwinModel:
 
         self.setup = session_setup_for(scene, data)
         self.scene = session_scene(scene, data)
+        self._given_scene = scene
         if sensor is not None:
             self.scene = dataclasses.replace(self.scene, sensor=sensor)
             self.setup = dataclasses.replace(self.setup, sensor=sensor)
@@ -254,8 +255,10 @@ class TwinModel:
         render seed's per-pixel shift), ``|p1 - p0|^2 / 4`` pooled as the noise is."""
         from tofhil.eval.metrics.noise import pooled_variance
 
-        render = dataclasses.replace(self.scene.render, seed=self.scene.render.seed + 1)
-        other = TwinModel(dataclasses.replace(self.scene, render=render), self.data, sensor=self.scene.sensor)
+        # (from the scene as given: set to the session again, it takes the same samples)
+        given = self._given_scene
+        render = dataclasses.replace(given.render, seed=given.render.seed + 1)
+        other = TwinModel(dataclasses.replace(given, render=render), self.data, sensor=self.scene.sensor)
         other.profile_gain, other._log_ratio_scale = self.profile_gain, self._log_ratio_scale
         return pooled_variance(np.abs(other.predict({}) - self.predict({})) ** 2 / 4.0)
 

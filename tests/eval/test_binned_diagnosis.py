@@ -89,6 +89,13 @@ def test_the_binned_twin_predicts_the_means_of_the_full_twin(null_session, scene
     z = (pb - pf)[:, ok] / np.sqrt(binned.var_test[:, ok])
     # (the twin's sampling error: a fraction of the noise, and no bias)
     assert np.sqrt(np.mean(np.abs(z) ** 2)) < 0.5 and np.all(np.abs(z.mean(axis=1)) < 0.05)
+    # the twin samples a bin as the scene samples its 4 pixels, and its own sampling variance is
+    # measured with as many samples (a second render, independent placement): a small part of
+    # the noise
+    model = TwinModel(scene, binned)
+    assert model.scene.render.samples_per_pixel == 4 * scene.render.samples_per_pixel
+    extra = model.sampling_variance()
+    assert 0 < np.median((extra / binned.var_test)[:, ok]) < 0.1
     # and the fixed pattern alone: the binned sensor's is the mean of the sensor's pixels'
     from tofhil.sim.sensor import SensorModel
 
