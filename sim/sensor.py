@@ -37,6 +37,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from tofhil import C_M_PER_S
+from tofhil.binning import bin_mean
 from tofhil.camera import CameraModel
 from tofhil.frames import RawFrame
 
@@ -403,8 +404,6 @@ class SensorModel:
             off = fp.dsnu_e * rng.standard_normal(shape) if fp.dsnu_e > 0 else np.zeros(shape)
             gain = np.clip(gain, 0.0, None)
             if b > 1:
-                from tofhil.binning import bin_mean
-
                 gain, off = bin_mean(gain, b), bin_mean(off, b)
             h, w = self.camera.shape
             if gain.shape[-2:] != (h, w):

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from tofhil.binning import bin_mean
 from tofhil.eval.metrics.noise import MAD_TO_SIGMA
 
 #: A pixel's temporal variance this many times (or this fraction of) what the noise model
@@ -303,8 +304,6 @@ BIN_USABLE_SHARE = 0.75
 def binned_defects(defects: Defects, b: int) -> Defects:
     """Defects on the binned grid: a bin whose defective pixels are more than it can spare
     (:data:`BIN_USABLE_SHARE`) is one; the others are the mean of their good pixels."""
-    from tofhil.binning import bin_mean
-
     shape = (defects.shape[0] // b, defects.shape[1] // b)
     # a bin holding a saturated pixel is saturated: the mean of the others is not the bin's light
     out = Defects(shape, notes=list(defects.notes), saturated=bin_mean(defects.saturated.astype(float), b) > 0)

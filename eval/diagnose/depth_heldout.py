@@ -384,12 +384,11 @@ def split_for_diagnosis(session: Session, scene: Any, *, block_px: int = 8, max_
                         valid_mask: np.ndarray | None = None, amplitude_model_error: float | None = None
                         ) -> HeldOutData:
     """Raw taps when the session has them, else its depth and amplitude (this module)."""
-    from tofhil.eval.diagnose.heldout import MAX_RAW_DIAGNOSIS_PIXELS, split_session
+    from tofhil.eval.diagnose.heldout import split_session
 
     if session.has_raw:
         return split_session(session, block_px=block_px, max_frames=max_frames,
-                             object_id=_objects_on_sensor(scene, session.camera)
-                             if bin_factor(session.camera.shape, MAX_RAW_DIAGNOSIS_PIXELS) > 1 else None)
+                             objects_on_sensor=lambda camera: _objects_on_sensor(scene, camera))
     return split_depth_session(session, scene, block_px=block_px, max_frames=max_frames, valid_mask=valid_mask,
                                amplitude_model_error=amplitude_model_error)
 

@@ -14,7 +14,7 @@ frames is enough.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -332,7 +332,7 @@ def bin_taps(taps: np.ndarray, clipped: np.ndarray, defects: Any, b: int,
 def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: float = 3.0,
                   saturation_dn: float | None = None, max_frames: int | None = None,
                   offset_channel: bool | None = None, max_pixels: int = MAX_RAW_DIAGNOSIS_PIXELS,
-                  object_id: np.ndarray | None = None) -> HeldOutData:
+                  objects_on_sensor: Callable[[CameraModel], np.ndarray | None] | None = None) -> HeldOutData:
     """Average a session's frames into training and held-out signals.
 
     Needs at least 2 frames with raw taps (4 or more recommended). Pixels whose amplitude is
@@ -344,8 +344,9 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
 
     An image of more than ``max_pixels`` is binned (:func:`bin_taps`): saturation and defects
     are found on the full image, then the taps of each ``b x b`` block are averaged and the
-    rest of the diagnosis sees the binned camera; blocks across an object's outline in
-    ``object_id`` (the scene's object of each sensor pixel) are left out.
+    rest of the diagnosis sees the binned camera; blocks across an object's outline are left
+    out (``objects_on_sensor(camera)``: the scene's object of each sensor pixel, asked for only
+    when the image is binned).
     """
     if not session.has_raw:
         raise TofhilError("diagnosis needs raw taps (the complex signal); this session has depth only",
@@ -356,8 +357,6 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
                           expected="at least 2 frames (training and held-out), 4 or more recommended")
     frames = [session.raw_frame(i) for i in range(n)]
     taps = np.stack([f.taps.astype(np.float64) for f in frames])  # [N, F, K, H, W]
-    s = np.stack([phasor(t, f.theta_rad) for t, f in zip(taps, frames)])  # [N, F, H, W]
-    b = np.stack([f.taps.astype(np.float64).mean(axis=(0, 1)) for f in frames])  # [N, H, W]
     taps_max = np.stack([f.taps.max(axis=(0, 1)) for f in frames]).max(axis=0)
     taps_min = np.stack([f.taps.min(axis=(0, 1)) for f in frames]).min(axis=0)
     # Saturated taps: the one definition of the core (tofhil.demod). Limits given or declared
@@ -369,11 +368,12 @@ def split_session(session: Session, *, block_px: int = 8, min_amplitude_sigma: f
     camera, bin_px = session.camera, bin_factor(session.camera.shape, max_pixels)
     edges = np.zeros(camera.shape, bool)
     if bin_px > 1:
-        oid = None if object_id is None or object_id.shape != camera.shape else object_id
+        oid = None if objects_on_sensor is None else objects_on_sensor(camera)
+        oid = None if oid is None or oid.shape != camera.shape else oid
         taps, clipped, defects, edges = bin_taps(taps, clipped, defects, bin_px, oid)
         camera = binned_camera(camera, bin_px)
-        s = np.stack([phasor(t, f.theta_rad) for t, f in zip(taps, frames)])
-        b = taps.mean(axis=(1, 2))
+    s = np.stack([phasor(t, f.theta_rad) for t, f in zip(taps, frames)])  # [N, F, H, W]
+    b = np.stack([t.mean(axis=(0, 1)) for t in taps])  # [N, H, W]
     offset_mean = b.mean(axis=0)
     if offset_channel is None:
         noise_b = float(np.median(b.std(axis=0, ddof=1))) if n > 1 else 0.0
