@@ -407,8 +407,11 @@ class SensorModel:
                 gain, off = bin_mean(gain, b), bin_mean(off, b)
             h, w = self.camera.shape
             if gain.shape[-2:] != (h, w):
-                raise ValueError(f"fixed pattern {gain.shape[-2:]} (binned {b} x {b} from {sensor}) does not "
-                                 f"fit the camera {self.camera.shape}")
+                from tofhil.errors import TofhilError
+
+                raise TofhilError(f"is {[b, *sensor]}: binned, {gain.shape[-2]} x {gain.shape[-1]} pixels (height x "
+                                  f"width)", field="sensor.fixed_pattern.binned",
+                                  expected=f"a sensor that binned {b} x {b} gives the camera's {h} x {w} pixels")
             self._pattern = (gain, off)
         return self._pattern
 

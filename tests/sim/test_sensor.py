@@ -228,3 +228,17 @@ def test_two_frequencies_are_exposed_independently() -> None:
     f = sens.expose(_plane_signal(cam, 5.2, 1e-11, freqs=(80e6, 100e6)), noise=False)
     # Unwrapping the two frequencies recovers 5.2 m, beyond both single ambiguity ranges.
     np.testing.assert_allclose(depth_from_raw(f).distance_m, 5.2, atol=1e-4)
+
+
+def test_a_binned_fixed_pattern_that_does_not_fit_the_camera_is_one_line(tmp_path, tofhil_cli):
+    """A scene whose ``sensor.fixed_pattern.binned`` names a sensor that does not bin to its
+    camera: one line naming the field, exit 2 (it was a ValueError's traceback)."""
+    from tofhil.sim.scene import load_scene, scene_to_yaml
+
+    text = scene_to_yaml(load_scene("dark_square")).replace("seed: 1", "seed: 1, binned: [2, 100, 100]", 1)
+    assert "binned: [2, 100, 100]" in text
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    r = tofhil_cli("simulate", path, "--out", tmp_path / "x.h5", "--frames", "2")
+    assert r.returncode == 2 and "sensor.fixed_pattern.binned" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "x.h5").exists()
