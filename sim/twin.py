@@ -27,7 +27,8 @@ import numpy as np
 from tofhil.content_cache import LRUCache
 from tofhil.frames import RawFrame
 from tofhil.progress import Progress
-from tofhil.sim.effects import (EFFECTS, ORDER, Effect, EffectContext, WigglingEffect, apply_scene_effects,
+from tofhil.sim.effects import (EFFECTS, ORDER, Effect, EffectContext, ParsedEffects, WigglingEffect,
+                                apply_scene_effects,
                                 apply_tap_effects,
                                 apply_signal_effects, effects_by_stage, parse_effects, render_requirements)
 from tofhil.sim.memory import check_memory, render_memory
@@ -173,15 +174,16 @@ class Twin:
     ``sensor`` defaults to the scene's interpreted ``sensor:`` block; ``effects`` (the base
     effect set, what the scene models) to its ``effects:`` block. ``render_kwargs`` are
     passed to every render (e.g. harmonics to compute explicitly). Renders are kept in a
-    least-recently-used cache of ``cache_size`` entries keyed by content (the render of the
-    base effect set pinned: :class:`RenderCache`), or in ``cache``, one shared with other
+    least-recently-used cache of ``cache_size`` entries and ``cache_bytes`` keyed by content
+    (the render of the base effect set pinned: :class:`RenderCache`), or in ``cache``, one shared with other
     twins of the same scene; the scene is treated as immutable (derive changed scenes with
     ``dataclasses.replace``).
     """
 
     def __init__(self, scene: Any, *, sensor: SensorConfig | None = None, effects: Mapping[str, Any] | None = None,
                  render_kwargs: Mapping[str, Any] | None = None, cache_size: int = 8,
-                 progress: Progress | None = None, frames_kept: int = 0, cache: RenderCache | None = None) -> None:
+                 progress: Progress | None = None, frames_kept: int = 0, cache: RenderCache | None = None,
+                 cache_bytes: int = 32 * 2 ** 20) -> None:
         from tofhil.sim.pipeline import resolve_effects, sensor_config
 
         self.scene = scene
@@ -191,7 +193,7 @@ class Twin:
         self.progress = progress
         self.frames_kept = frames_kept  # frames a caller holds at once (for the memory check)
         self.cache_size = cache_size
-        self.cache = cache if cache is not None else RenderCache(cache_size)
+        self.cache = cache if cache is not None else RenderCache(cache_size, cache_bytes)
         # Renders of some pixels (a fit's; each Jacobian column of a scene-stage parameter is
         # a new one): few are ever asked for again, and each holds full-frame arrays.
         self.pixel_cache = RenderCache(2)
@@ -243,6 +245,8 @@ class Twin:
         their defaults, as in a scene file)."""
         if effects is None:
             return self.base_effects
+        if isinstance(effects, ParsedEffects):
+            return effects
         return parse_effects(effects, source=getattr(self.scene, "source", "<scene>"))
 
     # ------------------------------------------------------------------ render (cached)

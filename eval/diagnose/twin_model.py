@@ -23,7 +23,7 @@ import numpy as np
 from tofhil.demod import phasor
 from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal
 from tofhil.eval.diagnose.selection import EffectParams, EffectSpec, FitParam
-from tofhil.sim.effects import EFFECTS, ORDER, Param, PoseEffect, RangeOffsetMapEffect
+from tofhil.sim.effects import EFFECTS, ORDER, Param, ParsedEffects, PoseEffect, RangeOffsetMapEffect
 
 LOG_PREFIX = "log10_"
 #: Huber's constant for the profiled gain's M-estimate, in units of the log ratios' spread: 95 %
@@ -143,6 +143,12 @@ def session_setup_for(scene: Any, data: HeldOutData) -> Any:
 
 #: Most render samples per bin of a binned diagnosis (see :func:`session_scene`).
 MAX_BIN_SAMPLES = 48
+#: The bytes of renders a diagnosis keeps (a cost bound, it decides nothing). Every round tests
+#: each scene-stage form's signature by rendering the same perturbations of its off values,
+#: whole frames once stray light is in the model: at 170 x 170 bins a round's cycle is about
+#: 50 renders of 2-4 MB, which a budget of 8 renders rendered again every round (a fifth of
+#: the render time of a 512 x 512 diagnosis).
+RENDER_CACHE_BYTES = 256 * 2 ** 20
 
 
 def session_scene(scene: Any, data: HeldOutData) -> Any:
@@ -166,7 +172,7 @@ class TwinModel:
     (a :class:`~tofhil.eval.diagnose.selection.ForwardModel`)."""
 
     def __init__(self, scene: Any, data: HeldOutData, *, render_kwargs: Mapping[str, Any] | None = None,
-                 cache_size: int = 8, renders_from: "TwinModel | None" = None, sensor: Any = None) -> None:
+                 cache_size: int = 96, renders_from: "TwinModel | None" = None, sensor: Any = None) -> None:
         """``renders_from``: a model of the same scene whose renders to share (the extended
         scene of a diagnosis renders what the base twin already rendered, unless a
         scene-stage effect was fitted). ``sensor``: the sensor to predict with instead of the
@@ -187,7 +193,7 @@ class TwinModel:
             # only for single-path pixels, and wrong once stray light or multipath mixes paths
             # (the harmonic of a mixture is not the mixture of harmonics).
             kwargs["harmonics"] = tuple(sorted(set(waveform_from_scene(scene)) | {1, 3}))
-        self.twin = Twin(self.scene, render_kwargs=kwargs, cache_size=cache_size,
+        self.twin = Twin(self.scene, render_kwargs=kwargs, cache_size=cache_size, cache_bytes=RENDER_CACHE_BYTES,
                          cache=renders_from.twin.cache if renders_from is not None else None)
         self.twin.differential_readout = bool(getattr(data, "differential_taps", False))
         self.extra_starts: dict[str, list[dict[str, float]]] = {}
@@ -378,7 +384,8 @@ class TwinModel:
         # not profiled: without the light moved between pixels its amplitude ratios are not the
         # device's gain (a dark square lit mostly by stray light), and the fit adds this part's
         # change to the whole (profiled) prediction at its start
-        return self._predict_at({n: v for n, v in effects.items() if n not in moving}, pixels, profile=False)
+        return self._predict_at(ParsedEffects({n: v for n, v in effects.items() if n not in moving}), pixels,
+                                profile=False)
 
     def base_render(self) -> Any:
         return self.twin.render(self.effects_for({}))[1]

@@ -57,7 +57,7 @@ from tofhil.sim.effects.illumination import IlluminationEffect
 from tofhil.sim.effects.multipath import MultipathEffect
 from tofhil.sim.effects.range_errors import FieldAngleEffect, RangeOffsetEffect, RangeOffsetMapEffect
 from tofhil.sim.effects.reflectance import ReflectanceEffect
-from tofhil.sim.effects.registry import (EFFECTS, ORDER, apply_scene_effects, apply_signal_effects, apply_tap_effects,
+from tofhil.sim.effects.registry import (EFFECTS, ORDER, ParsedEffects, apply_scene_effects, apply_signal_effects, apply_tap_effects,
                                          describe_effects,
                                          effects_by_stage, effects_table_markdown, effects_to_block, parse_effects,
                                          register, render_requirements, separation)
@@ -67,7 +67,7 @@ from tofhil.sim.effects.unseen_reflector import UnseenReflectorEffect
 from tofhil.sim.effects.wiggling import WigglingEffect, harmonic_aliases
 
 __all__ = ["ACQUISITION", "AMPLITUDE_KNOTS_LOG10_E", "BENCH_CHANGE", "DEFAULT_SEPARATION", "EFFECTS",
-           "OFFSET_CHANNEL", "ORDER", "SHAPE_SEPARATION", "STAGES", "STAGE_HOOKS", "AmbientEffect", "Separation",
+           "OFFSET_CHANNEL", "ORDER", "ParsedEffects", "SHAPE_SEPARATION", "STAGES", "STAGE_HOOKS", "AmbientEffect", "Separation",
            "AmplitudeDependentEffect", "Effect", "EffectContext", "FieldAngleEffect", "FixedPatternEffect",
            "FrequencyCalibrationEffect", "GainFieldEffect", "IlluminationEffect", "LensDistortionEffect", "MultipathEffect", "OffsetEffect", "OffsetFieldEffect", "Param", "PoseEffect",
            "RangeOffsetEffect", "TapCalibrationEffect", "RangeOffsetMapEffect", "ReflectanceEffect", "StrayLightEffect", "UnseenReflectorEffect",

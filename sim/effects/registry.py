@@ -64,7 +64,14 @@ def separation(a: str, b: str) -> Separation:
     return DEFAULT_SEPARATION
 
 
-def parse_effects(block: Mapping[str, Any] | None, *, source: str | Path = "<effects>") -> dict[str, dict[str, Any]]:
+class ParsedEffects(dict):
+    """An effect set as :func:`parse_effects` returns it: validated, defaults filled, in
+    forward-model order. Read it, do not change it: the twin takes it as it is instead of
+    validating it again (a fit predicts thousands of times, each through several of the
+    twin's methods). A subset of one, in its order, is one too."""
+
+
+def parse_effects(block: Mapping[str, Any] | None, *, source: str | Path = "<effects>") -> ParsedEffects:
     """Validate an ``effects:`` block into ``{name: values}`` in forward-model order.
 
     ``{name: null}`` or ``{name: {}}`` switches the effect on with its defaults; ``{name:
@@ -88,7 +95,7 @@ def parse_effects(block: Mapping[str, Any] | None, *, source: str | Path = "<eff
                                  expected="true or false")
         if enabled:
             out[name] = EFFECTS[name].validate(raw, source=source)
-    return out
+    return ParsedEffects(out)
 
 
 def effects_by_stage(effects: Mapping[str, Mapping[str, Any]], *stages: str) -> list[tuple[Effect, Mapping[str, Any]]]:
