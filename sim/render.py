@@ -245,9 +245,9 @@ _FRAMES = _FramePool()
 #: The uniforms of chunks rendered for some of their pixels (:meth:`_Context._chunk_uniforms`).
 _UNIFORMS = LRUCache(256, 16 << 20, nbytes=lambda a: a.nbytes, thread_safe=True)
 #: Sub-pixel camera rays in the camera's frame and their cos^4, per chunk
-#: (:meth:`_Context._camera_frame_rays`): 32 bytes a sample, a 170 x 170 frame at 48 samples a
-#: pixel is 44 MB.
-_CAMERA_FRAME_RAYS = LRUCache(None, 96 << 20, nbytes=lambda v: v[0].nbytes + v[1].nbytes, thread_safe=True)
+#: (:meth:`_Context._camera_frame_rays`): 32 bytes a sample, so a 170 x 170 frame at 48 samples
+#: a pixel is 44 MB; the budget holds one camera's whole frame and its fit pixels.
+_CAMERA_FRAME_RAYS = LRUCache(None, 64 << 20, nbytes=lambda v: v[0].nbytes + v[1].nbytes, thread_safe=True)
 
 
 def _pixel_weights(view: dict[str, Any], scale: float) -> tuple[np.ndarray, np.ndarray]:

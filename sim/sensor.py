@@ -300,10 +300,25 @@ class OpticalSignal:
     def harmonic(self, h: int) -> np.ndarray:
         """``S_h [F, H, W]``; an order the renderer did not compute is synthesised from the
         fundamental as ``|S_1| exp(i h arg S_1)``, exact for pixels seeing a single path."""
-        if h in self.harmonics:
-            return self.phasor_w[:, self.harmonics.index(h)]
-        s1 = self.phasor_w[:, self.harmonics.index(1)]
-        return np.abs(s1) * np.exp(1j * h * np.angle(s1))
+        return self.harmonic_terms({h: 1.0})[0][1]
+
+    def harmonic_terms(self, coefficients: Mapping[int, complex]) -> list[tuple[int, np.ndarray]]:
+        """``[(h, c_h S_h)]`` for every nonzero coefficient (:meth:`harmonic`); the fundamental's
+        magnitude and phase are taken once for all the orders synthesised."""
+        polar: tuple[np.ndarray, np.ndarray] | None = None
+        out = []
+        for h, coef in coefficients.items():
+            if coef == 0:
+                continue
+            if h in self.harmonics:
+                s_h = self.phasor_w[:, self.harmonics.index(h)]
+            else:
+                if polar is None:
+                    s1 = self.phasor_w[:, self.harmonics.index(1)]
+                    polar = np.abs(s1), np.angle(s1)
+                s_h = polar[0] * np.exp(1j * h * polar[1])
+            out.append((h, s_h if coef == 1.0 and h in self.harmonics else coef * s_h))
+        return out
 
     @classmethod
     def from_render(cls, result: Any, waveform: Mapping[int, complex] | None = None,
@@ -433,7 +448,10 @@ class SensorModel:
 
     def _check_frequencies(self, signal: OpticalSignal) -> None:
         freq = self.config.freq_hz
-        if signal.freq_hz.size != len(freq) or not np.allclose(signal.freq_hz, freq, rtol=1e-9):
+        # (np.allclose's test, |a - b| <= 1e-8 + 1e-9 |b|, on the few frequencies as floats:
+        # numpy's overhead was a percent of a fit)
+        if signal.freq_hz.size != len(freq) or not all(abs(float(a) - float(b)) <= 1e-8 + 1e-9 * abs(float(b))
+                                                       for a, b in zip(signal.freq_hz, freq)):
             raise ValueError(f"signal frequencies {signal.freq_hz.tolist()} differ from the sensor's {list(freq)}")
 
     def expected_electrons(self, signal: OpticalSignal) -> np.ndarray:
@@ -487,7 +505,7 @@ class SensorModel:
         else:
             self._check_signal(signal)
         theta = self.theta_rad
-        terms = [(h, coef * signal.harmonic(h)) for h, coef in signal.waveform.items() if coef != 0]
+        terms = signal.harmonic_terms(signal.waveform)
         shape = (signal.freq_hz.size,) + signal.shape
         s = np.stack([t for _, t in terms]) if terms else np.zeros((0,) + shape, dtype=np.complex128)
         hs = np.array([h for h, _ in terms], dtype=np.float64)

@@ -29,6 +29,7 @@ from typing import Any, Callable, Mapping, Protocol, Sequence
 import numpy as np
 from scipy.optimize import least_squares
 
+from tofhil.content_cache import content_digest
 from tofhil.eval.diagnose.heldout import HUBER_SIGMA, HeldOutData, huber, predict_fit
 from tofhil.eval.diagnose.form_prior import regularise_form
 from tofhil.eval.diagnose.ambiguity import Ambiguity, same_residual, sets_alike
@@ -42,6 +43,9 @@ EffectParams = dict[str, dict[str, float]]
 #: rounds closest in score to the cause chosen; two more searches at most, each over its
 #: round's significant effects only.
 EXTRA_STARTS = 2
+#: Refits of a chosen set without one cause kept for reuse (:meth:`_GreedySearch._refit_without`;
+#: each holds a prediction, a few MB at 170 x 170 bins).
+MAX_KEPT_REFITS = 48
 #: How a partial form is named: its flexible form, this, and the parameter groups left out.
 PARTIAL = " without "
 
@@ -440,9 +444,11 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     held-out RMSE gain reaches the minimum of some channel
     (:meth:`tofhil.eval.diagnose.verdict.EffectSize.worth_naming`).
     """
+    refits: dict[str, tuple[EffectParams, float, np.ndarray]] = {}  # shared: the searches refit the same sets
+
     def new_search() -> _GreedySearch:
         return _GreedySearch(model, data, max_effects=max_effects, min_relative_gain=min_relative_gain,
-                             progress=progress, effect_size=effect_size)
+                             progress=progress, effect_size=effect_size, refits=refits)
 
     search = new_search()
     names = list(candidates if candidates is not None else search.lib)
@@ -521,8 +527,13 @@ class _GreedySearch:
 
     def __init__(self, model: ForwardModel, data: HeldOutData, *, max_effects: int, min_relative_gain: float,
                  progress: Callable[[str], None] | None,
-                 effect_size: EffectSize | None) -> None:
+                 effect_size: EffectSize | None,
+                 refits: dict[str, tuple[EffectParams, float, np.ndarray]] | None = None) -> None:
         self.model, self.data, self.progress, self.effect_size = model, data, progress, effect_size
+        #: The chosen set without one cause, refitted, by the state it was refitted from: the
+        #: prune tests each cause against the others refitted, and the exchange then drops each
+        #: from the same state (and the branches reach the same states): one fit, not two.
+        self.refits = {} if refits is None else refits
         self.min_relative_gain = min_relative_gain
         self.lib = model.library()
         self.n_test = data.n_values("test")
@@ -643,9 +654,15 @@ class _GreedySearch:
     def _refit_without(self, e: str) -> tuple[EffectParams, float, np.ndarray]:
         """The chosen set without ``e``, the others refitted: their values, held-out misfit, prediction."""
         rest = [a for a in self.active if a != e]
-        refit, _ = fit(self.model, self.data, rest, {a: self.params[a] for a in rest}, lib=self.work)
-        pred = self.model.predict(refit)
-        return refit, self.data.chi2(pred, "test"), pred
+        key = content_digest(rest, {a: self.params[a] for a in rest},
+                             {a: (self.work[a].form, self.work[a].strength) for a in rest})
+        if key not in self.refits:
+            refit, _ = fit(self.model, self.data, rest, {a: self.params[a] for a in rest}, lib=self.work)
+            pred = self.model.predict(refit)
+            if len(self.refits) >= MAX_KEPT_REFITS:
+                del self.refits[next(iter(self.refits))]
+            self.refits[key] = (refit, self.data.chi2(pred, "test"), pred)
+        return self.refits[key]
 
     def _drop(self, e: str, without: tuple[EffectParams, float, np.ndarray] | None = None) -> None:
         """``e`` out of the chosen set, the others at their values without it (refitted if not given)."""

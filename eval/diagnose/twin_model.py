@@ -202,6 +202,7 @@ class TwinModel:
         #: the scale was fitted (``signal_scale``), since there a global gain is a nuisance.
         self.profile_gain = False
         self._log_ratio_scale: float | None = None
+        self._measured: dict[tuple[int, bytes], np.ndarray] = {}
 
     # ---------------------------------------------------------------- library
     def library(self) -> dict[str, EffectSpec]:
@@ -303,10 +304,22 @@ class TwinModel:
         averaged), or None where fewer than 20 pixels hold both."""
         nf = self.data.n_freq
         use = self.data.fit_pixels & pixels
-        meas = np.abs(self.data.s_train[:nf][:, use]).mean(axis=0)
+        meas = self._measured_magnitude(use)
         pred = np.abs(s[:nf][:, use]).mean(axis=0)
         ok = (meas > 0) & (pred > 0)
         return np.log(meas[ok] / pred[ok]) if ok.sum() >= 20 else None
+
+    def _measured_magnitude(self, use: np.ndarray) -> np.ndarray:
+        """``|S_measured|`` of the training frames on the pixels of ``use``, the frequencies
+        averaged: kept for the last few masks (every prediction of a fit profiles its gain on
+        the same pixels)."""
+        key = (id(self.data.s_train), np.packbits(use).tobytes())
+        meas = self._measured.get(key)
+        if meas is None:
+            if len(self._measured) >= 4:
+                self._measured.clear()
+            meas = self._measured[key] = np.abs(self.data.s_train[:self.data.n_freq][:, use]).mean(axis=0)
+        return meas
 
     @staticmethod
     def _robust_spread(lr: np.ndarray) -> float:
