@@ -186,12 +186,10 @@ _CONSTANTS = LRUCache(4, thread_safe=True)
 
 
 def _constant(kind: str, n: int) -> np.ndarray:
-    """``np.arange(n)`` (``"index"``), ``np.zeros(n)`` (``"zeros"``) or ``np.ones(n)``
-    (``"ones"``), shared: never write to it."""
+    """``np.arange(n)`` (``"index"``) or ``np.zeros(n)`` (``"zeros"``), shared: never write to it."""
     a = _CONSTANTS.get((kind, n))
     if a is None:
-        a = (np.arange(n, dtype=np.int64) if kind == "index" else np.ones(n) if kind == "ones"
-             else np.zeros(n))
+        a = np.arange(n, dtype=np.int64) if kind == "index" else np.zeros(n)
         _CONSTANTS.put((kind, n), a)
     return a
 
@@ -244,10 +242,6 @@ _FRAMES = _FramePool()
 
 #: The uniforms of chunks rendered for some of their pixels (:meth:`_Context._chunk_uniforms`).
 _UNIFORMS = LRUCache(256, 16 << 20, nbytes=lambda a: a.nbytes, thread_safe=True)
-#: Sub-pixel camera rays in the camera's frame and their cos^4, per chunk
-#: (:meth:`_Context._camera_frame_rays`): 32 bytes a sample, so a 170 x 170 frame at 48 samples
-#: a pixel is 44 MB; the budget holds one camera's whole frame and its fit pixels.
-_CAMERA_FRAME_RAYS = LRUCache(None, 64 << 20, nbytes=lambda v: v[0].nbytes + v[1].nbytes, thread_safe=True)
 
 
 def _pixel_weights(view: dict[str, Any], scale: float) -> tuple[np.ndarray, np.ndarray]:
@@ -271,7 +265,6 @@ class _Context:
                  subpixel: bool, sampler: str, pose: np.ndarray, shares: bool = False,
                  pixels: np.ndarray | None = None) -> None:
         self.scene, self.camera = scene, camera
-        self._camera_digest: str | None = None  # (of the intrinsics the camera rays depend on)
         # Only these pixels are traced (flat bool mask), each with exactly the samples of a
         # full render: the chunks, their random streams and the sample order are the full
         # render's, so a traced pixel's value is bit-identical to the full frame's.
@@ -419,31 +412,6 @@ class _Context:
             _UNIFORMS.put(key, u)
         return u
 
-    def _camera_frame_rays(self, chunk: int, p0: int, p1: int, keep_pix: np.ndarray | None,
-                           U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The sub-pixel rays of pixels ``p0:p1`` in the camera's frame and their cos^4, kept by
-        the camera's intrinsics and the chunk's samples (:data:`_CAMERA_FRAME_RAYS`): a fit of
-        the pose, the emitter or the scene renders the same camera rays at every evaluation,
-        and inverting the lens model per sample is a fifth of such a render."""
-        cam = self.camera
-        if self._camera_digest is None:
-            self._camera_digest = content_digest(cam.fx, cam.fy, cam.cx, cam.cy, np.asarray(cam.kernel_coeffs),
-                                                 bool(cam.is_fisheye), self.W)
-        key = (self._camera_digest, self.sampler, self.spp, self.dims, self.share, self.seed, chunk, p0, p1,
-               None if keep_pix is None else content_digest(np.asarray(keep_pix, dtype=bool)))
-        hit = _CAMERA_FRAME_RAYS.get(key)
-        if hit is not None:
-            return hit
-        d_cam, cos4 = np.empty((len(U), 3)), np.empty(len(U))
-        kernels.subpixel_rays(np.arange(p0, p1) if keep_pix is None else p0 + np.flatnonzero(keep_pix), self.spp,
-                              self.W, U, cam.fx, cam.fy, cam.cx, cam.cy, np.asarray(cam.kernel_coeffs),
-                              LENS_MAX_ITER, np.eye(3), False, _constant("ones", self.H * self.W), d_cam, cos4,
-                              cam.is_fisheye, self.share)
-        d_cam.setflags(write=False)
-        cos4.setflags(write=False)
-        _CAMERA_FRAME_RAYS.put(key, (d_cam, cos4))
-        return d_cam, cos4
-
     # ------------------------------------------------------------------ one chunk
     def run_chunk(self, chunk: int, p0: int, p1: int, dest: dict[str, np.ndarray] | None = None
                   ) -> dict[str, np.ndarray]:
@@ -493,16 +461,15 @@ class _Context:
         if keep_pix is not None:
             pix = pix[keep_pix[pix - p0]]
         if self.subpixel and not self.thin_lens:
-            # Sub-pixel rays through the pinhole: the camera model's inversion in a compiled
-            # pass (camera_frame_rays, the same for every pose of one camera), then weighted
-            # and rotated (operation by operation the single pass's arithmetic).
-            d_cam, cos4 = self._camera_frame_rays(chunk, p0, p1, keep_pix, U)
-            beta = self.pix_weight[pix] * cos4
-            if np.array_equal(self.R, np.eye(3)):
-                dirs = d_cam.copy()
-            else:
-                dirs = np.empty_like(d_cam)
-                kernels.rotate_rows(d_cam, self.R, dirs)
+            # Sub-pixel rays through the pinhole: generated, weighted and rotated in one
+            # compiled pass (the camera model's arithmetic, no per-sample temporaries).
+            dirs, beta = np.empty((len(U), 3)), np.empty(len(U))
+            cam = self.camera
+            kernels.subpixel_rays(np.arange(p0, p1) if keep_pix is None else p0 + np.flatnonzero(keep_pix), spp,
+                                  self.W, U, cam.fx, cam.fy, cam.cx, cam.cy,
+                                  np.asarray(cam.kernel_coeffs), LENS_MAX_ITER, self.R,
+                                  not np.array_equal(self.R, np.eye(3)), self.pix_weight, dirs, beta,
+                                  cam.is_fisheye, self.share)
         elif self.subpixel:
             uu = (pix % self.W) + U[:, 0] - 0.5
             vv = (pix // self.W) + U[:, 1] - 0.5

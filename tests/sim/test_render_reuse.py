@@ -3,7 +3,6 @@ and a reused frame renders exactly what a new one does."""
 
 from __future__ import annotations
 
-import dataclasses
 import gc
 
 import numpy as np
@@ -62,27 +61,3 @@ def test_a_reused_frame_renders_what_a_new_one_does() -> None:
         _same(r, refs[2])
         del r
     assert render_mod._FRAMES._sets, "nothing was kept for reuse"
-
-
-def test_camera_rays_kept_for_one_camera_render_every_pose_as_new_ones() -> None:
-    """The sub-pixel camera rays of a camera are kept across renders (a fit renders one camera
-    at many poses): a render with them kept equals one that made them, bit for bit, for a
-    distorted lens, a turned pose and some pixels only."""
-    from tofhil.sim import render as R
-    from tofhil.sim.effects import EFFECTS
-
-    sc = load_scene("bench_demo")
-    cam = dataclasses.replace(sc.camera.scaled(0.4), dist=(0.08, -0.02, 0.001, 0.0, 0.0))
-    sc = dataclasses.replace(sc, camera=cam, render=dataclasses.replace(sc.render, samples_per_pixel=4))
-    turned = EFFECTS["pose"].apply_scene(sc, EFFECTS["pose"].validate({"rx": 0.012, "tz": 0.01}))
-    mask = np.random.default_rng(5).random(cam.shape) < 0.2
-    R._CAMERA_FRAME_RAYS.clear()
-    R.render(sc, harmonics=(1, 3))                      # the camera's rays made (base pose)
-    R.render(sc, harmonics=(1, 3), pixels=mask)
-    warm = [R.render(turned, harmonics=(1, 3)), R.render(turned, harmonics=(1, 3), pixels=mask)]
-    assert len(R._CAMERA_FRAME_RAYS) > 0
-    R._CAMERA_FRAME_RAYS.clear()
-    cold = [R.render(turned, harmonics=(1, 3)), R.render(turned, harmonics=(1, 3), pixels=mask)]
-    for w, c in zip(warm, cold):
-        assert np.array_equal(w.phasor, c.phasor) and np.array_equal(w.power_w, c.power_w)
-    assert not np.array_equal(warm[0].phasor, R.render(sc, harmonics=(1, 3)).phasor)  # the pose moved the light
