@@ -463,14 +463,20 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     # rarely gains later). The set with the best held-out score is chosen: the same score, over
     # more of the sets.
     found = [(search.score(), search.dof(), best)]
+    # Only from the rounds on the final path: a round whose state holds a cause the exchange or
+    # the prune took out starts from a set the search has already found worse than the one
+    # without it, and a branch from there explores what it rejected.
+    on_path = [set(search.before[r]["active"]) <= set(best.causes) for r in range(len(search.path))]
     branches = sorted(((c.score - chosen.score, r, c) for r, (chosen, rnd) in enumerate(search.path)
-                       for c in rnd if c.significant and c is not chosen and c.effect not in best.causes),
+                       for c in rnd if on_path[r] and c.significant and c is not chosen
+                       and c.effect not in best.causes),
                       key=lambda t: (t[0], t[1], t[2].effect))[:EXTRA_STARTS]
     # A generic form chosen for what physical causes explain together (a gain field for an
     # emitter beside the lens and a beam of another exponent) keeps them out when each alone
     # gains less in its round: the search also starts from the best physical cause of the
     # round where the first generic form was taken (parsimony then chooses between the sets).
-    first = next((r for r, (chosen, _) in enumerate(search.path) if search.lib[chosen.effect].generic), None)
+    first = next((r for r, (chosen, _) in enumerate(search.path) if on_path[r] and search.lib[chosen.effect].generic),
+                 None)
     if first is not None:
         physical = next((c for c in search.path[first][1] if c.significant and not search.lib[c.effect].generic
                          and c.effect not in best.causes), None)
@@ -482,7 +488,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
         other = new_search()
         other.restore(search.before[r])
         other.add(c, [c], {c.effect: [c]})
-        other.run([x.effect for x in search.path[r][1] if x.significant], max_effects)
+        other.run([x.effect for x in search.path[r][1] if x.significant], max_effects, premise=c.effect)
         alt = other.finish()
         alt.rounds = best.rounds[:r + 1] + alt.rounds
         for key in ("too_small", "not_tried"):
@@ -580,13 +586,15 @@ class _GreedySearch:
         """The chosen set's held-out score: misfit plus the penalty of its degrees of freedom."""
         return float(self.current_chi2 + sum(self.k_of(e) for e in self.active) * self.penalty)
 
-    def run(self, names: Sequence[str], max_effects: int) -> None:
+    def run(self, names: Sequence[str], max_effects: int, premise: str | None = None) -> None:
         """Rounds until nothing significant is left or ``max_effects`` are chosen, every cause
         tested again against the others (:meth:`prune`) and the search run again without each
-        (:meth:`exchange`); then the chosen forms are tested again at the final values."""
+        (:meth:`exchange`); then the chosen forms are tested again at the final values. A
+        branch's ``premise`` (the runner-up it starts from) is not searched again without: the
+        search without it is the one the branch was taken from."""
         self.forward(names, max_effects)
         self.prune()
-        self.exchange(names, max_effects)
+        self.exchange(names, max_effects, premise)
         self.simplify_forms()
 
     def forward(self, names: Sequence[str], max_effects: int) -> None:
@@ -602,7 +610,7 @@ class _GreedySearch:
             self.path.append((chosen, round_))
             self.add(chosen, round_, tried_of)
 
-    def exchange(self, names: Sequence[str], max_effects: int) -> None:
+    def exchange(self, names: Sequence[str], max_effects: int, premise: str | None = None) -> None:
         """Every chosen cause must survive the search run without it (forward selection with
         exchanges): the others refitted, the rounds run again over every other effect, the set
         pruned. A cause taken first for parts of two others' light (a readout's offset for a
@@ -616,7 +624,7 @@ class _GreedySearch:
             return  # the set leaves nothing beyond noise (the verdict's test): no other set explains more
         sel = self.selection
         for cause in list(self.active):
-            if cause not in self.active:
+            if cause not in self.active or cause == premise:
                 continue
             saved, score = self.snapshot(), self.score()
             saved_small, n_rounds, n_path = dict(sel.too_small), len(sel.rounds), len(self.path)
