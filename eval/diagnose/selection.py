@@ -482,13 +482,15 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
                          and c.effect not in best.causes), None)
         if physical is not None and all(c is not physical for _, _, c in branches):
             branches.append((physical.score - search.path[first][0].score, first, physical))
+    settled = search.settled()
     for _, r, c in branches:
         if progress:
             progress(f"searching again from round {r + 1}'s {c.effect}")
         other = new_search()
         other.restore(search.before[r])
         other.add(c, [c], {c.effect: [c]})
-        other.run([x.effect for x in search.path[r][1] if x.significant], max_effects, premise=c.effect)
+        other.run([x.effect for x in search.path[r][1] if x.significant], max_effects, premise=c.effect,
+                  settled=settled)
         alt = other.finish()
         alt.rounds = best.rounds[:r + 1] + alt.rounds
         for key in ("too_small", "not_tried"):
@@ -586,16 +588,27 @@ class _GreedySearch:
         """The chosen set's held-out score: misfit plus the penalty of its degrees of freedom."""
         return float(self.current_chi2 + sum(self.k_of(e) for e in self.active) * self.penalty)
 
-    def run(self, names: Sequence[str], max_effects: int, premise: str | None = None) -> None:
+    def run(self, names: Sequence[str], max_effects: int, premise: str | None = None, settled: bool = False) -> None:
         """Rounds until nothing significant is left or ``max_effects`` are chosen, every cause
         tested again against the others (:meth:`prune`) and the search run again without each
-        (:meth:`exchange`); then the chosen forms are tested again at the final values. A
-        branch's ``premise`` (the runner-up it starts from) is not searched again without: the
-        search without it is the one the branch was taken from."""
+        (:meth:`exchange`); then the chosen forms are tested again at the final values.
+
+        A branch's ``premise`` (the runner-up it starts from) is not searched again without: the
+        search without it is the one the branch was taken from. A branch whose main search is
+        ``settled`` (its set leaves nothing beyond noise) runs no exchange: an exchange looks for
+        a set that explains more, and there is nothing more to explain; what a branch can still
+        give there is a set the data cannot tell from the main one, which its rounds find."""
         self.forward(names, max_effects)
         self.prune()
-        self.exchange(names, max_effects, premise)
+        if not settled:
+            self.exchange(names, max_effects, premise)
         self.simplify_forms()
+
+    def settled(self) -> bool:
+        """The chosen set leaves nothing beyond noise (the verdict's test at ALPHA)."""
+        from tofhil.eval.diagnose.verdict import noise_dof, noise_threshold
+
+        return self.current_chi2 <= noise_threshold(self.n_test, noise_dof(self.data)) * self.n_test
 
     def forward(self, names: Sequence[str], max_effects: int) -> None:
         """Rounds until nothing significant is left or ``max_effects`` are chosen."""
@@ -618,9 +631,7 @@ class _GreedySearch:
         replaces the chosen one when its held-out score is lower, and is said. Not where the set
         leaves nothing beyond noise (the verdict's test at ALPHA): no set explains more there,
         and the sets it cannot tell apart are the branches' "A or B"."""
-        from tofhil.eval.diagnose.verdict import noise_dof, noise_threshold
-
-        if self.current_chi2 <= noise_threshold(self.n_test, noise_dof(self.data)) * self.n_test:
+        if self.settled():
             return  # the set leaves nothing beyond noise (the verdict's test): no other set explains more
         sel = self.selection
         for cause in list(self.active):
