@@ -597,8 +597,15 @@ class _GreedySearch:
         search without it is the one the branch was taken from. A branch whose main search is
         ``settled`` (its set leaves nothing beyond noise) runs no exchange: an exchange looks for
         a set that explains more, and there is nothing more to explain; what a branch can still
-        give there is a set the data cannot tell from the main one, which its rounds find."""
-        self.forward(names, max_effects)
+        give there is a set the data cannot tell from the main one, which its rounds find.
+
+        There, too, a branch ends once its premise fails the prune's test against the causes
+        chosen after it: the set without it is one the main search held, and went on from,
+        before (the branch would repeat that search)."""
+        rejoined = self.forward(names, max_effects, premise=premise if settled else None)
+        if rejoined:
+            self.simplify_forms()
+            return
         self.prune()
         if not settled:
             self.exchange(names, max_effects, premise)
@@ -610,8 +617,10 @@ class _GreedySearch:
 
         return self.current_chi2 <= noise_threshold(self.n_test, noise_dof(self.data)) * self.n_test
 
-    def forward(self, names: Sequence[str], max_effects: int) -> None:
-        """Rounds until nothing significant is left or ``max_effects`` are chosen."""
+    def forward(self, names: Sequence[str], max_effects: int, premise: str | None = None) -> bool:
+        """Rounds until nothing significant is left or ``max_effects`` are chosen. With a
+        ``premise``: until it fails the prune's test against the causes chosen after it (then
+        it is dropped, and True returned)."""
         while len(self.active) < max_effects:
             before = self.snapshot()
             round_, tried_of = self.round(names)
@@ -622,6 +631,10 @@ class _GreedySearch:
             self.before.append(before)
             self.path.append((chosen, round_))
             self.add(chosen, round_, tried_of)
+            if premise is not None and premise in self.active and len(self.active) > 1 \
+                    and not self._kept_against_rest(premise):
+                return True
+        return False
 
     def exchange(self, names: Sequence[str], max_effects: int, premise: str | None = None) -> None:
         """Every chosen cause must survive the search run without it (forward selection with
@@ -703,19 +716,25 @@ class _GreedySearch:
         while dropped and len(self.active) > 1:
             dropped = False
             for e in list(self.active):
-                if self.progress:
-                    self.progress(f"testing {e} against " + " + ".join(a for a in self.active if a != e))
-                without = self._refit_without(e)
-                _, chi2, pred = without
-                gains, worth, _ = self._significant(chi2, self.current_chi2, self.k_of(e), pred, self.current_pred)
-                if gains and worth:
-                    continue
-                self.selection.too_small[e] = (f"{e}: dropped, the other causes refitted without it explain the "
-                                               f"held-out data as well (its gain over them {chi2 - self.current_chi2:.1f} "
-                                               f"in misfit, {self.k_of(e):g} degrees of freedom)")
-                self._drop(e, without)
-                dropped = True
-                break
+                if not self._kept_against_rest(e):
+                    dropped = True
+                    break
+
+    def _kept_against_rest(self, e: str) -> bool:
+        """The prune's test of one cause: ``e`` against the chosen set without it, the others
+        refitted; a cause that fails is dropped (and said too small)."""
+        if self.progress:
+            self.progress(f"testing {e} against " + " + ".join(a for a in self.active if a != e))
+        without = self._refit_without(e)
+        _, chi2, pred = without
+        gains, worth, _ = self._significant(chi2, self.current_chi2, self.k_of(e), pred, self.current_pred)
+        if gains and worth:
+            return True
+        self.selection.too_small[e] = (f"{e}: dropped, the other causes refitted without it explain the "
+                                       f"held-out data as well (its gain over them {chi2 - self.current_chi2:.1f} "
+                                       f"in misfit, {self.k_of(e):g} degrees of freedom)")
+        self._drop(e, without)
+        return False
 
     def _significant(self, chi2_without: float, chi2_with: float, k: float, pred_without: np.ndarray,
                      pred_with: np.ndarray) -> tuple[bool, bool, dict[str, ChannelGain]]:
