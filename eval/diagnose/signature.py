@@ -72,20 +72,21 @@ NOT_FITTED = ("not fitted, the residual's projection on their signature (the dir
 
 
 def signature(model: Any, data: HeldOutData, effect: str, spec: Any, current: Mapping[str, Mapping[str, float]],
-              base_residual: np.ndarray) -> np.ndarray:
+              base_residual: np.ndarray, part: str = "screen") -> np.ndarray:
     """The whitened held-out directions ``[values, directions]`` in which ``spec``'s parameters
     move the prediction (every channel of the likelihood: S and the offset), at each of the
     fit's starting points (off, and the form's ``starts``), by the fit's own forward-difference
     step (a twentieth of each parameter's scale), on the screen pixels
-    (:attr:`HeldOutData.screen_pixels`; ``base_residual`` is read there)."""
+    (:attr:`HeldOutData.screen_pixels`; ``base_residual`` is read there), or on the whole
+    held-out part (``part="test"``, see :func:`signature_part`)."""
     base_values = {p.name: p.off for p in spec.params}
     columns: list[np.ndarray] = []
     # (on the screen pixels: a model that can predicts only them, exact there)
-    pixels = data.screen_pixels if getattr(model, "predicts_pixels", False) else None
+    pixels = data.screen_pixels if part == "screen" and getattr(model, "predicts_pixels", False) else None
 
     def residual(values: Mapping[str, Any]) -> np.ndarray:
         pred = model.predict(values) if pixels is None else model.predict(values, pixels=pixels)
-        return data.whitened_residual(pred, "screen")
+        return data.whitened_residual(pred, part)
 
     for start in ({},) + tuple(spec.starts):
         x0 = {**base_values, **{k: v for k, v in start.items() if k in base_values}}
@@ -139,11 +140,28 @@ def signature_test(model: Any, data: HeldOutData, effect: str, spec: Any, curren
     if (getattr(spec, "closed_form", None) is not None or getattr(spec, "roughness", None) is not None
             or not spec.params or len(spec.params) > MAX_SIGNATURE_PARAMS):
         return None  # (a form with a prior: its price, its effective dof, is known after its fit)
-    base = data.whitened_residual(base_prediction, "screen")
-    directions = signature(model, data, effect, spec, current, base)
+    part = signature_part(model, effect, spec, current)
+    base = data.whitened_residual(base_prediction, part)
+    directions = signature(model, data, effect, spec, current, base, part)
     stat, rank = score_statistic(base, directions)
-    return SignatureTest(effect=effect, form=spec.form, statistic=whole_part_bound(stat, data, rank), rank=rank,
+    return SignatureTest(effect=effect, form=spec.form,
+                         statistic=stat if part == "test" else whole_part_bound(stat, data, rank), rank=rank,
                          needed=needed)
+
+
+def signature_part(model: Any, effect: str, spec: Any, current: Mapping[str, Mapping[str, float]]) -> str:
+    """Where the signature is read: the screen pixels (``"screen"``) where the model predicts
+    them without the rest of the frame; else the whole held-out part (``"test"``): when a
+    perturbed prediction is a whole frame anyway (an effect that moves light between pixels
+    is on), the screen would save no render, and its statistic is only a bound on the whole
+    part's, loose by the noise of a subsample (a form would be fitted that the whole part's
+    statistic skips)."""
+    alone = getattr(model, "predicts_alone", None)
+    if alone is None:
+        return "screen"
+    # (the parameters moved as the signature moves them)
+    moved = {p.name: p.off + (0.05 if p.off + 0.05 * p.scale <= p.hi else -0.05) * p.scale for p in spec.params}
+    return "screen" if alone(dict(current)) and alone(dict(current) | {effect: moved}) else "test"
 
 
 def whole_part_bound(statistic: float, data: HeldOutData, rank: int = 0) -> float:
@@ -166,4 +184,4 @@ def needed_gain(k: float, penalty_per_dof: float, excess: float, min_relative_ga
 
 
 __all__: Sequence[str] = ("SignatureTest", "signature", "score_statistic", "signature_test", "needed_gain",
-                          "MAX_SIGNATURE_PARAMS", "NOT_FITTED", "whole_part_bound", "SUBSAMPLE_Z")
+                          "MAX_SIGNATURE_PARAMS", "NOT_FITTED", "whole_part_bound", "signature_part", "SUBSAMPLE_Z")

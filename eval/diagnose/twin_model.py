@@ -371,6 +371,11 @@ class TwinModel:
             self.profile_gain = saved
         return self._gain_of(s, np.ones(self.data.camera.shape, dtype=bool))
 
+    def predicts_alone(self, active: EffectParams) -> bool:
+        """True when :meth:`predict` on some pixels renders only those (no effect of the set
+        moves light between pixels): else a prediction anywhere is a whole frame's."""
+        return self.twin.pixel_local(self.effects_for(active))
+
     def _predict_at(self, effects: dict[str, dict[str, Any]], pixels: np.ndarray, *,
                     profile: bool = True) -> np.ndarray:
         """The taps and the signal only where asked (the rest of the frame stays zero)."""
