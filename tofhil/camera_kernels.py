@@ -30,11 +30,16 @@ _ROUNDING = lm.ROUNDING_RESIDUAL
 _CONVERGED = lm.CONVERGED_RESIDUAL
 
 
+beyond_reach_sq = _inline(lm.beyond_reach_sq)
+
+
 @njit(cache=True, error_model="numpy", nogil=True, inline="always")
 def brown_undistort(xd, yd, c, max_iter):  # pragma: no cover
     """Distorted normalised ``(xd, yd)`` -> undistorted ``(x, y)``; NaN where the model has
     no inverse (no convergence, or a root beyond the model's reach ``c[12]``:
     :func:`tofhil.lens_models.model_reach`)."""
+    if xd * xd + yd * yd > beyond_reach_sq(c):
+        return math.nan, math.nan
     x, y = xd, yd
     fx, fy = brown_distort(x, y, c)
     ex, ey = xd - fx, yd - fy

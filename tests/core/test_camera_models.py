@@ -289,3 +289,33 @@ def test_model_reach_is_the_first_fold_and_rays_beyond_it_are_refused() -> None:
         assert 0 <= uv[0] < cam.width and 0 <= uv[1] < cam.height
         seen = cam.pixel_rays(uv[0], uv[1])
         assert np.isnan(seen).all() or np.degrees(np.arccos(seen[2])) < reach_deg
+
+
+def test_a_barrel_lens_has_no_ray_beyond_the_image_of_its_reach_and_every_ray_inside() -> None:
+    """``r (1 + k1 r^2)`` with ``k1 < 0`` rises to ``r*^2 = 1 / (3 |k1|)`` and no further: a
+    distorted radius above ``r* (1 + k1 r*^2)`` (closed form) has no inverse on the lens's
+    branch, one below it has exactly one. The compiled inversion (the renderer's sub-pixel
+    rays) and the numpy one agree bit for bit on both sides, and every ray found distorts back
+    to its point."""
+    from tofhil.camera_kernels import undistort_arrays
+    from tofhil.lens_models import brown_undistort
+
+    k1 = -0.25
+    cam = CameraModel(400, 400, 100.0, 100.0, 0.0, 0.0, dist=(k1, 0, 0, 0, 0))
+    c = np.asarray(cam.kernel_coeffs)
+    r_star = np.sqrt(1 / (3 * abs(k1)))
+    rd_max = r_star * (1 + k1 * r_star ** 2)
+    rng = np.random.default_rng(5)
+    rd = np.concatenate([rng.uniform(0.0, 0.999 * rd_max, 500), rng.uniform(1.001 * rd_max, 3 * rd_max, 500)])
+    az = rng.uniform(0, 2 * np.pi, rd.size)
+    xd, yd = rd * np.cos(az), rd * np.sin(az)
+    x, y = undistort_arrays(xd, yd, c)
+    xn, yn = brown_undistort(xd, yd, c)
+    np.testing.assert_array_equal(x, xn)
+    np.testing.assert_array_equal(y, yn)
+    inside = rd < rd_max
+    assert np.isnan(x[~inside]).all() and np.isfinite(x[inside]).all()
+    g = 1 + k1 * (x[inside] ** 2 + y[inside] ** 2)
+    np.testing.assert_allclose(x[inside] * g, xd[inside], atol=1e-12)
+    np.testing.assert_allclose(y[inside] * g, yd[inside], atol=1e-12)
+    assert (x[inside] ** 2 + y[inside] ** 2 <= 1 / (3 * abs(k1))).all()
