@@ -310,14 +310,16 @@ class OpticalSignal:
         for h, coef in coefficients.items():
             if coef == 0:
                 continue
-            if h in self.harmonics:
+            rendered = h in self.harmonics
+            if rendered:
                 s_h = self.phasor_w[:, self.harmonics.index(h)]
             else:
                 if polar is None:
                     s1 = self.phasor_w[:, self.harmonics.index(1)]
                     polar = np.abs(s1), np.angle(s1)
                 s_h = polar[0] * np.exp(1j * h * polar[1])
-            out.append((h, s_h if coef == 1.0 and h in self.harmonics else coef * s_h))
+            # (a rendered order at coefficient 1 is the render's own array, not a copy)
+            out.append((h, s_h if coef == 1.0 and rendered else coef * s_h))
         return out
 
     @classmethod

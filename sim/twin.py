@@ -150,6 +150,10 @@ def differential(taps: np.ndarray) -> np.ndarray:
     return 0.5 * (taps - np.roll(taps, k // 2, axis=1))
 
 
+#: The bytes of unpinned renders a twin keeps by default (a memory bound; it decides nothing).
+DEFAULT_CACHE_BYTES = 32 * 2 ** 20
+
+
 class RenderCache(LRUCache):
     """Renders by content key, least recently used first out, except the pinned ones.
 
@@ -164,7 +168,7 @@ class RenderCache(LRUCache):
     asked for again, except the last (the fitted values, predicted once more).
     """
 
-    def __init__(self, size: int = 8, max_bytes: int = 32 * 2 ** 20) -> None:
+    def __init__(self, size: int = 8, max_bytes: int = DEFAULT_CACHE_BYTES) -> None:
         super().__init__(size, max_bytes, nbytes=_nbytes, max_pinned=4)
 
 
@@ -183,7 +187,7 @@ class Twin:
     def __init__(self, scene: Any, *, sensor: SensorConfig | None = None, effects: Mapping[str, Any] | None = None,
                  render_kwargs: Mapping[str, Any] | None = None, cache_size: int = 8,
                  progress: Progress | None = None, frames_kept: int = 0, cache: RenderCache | None = None,
-                 cache_bytes: int = 32 * 2 ** 20) -> None:
+                 cache_bytes: int = DEFAULT_CACHE_BYTES) -> None:
         from tofhil.sim.pipeline import resolve_effects, sensor_config
 
         self.scene = scene

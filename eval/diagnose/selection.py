@@ -29,7 +29,7 @@ from typing import Any, Callable, Mapping, Protocol, Sequence
 import numpy as np
 from scipy.optimize import least_squares
 
-from tofhil.content_cache import content_digest
+from tofhil.content_cache import LRUCache, content_digest
 from tofhil.eval.diagnose.heldout import HUBER_SIGMA, HeldOutData, huber, predict_fit
 from tofhil.eval.diagnose.form_prior import regularise_form
 from tofhil.eval.diagnose.ambiguity import Ambiguity, same_residual, sets_alike
@@ -444,7 +444,7 @@ def greedy_select(model: ForwardModel, data: HeldOutData, *, candidates: Sequenc
     held-out RMSE gain reaches the minimum of some channel
     (:meth:`tofhil.eval.diagnose.verdict.EffectSize.worth_naming`).
     """
-    refits: dict[str, tuple[EffectParams, float, np.ndarray]] = {}  # shared: the searches refit the same sets
+    refits = LRUCache(MAX_KEPT_REFITS)  # shared: the searches refit the same sets
 
     def new_search() -> _GreedySearch:
         return _GreedySearch(model, data, max_effects=max_effects, min_relative_gain=min_relative_gain,
@@ -536,12 +536,12 @@ class _GreedySearch:
     def __init__(self, model: ForwardModel, data: HeldOutData, *, max_effects: int, min_relative_gain: float,
                  progress: Callable[[str], None] | None,
                  effect_size: EffectSize | None,
-                 refits: dict[str, tuple[EffectParams, float, np.ndarray]] | None = None) -> None:
+                 refits: LRUCache | None = None) -> None:
         self.model, self.data, self.progress, self.effect_size = model, data, progress, effect_size
         #: The chosen set without one cause, refitted, by the state it was refitted from: the
         #: prune tests each cause against the others refitted, and the exchange then drops each
         #: from the same state (and the branches reach the same states): one fit, not two.
-        self.refits = {} if refits is None else refits
+        self.refits = LRUCache(MAX_KEPT_REFITS) if refits is None else refits
         self.min_relative_gain = min_relative_gain
         self.lib = model.library()
         self.n_test = data.n_values("test")
@@ -688,13 +688,13 @@ class _GreedySearch:
         rest = [a for a in self.active if a != e]
         key = content_digest(rest, {a: self.params[a] for a in rest},
                              {a: (self.work[a].form, self.work[a].strength) for a in rest})
-        if key not in self.refits:
+        kept = self.refits.get(key)
+        if kept is None:
             refit, _ = fit(self.model, self.data, rest, {a: self.params[a] for a in rest}, lib=self.work)
             pred = self.model.predict(refit)
-            if len(self.refits) >= MAX_KEPT_REFITS:
-                del self.refits[next(iter(self.refits))]
-            self.refits[key] = (refit, self.data.chi2(pred, "test"), pred)
-        return self.refits[key]
+            kept = (refit, self.data.chi2(pred, "test"), pred)
+            self.refits.put(key, kept)
+        return kept
 
     def _drop(self, e: str, without: tuple[EffectParams, float, np.ndarray] | None = None) -> None:
         """``e`` out of the chosen set, the others at their values without it (refitted if not given)."""

@@ -20,6 +20,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from tofhil.content_cache import LRUCache
 from tofhil.demod import phasor
 from tofhil.eval.diagnose.heldout import HeldOutData, depth_from_signal
 from tofhil.eval.diagnose.selection import EffectParams, EffectSpec, FitParam
@@ -202,7 +203,7 @@ class TwinModel:
         #: the scale was fitted (``signal_scale``), since there a global gain is a nuisance.
         self.profile_gain = False
         self._log_ratio_scale: float | None = None
-        self._measured: dict[tuple[int, bytes], np.ndarray] = {}
+        self._measured = LRUCache(4)
 
     # ---------------------------------------------------------------- library
     def library(self) -> dict[str, EffectSpec]:
@@ -316,9 +317,8 @@ class TwinModel:
         key = (id(self.data.s_train), np.packbits(use).tobytes())
         meas = self._measured.get(key)
         if meas is None:
-            if len(self._measured) >= 4:
-                self._measured.clear()
-            meas = self._measured[key] = np.abs(self.data.s_train[:self.data.n_freq][:, use]).mean(axis=0)
+            meas = np.abs(self.data.s_train[:self.data.n_freq][:, use]).mean(axis=0)
+            self._measured.put(key, meas)
         return meas
 
     @staticmethod
