@@ -34,7 +34,8 @@ from tofhil.eval.diagnose.heldout import HUBER_SIGMA, HeldOutData, huber
 #: predicts once per parameter and starting point, which for a flexible field costs what its
 #: fit does. (A cost limit; it decides nothing: every form is still judged by the one test.)
 MAX_SIGNATURE_PARAMS = 12
-#: A large image's test reads a subsample of the held-out pixels and bounds the whole part's
+#: A large image's test reads a subsample of the held-out pixels (unless its predictions are
+#: whole frames anyway: :func:`signature_part`) and bounds the whole part's
 #: statistic from above (:func:`whole_part_bound`) this many standard deviations above its
 #: estimate: a form whose whole-part statistic would be named is skipped with probability
 #: below 0.13 % (a normal tail).

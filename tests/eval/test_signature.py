@@ -146,3 +146,38 @@ def test_the_bound_from_a_subsample_of_the_held_out_pixels_rarely_skips_what_the
     skipped = sum(whole_part_bound(score_statistic(rng.normal(size=m), directions[rng.permutation(n)][:m])[0], screen, 3)
                   <= needed for _ in range(200))
     assert skipped >= 160, skipped
+
+
+class _WholeFrames(FakeModel):
+    """The fake model, saying that a prediction anywhere is a whole frame (as the twin's is
+    with stray light on): the signature then has no render to save on the screen."""
+
+    def predicts_alone(self, active) -> bool:
+        return False
+
+
+def test_where_predictions_are_whole_frames_the_test_reads_the_whole_held_out_part():
+    """With the screen a tenth of the held-out part, a model whose predictions are whole frames
+    gets the exact statistic of the whole part: for the gain (linear, rank 1) the least-squares
+    ``(J.r)^2 / J.J`` over every held-out value, computed here from the model's own change
+    (Huber's clipping at 5 sigma does not act on Gaussian noise); a model that predicts pixels
+    alone keeps the screen's bound, which is looser (larger) where nothing is hidden."""
+    from tofhil.eval.diagnose.heldout import subsample
+
+    whole_skips = screen_skips = 0
+    for seed in range(12):
+        data = _data({}, 300 + seed)
+        data._screen_pixels = subsample(data.test_pixels, max(int(data.test_pixels.sum()) // 10, 1))
+        model, spec = _WholeFrames(), FakeModel().library()["gain"]
+        base = model.predict({})
+        n = data.n_values("test")
+        needed = needed_gain(spec.k, float(np.log(n)), 0.0, 0.02)
+        whole = signature_test(model, data, "gain", spec, {}, base, needed)
+        r = data.whitened_residual(base, "test")
+        j = (r - data.whitened_residual(model.predict({"gain": {"g": 1.0 + 0.05 * 0.05}}), "test")) / (0.05 * 0.05)
+        assert whole.statistic == pytest.approx(float(j @ r) ** 2 / float(j @ j), rel=1e-6)
+        screened = signature_test(FakeModel(), data, "gain", spec, {}, base, needed)
+        assert screened.statistic > whole.statistic
+        whole_skips += whole.absent
+        screen_skips += screened.absent
+    assert whole_skips >= screen_skips and whole_skips >= 11
