@@ -603,12 +603,10 @@ class _GreedySearch:
         chosen after it: the set without it is one the main search held, and went on from,
         before (the branch would repeat that search)."""
         rejoined = self.forward(names, max_effects, premise=premise if settled else None)
-        if rejoined:
-            self.simplify_forms()
-            return
-        self.prune()
-        if not settled:
-            self.exchange(names, max_effects, premise)
+        if not rejoined:
+            self.prune()
+            if not settled:
+                self.exchange(names, max_effects, premise)
         self.simplify_forms()
 
     def settled(self) -> bool:

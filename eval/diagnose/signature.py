@@ -93,11 +93,16 @@ def signature(model: Any, data: HeldOutData, effect: str, spec: Any, current: Ma
         x0 = {**base_values, **{k: v for k, v in start.items() if k in base_values}}
         r0 = base_residual if not start else residual(dict(current) | {effect: x0})
         for p in spec.params:
-            h = 0.05 * p.scale
-            if x0[p.name] + h > p.hi:
-                h = -h
+            h = _step(p, x0[p.name])
             columns.append((r0 - residual(dict(current) | {effect: {**x0, p.name: x0[p.name] + h}})) / h)
     return np.stack(columns, axis=1) if columns else np.zeros((0, 0))
+
+
+def _step(p: Any, x: float) -> float:
+    """The forward-difference step of parameter ``p`` at ``x``: a twentieth of its scale, back
+    from the upper bound."""
+    h = 0.05 * p.scale
+    return -h if x + h > p.hi else h
 
 
 def score_statistic(residual: np.ndarray, directions: np.ndarray, c: float = HUBER_SIGMA,
@@ -160,8 +165,7 @@ def signature_part(model: Any, effect: str, spec: Any, current: Mapping[str, Map
     alone = getattr(model, "predicts_alone", None)
     if alone is None:
         return "screen"
-    # (the parameters moved as the signature moves them)
-    moved = {p.name: p.off + (0.05 if p.off + 0.05 * p.scale <= p.hi else -0.05) * p.scale for p in spec.params}
+    moved = {p.name: p.off + _step(p, p.off) for p in spec.params}
     return "screen" if alone(dict(current)) and alone(dict(current) | {effect: moved}) else "test"
 
 
