@@ -31,6 +31,44 @@ _CONVERGED = lm.CONVERGED_RESIDUAL
 
 
 beyond_reach_sq = _inline(lm.beyond_reach_sq)
+radially_symmetric = _inline(lm.radially_symmetric)
+brown_radius = _inline(lm.brown_radius)
+
+
+@njit(cache=True, error_model="numpy", nogil=True, inline="always")
+def brown_radius_undistort(xd, yd, c, max_iter):  # pragma: no cover
+    """:func:`brown_undistort` of a radially symmetric model, along the point's radius
+    (:func:`tofhil.lens_models.brown_radius_undistort`, operation by operation)."""
+    rd2 = xd * xd + yd * yd
+    if rd2 == 0.0:
+        return xd, yd
+    rd = math.sqrt(rd2)
+    r = rd
+    f, df, g = brown_radius(r, c)
+    e = rd - f
+    a = abs(e)
+    for _ in range(max_iter):
+        if not (a != 0.0 and df != 0.0 and math.isfinite(df)):
+            break
+        s = e / df
+        t = 1.0
+        rn, en, an, dfn, gn = r, e, a, df, g
+        for _h in range(_MAX_HALVINGS):
+            rn = r + t * s
+            fn, dfn, gn = brown_radius(rn, c)
+            en = rd - fn
+            an = abs(en)
+            if an <= a or a < _ROUNDING:
+                break
+            t = t * 0.5
+        r, e, a, df, g = rn, en, an, dfn, gn
+        if t * abs(s) <= _STEP_TOL * (1.0 + abs(r)):
+            break
+    l1 = abs(xd) + abs(yd)
+    if not (a * l1 <= _CONVERGED * (1.0 + l1) * rd and g * df > 0.0 and r * r <= c[12]):
+        return math.nan, math.nan
+    k = r / rd
+    return xd * k, yd * k
 
 
 @njit(cache=True, error_model="numpy", nogil=True, inline="always")
@@ -40,6 +78,8 @@ def brown_undistort(xd, yd, c, max_iter):  # pragma: no cover
     :func:`tofhil.lens_models.model_reach`)."""
     if xd * xd + yd * yd > beyond_reach_sq(c):
         return math.nan, math.nan
+    if radially_symmetric(c):
+        return brown_radius_undistort(xd, yd, c, max_iter)
     x, y = xd, yd
     fx, fy = brown_distort(x, y, c)
     ex, ey = xd - fx, yd - fy

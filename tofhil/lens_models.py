@@ -137,6 +137,27 @@ def brown_distort(x: Any, y: Any, c: np.ndarray) -> tuple[Any, Any]:
     return xd, yd
 
 
+def radially_symmetric(c: np.ndarray) -> bool:
+    """True for a Brown-Conrady model without tangential or thin-prism terms: it moves a point
+    along its radius only, so its inversion is one radius's (:func:`brown_radius`)."""
+    return c[2] == 0.0 and c[3] == 0.0 and c[8] == 0.0 and c[9] == 0.0 and c[10] == 0.0 and c[11] == 0.0
+
+
+def brown_radius(r: Any, c: np.ndarray) -> tuple[Any, Any, Any]:
+    """The radial function ``f = r g(r^2)`` of a radially symmetric Brown-Conrady model, its
+    slope ``df/dr = g + 2 r^2 g'`` and ``g``. Without a denominator (k4 = k5 = k6 = 0) the
+    divisions by it are left out: they are by exactly 1, so the results are the same bits."""
+    r2 = r * r
+    num = 1 + r2 * (c[0] + r2 * (c[1] + r2 * c[4]))
+    dnum = c[0] + r2 * (2 * c[1] + r2 * 3 * c[4])
+    if c[5] == 0.0 and c[6] == 0.0 and c[7] == 0.0:
+        return r * num, num + 2 * r2 * dnum, num
+    den = 1 + r2 * (c[5] + r2 * (c[6] + r2 * c[7]))
+    dden = c[5] + r2 * (2 * c[6] + r2 * 3 * c[7])
+    g = num / den
+    return r * g, g + 2 * r2 * ((dnum * den - num * dden) / (den * den)), g
+
+
 def beyond_reach_sq(c: np.ndarray) -> float:
     """The squared distorted radius beyond which a radially symmetric Brown-Conrady model has
     no inverse within its reach (inf for a model with tangential or thin-prism terms, or one
@@ -144,6 +165,7 @@ def beyond_reach_sq(c: np.ndarray) -> float:
     than the reach's image has no root there, and the Newton search for one (every iteration
     and halving spent) is not run. The margin of 1e-9 leaves points within rounding of the
     boundary to the search."""
+    # (radially_symmetric's test written out: numba compiles this function with its globals)
     if c[2] != 0.0 or c[3] != 0.0 or c[8] != 0.0 or c[9] != 0.0 or c[10] != 0.0 or c[11] != 0.0:
         return math.inf
     r2 = c[12]
@@ -185,9 +207,12 @@ def brown_undistort(xd: np.ndarray, yd: np.ndarray, c: np.ndarray, max_iter: int
     """Distorted normalised -> undistorted, Newton with step halving, every point to its own
     convergence; NaN where the model has no inverse (no convergence, or a root beyond the
     model's reach: :func:`model_reach`). Element by element the operations of
-    :func:`tofhil.camera_kernels.brown_undistort` (bit-identical results)."""
+    :func:`tofhil.camera_kernels.brown_undistort` (bit-identical results). A radially
+    symmetric model is inverted along each point's radius (:func:`brown_radius_undistort`)."""
     xd = np.asarray(xd, dtype=np.float64)
     yd = np.asarray(yd, dtype=np.float64)
+    if radially_symmetric(c):
+        return brown_radius_undistort(xd, yd, c, max_iter)
     with np.errstate(all="ignore"):
         x, y = xd.copy(), yd.copy()
         fx, fy = brown_distort(x, y, c)
@@ -226,6 +251,53 @@ def brown_undistort(xd: np.ndarray, yd: np.ndarray, c: np.ndarray, max_iter: int
         ok = (r <= CONVERGED_RESIDUAL * (1.0 + np.abs(xd) + np.abs(yd))) & (j00 * j11 - j01 * j10 > 0.0) \
             & (x * x + y * y <= c[REACH]) & ~beyond
     return np.where(ok, x, np.nan), np.where(ok, y, np.nan)
+
+
+def brown_radius_undistort(xd: np.ndarray, yd: np.ndarray, c: np.ndarray, max_iter: int = MAX_ITER
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`brown_undistort` of a radially symmetric model (:func:`radially_symmetric`): the
+    undistorted radius ``r`` with ``r g(r^2)`` the distorted one, Newton with step halving in
+    one unknown (a third of the two-dimensional search's arithmetic), the point scaled along its
+    radius. The same acceptance: the residual (in the two-dimensional search's units, the sum
+    of both coordinates' errors), the Jacobian's determinant ``g df/dr`` positive, the root
+    within the reach. Element by element the operations of
+    :func:`tofhil.camera_kernels.brown_radius_undistort`."""
+    with np.errstate(all="ignore"):
+        rd2 = xd * xd + yd * yd
+        rd = np.sqrt(rd2)
+        r = rd.copy()
+        f, df, g = brown_radius(r, c)
+        e = rd - f
+        a = np.abs(e)
+        beyond = rd2 > beyond_reach_sq(c)
+        active = ~beyond
+        for _ in range(max_iter):
+            active &= (a != 0.0) & (df != 0.0) & np.isfinite(df)
+            if not active.any():
+                break
+            s = e / df
+            t = np.ones(r.shape)
+            rn, en, an, dfn, gn = r, e, a, df, g
+            pending = active.copy()
+            for _h in range(MAX_HALVINGS):
+                if not pending.any():
+                    break
+                rt = r + t * s
+                ft, dft, gt = brown_radius(rt, c)
+                et = rd - ft
+                at = np.abs(et)
+                rn, en, an, dfn, gn = (np.where(pending, u, v) for u, v in
+                                       ((rt, rn), (et, en), (at, an), (dft, dfn), (gt, gn)))
+                pending &= ~((at <= a) | (a < ROUNDING_RESIDUAL))
+                t = np.where(pending, t * 0.5, t)
+            r, e, a, df, g = (np.where(active, u, v) for u, v in ((rn, r), (en, e), (an, a), (dfn, df), (gn, g)))
+            active &= ~(t * np.abs(s) <= STEP_TOL * (1.0 + np.abs(r)))
+        l1 = np.abs(xd) + np.abs(yd)
+        ok = (a * l1 <= CONVERGED_RESIDUAL * (1.0 + l1) * rd) & (g * df > 0.0) & (r * r <= c[REACH]) & ~beyond
+        k = r / rd
+        x, y = xd * k, yd * k
+    axis = rd2 == 0.0
+    return np.where(axis, xd, np.where(ok, x, np.nan)), np.where(axis, yd, np.where(ok, y, np.nan))
 
 
 def fisheye_theta(td: np.ndarray, c: np.ndarray, max_iter: int = MAX_ITER) -> np.ndarray:

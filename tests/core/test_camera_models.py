@@ -136,7 +136,9 @@ def test_compiled_and_numpy_inversions_agree(monkeypatch: pytest.MonkeyPatch) ->
 
     rng = np.random.default_rng(3)
     u, v = rng.uniform(-0.5, 1023.5, (2, 80, 80))
-    for cam in (RATIONAL, PRISM, FISHEYE):
+    radial = CameraModel(1024, 1024, 504.6, 504.7, 511.3, 512.8, distortion_model="rational",
+                         dist=(KINECT[0], KINECT[1], 0.0, 0.0) + tuple(KINECT[4:8]))
+    for cam in (RATIONAL, PRISM, FISHEYE, radial):
         compiled = cam.pixel_rays(u, v)
         cx, cy = cam.undistort_normalized(u, v)
         monkeypatch.setattr(camera_module, "_COMPILED_UNDISTORT_MIN", 10 ** 12)
@@ -319,3 +321,28 @@ def test_a_barrel_lens_has_no_ray_beyond_the_image_of_its_reach_and_every_ray_in
     np.testing.assert_allclose(x[inside] * g, xd[inside], atol=1e-12)
     np.testing.assert_allclose(y[inside] * g, yd[inside], atol=1e-12)
     assert (x[inside] ** 2 + y[inside] ** 2 <= 1 / (3 * abs(k1))).all()
+
+
+def test_a_radially_symmetric_lens_is_inverted_along_the_radius_to_the_closed_form() -> None:
+    """``rd = r (1 + k1 r^2)`` with ``k1 > 0`` has one real root (Cardano); the inversion along
+    each point's radius (the compiled one and the numpy one, bit for bit) finds it to rounding,
+    keeps the point's direction, and maps the axis to itself."""
+    from tofhil.camera_kernels import undistort_arrays
+    from tofhil.lens_models import brown_undistort, kernel_coeffs
+
+    k1 = 0.21
+    c = kernel_coeffs("plumb_bob", (k1, 0.0, 0.0, 0.0, 0.0))
+    rng = np.random.default_rng(11)
+    rd = np.concatenate([[0.0], rng.uniform(0.0, 2.0, 2000)])
+    az = rng.uniform(0, 2 * np.pi, rd.size)
+    xd, yd = rd * np.cos(az), rd * np.sin(az)
+    x, y = undistort_arrays(xd, yd, c)
+    xn, yn = brown_undistort(xd, yd, c)
+    np.testing.assert_array_equal(x, xn)
+    np.testing.assert_array_equal(y, yn)
+    p, q = 1 / (3 * k1), rd / (2 * k1)                  # r^3 + 3 p r - 2 q = 0
+    w = np.sqrt(q * q + p ** 3)
+    r_closed = np.cbrt(q + w) + np.cbrt(q - w)
+    np.testing.assert_allclose(np.hypot(x, y), r_closed, rtol=1e-13, atol=1e-15)
+    assert x[0] == 0.0 and y[0] == 0.0
+    np.testing.assert_allclose(np.arctan2(y[1:], x[1:]), np.arctan2(yd[1:], xd[1:]), atol=1e-13)
