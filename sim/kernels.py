@@ -13,7 +13,9 @@ import math
 import numpy as np
 from numba import njit
 
+from tofhil import camera_kernels as _camera_kernels, lens_models as _lens_models
 from tofhil.camera_kernels import pixel_ray
+from tofhil.numba_cache import drop_stale_cache as _drop_stale_cache
 from tofhil.sim import dielectric as _dielectric
 from tofhil.sim import embree4 as eda
 
@@ -1041,3 +1043,8 @@ def _mirror_link(scene, f, u, o, addr, px, py, pz, gx, gy, gz, sx, sy, sz, emitt
         return 0.0, 0.0, 2
     irr = i0 * _pow(ce, cos_n) * weight * geo * cs
     return irr * _brdf(rho, rs, ns, sx, sy, sz, vx, vy, vz, wox, woy, woz), opl, 2
+
+
+# (the kernels above inline the lens models and the dielectric and Embree helpers: their cache
+# is dropped when those sources change, which numba's own cache key does not see)
+_drop_stale_cache(subpixel_rays, [_camera_kernels.__file__, _lens_models.__file__, _dielectric.__file__, eda.__file__])

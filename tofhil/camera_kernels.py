@@ -17,6 +17,7 @@ import numpy as np
 from numba import njit
 
 from tofhil import lens_models as lm
+from tofhil.numba_cache import drop_stale_cache as _drop_stale_cache
 
 _inline = njit(cache=True, error_model="numpy", nogil=True, inline="always")
 brown_distort = _inline(lm.brown_distort)
@@ -226,3 +227,7 @@ def fisheye_theta_arrays(td: np.ndarray, coeffs: np.ndarray, max_iter: int = lm.
     out = np.empty_like(a)
     _fisheye_thetas(a, np.ascontiguousarray(coeffs, dtype=np.float64), int(max_iter), out)
     return out.reshape(shape)
+
+
+# (the loops above inline lens_models' arithmetic: their cache is dropped when it changes)
+_drop_stale_cache(_undistort_brown, [lm.__file__])
