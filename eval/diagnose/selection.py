@@ -46,10 +46,10 @@ EXTRA_STARTS = 2
 #: Refits of a chosen set without one cause kept for reuse (:meth:`_GreedySearch._refit_without`;
 #: each holds a prediction, a few MB at 170 x 170 bins).
 MAX_KEPT_REFITS = 48
-#: A fit ends when a step lowers its training misfit (sum of Huber's rho, one per value when
-#: the model is right) by less than this (scipy's ``ftol`` scaled to the fit's values): a
-#: two-hundredth of the smallest price a cause pays (one degree of freedom, log of the held-out
-#: values: 7 at 1000 values), so no decision moves by it.
+#: A fit ends when a step lowers its training misfit (sum of Huber's rho) by less than this
+#: (scipy's relative ``ftol`` scaled by the misfit where the fit starts): a two-hundredth of
+#: the smallest price a cause pays (one degree of freedom, log of the held-out values: 7 at
+#: 1000 values), so no decision moves by it.
 FIT_TOLERANCE = 0.05
 #: How a partial form is named: its flexible form, this, and the parameter groups left out.
 PARTIAL = " without "
@@ -324,9 +324,6 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
             cols.append((stacked(xj) - r0) / h)   # (not residual(): the last point stays x's)
         return np.stack(cols, axis=1)
 
-    # (scipy stops when a step lowers its cost, half the misfit, by less than ftol times the
-    # cost; at one per value the cost is half the values)
-    ftol = FIT_TOLERANCE / max(data.n_values("fit"), 1)
     starts = [x0]
     if new_effect is not None and new_effect in free:
         for extra in lib[new_effect].starts:
@@ -345,6 +342,9 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
             if holding:
                 last.clear()
                 hold_at(x_start)  # the held part where this pass starts
+            # (scipy stops when a step lowers its cost, half the misfit, by less than ftol times
+            # the cost: at most FIT_TOLERANCE of misfit once the cost is below the start's)
+            ftol = FIT_TOLERANCE / max(float(np.sum(huber(residual(x_start)))), 1.0)
             res = least_squares(residual, x_start, jac=jacobian, bounds=(lo, hi), x_scale=scale, method="trf",
                                 max_nfev=max_nfev, ftol=ftol, xtol=1e-7, loss="huber", f_scale=HUBER_SIGMA)
             cost = res.cost
@@ -983,6 +983,11 @@ class _GreedySearch:
 
     def finish(self) -> Selection:
         selection = self.selection
+        # a cause named is not also "too small" or "not fitted": such a record is from a set the
+        # search left (a prune that dropped it before an exchange took it back)
+        for table in (selection.too_small, selection.not_tried):
+            for e in self.active:
+                table.pop(e, None)
         selection.causes = self.active
         selection.params = {e: self.params[e] for e in self.active}
         selection.final_chi2_test = self.current_chi2
