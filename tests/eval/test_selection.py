@@ -95,3 +95,21 @@ def test_candidates_limit_the_search():
     sel = greedy_select(model, _data({"shift": {"phi": 0.3}}, seed=7), candidates=["gain"])
     assert "shift" not in sel.causes
     assert all(c.effect == "gain" for r in sel.rounds for c in r)
+
+
+def test_a_named_cause_is_not_also_said_too_small_or_not_fitted():
+    """A prune can drop a cause that an exchange takes back: its "dropped, too small" record is
+    from a set the search left, and the selection it finishes with does not carry it."""
+    from tofhil.eval.diagnose.selection import _GreedySearch
+
+    search = _GreedySearch(FakeModel(), _data({"gain": {"g": 1.2}}, seed=1), max_effects=3, min_relative_gain=0.02,
+                           progress=None, effect_size=None)
+    search.run(list(search.lib), 3)
+    assert search.active == ["gain"]
+    search.selection.too_small["gain"] = "gain: dropped (a record of a set left)"
+    search.selection.not_tried["gain"] = "gain at most 0 of 1"
+    search.selection.too_small["bump"] = "bump: too small"
+    sel = search.finish()
+    assert sel.causes == ["gain"]
+    assert "gain" not in sel.too_small and "gain" not in sel.not_tried
+    assert sel.too_small["bump"] == "bump: too small"     # the others' records are kept
