@@ -47,7 +47,7 @@ EXTRA_STARTS = 2
 #: each holds a prediction, a few MB at 170 x 170 bins).
 MAX_KEPT_REFITS = 48
 #: A fit ends when a step lowers its training misfit (sum of Huber's rho) by less than this
-#: (scipy's relative ``ftol`` scaled by the misfit where the fit starts): a two-hundredth of
+#: (scipy's relative ``ftol`` scaled by the misfit where the fit starts, at least 1e-6): a two-hundredth of
 #: the smallest price a cause pays (one degree of freedom, log of the held-out values: 7 at
 #: 1000 values), so no decision moves by it.
 FIT_TOLERANCE = 0.05
@@ -343,8 +343,10 @@ def fit(model: ForwardModel, data: HeldOutData, active: Sequence[str], start: Ef
                 last.clear()
                 hold_at(x_start)  # the held part where this pass starts
             # (scipy stops when a step lowers its cost, half the misfit, by less than ftol times
-            # the cost: at most FIT_TOLERANCE of misfit once the cost is below the start's)
-            ftol = FIT_TOLERANCE / max(float(np.sum(huber(residual(x_start)))), 1.0)
+            # the cost: at most FIT_TOLERANCE of misfit once the cost is below the start's; never
+            # tighter than scipy's 1e-6 of it, which a misfit of 10^8 units, a twin far from the
+            # data, would ask for)
+            ftol = max(FIT_TOLERANCE / max(float(np.sum(huber(residual(x_start)))), 1.0), 1e-6)
             res = least_squares(residual, x_start, jac=jacobian, bounds=(lo, hi), x_scale=scale, method="trf",
                                 max_nfev=max_nfev, ftol=ftol, xtol=1e-7, loss="huber", f_scale=HUBER_SIGMA)
             cost = res.cost
