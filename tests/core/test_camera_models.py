@@ -293,15 +293,29 @@ def test_model_reach_is_the_first_fold_and_rays_beyond_it_are_refused() -> None:
         assert np.isnan(seen).all() or np.degrees(np.arccos(seen[2])) < reach_deg
 
 
+def _inverted_at_radii(rd: np.ndarray, rng: np.random.Generator, c: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Points at distorted radii ``rd`` and random azimuths, inverted by the compiled inversion
+    (the renderer's sub-pixel rays) after checking that the numpy one agrees bit for bit:
+    ``(xd, yd, x, y)``."""
+    from tofhil.camera_kernels import undistort_arrays
+    from tofhil.lens_models import brown_undistort
+
+    az = rng.uniform(0, 2 * np.pi, rd.size)
+    xd, yd = rd * np.cos(az), rd * np.sin(az)
+    x, y = undistort_arrays(xd, yd, c)
+    xn, yn = brown_undistort(xd, yd, c)
+    np.testing.assert_array_equal(x, xn)
+    np.testing.assert_array_equal(y, yn)
+    return xd, yd, x, y
+
+
 def test_a_barrel_lens_has_no_ray_beyond_the_image_of_its_reach_and_every_ray_inside() -> None:
     """``r (1 + k1 r^2)`` with ``k1 < 0`` rises to ``r*^2 = 1 / (3 |k1|)`` and no further: a
     distorted radius above ``r* (1 + k1 r*^2)`` (closed form) has no inverse on the lens's
     branch, one below it has exactly one. The compiled inversion (the renderer's sub-pixel
     rays) and the numpy one agree bit for bit on both sides, and every ray found distorts back
     to its point."""
-    from tofhil.camera_kernels import undistort_arrays
-    from tofhil.lens_models import brown_undistort
-
     k1 = -0.25
     cam = CameraModel(400, 400, 100.0, 100.0, 0.0, 0.0, dist=(k1, 0, 0, 0, 0))
     c = np.asarray(cam.kernel_coeffs)
@@ -309,12 +323,7 @@ def test_a_barrel_lens_has_no_ray_beyond_the_image_of_its_reach_and_every_ray_in
     rd_max = r_star * (1 + k1 * r_star ** 2)
     rng = np.random.default_rng(5)
     rd = np.concatenate([rng.uniform(0.0, 0.999 * rd_max, 500), rng.uniform(1.001 * rd_max, 3 * rd_max, 500)])
-    az = rng.uniform(0, 2 * np.pi, rd.size)
-    xd, yd = rd * np.cos(az), rd * np.sin(az)
-    x, y = undistort_arrays(xd, yd, c)
-    xn, yn = brown_undistort(xd, yd, c)
-    np.testing.assert_array_equal(x, xn)
-    np.testing.assert_array_equal(y, yn)
+    xd, yd, x, y = _inverted_at_radii(rd, rng, c)
     inside = rd < rd_max
     assert np.isnan(x[~inside]).all() and np.isfinite(x[inside]).all()
     g = 1 + k1 * (x[inside] ** 2 + y[inside] ** 2)
@@ -327,19 +336,13 @@ def test_a_radially_symmetric_lens_is_inverted_along_the_radius_to_the_closed_fo
     """``rd = r (1 + k1 r^2)`` with ``k1 > 0`` has one real root (Cardano); the inversion along
     each point's radius (the compiled one and the numpy one, bit for bit) finds it to rounding,
     keeps the point's direction, and maps the axis to itself."""
-    from tofhil.camera_kernels import undistort_arrays
-    from tofhil.lens_models import brown_undistort, kernel_coeffs
+    from tofhil.lens_models import kernel_coeffs
 
     k1 = 0.21
     c = kernel_coeffs("plumb_bob", (k1, 0.0, 0.0, 0.0, 0.0))
     rng = np.random.default_rng(11)
     rd = np.concatenate([[0.0], rng.uniform(0.0, 2.0, 2000)])
-    az = rng.uniform(0, 2 * np.pi, rd.size)
-    xd, yd = rd * np.cos(az), rd * np.sin(az)
-    x, y = undistort_arrays(xd, yd, c)
-    xn, yn = brown_undistort(xd, yd, c)
-    np.testing.assert_array_equal(x, xn)
-    np.testing.assert_array_equal(y, yn)
+    xd, yd, x, y = _inverted_at_radii(rd, rng, c)
     p, q = 1 / (3 * k1), rd / (2 * k1)                  # r^3 + 3 p r - 2 q = 0
     w = np.sqrt(q * q + p ** 3)
     r_closed = np.cbrt(q + w) + np.cbrt(q - w)
